@@ -1,0 +1,44 @@
+"""Warp start-up in one place: a predictable kernel cache, quiet logs, device choice."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+_initialised = False
+
+
+def default_kernel_cache_dir() -> Path:
+    """WARP_CACHE_PATH when set, else ~/.cache/evsemmap_warp/warp (XDG_CACHE_HOME honoured)."""
+    if os.environ.get("WARP_CACHE_PATH"):
+        return Path(os.environ["WARP_CACHE_PATH"])
+    base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
+    return base / "evsemmap_warp" / "warp"
+
+
+def init_warp():
+    """Import and initialise Warp once; returns the ``warp`` module."""
+    global _initialised
+    import warp as wp
+
+    if not _initialised:
+        if not os.environ.get("WARP_CACHE_PATH") and wp.config.kernel_cache_dir is None:
+            wp.config.kernel_cache_dir = str(default_kernel_cache_dir() / wp.config.version)
+        wp.config.log_level = wp.LOG_WARNING
+        wp.init()
+        _initialised = True
+    return wp
+
+
+def resolve_device(device: str | None) -> str:
+    """'cpu', 'cuda', 'cuda:N', or None/'auto' for the first CUDA device when present, else 'cpu'."""
+    wp = init_warp()
+    if device in (None, "auto"):
+        return "cuda:0" if wp.is_cuda_available() else "cpu"
+    if device.startswith("cuda") and not wp.is_cuda_available():
+        raise ValueError(f"device {device!r} was asked for, but Warp sees no CUDA device here; use device='cpu'")
+    if device == "cuda":
+        return "cuda:0"
+    if device != "cpu" and not device.startswith("cuda:"):
+        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {device!r}")
+    return device

@@ -1,0 +1,227 @@
+"""Configs are data: small dataclasses resolved from YAML files in one place (``load_config``).
+
+A run combines a *method* file (``configs/methods/NAME.yaml``: which kernel, which media, which
+uncertainty switches) with any number of preset and dataset files (numbers and data sources). Files
+are merged in order, later files winning key by key; unknown keys and inconsistent values raise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A config file or value is wrong; the message names the file and the key."""
+
+
+class Kernel(str, enum.Enum):
+    SPARSE = "sparse"  # BKI sparse kernel k'(d, l, sigma0)
+    COUNT = "count"  # counting sensor model: weight 1 inside the point's own voxel
+
+
+class Media(str, enum.Enum):
+    ONEHOT = "onehot"  # argmax class of the payload, lowest index on ties (S-CSM, S-BKI)
+    PROB = "prob"  # expected class probabilities alpha / S (EBS, "Prob." ablations)
+
+
+class Compat(str, enum.Enum):
+    CLEAN = "clean"  # the paper's algorithm with a true radius search (default)
+    SBKI = "sbki"  # reproduce the original S-BKI / S-CSM C++ (reference_sbki.md section 4)
+
+
+class PayloadType(str, enum.Enum):
+    ALPHA = "alpha"  # evidential Dirichlet parameters, [N, K], alpha >= 1
+    PROB = "prob"  # class probabilities, [N, K], rows sum to 1
+    LABEL = "label"  # integer class ids, [N]
+
+
+@dataclass(frozen=True)
+class MappingConfig:
+    """Everything the mapper needs. Lengths in metres; see spec sections 3 and 6."""
+
+    method: str = "ebs"
+    kernel: Kernel = Kernel.SPARSE
+    media: Media = Media.PROB
+    adaptive_length: bool = True
+    uncertainty_threshold: bool = True
+    compat: Compat = Compat.CLEAN
+    resolution_m: float = 0.2
+    prior: float = 1.0
+    length_m: float = 0.2  # l; the kernel length is l * beta * exp(1 - gamma u_i) when adaptive
+    beta: float = 0.5
+    gamma: float = 10.0
+    uncertainty_drop_fraction: float = 0.1  # u~: the most uncertain fraction dropped per insertion
+    sigma0: float = 1.0
+    # S-BKI compatibility mode only (spec 3.2-3.4, reference_sbki.md 4):
+    block_depth: int = 2
+    ds_resolution_m: float = 0.1
+    free_resolution_m: float = 4.0
+    max_range_m: float = -1.0  # <= 0 disables the range filter
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, name: str, text: str) -> None:
+            if not ok:
+                raise ConfigError(f"mapping.{name} = {getattr(self, name)!r}: {text}")
+
+        need(self.resolution_m > 0, "resolution_m", "must be > 0")
+        need(self.prior > 0, "prior", "must be > 0 (a Dirichlet concentration)")
+        need(self.length_m > 0, "length_m", "must be > 0")
+        need(self.beta > 0, "beta", "must be > 0")
+        need(self.gamma >= 0, "gamma", "must be >= 0")
+        need(0 <= self.uncertainty_drop_fraction < 1, "uncertainty_drop_fraction", "must lie in [0, 1)")
+        need(self.sigma0 > 0, "sigma0", "must be > 0")
+        need(1 <= self.block_depth <= 8, "block_depth", "must lie in 1..8")
+        need(self.ds_resolution_m > 0, "ds_resolution_m", "must be > 0")
+        need(self.free_resolution_m > 0, "free_resolution_m", "must be > 0")
+        if self.compat is Compat.SBKI:
+            need(self.media is Media.ONEHOT, "media", "the sbki compatibility mode reproduces S-BKI/S-CSM, which take one-hot labels")
+            need(not self.adaptive_length, "adaptive_length", "the original S-BKI has no adaptive length")
+            need(not self.uncertainty_threshold, "uncertainty_threshold", "the original S-BKI has no uncertainty threshold")
+
+    @property
+    def keep_quantile(self) -> float:
+        return 1.0 - self.uncertainty_drop_fraction
+
+    def as_dict(self) -> dict[str, Any]:
+        return {f.name: (v.value if isinstance(v := getattr(self, f.name), enum.Enum) else v) for f in dataclasses.fields(self)}
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """Where scans come from. ``paths`` are candidates, the first existing one is used."""
+
+    kind: str = ""
+    paths: tuple[str, ...] = ()
+    pattern: str = ""
+    first_index: int = 1
+    last_index: int = 1
+    payload: PayloadType = PayloadType.LABEL
+    num_classes: int = 0
+    class_names: tuple[str, ...] = ()
+    config_dir: str = "."  # folder of the file that named the paths (they are relative to it)
+
+    def resolve_path(self) -> Path:
+        tried = []
+        for candidate in self.paths:
+            path = Path(candidate).expanduser()
+            if not path.is_absolute():
+                path = (Path(self.config_dir) / path).resolve()
+            tried.append(str(path))
+            if path.exists():
+                return path
+        raise ConfigError(f"dataset.paths: none of these exists: {tried}")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    mapping: MappingConfig
+    dataset: DatasetConfig | None = None
+    sources: tuple[str, ...] = field(default_factory=tuple)
+
+
+_SECTIONS = {"method": MappingConfig, "mapping": MappingConfig, "dataset": DatasetConfig}
+_METHOD_KEYS = {"name", "kernel", "media", "adaptive_length", "uncertainty_threshold", "compat"}
+
+
+def methods_dir() -> Path:
+    return Path(str(resources.files("evsemmap_warp.configs") / "methods"))
+
+
+def available_methods() -> list[str]:
+    return sorted(p.stem for p in methods_dir().glob("*.yaml"))
+
+
+def method_path(name_or_path: str) -> Path:
+    path = Path(name_or_path)
+    if path.suffix in (".yaml", ".yml") and path.exists():
+        return path
+    candidate = methods_dir() / f"{name_or_path}.yaml"
+    if not candidate.exists():
+        raise ConfigError(f"unknown method {name_or_path!r}; available: {', '.join(available_methods())}")
+    return candidate
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    try:
+        data = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such config file") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of sections at the top level, got {type(data).__name__}")
+    unknown = set(data) - set(_SECTIONS) - {"pipeline"}
+    if unknown:
+        raise ConfigError(f"{path}: unknown section(s) {sorted(unknown)}; known: {sorted(_SECTIONS)} and pipeline")
+    return data
+
+
+def _convert(cls, name: str, value: Any, source: str) -> Any:
+    ftype = {f.name: f.type for f in dataclasses.fields(cls)}[name]
+    default = {f.name: f.default for f in dataclasses.fields(cls)}[name]
+    try:
+        if isinstance(default, enum.Enum):
+            return type(default)(value)
+        if isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise TypeError
+            return value
+        if isinstance(default, int):
+            if isinstance(value, bool) or int(value) != value:
+                raise TypeError
+            return int(value)
+        if isinstance(default, float):
+            if isinstance(value, bool):
+                raise TypeError
+            return float(value)
+        if isinstance(default, tuple):
+            return tuple(value) if isinstance(value, (list, tuple)) else (value,)
+        return str(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{source}: {name} = {value!r} is not a valid {ftype}") from None
+
+
+def load_config(config_paths: list[str | Path], method: str | None = None) -> RunConfig:
+    """Merge the method file (if any) and the given files, later ones winning; validate."""
+    mapping: dict[str, Any] = {}
+    dataset: dict[str, Any] = {}
+    sources = []
+    files = ([method_path(method)] if method else []) + [Path(p) for p in config_paths]
+    for path in files:
+        data = _read_yaml(path)
+        sources.append(str(path))
+        for section, values in data.items():
+            if section == "pipeline":
+                continue
+            if not isinstance(values, dict):
+                raise ConfigError(f"{path}: section {section!r} must be a mapping")
+            cls = _SECTIONS[section]
+            for key, value in values.items():
+                if section == "method":
+                    if key not in _METHOD_KEYS:
+                        raise ConfigError(f"{path}: method.{key} is not a method switch; allowed: {sorted(_METHOD_KEYS)}")
+                    key = "method" if key == "name" else key
+                known = {f.name for f in dataclasses.fields(cls)} - {"config_dir"}
+                if key not in known:
+                    raise ConfigError(f"{path}: unknown key {section}.{key}; known: {sorted(known)}")
+                converted = _convert(cls, key, value, f"{path}: {section}")
+                if section == "dataset":
+                    dataset[key] = converted
+                    dataset["config_dir"] = str(path.resolve().parent)
+                else:
+                    mapping[key] = converted
+    try:
+        mapping_cfg = MappingConfig(**mapping)
+    except ConfigError as exc:
+        raise ConfigError(f"{' + '.join(sources)}: {exc}") from None
+    dataset_cfg = DatasetConfig(**dataset) if dataset else None
+    return RunConfig(mapping=mapping_cfg, dataset=dataset_cfg, sources=tuple(sources))

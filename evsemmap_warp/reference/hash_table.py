@@ -1,0 +1,93 @@
+"""numpy twin of ``evsemmap_warp.kernels.hash_table``: the same packing, hash and linear probing,
+run serially in Python so that the CPU kernel's slot assignment can be checked exactly."""
+
+from __future__ import annotations
+
+import numpy as np
+
+KEY_BITS = 21
+KEY_OFFSET = 1 << (KEY_BITS - 1)
+EMPTY_KEY = -1
+_M64 = (1 << 64) - 1
+
+
+def pack_key(index: np.ndarray) -> np.ndarray:
+    """[..., 3] int voxel indices -> [...] int64 keys."""
+    index = np.asarray(index, dtype=np.int64) + KEY_OFFSET
+    return (index[..., 0] << 42) | (index[..., 1] << 21) | index[..., 2]
+
+
+def unpack_key(keys: np.ndarray) -> np.ndarray:
+    keys = np.asarray(keys, dtype=np.int64)
+    field = (1 << KEY_BITS) - 1
+    return np.stack([(keys >> 42) & field, (keys >> 21) & field, keys & field], axis=-1) - KEY_OFFSET
+
+
+def hash_slot(key: int, mask: int) -> int:
+    h = int(key) & _M64
+    h = ((h ^ (h >> 30)) * 0xBF58476D1CE4E5B9) & _M64
+    h = ((h ^ (h >> 27)) * 0x94D049BB133111EB) & _M64
+    h ^= h >> 31
+    return (h & 0x7FFFFFFF) & mask
+
+
+def table_find(table_keys: np.ndarray, key: int) -> int:
+    mask = len(table_keys) - 1
+    slot = hash_slot(key, mask)
+    for _ in range(len(table_keys)):
+        if table_keys[slot] == key:
+            return slot
+        if table_keys[slot] == EMPTY_KEY:
+            return -1
+        slot = (slot + 1) & mask
+    return -1
+
+
+def table_find_or_insert(table_keys: np.ndarray, key_count: list[int], max_count: int, key: int) -> int:
+    mask = len(table_keys) - 1
+    slot = hash_slot(key, mask)
+    for _ in range(len(table_keys)):
+        if table_keys[slot] == key:
+            return slot
+        if table_keys[slot] == EMPTY_KEY:
+            if key_count[0] >= max_count:
+                return -1
+            table_keys[slot] = key
+            key_count[0] += 1
+            return slot
+        slot = (slot + 1) & mask
+    return -1
+
+
+def insert_keys(keys_in: np.ndarray, table_keys: np.ndarray, key_count: list[int], max_count: int) -> np.ndarray:
+    """Serial insertion in input order; mutates ``table_keys`` and ``key_count``, returns slots."""
+    return np.array([table_find_or_insert(table_keys, key_count, max_count, int(k)) for k in keys_in], dtype=np.int64)
+
+
+def lookup_keys(keys_in: np.ndarray, table_keys: np.ndarray) -> np.ndarray:
+    return np.array([table_find(table_keys, int(k)) for k in keys_in], dtype=np.int64)
+
+
+def lookup_points(points: np.ndarray, resolution: float, grid_offset: float, table_keys: np.ndarray) -> np.ndarray:
+    index = np.floor((np.asarray(points, dtype=np.float64) - grid_offset) / resolution).astype(np.int64)
+    return lookup_keys(pack_key(index), table_keys)
+
+
+def rehash(old_keys: np.ndarray, new_capacity: int) -> tuple[np.ndarray, np.ndarray]:
+    """New key array and, per old slot, its new slot (-1 for empty old slots)."""
+    new_keys = np.full(new_capacity, EMPTY_KEY, dtype=np.int64)
+    count = [0]
+    new_slot = np.full(len(old_keys), -1, dtype=np.int64)
+    for i, key in enumerate(old_keys):
+        if key != EMPTY_KEY:
+            new_slot[i] = table_find_or_insert(new_keys, count, new_capacity, int(key))
+    return new_keys, new_slot
+
+
+def move_rows_float(src: np.ndarray, dst: np.ndarray, dst_rows: np.ndarray) -> None:
+    """dst[dst_rows[i]] = src[i] wherever dst_rows[i] >= 0 (in place)."""
+    keep = dst_rows >= 0
+    dst[dst_rows[keep]] = src[keep]
+
+
+move_rows_int = move_rows_float

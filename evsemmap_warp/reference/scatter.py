@@ -1,0 +1,132 @@
+"""numpy twin of ``evsemmap_warp.kernels.scatter``.
+
+Vectorised over (point, candidate voxel) pairs, accumulated in float64 by ``np.add.at`` on a
+``np.unique`` inverse index: no hash table, no code shared with the kernel. It doubles as the
+"vectorised numpy implementation" that ``tools/bench_integrate.py`` times beside the kernel.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+MODE_RADIUS = 0
+MODE_OWN_VOXEL = 1
+MODE_SBKI_BLOCKS = 2
+MODE_SBKI_OWN_BLOCK = 3
+SBKI_REACH_FACTOR = 1.05
+
+
+@dataclass
+class ScatterResult:
+    """Per touched voxel: index [V, 3], alpha increment [V, K], weight sum, weight * u sum, hits."""
+
+    voxel_index: np.ndarray
+    alpha_increment: np.ndarray
+    weight_sum: np.ndarray
+    weighted_uncertainty_sum: np.ndarray
+    hits: np.ndarray
+    update_count: int
+
+
+def sparse_kernel(d: np.ndarray, length: np.ndarray, sigma0: float) -> np.ndarray:
+    """k'(d, l, sigma0) in float64; near d = l the closed form cancels, so the Taylor series of
+    (2 + cos a) t / 3 - sin(a) / (2 pi) in t = 1 - d/l (a = 2 pi t) is summed there instead."""
+    x = np.asarray(d, dtype=np.float64) / length
+    t = 1.0 - x
+    a = 2.0 * np.pi * x
+    closed = (2.0 + np.cos(a)) * t / 3.0 + np.sin(a) / (2.0 * np.pi)
+    b = 2.0 * np.pi * t
+    series = t * sum((-1) ** n * b ** (2 * n) * (1 / (3 * math.factorial(2 * n)) - 1 / math.factorial(2 * n + 1)) for n in range(2, 12))
+    return sigma0 * np.where(t <= 0, 0.0, np.maximum(np.where(t < 0.25, series, closed), 0.0))
+
+
+def sbki_sparse_kernel(cells: np.ndarray, points: np.ndarray, ell: np.ndarray, sf2: float) -> np.ndarray:
+    """S-BKI's covSparse in float32, as the C++ evaluates it."""
+    ell32 = np.asarray(ell, dtype=np.float32)[..., None]
+    diff = cells.astype(np.float32) / ell32 - points.astype(np.float32) / ell32
+    d = np.sqrt(np.sum(diff * diff, axis=-1, dtype=np.float32), dtype=np.float32)
+    pi = np.float32(3.1415926)
+    a = d * np.float32(2.0) * pi
+    k = ((np.float32(2.0) + np.cos(a)) * (np.float32(1.0) - d) / np.float32(3.0) + np.sin(a) / (np.float32(2.0) * pi)) * np.float32(sf2)
+    return np.maximum(k, np.float32(0.0)).astype(np.float64)
+
+
+def block_of_voxel(index: np.ndarray, cells_per_block: int) -> np.ndarray:
+    return np.floor_divide(index + cells_per_block // 2, cells_per_block)
+
+
+def _candidate_pairs(points, lengths, owners, mode, resolution, grid_offset):
+    """All (point, voxel) pairs a point might reach: [P] point ids and [P, 3] voxel indices."""
+    n = len(points)
+    if mode == MODE_OWN_VOXEL:
+        return np.arange(n), np.floor((points - grid_offset) / resolution).astype(np.int64)
+    if mode == MODE_SBKI_OWN_BLOCK:
+        return np.arange(n), owners.astype(np.int64)
+    reach = lengths * (SBKI_REACH_FACTOR if mode == MODE_SBKI_BLOCKS else 1.0)
+    # float32 for the range, as the kernel computes it, so both see the same candidate voxels.
+    p32 = points.astype(np.float32)
+    r32 = reach.astype(np.float32)[:, None]
+    lo = np.floor((p32 - r32 - np.float32(grid_offset)) / np.float32(resolution)).astype(np.int64)
+    hi = np.floor((p32 + r32 - np.float32(grid_offset)) / np.float32(resolution)).astype(np.int64)
+    span = int((hi - lo).max()) + 1 if n else 1
+    offsets = np.stack(np.meshgrid(*[np.arange(span)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    point_ids = np.repeat(np.arange(n), len(offsets))
+    voxels = np.repeat(lo, len(offsets), axis=0) + np.tile(offsets, (n, 1))
+    inside = np.all(voxels <= hi[point_ids], axis=1)
+    return point_ids[inside], voxels[inside]
+
+
+def scatter_points(
+    points: np.ndarray,
+    labels: np.ndarray | None,
+    class_weights: np.ndarray | None,
+    lengths: np.ndarray,
+    point_uncertainty: np.ndarray,
+    owner_blocks: np.ndarray | None,
+    mode: int,
+    resolution: float,
+    grid_offset: float,
+    sigma0: float,
+    cells_per_block: int,
+    num_classes: int,
+) -> ScatterResult:
+    """What one ``scatter_points`` launch adds to the map (see the kernel's docstring)."""
+    points = np.asarray(points, dtype=np.float64)
+    lengths = np.asarray(lengths, dtype=np.float64)
+    pid, vox = _candidate_pairs(points, lengths, owner_blocks, mode, resolution, grid_offset)
+    if mode in (MODE_OWN_VOXEL, MODE_SBKI_OWN_BLOCK):
+        weight = np.ones(len(pid))
+    else:
+        centers = (vox + 0.5) * resolution + grid_offset
+        if mode == MODE_RADIUS:
+            d = np.linalg.norm(centers - points[pid], axis=1)
+            keep = d < lengths[pid]
+            weight = sparse_kernel(d, lengths[pid], sigma0)
+        else:
+            block_dist = np.abs(block_of_voxel(vox, cells_per_block) - owner_blocks[pid]).sum(axis=1)
+            weight = sbki_sparse_kernel(centers.astype(np.float32), points[pid].astype(np.float32), lengths[pid], sigma0)
+            keep = (block_dist <= 1) & (weight > 0)
+        pid, vox, weight = pid[keep], vox[keep], weight[keep]
+
+    uniq, inverse = np.unique(vox, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    alpha = np.zeros((len(uniq), num_classes))
+    if labels is not None:
+        np.add.at(alpha, (inverse, np.asarray(labels)[pid]), weight)
+    else:
+        np.add.at(alpha, inverse, weight[:, None] * np.asarray(class_weights, dtype=np.float64)[pid])
+    weight_sum = np.bincount(inverse, weights=weight, minlength=len(uniq))
+    unc_sum = np.bincount(inverse, weights=weight * np.asarray(point_uncertainty, dtype=np.float64)[pid], minlength=len(uniq))
+    hits = np.bincount(inverse, minlength=len(uniq))
+    return ScatterResult(uniq.reshape(-1, 3), alpha, weight_sum, unc_sum, hits, len(pid))
+
+
+def insert_block_cells(blocks: np.ndarray, cells_per_block: int) -> np.ndarray:
+    """Voxel indices [B * n^3, 3] of every cell of the given blocks."""
+    n = cells_per_block
+    cells = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    first = np.asarray(blocks, dtype=np.int64) * n - n // 2
+    return (first[:, None, :] + cells[None]).reshape(-1, 3)

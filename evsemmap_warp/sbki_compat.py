@@ -1,0 +1,169 @@
+"""Per-scan preprocessing of the original S-BKI / S-CSM, reproduced in numpy float32.
+
+What the C++ does before its kernel loops (reference_sbki.md section 4, BKISemanticMapping@66e3258):
+PCL VoxelGrid downsampling of the hits (centroid, majority label, smallest label on ties), the
+range filter, free samples along each ray plus the sensor origin once per hit, a second VoxelGrid
+over the free samples, and block membership by inclusive float32 box tests (a point exactly on a
+block face belongs to both blocks). The mapping itself then runs on the Warp scatter kernel.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+FREE_LABEL = 0
+# A block and its 6 face neighbours: S-BKI's "extended block" (the 27-block variant is compiled out).
+EXTENDED_BLOCK_OFFSETS = np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.int64)
+_INT32_MAX = np.iinfo(np.int32).max
+
+
+def block_size_m(resolution_m: float, block_depth: int) -> np.float32:
+    """Block edge as the C++ computes it: (float) 2^(depth-1) * (float) resolution."""
+    return np.float32(np.float32(2 ** (block_depth - 1)) * np.float32(resolution_m))
+
+
+def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """pcl::VoxelGrid with downsample_all_data: one point per occupied leaf at the float32 centroid,
+    labelled by majority (smallest label on ties), in ascending leaf index order (x fastest)."""
+    points = np.asarray(points, dtype=np.float32)
+    labels = np.asarray(labels, dtype=np.int64)
+    if len(points) == 0:
+        return points.reshape(0, 3), labels
+    inverse_leaf = np.float32(1.0) / np.float32(leaf_m)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    extent = ((hi - lo) * inverse_leaf).astype(np.int64) + 1
+    if int(np.prod(extent)) > _INT32_MAX:
+        # PCL refuses such grids and returns the cloud unchanged; so do we, loudly.
+        warnings.warn(f"VoxelGrid leaf {leaf_m} m is too small for a {hi - lo} m cloud; returning it unchanged, as PCL does")
+        return points, labels
+    ijk = np.floor(points * inverse_leaf).astype(np.int64)
+    rel = ijk - ijk.min(axis=0)
+    dims = rel.max(axis=0) + 1
+    leaf_index = rel[:, 0] + rel[:, 1] * dims[0] + rel[:, 2] * dims[0] * dims[1]
+    order = np.argsort(leaf_index, kind="stable")
+    sorted_index = leaf_index[order]
+    starts = np.flatnonzero(np.r_[True, sorted_index[1:] != sorted_index[:-1]])
+    counts = np.diff(np.r_[starts, len(order)])
+    sums = np.add.reduceat(points[order], starts, axis=0, dtype=np.float32)
+    centroids = (sums / counts[:, None].astype(np.float32)).astype(np.float32)
+
+    cell_of_point = np.repeat(np.arange(len(starts)), counts)
+    sorted_labels = labels[order]
+    pair_cell, pair_label, pair_count = _count_pairs(cell_of_point, sorted_labels)
+    # Majority label per cell, smallest label on ties: sort by cell, count descending, label ascending.
+    best = np.lexsort((pair_label, -pair_count, pair_cell))
+    first_of_cell = best[np.r_[True, pair_cell[best][1:] != pair_cell[best][:-1]]]
+    return centroids, pair_label[first_of_cell]
+
+
+def _count_pairs(cells: np.ndarray, labels: np.ndarray):
+    # One int64 per (cell, label) pair: a 1-D unique is several times faster than unique(axis=0).
+    label_min = labels.min()
+    span = int(labels.max() - label_min) + 1
+    pairs, counts = np.unique(cells * span + (labels - label_min), return_counts=True)
+    return pairs // span, pairs % span + label_min, counts
+
+
+def free_space_samples(hits: np.ndarray, origin: np.ndarray, free_resolution_m: float) -> np.ndarray:
+    """S-BKI's beam_sample for every hit, each preceded by the sensor origin itself.
+
+    Samples sit at d = f, 2f, ... < l along the ray (d accumulated in float32, as in the C++ loop),
+    plus one at l - f when l > f; every coordinate is computed in float32."""
+    hits = np.asarray(hits, dtype=np.float32)
+    origin = np.asarray(origin, dtype=np.float32).reshape(3)
+    if len(hits) == 0:
+        return np.zeros((0, 3), np.float32)
+    f = np.float32(free_resolution_m)
+    diff = hits - origin
+    ray_length = np.sqrt(np.sum(diff * diff, axis=1, dtype=np.float32), dtype=np.float32)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        direction = diff / ray_length[:, None]
+    steps = [f]
+    longest = ray_length.max()
+    while steps[-1] < longest:
+        steps.append(np.float32(steps[-1] + f))
+    steps = np.array(steps, dtype=np.float32)
+    per_hit = np.searchsorted(steps, ray_length, side="left")  # how many d_k < l
+    extra = ray_length > f
+    per_hit_total = 1 + per_hit + extra  # origin + samples + the one at l - f
+    starts = np.r_[0, np.cumsum(per_hit_total)[:-1]]
+    out = np.empty((int(per_hit_total.sum()), 3), dtype=np.float32)
+    out[starts] = origin
+    hit_of_sample = np.repeat(np.arange(len(hits)), per_hit)
+    step_of_sample = np.arange(len(hit_of_sample)) - np.repeat(np.r_[0, np.cumsum(per_hit)[:-1]], per_hit)
+    rows = starts[hit_of_sample] + 1 + step_of_sample
+    out[rows] = origin + direction[hit_of_sample] * steps[step_of_sample][:, None]
+    extra_hits = np.flatnonzero(extra)
+    out[starts[extra_hits] + 1 + per_hit[extra_hits]] = origin + direction[extra_hits] * (ray_length[extra_hits] - f)[:, None]
+    return out
+
+
+def training_data(
+    points: np.ndarray,
+    labels: np.ndarray,
+    sensor_origin: np.ndarray,
+    *,
+    ds_resolution_m: float,
+    free_resolution_m: float,
+    max_range_m: float,
+) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    """S-BKI's get_training_data: downsampled hits, then downsampled free samples (label 0)."""
+    origin = np.asarray(sensor_origin, dtype=np.float32).reshape(3)
+    hits, hit_labels = voxel_grid_downsample(points, labels, ds_resolution_m)
+    if max_range_m > 0 and len(hits):
+        d = hits - origin
+        keep = np.sqrt(np.sum(d * d, axis=1, dtype=np.float32)) <= np.float32(max_range_m)
+        hits, hit_labels = hits[keep], hit_labels[keep]
+    frees = free_space_samples(hits, origin, free_resolution_m)
+    free_points, _ = voxel_grid_downsample(frees, np.zeros(len(frees), np.int64), ds_resolution_m)
+    train_points = np.concatenate([hits, free_points]).astype(np.float32)
+    train_labels = np.concatenate([hit_labels, np.full(len(free_points), FREE_LABEL, np.int64)])
+    return train_points, train_labels, {"hits": len(hits), "free_samples": len(free_points)}
+
+
+def block_memberships(points: np.ndarray, block_size: np.float32) -> tuple[np.ndarray, np.ndarray]:
+    """Every (point, block) pair with the point inside the block's closed float32 box.
+
+    Block k spans [k B - B/2, k B + B/2] per axis (centre k B, as S-BKI's hash_key_to_block); the
+    R-tree query of the C++ is inclusive, so a point on a shared face belongs to both blocks.
+    Returns point ids [M] and block indices [M, 3]."""
+    points = np.asarray(points, dtype=np.float32)
+    size = np.float32(block_size)
+    half = np.float32(size / np.float32(2.0))
+    nearest = np.floor(points.astype(np.float64) / np.float64(size) + 0.5).astype(np.int64)
+    member = {}
+    for shift in (-1, 0, 1):
+        k = nearest + shift
+        center = (k.astype(np.float32) * size).astype(np.float32)
+        member[shift] = ((center - half) <= points) & (points <= (center + half))
+    point_ids, blocks = [], []
+    for sx in (-1, 0, 1):
+        for sy in (-1, 0, 1):
+            for sz in (-1, 0, 1):
+                inside = member[sx][:, 0] & member[sy][:, 1] & member[sz][:, 2]
+                ids = np.flatnonzero(inside)
+                point_ids.append(ids)
+                blocks.append(nearest[ids] + np.array([sx, sy, sz]))
+    return np.concatenate(point_ids), np.concatenate(blocks).reshape(-1, 3)
+
+
+def unique_rows(index: np.ndarray) -> np.ndarray:
+    """np.unique(index, axis=0) for [M, 3] integer indices, via one packed int64 per row."""
+    if len(index) == 0:
+        return np.zeros((0, 3), np.int64)
+    index = np.asarray(index, dtype=np.int64)
+    lo = index.min(axis=0)
+    span = index.max(axis=0) - lo + 1
+    packed = np.unique(((index[:, 0] - lo[0]) * span[1] + (index[:, 1] - lo[1])) * span[2] + (index[:, 2] - lo[2]))
+    z = packed % span[2]
+    y = (packed // span[2]) % span[1]
+    x = packed // (span[1] * span[2])
+    return np.stack([x, y, z], axis=1) + lo
+
+
+def test_blocks(owner_blocks: np.ndarray) -> np.ndarray:
+    """Blocks whose extended block (itself + 6 face neighbours) holds at least one point."""
+    occupied = unique_rows(owner_blocks)
+    return unique_rows((occupied[:, None, :] + EXTENDED_BLOCK_OFFSETS[None]).reshape(-1, 3))

@@ -1,0 +1,303 @@
+"""The sparse voxel map: a Warp hash table of voxel keys plus per-voxel arrays on one device.
+
+Voxel i spans [i r + o, (i + 1) r + o) on every axis (r = resolution, o = grid offset, 0 except
+for the S-CSM compatibility grid), so its centre is (i + 0.5) r + o. Per slot the map keeps:
+
+* ``evidence`` [capacity, K] float32: kernel-weighted evidence added so far; the Dirichlet
+  concentrations are prior + evidence (stored without the prior so that fresh slots are zero
+  pages and maps merge by plain addition);
+* ``stats`` [capacity, 2] float32: sum of kernel weights, sum of weight * input uncertainty;
+* ``flags`` [capacity, 2] int32: number of contributions, touched (1 once any update landed).
+
+The table grows (2x, rehash) before it passes ``max_load`` and whenever a launch runs out of room;
+the points or blocks that could not be inserted are relaunched, so a voxel is never dropped or
+overwritten. This class only launches kernels; methods, payloads and files live elsewhere.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._warp_runtime import init_warp, resolve_device
+
+wp = init_warp()
+
+from .kernels import hash_table as ht  # noqa: E402
+from .kernels import scatter as sc  # noqa: E402
+
+STAT_WEIGHT = 0
+STAT_WEIGHTED_UNCERTAINTY = 1
+FLAG_HITS = 0
+FLAG_TOUCHED = 1
+
+MIN_CAPACITY = 16
+# Inside one launch the table may fill up to this fraction before insertions fail and it grows;
+# between launches it is kept at or below max_load.
+LAUNCH_FILL_LIMIT = 0.75
+
+
+@dataclass
+class VoxelArrays:
+    """Host copy of every stored voxel, in ascending key order (x, then y, then z index)."""
+
+    index: np.ndarray  # [V, 3] int64 voxel indices
+    evidence: np.ndarray  # [V, K] float32; concentrations are prior + evidence
+    weight_sum: np.ndarray  # [V] float32
+    weighted_uncertainty_sum: np.ndarray  # [V] float32
+    hits: np.ndarray  # [V] int32
+    touched: np.ndarray  # [V] bool
+
+
+def _next_pow2(n: int) -> int:
+    return 1 << max(int(n) - 1, 0).bit_length()
+
+
+class VoxelMap:
+    def __init__(
+        self,
+        num_classes: int,
+        resolution_m: float,
+        *,
+        prior: float = 1.0,
+        grid_offset_m: float = 0.0,
+        device: str | None = "cpu",
+        initial_capacity: int = 1 << 16,
+        max_load: float = 0.5,
+    ):
+        if num_classes < 2:
+            raise ValueError(f"num_classes must be >= 2, got {num_classes}")
+        if not resolution_m > 0:
+            raise ValueError(f"resolution_m must be > 0, got {resolution_m}")
+        if not 0.05 <= max_load <= LAUNCH_FILL_LIMIT:
+            raise ValueError(f"max_load must lie in [0.05, {LAUNCH_FILL_LIMIT}], got {max_load}")
+        self.num_classes = int(num_classes)
+        self.resolution_m = float(resolution_m)
+        self.grid_offset_m = float(grid_offset_m)
+        self.prior = float(prior)
+        self.max_load = float(max_load)
+        self.device = resolve_device(device)
+        self.grow_count = 0
+        self._last_new_voxels = 0
+        self._allocate(max(MIN_CAPACITY, _next_pow2(initial_capacity)))
+
+    # ------------------------------------------------------------------ storage
+    def _filled(self, shape, value, dtype):
+        if self.device == "cpu":
+            # Wrapping numpy memory (np.zeros: lazily zeroed pages) is ~10x faster than wp.full here.
+            host = np.zeros(shape, wp.dtype_to_numpy(dtype)) if value == 0 else np.full(shape, value, wp.dtype_to_numpy(dtype))
+            return wp.array(host, dtype=dtype, device="cpu", copy=False)
+        return wp.full(shape, value, dtype=dtype, device=self.device)
+
+    def _allocate(self, capacity: int) -> None:
+        self.capacity = capacity
+        self.keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
+        self.key_count = wp.zeros(1, dtype=int, device=self.device)
+        self.evidence = self._filled((capacity, self.num_classes), 0.0, wp.float32)
+        self.stats = self._filled((capacity, 2), 0.0, wp.float32)
+        self.flags = self._filled((capacity, 2), 0, wp.int32)
+
+    @property
+    def voxel_count(self) -> int:
+        return int(self.key_count.numpy()[0])
+
+    @property
+    def bytes_per_voxel(self) -> float:
+        """Device bytes per stored voxel, table slack included."""
+        per_slot = 8 + 4 * self.num_classes + 4 * 2 + 4 * 2  # key, evidence, stats, flags
+        return per_slot * self.capacity / max(self.voxel_count, 1)
+
+    def _launch_fill_limit(self) -> int:
+        return max(1, int(self.capacity * LAUNCH_FILL_LIMIT))
+
+    def reserve(self, new_voxels: int) -> None:
+        """Grow until ``new_voxels`` more keys fit under max_load."""
+        needed = self.voxel_count + int(new_voxels)
+        capacity = self.capacity
+        while needed > self.max_load * capacity:
+            capacity *= 2
+        if capacity != self.capacity:
+            self.grow(capacity)
+
+    def grow(self, new_capacity: int) -> None:
+        """Rehash into a table of ``new_capacity`` slots (a power of two); values follow their keys."""
+        new_capacity = _next_pow2(new_capacity)
+        if new_capacity < self.voxel_count / LAUNCH_FILL_LIMIT:
+            raise ValueError(f"cannot shrink the table to {new_capacity} slots: it holds {self.voxel_count} voxels")
+        old_keys, old_evidence, old_stats, old_flags, old_capacity = self.keys, self.evidence, self.stats, self.flags, self.capacity
+        self._allocate(new_capacity)
+        new_slot = wp.empty(old_capacity, dtype=int, device=self.device)
+        wp.launch(ht.rehash, dim=old_capacity, inputs=[old_keys, self.keys, self.key_count, new_slot], device=self.device)
+        for src, dst in ((old_evidence, self.evidence), (old_stats, self.stats)):
+            wp.launch(ht.move_rows_float, dim=old_capacity, inputs=[src, dst, new_slot], device=self.device)
+        wp.launch(ht.move_rows_int, dim=old_capacity, inputs=[old_flags, self.flags, new_slot], device=self.device)
+        self.grow_count += 1
+
+    def _grow_after_launch(self) -> None:
+        self.grow(self.capacity * 2)
+
+    # ------------------------------------------------------------------ launches
+    def _check_index_range(self, lo_m: np.ndarray, hi_m: np.ndarray) -> None:
+        lo = np.floor((lo_m - self.grid_offset_m) / self.resolution_m)
+        hi = np.floor((hi_m - self.grid_offset_m) / self.resolution_m)
+        limit = ht.INDEX_LIMIT - 1
+        if lo.min() < -limit or hi.max() >= limit:
+            raise ValueError(
+                f"points reach voxel indices {int(lo.min())}..{int(hi.max())}, outside the map's key range "
+                f"+-{limit} at resolution {self.resolution_m} m (|coordinates| must stay below "
+                f"{limit * self.resolution_m:.0f} m); recentre the data"
+            )
+
+    def scatter(
+        self,
+        points: np.ndarray,
+        lengths: np.ndarray,
+        point_uncertainty: np.ndarray,
+        *,
+        mode: int,
+        sigma0: float,
+        labels: np.ndarray | None = None,
+        class_weights: np.ndarray | None = None,
+        owner_blocks: np.ndarray | None = None,
+        cells_per_block: int = 1,
+    ) -> int:
+        """One scatter launch over all points (relaunching failed ones after growth); returns updates."""
+        n = len(points)
+        if n == 0:
+            return 0
+        reach = float(np.max(lengths)) * (sc.SBKI_REACH_FACTOR if mode == sc.MODE_SBKI_BLOCKS else 1.0)
+        if mode in (sc.MODE_RADIUS, sc.MODE_SBKI_BLOCKS, sc.MODE_OWN_VOXEL):
+            self._check_index_range(points.min(axis=0) - reach, points.max(axis=0) + reach)
+        d = self.device
+        points_wp = wp.array(np.ascontiguousarray(points, dtype=np.float32), dtype=wp.vec3, device=d)
+        use_labels = labels is not None
+        labels_wp = wp.array(np.ascontiguousarray(labels, dtype=np.int32) if use_labels else np.zeros(0, np.int32), dtype=int, device=d)
+        weights_np = np.zeros((0, self.num_classes), np.float32) if use_labels else np.ascontiguousarray(class_weights, dtype=np.float32)
+        weights_wp = wp.array(weights_np, dtype=float, device=d)
+        lengths_wp = wp.array(np.ascontiguousarray(lengths, dtype=np.float32), dtype=float, device=d)
+        unc_wp = wp.array(np.ascontiguousarray(point_uncertainty, dtype=np.float32), dtype=float, device=d)
+        owners_np = np.zeros((0, 3), np.int32) if owner_blocks is None else np.ascontiguousarray(owner_blocks, dtype=np.int32)
+        owners_wp = wp.array(owners_np, dtype=wp.vec3i, device=d)
+        update_count = wp.zeros(1, dtype=int, device=d)
+
+        # Expect as many new voxels as the last launch made; a wrong guess costs a relaunch of the
+        # points that did not fit, never a voxel.
+        self.reserve(min(n, self._last_new_voxels))
+        count_before = self.voxel_count
+        pending = np.arange(n, dtype=np.int32)
+        while len(pending):
+            ids = wp.array(pending, dtype=int, device=d)
+            failed = wp.zeros(len(pending), dtype=int, device=d)
+            wp.launch(
+                sc.scatter_points,
+                dim=len(pending),
+                inputs=[
+                    ids, points_wp, labels_wp, weights_wp, lengths_wp, unc_wp, owners_wp,
+                    int(mode), int(use_labels), self.resolution_m, self.grid_offset_m, float(sigma0), int(cells_per_block),
+                    self.keys, self.key_count, self._launch_fill_limit(),
+                    self.evidence, self.stats, self.flags, failed, update_count,
+                ],
+                device=d,
+            )
+            failed_np = failed.numpy().astype(bool)
+            pending = pending[failed_np]
+            if len(pending):
+                if mode in (sc.MODE_SBKI_BLOCKS, sc.MODE_SBKI_OWN_BLOCK):
+                    raise RuntimeError(f"{len(pending)} points reached cells that insert_blocks had not inserted (a bug)")
+                self._grow_after_launch()
+        self._last_new_voxels = self.voxel_count - count_before
+        self.reserve(0)
+        return int(update_count.numpy()[0])
+
+    def insert_blocks(self, blocks: np.ndarray, cells_per_block: int, *, mark_touched: bool) -> None:
+        """Insert every cell of each block [B, 3] (block b holds voxels b n - n/2 ... b n + n/2 - 1)."""
+        if len(blocks) == 0:
+            return
+        blocks = np.ascontiguousarray(blocks, dtype=np.int32)
+        first = blocks.astype(np.float64) * cells_per_block - cells_per_block // 2
+        self._check_index_range(first.min(axis=0) * self.resolution_m, (first.max(axis=0) + cells_per_block) * self.resolution_m)
+        d = self.device
+        blocks_wp = wp.array(blocks, dtype=wp.vec3i, device=d)
+        self.reserve(len(blocks) * cells_per_block**3)
+        pending = np.arange(len(blocks), dtype=np.int32)
+        while len(pending):
+            failed = wp.zeros(len(pending), dtype=int, device=d)
+            wp.launch(
+                sc.insert_block_cells,
+                dim=len(pending),
+                inputs=[wp.array(pending, dtype=int, device=d), blocks_wp, int(cells_per_block), int(mark_touched),
+                        self.keys, self.key_count, self._launch_fill_limit(), self.flags, failed],
+                device=d,
+            )
+            pending = pending[failed.numpy().astype(bool)]
+            if len(pending):
+                self._grow_after_launch()
+
+    def insert_voxels(self, voxel_index: np.ndarray) -> np.ndarray:
+        """Insert voxel indices [V, 3]; returns their slots (growing as needed)."""
+        keys = wp.array(_pack_keys_host(voxel_index), dtype=wp.int64, device=self.device)
+        self.reserve(len(voxel_index))
+        while True:
+            slots = wp.empty(len(voxel_index), dtype=int, device=self.device)
+            wp.launch(ht.insert_keys, dim=len(voxel_index), inputs=[keys, self.keys, self.key_count, self._launch_fill_limit(), slots], device=self.device)
+            slots_np = slots.numpy()
+            if (slots_np >= 0).all():
+                return slots_np
+            self._grow_after_launch()
+
+    def lookup_points(self, points: np.ndarray) -> np.ndarray:
+        """Slot of the voxel containing each point [M, 3], -1 where that voxel is not stored."""
+        if len(points) == 0:
+            return np.zeros(0, dtype=np.int64)
+        pts = wp.array(np.ascontiguousarray(points, dtype=np.float32), dtype=wp.vec3, device=self.device)
+        slots = wp.empty(len(points), dtype=int, device=self.device)
+        wp.launch(ht.lookup_points, dim=len(points), inputs=[pts, self.resolution_m, self.grid_offset_m, self.keys, slots], device=self.device)
+        return slots.numpy().astype(np.int64)
+
+    # ------------------------------------------------------------------ host views
+    def occupied_slots(self) -> np.ndarray:
+        """Slots that hold a key, in ascending key order."""
+        keys = self.keys.numpy()
+        slots = np.flatnonzero(keys != ht.EMPTY_KEY)
+        return slots[np.argsort(keys[slots], kind="stable")]
+
+    def arrays(self) -> VoxelArrays:
+        slots = self.occupied_slots()
+        keys = self.keys.numpy()[slots]
+        stats = self.stats.numpy()[slots]
+        flags = self.flags.numpy()[slots]
+        return VoxelArrays(
+            index=_unpack_keys_host(keys),
+            evidence=self.evidence.numpy()[slots].copy(),
+            weight_sum=stats[:, STAT_WEIGHT].copy(),
+            weighted_uncertainty_sum=stats[:, STAT_WEIGHTED_UNCERTAINTY].copy(),
+            hits=flags[:, FLAG_HITS].astype(np.int32),
+            touched=flags[:, FLAG_TOUCHED].astype(bool),
+        )
+
+    def load_arrays(self, voxels: VoxelArrays) -> None:
+        """Replace the contents with ``voxels`` (exactly: the values are copied, not re-added)."""
+        self._allocate(max(MIN_CAPACITY, _next_pow2(int(len(voxels.index) / self.max_load) + 1)))
+        slots = self.insert_voxels(voxels.index) if len(voxels.index) else np.zeros(0, np.int64)
+        evidence = np.zeros((self.capacity, self.num_classes), dtype=np.float32)
+        stats = np.zeros((self.capacity, 2), dtype=np.float32)
+        flags = np.zeros((self.capacity, 2), dtype=np.int32)
+        evidence[slots] = voxels.evidence
+        stats[slots, STAT_WEIGHT] = voxels.weight_sum
+        stats[slots, STAT_WEIGHTED_UNCERTAINTY] = voxels.weighted_uncertainty_sum
+        flags[slots, FLAG_HITS] = voxels.hits
+        flags[slots, FLAG_TOUCHED] = voxels.touched
+        self.evidence = wp.array(evidence, dtype=float, device=self.device)
+        self.stats = wp.array(stats, dtype=float, device=self.device)
+        self.flags = wp.array(flags, dtype=int, device=self.device)
+
+
+def _pack_keys_host(index: np.ndarray) -> np.ndarray:
+    index = np.asarray(index, dtype=np.int64) + ht.KEY_OFFSET
+    return (index[:, 0] << 42) | (index[:, 1] << 21) | index[:, 2]
+
+
+def _unpack_keys_host(keys: np.ndarray) -> np.ndarray:
+    field = (1 << ht.KEY_BITS) - 1
+    return np.stack([(keys >> 42) & field, (keys >> 21) & field, keys & field], axis=1) - ht.KEY_OFFSET

@@ -1,0 +1,165 @@
+"""Keys-only open-addressing hash table of voxel indices (Warp).
+
+Keys are int3 voxel indices packed into one int64 (21 bits per axis, offset 2**20), slots are found
+by a splitmix64 hash and linear probing, insertion claims a slot with ``atomic_cas``. The table
+holds keys only: callers keep per-voxel values in their own ``[capacity, ...]`` arrays indexed by
+slot. An insertion fails (returns -1) instead of overfilling the table once ``max_count`` keys are
+in; the host then grows the table and re-runs the failed work, so nothing is ever dropped.
+
+numpy twin: ``evsemmap_warp/reference/hash_table.py``.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+KEY_BITS = 21
+KEY_OFFSET = 1 << (KEY_BITS - 1)
+EMPTY_KEY = -1
+# Voxel indices must satisfy -KEY_OFFSET <= i < KEY_OFFSET on every axis.
+INDEX_LIMIT = KEY_OFFSET
+
+_KEY_OFFSET = wp.constant(KEY_OFFSET)
+_FIELD_MASK = wp.constant(wp.int64((1 << KEY_BITS) - 1))
+_EMPTY = wp.constant(wp.int64(EMPTY_KEY))
+
+
+@wp.func
+def pack_key(ix: int, iy: int, iz: int) -> wp.int64:
+    return (
+        (wp.int64(ix + _KEY_OFFSET) << wp.int64(42))
+        | (wp.int64(iy + _KEY_OFFSET) << wp.int64(21))
+        | wp.int64(iz + _KEY_OFFSET)
+    )
+
+
+@wp.func
+def unpack_key(key: wp.int64) -> wp.vec3i:
+    return wp.vec3i(
+        int((key >> wp.int64(42)) & _FIELD_MASK) - _KEY_OFFSET,
+        int((key >> wp.int64(21)) & _FIELD_MASK) - _KEY_OFFSET,
+        int(key & _FIELD_MASK) - _KEY_OFFSET,
+    )
+
+
+@wp.func
+def hash_slot(key: wp.int64, mask: int) -> int:
+    # splitmix64 finaliser: neighbouring voxels land far apart, so probe runs stay short.
+    h = wp.uint64(key)
+    h = (h ^ (h >> wp.uint64(30))) * wp.uint64(0xBF58476D1CE4E5B9)
+    h = (h ^ (h >> wp.uint64(27))) * wp.uint64(0x94D049BB133111EB)
+    h = h ^ (h >> wp.uint64(31))
+    return int(wp.uint32(h & wp.uint64(0x7FFFFFFF))) & mask
+
+
+@wp.func
+def table_find(keys: wp.array(dtype=wp.int64), key: wp.int64) -> int:
+    """Slot holding ``key``, or -1 when it is absent."""
+    mask = keys.shape[0] - 1
+    slot = hash_slot(key, mask)
+    for _probe in range(keys.shape[0]):
+        k = keys[slot]
+        if k == key:
+            return slot
+        if k == _EMPTY:
+            return -1
+        slot = (slot + 1) & mask
+    return -1
+
+
+@wp.func
+def table_find_or_insert(
+    keys: wp.array(dtype=wp.int64), key_count: wp.array(dtype=int), max_count: int, key: wp.int64
+) -> int:
+    """Slot of ``key``, inserting it if absent; -1 when the table is at ``max_count`` keys."""
+    mask = keys.shape[0] - 1
+    slot = hash_slot(key, mask)
+    for _probe in range(keys.shape[0]):
+        k = keys[slot]
+        if k == key:
+            return slot
+        if k == _EMPTY:
+            if key_count[0] >= max_count:
+                return -1
+            old = wp.atomic_cas(keys, slot, _EMPTY, key)
+            if old == _EMPTY:
+                wp.atomic_add(key_count, 0, 1)
+                return slot
+            if old == key:
+                return slot
+        slot = (slot + 1) & mask
+    return -1
+
+
+@wp.kernel
+def insert_keys(
+    keys_in: wp.array(dtype=wp.int64),
+    table_keys: wp.array(dtype=wp.int64),
+    key_count: wp.array(dtype=int),
+    max_count: int,
+    slots_out: wp.array(dtype=int),
+):
+    i = wp.tid()
+    slots_out[i] = table_find_or_insert(table_keys, key_count, max_count, keys_in[i])
+
+
+@wp.kernel
+def lookup_keys(
+    keys_in: wp.array(dtype=wp.int64),
+    table_keys: wp.array(dtype=wp.int64),
+    slots_out: wp.array(dtype=int),
+):
+    i = wp.tid()
+    slots_out[i] = table_find(table_keys, keys_in[i])
+
+
+@wp.kernel
+def lookup_points(
+    points: wp.array(dtype=wp.vec3),
+    resolution: float,
+    grid_offset: float,
+    table_keys: wp.array(dtype=wp.int64),
+    slots_out: wp.array(dtype=int),
+):
+    """Slot of the voxel containing each point (voxel i spans [i r + o, (i + 1) r + o))."""
+    i = wp.tid()
+    p = points[i]
+    ix = int(wp.floor((p[0] - grid_offset) / resolution))
+    iy = int(wp.floor((p[1] - grid_offset) / resolution))
+    iz = int(wp.floor((p[2] - grid_offset) / resolution))
+    slots_out[i] = table_find(table_keys, pack_key(ix, iy, iz))
+
+
+@wp.kernel
+def rehash(
+    old_keys: wp.array(dtype=wp.int64),
+    new_keys: wp.array(dtype=wp.int64),
+    new_count: wp.array(dtype=int),
+    new_slot_of_old: wp.array(dtype=int),
+):
+    """Insert every key of the old table into the new one; -1 marks empty old slots."""
+    i = wp.tid()
+    key = old_keys[i]
+    if key == _EMPTY:
+        new_slot_of_old[i] = -1
+    else:
+        new_slot_of_old[i] = table_find_or_insert(new_keys, new_count, new_keys.shape[0], key)
+
+
+@wp.kernel
+def move_rows_float(src: wp.array2d(dtype=float), dst: wp.array2d(dtype=float), dst_rows: wp.array(dtype=int)):
+    """dst[dst_rows[i], :] = src[i, :] for every i with dst_rows[i] >= 0 (values follow a rehash)."""
+    i = wp.tid()
+    row = dst_rows[i]
+    if row >= 0:
+        for c in range(src.shape[1]):
+            dst[row, c] = src[i, c]
+
+
+@wp.kernel
+def move_rows_int(src: wp.array2d(dtype=int), dst: wp.array2d(dtype=int), dst_rows: wp.array(dtype=int)):
+    i = wp.tid()
+    row = dst_rows[i]
+    if row >= 0:
+        for c in range(src.shape[1]):
+            dst[row, c] = src[i, c]

@@ -1,0 +1,295 @@
+"""Radius-search-and-scatter kernels: one launch integrates one scan into the voxel map (Warp).
+
+Each point visits the voxels its weight function can reach, finds or inserts them in the hash
+table and atomically adds weight * y into their Dirichlet concentrations. The traversal is
+written once; what changes between methods is the small weight rule chosen by ``mode``:
+
+* ``MODE_RADIUS``: the paper's sparse kernel k'(d, l_i, sigma0) on every voxel whose centre lies
+  strictly within the point's own length l_i (S-BKI, EBS and the ablations, "clean" mode).
+* ``MODE_OWN_VOXEL``: weight 1 on the voxel containing the point (S-CSM, clean mode).
+* ``MODE_SBKI_BLOCKS``: the original S-BKI rule: the sparse kernel evaluated as the C++ does
+  (scaled coordinates, float32, negatives clamped), restricted to voxels whose block is the
+  point's owner block or one of its 6 face neighbours.
+* ``MODE_SBKI_OWN_BLOCK``: the original S-CSM rule: weight 1 on the owner block's single cell.
+
+In the clean modes every point runs two passes over its voxels: the first finds or inserts all
+of them, the second adds. A point whose insertion fails (table full) adds nothing and is flagged
+in ``failed``; the host grows the table and relaunches only those points, so each point lands
+exactly once. The compat modes only add: their target cells are inserted beforehand.
+
+numpy twin: ``evsemmap_warp/reference/scatter.py``.
+"""
+
+import warp as wp
+
+from .hash_table import pack_key, table_find, table_find_or_insert
+
+wp.set_module_options({"enable_backward": False})
+
+MODE_RADIUS = 0
+MODE_OWN_VOXEL = 1
+MODE_SBKI_BLOCKS = 2
+MODE_SBKI_OWN_BLOCK = 3
+
+# The C++ S-BKI writes pi as 3.1415926f; float32 rounding noise makes its kernel slightly positive
+# a little beyond d = ell, so the compat search reaches this far past the length.
+SBKI_REACH_FACTOR = 1.05
+
+_TWO_PI = wp.constant(6.283185307179586)
+
+
+def _series_coefficient(n: int) -> float:
+    from math import factorial
+
+    return 1.0 / (3.0 * factorial(2 * n)) - 1.0 / factorial(2 * n + 1)
+
+
+_C2, _C3, _C4, _C5, _C6, _C7 = (wp.constant(_series_coefficient(n)) for n in range(2, 8))
+_SBKI_PI = wp.constant(3.1415926)
+_SBKI_REACH = wp.constant(SBKI_REACH_FACTOR)
+
+
+@wp.func
+def sparse_kernel(d: float, length: float, sigma0: float) -> float:
+    """k'(d, l, sigma0) of spec 3.5 for d < l.
+
+    Near the support edge the closed form is the difference of two O(1 - d/l) terms, and float32
+    turns it into rounding noise (1e-8..5e-7, reference_sbki.md 7.5) that can flip prior-level
+    argmax ties. With t = 1 - d/l and a = 2 pi t the kernel is sigma0 t f(a), f(a) =
+    (2 + cos a) / 3 - sin(a) / a = sum_{n>=2} (-1)^n c_n a^(2n), c_n = 1/(3 (2n)!) - 1/(2n+1)!;
+    six terms are exact to float32 for t < 1/4, where the series is used instead.
+    """
+    x = d / length
+    t = 1.0 - x
+    if t <= 0.0:
+        return 0.0
+    if t < 0.25:
+        a = _TWO_PI * t
+        a2 = a * a
+        f = a2 * a2 * (_C2 - a2 * (_C3 - a2 * (_C4 - a2 * (_C5 - a2 * (_C6 - a2 * _C7)))))
+        return sigma0 * t * f
+    a = _TWO_PI * x
+    return wp.max(sigma0 * ((2.0 + wp.cos(a)) * t / 3.0 + wp.sin(a) / _TWO_PI), 0.0)
+
+
+@wp.func
+def sbki_sparse_kernel(cell: wp.vec3, point: wp.vec3, ell: float, sf2: float) -> float:
+    """The sparse kernel exactly as S-BKI's covSparse computes it (float32, negatives -> 0)."""
+    d = wp.length(cell / ell - point / ell)
+    a = d * 2.0 * _SBKI_PI
+    k = ((2.0 + wp.cos(a)) * (1.0 - d) / 3.0 + wp.sin(a) / (2.0 * _SBKI_PI)) * sf2
+    return wp.max(k, 0.0)
+
+
+@wp.func
+def voxel_center(ix: int, iy: int, iz: int, resolution: float, grid_offset: float) -> wp.vec3:
+    return wp.vec3(
+        (float(ix) + 0.5) * resolution + grid_offset,
+        (float(iy) + 0.5) * resolution + grid_offset,
+        (float(iz) + 0.5) * resolution + grid_offset,
+    )
+
+
+@wp.func
+def voxel_of(p: float, resolution: float, grid_offset: float) -> int:
+    return int(wp.floor((p - grid_offset) / resolution))
+
+
+@wp.func
+def block_of_voxel(i: int, cells_per_block: int) -> int:
+    # Cell j of block b is voxel b * n - n / 2 + j (n even), or voxel b when n == 1.
+    half = cells_per_block / 2
+    q = i + half
+    b = q / cells_per_block
+    if q < 0 and b * cells_per_block != q:
+        b = b - 1
+    return b
+
+
+@wp.func
+def voxel_weight(
+    mode: int,
+    ix: int,
+    iy: int,
+    iz: int,
+    p: wp.vec3,
+    length: float,
+    owner: wp.vec3i,
+    resolution: float,
+    grid_offset: float,
+    sigma0: float,
+    cells_per_block: int,
+) -> float:
+    """Weight of point p on voxel (ix, iy, iz); negative when the voxel is not a target."""
+    if mode == MODE_OWN_VOXEL or mode == MODE_SBKI_OWN_BLOCK:
+        return 1.0
+    c = voxel_center(ix, iy, iz, resolution, grid_offset)
+    if mode == MODE_RADIUS:
+        d = wp.length(c - p)
+        if d < length:
+            return sparse_kernel(d, length, sigma0)
+        return -1.0
+    # MODE_SBKI_BLOCKS
+    bx = block_of_voxel(ix, cells_per_block) - owner[0]
+    by = block_of_voxel(iy, cells_per_block) - owner[1]
+    bz = block_of_voxel(iz, cells_per_block) - owner[2]
+    if wp.abs(bx) + wp.abs(by) + wp.abs(bz) > 1:
+        return -1.0
+    w = sbki_sparse_kernel(c, p, length, sigma0)
+    if w > 0.0:
+        return w
+    return -1.0
+
+
+@wp.func
+def range_lo(mode: int, p: wp.vec3, length: float, owner: wp.vec3i, resolution: float, grid_offset: float) -> wp.vec3i:
+    if mode == MODE_SBKI_OWN_BLOCK:
+        return owner
+    if mode == MODE_OWN_VOXEL:
+        return wp.vec3i(
+            voxel_of(p[0], resolution, grid_offset),
+            voxel_of(p[1], resolution, grid_offset),
+            voxel_of(p[2], resolution, grid_offset),
+        )
+    reach = length
+    if mode == MODE_SBKI_BLOCKS:
+        reach = length * _SBKI_REACH
+    return wp.vec3i(
+        voxel_of(p[0] - reach, resolution, grid_offset),
+        voxel_of(p[1] - reach, resolution, grid_offset),
+        voxel_of(p[2] - reach, resolution, grid_offset),
+    )
+
+
+@wp.func
+def range_hi(mode: int, p: wp.vec3, length: float, owner: wp.vec3i, resolution: float, grid_offset: float) -> wp.vec3i:
+    if mode == MODE_SBKI_OWN_BLOCK:
+        return owner
+    if mode == MODE_OWN_VOXEL:
+        return wp.vec3i(
+            voxel_of(p[0], resolution, grid_offset),
+            voxel_of(p[1], resolution, grid_offset),
+            voxel_of(p[2], resolution, grid_offset),
+        )
+    reach = length
+    if mode == MODE_SBKI_BLOCKS:
+        reach = length * _SBKI_REACH
+    return wp.vec3i(
+        voxel_of(p[0] + reach, resolution, grid_offset),
+        voxel_of(p[1] + reach, resolution, grid_offset),
+        voxel_of(p[2] + reach, resolution, grid_offset),
+    )
+
+
+@wp.kernel
+def scatter_points(
+    point_ids: wp.array(dtype=int),
+    points: wp.array(dtype=wp.vec3),
+    labels: wp.array(dtype=int),
+    class_weights: wp.array2d(dtype=float),
+    lengths: wp.array(dtype=float),
+    point_uncertainty: wp.array(dtype=float),
+    owner_blocks: wp.array(dtype=wp.vec3i),
+    mode: int,
+    use_labels: int,
+    resolution: float,
+    grid_offset: float,
+    sigma0: float,
+    cells_per_block: int,
+    table_keys: wp.array(dtype=wp.int64),
+    key_count: wp.array(dtype=int),
+    max_count: int,
+    voxel_evidence: wp.array2d(dtype=float),
+    voxel_stats: wp.array2d(dtype=float),
+    voxel_flags: wp.array2d(dtype=int),
+    failed: wp.array(dtype=int),
+    update_count: wp.array(dtype=int),
+):
+    """Integrate points[point_ids[t]] into the map.
+
+    voxel_evidence[:, k] += weight * y_k (y one-hot labels[i] or class_weights[i]),
+    voxel_stats[:, 0] += weight, voxel_stats[:, 1] += weight * uncertainty,
+    voxel_flags[:, 0] += 1 per contribution, voxel_flags[:, 1] = 1 (touched).
+    """
+    t = wp.tid()
+    i = point_ids[t]
+    p = points[i]
+    length = lengths[i]
+    owner = wp.vec3i(0, 0, 0)
+    if mode == MODE_SBKI_BLOCKS or mode == MODE_SBKI_OWN_BLOCK:
+        owner = owner_blocks[i]
+    lo = range_lo(mode, p, length, owner, resolution, grid_offset)
+    hi = range_hi(mode, p, length, owner, resolution, grid_offset)
+
+    # Clean modes create voxels; in the compat modes every target is a cell of a test block,
+    # inserted beforehand by insert_block_cells, so the insertion pass is skipped.
+    if mode == MODE_RADIUS or mode == MODE_OWN_VOXEL:
+        inserted_all = int(1)
+        for ix in range(lo[0], hi[0] + 1):
+            for iy in range(lo[1], hi[1] + 1):
+                for iz in range(lo[2], hi[2] + 1):
+                    if inserted_all == 1:
+                        target = int(1)
+                        if mode == MODE_RADIUS:
+                            if wp.length(voxel_center(ix, iy, iz, resolution, grid_offset) - p) >= length:
+                                target = 0
+                        if target == 1:
+                            if table_find_or_insert(table_keys, key_count, max_count, pack_key(ix, iy, iz)) < 0:
+                                inserted_all = 0
+        if inserted_all == 0:
+            failed[t] = 1
+            return
+
+    u = point_uncertainty[i]
+    n_updates = int(0)
+    for ix in range(lo[0], hi[0] + 1):
+        for iy in range(lo[1], hi[1] + 1):
+            for iz in range(lo[2], hi[2] + 1):
+                w = voxel_weight(mode, ix, iy, iz, p, length, owner, resolution, grid_offset, sigma0, cells_per_block)
+                if w >= 0.0:
+                    slot = table_find(table_keys, pack_key(ix, iy, iz))
+                    if slot < 0:
+                        # Only reachable in the compat modes, if a target cell was not pre-inserted.
+                        failed[t] = 1
+                        return
+                    if use_labels == 1:
+                        wp.atomic_add(voxel_evidence, slot, labels[i], w)
+                    else:
+                        for c in range(class_weights.shape[1]):
+                            wp.atomic_add(voxel_evidence, slot, c, w * class_weights[i, c])
+                    wp.atomic_add(voxel_stats, slot, 0, w)
+                    wp.atomic_add(voxel_stats, slot, 1, w * u)
+                    wp.atomic_add(voxel_flags, slot, 0, 1)
+                    voxel_flags[slot, 1] = 1
+                    n_updates += 1
+    wp.atomic_add(update_count, 0, n_updates)
+
+
+@wp.kernel
+def insert_block_cells(
+    block_ids: wp.array(dtype=int),
+    blocks: wp.array(dtype=wp.vec3i),
+    cells_per_block: int,
+    mark_touched: int,
+    table_keys: wp.array(dtype=wp.int64),
+    key_count: wp.array(dtype=int),
+    max_count: int,
+    voxel_flags: wp.array2d(dtype=int),
+    failed: wp.array(dtype=int),
+):
+    """Insert every cell of blocks[block_ids[t]] (S-BKI/S-CSM test blocks); optionally mark touched."""
+    t = wp.tid()
+    b = blocks[block_ids[t]]
+    n = cells_per_block
+    first = b * n - wp.vec3i(n / 2, n / 2, n / 2)
+    ok = int(1)
+    for jx in range(n):
+        for jy in range(n):
+            for jz in range(n):
+                slot = table_find_or_insert(table_keys, key_count, max_count, pack_key(first[0] + jx, first[1] + jy, first[2] + jz))
+                if slot < 0:
+                    ok = 0
+                elif mark_touched == 1:
+                    voxel_flags[slot, 1] = 1
+    if ok == 0:
+        failed[t] = 1

@@ -1,0 +1,31 @@
+"""The command line, run in-process the way a user types it."""
+
+import json
+
+import numpy as np
+
+from evsemmap_warp.cli import main
+from evsemmap_warp.map_file import read_map_arrays
+
+from conftest import REPO
+
+
+def test_map_info_and_dump_config(tmp_path, capsys):
+    out = tmp_path / "toy.npz"
+    assert main(["map", str(REPO / "configs/datasets/sbki_toy.yaml"), "--method", "s-csm", "--out", str(out), "--quiet"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["voxels"] == 64130 and report["states"]["OCCUPIED"] == 6988 and report["scans"] == 12
+    arrays, meta = read_map_arrays(out)
+    assert meta["classes"] == ["free", "ground", "wall", "obstacle"] and meta["mapping"]["compat"] == "sbki"
+    assert (np.bincount(arrays["state"], minlength=3) == [41329, 15813, 6988]).all()
+    assert main(["info", str(out)]) == 0
+    assert json.loads(capsys.readouterr().out)["voxels"] == 64130
+    assert main(["dump-config", str(REPO / "configs/presets/rellis3d.yaml"), "--method", "ebs"]) == 0
+    assert "gamma: 10.0" in capsys.readouterr().out
+
+
+def test_errors_exit_2_with_a_message(tmp_path, capsys):
+    assert main(["map", str(REPO / "configs/presets/rellis3d.yaml"), "--method", "ebs", "--out", str(tmp_path / "m.npz")]) == 2
+    assert "has a 'dataset' section" in capsys.readouterr().err
+    assert main(["info", str(tmp_path / "missing.npz")]) == 2
+    assert "no such map file" in capsys.readouterr().err

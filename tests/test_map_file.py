@@ -1,0 +1,100 @@
+"""Map files: exact round trips and clear errors for files that are not what they claim."""
+
+import json
+import zipfile
+
+import numpy as np
+import pytest
+
+from evsemmap_warp.config import load_config
+from evsemmap_warp.map_file import FORMAT_VERSION, MapFileError, load_map, read_map_arrays, save_map
+from evsemmap_warp.mapping import Mapper
+
+from conftest import REPO
+
+
+@pytest.fixture
+def small_map(device):
+    cfg = load_config([REPO / "configs/presets/rellis3d.yaml"], method="ebs").mapping
+    mapper = Mapper(cfg, 9, class_names=[f"c{i}" for i in range(9)], device=device)
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        pts = rng.uniform(-5, 5, (2000, 3))
+        alpha = 1 + rng.gamma(0.3, 30, (2000, 9))
+        mapper.integrate(pts, alpha, payload_type="alpha")
+    return mapper
+
+
+def test_round_trip_is_exact(tmp_path, small_map, device):
+    path = save_map(tmp_path / "m.npz", small_map)
+    first, meta = read_map_arrays(path)
+    loaded = load_map(path, device=device)
+    again = save_map(tmp_path / "again.npz", loaded)
+    second, meta2 = read_map_arrays(again)
+    assert first.keys() == second.keys() and meta == meta2
+    for name in first:
+        np.testing.assert_array_equal(first[name], second[name], err_msg=name)
+    assert meta["format_version"] == FORMAT_VERSION and meta["method"] == "ebs" and meta["mapping"]["gamma"] == 10.0
+    assert first["centers"].dtype == np.float64 and first["alpha"].dtype == np.float32 and first["state"].dtype == np.int8
+    np.testing.assert_allclose(first["centers"], (first["voxel_index"] + 0.5) * 0.2)
+    q = np.random.default_rng(1).uniform(-5, 5, (500, 3))
+    a, b = small_map.query(q), loaded.query(q)
+    np.testing.assert_array_equal(a.label, b.label)
+    np.testing.assert_array_equal(a.variance, b.variance)
+
+
+def test_saving_to_a_name_without_npz_suffix_keeps_the_name(tmp_path, small_map):
+    path = save_map(tmp_path / "map.evsem", small_map)
+    assert path.exists() and not (tmp_path / "map.evsem.npz").exists()
+
+
+def test_truncated_file(tmp_path, small_map):
+    path = save_map(tmp_path / "m.npz", small_map)
+    data = path.read_bytes()
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(MapFileError, match="corrupt or truncated") as err:
+        load_map(cut)
+    assert "cut.npz" in str(err.value)
+
+
+def test_not_a_map_file(tmp_path):
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"definitely not a zip")
+    with pytest.raises(MapFileError, match="corrupt or truncated"):
+        load_map(junk)
+    other = tmp_path / "other.npz"
+    np.savez(other, a=np.zeros(3))
+    with pytest.raises(MapFileError, match="not an evsemmap map file"):
+        load_map(other)
+    with pytest.raises(MapFileError, match="no such map file"):
+        load_map(tmp_path / "missing.npz")
+
+
+def _rewrite(path, out, **changes):
+    with np.load(path, allow_pickle=False) as d:
+        arrays = {k: d[k] for k in d.files}
+    arrays.update(changes)
+    np.savez(out, **arrays)
+    return out
+
+
+def test_other_format_version_is_refused(tmp_path, small_map):
+    path = save_map(tmp_path / "m.npz", small_map)
+    meta = json.loads(str(np.load(path)["meta"]))
+    meta["format_version"] = 99
+    bad = _rewrite(path, tmp_path / "v99.npz", meta=np.array(json.dumps(meta)), format_version=np.int64(99))
+    with pytest.raises(MapFileError, match="format version 99.*reads version 1"):
+        load_map(bad)
+
+
+def test_inconsistent_shapes_and_pickled_objects_are_refused(tmp_path, small_map):
+    path = save_map(tmp_path / "m.npz", small_map)
+    bad = _rewrite(path, tmp_path / "shape.npz", alpha=np.zeros((3, 9), np.float32))
+    with pytest.raises(MapFileError, match="field 'alpha' has shape"):
+        load_map(bad)
+    pickled = _rewrite(path, tmp_path / "pickle.npz", meta=np.array([{"a": 1}], dtype=object))
+    with pytest.raises(MapFileError, match="corrupt or truncated"):
+        load_map(pickled)
+    with zipfile.ZipFile(path) as z:
+        assert all(not n.endswith(".pkl") for n in z.namelist())

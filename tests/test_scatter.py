@@ -1,0 +1,203 @@
+"""The scatter kernel against its numpy twin, on random inputs and edge cases.
+
+Tagged boundary band (style recommendation 3): in radius mode, a (point, voxel) pair with
+|d - l| < 1e-5 l can fall either side of the strict d < l test in float32 vs float64; only voxels
+reached exclusively by such pairs may be missing from one side, with a kernel weight ~0.
+"""
+
+import numpy as np
+import pytest
+
+from evsemmap_warp.kernels import scatter as sc
+from evsemmap_warp.reference import scatter as ref
+from evsemmap_warp.voxel_map import VoxelMap
+
+MODES = {"radius": sc.MODE_RADIUS, "own_voxel": sc.MODE_OWN_VOXEL}
+
+
+def _run(points, lengths, unc, *, mode, k, device, labels=None, weights=None, res=0.2, sigma0=1.0, capacity=1 << 12, offset=0.0):
+    vm = VoxelMap(k, res, device=device, initial_capacity=capacity, grid_offset_m=offset)
+    updates = vm.scatter(points, lengths, unc, mode=mode, sigma0=sigma0, labels=labels, class_weights=weights)
+    return vm, updates
+
+
+def _compare(vm, updates, expected: ref.ScatterResult, atol=2e-5):
+    got = vm.arrays()
+    assert vm.voxel_count == len(got.index)
+    np.testing.assert_array_equal(got.index, expected.voxel_index)
+    np.testing.assert_allclose(got.evidence, expected.alpha_increment, rtol=2e-5, atol=atol)
+    np.testing.assert_allclose(got.weight_sum, expected.weight_sum, rtol=2e-5, atol=atol)
+    np.testing.assert_allclose(got.weighted_uncertainty_sum, expected.weighted_uncertainty_sum, rtol=2e-5, atol=atol)
+    np.testing.assert_array_equal(got.hits, expected.hits)
+    assert got.touched.all()
+    assert updates == expected.update_count
+
+
+def _random_scan(rng, n, k, spread=3.0):
+    pts = rng.uniform(-spread, spread, (n, 3)).astype(np.float32).astype(np.float64)
+    weights = rng.dirichlet(np.ones(k), n)
+    labels = rng.integers(0, k, n)
+    lengths = rng.uniform(0.05, 0.5, n).astype(np.float32).astype(np.float64)
+    unc = rng.uniform(0, 1, n)
+    return pts, weights, labels, lengths, unc
+
+
+def _away_from_boundaries(pts, lengths, res):
+    """Drop points with any voxel centre within 1e-4 of their kernel length (the tagged band)."""
+    keep = np.ones(len(pts), bool)
+    for i, (p, l) in enumerate(zip(pts, lengths)):
+        lo = np.floor((p - l) / res).astype(int)
+        hi = np.floor((p + l) / res).astype(int)
+        grid = np.stack(np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(lo, hi)], indexing="ij"), -1).reshape(-1, 3)
+        d = np.linalg.norm((grid + 0.5) * res - p, axis=1)
+        keep[i] = np.abs(d - l).min() > 1e-4
+    return keep
+
+
+@pytest.mark.parametrize("k", [2, 9, 20])
+@pytest.mark.parametrize("media", ["labels", "weights"])
+def test_radius_mode_matches_reference(device, k, media):
+    rng = np.random.default_rng(k + len(media))
+    pts, weights, labels, lengths, unc = _random_scan(rng, 1500, k)
+    keep = _away_from_boundaries(pts, lengths, 0.2)
+    pts, weights, labels, lengths, unc = pts[keep], weights[keep], labels[keep], lengths[keep], unc[keep]
+    kw = {"labels": labels} if media == "labels" else {"weights": weights}
+    vm, updates = _run(pts, lengths, unc, mode=sc.MODE_RADIUS, k=k, device=device, **kw)
+    expected = ref.scatter_points(pts, kw.get("labels"), kw.get("weights"), lengths, unc, None, sc.MODE_RADIUS, 0.2, 0.0, 1.0, 1, k)
+    _compare(vm, updates, expected)
+
+
+def test_own_voxel_mode_matches_reference(device):
+    rng = np.random.default_rng(5)
+    pts, weights, labels, lengths, unc = _random_scan(rng, 3000, 4)
+    vm, updates = _run(pts, lengths, unc, mode=sc.MODE_OWN_VOXEL, k=4, device=device, labels=labels)
+    _compare(vm, updates, ref.scatter_points(pts, labels, None, lengths, unc, None, sc.MODE_OWN_VOXEL, 0.2, 0.0, 1.0, 1, 4))
+
+
+def test_boundary_band_is_the_only_disagreement():
+    rng = np.random.default_rng(11)
+    pts, weights, labels, lengths, unc = _random_scan(rng, 3000, 3)
+    vm, _ = _run(pts, lengths, unc, mode=sc.MODE_RADIUS, k=3, device="cpu", weights=weights)
+    expected = ref.scatter_points(pts, None, weights, lengths, unc, None, sc.MODE_RADIUS, 0.2, 0.0, 1.0, 1, 3)
+    got = vm.arrays()
+    got_set = {tuple(v) for v in got.index}
+    ref_set = {tuple(v) for v in expected.voxel_index}
+    only = got_set ^ ref_set
+    assert len(only) <= 3, f"{len(only)} voxels differ; only the tagged d ~ l band may"
+    for v in only:  # each such voxel is within the band of some point and carries ~0 weight
+        d = np.linalg.norm((np.array(v) + 0.5) * 0.2 - pts, axis=1)
+        assert np.abs(d - lengths).min() < 1e-5 * lengths.max()
+    common = [i for i, v in enumerate(map(tuple, got.index)) if v in ref_set]
+    ref_rows = {v: i for i, v in enumerate(map(tuple, expected.voxel_index))}
+    rows = [ref_rows[tuple(got.index[i])] for i in common]
+    np.testing.assert_allclose(got.evidence[common], expected.alpha_increment[rows], rtol=2e-5, atol=2e-5)
+
+
+def test_empty_and_single_point(device):
+    vm, updates = _run(np.zeros((0, 3)), np.zeros(0), np.zeros(0), mode=sc.MODE_RADIUS, k=3, device=device, labels=np.zeros(0, int))
+    assert updates == 0 and vm.voxel_count == 0
+    # One point at a voxel centre with l = 0.15 < r: exactly its own voxel, weight sigma0.
+    p = np.array([[0.1, 0.1, 0.1]])
+    vm, updates = _run(p, np.array([0.15]), np.array([0.25]), mode=sc.MODE_RADIUS, k=3, device=device, labels=np.array([2]), sigma0=2.0)
+    a = vm.arrays()
+    np.testing.assert_array_equal(a.index, [[0, 0, 0]])
+    np.testing.assert_allclose(a.evidence, [[0, 0, 2.0]], atol=1e-6)
+    np.testing.assert_allclose(a.weighted_uncertainty_sum, [0.5], atol=1e-6)
+    assert updates == 1
+
+
+def test_points_exactly_on_voxel_faces(device):
+    # x = 0.2 lies on the face between voxels 0 and 1; floor puts it in voxel 1 (half-open cells).
+    pts = np.array([[0.2, 0.0, 0.0], [0.0, 0.4, 0.2], [-0.2, -0.2, -0.2]])
+    labels = np.array([1, 2, 0])
+    vm, _ = _run(pts, np.full(3, 0.2), np.zeros(3), mode=sc.MODE_OWN_VOXEL, k=3, device=device, labels=labels)
+    np.testing.assert_array_equal(vm.arrays().index, [[-1, -1, -1], [0, 2, 1], [1, 0, 0]])
+    # Radius mode: a point on the x-face between voxels (0,0,0) and (1,0,0), level with their
+    # centres, is 0.1 m from both and farther from every other centre: both get the same weight.
+    p = np.array([[0.2, 0.1, 0.1]])
+    vm, _ = _run(p, np.array([0.1001]), np.zeros(1), mode=sc.MODE_RADIUS, k=3, device=device, labels=np.array([1]))
+    got = vm.arrays()
+    np.testing.assert_array_equal(got.index, [[0, 0, 0], [1, 0, 0]])
+    w = ref.sparse_kernel(np.array([0.1]), np.array([0.1001]), 1.0)[0]
+    # The two centres differ in float32 (0.1 vs 0.3), so t = 1 - d/l differs by ~1e-7 / 1e-3.
+    np.testing.assert_allclose(got.evidence[:, 1], [w, w], rtol=2e-3)
+
+
+def test_growth_during_one_launch_loses_nothing(device):
+    rng = np.random.default_rng(2)
+    pts, weights, labels, lengths, unc = _random_scan(rng, 2000, 5, spread=6.0)
+    keep = _away_from_boundaries(pts, lengths, 0.2)
+    pts, weights, lengths, unc = pts[keep], weights[keep], lengths[keep], unc[keep]
+    vm, updates = _run(pts, lengths, unc, mode=sc.MODE_RADIUS, k=5, device=device, weights=weights, capacity=16)
+    assert vm.grow_count >= 5, "a 16-slot table must grow repeatedly inside the launch"
+    _compare(vm, updates, ref.scatter_points(pts, None, weights, lengths, unc, None, sc.MODE_RADIUS, 0.2, 0.0, 1.0, 1, 5))
+
+
+def test_cpu_results_are_bit_identical_run_to_run():
+    rng = np.random.default_rng(4)
+    pts, weights, labels, lengths, unc = _random_scan(rng, 3000, 6)
+    runs = [_run(pts, lengths, unc, mode=sc.MODE_RADIUS, k=6, device="cpu", weights=weights, capacity=64)[0].arrays() for _ in range(2)]
+    for field in ("index", "evidence", "weight_sum", "weighted_uncertainty_sum", "hits", "touched"):
+        np.testing.assert_array_equal(getattr(runs[0], field), getattr(runs[1], field))
+
+
+def test_total_evidence_equals_total_kernel_weight(device):
+    rng = np.random.default_rng(9)
+    pts, weights, labels, lengths, unc = _random_scan(rng, 1000, 7)
+    vm, _ = _run(pts, lengths, unc, mode=sc.MODE_RADIUS, k=7, device=device, weights=weights)
+    a = vm.arrays()
+    np.testing.assert_allclose(a.evidence.sum(), a.weight_sum.sum(), rtol=1e-5)
+
+
+def test_permuting_points_leaves_the_map_unchanged(device):
+    rng = np.random.default_rng(10)
+    pts, weights, labels, lengths, unc = _random_scan(rng, 2000, 4)
+    a = _run(pts, lengths, unc, mode=sc.MODE_RADIUS, k=4, device=device, weights=weights)[0].arrays()
+    perm = rng.permutation(len(pts))
+    b = _run(pts[perm], lengths[perm], unc[perm], mode=sc.MODE_RADIUS, k=4, device=device, weights=weights[perm])[0].arrays()
+    np.testing.assert_array_equal(a.index, b.index)
+    np.testing.assert_allclose(a.evidence, b.evidence, rtol=1e-5, atol=1e-6)
+
+
+def test_sbki_modes_match_reference_on_random_owners(device):
+    rng = np.random.default_rng(12)
+    n = 800
+    pts = rng.uniform(-1.5, 1.5, (n, 3)).astype(np.float32).astype(np.float64)
+    labels = rng.integers(0, 4, n)
+    # Owner block by rounding (block 0.4 m = 4 cells of 0.1 m), as block_memberships assigns it.
+    owners = np.floor(pts / 0.4 + 0.5).astype(np.int64)
+    vm = VoxelMap(4, 0.1, device=device, initial_capacity=64)
+    ext = np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+    blocks = np.unique((np.unique(owners, axis=0)[:, None] + ext[None]).reshape(-1, 3), axis=0)
+    vm.insert_blocks(blocks, 4, mark_touched=True)
+    updates = vm.scatter(pts, np.full(n, 0.3), np.zeros(n), mode=sc.MODE_SBKI_BLOCKS, sigma0=10.0, labels=labels, owner_blocks=owners, cells_per_block=4)
+    expected = ref.scatter_points(pts, labels, None, np.full(n, 0.3), np.zeros(n), owners, sc.MODE_SBKI_BLOCKS, 0.1, 0.0, 10.0, 4, 4)
+    got = vm.arrays()
+    assert len(got.index) == len(blocks) * 64
+    rows = {tuple(v): i for i, v in enumerate(got.index)}
+    idx = [rows[tuple(v)] for v in expected.voxel_index]
+    np.testing.assert_allclose(got.evidence[idx], expected.alpha_increment, rtol=1e-4, atol=1e-5)
+    # Tagged band: at d ~ ell the C++-style float32 kernel is rounding noise (< 1e-6 sigma0), and
+    # Warp's and numpy's float32 sin/cos round differently there; only such cells may disagree.
+    untouched = np.ones(len(got.index), bool)
+    untouched[idx] = False
+    noise = got.evidence[untouched].sum(axis=1)
+    assert noise.max() < 1e-6 * 10.0 and (noise > 0).sum() <= 0.001 * len(expected.voxel_index)
+    assert got.touched.all()
+    assert abs(updates - expected.update_count) <= 0.001 * expected.update_count
+
+
+def test_sparse_kernel_is_accurate_near_the_support_edge():
+    # Evaluate the Warp kernel through a one-point scatter at controlled distances and compare it
+    # with float64 (where the closed form is accurate to ~1e-16): no float32 cancellation noise.
+    length = 0.3
+    for t in (0.3, 0.2, 0.05, 1e-2, 1e-3):
+        d = length * (1 - t)
+        p = np.array([[0.05 + d, 0.05, 0.05]])  # voxel (0,0,0) centre is (0.05, 0.05, 0.05) at r = 0.1
+        vm, _ = _run(p, np.array([length]), np.zeros(1), mode=sc.MODE_RADIUS, k=2, device="cpu", labels=np.array([1]), res=0.1)
+        a = vm.arrays()
+        row = np.flatnonzero((a.index == [0, 0, 0]).all(axis=1))[0]
+        dist = np.linalg.norm(np.float32(0.05) - p.astype(np.float32))
+        expected = ref.sparse_kernel(np.array([dist], dtype=np.float64), np.array([np.float32(length)], dtype=np.float64), 1.0)[0]
+        # float32 t = 1 - d/l carries ~6e-8 absolute error, i.e. ~5 * 6e-8 / t relative in k'.
+        np.testing.assert_allclose(a.evidence[row, 1], expected, rtol=max(1e-5, 5e-7 / t))
