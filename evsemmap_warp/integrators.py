@@ -3,10 +3,15 @@
 * ``KernelIntegrator``: the paper's clean algorithm (spec 3.11) for S-CSM, S-BKI, EBS and the
   ablations: optional per-insertion uncertainty threshold, optional adaptive length, one scatter.
 * ``SbkiCompatIntegrator``: the original S-BKI / S-CSM C++ (reference_sbki.md section 4).
+
+Both receive the map as a list of shards. Warp runs a CPU launch on one core, so on the CPU each
+worker thread scatters a contiguous part of the scan into its own shard (never a shared one: CPU
+"atomics" are plain read-modify-writes); readers add the shards up (``sum_voxel_arrays``).
 """
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,6 +20,9 @@ from . import sbki_compat
 from .config import Kernel, MappingConfig, Media
 from .kernels import scatter as sc
 from .voxel_map import VoxelMap
+
+# Below this many points per shard, splitting a launch costs more than it saves.
+MIN_POINTS_PER_SHARD = 4096
 
 
 @dataclass
@@ -33,7 +41,6 @@ class IntegrationStats:
     input_points: int = 0
     kept_points: int = 0  # after the uncertainty threshold (clean) or as training points (sbki)
     voxel_updates: int = 0
-    new_voxels: int = 0
     uncertainty_threshold: float | None = None
 
 
@@ -43,6 +50,14 @@ def uncertainty_quantile_mask(uncertainty: np.ndarray, keep_quantile: float) -> 
     k = min(int(np.floor(n * keep_quantile)), n - 1)
     threshold = float(np.partition(uncertainty, k)[k])
     return uncertainty <= threshold, threshold
+
+
+def split_over_shards(shards: list[VoxelMap], executor: Executor | None, n: int, job) -> list:
+    """Run job(shard, index_range) on contiguous parts of range(n), one part per shard, in parallel."""
+    parts = max(1, min(len(shards), n // MIN_POINTS_PER_SHARD))
+    if parts == 1 or executor is None:
+        return [job(shards[0], np.arange(n))]
+    return list(executor.map(job, shards[:parts], np.array_split(np.arange(n), parts)))
 
 
 class KernelIntegrator:
@@ -55,7 +70,7 @@ class KernelIntegrator:
             return c.length_m * c.beta * np.exp(1.0 - c.gamma * uncertainty)
         return np.full(len(uncertainty), c.length_m)
 
-    def integrate(self, voxel_map: VoxelMap, scan: ScanPayload) -> IntegrationStats:
+    def integrate(self, shards: list[VoxelMap], scan: ScanPayload, executor: Executor | None = None) -> IntegrationStats:
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points))
         keep = np.ones(len(scan.points), dtype=bool)
@@ -63,13 +78,18 @@ class KernelIntegrator:
             keep, stats.uncertainty_threshold = uncertainty_quantile_mask(scan.uncertainty, c.keep_quantile)
         points, unc = scan.points[keep], scan.uncertainty[keep]
         stats.kept_points = len(points)
-        before = voxel_map.voxel_count
-        media = {"labels": scan.labels[keep]} if c.media is Media.ONEHOT else {"class_weights": scan.probabilities[keep]}
+        onehot = c.media is Media.ONEHOT
+        media = scan.labels[keep] if onehot else scan.probabilities[keep]
         if c.kernel is Kernel.COUNT:
-            stats.voxel_updates = voxel_map.scatter(points, np.full(len(points), c.resolution_m), unc, mode=sc.MODE_OWN_VOXEL, sigma0=1.0, **media)
+            mode, sigma0, lengths = sc.MODE_OWN_VOXEL, 1.0, np.full(len(points), c.resolution_m)
         else:
-            stats.voxel_updates = voxel_map.scatter(points, self.kernel_lengths(unc), unc, mode=sc.MODE_RADIUS, sigma0=c.sigma0, **media)
-        stats.new_voxels = voxel_map.voxel_count - before
+            mode, sigma0, lengths = sc.MODE_RADIUS, c.sigma0, self.kernel_lengths(unc)
+
+        def job(shard: VoxelMap, part: np.ndarray) -> int:
+            kw = {"labels": media[part]} if onehot else {"class_weights": media[part]}
+            return shard.scatter(points[part], lengths[part], unc[part], mode=mode, sigma0=sigma0, **kw)
+
+        stats.voxel_updates = sum(split_over_shards(shards, executor, len(points), job))
         return stats
 
 
@@ -87,7 +107,7 @@ class SbkiCompatIntegrator:
         # S-CSM cells are centred on multiples of r (blocks of one cell), half a cell off the BKI grid.
         return -0.5 * config.resolution_m if config.kernel is Kernel.COUNT else 0.0
 
-    def integrate(self, voxel_map: VoxelMap, scan: ScanPayload, sensor_origin: np.ndarray) -> IntegrationStats:
+    def integrate(self, shards: list[VoxelMap], scan: ScanPayload, sensor_origin: np.ndarray, executor: Executor | None = None) -> IntegrationStats:
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points))
         points, labels, _ = sbki_compat.training_data(
@@ -98,18 +118,23 @@ class SbkiCompatIntegrator:
         if len(points) == 0:
             return stats
         point_ids, owners = sbki_compat.block_memberships(points, self.block_size)
-        before = voxel_map.voxel_count
         is_csm = c.kernel is Kernel.COUNT
-        voxel_map.insert_blocks(sbki_compat.test_blocks(owners), self.cells_per_block, mark_touched=not is_csm)
-        stats.voxel_updates = voxel_map.scatter(
-            points[point_ids].astype(np.float64),
-            np.full(len(point_ids), c.resolution_m if is_csm else c.length_m),
-            np.zeros(len(point_ids)),
-            mode=sc.MODE_SBKI_OWN_BLOCK if is_csm else sc.MODE_SBKI_BLOCKS,
-            sigma0=1.0 if is_csm else c.sigma0,
-            labels=labels[point_ids],
-            owner_blocks=owners,
-            cells_per_block=self.cells_per_block,
-        )
-        stats.new_voxels = voxel_map.voxel_count - before
+
+        def job(shard: VoxelMap, part: np.ndarray) -> int:
+            # Each shard holds the test blocks of its own points, so its targets are all present;
+            # a block in several shards is or-ed to touched when they are added up.
+            shard.insert_blocks(sbki_compat.test_blocks(owners[part]), self.cells_per_block, mark_touched=not is_csm)
+            ids = point_ids[part]
+            return shard.scatter(
+                points[ids].astype(np.float64),
+                np.full(len(ids), c.resolution_m if is_csm else c.length_m),
+                np.zeros(len(ids)),
+                mode=sc.MODE_SBKI_OWN_BLOCK if is_csm else sc.MODE_SBKI_BLOCKS,
+                sigma0=1.0 if is_csm else c.sigma0,
+                labels=labels[ids],
+                owner_blocks=owners[part],
+                cells_per_block=self.cells_per_block,
+            )
+
+        stats.voxel_updates = sum(split_over_shards(shards, executor, len(point_ids), job))
         return stats

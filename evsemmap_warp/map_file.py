@@ -102,7 +102,7 @@ def load_map(path, *, device: str | None = "cpu"):
     except (ConfigError, TypeError) as exc:
         raise MapFileError(f"{path}: field 'meta.mapping' is not a valid mapping config ({exc})") from None
     mapper = Mapper(config, int(meta["num_classes"]), class_names=meta["classes"], device=device)
-    mapper.voxel_map.load_arrays(
+    mapper.load_voxels(
         VoxelArrays(
             index=arrays["voxel_index"].astype(np.int64),
             evidence=arrays["evidence"].astype(np.float32),

@@ -11,6 +11,8 @@ Input checks live here, before any launch: shapes, NaN/inf, class counts, negati
 from __future__ import annotations
 
 import enum
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,7 +20,7 @@ import numpy as np
 from . import __version__
 from .config import Compat, MappingConfig, PayloadType
 from .integrators import IntegrationStats, KernelIntegrator, SbkiCompatIntegrator, ScanPayload
-from .voxel_map import FLAG_TOUCHED, VoxelArrays, VoxelMap
+from .voxel_map import FLAG_TOUCHED, VoxelArrays, VoxelMap, sum_voxel_arrays
 
 
 class VoxelState(enum.IntEnum):
@@ -126,6 +128,12 @@ def prepare_payload(points, payload, payload_type: PayloadType | str, num_classe
 
 
 class Mapper:
+    """Owns the voxel map (as one shard per worker), its integrator and the post-pass.
+
+    ``workers``: CPU threads that scatter in parallel, each into its own shard (default: up to 2 on
+    the CPU, where one Warp launch uses one core; always 1 on CUDA). Results do not depend on it
+    beyond float32 summation order."""
+
     def __init__(
         self,
         config: MappingConfig,
@@ -134,6 +142,7 @@ class Mapper:
         class_names: list[str] | tuple[str, ...] | None = None,
         device: str | None = "cpu",
         initial_capacity: int = 1 << 16,
+        workers: int | None = None,
     ):
         self.config = config
         self.num_classes = int(num_classes)
@@ -142,25 +151,37 @@ class Mapper:
         self.class_names = tuple(class_names) if class_names else tuple(f"class_{i}" for i in range(self.num_classes))
         if config.compat is Compat.SBKI:
             self.integrator = SbkiCompatIntegrator(config)
-            grid_offset = SbkiCompatIntegrator.grid_offset_m(config)
+            self.grid_offset_m = SbkiCompatIntegrator.grid_offset_m(config)
         else:
             self.integrator = KernelIntegrator(config)
-            grid_offset = 0.0
-        self.voxel_map = VoxelMap(
-            self.num_classes, config.resolution_m, prior=config.prior, grid_offset_m=grid_offset,
-            device=device, initial_capacity=initial_capacity,
-        )
+            self.grid_offset_m = 0.0
+        self._initial_capacity = initial_capacity
+        first = self._new_shard(device)
+        self.device = first.device
+        if workers is None:
+            workers = min(2, os.cpu_count() or 1) if self.device == "cpu" else 1
+        if workers < 1 or (workers > 1 and self.device != "cpu"):
+            raise ValueError(f"workers must be >= 1, and 1 on a CUDA device; got {workers} on {self.device}")
+        self.shards = [first] + [self._new_shard(self.device) for _ in range(workers - 1)]
+        self._executor = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="evsemmap") if workers > 1 else None
         self.scans_integrated = 0
         self.points_integrated = 0
         self._summary_cache: tuple[VoxelArrays, DirichletSummary] | None = None
 
-    @property
-    def device(self) -> str:
-        return self.voxel_map.device
+    def _new_shard(self, device) -> VoxelMap:
+        return VoxelMap(self.num_classes, self.config.resolution_m, prior=self.config.prior,
+                        grid_offset_m=self.grid_offset_m, device=device, initial_capacity=self._initial_capacity)
 
     @property
     def voxel_count(self) -> int:
-        return self.voxel_map.voxel_count
+        if len(self.shards) == 1:
+            return self.shards[0].voxel_count
+        return len(self.voxels()[0].index)
+
+    @property
+    def device_bytes(self) -> int:
+        """Device memory held by the map's tables and arrays."""
+        return sum(shard.table_bytes for shard in self.shards)
 
     def integrate(self, points, payload, *, payload_type: PayloadType | str, sensor_origin=None) -> IntegrationStats:
         """Add one scan or bin. points [N, 3] world frame (m); payload [N, K] alpha or
@@ -173,9 +194,9 @@ class Mapper:
             if sensor_origin is None:
                 raise ValueError("sensor_origin: the sbki compatibility mode casts free-space rays from the sensor origin; pass it")
             origin = _validate_points(np.asarray(sensor_origin, dtype=np.float64).reshape(1, 3), "sensor_origin")[0]
-            stats = self.integrator.integrate(self.voxel_map, scan, origin)
+            stats = self.integrator.integrate(self.shards, scan, origin, self._executor)
         else:
-            stats = self.integrator.integrate(self.voxel_map, scan)
+            stats = self.integrator.integrate(self.shards, scan, self._executor)
         self.scans_integrated += 1
         self.points_integrated += len(scan.points)
         self._summary_cache = None
@@ -185,7 +206,7 @@ class Mapper:
     def voxels(self) -> tuple[VoxelArrays, DirichletSummary]:
         """All stored voxels in key order and their post-pass (cached until the next integrate)."""
         if self._summary_cache is None:
-            arrays = self.voxel_map.arrays()
+            arrays = sum_voxel_arrays([shard.arrays() for shard in self.shards])
             self._summary_cache = (arrays, summarize_dirichlet(self.concentrations(arrays.evidence), arrays.touched))
         return self._summary_cache
 
@@ -194,19 +215,22 @@ class Mapper:
         return np.float32(self.config.prior) + np.asarray(evidence, dtype=np.float32)
 
     def voxel_centers(self, index: np.ndarray) -> np.ndarray:
-        return (np.asarray(index, dtype=np.float64) + 0.5) * self.config.resolution_m + self.voxel_map.grid_offset_m
+        return (np.asarray(index, dtype=np.float64) + 0.5) * self.config.resolution_m + self.grid_offset_m
 
     def query(self, points) -> QueryResult:
         """Label, probabilities, variance and state of the voxel containing each point [M, 3]."""
         points = _validate_points(points, "query points")
-        slots = self.voxel_map.lookup_points(points)
-        found = slots >= 0
         m, k = len(points), self.num_classes
         evidence = np.zeros((m, k), dtype=np.float32)
         touched = np.zeros(m, dtype=bool)
-        if found.any():
-            evidence[found] = self.voxel_map.evidence.numpy()[slots[found]]
-            touched[found] = self.voxel_map.flags.numpy()[slots[found], FLAG_TOUCHED] > 0
+        found = np.zeros(m, dtype=bool)
+        for shard in self.shards:
+            slots = shard.lookup_points(points)
+            hit = slots >= 0
+            if hit.any():
+                evidence[hit] += shard.evidence.numpy()[slots[hit]]
+                touched[hit] |= shard.flags.numpy()[slots[hit], FLAG_TOUCHED] > 0
+            found |= hit
         summary = summarize_dirichlet(self.concentrations(evidence), touched)
         label = np.where(found, summary.label, UNKNOWN_LABEL).astype(np.int32)
         return QueryResult(label, summary.probabilities, summary.variance, summary.state)
@@ -232,26 +256,19 @@ class Mapper:
         and counts add, touched is or-ed. Exact up to float32 summation order: BKI updates are sums."""
         if self.config != other.config or self.num_classes != other.num_classes:
             raise ValueError("merge: both maps must come from the same method, parameters and class count")
-        a, _ = self.voxels()
-        b, _ = other.voxels()
-        index = np.concatenate([a.index, b.index])
-        uniq, inverse = np.unique(index, axis=0, return_inverse=True)
-        inverse = inverse.reshape(-1)
-        evidence = np.zeros((len(uniq), self.num_classes), dtype=np.float32)
-        np.add.at(evidence, inverse, np.concatenate([a.evidence, b.evidence]))
-        merged = VoxelArrays(
-            index=uniq,
-            evidence=evidence,
-            weight_sum=np.bincount(inverse, np.concatenate([a.weight_sum, b.weight_sum]), len(uniq)).astype(np.float32),
-            weighted_uncertainty_sum=np.bincount(inverse, np.concatenate([a.weighted_uncertainty_sum, b.weighted_uncertainty_sum]), len(uniq)).astype(np.float32),
-            hits=np.bincount(inverse, np.concatenate([a.hits, b.hits]), len(uniq)).astype(np.int32),
-            touched=np.bincount(inverse, np.concatenate([a.touched, b.touched]).astype(np.int64), len(uniq)) > 0,
-        )
-        out = Mapper(self.config, self.num_classes, class_names=self.class_names, device=self.device)
-        out.voxel_map.load_arrays(merged)
+        merged = sum_voxel_arrays([self.voxels()[0], other.voxels()[0]])
+        out = Mapper(self.config, self.num_classes, class_names=self.class_names, device=self.device, workers=len(self.shards))
+        out.load_voxels(merged)
         out.scans_integrated = self.scans_integrated + other.scans_integrated
         out.points_integrated = self.points_integrated + other.points_integrated
         return out
+
+    def load_voxels(self, voxels: VoxelArrays) -> None:
+        """Replace the map's contents with ``voxels`` exactly (file loading, merging)."""
+        self.shards[0].load_arrays(voxels)
+        for i in range(1, len(self.shards)):
+            self.shards[i] = self._new_shard(self.device)
+        self._summary_cache = None
 
     def metadata(self) -> dict:
         return {
@@ -260,7 +277,7 @@ class Mapper:
             "num_classes": self.num_classes,
             "method": self.config.method,
             "mapping": self.config.as_dict(),
-            "grid_offset_m": self.voxel_map.grid_offset_m,
+            "grid_offset_m": self.grid_offset_m,
             "scans_integrated": self.scans_integrated,
             "points_integrated": self.points_integrated,
             "written_by": f"evsemmap_warp {__version__}",

@@ -80,6 +80,7 @@ class VoxelMap:
         self.device = resolve_device(device)
         self.grow_count = 0
         self._last_new_voxels = 0
+        _load_kernels(self.device)
         self._allocate(max(MIN_CAPACITY, _next_pow2(initial_capacity)))
 
     # ------------------------------------------------------------------ storage
@@ -103,10 +104,9 @@ class VoxelMap:
         return int(self.key_count.numpy()[0])
 
     @property
-    def bytes_per_voxel(self) -> float:
-        """Device bytes per stored voxel, table slack included."""
-        per_slot = 8 + 4 * self.num_classes + 4 * 2 + 4 * 2  # key, evidence, stats, flags
-        return per_slot * self.capacity / max(self.voxel_count, 1)
+    def table_bytes(self) -> int:
+        """Device bytes of the table and per-slot arrays (key, evidence, stats, flags)."""
+        return (8 + 4 * self.num_classes + 4 * 2 + 4 * 2) * self.capacity
 
     def _launch_fill_limit(self) -> int:
         return max(1, int(self.capacity * LAUNCH_FILL_LIMIT))
@@ -291,6 +291,45 @@ class VoxelMap:
         self.evidence = wp.array(evidence, dtype=float, device=self.device)
         self.stats = wp.array(stats, dtype=float, device=self.device)
         self.flags = wp.array(flags, dtype=int, device=self.device)
+
+
+_loaded_devices: set[str] = set()
+
+
+def _load_kernels(device: str) -> None:
+    """Compile/load both kernel modules up front: worker threads then only launch, and a module
+    load never races between threads."""
+    if device not in _loaded_devices:
+        wp.load_module(ht, device=device)
+        wp.load_module(sc, device=device)
+        _loaded_devices.add(device)
+
+
+def sum_voxel_arrays(parts: list[VoxelArrays]) -> VoxelArrays:
+    """Union of several maps' voxels, adding evidence, weights and hits and or-ing touched.
+    BKI updates are sums, so this is exact up to float32 summation order."""
+    if len(parts) == 1:
+        return parts[0]
+    index = np.concatenate([p.index for p in parts])
+    packed = _pack_keys_host(index)
+    keys, first, inverse = np.unique(packed, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    v = len(keys)
+
+    def add(name):
+        values = np.concatenate([getattr(p, name) for p in parts])
+        if values.ndim == 1:
+            return np.bincount(inverse, weights=values, minlength=v)
+        return np.stack([np.bincount(inverse, weights=values[:, k], minlength=v) for k in range(values.shape[1])], axis=1)
+
+    return VoxelArrays(
+        index=index[first],
+        evidence=add("evidence").astype(np.float32),
+        weight_sum=add("weight_sum").astype(np.float32),
+        weighted_uncertainty_sum=add("weighted_uncertainty_sum").astype(np.float32),
+        hits=add("hits").astype(np.int32),
+        touched=add("touched") > 0,
+    )
 
 
 def _pack_keys_host(index: np.ndarray) -> np.ndarray:

@@ -195,3 +195,26 @@ def test_sbki_mode_needs_the_sensor_origin():
     cfg = MappingConfig(method="s-bki", kernel=Kernel.SPARSE, media=Media.ONEHOT, adaptive_length=False, uncertainty_threshold=False, compat=Compat.SBKI)
     with pytest.raises(ValueError, match="sensor_origin"):
         Mapper(cfg, 3).integrate(np.zeros((1, 3)), np.array([1]), payload_type="label")
+
+
+@pytest.mark.parametrize("method", ["ebs", "s-csm"])
+def test_two_workers_give_the_single_worker_map(method):
+    rng = np.random.default_rng(6)
+    scans = [_alpha_scan(rng, 12000, spread=6.0) for _ in range(2)]  # big enough to be split
+    maps = []
+    for workers in (1, 2):
+        m = Mapper(_config(method), K, workers=workers)
+        for pts, alpha in scans:
+            m.integrate(pts, alpha, payload_type="alpha")
+        maps.append(m)
+    assert len(maps[1].shards) == 2 and maps[1].shards[1].voxel_count > 0
+    (a, sa), (b, sb) = maps[0].voxels(), maps[1].voxels()
+    np.testing.assert_array_equal(a.index, b.index)
+    np.testing.assert_allclose(a.evidence, b.evidence, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(a.hits, b.hits)
+    assert (sa.label != sb.label).sum() <= 2
+    q = rng.uniform(-6, 6, (3000, 3))
+    qa, qb = maps[0].query(q), maps[1].query(q)
+    np.testing.assert_array_equal(qa.state, qb.state)
+    np.testing.assert_allclose(qa.probabilities, qb.probabilities, rtol=1e-5, atol=1e-6)
+    assert maps[1].voxel_count == maps[0].voxel_count

@@ -157,3 +157,23 @@ def test_vendored_toy_scans_are_byte_identical_to_shared():
     shared = shared_path("data", "sbki_toy")
     for f in sorted(shared.glob("*.pcd")):
         assert (TOY_DIR / f.name).read_bytes() == f.read_bytes(), f.name
+
+
+@pytest.mark.parametrize("counting", [False, True])
+def test_compat_two_workers_give_the_single_worker_map(counting):
+    rng = np.random.default_rng(8)
+    cfg = _compat_config(counting, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
+                         ds_resolution_m=0.05, free_resolution_m=4.0)
+    pts = rng.uniform(0, 8, (30000, 3)).astype(np.float32)  # >= 8192 training points: split in two
+    labels = rng.integers(1, 6, len(pts))
+    maps = []
+    for workers in (1, 2):
+        m = Mapper(cfg, 6, workers=workers)
+        m.integrate(pts, labels, payload_type="label", sensor_origin=np.array([4.0, 4.0, 0.5]))
+        maps.append(m)
+    assert maps[1].shards[1].voxel_count > 0
+    (a, sa), (b, sb) = maps[0].voxels(), maps[1].voxels()
+    np.testing.assert_array_equal(a.index, b.index)
+    np.testing.assert_allclose(a.evidence, b.evidence, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(a.touched, b.touched)
+    assert (sa.state != sb.state).sum() <= 5  # near-ties only

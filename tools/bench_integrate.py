@@ -1,0 +1,179 @@
+"""Integration benchmark on the fixed workload ../shared/data/bench/rellis_like_30scans.npz.
+
+Times Mapper.integrate over all 30 scans (1.8M points) for each method, next to the vectorised numpy
+implementation (evsemmap_warp/reference/scatter.py driven by the same per-scan rules) run in the same
+process, and next to the original C++ figures stored with the workload (its .json):
+
+* ``ebs``, ``s-bki``: the clean algorithm with the RELLIS-3D preset (paper Table I);
+* ``s-bki-compat@frF``: the sbki compatibility mode with the C++ S-BKI benchmark parameters
+  (r 0.2, block depth 2, ell 0.3, sf2 10, prior 0.001, VoxelGrid 0.1, free_resolution F): the same map
+  semantics as the C++ rows, so the ratio against them is like for like.
+
+Throughput = input points / summed wall time of the integrate calls (loading excluded), median of
+--repeats fresh maps after one warm-up (kernel compile). The last line printed is one JSON object:
+method name -> input points per second.
+
+    python tools/bench_integrate.py [--repeats 3] [--device cpu] [--plot bench.png]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, load_config  # noqa: E402
+from evsemmap_warp.datasets import open_dataset  # noqa: E402
+from evsemmap_warp.integrators import uncertainty_quantile_mask  # noqa: E402
+from evsemmap_warp.kernels import scatter as sc  # noqa: E402
+from evsemmap_warp.mapping import Mapper  # noqa: E402
+from evsemmap_warp.reference import scatter as ref  # noqa: E402
+
+DATASET = REPO / "configs/datasets/bench_rellis_like.yaml"
+PRESET = REPO / "configs/presets/rellis3d.yaml"
+CPP_SBKI = {"0.5": "fr0.5_t1", "4": "fr4.0_t1", "100": "fr100_t1"}
+
+
+def load_scans():
+    run = load_config([PRESET, DATASET], method="ebs")
+    dataset = open_dataset(run.dataset)
+    scans = list(dataset)
+    return dataset, scans
+
+
+def compat_config(free_resolution: float) -> MappingConfig:
+    return MappingConfig(
+        method="s-bki", kernel=Kernel.SPARSE, media=Media.ONEHOT, adaptive_length=False, uncertainty_threshold=False,
+        compat=Compat.SBKI, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
+        ds_resolution_m=0.1, free_resolution_m=free_resolution, max_range_m=-1.0,
+    )
+
+
+def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, repeats):
+    warm = Mapper(config, 9, device=device)
+    warm.integrate(scans[0].points[:1000], payloads[0][:1000], payload_type=payload_type, sensor_origin=scans[0].sensor_origin)
+    runs = []
+    for _ in range(repeats):
+        mapper = Mapper(config, 9, device=device)
+        elapsed, updates, kept = 0.0, 0, 0
+        for scan, payload in zip(scans, payloads):
+            start = time.perf_counter()
+            stats = mapper.integrate(scan.points, payload, payload_type=payload_type, sensor_origin=scan.sensor_origin)
+            elapsed += time.perf_counter() - start
+            updates += stats.voxel_updates
+            kept += stats.kept_points
+        runs.append((elapsed, updates, kept, mapper))
+    elapsed = statistics.median(r[0] for r in runs)
+    _, updates, kept, mapper = runs[0]
+    counts = mapper.state_counts()
+    return {
+        "seconds": elapsed, "voxel_updates": updates, "kept_or_training_points": kept,
+        "voxels": mapper.voxel_count, "free": counts["FREE"], "occupied": counts["OCCUPIED"],
+        "bytes_per_voxel": round(mapper.device_bytes / max(mapper.voxel_count, 1), 1), "workers": len(mapper.shards), "all_seconds": [round(r[0], 3) for r in runs],
+    }
+
+
+def time_numpy(config: MappingConfig, scans, payloads):
+    """The same clean-mode rules in vectorised numpy: threshold, lengths, scatter, one final merge."""
+    start = time.perf_counter()
+    parts_index, parts_evidence, updates = [], [], 0
+    for scan, alpha in zip(scans, payloads):
+        total = alpha.sum(axis=1, dtype=np.float64)
+        u, p = 9.0 / total, alpha / total[:, None]
+        keep = uncertainty_quantile_mask(u, config.keep_quantile)[0] if config.uncertainty_threshold else np.ones(len(u), bool)
+        lengths = config.length_m * config.beta * np.exp(1 - config.gamma * u) if config.adaptive_length else np.full(len(u), config.length_m)
+        onehot = config.media is Media.ONEHOT
+        res = ref.scatter_points(scan.points[keep], np.argmax(alpha[keep], 1) if onehot else None, None if onehot else p[keep],
+                                 lengths[keep], u[keep], None, sc.MODE_RADIUS, config.resolution_m, 0.0, config.sigma0, 1, 9)
+        parts_index.append(res.voxel_index)
+        parts_evidence.append(res.alpha_increment)
+        updates += res.update_count
+    uniq, inverse = ref._unique_rows(np.concatenate(parts_index))
+    stacked = np.concatenate(parts_evidence)
+    evidence = np.stack([np.bincount(inverse, weights=stacked[:, k], minlength=len(uniq)) for k in range(9)], axis=1)
+    return {"seconds": time.perf_counter() - start, "voxel_updates": updates, "voxels": len(uniq)}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--free-resolutions", nargs="*", default=["100", "4"], help="S-BKI compat free_resolution values (C++ has 0.5, 4, 100)")
+    parser.add_argument("--skip-numpy", action="store_true")
+    parser.add_argument("--plot", type=Path, default=None, help="write a bar chart of the throughputs (needs matplotlib)")
+    args = parser.parse_args()
+
+    if not DATASET.exists() or not (REPO.parent / "shared/data/bench/rellis_like_30scans.npz").exists():
+        print("the benchmark workload ../shared/data/bench/rellis_like_30scans.npz is absent; nothing to measure", file=sys.stderr)
+        return 1
+    dataset, scans = load_scans()
+    n_points = sum(len(s.points) for s in scans)
+    cpp = json.loads((dataset.path.with_suffix(".json")).read_text())
+    alphas = [s.payload for s in scans]
+    labels = [np.argmax(a, axis=1) for a in alphas]
+
+    rows = {}
+    for method in ("ebs", "s-bki"):
+        cfg = load_config([PRESET], method=method).mapping
+        rows[method] = time_mapper(cfg, scans, alphas, "alpha", args.device, args.repeats)
+        if not args.skip_numpy:
+            rows[f"numpy:{method}"] = time_numpy(cfg, scans, alphas)
+    for fr in args.free_resolutions:
+        rows[f"s-bki-compat@fr{fr}"] = time_mapper(compat_config(float(fr)), scans, labels, "label", args.device, args.repeats)
+
+    baselines = {"ebs": cpp["evsemmap"]["results"]["ebs_t1"]["pts_per_s"]}
+    for fr, key in CPP_SBKI.items():
+        baselines[f"s-bki-compat@fr{fr}"] = cpp["sbki_original"]["results"][key]["input_pts_per_s"]
+        baselines[f"cpp-cells@fr{fr}"] = cpp["sbki_original"]["results"][key]["cells"]
+
+    print(f"{n_points:,} input points in {len(scans)} scans, device {args.device}, median of {args.repeats}")
+    print(f"{'method':24s} {'s':>7s} {'input pts/s':>12s} {'voxel upd/s':>12s} {'voxels':>9s} {'B/voxel':>8s}  vs numpy  vs C++ 1 thread")
+    throughput = {}
+    for name, row in rows.items():
+        pts = n_points / row["seconds"]
+        throughput[name] = round(pts)
+        vs_numpy = ""
+        if f"numpy:{name}" in rows:
+            vs_numpy = f"x{rows[f'numpy:{name}']['seconds'] / row['seconds']:.1f}"
+        vs_cpp = f"x{pts / baselines[name]:.1f} ({baselines[name] / 1e3:.0f}k)" if name in baselines else ""
+        print(f"{name:24s} {row['seconds']:7.2f} {pts:12,.0f} {row['voxel_updates'] / row['seconds']:12,.0f} "
+              f"{row['voxels']:9,d} {row.get('bytes_per_voxel', float('nan')):8.1f}  {vs_numpy:8s}  {vs_cpp}")
+    for fr in args.free_resolutions:
+        row = rows[f"s-bki-compat@fr{fr}"]
+        print(f"s-bki-compat@fr{fr}: {row['voxels']:,} cells (C++ {baselines[f'cpp-cells@fr{fr}']:,}), FREE {row['free']:,}, OCCUPIED {row['occupied']:,}")
+    print("details: " + json.dumps(rows, default=lambda o: None))
+    if args.plot:
+        plot(throughput, baselines, args.plot)
+    print(json.dumps(throughput))
+    return 0
+
+
+def plot(throughput, baselines, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(throughput)
+    fig, ax = plt.subplots(figsize=(9, 4))
+    ax.barh(names, [throughput[n] / 1e6 for n in names], color=["#3b7dd8" if not n.startswith("numpy") else "#999999" for n in names], label="evsemmap_warp / numpy")
+    cpp_names = [n for n in names if n in baselines]
+    ax.scatter([baselines[n] / 1e6 for n in cpp_names], cpp_names, color="#d83b3b", zorder=3, label="original C++, 1 thread")
+    ax.set_xlabel("input points per second (millions)")
+    ax.set_title("Integration throughput on rellis_like_30scans (1.8M points)")
+    ax.legend(loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
