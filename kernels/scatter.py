@@ -107,53 +107,21 @@ def block_of_voxel(i: int, cells_per_block: int) -> int:
 
 
 @wp.func
-def voxel_weight(
-    mode: int,
-    ix: int,
-    iy: int,
-    iz: int,
-    p: wp.vec3,
-    length: float,
-    owner: wp.vec3i,
-    resolution: float,
-    grid_offset: float,
-    sigma0: float,
-    cells_per_block: int,
-) -> float:
-    """Weight of point p on voxel (ix, iy, iz); negative when the voxel is not a target."""
-    if mode == MODE_OWN_VOXEL or mode == MODE_SBKI_OWN_BLOCK:
-        return 1.0
-    c = voxel_center(ix, iy, iz, resolution, grid_offset)
+def reach_of(mode: int, length: float, resolution: float) -> float:
+    """How far from the point a target voxel centre may lie."""
+    if mode == MODE_SBKI_BLOCKS:
+        return length * _SBKI_REACH
     if mode == MODE_RADIUS:
-        d = wp.length(c - p)
-        if d < length:
-            return sparse_kernel(d, length, sigma0)
-        return -1.0
-    # MODE_SBKI_BLOCKS
-    bx = block_of_voxel(ix, cells_per_block) - owner[0]
-    by = block_of_voxel(iy, cells_per_block) - owner[1]
-    bz = block_of_voxel(iz, cells_per_block) - owner[2]
-    if wp.abs(bx) + wp.abs(by) + wp.abs(bz) > 1:
-        return -1.0
-    w = sbki_sparse_kernel(c, p, length, sigma0)
-    if w > 0.0:
-        return w
-    return -1.0
+        return length
+    return resolution  # own voxel / own block: the range below is a single voxel anyway
 
 
 @wp.func
-def range_lo(mode: int, p: wp.vec3, length: float, owner: wp.vec3i, resolution: float, grid_offset: float) -> wp.vec3i:
+def range_lo(mode: int, p: wp.vec3, reach: float, owner: wp.vec3i, resolution: float, grid_offset: float) -> wp.vec3i:
     if mode == MODE_SBKI_OWN_BLOCK:
         return owner
     if mode == MODE_OWN_VOXEL:
-        return wp.vec3i(
-            voxel_of(p[0], resolution, grid_offset),
-            voxel_of(p[1], resolution, grid_offset),
-            voxel_of(p[2], resolution, grid_offset),
-        )
-    reach = length
-    if mode == MODE_SBKI_BLOCKS:
-        reach = length * _SBKI_REACH
+        reach = 0.0
     return wp.vec3i(
         voxel_of(p[0] - reach, resolution, grid_offset),
         voxel_of(p[1] - reach, resolution, grid_offset),
@@ -162,23 +130,24 @@ def range_lo(mode: int, p: wp.vec3, length: float, owner: wp.vec3i, resolution: 
 
 
 @wp.func
-def range_hi(mode: int, p: wp.vec3, length: float, owner: wp.vec3i, resolution: float, grid_offset: float) -> wp.vec3i:
+def range_hi(mode: int, p: wp.vec3, reach: float, owner: wp.vec3i, resolution: float, grid_offset: float) -> wp.vec3i:
     if mode == MODE_SBKI_OWN_BLOCK:
         return owner
     if mode == MODE_OWN_VOXEL:
-        return wp.vec3i(
-            voxel_of(p[0], resolution, grid_offset),
-            voxel_of(p[1], resolution, grid_offset),
-            voxel_of(p[2], resolution, grid_offset),
-        )
-    reach = length
-    if mode == MODE_SBKI_BLOCKS:
-        reach = length * _SBKI_REACH
+        reach = 0.0
     return wp.vec3i(
         voxel_of(p[0] + reach, resolution, grid_offset),
         voxel_of(p[1] + reach, resolution, grid_offset),
         voxel_of(p[2] + reach, resolution, grid_offset),
     )
+
+
+@wp.func
+def block_step(mode: int, i: int, owner_i: int, cells_per_block: int) -> int:
+    """|block of voxel i - owner block| on one axis (0 outside the block-restricted mode)."""
+    if mode == MODE_SBKI_BLOCKS:
+        return wp.abs(block_of_voxel(i, cells_per_block) - owner_i)
+    return 0
 
 
 @wp.kernel
@@ -218,50 +187,61 @@ def scatter_points(
     owner = wp.vec3i(0, 0, 0)
     if mode == MODE_SBKI_BLOCKS or mode == MODE_SBKI_OWN_BLOCK:
         owner = owner_blocks[i]
-    lo = range_lo(mode, p, length, owner, resolution, grid_offset)
-    hi = range_hi(mode, p, length, owner, resolution, grid_offset)
-
-    # Clean modes create voxels; in the compat modes every target is a cell of a test block,
-    # inserted beforehand by insert_block_cells, so the insertion pass is skipped.
-    if mode == MODE_RADIUS or mode == MODE_OWN_VOXEL:
-        inserted_all = int(1)
-        for ix in range(lo[0], hi[0] + 1):
-            for iy in range(lo[1], hi[1] + 1):
-                for iz in range(lo[2], hi[2] + 1):
-                    if inserted_all == 1:
-                        target = int(1)
-                        if mode == MODE_RADIUS:
-                            if wp.length(voxel_center(ix, iy, iz, resolution, grid_offset) - p) >= length:
-                                target = 0
-                        if target == 1:
-                            if table_find_or_insert(table_keys, key_count, max_count, pack_key(ix, iy, iz)) < 0:
-                                inserted_all = 0
-        if inserted_all == 0:
-            failed[t] = 1
-            return
-
+    reach = reach_of(mode, length, resolution)
+    reach2 = reach * reach
+    lo = range_lo(mode, p, reach, owner, resolution, grid_offset)
+    hi = range_hi(mode, p, reach, owner, resolution, grid_offset)
     u = point_uncertainty[i]
+    # Only the radius modes test distances; the own-voxel/own-block ranges hold exactly the target.
+    by_distance = mode == MODE_RADIUS or mode == MODE_SBKI_BLOCKS
+    # Pass 0 inserts (clean modes only: compat targets were inserted by insert_block_cells),
+    # pass 1 adds; a point whose insertion fails adds nothing and is retried after growth.
+    first_pass = 1
+    if mode == MODE_RADIUS or mode == MODE_OWN_VOXEL:
+        first_pass = 0
     n_updates = int(0)
-    for ix in range(lo[0], hi[0] + 1):
-        for iy in range(lo[1], hi[1] + 1):
-            for iz in range(lo[2], hi[2] + 1):
-                w = voxel_weight(mode, ix, iy, iz, p, length, owner, resolution, grid_offset, sigma0, cells_per_block)
-                if w >= 0.0:
-                    slot = table_find(table_keys, pack_key(ix, iy, iz))
-                    if slot < 0:
-                        # Only reachable in the compat modes, if a target cell was not pre-inserted.
-                        failed[t] = 1
-                        return
-                    if use_labels == 1:
-                        wp.atomic_add(voxel_evidence, slot, labels[i], w)
-                    else:
-                        for c in range(class_weights.shape[1]):
-                            wp.atomic_add(voxel_evidence, slot, c, w * class_weights[i, c])
-                    wp.atomic_add(voxel_stats, slot, 0, w)
-                    wp.atomic_add(voxel_stats, slot, 1, w * u)
-                    wp.atomic_add(voxel_flags, slot, 0, 1)
-                    voxel_flags[slot, 1] = 1
-                    n_updates += 1
+    for pass_index in range(first_pass, 2):
+        for ix in range(lo[0], hi[0] + 1):
+            dx = (float(ix) + 0.5) * resolution + grid_offset - p[0]
+            bx = block_step(mode, ix, owner[0], cells_per_block)
+            if (not by_distance or dx * dx < reach2) and bx <= 1:
+                for iy in range(lo[1], hi[1] + 1):
+                    dy = (float(iy) + 0.5) * resolution + grid_offset - p[1]
+                    bxy = bx + block_step(mode, iy, owner[1], cells_per_block)
+                    if (not by_distance or dx * dx + dy * dy < reach2) and bxy <= 1:
+                        for iz in range(lo[2], hi[2] + 1):
+                            dz = (float(iz) + 0.5) * resolution + grid_offset - p[2]
+                            d2 = dx * dx + dy * dy + dz * dz
+                            bxyz = bxy + block_step(mode, iz, owner[2], cells_per_block)
+                            if (not by_distance or d2 < reach2) and bxyz <= 1:
+                                w = float(1.0)
+                                if mode == MODE_RADIUS:
+                                    w = sparse_kernel(wp.sqrt(d2), length, sigma0)
+                                elif mode == MODE_SBKI_BLOCKS:
+                                    w = sbki_sparse_kernel(voxel_center(ix, iy, iz, resolution, grid_offset), p, length, sigma0)
+                                key = pack_key(ix, iy, iz)
+                                if pass_index == 0:
+                                    if table_find_or_insert(table_keys, key_count, max_count, key) < 0:
+                                        failed[t] = 1
+                                        return
+                                elif mode == MODE_SBKI_BLOCKS and w <= 0.0:
+                                    continue  # the C++ adds only positive kernel values
+                                else:
+                                    slot = table_find(table_keys, key)
+                                    if slot < 0:
+                                        # Only reachable in the compat modes, if a target cell was not pre-inserted.
+                                        failed[t] = 1
+                                        return
+                                    if use_labels == 1:
+                                        wp.atomic_add(voxel_evidence, slot, labels[i], w)
+                                    else:
+                                        for c in range(class_weights.shape[1]):
+                                            wp.atomic_add(voxel_evidence, slot, c, w * class_weights[i, c])
+                                    wp.atomic_add(voxel_stats, slot, 0, w)
+                                    wp.atomic_add(voxel_stats, slot, 1, w * u)
+                                    wp.atomic_add(voxel_flags, slot, 0, 1)
+                                    voxel_flags[slot, 1] = 1
+                                    n_updates += 1
     wp.atomic_add(update_count, 0, n_updates)
 
 
