@@ -134,20 +134,34 @@ class VoxelMap:
         wp.launch(ht.move_rows_int, dim=old_capacity, inputs=[old_flags, self.flags, new_slot], device=self.device)
         self.grow_count += 1
 
-    def _grow_after_launch(self) -> None:
-        self.grow(self.capacity * 2)
-
     # ------------------------------------------------------------------ launches
-    def _check_index_range(self, lo_m: np.ndarray, hi_m: np.ndarray) -> None:
-        lo = np.floor((lo_m - self.grid_offset_m) / self.resolution_m)
-        hi = np.floor((hi_m - self.grid_offset_m) / self.resolution_m)
+    def _check_index_range(self, lo_index: np.ndarray, hi_index: np.ndarray) -> None:
         limit = ht.INDEX_LIMIT - 1
-        if lo.min() < -limit or hi.max() >= limit:
+        lo, hi = int(np.min(lo_index)), int(np.max(hi_index))
+        if lo < -limit or hi >= limit:
             raise ValueError(
-                f"points reach voxel indices {int(lo.min())}..{int(hi.max())}, outside the map's key range "
-                f"+-{limit} at resolution {self.resolution_m} m (|coordinates| must stay below "
-                f"{limit * self.resolution_m:.0f} m); recentre the data"
+                f"points reach voxel indices {lo}..{hi}, outside the map's key range +-{limit} at resolution "
+                f"{self.resolution_m} m (|coordinates| must stay below {limit * self.resolution_m:.0f} m); recentre the data"
             )
+
+    def _launch_until_done(self, n: int, launch, *, may_insert: bool) -> None:
+        """launch(ids, failed) over range(n), relaunching the failed ids after the table grew.
+
+        The table is first grown for as many new voxels as the previous launch made: a wrong guess
+        costs a relaunch of the items that did not fit, never a voxel."""
+        self.reserve(min(n, self._last_new_voxels))
+        before = self.voxel_count
+        pending = np.arange(n, dtype=np.int32)
+        while len(pending):
+            failed = wp.zeros(len(pending), dtype=int, device=self.device)
+            launch(wp.array(pending, dtype=int, device=self.device), failed)
+            pending = pending[failed.numpy().astype(bool)]
+            if len(pending):
+                if not may_insert:
+                    raise RuntimeError(f"{len(pending)} items reached voxels that were never inserted (a bug)")
+                self.grow(self.capacity * 2)
+        self._last_new_voxels = self.voxel_count - before
+        self.reserve(0)
 
     def scatter(
         self,
@@ -166,48 +180,31 @@ class VoxelMap:
         n = len(points)
         if n == 0:
             return 0
-        reach = float(np.max(lengths)) * (sc.SBKI_REACH_FACTOR if mode == sc.MODE_SBKI_BLOCKS else 1.0)
-        if mode in (sc.MODE_RADIUS, sc.MODE_SBKI_BLOCKS, sc.MODE_OWN_VOXEL):
-            self._check_index_range(points.min(axis=0) - reach, points.max(axis=0) + reach)
+        if mode != sc.MODE_SBKI_OWN_BLOCK:
+            reach = float(np.max(lengths)) * (sc.SBKI_REACH_FACTOR if mode == sc.MODE_SBKI_BLOCKS else 1.0)
+            self._check_index_range(np.floor((points.min(axis=0) - reach - self.grid_offset_m) / self.resolution_m),
+                                    np.floor((points.max(axis=0) + reach - self.grid_offset_m) / self.resolution_m))
         d = self.device
-        points_wp = wp.array(np.ascontiguousarray(points, dtype=np.float32), dtype=wp.vec3, device=d)
         use_labels = labels is not None
-        labels_wp = wp.array(np.ascontiguousarray(labels, dtype=np.int32) if use_labels else np.zeros(0, np.int32), dtype=int, device=d)
-        weights_np = np.zeros((0, self.num_classes), np.float32) if use_labels else np.ascontiguousarray(class_weights, dtype=np.float32)
-        weights_wp = wp.array(weights_np, dtype=float, device=d)
-        lengths_wp = wp.array(np.ascontiguousarray(lengths, dtype=np.float32), dtype=float, device=d)
-        unc_wp = wp.array(np.ascontiguousarray(point_uncertainty, dtype=np.float32), dtype=float, device=d)
-        owners_np = np.zeros((0, 3), np.int32) if owner_blocks is None else np.ascontiguousarray(owner_blocks, dtype=np.int32)
-        owners_wp = wp.array(owners_np, dtype=wp.vec3i, device=d)
+        empty_weights = np.zeros((0, self.num_classes), np.float32)
+        empty_owners = np.zeros((0, 3), np.int32)
+        inputs = [
+            wp.array(np.ascontiguousarray(points, dtype=np.float32), dtype=wp.vec3, device=d),
+            wp.array(np.ascontiguousarray(labels if use_labels else [], dtype=np.int32), dtype=int, device=d),
+            wp.array(empty_weights if use_labels else np.ascontiguousarray(class_weights, dtype=np.float32), dtype=float, device=d),
+            wp.array(np.ascontiguousarray(lengths, dtype=np.float32), dtype=float, device=d),
+            wp.array(np.ascontiguousarray(point_uncertainty, dtype=np.float32), dtype=float, device=d),
+            wp.array(empty_owners if owner_blocks is None else np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d),
+            int(mode), int(use_labels), self.resolution_m, self.grid_offset_m, float(sigma0), int(cells_per_block),
+        ]
         update_count = wp.zeros(1, dtype=int, device=d)
 
-        # Expect as many new voxels as the last launch made; a wrong guess costs a relaunch of the
-        # points that did not fit, never a voxel.
-        self.reserve(min(n, self._last_new_voxels))
-        count_before = self.voxel_count
-        pending = np.arange(n, dtype=np.int32)
-        while len(pending):
-            ids = wp.array(pending, dtype=int, device=d)
-            failed = wp.zeros(len(pending), dtype=int, device=d)
-            wp.launch(
-                sc.scatter_points,
-                dim=len(pending),
-                inputs=[
-                    ids, points_wp, labels_wp, weights_wp, lengths_wp, unc_wp, owners_wp,
-                    int(mode), int(use_labels), self.resolution_m, self.grid_offset_m, float(sigma0), int(cells_per_block),
-                    self.keys, self.key_count, self._launch_fill_limit(),
-                    self.evidence, self.stats, self.flags, failed, update_count,
-                ],
-                device=d,
-            )
-            failed_np = failed.numpy().astype(bool)
-            pending = pending[failed_np]
-            if len(pending):
-                if mode in (sc.MODE_SBKI_BLOCKS, sc.MODE_SBKI_OWN_BLOCK):
-                    raise RuntimeError(f"{len(pending)} points reached cells that insert_blocks had not inserted (a bug)")
-                self._grow_after_launch()
-        self._last_new_voxels = self.voxel_count - count_before
-        self.reserve(0)
+        def launch(ids, failed):
+            wp.launch(sc.scatter_points, dim=len(ids), device=d, inputs=[
+                ids, *inputs, self.keys, self.key_count, self._launch_fill_limit(),
+                self.evidence, self.stats, self.flags, failed, update_count])
+
+        self._launch_until_done(n, launch, may_insert=mode in (sc.MODE_RADIUS, sc.MODE_OWN_VOXEL))
         return int(update_count.numpy()[0])
 
     def insert_blocks(self, blocks: np.ndarray, cells_per_block: int, *, mark_touched: bool) -> None:
@@ -215,24 +212,17 @@ class VoxelMap:
         if len(blocks) == 0:
             return
         blocks = np.ascontiguousarray(blocks, dtype=np.int32)
-        first = blocks.astype(np.float64) * cells_per_block - cells_per_block // 2
-        self._check_index_range(first.min(axis=0) * self.resolution_m, (first.max(axis=0) + cells_per_block) * self.resolution_m)
+        first = blocks.astype(np.int64) * cells_per_block - cells_per_block // 2
+        self._check_index_range(first.min(axis=0), first.max(axis=0) + cells_per_block - 1)
         d = self.device
         blocks_wp = wp.array(blocks, dtype=wp.vec3i, device=d)
-        self.reserve(len(blocks) * cells_per_block**3)
-        pending = np.arange(len(blocks), dtype=np.int32)
-        while len(pending):
-            failed = wp.zeros(len(pending), dtype=int, device=d)
-            wp.launch(
-                sc.insert_block_cells,
-                dim=len(pending),
-                inputs=[wp.array(pending, dtype=int, device=d), blocks_wp, int(cells_per_block), int(mark_touched),
-                        self.keys, self.key_count, self._launch_fill_limit(), self.flags, failed],
-                device=d,
-            )
-            pending = pending[failed.numpy().astype(bool)]
-            if len(pending):
-                self._grow_after_launch()
+
+        def launch(ids, failed):
+            wp.launch(sc.insert_block_cells, dim=len(ids), device=d, inputs=[
+                ids, blocks_wp, int(cells_per_block), int(mark_touched),
+                self.keys, self.key_count, self._launch_fill_limit(), self.flags, failed])
+
+        self._launch_until_done(len(blocks), launch, may_insert=True)
 
     def insert_voxels(self, voxel_index: np.ndarray) -> np.ndarray:
         """Insert voxel indices [V, 3]; returns their slots (growing as needed)."""
@@ -244,7 +234,7 @@ class VoxelMap:
             slots_np = slots.numpy()
             if (slots_np >= 0).all():
                 return slots_np
-            self._grow_after_launch()
+            self.grow(self.capacity * 2)
 
     def lookup_points(self, points: np.ndarray) -> np.ndarray:
         """Slot of the voxel containing each point [M, 3], -1 where that voxel is not stored."""

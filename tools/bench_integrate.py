@@ -170,7 +170,7 @@ def plot(throughput, baselines, path: Path) -> None:
     ax.scatter([baselines[n] / 1e6 for n in cpp_names], cpp_names, color="#d83b3b", zorder=3, label="original C++, 1 thread")
     ax.set_xlabel("input points per second (millions)")
     ax.set_title("Integration throughput on rellis_like_30scans (1.8M points)")
-    ax.legend(loc="lower right")
+    ax.legend(loc="center right")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 
