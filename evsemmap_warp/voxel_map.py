@@ -129,9 +129,8 @@ class VoxelMap:
         self._allocate(new_capacity)
         new_slot = wp.empty(old_capacity, dtype=int, device=self.device)
         wp.launch(ht.rehash, dim=old_capacity, inputs=[old_keys, self.keys, self.key_count, new_slot], device=self.device)
-        for src, dst in ((old_evidence, self.evidence), (old_stats, self.stats)):
-            wp.launch(ht.move_rows_float, dim=old_capacity, inputs=[src, dst, new_slot], device=self.device)
-        wp.launch(ht.move_rows_int, dim=old_capacity, inputs=[old_flags, self.flags, new_slot], device=self.device)
+        for src, dst in ((old_evidence, self.evidence), (old_stats, self.stats), (old_flags, self.flags)):
+            wp.launch(ht.move_rows, dim=old_capacity, inputs=[src, dst, new_slot], device=self.device)
         self.grow_count += 1
 
     # ------------------------------------------------------------------ launches

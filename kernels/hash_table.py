@@ -9,6 +9,8 @@ in; the host then grows the table and re-runs the failed work, so nothing is eve
 numpy twin: ``evsemmap_warp/reference/hash_table.py``.
 """
 
+from typing import Any
+
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
@@ -147,17 +149,9 @@ def rehash(
 
 
 @wp.kernel
-def move_rows_float(src: wp.array2d(dtype=float), dst: wp.array2d(dtype=float), dst_rows: wp.array(dtype=int)):
-    """dst[dst_rows[i], :] = src[i, :] for every i with dst_rows[i] >= 0 (values follow a rehash)."""
-    i = wp.tid()
-    row = dst_rows[i]
-    if row >= 0:
-        for c in range(src.shape[1]):
-            dst[row, c] = src[i, c]
-
-
-@wp.kernel
-def move_rows_int(src: wp.array2d(dtype=int), dst: wp.array2d(dtype=int), dst_rows: wp.array(dtype=int)):
+def move_rows(src: wp.array2d(dtype=Any), dst: wp.array2d(dtype=Any), dst_rows: wp.array(dtype=int)):
+    """dst[dst_rows[i], :] = src[i, :] for every i with dst_rows[i] >= 0 (values follow a rehash).
+    Generic: one overload per value dtype (float32 evidence and stats, int32 flags)."""
     i = wp.tid()
     row = dst_rows[i]
     if row >= 0:

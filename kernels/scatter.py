@@ -117,28 +117,16 @@ def reach_of(mode: int, length: float, resolution: float) -> float:
 
 
 @wp.func
-def range_lo(mode: int, p: wp.vec3, reach: float, owner: wp.vec3i, resolution: float, grid_offset: float) -> wp.vec3i:
+def range_end(mode: int, p: wp.vec3, reach: float, owner: wp.vec3i, resolution: float, grid_offset: float, side: float) -> wp.vec3i:
+    """First (side -1) or last (side +1) voxel index per axis that a point may reach."""
     if mode == MODE_SBKI_OWN_BLOCK:
         return owner
     if mode == MODE_OWN_VOXEL:
         reach = 0.0
     return wp.vec3i(
-        voxel_of(p[0] - reach, resolution, grid_offset),
-        voxel_of(p[1] - reach, resolution, grid_offset),
-        voxel_of(p[2] - reach, resolution, grid_offset),
-    )
-
-
-@wp.func
-def range_hi(mode: int, p: wp.vec3, reach: float, owner: wp.vec3i, resolution: float, grid_offset: float) -> wp.vec3i:
-    if mode == MODE_SBKI_OWN_BLOCK:
-        return owner
-    if mode == MODE_OWN_VOXEL:
-        reach = 0.0
-    return wp.vec3i(
-        voxel_of(p[0] + reach, resolution, grid_offset),
-        voxel_of(p[1] + reach, resolution, grid_offset),
-        voxel_of(p[2] + reach, resolution, grid_offset),
+        voxel_of(p[0] + side * reach, resolution, grid_offset),
+        voxel_of(p[1] + side * reach, resolution, grid_offset),
+        voxel_of(p[2] + side * reach, resolution, grid_offset),
     )
 
 
@@ -189,8 +177,8 @@ def scatter_points(
         owner = owner_blocks[i]
     reach = reach_of(mode, length, resolution)
     reach2 = reach * reach
-    lo = range_lo(mode, p, reach, owner, resolution, grid_offset)
-    hi = range_hi(mode, p, reach, owner, resolution, grid_offset)
+    lo = range_end(mode, p, reach, owner, resolution, grid_offset, -1.0)
+    hi = range_end(mode, p, reach, owner, resolution, grid_offset, 1.0)
     u = point_uncertainty[i]
     # Only the radius modes test distances; the own-voxel/own-block ranges hold exactly the target.
     by_distance = mode == MODE_RADIUS or mode == MODE_SBKI_BLOCKS

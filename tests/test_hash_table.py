@@ -104,6 +104,10 @@ def test_growth_keeps_every_key_and_value(device):
     ev = vm.evidence.numpy()
     ev[slots] = values
     vm.evidence = wp.array(ev, dtype=float, device=device)
+    hits = rng.integers(0, 1000, len(index)).astype(np.int32)
+    flags = vm.flags.numpy().copy()
+    flags[slots, 0] = hits
+    vm.flags = wp.array(flags, dtype=int, device=device)
     old_keys = vm.keys.numpy().copy()
     vm.grow(vm.capacity * 4)
     ref_keys, ref_new_slot = ref.rehash(old_keys, vm.capacity)
@@ -113,3 +117,4 @@ def test_growth_keeps_every_key_and_value(device):
     order = np.lexsort(index.T[::-1])
     np.testing.assert_array_equal(arrays.index, index[order])
     np.testing.assert_array_equal(arrays.evidence, values[order])
+    np.testing.assert_array_equal(arrays.hits, hits[order])  # the int overload of move_rows

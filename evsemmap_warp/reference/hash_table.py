@@ -84,10 +84,7 @@ def rehash(old_keys: np.ndarray, new_capacity: int) -> tuple[np.ndarray, np.ndar
     return new_keys, new_slot
 
 
-def move_rows_float(src: np.ndarray, dst: np.ndarray, dst_rows: np.ndarray) -> None:
+def move_rows(src: np.ndarray, dst: np.ndarray, dst_rows: np.ndarray) -> None:
     """dst[dst_rows[i]] = src[i] wherever dst_rows[i] >= 0 (in place)."""
     keep = dst_rows >= 0
     dst[dst_rows[keep]] = src[keep]
-
-
-move_rows_int = move_rows_float
