@@ -25,8 +25,9 @@ def _cmd_map(args) -> int:
     if run.dataset is None:
         raise ConfigError(f"none of {list(args.configs)} has a 'dataset' section: name a dataset config, e.g. configs/datasets/sbki_toy.yaml")
     dataset = open_dataset(run.dataset)
-    mapper = Mapper(run.mapping, dataset.num_classes, class_names=dataset.class_names or None, device=args.device)
-    print(f"mapping {len(dataset)} scans with {run.mapping.method} ({run.mapping.compat.value} mode) on {mapper.device}", file=sys.stderr)
+    mapper = Mapper(run.mapping, dataset.num_classes, class_names=dataset.class_names or None, device=args.device, workers=args.workers)
+    print(f"mapping {len(dataset)} scans with {run.mapping.method} ({run.mapping.compat.value} mode) on {mapper.device}, "
+          f"{len(mapper.shards)} worker(s)", file=sys.stderr)
     elapsed = 0.0
     points = 0
     for scan in tqdm(dataset, total=len(dataset), unit="scan", disable=args.quiet, dynamic_ncols=True):
@@ -90,6 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", required=True, help=f"method name ({', '.join(available_methods())}) or a method YAML file")
     p.add_argument("--out", required=True, type=Path, help="map file to write (.npz)")
     p.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N or auto")
+    p.add_argument("--workers", type=int, default=None, help="CPU threads, each scattering into its own map shard (default: up to 2 on the CPU)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_map)
 

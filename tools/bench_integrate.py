@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -58,7 +59,7 @@ def compat_config(free_resolution: float) -> MappingConfig:
     )
 
 
-def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, repeats):
+def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, repeats, progress):
     warm = Mapper(config, 9, device=device)
     warm.integrate(scans[0].points[:1000], payloads[0][:1000], payload_type=payload_type, sensor_origin=scans[0].sensor_origin)
     runs = []
@@ -71,6 +72,7 @@ def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, re
             elapsed += time.perf_counter() - start
             updates += stats.voxel_updates
             kept += stats.kept_points
+            progress.update(len(scan.points))
         runs.append((elapsed, updates, kept, mapper))
     elapsed = statistics.median(r[0] for r in runs)
     _, updates, kept, mapper = runs[0]
@@ -122,13 +124,16 @@ def main() -> int:
     labels = [np.argmax(a, axis=1) for a in alphas]
 
     rows = {}
-    for method in ("ebs", "s-bki"):
-        cfg = load_config([PRESET], method=method).mapping
-        rows[method] = time_mapper(cfg, scans, alphas, "alpha", args.device, args.repeats)
-        if not args.skip_numpy:
-            rows[f"numpy:{method}"] = time_numpy(cfg, scans, alphas)
-    for fr in args.free_resolutions:
-        rows[f"s-bki-compat@fr{fr}"] = time_mapper(compat_config(float(fr)), scans, labels, "label", args.device, args.repeats)
+    runs = (2 + len(args.free_resolutions)) * args.repeats + (0 if args.skip_numpy else 2)
+    with tqdm(total=runs * n_points, unit="pt", unit_scale=True, desc="integrating", file=sys.stderr) as progress:
+        for method in ("ebs", "s-bki"):
+            cfg = load_config([PRESET], method=method).mapping
+            rows[method] = time_mapper(cfg, scans, alphas, "alpha", args.device, args.repeats, progress)
+            if not args.skip_numpy:
+                rows[f"numpy:{method}"] = time_numpy(cfg, scans, alphas)
+                progress.update(n_points)
+        for fr in args.free_resolutions:
+            rows[f"s-bki-compat@fr{fr}"] = time_mapper(compat_config(float(fr)), scans, labels, "label", args.device, args.repeats, progress)
 
     baselines = {"ebs": cpp["evsemmap"]["results"]["ebs_t1"]["pts_per_s"]}
     for fr, key in CPP_SBKI.items():

@@ -1,0 +1,28 @@
+"""Every example runs, with small sizes, as a user would run it."""
+
+import subprocess
+import sys
+
+from conftest import REPO
+
+
+def _run(*args, cwd):
+    done = subprocess.run([sys.executable, *args], cwd=cwd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return done.stdout
+
+
+def test_quickstart(tmp_path):
+    out = _run(str(REPO / "examples/00_quickstart.py"), "--points", "4000", "--out", str(tmp_path / "q.npz"), cwd=tmp_path)
+    accuracy = float(out.split("label accuracy there: ")[1].split("%")[0])
+    assert accuracy > 90 and (tmp_path / "q.npz").exists()
+
+
+def test_sbki_toy_conformance(tmp_path):
+    out = _run(str(REPO / "examples/01_sbki_toy_conformance.py"), cwd=tmp_path)
+    assert "s-csm: 64130 cells" in out and "s-bki: 215936 cells" in out
+
+
+def test_examples_are_all_tested():
+    names = sorted(p.name for p in (REPO / "examples").glob("*.py"))
+    assert names == ["00_quickstart.py", "01_sbki_toy_conformance.py"], "add a test for each new example"
