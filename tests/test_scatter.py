@@ -201,3 +201,19 @@ def test_sparse_kernel_is_accurate_near_the_support_edge():
         expected = ref.sparse_kernel(np.array([dist], dtype=np.float64), np.array([np.float32(length)], dtype=np.float64), 1.0)[0]
         # float32 t = 1 - d/l carries ~6e-8 absolute error, i.e. ~5 * 6e-8 / t relative in k'.
         np.testing.assert_allclose(a.evidence[row, 1], expected, rtol=max(1e-5, 5e-7 / t))
+
+
+@pytest.mark.parametrize("cells_per_block", [1, 2, 4])
+@pytest.mark.parametrize("mark_touched", [False, True])
+def test_insert_block_cells_matches_reference(device, cells_per_block, mark_touched):
+    rng = np.random.default_rng(cells_per_block)
+    blocks = np.unique(rng.integers(-20, 20, (300, 3)), axis=0)
+    vm = VoxelMap(3, 0.1, device=device, initial_capacity=16)  # grows during the insertion
+    vm.insert_blocks(blocks, cells_per_block, mark_touched=mark_touched)
+    vm.insert_blocks(blocks[:10], cells_per_block, mark_touched=mark_touched)  # idempotent
+    expected = ref.insert_block_cells(blocks, cells_per_block)
+    got = vm.arrays()
+    np.testing.assert_array_equal(got.index, np.unique(expected, axis=0))
+    assert len(got.index) == len(blocks) * cells_per_block**3 and vm.grow_count > 0
+    assert (got.touched == mark_touched).all() and (got.evidence == 0).all() and (got.hits == 0).all()
+    assert vm.insert_blocks(np.zeros((0, 3), int), 2, mark_touched=True) is None and vm.voxel_count == len(got.index)
