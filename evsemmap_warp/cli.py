@@ -73,6 +73,22 @@ def _cmd_info(args) -> int:
     return 0
 
 
+def _cmd_view(args) -> int:
+    from .viewer import MapViewer
+
+    viewer = MapViewer(args.maps, host=args.host, port=args.port, style=args.style, max_voxels=args.max_voxels,
+                       trajectory=args.trajectory, scan=args.scan, export_dir=args.export_dir)
+    for path, export in ((args.export_html, viewer.export_html), (args.export_ply, viewer.export_ply)):
+        if path is not None:
+            print(f"wrote {export(path)}", file=sys.stderr)
+    if args.no_serve:
+        viewer.server.stop()
+        return 0
+    print(f"evsemmap viewer: open {viewer.url} in a browser (Ctrl-C to stop)", file=sys.stderr)
+    viewer.serve_forever()
+    return 0
+
+
 def _cmd_dump_config(args) -> int:
     run = load_config(args.configs, method=args.method)
     out = {"mapping": run.mapping.as_dict()}
@@ -94,6 +110,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=None, help="CPU threads, each scattering into its own map shard (default: up to 2 on the CPU)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_map)
+
+    p = sub.add_parser("view", help="inspect map files in a browser (viser)")
+    p.add_argument("maps", nargs="+", type=Path, help="map files; several are switchable or side by side")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
+    p.add_argument("--port", type=int, default=8080)
+    p.add_argument("--style", choices=("points", "boxes"), default="points", help="voxels as point sprites or instanced boxes")
+    p.add_argument("--max-voxels", type=int, default=500_000, help="decimate beyond this many visible voxels (the GUI can show all)")
+    p.add_argument("--trajectory", type=Path, help="poses.txt (3x4 per line) or N x 3 positions (.txt/.npy)")
+    p.add_argument("--scan", type=Path, help="current scan's points (.pcd, .npy or KITTI .bin)")
+    p.add_argument("--export-html", type=Path, help="write a standalone HTML of the scene")
+    p.add_argument("--export-ply", type=Path, help="write the visible voxels as a PLY point cloud")
+    p.add_argument("--export-dir", type=Path, help="folder for the GUI's export buttons (default: beside the first map)")
+    p.add_argument("--no-serve", action="store_true", help="export and exit instead of serving")
+    p.set_defaults(func=_cmd_view)
 
     p = sub.add_parser("info", help="summarise a map file")
     p.add_argument("map", type=Path)

@@ -23,6 +23,13 @@ def test_sbki_toy_conformance(tmp_path):
     assert "s-csm: 64130 cells" in out and "s-bki: 215936 cells" in out
 
 
+def test_view_map(tmp_path):
+    from evsemmap_warp.viewer import free_port
+
+    out = _run(str(REPO / "examples/02_view_map.py"), "--no-serve", "--port", str(free_port()), "--out-dir", str(tmp_path), cwd=tmp_path)
+    assert "toy_maps.html" in out and (tmp_path / "toy_s-bki.npz").exists() and (tmp_path / "toy_s-csm.npz").exists()
+
+
 def test_examples_are_all_tested():
     names = sorted(p.name for p in (REPO / "examples").glob("*.py"))
-    assert names == ["00_quickstart.py", "01_sbki_toy_conformance.py"], "add a test for each new example"
+    assert names == ["00_quickstart.py", "01_sbki_toy_conformance.py", "02_view_map.py"], "add a test for each new example"

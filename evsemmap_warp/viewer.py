@@ -1,0 +1,397 @@
+"""Browser-based map inspection with viser: ``MapViewer`` and ``evsemmap view``.
+
+The viewer reads map files only (``map_file.read_map_arrays``); it needs no Warp. Voxels are drawn as
+point sprites or instanced boxes, in float32 positions relative to a local origin (viser's default
+float16 would quantise a map a few hundred metres from its origin). Everything a control changes
+goes through ``refresh()``, so the same code serves the browser and the tests.
+"""
+
+from __future__ import annotations
+
+import io
+import socket
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .map_file import read_map_arrays
+from .pcd import read_pcd
+
+STATE_NAMES = ("UNKNOWN", "FREE", "OCCUPIED")
+COLOR_MODES = ("semantic", "variance", "mean uncertainty", "observations")
+# Spec section 5.1 (the RELLIS-3D / RUGD "remap v3" classes) and, for the S-BKI toy example, the
+# marker colours of its RViz publisher (1 red, 2 steel blue, 3 orchid).
+CLASS_COLORS = {
+    "void": (0, 0, 0), "sky": (196, 255, 255), "water": (0, 0, 255), "puddle": (0, 0, 255),
+    "object": (204, 153, 255), "paved": (255, 255, 0), "unpaved": (255, 153, 204), "dirt": (153, 76, 0),
+    "brown": (153, 76, 0), "grass": (111, 255, 74), "green": (111, 255, 74), "vegetation": (0, 102, 0),
+    "free": (0, 0, 0), "ground": (255, 0, 0), "wall": (70, 130, 180), "obstacle": (218, 112, 214),
+}
+_FALLBACK = np.array([(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
+                      (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)], np.uint8)
+# viridis at 9 stops; np.interp between them is indistinguishable at voxel-colour precision.
+_VIRIDIS = np.array([(68, 1, 84), (71, 44, 122), (59, 81, 139), (44, 113, 142), (33, 144, 141),
+                     (39, 173, 129), (92, 200, 99), (170, 220, 50), (253, 231, 37)], np.float64)
+_NO_DATA = np.array([128, 128, 128], np.uint8)
+
+
+def class_palette(classes: list[str]) -> np.ndarray:
+    """[K, 3] uint8: the spec's colour for known class names, a tab10 colour otherwise."""
+    return np.array([CLASS_COLORS.get(name.lower(), tuple(_FALLBACK[i % len(_FALLBACK)])) for i, name in enumerate(classes)], np.uint8)
+
+
+def colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """viridis colours for values in [lo, hi]; NaN -> grey."""
+    finite = np.isfinite(values)
+    t = np.clip((np.where(finite, values, lo) - lo) / (hi - lo if hi > lo else 1.0), 0, 1)
+    stops = np.linspace(0, 1, len(_VIRIDIS))
+    out = np.stack([np.interp(t, stops, _VIRIDIS[:, c]) for c in range(3)], axis=1).astype(np.uint8)
+    out[~finite] = _NO_DATA
+    return out
+
+
+@dataclass
+class MapLayer:
+    """One map file, as the viewer needs it (world frame, metres)."""
+
+    name: str
+    path: Path
+    classes: list[str]
+    resolution: float
+    grid_offset: float
+    centers: np.ndarray
+    voxel_index: np.ndarray
+    alpha: np.ndarray
+    label: np.ndarray
+    state: np.ndarray
+    variance: np.ndarray
+    hits: np.ndarray
+    mean_uncertainty: np.ndarray
+    method: str
+
+    @classmethod
+    def from_file(cls, path) -> "MapLayer":
+        arrays, meta = read_map_arrays(path)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean_unc = np.where(arrays["weight_sum"] > 0, arrays["weighted_uncertainty_sum"] / arrays["weight_sum"], np.nan)
+        return cls(Path(path).stem, Path(path), list(meta["classes"]), float(arrays["resolution"]), float(meta.get("grid_offset_m", 0.0)),
+                   arrays["centers"], arrays["voxel_index"].astype(np.int64), arrays["alpha"], arrays["label"], arrays["state"],
+                   arrays["variance"], arrays["hits"], mean_unc, meta["method"])
+
+    def keys(self, index: np.ndarray) -> np.ndarray:
+        return (index[..., 0] + (1 << 20)) * (1 << 42) + (index[..., 1] + (1 << 20)) * (1 << 21) + (index[..., 2] + (1 << 20))
+
+    def voxel_at(self, points_world: np.ndarray) -> np.ndarray:
+        """Row of the voxel containing each point, -1 where none is stored (rows are key-sorted)."""
+        keys = self.keys(np.floor((points_world - self.grid_offset) / self.resolution).astype(np.int64))
+        stored = self.keys(self.voxel_index)
+        rows = np.clip(np.searchsorted(stored, keys), 0, len(stored) - 1)
+        return np.where((len(stored) > 0) & (stored[rows] == keys), rows, -1)
+
+
+def load_trajectory(path) -> np.ndarray:
+    """Positions [N, 3] from a KITTI/RELLIS poses.txt (12 numbers per line), or N x 3 .txt/.npy."""
+    path = Path(path)
+    data = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, ndmin=2)
+    if data.ndim == 2 and data.shape[1] == 12:
+        return data[:, [3, 7, 11]]
+    if data.ndim == 2 and data.shape[1] == 3:
+        return data
+    raise ValueError(f"{path}: a trajectory needs 3 (x y z) or 12 (3x4 pose) numbers per row, got shape {list(data.shape)}")
+
+
+def load_points(path) -> np.ndarray:
+    """Points [N, 3] from .pcd, .npy ([N, >=3]) or KITTI .bin (float32 x y z intensity)."""
+    path = Path(path)
+    if path.suffix == ".pcd":
+        return read_pcd(path).points
+    if path.suffix == ".bin":
+        raw = np.fromfile(path, dtype=np.float32)
+        if raw.size % 4:
+            raise ValueError(f"{path}: {raw.size} floats is not a whole number of (x, y, z, intensity) points")
+        return raw.reshape(-1, 4)[:, :3].astype(np.float64)
+    if path.suffix == ".npy":
+        data = np.load(path)
+        if data.ndim != 2 or data.shape[1] < 3:
+            raise ValueError(f"{path}: expected an [N, >=3] array, got shape {list(data.shape)}")
+        return data[:, :3].astype(np.float64)
+    raise ValueError(f"{path}: unknown point file type {path.suffix!r} (use .pcd, .npy or .bin)")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class MapViewer:
+    """A viser server showing one or more map files, with filters, colourings, picking and export.
+
+    Handles are attributes: ``server``, ``gui_*`` for the controls, ``voxel_handles`` per layer."""
+
+    def __init__(self, map_paths, *, host: str = "127.0.0.1", port: int = 8080, style: str = "points",
+                 max_voxels: int = 500_000, trajectory=None, scan=None, export_dir=None):
+        import viser
+
+        if style not in ("points", "boxes"):
+            raise ValueError(f"style must be 'points' or 'boxes', got {style!r}")
+        if not map_paths:
+            raise ValueError("give at least one map file")
+        self.layers = [MapLayer.from_file(p) for p in map_paths]
+        self.style = style
+        self.max_voxels = int(max_voxels)
+        self.export_dir = Path(export_dir) if export_dir else self.layers[0].path.parent
+        self.classes = list(dict.fromkeys(c for layer in self.layers for c in layer.classes))
+        self.palette = dict(zip(self.classes, class_palette(self.classes)))
+        lo = np.min([layer.centers.min(axis=0) for layer in self.layers if len(layer.centers)] or [np.zeros(3)], axis=0)
+        hi = np.max([layer.centers.max(axis=0) for layer in self.layers if len(layer.centers)] or [np.zeros(3)], axis=0)
+        # A local origin keeps float32 positions fine-grained however far the map is from 0.
+        self.origin = np.round((lo + hi) / 2.0)
+        self.side_by_side_step = float(hi[0] - lo[0]) + 2.0
+        # A fixed random order per layer: decimation keeps the same voxels as filters change.
+        self._lod_order = [np.random.default_rng(0).permutation(len(layer.centers)) for layer in self.layers]
+        self.visible_rows: list[np.ndarray] = [np.zeros(0, np.int64) for _ in self.layers]
+
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server.scene.set_up_direction("+z")
+        extent = float(max(np.max(hi - lo), 1.0))
+        self.server.initial_camera.position = (0.0, -0.9 * extent, 0.7 * extent)
+        self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
+        self._build_gui()
+        self.voxel_handles: list = [None] * len(self.layers)
+        if trajectory is not None:
+            positions = load_trajectory(trajectory) - self.origin
+            if len(positions) >= 2:
+                self.server.scene.add_spline_catmull_rom("/trajectory", positions.astype(np.float32), color=(255, 80, 0), thickness=3.0, thickness_units="screen")
+            self.server.scene.add_point_cloud("/trajectory_poses", positions.astype(np.float32), colors=(255, 80, 0),
+                                              point_size=0.3, precision="float32")
+        if scan is not None:
+            points = load_points(scan) - self.origin
+            self.server.scene.add_point_cloud("/scan", points.astype(np.float32), colors=(200, 200, 200),
+                                              point_size=0.05, precision="float32")
+        self.server.scene.on_click()(self._on_click)
+        self.refresh()
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.server.get_host()}:{self.server.get_port()}"
+
+    # ------------------------------------------------------------------ GUI
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        with gui.add_folder("Map"):
+            names = tuple(f"{i}: {layer.name} ({layer.method})" for i, layer in enumerate(self.layers))
+            self.gui_map = gui.add_dropdown("Map", options=names, initial_value=names[0])
+            self.gui_side_by_side = gui.add_checkbox("Side by side", initial_value=False, disabled=len(self.layers) == 1)
+            self.gui_color_by = gui.add_dropdown("Colour by", options=COLOR_MODES, initial_value="semantic")
+            max_var = max([float(layer.variance.max()) for layer in self.layers if len(layer.variance)] or [1.0])
+            self.gui_max_variance = gui.add_slider("Max variance", min=0.0, max=max_var, step=max_var / 200, initial_value=max_var)
+            self.gui_show_free = gui.add_checkbox("Show FREE", initial_value=False)
+            self.gui_show_unknown = gui.add_checkbox("Show UNKNOWN", initial_value=False)
+            self.gui_full_map = gui.add_checkbox("Full map (no decimation)", initial_value=False)
+            self.gui_status = gui.add_markdown("")
+        with gui.add_folder("Classes"):
+            self.gui_classes = {name: gui.add_checkbox(name, initial_value=True) for name in self.classes}
+        with gui.add_folder("Legend"):
+            self.gui_legend = gui.add_image(self._legend_image(), label=None)
+        with gui.add_folder("Selected voxel"):
+            self.gui_selection = gui.add_markdown("Click a voxel.")
+        with gui.add_folder("Export"):
+            self.gui_export_html = gui.add_button("Standalone HTML")
+            self.gui_export_ply = gui.add_button("PLY point cloud")
+            self.gui_export_status = gui.add_markdown("")
+        for handle in (self.gui_map, self.gui_side_by_side, self.gui_color_by, self.gui_max_variance,
+                       self.gui_show_free, self.gui_show_unknown, self.gui_full_map, *self.gui_classes.values()):
+            handle.on_update(lambda _event: self.refresh())
+        self.gui_export_html.on_click(lambda _event: self._export_from_gui("html"))
+        self.gui_export_ply.on_click(lambda _event: self._export_from_gui("ply"))
+
+    def _shown_layers(self) -> list[int]:
+        if self.gui_side_by_side.value:
+            return list(range(len(self.layers)))
+        return [int(self.gui_map.value.split(":")[0])]
+
+    def _shift(self, i: int) -> np.ndarray:
+        return np.array([self.side_by_side_step * i if self.gui_side_by_side.value else 0.0, 0.0, 0.0])
+
+    def visible_mask(self, i: int) -> np.ndarray:
+        layer = self.layers[i]
+        keep = np.ones(len(layer.state), bool)
+        if not self.gui_show_free.value:
+            keep &= layer.state != STATE_NAMES.index("FREE")
+        if not self.gui_show_unknown.value:
+            keep &= layer.state != STATE_NAMES.index("UNKNOWN")
+        keep &= layer.variance <= self.gui_max_variance.value + 1e-12
+        hidden = [k for k, name in enumerate(layer.classes) if not self.gui_classes[name].value]
+        if hidden:
+            keep &= ~np.isin(layer.label, hidden)
+        return keep
+
+    def colors(self, i: int, rows: np.ndarray) -> np.ndarray:
+        layer = self.layers[i]
+        mode = self.gui_color_by.value
+        if mode == "semantic":
+            table = np.array([self.palette[name] for name in layer.classes], np.uint8)
+            return table[layer.label[rows]]
+        values = {"variance": layer.variance, "mean uncertainty": layer.mean_uncertainty,
+                  "observations": np.log10(1.0 + layer.hits.astype(np.float64))}[mode][rows]
+        finite = values[np.isfinite(values)]
+        lo, hi = (float(finite.min()), float(finite.max())) if len(finite) else (0.0, 1.0)
+        self._color_range = (lo, hi)
+        return colormap(values, lo, hi)
+
+    def refresh(self) -> None:
+        """Recompute what is shown from the controls and push it to every browser."""
+        shown = self._shown_layers()
+        total_visible = total_drawn = 0
+        self._color_range = None
+        with self.server.atomic():
+            for i, layer in enumerate(self.layers):
+                if i not in shown:
+                    if self.voxel_handles[i] is not None:
+                        self.voxel_handles[i].visible = False
+                    self.visible_rows[i] = np.zeros(0, np.int64)
+                    continue
+                keep = self.visible_mask(i)
+                total_visible += int(keep.sum())
+                order = self._lod_order[i]
+                rows = order[keep[order]]
+                if not self.gui_full_map.value and len(rows) > self.max_voxels:
+                    rows = rows[: self.max_voxels]
+                rows = np.sort(rows)
+                self.visible_rows[i] = rows
+                total_drawn += len(rows)
+                self._draw_layer(i, rows)
+        self.gui_status.content = (f"{total_drawn:,} of {total_visible:,} visible voxels drawn"
+                                   + ("" if total_drawn == total_visible else " (decimated; tick *Full map* for all)"))
+        self.gui_legend.image = self._legend_image()
+
+    def _draw_layer(self, i: int, rows: np.ndarray) -> None:
+        layer = self.layers[i]
+        positions = (layer.centers[rows] - self.origin + self._shift(i)).astype(np.float32)
+        colors = self.colors(i, rows)
+        name = f"/maps/{i}_{layer.name}"
+        if len(rows) == 0:  # viser wants at least one point; hide an empty layer instead
+            positions, colors = np.zeros((1, 3), np.float32), np.zeros((1, 3), np.uint8)
+        if self.style == "points":
+            self.voxel_handles[i] = self.server.scene.add_point_cloud(
+                name, positions, colors, point_size=layer.resolution, point_shape="square", precision="float32", visible=len(rows) > 0)
+        else:
+            import trimesh
+
+            box = trimesh.creation.box(extents=[layer.resolution * 0.95] * 3)
+            self.voxel_handles[i] = self.server.scene.add_batched_meshes_simple(
+                name, box.vertices.astype(np.float32), box.faces.astype(np.uint32),
+                batched_wxyzs=np.tile(np.array([1.0, 0, 0, 0], np.float32), (len(positions), 1)),
+                batched_positions=positions, batched_colors=colors, visible=len(rows) > 0)
+
+    def _legend_image(self) -> np.ndarray:
+        from PIL import Image, ImageDraw
+
+        if self.gui_color_by.value == "semantic":
+            names = self.classes
+            img = Image.new("RGB", (220, 18 * len(names) + 4), (255, 255, 255))
+            draw = ImageDraw.Draw(img)
+            for k, name in enumerate(names):
+                draw.rectangle([4, 4 + 18 * k, 18, 18 + 18 * k], fill=tuple(int(c) for c in self.palette[name]), outline=(90, 90, 90))
+                draw.text((26, 5 + 18 * k), name, fill=(0, 0, 0))
+            return np.asarray(img)
+        lo, hi = getattr(self, "_color_range", None) or (0.0, 1.0)
+        bar = colormap(np.linspace(lo, hi, 200), lo, hi)
+        img = Image.new("RGB", (220, 46), (255, 255, 255))
+        img.paste(Image.fromarray(np.repeat(bar[None], 16, axis=0)), (10, 4))
+        draw = ImageDraw.Draw(img)
+        label = self.gui_color_by.value + (" (log10 1+n)" if self.gui_color_by.value == "observations" else "")
+        draw.text((10, 24), f"{lo:.3g}", fill=(0, 0, 0))
+        draw.text((150, 24), f"{hi:.3g}", fill=(0, 0, 0))
+        draw.text((10, 34), label, fill=(0, 0, 0))
+        return np.asarray(img)
+
+    # ------------------------------------------------------------------ picking
+    def pick(self, ray_origin, ray_direction) -> tuple[int, int] | None:
+        """(layer, row) of the first visible voxel along a ray given in display coordinates."""
+        d = np.asarray(ray_direction, np.float64)
+        d = d / np.linalg.norm(d)
+        best = None
+        for i in self._shown_layers():
+            rows = self.visible_rows[i]
+            if len(rows) == 0:
+                continue
+            layer = self.layers[i]
+            o = np.asarray(ray_origin, np.float64) + self.origin - self._shift(i)  # world frame
+            lo = layer.centers[rows].min(axis=0) - layer.resolution
+            hi = layer.centers[rows].max(axis=0) + layer.resolution
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t1, t2 = (lo - o) / d, (hi - o) / d
+            t_near = np.nanmax(np.minimum(t1, t2))
+            t_far = np.nanmin(np.maximum(t1, t2))
+            if t_far < max(t_near, 0.0):
+                continue
+            ts = np.arange(max(t_near, 0.0), t_far, layer.resolution / 4.0)[:400_000]
+            hit_rows = layer.voxel_at(o + ts[:, None] * d)
+            visible = np.zeros(len(layer.state), bool)
+            visible[rows] = True
+            good = np.flatnonzero((hit_rows >= 0) & visible[np.maximum(hit_rows, 0)])
+            if len(good) and (best is None or ts[good[0]] < best[0]):
+                best = (ts[good[0]], i, int(hit_rows[good[0]]))
+        return None if best is None else (best[1], best[2])
+
+    def describe(self, i: int, row: int) -> str:
+        layer = self.layers[i]
+        alpha = layer.alpha[row]
+        probs = alpha / alpha.sum()
+        lines = [f"**{layer.name}** voxel {tuple(int(v) for v in layer.voxel_index[row])}",
+                 f"centre (m): {', '.join(f'{c:.3f}' for c in layer.centers[row])}",
+                 f"label: **{layer.classes[layer.label[row]]}** ({layer.label[row]}), state {STATE_NAMES[layer.state[row]]}",
+                 f"variance: {layer.variance[row]:.3g}, observations: {int(layer.hits[row])}",
+                 "", "| class | alpha | p |", "|---|---|---|"]
+        lines += [f"| {name} | {a:.4g} | {p:.3f} |" for name, a, p in zip(layer.classes, alpha, probs)]
+        return "\n".join(lines)
+
+    def _on_click(self, event) -> None:
+        hit = self.pick(event.ray_origin, event.ray_direction)
+        self.gui_selection.content = "No visible voxel under the cursor." if hit is None else self.describe(*hit)
+
+    # ------------------------------------------------------------------ export
+    def export_html(self, path) -> Path:
+        """A standalone HTML file of the current scene (viewable offline, without the GUI panel)."""
+        path = Path(path)
+        path.write_text(self.server.get_scene_serializer().as_html())
+        return path
+
+    def export_ply(self, path) -> Path:
+        """The visible voxels of the shown maps as a binary PLY point cloud in the world frame, with
+        label, state, variance and observation count as per-vertex properties."""
+        import trimesh
+
+        parts = [(i, self.visible_rows[i]) for i in self._shown_layers()]
+        centers = np.concatenate([self.layers[i].centers[r] for i, r in parts])
+        colors = np.concatenate([self.colors(i, r) for i, r in parts])
+        cloud = trimesh.PointCloud(centers, colors=np.c_[colors, np.full(len(colors), 255, np.uint8)])
+        cloud.vertex_attributes = {
+            "label": np.concatenate([self.layers[i].label[r] for i, r in parts]).astype(np.float32),
+            "state": np.concatenate([self.layers[i].state[r] for i, r in parts]).astype(np.float32),
+            "variance": np.concatenate([self.layers[i].variance[r] for i, r in parts]).astype(np.float32),
+            "observations": np.concatenate([self.layers[i].hits[r] for i, r in parts]).astype(np.float32),
+        }
+        path = Path(path)
+        with io.BytesIO() as buffer:
+            cloud.export(buffer, file_type="ply")
+            path.write_bytes(buffer.getvalue())
+        return path
+
+    def _export_from_gui(self, kind: str) -> None:
+        stem = self.export_dir / f"{self.layers[self._shown_layers()[0]].name}_view"
+        path = self.export_html(stem.with_suffix(".html")) if kind == "html" else self.export_ply(stem.with_suffix(".ply"))
+        self.gui_export_status.content = f"written: `{path}`"
+
+    def serve_forever(self) -> None:
+        try:
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            self.server.stop()

@@ -1,0 +1,158 @@
+"""The map viewer in-process: filters, colourings, several maps, picking, exports, the CLI."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from evsemmap_warp.cli import main
+from evsemmap_warp.config import load_config
+from evsemmap_warp.mapping import Mapper
+from evsemmap_warp.viewer import CLASS_COLORS, MapViewer, colormap, free_port, load_points, load_trajectory
+
+from conftest import REPO
+
+CLASSES = ["void", "sky", "water", "object", "paved", "unpaved", "dirt", "grass", "vegetation"]
+
+
+def make_map(path, seed=0, offset=(0.0, 0.0, 0.0)):
+    """Grass ground, an object box, and a patch of void (free) evidence, 100 m from the origin."""
+    rng = np.random.default_rng(seed)
+    cfg = load_config([REPO / "configs/presets/rellis3d.yaml"], method="s-bki").mapping
+    mapper = Mapper(cfg, 9, class_names=CLASSES)
+    ground = np.c_[rng.uniform(0, 6, (6000, 2)), rng.normal(0, 0.02, 6000)]
+    box = np.c_[rng.uniform(2, 3, (2000, 2)), rng.uniform(0.2, 1.2, 2000)]
+    air = np.c_[rng.uniform(4, 5, (500, 2)), rng.uniform(1.5, 2, 500)]
+    points = np.concatenate([ground, box, air]) + np.array([100.0, 100.0, 0.0]) + offset
+    labels = np.r_[np.full(6000, 7), np.full(2000, 3), np.zeros(500, int)]
+    alpha = 1.0 + rng.uniform(0, 0.5, (len(labels), 9))
+    alpha[np.arange(len(labels)), labels] += rng.uniform(1, 60, len(labels))
+    mapper.integrate(points, alpha, payload_type="alpha")
+    mapper.save(path)
+    return mapper
+
+
+@pytest.fixture
+def maps(tmp_path):
+    make_map(tmp_path / "a.npz")
+    make_map(tmp_path / "b.npz", seed=1, offset=(0.3, 0, 0))
+    return [tmp_path / "a.npz", tmp_path / "b.npz"]
+
+
+@pytest.fixture
+def viewer(maps):
+    v = MapViewer(maps, port=free_port(), max_voxels=100_000)
+    yield v
+    v.server.stop()
+
+
+def test_defaults_hide_free_and_unknown_and_toggles_show_them(viewer):
+    layer = viewer.layers[0]
+    assert viewer.url.startswith("http://127.0.0.1:")
+    assert set(layer.state[viewer.visible_rows[0]]) == {2}  # OCCUPIED only
+    assert len(viewer.visible_rows[1]) == 0  # one map at a time by default
+    viewer.gui_show_free.value = True
+    assert set(layer.state[viewer.visible_rows[0]]) == {1, 2} and (layer.state == 1).sum() > 0
+
+
+def test_class_toggle_and_variance_slider(viewer):
+    layer = viewer.layers[0]
+    before = viewer.visible_rows[0]
+    viewer.gui_classes["object"].value = False
+    assert 3 not in layer.label[viewer.visible_rows[0]] and 3 in layer.label[before]
+    viewer.gui_classes["object"].value = True
+    threshold = float(np.median(layer.variance[before]))
+    viewer.gui_max_variance.value = threshold
+    shown = viewer.visible_rows[0]
+    assert 0 < len(shown) < len(before) and layer.variance[shown].max() <= threshold + 1e-9
+
+
+def test_colourings(viewer):
+    rows = viewer.visible_rows[0]
+    semantic = viewer.colors(0, rows)
+    labels = viewer.layers[0].label[rows]
+    assert (semantic[labels == 3] == CLASS_COLORS["object"]).all() and (semantic[labels == 7] == CLASS_COLORS["grass"]).all()
+    for mode in ("variance", "mean uncertainty", "observations"):
+        viewer.gui_color_by.value = mode
+        colours = viewer.colors(0, rows)
+        assert len(np.unique(colours, axis=0)) > 5, mode
+        assert viewer.gui_legend.image.shape[0] == 46  # a colour bar instead of the class legend
+    np.testing.assert_array_equal(colormap(np.array([0.0, 1.0, np.nan]), 0, 1), [[68, 1, 84], [253, 231, 37], [128, 128, 128]])
+
+
+def test_several_maps_switchable_and_side_by_side(viewer):
+    viewer.gui_map.value = viewer.gui_map.options[1]
+    assert len(viewer.visible_rows[0]) == 0 and len(viewer.visible_rows[1]) > 0
+    viewer.gui_side_by_side.value = True
+    assert len(viewer.visible_rows[0]) > 0 and len(viewer.visible_rows[1]) > 0
+    assert viewer._shift(1)[0] > 6.0  # the second map sits beside the first, not on top
+
+
+def test_positions_are_float32_relative_to_a_local_origin(viewer):
+    np.testing.assert_array_equal(viewer.origin, np.round(viewer.origin))
+    assert np.abs(viewer.origin[:2] - 103).max() < 1.0
+    points = viewer.voxel_handles[0].points
+    assert points.dtype == np.float32 and np.abs(points).max() < 10
+
+
+def test_decimation_and_full_map(maps):
+    v = MapViewer(maps, port=free_port(), max_voxels=500)
+    try:
+        assert len(v.visible_rows[0]) == 500 and "decimated" in v.gui_status.content
+        v.gui_full_map.value = True
+        assert len(v.visible_rows[0]) > 500 and "decimated" not in v.gui_status.content
+    finally:
+        v.server.stop()
+
+
+def test_clicking_a_voxel_describes_it(viewer):
+    layer = viewer.layers[0]
+    rows = viewer.visible_rows[0]
+    top = rows[np.argmax(layer.centers[rows, 2])]  # the highest visible voxel: nothing above it
+    origin = layer.centers[top] - viewer.origin + np.array([0.0, 0.0, 10.0])
+
+    class Click:
+        ray_origin, ray_direction = tuple(origin), (0.0, 0.0, -1.0)
+
+    viewer._on_click(Click)
+    text = viewer.gui_selection.content
+    assert f"voxel {tuple(int(v) for v in layer.voxel_index[top])}" in text and "| object |" in text
+    assert f"label: **{CLASSES[layer.label[top]]}**" in text
+    assert viewer.pick(origin + np.array([500.0, 0, 0]), (0, 0, -1)) is None
+
+
+def test_exports(viewer, tmp_path):
+    html = viewer.export_html(tmp_path / "scene.html").read_text()
+    assert html.startswith("<!") and len(html) > 100_000
+    ply = viewer.export_ply(tmp_path / "voxels.ply")
+    cloud = trimesh.load(ply)
+    rows = viewer.visible_rows[0]
+    assert len(cloud.vertices) == len(rows)
+    np.testing.assert_allclose(np.sort(cloud.vertices[:, 2]), np.sort(viewer.layers[0].centers[rows, 2]), atol=1e-4)
+    props = cloud.metadata["_ply_raw"]["vertex"]["data"]
+    assert set(np.unique(props["label"])) <= {2.0, 3.0, 7.0} and (props["state"] == 2).all()
+
+
+def test_trajectory_scan_and_file_errors(maps, tmp_path):
+    poses = np.zeros((5, 12))
+    poses[:, [0, 5, 10]] = 1
+    poses[:, 3] = np.arange(5) + 100
+    np.savetxt(tmp_path / "poses.txt", poses)
+    np.testing.assert_array_equal(load_trajectory(tmp_path / "poses.txt")[:, 0], np.arange(5) + 100)
+    scan = np.random.default_rng(0).normal(size=(100, 4)).astype(np.float32)
+    scan.tofile(tmp_path / "scan.bin")
+    np.testing.assert_allclose(load_points(tmp_path / "scan.bin"), scan[:, :3])
+    v = MapViewer(maps[:1], port=free_port(), trajectory=tmp_path / "poses.txt", scan=tmp_path / "scan.bin", style="boxes")
+    v.server.stop()
+    np.savetxt(tmp_path / "bad.txt", np.zeros((3, 5)))
+    with pytest.raises(ValueError, match="3 \\(x y z\\) or 12"):
+        load_trajectory(tmp_path / "bad.txt")
+    with pytest.raises(ValueError, match="unknown point file type"):
+        load_points(tmp_path / "x.xyz")
+
+
+def test_view_command_exports_without_serving(maps, tmp_path, capsys):
+    assert main(["view", *map(str, maps), "--port", str(free_port()), "--no-serve",
+                 "--export-html", str(tmp_path / "v.html"), "--export-ply", str(tmp_path / "v.ply")]) == 0
+    assert (tmp_path / "v.html").exists() and (tmp_path / "v.ply").exists()
+    assert main(["view", str(tmp_path / "missing.npz"), "--no-serve"]) == 2
+    assert "no such map file" in capsys.readouterr().err
