@@ -216,7 +216,8 @@ def load_config(config_paths: list[str | Path], method: str | None = None) -> Ru
                 converted = _convert(cls, key, value, f"{path}: {section}")
                 if section == "dataset":
                     dataset[key] = converted
-                    dataset["config_dir"] = str(path.resolve().parent)
+                    if key == "paths":  # relative paths belong to the file that names them
+                        dataset["config_dir"] = str(path.resolve().parent)
                 else:
                     mapping[key] = converted
     try:

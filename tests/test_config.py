@@ -31,6 +31,13 @@ def test_switches_and_numbers_land_where_they_belong():
     assert toy.dataset.resolve_path().exists()
 
 
+def test_dataset_paths_stay_relative_to_the_file_that_names_them(tmp_path):
+    override = tmp_path / "labels.yaml"
+    override.write_text("dataset:\n  payload: label\nmapping:\n  compat: sbki\n")
+    run = load_config([REPO / "configs/datasets/sbki_toy.yaml", override], method="s-bki")
+    assert run.dataset.resolve_path().exists() and run.dataset.config_dir == str((REPO / "configs/datasets").resolve())
+
+
 def test_later_files_win(tmp_path):
     extra = tmp_path / "fine.yaml"
     extra.write_text("mapping:\n  resolution_m: 0.1\n")
