@@ -89,6 +89,59 @@ def _cmd_view(args) -> int:
     return 0
 
 
+def _segmentation_source(args):
+    from .segmentation.data import Rellis3DImages, RugdImages, SyntheticOffroad
+
+    if args.dataset == "synthetic":
+        return SyntheticOffroad(args.synthetic_frames, tuple(args.input_size), domain=args.domain, seed=args.seed)
+    if args.data is None:
+        raise ValueError(f"--data DIR is needed for the {args.dataset} dataset")
+    return (Rellis3DImages if args.dataset == "rellis3d" else RugdImages)(args.data)
+
+
+def _cmd_train_seg(args) -> int:
+    from .classes import class_set
+    from .segmentation.model import ModelConfig
+    from .segmentation.train import TrainConfig, train
+
+    classes = class_set()
+    config = TrainConfig(
+        model=ModelConfig(arch=args.arch, num_classes=len(classes), width=args.width, aspp_channels=args.aspp_channels),
+        head=args.head, input_size=tuple(args.input_size), epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
+        kl_schedule=args.kl_schedule, val_fraction=args.val_fraction, seed=args.seed, time_budget_s=args.time_budget,
+    )
+    summary = train(_segmentation_source(args), classes.names, config, args.out, resume=args.resume, progress=not args.quiet)
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+def _cmd_infer(args) -> int:
+    from PIL import Image
+    from tqdm import tqdm
+
+    from .segmentation.train import infer_alpha, load_checkpoint
+
+    model, config, meta, _ = load_checkpoint(args.checkpoint)
+    paths = sorted(p for p in args.images.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png")) if args.images.is_dir() else [args.images]
+    if not paths:
+        raise ValueError(f"{args.images}: no .jpg or .png images")
+    args.out.mkdir(parents=True, exist_ok=True)
+
+    def images():
+        for path in paths:
+            with Image.open(path) as img:
+                if img.mode != "RGB":
+                    raise ValueError(f"{path}: expected an RGB image, got mode {img.mode}")
+                yield np.asarray(img)
+
+    outputs = infer_alpha(model, config, meta, images(), batch_size=args.batch_size)
+    for path, (alpha, _) in tqdm(zip(paths, outputs), total=len(paths), unit="img", disable=args.quiet):
+        np.save(args.out / f"{path.stem}.npy", alpha)
+    print(f"wrote {len(paths)} {'alpha' if config.head == 'evidential' else 'probability'} maps "
+          f"[{config.model.num_classes}, {config.input_size[0]}, {config.input_size[1]}] float16 to {args.out}", file=sys.stderr)
+    return 0
+
+
 def _cmd_dump_config(args) -> int:
     run = load_config(args.configs, method=args.method)
     out = {"mapping": run.mapping.as_dict()}
@@ -99,6 +152,8 @@ def _cmd_dump_config(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .segmentation.model import ModelConfig
+
     parser = argparse.ArgumentParser(prog="evsemmap", description="Evidential semantic mapping on Warp kernels.")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -124,6 +179,36 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--export-dir", type=Path, help="folder for the GUI's export buttons (default: beside the first map)")
     p.add_argument("--no-serve", action="store_true", help="export and exit instead of serving")
     p.set_defaults(func=_cmd_view)
+
+    p = sub.add_parser("train-seg", help="train the evidential segmentation network")
+    p.add_argument("--dataset", choices=("synthetic", "rellis3d", "rugd"), default="synthetic")
+    p.add_argument("--data", type=Path, help="dataset root (RELLIS-3D sequences folder or RUGD root)")
+    p.add_argument("--out", type=Path, required=True, help="folder for checkpoints, history, metrics and plots")
+    p.add_argument("--arch", default=ModelConfig.arch, help="r18-os16 (CPU default), r50-os8 (full size) or torchvision-r50")
+    p.add_argument("--width", type=int, default=ModelConfig.width, help="channels of the first ResNet stage (64 = standard)")
+    p.add_argument("--aspp-channels", type=int, default=ModelConfig.aspp_channels)
+    p.add_argument("--head", choices=("evidential", "softmax"), default="evidential")
+    p.add_argument("--input-size", type=int, nargs=2, default=[128, 256], metavar=("H", "W"))
+    p.add_argument("--epochs", type=int, default=20)
+    p.add_argument("--batch-size", type=int, default=8)
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--kl-schedule", choices=("paper", "release"), default="paper")
+    p.add_argument("--val-fraction", type=float, default=0.1)
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--time-budget", type=float, default=None, help="stop after the epoch that passes this many seconds")
+    p.add_argument("--synthetic-frames", type=int, default=400)
+    p.add_argument("--domain", default="summer", help="synthetic appearance domain: summer, autumn, dusk")
+    p.add_argument("--resume", type=Path, help="checkpoint to continue from")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_train_seg)
+
+    p = sub.add_parser("infer", help="per-frame Dirichlet alpha (float16 .npy) from a trained checkpoint")
+    p.add_argument("checkpoint", type=Path)
+    p.add_argument("images", type=Path, help="an image or a folder of .jpg/.png images")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--batch-size", type=int, default=4)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_infer)
 
     p = sub.add_parser("info", help="summarise a map file")
     p.add_argument("map", type=Path)

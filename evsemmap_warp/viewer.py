@@ -16,19 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
+from .classes import named_colors
 from .map_file import read_map_arrays
 from .pcd import read_pcd
 
 STATE_NAMES = ("UNKNOWN", "FREE", "OCCUPIED")
 COLOR_MODES = ("semantic", "variance", "mean uncertainty", "observations")
-# Spec section 5.1 (the RELLIS-3D / RUGD "remap v3" classes) and, for the S-BKI toy example, the
-# marker colours of its RViz publisher (1 red, 2 steel blue, 3 orchid).
-CLASS_COLORS = {
-    "void": (0, 0, 0), "sky": (196, 255, 255), "water": (0, 0, 255), "puddle": (0, 0, 255),
-    "object": (204, 153, 255), "paved": (255, 255, 0), "unpaved": (255, 153, 204), "dirt": (153, 76, 0),
-    "brown": (153, 76, 0), "grass": (111, 255, 74), "green": (111, 255, 74), "vegetation": (0, 102, 0),
-    "free": (0, 0, 0), "ground": (255, 0, 0), "wall": (70, 130, 180), "obstacle": (218, 112, 214),
-}
+# Class colours come from configs/classes (spec 5.1 for the mapping classes); other names get tab10.
+CLASS_COLORS = named_colors()
 _FALLBACK = np.array([(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
                       (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)], np.uint8)
 # viridis at 9 stops; np.interp between them is indistinguishable at voxel-colour precision.

@@ -1,0 +1,206 @@
+"""Training, evaluation, checkpoints and inference for the evidential (or softmax) segmentation.
+
+Checkpoints are ``torch.save`` dictionaries of tensors and plain Python values (no pickled objects),
+loaded with ``weights_only=True``: model weights, optimiser state, epoch, and the metadata needed to
+use the model: classes, normalisation, input size, model config, head, format version.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from .. import __version__
+from .data import IMAGENET_MEAN, IMAGENET_STD, SegmentationTensors, resize_pair, to_tensor
+from .evidential import dirichlet_from_logits, edl_loss, kl_weight
+from .metrics import SegmentationMetrics
+from .model import ModelConfig, build_model
+
+CHECKPOINT_VERSION = 1
+
+
+@dataclass
+class TrainConfig:
+    model: ModelConfig = ModelConfig()
+    head: str = "evidential"  # evidential (EDL loss) | softmax (cross-entropy, the "vanilla" baseline)
+    input_size: tuple[int, int] = (128, 256)
+    epochs: int = 20
+    batch_size: int = 8
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    kl_schedule: str = "paper"
+    kl_anneal_epochs: int = 0  # 0: the number of epochs (paper: lambda reaches 0.5 at the last epoch)
+    logit_clamp: float = 10.0
+    val_fraction: float = 0.1
+    seed: int = 1
+    time_budget_s: float | None = None  # stop after the epoch that passes it
+
+    def validate(self) -> None:
+        if self.head not in ("evidential", "softmax"):
+            raise ValueError(f"head must be 'evidential' or 'softmax', got {self.head!r}")
+        if not 0 < self.val_fraction < 1:
+            raise ValueError(f"val_fraction must lie in (0, 1), got {self.val_fraction}")
+        if self.epochs < 1 or self.batch_size < 1 or self.lr <= 0:
+            raise ValueError("epochs and batch_size must be >= 1 and lr > 0")
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def predict(model, images: torch.Tensor, head: str, clamp: float):
+    """(alpha or probabilities [B, K, H, W], probabilities, uncertainty [B, H, W])."""
+    logits = model(images)
+    if head == "evidential":
+        return dirichlet_from_logits(logits, clamp)
+    probs = torch.softmax(logits, dim=1)
+    return probs, probs, 1.0 - probs.max(dim=1).values
+
+
+@torch.no_grad()
+def evaluate(model, loader, head: str, clamp: float, num_classes: int) -> SegmentationMetrics:
+    model.eval()
+    metrics = SegmentationMetrics(num_classes)
+    for images, labels in loader:
+        _, probs, unc = predict(model, images, head, clamp)
+        metrics.update(probs.numpy(), unc.numpy(), labels.numpy())
+    return metrics
+
+
+def save_checkpoint(path, model, optimizer, epoch: int, config: TrainConfig, class_names, history) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {
+        "format_version": CHECKPOINT_VERSION, "written_by": f"evsemmap_warp {__version__}",
+        "classes": list(class_names), "mean": list(IMAGENET_MEAN), "std": list(IMAGENET_STD),
+        "train_config": json.dumps(asdict(config)), "epoch": epoch, "history": json.dumps(history),
+    }
+    torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "meta": meta}, path)
+    return path
+
+
+def load_checkpoint(path, class_names=None):
+    """(model in eval mode, TrainConfig, meta, raw checkpoint). Refuses other versions and, when
+    ``class_names`` is given, a checkpoint trained for another class set."""
+    path = Path(path)
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        meta = ckpt["meta"]
+        cfg = json.loads(meta["train_config"])
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such checkpoint") from None
+    except Exception as exc:  # torch raises many types for corrupt files
+        raise ValueError(f"{path}: not a readable evsemmap segmentation checkpoint ({type(exc).__name__}: {exc})") from None
+    if meta.get("format_version") != CHECKPOINT_VERSION:
+        raise ValueError(f"{path}: checkpoint format {meta.get('format_version')}, this version reads {CHECKPOINT_VERSION}")
+    if class_names is not None and list(class_names) != list(meta["classes"]):
+        raise ValueError(f"{path}: trained for classes {meta['classes']}, but {list(class_names)} were asked for")
+    config = TrainConfig(**{**cfg, "model": ModelConfig(**cfg["model"]), "input_size": tuple(cfg["input_size"])})
+    model = build_model(config.model)
+    model.load_state_dict(ckpt["model"])
+    model.eval()
+    return model, config, meta, ckpt
+
+
+def split_indices(n: int, val_fraction: float, seed: int) -> tuple[list[int], list[int]]:
+    order = np.random.default_rng(seed).permutation(n)
+    n_val = max(1, int(round(n * val_fraction)))
+    if n - n_val < 1:
+        raise ValueError(f"{n} images are too few to split off {val_fraction:.0%} for validation")
+    return sorted(order[n_val:].tolist()), sorted(order[:n_val].tolist())
+
+
+def train(source, class_names, config: TrainConfig, out_dir, *, resume=None, progress: bool = True) -> dict:
+    """Train on ``source`` (a dataset of (image, labels)); writes last.pt, best.pt, history.json,
+    metrics.json and the calibration plots into ``out_dir``. Returns the final summary."""
+    config.validate()
+    out_dir = Path(out_dir)
+    seed_everything(config.seed)
+    train_idx, val_idx = split_indices(len(source), config.val_fraction, config.seed)
+    loaders = [torch.utils.data.DataLoader(SegmentationTensors(source, idx, config.input_size), batch_size=config.batch_size,
+                                           shuffle=shuffle, drop_last=shuffle and len(idx) > config.batch_size,
+                                           generator=torch.Generator().manual_seed(config.seed))
+               for idx, shuffle in ((train_idx, True), (val_idx, False))]
+    train_loader, val_loader = loaders
+    if config.model.num_classes != len(class_names):
+        raise ValueError(f"the model has {config.model.num_classes} outputs but the dataset has {len(class_names)} classes")
+    model = build_model(config.model)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    start_epoch, history = 1, []
+    if resume is not None:
+        _, _, meta, ckpt = load_checkpoint(resume, class_names)
+        model.load_state_dict(ckpt["model"])
+        optimizer.load_state_dict(ckpt["optimizer"])
+        start_epoch, history = int(meta["epoch"]) + 1, json.loads(meta["history"])
+    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=config.epochs, last_epoch=start_epoch - 2)
+    anneal = config.kl_anneal_epochs or config.epochs
+    started = time.perf_counter()
+    best = max((h["val_miou"] for h in history), default=-1.0)
+    bar = tqdm(total=(config.epochs - start_epoch + 1) * len(train_loader), disable=not progress, unit="batch", dynamic_ncols=True)
+    for epoch in range(start_epoch, config.epochs + 1):
+        model.train()
+        lam = kl_weight(epoch, anneal, config.kl_schedule)
+        losses = []
+        for images, labels in train_loader:
+            logits = model(images)
+            if config.head == "evidential":
+                loss, _ = edl_loss(logits, labels, lam, config.logit_clamp)
+            else:
+                loss = torch.nn.functional.cross_entropy(logits, labels)
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            losses.append(float(loss.detach()))
+            bar.update(1)
+            bar.set_postfix(epoch=epoch, loss=f"{np.mean(losses[-20:]):.3f}", lr=f"{scheduler.get_last_lr()[0]:.2e}",
+                            val_miou=f"{history[-1]['val_miou']:.3f}" if history else "-")
+        scheduler.step()
+        metrics = evaluate(model, val_loader, config.head, config.logit_clamp, len(class_names))
+        history.append({"epoch": epoch, "loss": float(np.mean(losses)), "kl_lambda": lam, "val_miou": metrics.miou,
+                        "val_pixel_accuracy": metrics.pixel_accuracy, "seconds": time.perf_counter() - started})
+        bar.set_postfix(epoch=epoch, loss=f"{np.mean(losses):.3f}", val_miou=f"{metrics.miou:.3f}")
+        save_checkpoint(out_dir / "last.pt", model, optimizer, epoch, config, class_names, history)
+        if metrics.miou > best:
+            best = metrics.miou
+            save_checkpoint(out_dir / "best.pt", model, optimizer, epoch, config, class_names, history)
+        if config.time_budget_s is not None and time.perf_counter() - started > config.time_budget_s:
+            break
+    bar.close()
+    summary = metrics.summary(class_names) | {"epochs_run": history[-1]["epoch"], "train_seconds": time.perf_counter() - started}
+    (out_dir / "history.json").write_text(json.dumps(history, indent=1))
+    (out_dir / "metrics.json").write_text(json.dumps(summary, indent=1))
+    metrics.save_plots(out_dir)
+    return summary
+
+
+@torch.no_grad()
+def infer_alpha(model, config: TrainConfig, meta: dict, images, *, batch_size: int = 4, progress: bool = False):
+    """Yield (alpha or probabilities [K, H, W] float16 at the network's input size, u [H, W]) per
+    uint8 RGB image [H, W, 3]: the in-memory hand-off to the projection step."""
+    batch = []
+    bar = tqdm(total=len(images) if hasattr(images, "__len__") else None, disable=not progress, unit="img")
+
+    def flush():
+        x = torch.stack(batch)
+        out, _, unc = predict(model, x, config.head, config.logit_clamp)
+        bar.update(len(batch))
+        batch.clear()
+        return [(o.half().numpy(), u.numpy()) for o, u in zip(out, unc)]
+
+    for image in images:
+        resized, _ = resize_pair(np.asarray(image), None, config.input_size)
+        batch.append(to_tensor(resized, meta["mean"], meta["std"]))
+        if len(batch) == batch_size:
+            yield from flush()
+    if batch:
+        yield from flush()
+    bar.close()
