@@ -101,7 +101,7 @@ def _segmentation_source(args):
 
 def _cmd_train_seg(args) -> int:
     from .classes import class_set
-    from .segmentation.model import ModelConfig
+    from .segmentation.config import ModelConfig
     from .segmentation.train import TrainConfig, train
 
     classes = class_set()
@@ -152,7 +152,7 @@ def _cmd_dump_config(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .segmentation.model import ModelConfig
+    from .segmentation.config import ModelConfig
 
     parser = argparse.ArgumentParser(prog="evsemmap", description="Evidential semantic mapping on Warp kernels.")
     sub = parser.add_subparsers(dest="command", required=True)

@@ -10,23 +10,11 @@ come only from a path the user gives (``load_backbone_weights``).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-
-@dataclass(frozen=True)
-class ModelConfig:
-    arch: str = "r18-os16"  # r18-os16 | r50-os8 | torchvision-r50
-    num_classes: int = 9
-    # The CPU-friendly default; the full-size model is arch r50-os8, width 64, aspp_channels 256.
-    width: int = 32  # channels of the first ResNet stage (64 = the standard ResNet)
-    aspp_channels: int = 64
-
-    def as_dict(self) -> dict:
-        return asdict(self)
+from .config import ModelConfig
 
 
 class BasicBlock(nn.Module):

@@ -21,7 +21,8 @@ from .. import __version__
 from .data import IMAGENET_MEAN, IMAGENET_STD, SegmentationTensors, resize_pair, to_tensor
 from .evidential import dirichlet_from_logits, edl_loss, kl_weight
 from .metrics import SegmentationMetrics
-from .model import ModelConfig, build_model
+from .config import ModelConfig
+from .model import build_model
 
 CHECKPOINT_VERSION = 1
 
