@@ -109,8 +109,18 @@ def _cmd_train_seg(args) -> int:
         model=ModelConfig(arch=args.arch, num_classes=len(classes), width=args.width, aspp_channels=args.aspp_channels),
         head=args.head, input_size=tuple(args.input_size), epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
         kl_schedule=args.kl_schedule, val_fraction=args.val_fraction, seed=args.seed, time_budget_s=args.time_budget,
+        logit_clamp=args.logit_clamp, normalization=args.normalization,
+        backbone_weights=str(args.backbone_weights) if args.backbone_weights else None,
     )
     summary = train(_segmentation_source(args), classes.names, config, args.out, resume=args.resume, progress=not args.quiet)
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+def _cmd_eval_seg(args) -> int:
+    from .segmentation.train import evaluate_checkpoint
+
+    summary = evaluate_checkpoint(args.checkpoint, _segmentation_source(args), args.out)
     print(json.dumps(summary, indent=1))
     return 0
 
@@ -180,27 +190,40 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-serve", action="store_true", help="export and exit instead of serving")
     p.set_defaults(func=_cmd_view)
 
+    def add_dataset_args(p, frames: int, seed: int, size_help: str) -> None:
+        p.add_argument("--dataset", choices=("synthetic", "rellis3d", "rugd"), default="synthetic")
+        p.add_argument("--data", type=Path, help="dataset root (RELLIS-3D sequences folder or RUGD root)")
+        p.add_argument("--synthetic-frames", type=int, default=frames)
+        p.add_argument("--input-size", type=int, nargs=2, default=[128, 256], metavar=("H", "W"), help=size_help)
+        p.add_argument("--domain", default="summer", help="synthetic appearance domain: summer, autumn, dusk")
+        p.add_argument("--seed", type=int, default=seed, help="seed of the split, the initialisation and synthetic frames")
+
     p = sub.add_parser("train-seg", help="train the evidential segmentation network")
-    p.add_argument("--dataset", choices=("synthetic", "rellis3d", "rugd"), default="synthetic")
-    p.add_argument("--data", type=Path, help="dataset root (RELLIS-3D sequences folder or RUGD root)")
+    add_dataset_args(p, 400, 1, "network input size (and synthetic frame size)")
     p.add_argument("--out", type=Path, required=True, help="folder for checkpoints, history, metrics and plots")
     p.add_argument("--arch", default=ModelConfig.arch, help="r18-os16 (CPU default), r50-os8 (full size) or torchvision-r50")
     p.add_argument("--width", type=int, default=ModelConfig.width, help="channels of the first ResNet stage (64 = standard)")
     p.add_argument("--aspp-channels", type=int, default=ModelConfig.aspp_channels)
     p.add_argument("--head", choices=("evidential", "softmax"), default="evidential")
-    p.add_argument("--input-size", type=int, nargs=2, default=[128, 256], metavar=("H", "W"))
     p.add_argument("--epochs", type=int, default=20)
     p.add_argument("--batch-size", type=int, default=8)
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--kl-schedule", choices=("paper", "release"), default="paper")
     p.add_argument("--val-fraction", type=float, default=0.1)
-    p.add_argument("--seed", type=int, default=1)
     p.add_argument("--time-budget", type=float, default=None, help="stop after the epoch that passes this many seconds")
-    p.add_argument("--synthetic-frames", type=int, default=400)
-    p.add_argument("--domain", default="summer", help="synthetic appearance domain: summer, autumn, dusk")
+    p.add_argument("--logit-clamp", type=float, default=10.0, help="evidence = exp(clamp(logit, -c, c))")
+    p.add_argument("--normalization", choices=("imagenet", "caffe"), default="imagenet")
+    p.add_argument("--backbone-weights", type=Path, help="backbone state dict to start from (nothing is downloaded)")
     p.add_argument("--resume", type=Path, help="checkpoint to continue from")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_train_seg)
+
+    p = sub.add_parser("eval-seg", help="2D metrics and calibration plots of a checkpoint on a dataset")
+    p.add_argument("checkpoint", type=Path)
+    # seed 2: other synthetic frames than training saw (seed 1)
+    add_dataset_args(p, 100, 2, "synthetic frame size (the network resizes to its own)")
+    p.add_argument("--out", type=Path, help="folder for metrics.json and the plots")
+    p.set_defaults(func=_cmd_eval_seg)
 
     p = sub.add_parser("infer", help="per-frame Dirichlet alpha (float16 .npy) from a trained checkpoint")
     p.add_argument("checkpoint", type=Path)

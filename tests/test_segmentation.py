@@ -185,6 +185,8 @@ def test_train_resume_checkpoint_and_inference(tmp_path):
     train(src, CLASSES, cfg3, tmp_path / "run", resume=tmp_path / "run" / "last.pt", progress=False)
     history = json.loads((tmp_path / "run" / "history.json").read_text())
     assert [h["epoch"] for h in history] == [1, 2, 3]
+    with pytest.raises(ValueError, match="already trained for 3 epochs"):
+        train(src, CLASSES, cfg3, tmp_path / "run", resume=tmp_path / "run" / "last.pt", progress=False)
     outs = list(infer_alpha(model, config, meta, [src[i][0] for i in range(5)], batch_size=2))
     assert len(outs) == 5 and outs[0][0].shape == (9, 32, 64) and outs[0][0].dtype == np.float16
     assert (outs[0][0].astype(np.float32) >= 1.0).all() and (outs[0][1] <= 1.0).all()
@@ -216,3 +218,29 @@ def test_cli_train_and_infer(tmp_path, capsys):
     assert [a.name for a in arrays] == ["f0.npy", "f1.npy", "f2.npy"] and np.load(arrays[0]).shape == (9, 32, 64)
     assert main(["train-seg", "--dataset", "rellis3d", "--out", str(tmp_path / "r")]) == 2
     assert "--data DIR is needed" in capsys.readouterr().err
+
+
+def test_backbone_weights_load_from_a_given_path_only(tmp_path):
+    source = build_model(TINY)
+    torch.save(source.backbone.state_dict(), tmp_path / "backbone.pt")
+    from evsemmap_warp.segmentation.model import load_backbone_weights
+
+    target = build_model(TINY)
+    load_backbone_weights(target, tmp_path / "backbone.pt")
+    for key, value in source.backbone.state_dict().items():
+        assert torch.equal(value, target.backbone.state_dict()[key])
+    torch.save({"stem.0.weight": torch.zeros(1)}, tmp_path / "wrong.pt")
+    with pytest.raises(ValueError, match="backbone tensors missing or of another shape"):
+        load_backbone_weights(target, tmp_path / "wrong.pt")
+
+
+def test_eval_seg_on_another_domain_and_caffe_normalisation(tmp_path, capsys):
+    cfg = TrainConfig(model=TINY, input_size=(32, 64), epochs=1, batch_size=4, val_fraction=0.25, normalization="caffe")
+    train(SyntheticOffroad(12, (32, 64)), CLASSES, cfg, tmp_path / "run", progress=False)
+    _, _, meta, _ = load_checkpoint(tmp_path / "run" / "last.pt")
+    assert meta["mean"][0] == pytest.approx(103.939 / 255)
+    assert main(["eval-seg", str(tmp_path / "run" / "last.pt"), "--domain", "dusk", "--synthetic-frames", "4",
+                 "--input-size", "32", "64", "--out", str(tmp_path / "eval")]) == 0
+    assert "uncertainty_auroc" in json.loads(capsys.readouterr().out) and (tmp_path / "eval" / "reliability.png").exists()
+    with pytest.raises(ValueError, match="normalization must be"):
+        TrainConfig(normalization="bgr").validate()

@@ -18,11 +18,11 @@ import torch
 from tqdm import tqdm
 
 from .. import __version__
-from .data import IMAGENET_MEAN, IMAGENET_STD, SegmentationTensors, resize_pair, to_tensor
+from .data import CAFFE_MEAN, IMAGENET_MEAN, IMAGENET_STD, SegmentationTensors, resize_pair, to_tensor
 from .evidential import dirichlet_from_logits, edl_loss, kl_weight
 from .metrics import SegmentationMetrics
 from .config import ModelConfig
-from .model import build_model
+from .model import build_model, load_backbone_weights
 
 CHECKPOINT_VERSION = 1
 
@@ -42,6 +42,12 @@ class TrainConfig:
     val_fraction: float = 0.1
     seed: int = 1
     time_budget_s: float | None = None  # stop after the epoch that passes it
+    normalization: str = "imagenet"  # imagenet (RGB means) | caffe (the release's BGR means on RGB, spec 10.3)
+    backbone_weights: str | None = None  # a state dict for the backbone; nothing is ever downloaded
+
+    @property
+    def mean_std(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        return (IMAGENET_MEAN if self.normalization == "imagenet" else CAFFE_MEAN), IMAGENET_STD
 
     def validate(self) -> None:
         if self.head not in ("evidential", "softmax"):
@@ -50,6 +56,10 @@ class TrainConfig:
             raise ValueError(f"val_fraction must lie in (0, 1), got {self.val_fraction}")
         if self.epochs < 1 or self.batch_size < 1 or self.lr <= 0:
             raise ValueError("epochs and batch_size must be >= 1 and lr > 0")
+        if self.normalization not in ("imagenet", "caffe"):
+            raise ValueError(f"normalization must be 'imagenet' or 'caffe', got {self.normalization!r}")
+        if not self.logit_clamp > 0:
+            raise ValueError(f"logit_clamp must be > 0, got {self.logit_clamp}")
 
 
 def seed_everything(seed: int) -> None:
@@ -82,7 +92,7 @@ def save_checkpoint(path, model, optimizer, epoch: int, config: TrainConfig, cla
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {
         "format_version": CHECKPOINT_VERSION, "written_by": f"evsemmap_warp {__version__}",
-        "classes": list(class_names), "mean": list(IMAGENET_MEAN), "std": list(IMAGENET_STD),
+        "classes": list(class_names), "mean": list(config.mean_std[0]), "std": list(config.mean_std[1]),
         "train_config": json.dumps(asdict(config)), "epoch": epoch, "history": json.dumps(history),
     }
     torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "meta": meta}, path)
@@ -127,7 +137,7 @@ def train(source, class_names, config: TrainConfig, out_dir, *, resume=None, pro
     out_dir = Path(out_dir)
     seed_everything(config.seed)
     train_idx, val_idx = split_indices(len(source), config.val_fraction, config.seed)
-    loaders = [torch.utils.data.DataLoader(SegmentationTensors(source, idx, config.input_size), batch_size=config.batch_size,
+    loaders = [torch.utils.data.DataLoader(SegmentationTensors(source, idx, config.input_size, *config.mean_std), batch_size=config.batch_size,
                                            shuffle=shuffle, drop_last=shuffle and len(idx) > config.batch_size,
                                            generator=torch.Generator().manual_seed(config.seed))
                for idx, shuffle in ((train_idx, True), (val_idx, False))]
@@ -135,6 +145,8 @@ def train(source, class_names, config: TrainConfig, out_dir, *, resume=None, pro
     if config.model.num_classes != len(class_names):
         raise ValueError(f"the model has {config.model.num_classes} outputs but the dataset has {len(class_names)} classes")
     model = build_model(config.model)
+    if config.backbone_weights and resume is None:
+        load_backbone_weights(model, config.backbone_weights)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     start_epoch, history = 1, []
     if resume is not None:
@@ -142,6 +154,8 @@ def train(source, class_names, config: TrainConfig, out_dir, *, resume=None, pro
         model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
         start_epoch, history = int(meta["epoch"]) + 1, json.loads(meta["history"])
+        if start_epoch > config.epochs:
+            raise ValueError(f"{resume}: already trained for {meta['epoch']} epochs; ask for more than {config.epochs}")
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=config.epochs, last_epoch=start_epoch - 2)
     anneal = config.kl_anneal_epochs or config.epochs
     started = time.perf_counter()
@@ -180,6 +194,20 @@ def train(source, class_names, config: TrainConfig, out_dir, *, resume=None, pro
     (out_dir / "history.json").write_text(json.dumps(history, indent=1))
     (out_dir / "metrics.json").write_text(json.dumps(summary, indent=1))
     metrics.save_plots(out_dir)
+    return summary
+
+
+def evaluate_checkpoint(checkpoint, source, out_dir=None, *, batch_size: int = 8) -> dict:
+    """Metrics (and plots, when ``out_dir`` is given) of a checkpoint on every frame of ``source``."""
+    model, config, meta, _ = load_checkpoint(checkpoint)
+    data = SegmentationTensors(source, range(len(source)), config.input_size, meta["mean"], meta["std"])
+    metrics = evaluate(model, torch.utils.data.DataLoader(data, batch_size=batch_size), config.head, config.logit_clamp, len(meta["classes"]))
+    summary = metrics.summary(meta["classes"])
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "metrics.json").write_text(json.dumps(summary, indent=1))
+        metrics.save_plots(out_dir)
     return summary
 
 
