@@ -37,7 +37,7 @@ def _cmd_map(args) -> int:
         points += len(scan.points)
     save_map(args.out, mapper)
     counts = mapper.state_counts()
-    arrays, summary = mapper.voxels()
+    _, summary = mapper.voxels()
     occupied = summary.state == VoxelState.OCCUPIED
     per_class = np.bincount(summary.label[occupied], minlength=mapper.num_classes)
     report = {

@@ -1,6 +1,6 @@
 """Browser-based map inspection with viser: ``MapViewer`` and ``evsemmap view``.
 
-The viewer reads map files only (``map_file.read_map_arrays``); it needs no Warp. Voxels are drawn as
+The viewer reads map files only (``map_file.read_map_arrays``); it launches no kernel. Voxels are drawn as
 point sprites or instanced boxes, in float32 positions relative to a local origin (viser's default
 float16 would quantise a map a few hundred metres from its origin). Everything a control changes
 goes through ``refresh()``, so the same code serves the browser and the tests.
@@ -19,6 +19,7 @@ import numpy as np
 from .classes import named_colors
 from .map_file import read_map_arrays
 from .pcd import read_pcd
+from .voxel_map import pack_voxel_keys
 
 STATE_NAMES = ("UNKNOWN", "FREE", "OCCUPIED")
 COLOR_MODES = ("semantic", "variance", "mean uncertainty", "observations")
@@ -75,13 +76,10 @@ class MapLayer:
                    arrays["centers"], arrays["voxel_index"].astype(np.int64), arrays["alpha"], arrays["label"], arrays["state"],
                    arrays["variance"], arrays["hits"], mean_unc, meta["method"])
 
-    def keys(self, index: np.ndarray) -> np.ndarray:
-        return (index[..., 0] + (1 << 20)) * (1 << 42) + (index[..., 1] + (1 << 20)) * (1 << 21) + (index[..., 2] + (1 << 20))
-
     def voxel_at(self, points_world: np.ndarray) -> np.ndarray:
-        """Row of the voxel containing each point, -1 where none is stored (rows are key-sorted)."""
-        keys = self.keys(np.floor((points_world - self.grid_offset) / self.resolution).astype(np.int64))
-        stored = self.keys(self.voxel_index)
+        """Row of the voxel containing each point, -1 where none is stored (map files are sorted by key)."""
+        keys = pack_voxel_keys(np.floor((points_world - self.grid_offset) / self.resolution).astype(np.int64))
+        stored = pack_voxel_keys(self.voxel_index)
         rows = np.clip(np.searchsorted(stored, keys), 0, len(stored) - 1)
         return np.where((len(stored) > 0) & (stored[rows] == keys), rows, -1)
 

@@ -225,7 +225,7 @@ class VoxelMap:
 
     def insert_voxels(self, voxel_index: np.ndarray) -> np.ndarray:
         """Insert voxel indices [V, 3]; returns their slots (growing as needed)."""
-        keys = wp.array(_pack_keys_host(voxel_index), dtype=wp.int64, device=self.device)
+        keys = wp.array(pack_voxel_keys(voxel_index), dtype=wp.int64, device=self.device)
         self.reserve(len(voxel_index))
         while True:
             slots = wp.empty(len(voxel_index), dtype=int, device=self.device)
@@ -257,7 +257,7 @@ class VoxelMap:
         stats = self.stats.numpy()[slots]
         flags = self.flags.numpy()[slots]
         return VoxelArrays(
-            index=_unpack_keys_host(keys),
+            index=unpack_voxel_keys(keys),
             evidence=self.evidence.numpy()[slots].copy(),
             weight_sum=stats[:, STAT_WEIGHT].copy(),
             weighted_uncertainty_sum=stats[:, STAT_WEIGHTED_UNCERTAINTY].copy(),
@@ -300,7 +300,7 @@ def sum_voxel_arrays(parts: list[VoxelArrays]) -> VoxelArrays:
     if len(parts) == 1:
         return parts[0]
     index = np.concatenate([p.index for p in parts])
-    packed = _pack_keys_host(index)
+    packed = pack_voxel_keys(index)
     keys, first, inverse = np.unique(packed, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
     v = len(keys)
@@ -321,11 +321,12 @@ def sum_voxel_arrays(parts: list[VoxelArrays]) -> VoxelArrays:
     )
 
 
-def _pack_keys_host(index: np.ndarray) -> np.ndarray:
+def pack_voxel_keys(index: np.ndarray) -> np.ndarray:
+    """[V, 3] voxel indices -> the table's int64 keys; their order is x, then y, then z index."""
     index = np.asarray(index, dtype=np.int64) + ht.KEY_OFFSET
     return (index[:, 0] << 42) | (index[:, 1] << 21) | index[:, 2]
 
 
-def _unpack_keys_host(keys: np.ndarray) -> np.ndarray:
+def unpack_voxel_keys(keys: np.ndarray) -> np.ndarray:
     field = (1 << ht.KEY_BITS) - 1
     return np.stack([(keys >> 42) & field, (keys >> 21) & field, keys & field], axis=1) - ht.KEY_OFFSET

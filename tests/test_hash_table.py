@@ -6,7 +6,7 @@ import warp as wp
 
 from evsemmap_warp.kernels import hash_table as ht
 from evsemmap_warp.reference import hash_table as ref
-from evsemmap_warp.voxel_map import VoxelMap, _pack_keys_host, _unpack_keys_host
+from evsemmap_warp.voxel_map import VoxelMap, pack_voxel_keys, unpack_voxel_keys
 
 
 def _insert(keys_np, capacity, max_count, device):
@@ -28,9 +28,9 @@ def test_pack_matches_reference_and_round_trips():
     index = rng.integers(-ht.INDEX_LIMIT, ht.INDEX_LIMIT, size=(1000, 3))
     index[0] = [-ht.INDEX_LIMIT, -ht.INDEX_LIMIT, -ht.INDEX_LIMIT]
     index[1] = [ht.INDEX_LIMIT - 1] * 3
-    keys = _pack_keys_host(index)
+    keys = pack_voxel_keys(index)
     np.testing.assert_array_equal(keys, ref.pack_key(index))
-    np.testing.assert_array_equal(_unpack_keys_host(keys), index)
+    np.testing.assert_array_equal(unpack_voxel_keys(keys), index)
     assert (keys >= 0).all() and (keys != ht.EMPTY_KEY).all()
 
 
@@ -89,7 +89,7 @@ def test_lookup_points_uses_floor_of_the_grid(device):
     pts = np.array([[0.0, 0.0, 0.0], [0.49, 0.49, 0.49], [-0.01, -0.2, -0.5], [0.5, 0.0, 0.0], [0.5, 0.5, 0.0]])
     slots = vm.lookup_points(pts)
     keys = vm.keys.numpy()
-    got = [tuple(_unpack_keys_host(keys[[s]])[0]) if s >= 0 else None for s in slots]
+    got = [tuple(unpack_voxel_keys(keys[[s]])[0]) if s >= 0 else None for s in slots]
     assert got == [(0, 0, 0), (0, 0, 0), (-1, -1, -1), (1, 0, 0), None]
     np.testing.assert_array_equal(slots, ref.lookup_points(pts.astype(np.float32), 0.5, 0.0, keys))
 
