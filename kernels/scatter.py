@@ -202,19 +202,19 @@ def scatter_points(
                             d2 = dx * dx + dy * dy + dz * dz
                             bxyz = bxy + block_step(mode, iz, owner[2], cells_per_block)
                             if (not by_distance or d2 < reach2) and bxyz <= 1:
-                                w = float(1.0)
-                                if mode == MODE_RADIUS:
-                                    w = sparse_kernel(wp.sqrt(d2), length, sigma0)
-                                elif mode == MODE_SBKI_BLOCKS:
-                                    w = sbki_sparse_kernel(voxel_center(ix, iy, iz, resolution, grid_offset), p, length, sigma0)
                                 key = pack_key(ix, iy, iz)
                                 if pass_index == 0:
                                     if table_find_or_insert(table_keys, key_count, max_count, key) < 0:
                                         failed[t] = 1
                                         return
-                                elif mode == MODE_SBKI_BLOCKS and w <= 0.0:
-                                    continue  # the C++ adds only positive kernel values
-                                else:
+                                    continue
+                                # The weight is needed only here, in the adding pass.
+                                w = float(1.0)
+                                if mode == MODE_RADIUS:
+                                    w = sparse_kernel(wp.sqrt(d2), length, sigma0)
+                                elif mode == MODE_SBKI_BLOCKS:
+                                    w = sbki_sparse_kernel(voxel_center(ix, iy, iz, resolution, grid_offset), p, length, sigma0)
+                                if mode != MODE_SBKI_BLOCKS or w > 0.0:  # the C++ adds only positive kernel values
                                     slot = table_find(table_keys, key)
                                     if slot < 0:
                                         # Only reachable in the compat modes, if a target cell was not pre-inserted.
