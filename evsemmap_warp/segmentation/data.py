@@ -113,9 +113,12 @@ class Rellis3DImages:
 
     def __init__(self, root, sequences: list[str] | None = None):
         root = Path(root)
-        seq_dirs = [root / s for s in sequences] if sequences else sorted(p for p in root.iterdir() if (p / "pylon_camera_node").is_dir())
-        if (root / "pylon_camera_node").is_dir():
+        if (root / "pylon_camera_node").is_dir():  # the root is one sequence
             seq_dirs = [root]
+        elif sequences:
+            seq_dirs = [root / s for s in sequences]
+        else:
+            seq_dirs = sorted(p for p in root.iterdir() if (p / "pylon_camera_node").is_dir())
         self.items = []
         for seq in seq_dirs:
             for image in sorted((seq / "pylon_camera_node").glob("*.jpg")) + sorted((seq / "pylon_camera_node").glob("*.png")):
