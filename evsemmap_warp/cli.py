@@ -248,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ConfigError, ValueError) as exc:
+    except (ConfigError, ValueError, OSError) as exc:  # OSError: missing or unreadable files, named by the OS
         print(f"evsemmap: error: {exc}", file=sys.stderr)
         return 2
 

@@ -29,3 +29,7 @@ def test_errors_exit_2_with_a_message(tmp_path, capsys):
     assert "has a 'dataset' section" in capsys.readouterr().err
     assert main(["info", str(tmp_path / "missing.npz")]) == 2
     assert "no such map file" in capsys.readouterr().err
+    assert main(["train-seg", "--dataset", "rugd", "--data", str(tmp_path / "nowhere"), "--out", str(tmp_path / "r")]) == 2
+    assert "nowhere" in capsys.readouterr().err
+    assert main(["infer", str(tmp_path / "missing.pt"), str(tmp_path / "no_images"), "--out", str(tmp_path / "o")]) == 2
+    assert "missing.pt" in capsys.readouterr().err
