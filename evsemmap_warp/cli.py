@@ -152,6 +152,59 @@ def _cmd_infer(args) -> int:
     return 0
 
 
+def _cmd_synth(args) -> int:
+    from .synthetic.preset import load_preset
+    from .synthetic.writer import generate_sequence
+
+    preset = load_preset(args.preset, seed=args.seed, appearance__domain=args.domain, trajectory__frames=args.frames)
+    summary = generate_sequence(preset, args.out, device=args.device, progress=not args.quiet)
+    print(json.dumps({"out": str(args.out), **summary}, indent=1))
+    return 0
+
+
+def _cmd_check_data(args) -> int:
+    from .sequences import check_sequence
+
+    reports = [check_sequence(d) for d in args.folders]
+    for report in reports:
+        print(report.text())
+    return 0 if all(r.ok for r in reports) else 1
+
+
+def _cmd_project(args) -> int:
+    """Project a sequence's 2D labels onto its scans: 3D ground truth, agreement with the per-point
+    labels where the sequence has them, and overlay images."""
+    from .classes import class_set, original_to_v3_table
+    from .projection import ProjectionConfig, label_map_for, project_frames, save_overlay
+    from .sequences import Rellis3DSequence
+
+    seq = Rellis3DSequence(args.sequence)
+    config = ProjectionConfig(zbuffer=args.zbuffer)
+    frames = [f for f in seq.frames if f.label_image is not None][: args.max_frames]
+    if not frames:
+        raise ValueError(f"{args.sequence}: no frame has a 2D label image")
+    args.out.mkdir(parents=True, exist_ok=True)
+    table = original_to_v3_table()
+    colours = class_set("remap_v3").colors
+    points, labels, agree, compared = [], [], 0, 0
+    for n, item in enumerate(project_frames(seq, frames, label_map_for(seq), config)):
+        points.append(item.points)
+        labels.append(item.values)
+        frame = frames[n]
+        if frame.point_labels is not None:
+            own = table[np.clip(seq.read_point_labels(frame)[item.scan_rows], 0, 255)]
+            agree += int((own == item.values).sum())
+            compared += len(own)
+        if n < args.overlays:
+            save_overlay(args.out / f"overlay_{frame.index:06d}.png", seq.read_image(frame), item.pixel, colours[item.values])
+    np.savez_compressed(args.out / "ground_truth.npz", points=np.concatenate(points), labels=np.concatenate(labels))
+    report = {"frames": len(frames), "points": int(sum(len(p) for p in points)), "out": str(args.out)}
+    if compared:
+        report["agreement_with_point_labels_v3"] = round(agree / compared, 4)
+    print(json.dumps(report, indent=1))
+    return 0
+
+
 def _cmd_dump_config(args) -> int:
     run = load_config(args.configs, method=args.method)
     out = {"mapping": run.mapping.as_dict()}
@@ -232,6 +285,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch-size", type=int, default=4)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_infer)
+
+    p = sub.add_parser("synth", help="generate a synthetic off-road sequence in the RELLIS-3D layout")
+    p.add_argument("--preset", default="default", help="tiny, demo, default or a preset YAML file")
+    p.add_argument("--out", type=Path, required=True, help="sequence folder to write")
+    p.add_argument("--domain", default=None, help="appearance domain (summer, autumn, dusk); default: the preset's")
+    p.add_argument("--seed", type=int, default=None, help="world seed; default: the preset's")
+    p.add_argument("--frames", type=int, default=None, help="number of frames; default: the preset's")
+    p.add_argument("--device", default="cpu", help="Warp device for the ray casting")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_synth)
+
+    p = sub.add_parser("check-data", help="report what is missing or inconsistent in RELLIS-3D-layout sequence folders")
+    p.add_argument("folders", nargs="+", type=Path)
+    p.set_defaults(func=_cmd_check_data)
+
+    p = sub.add_parser("project", help="project a sequence's 2D labels onto its LiDAR points (3D ground truth + overlays)")
+    p.add_argument("sequence", type=Path)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--zbuffer", action="store_true", help="drop points hidden behind nearer points")
+    p.add_argument("--overlays", type=int, default=3, help="overlay images to write (points in their label colours)")
+    p.add_argument("--max-frames", type=int, default=None)
+    p.set_defaults(func=_cmd_project)
 
     p = sub.add_parser("info", help="summarise a map file")
     p.add_argument("map", type=Path)

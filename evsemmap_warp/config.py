@@ -226,3 +226,29 @@ def load_config(config_paths: list[str | Path], method: str | None = None) -> Ru
         raise ConfigError(f"{' + '.join(sources)}: {exc}") from None
     dataset_cfg = DatasetConfig(**dataset) if dataset else None
     return RunConfig(mapping=mapping_cfg, dataset=dataset_cfg, sources=tuple(sources))
+
+
+def dataclass_from_dict(cls, data: Any, source: str):
+    """Build a (possibly nested) frozen dataclass from a YAML mapping: unknown keys and wrongly typed
+    values raise a ConfigError naming ``source`` and the dotted key; missing keys keep the defaults."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a mapping, got {type(data).__name__}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(data) - set(fields)
+    if unknown:
+        raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)}; known: {sorted(fields)}")
+    values = {}
+    for name, value in data.items():
+        default = fields[name].default
+        if default is dataclasses.MISSING and fields[name].default_factory is not dataclasses.MISSING:
+            default = fields[name].default_factory()
+        if dataclasses.is_dataclass(default):
+            values[name] = dataclass_from_dict(type(default), value, f"{source}.{name}")
+        else:
+            values[name] = _convert(cls, name, value, source)
+    try:
+        return cls(**values)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None

@@ -107,7 +107,53 @@ class BenchNpz:
             yield Scan(f"scan_{i:02d}", self.scan_points(i), payload, self.payload_type, origin)
 
 
-DATASETS = {"pcd_sequence": PcdSequence, "bench_npz": BenchNpz}
+class LabelledSequence:
+    """A RELLIS-3D-layout sequence (``rellis3d``; real, or ``evsemmap synth`` output) or a SemanticKITTI
+    sequence (``semantickitti``) mapped from its per-point label files: RELLIS ids remapped to the
+    9 v3 classes, SemanticKITTI ids to its 19 learning classes. World frame = the first scan's LiDAR
+    frame. Zero returns are dropped."""
+
+    def __init__(self, config: DatasetConfig):
+        from .sequences import Rellis3DSequence, SemanticKittiSequence, semantickitti_learning_map
+
+        if config.payload is not PayloadType.LABEL:
+            raise ConfigError(f"dataset.payload: a {config.kind} sequence is mapped from its per-point labels, got {config.payload.value!r}")
+        root = config.resolve_path()
+        if config.kind == "rellis3d":
+            from .classes import class_set, original_to_v3_table
+
+            self.sequence, self.table = Rellis3DSequence(root), original_to_v3_table().astype(np.int64)
+            self.class_names = class_set("remap_v3").names
+        else:
+            self.sequence, self.table = SemanticKittiSequence(root), semantickitti_learning_map()
+            self.class_names = ("unlabeled",) + tuple(f"class_{i}" for i in range(1, 20))
+        self.frames = [f for f in self.sequence.frames if f.point_labels is not None]
+        if not self.frames:
+            raise ConfigError(f"{root}: no scan has a per-point label file")
+        self.num_classes = config.num_classes or len(self.class_names)
+        self.class_names = config.class_names or self.class_names
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __iter__(self) -> Iterator[Scan]:
+        reference = None
+        for frame in self.frames:
+            scan = self.sequence.read_scan(frame)
+            raw = self.sequence.read_point_labels(frame)
+            labels = self.table[np.clip(raw, 0, len(self.table) - 1)]
+            outside = (raw >= len(self.table)) | (labels < 0)
+            if outside.any():
+                raise ConfigError(f"{frame.point_labels}: label ids outside the class table: {np.unique(raw[outside])[:10].tolist()}")
+            pose = self.sequence.pose(frame)
+            reference = np.linalg.inv(pose) if reference is None else reference
+            to_world = reference @ pose
+            returned = np.any(scan[:, :3] != 0, axis=1)
+            points = scan[returned, :3].astype(np.float64) @ to_world[:3, :3].T + to_world[:3, 3]
+            yield Scan(frame.scan.stem, points, labels[returned], PayloadType.LABEL, to_world[:3, 3].copy())
+
+
+DATASETS = {"pcd_sequence": PcdSequence, "bench_npz": BenchNpz, "rellis3d": LabelledSequence, "semantickitti": LabelledSequence}
 
 
 def open_dataset(config: DatasetConfig) -> Dataset:

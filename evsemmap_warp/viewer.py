@@ -18,7 +18,7 @@ import numpy as np
 
 from .classes import named_colors
 from .map_file import read_map_arrays
-from .pcd import read_pcd
+from .point_files import read_point_file
 from .voxel_map import pack_voxel_keys
 
 STATE_NAMES = ("UNKNOWN", "FREE", "OCCUPIED")
@@ -96,21 +96,8 @@ def load_trajectory(path) -> np.ndarray:
 
 
 def load_points(path) -> np.ndarray:
-    """Points [N, 3] from .pcd, .npy ([N, >=3]) or KITTI .bin (float32 x y z intensity)."""
-    path = Path(path)
-    if path.suffix == ".pcd":
-        return read_pcd(path).points
-    if path.suffix == ".bin":
-        raw = np.fromfile(path, dtype=np.float32)
-        if raw.size % 4:
-            raise ValueError(f"{path}: {raw.size} floats is not a whole number of (x, y, z, intensity) points")
-        return raw.reshape(-1, 4)[:, :3].astype(np.float64)
-    if path.suffix == ".npy":
-        data = np.load(path)
-        if data.ndim != 2 or data.shape[1] < 3:
-            raise ValueError(f"{path}: expected an [N, >=3] array, got shape {list(data.shape)}")
-        return data[:, :3].astype(np.float64)
-    raise ValueError(f"{path}: unknown point file type {path.suffix!r} (use .pcd, .npy or .bin)")
+    """Points [N, 3] from any plain point file (.pcd, .ply, .npy, KITTI .bin)."""
+    return read_point_file(path).points
 
 
 def free_port() -> int:

@@ -143,7 +143,7 @@ def test_remap_tables_and_id_errors():
     assert remap_ids(np.array([0, 1, 3, 4, 10, 18, 31, 33, 29, 32]), "t").tolist() == [0, 6, 7, 8, 4, 0, 2, 6, 7, 2]
     with pytest.raises(ValueError, match=r"label ids \[25, 300\]"):
         remap_ids(np.array([3, 25, 300]), "ids.png")
-    assert len(palette("rellis3d_colors")) == 20 and len(palette("rugd_colors")) == 25
+    assert len(palette("rellis3d_colors")) == 20 + 1 and len(palette("rugd_colors")) == 25  # RELLIS-3D + RUGD gravel for the synthetic trail
     assert decode_color_labels(np.array([[[0, 102, 0]]], np.uint8), palette("rellis3d_colors"), "x").tolist() == [[3]]
 
 

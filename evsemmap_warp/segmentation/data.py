@@ -1,9 +1,10 @@
 """Image datasets for segmentation through one interface: items are (image uint8 [H, W, 3], v3 labels
 [H, W]) at the dataset's own size; ``SegmentationTensors`` resizes and normalises them for a network.
 
-* ``SyntheticOffroad``: procedural off-road frames (sky, vegetation on the horizon, grass, a paved
-  road, a dirt trail, puddles, objects, void rubble) with appearance domains, seeded per index. It
-  stands in until the synthetic world's rendered camera frames exist.
+* ``SyntheticOffroad``: procedural 2D off-road frames (sky, vegetation on the horizon, grass, a paved
+  road, a dirt trail, puddles, objects, void rubble) with the synthetic world's appearance domains,
+  seeded per index: cheap frames for quick tests. The synthetic world's rendered camera frames
+  (``evsemmap synth``) are read by ``Rellis3DImages`` like real RELLIS-3D.
 * ``Rellis3DImages``: ``<seq>/pylon_camera_node/*.jpg`` with ``pylon_camera_node_label_color/*.png``
   (or ``pylon_camera_node_label_id/*.png``) of the same stem, remapped to v3.
 * ``RugdImages``: ``RUGD_frames-with-annotations/<scene>/*.png`` with ``RUGD_annotations/<scene>/*.png``
@@ -19,24 +20,12 @@ import torch
 from PIL import Image
 
 from ..classes import decode_color_labels, palette, read_rugd_colormap, remap_ids
+from ..synthetic.appearance import DOMAINS
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 CAFFE_MEAN = (103.939 / 255, 116.779 / 255, 123.68 / 255)  # the release's (BGR) means, applied to RGB
 
-# Appearance domains: per-class base colours (v3 ids) and lighting. A network trained on one domain
-# is less certain on another; that is how the paper's "unseen environment" test becomes reproducible.
-DOMAINS = {
-    "summer": {"sky": (150, 190, 235), "vegetation": (40, 100, 35), "grass": (95, 160, 60), "dirt": (120, 90, 60),
-               "paved": (110, 110, 115), "unpaved": (170, 150, 120), "water": (70, 90, 110), "object": (200, 60, 40),
-               "void": (90, 80, 80), "light": 1.0},
-    "autumn": {"sky": (175, 185, 200), "vegetation": (150, 90, 30), "grass": (165, 145, 70), "dirt": (110, 80, 55),
-               "paved": (95, 95, 100), "unpaved": (160, 135, 105), "water": (80, 85, 90), "object": (60, 90, 200),
-               "void": (80, 70, 75), "light": 0.9},
-    "dusk": {"sky": (230, 150, 110), "vegetation": (25, 50, 30), "grass": (60, 90, 45), "dirt": (85, 60, 45),
-             "paved": (70, 70, 80), "unpaved": (120, 100, 85), "water": (50, 55, 75), "object": (170, 50, 40),
-             "void": (60, 55, 60), "light": 0.6},
-}
 V3 = {"void": 0, "sky": 1, "water": 2, "object": 3, "paved": 4, "unpaved": 5, "dirt": 6, "grass": 7, "vegetation": 8}
 
 

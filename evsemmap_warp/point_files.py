@@ -1,0 +1,68 @@
+"""Plain point files: PCD (our reader), PLY (trimesh), npy and KITTI-style .bin, through one call.
+
+``read_point_file`` returns the points and every per-point field the file carries (PCD fields, PLY
+vertex properties, npy columns beyond xyz as ``values``, .bin intensity)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .pcd import read_pcd
+
+POINT_SUFFIXES = (".pcd", ".ply", ".npy", ".bin")
+
+
+@dataclass
+class PointFile:
+    points: np.ndarray  # [N, 3] float64
+    fields: dict[str, np.ndarray]  # per-point extras, [N] or [N, C]
+    path: Path
+
+
+def _check_points(points: np.ndarray, path: Path) -> np.ndarray:
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        raise ValueError(f"{path}: {int(bad.sum())} of {len(points)} points have NaN or inf coordinates, first at row {int(np.flatnonzero(bad)[0])}")
+    return points
+
+
+def read_point_file(path) -> PointFile:
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such point file")
+    if path.suffix == ".pcd":
+        cloud = read_pcd(path)
+        fields = {k: v for k, v in cloud.fields.items() if k not in ("x", "y", "z")}
+        return PointFile(_check_points(cloud.points.astype(np.float64), path), fields, path)
+    if path.suffix == ".bin":
+        raw = np.fromfile(path, dtype=np.float32)
+        if raw.size % 4:
+            raise ValueError(f"{path}: {raw.size} floats is not a whole number of (x, y, z, intensity) points; truncated?")
+        raw = raw.reshape(-1, 4)
+        return PointFile(_check_points(raw[:, :3].astype(np.float64), path), {"intensity": raw[:, 3]}, path)
+    if path.suffix == ".npy":
+        try:
+            data = np.load(path, allow_pickle=False)
+        except ValueError as exc:
+            raise ValueError(f"{path}: not a readable npy array ({exc})") from None
+        if data.ndim != 2 or data.shape[1] < 3:
+            raise ValueError(f"{path}: expected an [N, >=3] array (x y z, then per-point values), got shape {list(data.shape)}")
+        fields = {"values": data[:, 3:]} if data.shape[1] > 3 else {}
+        return PointFile(_check_points(data[:, :3].astype(np.float64), path), fields, path)
+    if path.suffix == ".ply":
+        import trimesh
+
+        try:
+            loaded = trimesh.load(path, process=False)
+        except Exception as exc:  # trimesh raises many types for a broken file
+            raise ValueError(f"{path}: not a readable PLY ({type(exc).__name__}: {exc})") from None
+        vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), np.float64)
+        raw = loaded.metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
+        fields = {}
+        if raw is not None and raw.dtype.names:
+            fields = {name: np.asarray(raw[name]) for name in raw.dtype.names if name not in ("x", "y", "z")}
+        return PointFile(_check_points(vertices, path), fields, path)
+    raise ValueError(f"{path}: unknown point file type {path.suffix!r}; known: {', '.join(POINT_SUFFIXES)}")

@@ -1,0 +1,350 @@
+"""Sensor sequences on disk: RELLIS-3D (real, and the synthetic world's output) and SemanticKITTI.
+
+A sequence gives frames (scan, optional camera image and labels, pose) and its calibration; files
+are read on demand so long sequences stream. ``check_sequence`` lists what is missing or
+inconsistent before a long run fails halfway.
+
+RELLIS-3D (spec 8.1) is read from a sequence folder in its layout, or from loose files in one folder
+(``NNNNNN.bin``, ``NNNNNN.label``, ``frameNNNNNN-*.jpg`` and a ``.png`` label of the same stem, as in
+RELLIS-3D's ``utils/example``). Distortion comes from ``camera_distortion.txt`` when present (the
+synthetic world writes one), else RELLIS-3D's hard-coded coefficients.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+from PIL import Image
+
+from .camera import RELLIS3D_DISTORTION, PinholeCamera, quaternion_to_matrix, rigid
+from .classes import decode_color_labels, original_to_v3_table, palette
+
+EXTRINSIC_KEY = "os1_cloud_node-pylon_camera_node"
+_FRAME_NUMBER = re.compile(r"^frame(\d{6})")
+
+
+class DataError(ValueError):
+    """A dataset file is missing, unreadable or inconsistent; the message names the file."""
+
+
+@dataclass
+class Frame:
+    index: int  # frame number = scan index = pose line
+    scan: Path
+    point_labels: Path | None = None
+    image: Path | None = None
+    label_image: Path | None = None
+    label_is_color: bool = True
+
+
+def read_poses(path: Path) -> np.ndarray:
+    """KITTI/RELLIS poses.txt: [N, 4, 4] from 12 row-major numbers per line."""
+    try:
+        data = np.loadtxt(path, ndmin=2)
+    except ValueError as exc:
+        raise DataError(f"{path}: not a table of numbers ({exc})") from None
+    if data.shape[1] != 12:
+        raise DataError(f"{path}: a pose line needs 12 numbers (3x4 row-major), got {data.shape[1]}")
+    if not np.isfinite(data).all():
+        raise DataError(f"{path}: pose line {int(np.flatnonzero(~np.isfinite(data).all(1))[0]) + 1} has NaN or inf")
+    poses = np.tile(np.eye(4), (len(data), 1, 1))
+    poses[:, :3, :] = data.reshape(-1, 3, 4)
+    return poses
+
+
+def read_scan(path: Path) -> np.ndarray:
+    """KITTI .bin scan -> [N, 4] float32 (x, y, z, intensity), zero returns included."""
+    raw = np.fromfile(path, dtype=np.float32)
+    if raw.size % 4:
+        raise DataError(f"{path}: {raw.size} floats is not a whole number of (x, y, z, intensity) points; truncated?")
+    return raw.reshape(-1, 4)
+
+
+def read_point_labels(path: Path, expected: int) -> np.ndarray:
+    """SemanticKITTI-style .label -> [N] semantic ids (lower 16 bits)."""
+    raw = np.fromfile(path, dtype=np.uint32)
+    if len(raw) != expected:
+        raise DataError(f"{path}: {len(raw)} labels for a scan of {expected} points")
+    return (raw & 0xFFFF).astype(np.int64)
+
+
+class Rellis3DSequence:
+    def __init__(self, root):
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise DataError(f"{self.root}: no such sequence folder")
+        layout = (self.root / "os1_cloud_node_kitti_bin").is_dir()
+        scans = sorted((self.root / "os1_cloud_node_kitti_bin").glob("*.bin")) if layout else sorted(self.root.glob("[0-9]*.bin"))
+        if not scans:
+            raise DataError(f"{self.root}: no scans (expected os1_cloud_node_kitti_bin/NNNNNN.bin or NNNNNN.bin)")
+        image_dir = self.root / "pylon_camera_node" if layout else self.root
+        images = {}
+        for path in sorted(image_dir.glob("frame*.jpg")) + sorted(image_dir.glob("frame*.png")):
+            match = _FRAME_NUMBER.match(path.stem)
+            if match and not (not layout and path.suffix == ".png"):
+                images.setdefault(int(match.group(1)), path)
+        self.frames: list[Frame] = []
+        for scan in scans:
+            if not scan.stem.isdigit():
+                continue
+            index = int(scan.stem)
+            frame = Frame(index, scan)
+            labels = (self.root / "os1_cloud_node_semantickitti_label_id" / f"{scan.stem}.label") if layout else scan.with_suffix(".label")
+            frame.point_labels = labels if labels.exists() else None
+            frame.image = images.get(index)
+            if frame.image is not None:
+                frame.label_image, frame.label_is_color = self._label_image(frame.image, layout)
+            self.frames.append(frame)
+        self._camera = None
+        self._poses = None
+
+    def _label_image(self, image: Path, layout: bool):
+        if not layout:
+            candidate = image.with_suffix(".png")
+            if candidate.exists():
+                with Image.open(candidate) as img:
+                    return candidate, img.mode in ("RGB", "RGBA", "P")
+            return None, True
+        color = self.root / "pylon_camera_node_label_color" / f"{image.stem}.png"
+        ids = self.root / "pylon_camera_node_label_id" / f"{image.stem}.png"
+        if color.exists():
+            return color, True
+        return (ids, False) if ids.exists() else (None, True)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    # Calibration ---------------------------------------------------------------------------------
+    @property
+    def camera(self) -> PinholeCamera:
+        if self._camera is None:
+            self._camera = self._read_camera()
+        return self._camera
+
+    def _read_camera(self) -> PinholeCamera:
+        info = self.root / "camera_info.txt"
+        if not info.exists():
+            raise DataError(f"{info}: missing (RELLIS-3D ships it in the 'camera intrinsic' archive: fx fy cx cy)")
+        values = info.read_text().split()
+        try:
+            fx, fy, cx, cy = (float(v) for v in values)
+        except ValueError:
+            raise DataError(f"{info}: expected four numbers fx fy cx cy, got {values[:8]}") from None
+        distortion = RELLIS3D_DISTORTION
+        distortion_file = self.root / "camera_distortion.txt"
+        if distortion_file.exists():
+            distortion = tuple(float(v) for v in distortion_file.read_text().split())
+            if len(distortion) != 5:
+                raise DataError(f"{distortion_file}: expected five numbers k1 k2 p1 p2 k3, got {len(distortion)}")
+        first = next((f.image for f in self.frames if f.image is not None), None)
+        if first is None:
+            raise DataError(f"{self.root}: no camera images, so the image size is unknown")
+        with Image.open(first) as img:
+            width, height = img.size
+        return PinholeCamera(fx, fy, cx, cy, width, height, distortion)
+
+    @property
+    def lidar_to_camera(self) -> np.ndarray:
+        """4x4 transform of LiDAR coordinates into camera coordinates (the inverse of the stored T)."""
+        path = self.root / "transforms.yaml"
+        if not path.exists():
+            raise DataError(f"{path}: missing (RELLIS-3D ships it in the 'camera to LiDAR' archive)")
+        try:
+            entry = yaml.safe_load(path.read_text())[EXTRINSIC_KEY]
+            q = [entry["q"][k] for k in "xyzw"]
+            t = [entry["t"][k] for k in "xyz"]
+        except (yaml.YAMLError, KeyError, TypeError) as exc:
+            raise DataError(f"{path}: expected {EXTRINSIC_KEY}: {{q: {{x, y, z, w}}, t: {{x, y, z}}}} ({type(exc).__name__}: {exc})") from None
+        return np.linalg.inv(rigid(quaternion_to_matrix(q), t))
+
+    @property
+    def poses(self) -> np.ndarray | None:
+        """[N, 4, 4] LiDAR poses from poses.txt, or None when the folder has none (single frames)."""
+        if self._poses is None and (self.root / "poses.txt").exists():
+            self._poses = read_poses(self.root / "poses.txt")
+        return self._poses
+
+    def pose(self, frame: Frame) -> np.ndarray:
+        poses = self.poses
+        if poses is None:
+            return np.eye(4)
+        if frame.index >= len(poses):
+            raise DataError(f"{self.root / 'poses.txt'}: {len(poses)} poses, but frame {frame.index} needs line {frame.index + 1}")
+        return poses[frame.index]
+
+    # Per-frame data ------------------------------------------------------------------------------
+    def read_scan(self, frame: Frame) -> np.ndarray:
+        return read_scan(frame.scan)
+
+    def read_point_labels(self, frame: Frame) -> np.ndarray:
+        """Raw ontology ids per point (including zero returns)."""
+        if frame.point_labels is None:
+            raise DataError(f"{frame.scan}: no per-point label file for this scan")
+        return read_point_labels(frame.point_labels, len(self.read_scan(frame)))
+
+    def read_image(self, frame: Frame) -> np.ndarray:
+        with Image.open(frame.image) as img:
+            return np.asarray(img.convert("RGB"))
+
+    def read_label_ids(self, frame: Frame) -> np.ndarray:
+        """[H, W] raw ontology ids of the frame's 2D labels (colour PNGs decoded with the palette)."""
+        if frame.label_image is None:
+            raise DataError(f"{frame.image}: no label image for this frame")
+        with Image.open(frame.label_image) as img:
+            raw = np.asarray(img.convert("RGB") if frame.label_is_color else img)
+        if frame.label_is_color:
+            return decode_color_labels(raw, palette("rellis3d_colors"), str(frame.label_image))
+        if raw.ndim != 2:
+            raise DataError(f"{frame.label_image}: an id label image must have one channel, got shape {list(raw.shape)}")
+        return raw.astype(np.int64)
+
+
+@dataclass
+class KittiCalibration:
+    lidar_to_cam0: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+
+class SemanticKittiSequence:
+    """``sequences/XX``: velodyne/NNNNNN.bin, labels/NNNNNN.label, poses.txt (cam0 frame), calib.txt (Tr).
+    LiDAR poses are inv(Tr) * pose * Tr (spec 8.3)."""
+
+    def __init__(self, root):
+        self.root = Path(root)
+        scans = sorted((self.root / "velodyne").glob("*.bin"))
+        if not scans:
+            raise DataError(f"{self.root}: no velodyne/NNNNNN.bin scans")
+        self.frames = [Frame(int(s.stem), s, self.root / "labels" / f"{s.stem}.label") for s in scans if s.stem.isdigit()]
+        for frame in self.frames:
+            if not frame.point_labels.exists():
+                frame.point_labels = None
+        self.tr = self._read_tr()
+        poses_path = self.root / "poses.txt"
+        cam_poses = read_poses(poses_path) if poses_path.exists() else None
+        self.poses = None if cam_poses is None else np.linalg.inv(self.tr) @ cam_poses @ self.tr
+
+    def _read_tr(self) -> np.ndarray:
+        path = self.root / "calib.txt"
+        if not path.exists():
+            return np.eye(4)
+        for line in path.read_text().splitlines():
+            if line.startswith("Tr:"):
+                values = [float(v) for v in line.split()[1:]]
+                if len(values) != 12:
+                    raise DataError(f"{path}: Tr needs 12 numbers, got {len(values)}")
+                tr = np.eye(4)
+                tr[:3, :] = np.reshape(values, (3, 4))
+                return tr
+        raise DataError(f"{path}: no 'Tr:' line")
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def pose(self, frame: Frame) -> np.ndarray:
+        if self.poses is None:
+            return np.eye(4)
+        if frame.index >= len(self.poses):
+            raise DataError(f"{self.root / 'poses.txt'}: {len(self.poses)} poses, but scan {frame.index} needs line {frame.index + 1}")
+        return self.poses[frame.index]
+
+    def read_scan(self, frame: Frame) -> np.ndarray:
+        return read_scan(frame.scan)
+
+    def read_point_labels(self, frame: Frame) -> np.ndarray:
+        if frame.point_labels is None:
+            raise DataError(f"{frame.scan}: no labels/{frame.scan.stem}.label")
+        return read_point_labels(frame.point_labels, len(self.read_scan(frame)))
+
+
+def semantickitti_learning_map() -> np.ndarray:
+    """[260] raw SemanticKITTI id -> 19-class learning id (0 = ignore), from configs/classes/semantickitti.yaml."""
+    from .classes import classes_dir
+
+    table = np.zeros(260, np.int64)
+    for raw, learned in yaml.safe_load((classes_dir() / "semantickitti.yaml").read_text())["learning_map"].items():
+        table[int(raw)] = int(learned)
+    return table
+
+
+# Checking a folder before a long run -------------------------------------------------------------
+@dataclass
+class CheckReport:
+    root: Path
+    frames: int = 0
+    with_images: int = 0
+    with_labels: int = 0
+    problems: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def text(self) -> str:
+        lines = [f"{self.root}: {self.frames} scans, {self.with_images} with a camera image, {self.with_labels} with a 2D label image"]
+        lines += [f"  problem: {p}" for p in self.problems]
+        lines += [f"  note: {n}" for n in self.notes]
+        lines.append("  OK" if self.ok else f"  {len(self.problems)} problem(s)")
+        return "\n".join(lines)
+
+
+def check_sequence(root, *, max_label_files: int = 50) -> CheckReport:
+    """Look for what would make a run fail halfway: calibration, poses, frame pairing, file sizes and
+    label ids outside the ontology (the first ``max_label_files`` label files are read)."""
+    report = CheckReport(Path(root))
+    try:
+        seq = Rellis3DSequence(root)
+    except DataError as exc:
+        report.problems.append(str(exc))
+        return report
+    report.frames = len(seq)
+    report.with_images = sum(f.image is not None for f in seq.frames)
+    report.with_labels = sum(f.label_image is not None for f in seq.frames)
+    for what in ("camera", "lidar_to_camera"):
+        try:
+            getattr(seq, what)
+        except DataError as exc:
+            report.problems.append(str(exc))
+    try:
+        poses = seq.poses
+        if poses is None:
+            report.notes.append("no poses.txt: every scan is taken in its own LiDAR frame (fine for single frames only)")
+        elif len(poses) <= max(f.index for f in seq.frames):
+            report.problems.append(f"poses.txt has {len(poses)} lines but scan numbers reach {max(f.index for f in seq.frames)}")
+    except DataError as exc:
+        report.problems.append(str(exc))
+    if report.with_images == 0:
+        report.problems.append("no camera image pairs with any scan (expected pylon_camera_node/frameNNNNNN-*.jpg)")
+    elif report.with_images < report.frames:
+        report.notes.append(f"{report.frames - report.with_images} scans have no camera image and will be skipped by projection")
+    sizes = {f.scan.stat().st_size for f in seq.frames}
+    if any(s % 16 for s in sizes):
+        report.problems.append(f"scan files whose size is not a multiple of 16 bytes (truncated?): {sorted(s for s in sizes if s % 16)[:3]}")
+    table = original_to_v3_table()
+    checked = 0
+    for frame in seq.frames:
+        if checked >= max_label_files:
+            break
+        if frame.label_image is not None:
+            checked += 1
+            try:
+                ids = seq.read_label_ids(frame)
+            except ValueError as exc:
+                report.problems.append(str(exc))
+                continue
+            outside = np.unique(ids[(ids > 255) | (table[np.clip(ids, 0, 255)] < 0)])
+            if len(outside):
+                report.problems.append(f"{frame.label_image}: label ids outside the ontology: {outside.tolist()[:10]}")
+            try:
+                image_size = Image.open(frame.image).size
+                if image_size != ids.shape[::-1]:
+                    report.problems.append(f"{frame.image} is {image_size[0]}x{image_size[1]} but {frame.label_image} is {ids.shape[1]}x{ids.shape[0]}")
+            except OSError as exc:
+                report.problems.append(f"{frame.image}: unreadable image ({exc})")
+        if frame.point_labels is not None:
+            if frame.point_labels.stat().st_size != frame.scan.stat().st_size // 4:
+                report.problems.append(f"{frame.point_labels}: {frame.point_labels.stat().st_size // 4} labels for {frame.scan.stat().st_size // 16} points")
+    return report
