@@ -31,6 +31,8 @@ def _check_points(points: np.ndarray, path: Path) -> np.ndarray:
 
 def read_point_file(path) -> PointFile:
     path = Path(path)
+    if path.suffix not in POINT_SUFFIXES:
+        raise ValueError(f"{path}: unknown point file type {path.suffix!r}; known: {', '.join(POINT_SUFFIXES)}")
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such point file")
     if path.suffix == ".pcd":
@@ -52,7 +54,7 @@ def read_point_file(path) -> PointFile:
             raise ValueError(f"{path}: expected an [N, >=3] array (x y z, then per-point values), got shape {list(data.shape)}")
         fields = {"values": data[:, 3:]} if data.shape[1] > 3 else {}
         return PointFile(_check_points(data[:, :3].astype(np.float64), path), fields, path)
-    if path.suffix == ".ply":
+    else:  # .ply
         import trimesh
 
         try:
@@ -65,4 +67,3 @@ def read_point_file(path) -> PointFile:
         if raw is not None and raw.dtype.names:
             fields = {name: np.asarray(raw[name]) for name in raw.dtype.names if name not in ("x", "y", "z")}
         return PointFile(_check_points(vertices, path), fields, path)
-    raise ValueError(f"{path}: unknown point file type {path.suffix!r}; known: {', '.join(POINT_SUFFIXES)}")
