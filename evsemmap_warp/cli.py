@@ -205,6 +205,24 @@ def _cmd_project(args) -> int:
     return 0
 
 
+def _cmd_experiment(args) -> int:
+    from .experiment import Experiment, load_experiment
+
+    config, path = load_experiment(args.config)
+    out = args.out or Path(f"results_{config.name}")
+    started = time.perf_counter()
+    Experiment(config, out, device=args.device, progress=not args.quiet, log=lambda m: print(m, file=sys.stderr)).run()
+    print((out / "results.md").read_text())
+    print(f"{config.name}: {time.perf_counter() - started:.0f} s; results, plots and maps in {out}/ "
+          f"(view a map: evsemmap view {out}/maps/{next(iter(config.conditions))}/{config.methods[-1]}.npz)")
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    args.config = "demo"
+    return _cmd_experiment(args)
+
+
 def _cmd_dump_config(args) -> int:
     run = load_config(args.configs, method=args.method)
     out = {"mapping": run.mapping.as_dict()}
@@ -307,6 +325,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overlays", type=int, default=3, help="overlay images to write (points in their label colours)")
     p.add_argument("--max-frames", type=int, default=None)
     p.set_defaults(func=_cmd_project)
+
+    p = sub.add_parser("experiment", help="run a study from a config: data, network, maps, scores, tables (cached, resumable)")
+    p.add_argument("config", help="experiment YAML, or a built-in name (demo, paper-main, paper-robustness, paper-ablation)")
+    p.add_argument("--out", type=Path, default=None, help="results folder (default: results_<name>)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_experiment)
+
+    p = sub.add_parser("demo", help="the small study on the synthetic world: from nothing to a comparison table and maps")
+    p.add_argument("--out", type=Path, default=Path("evsemmap_demo"), help="results folder (default: evsemmap_demo)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("info", help="summarise a map file")
     p.add_argument("map", type=Path)

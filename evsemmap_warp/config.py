@@ -246,6 +246,10 @@ def dataclass_from_dict(cls, data: Any, source: str):
             default = fields[name].default_factory()
         if dataclasses.is_dataclass(default):
             values[name] = dataclass_from_dict(type(default), value, f"{source}.{name}")
+        elif isinstance(default, dict):  # already-parsed sub-mappings (e.g. named entries)
+            if not isinstance(value, dict):
+                raise ConfigError(f"{source}: {name} must be a mapping, got {type(value).__name__}")
+            values[name] = dict(value)
         else:
             values[name] = _convert(cls, name, value, source)
     try:

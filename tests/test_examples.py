@@ -30,6 +30,12 @@ def test_view_map(tmp_path):
     assert "toy_maps.html" in out and (tmp_path / "toy_s-bki.npz").exists() and (tmp_path / "toy_s-csm.npz").exists()
 
 
+def test_synthetic_world(tmp_path):
+    out = _run(str(REPO / "examples/03_synthetic_world.py"), "--out", str(tmp_path / "s"), cwd=tmp_path)
+    agreement = float(out.split("labels agree on ")[1].split("%")[0])
+    assert agreement > 90 and (tmp_path / "s" / "overlay.png").exists() and "OK" in out
+
+
 def test_examples_are_all_tested():
     names = sorted(p.name for p in (REPO / "examples").glob("*.py"))
-    assert names == ["00_quickstart.py", "01_sbki_toy_conformance.py", "02_view_map.py"], "add a test for each new example"
+    assert names == ["00_quickstart.py", "01_sbki_toy_conformance.py", "02_view_map.py", "03_synthetic_world.py"], "add a test for each new example"

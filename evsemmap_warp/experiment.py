@@ -1,0 +1,418 @@
+"""A whole study from one config: data -> network -> alpha -> projection -> maps -> scores -> tables.
+
+Stages are cached under ``OUT/cache`` by a hash of everything they depend on, and each stage writes
+its "done" file last, so a rerun with one changed method redoes only that method's maps, and an
+interrupted run resumes from the stages it finished (training resumes from its last epoch).
+
+Config (YAML)::
+
+    name: demo
+    sequences:            # synthetic (preset + overrides) or real (path) RELLIS-3D-layout sequences
+      train: {preset: demo, seed: 11, spacing_m: 0.5, frames: 150}
+      test: {preset: demo, seed: 12}
+      test-dusk: {preset: demo, seed: 12, domain: dusk}
+      rellis: {path: /data/Rellis-3D/00004}
+    networks:             # segmentation networks and what they train on (or a checkpoint path)
+      summer: {train_on: [train], epochs: 12, time_budget_s: 150}
+    conditions:           # a network's alpha on a sequence, mapped and scored: one table row set each
+      in-domain: {network: summer, sequence: test}
+    mapping_preset: offroad   # configs/presets/NAME.yaml or a path, under every method
+    projection: {bin_frames: 1}
+    methods: [s-csm, s-bki, ebs]
+    ablation: {condition: in-domain, methods: [s-bki, prob, prob-adap, prob-thr, prob-adap-thr]}
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import hashlib
+import json
+import platform
+import shutil
+import sys
+import time
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import yaml
+from tqdm import tqdm
+
+from . import __version__
+from .config import ConfigError, PayloadType, dataclass_from_dict, load_config
+from .evaluation import PAPER_SCORED_CLASSES, MapScores, evaluate_map, markdown_table
+from .projection import ProjectionConfig, bin_frames, label_map_for, project_frames
+
+
+@dataclass(frozen=True)
+class SequenceSpec:
+    preset: str = ""
+    path: str = ""
+    seed: int = -1  # -1: the preset's
+    domain: str = ""
+    frames: int = 0  # 0: the preset's
+    spacing_m: float = 0.0  # 0: the preset's
+
+
+@dataclass(frozen=True)
+class NetworkSpec:
+    train_on: tuple = ()
+    checkpoint: str = ""  # use this trained checkpoint instead of training
+    fraction: float = 1.0  # share of the training frames used (the paper's "trained on a subset")
+    arch: str = "r18-os16"
+    input_size: tuple = (128, 256)
+    epochs: int = 12
+    batch_size: int = 8
+    lr: float = 2e-3
+    time_budget_s: float = 0.0  # 0: no limit
+    seed: int = 1
+
+
+@dataclass(frozen=True)
+class ConditionSpec:
+    network: str = ""
+    sequence: str = ""
+
+
+@dataclass(frozen=True)
+class AblationSpec:
+    condition: str = ""
+    methods: tuple = ()
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    name: str = "experiment"
+    sequences: dict = field(default_factory=dict)
+    networks: dict = field(default_factory=dict)
+    conditions: dict = field(default_factory=dict)
+    mapping_preset: str = "offroad"
+    projection: ProjectionConfig = field(default_factory=ProjectionConfig)
+    methods: tuple = ()
+    ablation: AblationSpec = field(default_factory=AblationSpec)
+    scored_classes: tuple = PAPER_SCORED_CLASSES
+
+
+def experiments_dir() -> Path:
+    return Path(str(resources.files("evsemmap_warp.configs") / "experiments"))
+
+
+def load_experiment(name_or_path) -> tuple[ExperimentConfig, Path]:
+    path = Path(name_or_path)
+    if not path.exists():
+        path = experiments_dir() / f"{name_or_path}.yaml"
+        if not path.exists():
+            known = sorted(p.stem for p in experiments_dir().glob("*.yaml"))
+            raise ConfigError(f"{name_or_path}: no such experiment config (built in: {', '.join(known)})")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    src = str(path)
+    for section, cls in (("sequences", SequenceSpec), ("networks", NetworkSpec), ("conditions", ConditionSpec)):
+        if not isinstance(data.get(section, {}), dict):
+            raise ConfigError(f"{src}: {section} must be a mapping of names")
+        data[section] = {k: dataclass_from_dict(cls, v, f"{src}: {section}.{k}") for k, v in (data.get(section) or {}).items()}
+    config = dataclass_from_dict(ExperimentConfig, data, src)
+    for name, seq in config.sequences.items():
+        if bool(seq.preset) == bool(seq.path):
+            raise ConfigError(f"{src}: sequences.{name} needs exactly one of preset (synthetic) or path (a RELLIS-3D-layout folder)")
+    for name, net in config.networks.items():
+        missing = [s for s in net.train_on if s not in config.sequences]
+        if missing or (not net.train_on and not net.checkpoint):
+            raise ConfigError(f"{src}: networks.{name} trains on unknown sequences {missing} or on nothing (give train_on or checkpoint)")
+    for name, cond in config.conditions.items():
+        if cond.network not in config.networks or cond.sequence not in config.sequences:
+            raise ConfigError(f"{src}: conditions.{name} names network {cond.network!r} / sequence {cond.sequence!r}, not defined above")
+    if not config.conditions or not config.methods:
+        raise ConfigError(f"{src}: an experiment needs at least one condition and one method")
+    for method in tuple(config.methods) + tuple(config.ablation.methods):
+        load_config([], method=method)  # unknown methods fail now, not after training
+    if config.ablation.methods and config.ablation.condition not in config.conditions:
+        raise ConfigError(f"{src}: ablation.condition {config.ablation.condition!r} is not a condition")
+    return config, path
+
+
+def _digest(*parts) -> str:
+    return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def _preset_path(name: str) -> Path:
+    path = Path(name)
+    return path if path.exists() else Path(str(resources.files("evsemmap_warp.configs") / "presets" / f"{name}.yaml"))
+
+
+class Experiment:
+    def __init__(self, config: ExperimentConfig, out, *, device: str | None = "cpu", progress: bool = True, log=print):
+        self.config, self.out, self.device, self.progress, self.log = config, Path(out), device, progress, log
+        self.cache = self.out / "cache"
+        self.timings: dict[str, float] = {}
+        self._sequence_dirs: dict[str, Path] = {}
+
+    # -- stages ----------------------------------------------------------------------------------
+    def sequence_dir(self, name: str) -> Path:
+        if name in self._sequence_dirs:
+            return self._sequence_dirs[name]
+        spec = self.config.sequences[name]
+        if spec.path:
+            path = Path(spec.path).expanduser()
+            if not path.is_dir():
+                raise ConfigError(f"sequences.{name}.path: {path} is not a folder")
+            self._sequence_dirs[name] = path
+            return path
+        from .synthetic.preset import load_preset
+        from .synthetic.writer import generate_sequence
+
+        preset = load_preset(spec.preset, seed=None if spec.seed < 0 else spec.seed, appearance__domain=spec.domain or None,
+                             trajectory__frames=spec.frames or None, trajectory__spacing_m=spec.spacing_m or None)
+        folder = self.cache / "sequences" / f"{name}-{_digest(dataclasses.asdict(preset), __version__)}"
+        if not (folder / "synth.yaml").exists():  # written last by the generator
+            self.log(f"[data] rendering {name} ({preset.name}, seed {preset.seed}, {preset.appearance.domain})")
+            started = time.perf_counter()
+            generate_sequence(preset, folder, device=self.device, progress=self.progress)
+            self.timings[f"render {name}"] = time.perf_counter() - started
+        self._sequence_dirs[name] = folder
+        return folder
+
+    def network(self, name: str) -> Path:
+        from .classes import class_set
+        from .segmentation.config import ModelConfig
+        from .segmentation.data import Rellis3DImages
+        from .segmentation.train import TrainConfig, train
+
+        spec = self.config.networks[name]
+        if spec.checkpoint:
+            return Path(spec.checkpoint).expanduser()
+        sources = [self.sequence_dir(s) for s in spec.train_on]
+        classes = class_set()
+        config = TrainConfig(model=ModelConfig(arch=spec.arch, num_classes=len(classes)), input_size=tuple(spec.input_size),
+                             epochs=spec.epochs, batch_size=spec.batch_size, lr=spec.lr, seed=spec.seed,
+                             time_budget_s=spec.time_budget_s or None)
+        folder = self.cache / "networks" / f"{name}-{_digest(dataclasses.asdict(spec), [s.name for s in sources], __version__)}"
+        if (folder / "metrics.json").exists():  # written last by train()
+            return folder / "best.pt"
+        folder.mkdir(parents=True, exist_ok=True)
+        source = _ImageSubset([Rellis3DImages(s) for s in sources], spec.fraction)
+        resume = folder / "last.pt" if (folder / "last.pt").exists() else None
+        self.log(f"[network] training {name} on {len(source)} frames of {', '.join(spec.train_on)}" + (" (resuming)" if resume else ""))
+        started = time.perf_counter()
+        train(source, classes.names, config, folder, resume=resume, progress=self.progress)
+        self.timings[f"train {name}"] = time.perf_counter() - started
+        return folder / "best.pt"
+
+    def alpha_dir(self, condition: str) -> Path:
+        from .segmentation.train import infer_alpha, load_checkpoint
+        from .sequences import Rellis3DSequence
+
+        cond = self.config.conditions[condition]
+        checkpoint = self.network(cond.network)
+        seq_dir = self.sequence_dir(cond.sequence)
+        folder = self.cache / "alpha" / f"{cond.network}-{cond.sequence}-{_digest(str(checkpoint), checkpoint.stat().st_mtime_ns, str(seq_dir))}"
+        if (folder / "done").exists():
+            return folder
+        folder.mkdir(parents=True, exist_ok=True)
+        seq = Rellis3DSequence(seq_dir)
+        frames = [f for f in seq.frames if f.image is not None]
+        model, config, meta, _ = load_checkpoint(checkpoint)
+        started = time.perf_counter()
+        self.log(f"[alpha] {cond.network} on {len(frames)} frames of {cond.sequence}")
+        outputs = infer_alpha(model, config, meta, (seq.read_image(f) for f in frames), batch_size=8)
+        for frame, (alpha, _) in tqdm(zip(frames, outputs), total=len(frames), unit="img", disable=not self.progress, desc="infer"):
+            np.save(folder / f"{frame.index:06d}.npy", alpha)
+        (folder / "done").write_text("")
+        self.timings[f"infer {condition}"] = time.perf_counter() - started
+        return folder
+
+    def ground_truth(self, sequence: str) -> tuple[np.ndarray, np.ndarray]:
+        from .sequences import Rellis3DSequence
+
+        seq_dir = self.sequence_dir(sequence)
+        path = self.cache / "ground_truth" / f"{sequence}-{_digest(str(seq_dir), dataclasses.asdict(self.config.projection))}.npz"
+        if not path.exists():
+            seq = Rellis3DSequence(seq_dir)
+            frames = [f for f in seq.frames if f.label_image is not None]
+            if not frames:
+                raise ConfigError(f"sequences.{sequence}: no frame has a 2D label image, so there is no 3D ground truth")
+            projected = list(project_frames(seq, frames, label_map_for(seq), self.config.projection, reference_pose=seq.pose(seq.frames[0])))
+            path.parent.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(path, points=np.concatenate([p.points for p in projected]), labels=np.concatenate([p.values for p in projected]))
+        data = np.load(path)
+        return data["points"], data["labels"]
+
+    def bins(self, condition: str) -> list:
+        from .sequences import Rellis3DSequence
+
+        cond = self.config.conditions[condition]
+        alpha = self.alpha_dir(condition)
+        seq = Rellis3DSequence(self.sequence_dir(cond.sequence))
+        frames = [f for f in seq.frames if (alpha / f"{f.index:06d}.npy").exists()]
+
+        def values(frame):
+            return np.load(alpha / f"{frame.index:06d}.npy").astype(np.float32)
+
+        projected = project_frames(seq, frames, values, self.config.projection, reference_pose=seq.pose(seq.frames[0]))
+        return list(bin_frames(projected, self.config.projection.bin_frames))
+
+    def map_and_score(self, condition: str, method: str, bins: list, gt) -> MapScores:
+        from .classes import class_set
+        from .map_file import load_map, save_map
+        from .mapping import Mapper
+
+        run = load_config([_preset_path(self.config.mapping_preset)], method=method)
+        names = class_set().names
+        key = _digest(run.mapping.as_dict(), str(self.alpha_dir(condition)), dataclasses.asdict(self.config.projection), __version__)
+        map_path = self.out / "maps" / condition / f"{method}.npz"
+        record_path = map_path.with_suffix(".json")
+        if record_path.exists() and map_path.exists() and json.loads(record_path.read_text()).get("key") == key:
+            mapper = load_map(map_path)
+        else:
+            mapper = Mapper(run.mapping, len(names), class_names=names, device=self.device)
+            started = time.perf_counter()
+            points = 0
+            for b in tqdm(bins, unit="bin", disable=not self.progress, desc=f"{condition}/{method}", leave=False):
+                mapper.integrate(b.points, b.values, payload_type=PayloadType.ALPHA, sensor_origin=b.sensor_origin)
+                points += len(b.points)
+            elapsed = time.perf_counter() - started
+            map_path.parent.mkdir(parents=True, exist_ok=True)
+            save_map(map_path, mapper)
+            record_path.write_text(json.dumps({"key": key, "seconds": elapsed, "points": points, "voxels": mapper.voxel_count}))
+        scores = evaluate_map(mapper, gt[0], gt[1], self.config.scored_classes)
+        scores.extra["voxels"] = mapper.voxel_count
+        return scores
+
+    # -- the whole study -------------------------------------------------------------------------
+    def run(self) -> dict:
+        started = time.perf_counter()
+        self.out.mkdir(parents=True, exist_ok=True)
+        results: dict[str, dict[str, MapScores]] = {}
+        ablation = self.config.ablation
+        for condition, cond in self.config.conditions.items():
+            methods = list(self.config.methods)
+            if ablation.condition == condition:
+                methods += [m for m in ablation.methods if m not in methods]
+            bins = self.bins(condition)
+            gt = self.ground_truth(cond.sequence)
+            stage = time.perf_counter()
+            results[condition] = {}
+            for method in methods:
+                results[condition][method] = self.map_and_score(condition, method, bins, gt)
+                self.log(f"[map] {condition:>12} {method:>14}: mIoU {100 * results[condition][method].miou:5.1f}  "
+                         f"Acc {100 * results[condition][method].accuracy:5.1f}")
+            self.timings[f"map+score {condition}"] = time.perf_counter() - stage
+        self.timings["total"] = time.perf_counter() - started
+        self._write_results(results)
+        return results
+
+    def _write_results(self, results: dict[str, dict[str, MapScores]]) -> None:
+        from .evaluation import scored_class_names
+
+        config = self.config
+        any_scores = next(iter(next(iter(results.values())).values()))
+        class_names = scored_class_names(any_scores)
+        sections = [f"# {config.name}: results\n", "Queries of the 3D ground truth (2D labels projected onto the LiDAR points); IoU, mIoU, "
+                    "Acc, O.Acc in %; BS x100 (lower is better; min-max normalised variance per scored voxel). "
+                    "'-' marks classes absent from the ground truth.\n"]
+        for condition, by_method in results.items():
+            cond = config.conditions[condition]
+            rows = {m: s.row() for m, s in by_method.items() if m in config.methods}
+            sections.append(f"## {condition} (network '{cond.network}' on sequence '{cond.sequence}')\n")
+            sections.append(markdown_table(rows, class_names + ["mIoU", "Acc"]) + "\n")
+        if len(results) > 1:
+            rows = {m: {} for m in config.methods}
+            for condition, by_method in results.items():
+                for m in config.methods:
+                    rows[m][condition] = f"{100 * by_method[m].miou:.1f} / {100 * by_method[m].accuracy:.1f}"
+            sections.append("## Robustness: mIoU / Acc per condition\n")
+            sections.append(markdown_table(rows, list(results)) + "\n")
+        if config.ablation.methods:
+            by_method = results[config.ablation.condition]
+            rows = {m: by_method[m].row() for m in config.ablation.methods}
+            sections.append(f"## Ablation ({config.ablation.condition})\n")
+            sections.append(markdown_table(rows, ["mIoU", "Acc", "O.Acc", "BS", "BS (analytic)", "BS (per query)"]) + "\n")
+        (self.out / "results.md").write_text("\n".join(sections))
+        with open(self.out / "scores.csv", "w", newline="") as f:
+            columns = ["condition", "method"] + class_names + ["mIoU", "Acc", "O.Acc", "BS", "BS (analytic)", "BS (per query)", "scored_queries", "occupied_queries"]
+            writer = csv.DictWriter(f, columns)
+            writer.writeheader()
+            for condition, by_method in results.items():
+                for method, scores in by_method.items():
+                    row = scores.row() | {"condition": condition, "method": method, "scored_queries": scores.scored_queries,
+                                          "occupied_queries": scores.occupied_queries}
+                    writer.writerow({k: ("" if row.get(k) is None else row.get(k)) for k in columns})
+        (self.out / "scores.json").write_text(json.dumps({c: {m: s.as_dict() for m, s in r.items()} for c, r in results.items()}, indent=1))
+        self._plots(results, class_names)
+        for name in config.networks:
+            folder = self.network(name).parent
+            for plot in ("reliability.png", "uncertainty.png"):
+                if (folder / plot).exists():
+                    shutil.copy(folder / plot, self.out / f"network_{name}_{plot}")
+        record = {"experiment": dataclasses.asdict(config), "timings_s": {k: round(v, 2) for k, v in self.timings.items()},
+                  "versions": _versions(), "sequences": {k: str(v) for k, v in self._sequence_dirs.items()}}
+        (self.out / "record.json").write_text(json.dumps(record, indent=1, default=str))
+
+    def _plots(self, results, class_names) -> None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        for condition, by_method in results.items():
+            methods = [m for m in self.config.methods if m in by_method]
+            fig, ax = plt.subplots(figsize=(1.2 * len(class_names) + 3, 4))
+            width = 0.8 / len(methods)
+            for i, m in enumerate(methods):
+                values = [by_method[m].row()[c] or 0.0 for c in class_names]
+                ax.bar(np.arange(len(class_names)) + i * width, values, width, label=m)
+            ax.set_xticks(np.arange(len(class_names)) + 0.4 - width / 2, class_names)
+            ax.set_ylabel("IoU [%]")
+            ax.set_title(f"Per-class IoU, {condition}")
+            ax.legend(fontsize=8)
+            fig.tight_layout()
+            fig.savefig(self.out / f"iou_{condition}.png", dpi=110)
+            plt.close(fig)
+        if self.config.ablation.methods:
+            by_method = results[self.config.ablation.condition]
+            metrics = ["mIoU", "Acc", "O.Acc", "BS"]
+            fig, ax = plt.subplots(figsize=(8, 4))
+            width = 0.8 / len(self.config.ablation.methods)
+            for i, m in enumerate(self.config.ablation.methods):
+                row = by_method[m].row()
+                ax.bar(np.arange(len(metrics)) + i * width, [row[k] or 0.0 for k in metrics], width, label=m)
+            ax.set_xticks(np.arange(len(metrics)) + 0.4 - width / 2, metrics)
+            ax.set_title(f"Ablation, {self.config.ablation.condition} (BS: lower is better)")
+            ax.legend(fontsize=8)
+            fig.tight_layout()
+            fig.savefig(self.out / "ablation.png", dpi=110)
+            plt.close(fig)
+
+
+class _ImageSubset:
+    """Several image datasets back to back, of which the first ``fraction`` of each is used."""
+
+    num_classes = 9
+
+    def __init__(self, sources, fraction: float):
+        if not 0 < fraction <= 1:
+            raise ConfigError(f"networks.*.fraction must lie in (0, 1], got {fraction}")
+        self.items = [(s, i) for s in sources for i in range(max(1, int(round(len(s) * fraction))))]
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def name(self, i: int) -> str:
+        source, j = self.items[i]
+        return source.name(j)
+
+    def __getitem__(self, i: int):
+        source, j = self.items[i]
+        return source[j]
+
+
+def _versions() -> dict:
+    import torch
+    import warp
+
+    return {"evsemmap_warp": __version__, "python": sys.version.split()[0], "platform": platform.platform(),
+            "numpy": np.__version__, "torch": torch.__version__, "warp": warp.config.version}
