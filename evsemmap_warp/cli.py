@@ -205,6 +205,30 @@ def _cmd_project(args) -> int:
     return 0
 
 
+def _cmd_train_convbki(args) -> int:
+    from . import convbki
+    from .classes import class_set
+    from .projection import ProjectionConfig
+    from .sequences import Rellis3DSequence
+
+    seq = Rellis3DSequence(args.sequence)
+
+    def alpha_for_frame(frame):
+        for name in (f"{frame.index:06d}.npy", f"{frame.image.stem}.npy"):  # experiment cache or `evsemmap infer` names
+            if (args.alpha / name).exists():
+                return np.load(args.alpha / name).astype(np.float32)
+        return None
+
+    windows = convbki.training_windows(seq, alpha_for_frame, ProjectionConfig(), window_scans=args.window_scans,
+                                       queries_per_window=args.queries)
+    if not windows:
+        raise ValueError(f"{args.sequence}: no window of {args.window_scans} scans with alpha in {args.alpha} and per-point labels")
+    lengths, history = convbki.train_lengths(windows, len(class_set().names), args.resolution, epochs=args.epochs, progress=not args.quiet)
+    convbki.save_lengths(args.out, lengths)
+    print(json.dumps({"out": str(args.out), "windows": len(windows), "loss": [round(h, 4) for h in history]} | lengths.as_dict(), indent=1))
+    return 0
+
+
 def _cmd_experiment(args) -> int:
     from .experiment import Experiment, load_experiment
 
@@ -325,6 +349,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overlays", type=int, default=3, help="overlay images to write (points in their label colours)")
     p.add_argument("--max-frames", type=int, default=None)
     p.set_defaults(func=_cmd_project)
+
+    p = sub.add_parser("train-convbki", help="learn ConvBKI's per-class length scales from a projected, labelled sequence")
+    p.add_argument("sequence", type=Path, help="RELLIS-3D-layout sequence with per-point labels")
+    p.add_argument("--alpha", type=Path, required=True, help="folder of per-frame alpha .npy (evsemmap infer output)")
+    p.add_argument("--out", type=Path, required=True, help="length-scale file to write (.json; use as mapping.convbki_lengths_file)")
+    p.add_argument("--resolution", type=float, default=0.3, help="voxel size of the map it will be used with (m)")
+    p.add_argument("--epochs", type=int, default=15)
+    p.add_argument("--window-scans", type=int, default=10)
+    p.add_argument("--queries", type=int, default=4000, help="ground-truth points scored per window")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_train_convbki)
 
     p = sub.add_parser("experiment", help="run a study from a config: data, network, maps, scores, tables (cached, resumable)")
     p.add_argument("config", help="experiment YAML, or a built-in name (demo, paper-main, paper-robustness, paper-ablation)")

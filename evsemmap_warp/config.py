@@ -24,6 +24,13 @@ class ConfigError(ValueError):
 class Kernel(str, enum.Enum):
     SPARSE = "sparse"  # BKI sparse kernel k'(d, l, sigma0)
     COUNT = "count"  # counting sensor model: weight 1 inside the point's own voxel
+    CONVBKI = "convbki"  # ConvBKI: per-class compound kernel on a voxel-centre stencil (baselines.md 2)
+    SEE_CSOM = "see-csom"  # SEE-CSOM: entropy-gated blocks, triangular kernel (baselines.md 3)
+
+
+class Fusion(str, enum.Enum):
+    BAYES = "bayes"  # Dirichlet concentrations add up (every BKI / CSM method)
+    DEMPSTER = "dempster"  # belief masses fused with Dempster's rule (spec 3.10)
 
 
 class Media(str, enum.Enum):
@@ -48,6 +55,7 @@ class MappingConfig:
 
     method: str = "ebs"
     kernel: Kernel = Kernel.SPARSE
+    fusion: Fusion = Fusion.BAYES
     media: Media = Media.PROB
     adaptive_length: bool = True
     uncertainty_threshold: bool = True
@@ -64,6 +72,10 @@ class MappingConfig:
     ds_resolution_m: float = 0.1
     free_resolution_m: float = 4.0
     max_range_m: float = -1.0  # <= 0 disables the range filter
+    # ConvBKI only: per-class length scales (a .pt state dict with ell_h / ell_z, or .json / .yaml /
+    # .npz with the same keys); empty: every class at its authors' initial 0.5 m.
+    convbki_lengths_file: str = ""
+    convbki_stencil_half: int = 2  # the stencil is (2h + 1)^3 voxels
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, text: str) -> None:
@@ -80,7 +92,15 @@ class MappingConfig:
         need(1 <= self.block_depth <= 8, "block_depth", "must lie in 1..8")
         need(self.ds_resolution_m > 0, "ds_resolution_m", "must be > 0")
         need(self.free_resolution_m > 0, "free_resolution_m", "must be > 0")
+        need(0 <= self.convbki_stencil_half <= 8, "convbki_stencil_half", "must lie in 0..8")
+        if self.kernel is Kernel.SEE_CSOM:
+            need(self.media is Media.ONEHOT, "media", "SEE-CSOM takes hard labels (its code has no soft-label path)")
+        if self.fusion is Fusion.DEMPSTER:
+            need(self.kernel is Kernel.SPARSE, "kernel", "the Dempster-Shafer variant discounts beliefs with the sparse kernel")
+            need(self.media is Media.PROB, "media", "the Dempster-Shafer variant fuses belief masses from the Dirichlet (media prob)")
         if self.compat is Compat.SBKI:
+            need(self.kernel in (Kernel.SPARSE, Kernel.COUNT) and self.fusion is Fusion.BAYES, "kernel",
+                 "the sbki compatibility mode reproduces S-BKI / S-CSM only")
             need(self.media is Media.ONEHOT, "media", "the sbki compatibility mode reproduces S-BKI/S-CSM, which take one-hot labels")
             need(not self.adaptive_length, "adaptive_length", "the original S-BKI has no adaptive length")
             need(not self.uncertainty_threshold, "uncertainty_threshold", "the original S-BKI has no uncertainty threshold")
@@ -127,7 +147,7 @@ class RunConfig:
 
 
 _SECTIONS = {"method": MappingConfig, "mapping": MappingConfig, "dataset": DatasetConfig}
-_METHOD_KEYS = {"name", "kernel", "media", "adaptive_length", "uncertainty_threshold", "compat"}
+_METHOD_KEYS = {"name", "kernel", "fusion", "media", "adaptive_length", "uncertainty_threshold", "compat"}
 
 
 def methods_dir() -> Path:

@@ -41,7 +41,7 @@ import yaml
 from tqdm import tqdm
 
 from . import __version__
-from .config import ConfigError, PayloadType, dataclass_from_dict, load_config
+from .config import ConfigError, Kernel, PayloadType, dataclass_from_dict, load_config
 from .evaluation import PAPER_SCORED_CLASSES, MapScores, evaluate_map, markdown_table
 from .projection import ProjectionConfig, bin_frames, label_map_for, project_frames
 
@@ -83,6 +83,17 @@ class AblationSpec:
 
 
 @dataclass(frozen=True)
+class ConvBkiTraining:
+    """How ConvBKI's length scales are learned when a method needs them and no file is given: on the
+    network's own training sequences (its alpha, projected; the LiDAR's per-point labels as truth)."""
+
+    window_scans: int = 10
+    windows: int = 8
+    queries_per_window: int = 4000
+    epochs: int = 10
+
+
+@dataclass(frozen=True)
 class ExperimentConfig:
     name: str = "experiment"
     sequences: dict = field(default_factory=dict)
@@ -93,6 +104,7 @@ class ExperimentConfig:
     methods: tuple = ()
     ablation: AblationSpec = field(default_factory=AblationSpec)
     scored_classes: tuple = PAPER_SCORED_CLASSES
+    convbki: ConvBkiTraining = field(default_factory=ConvBkiTraining)
 
 
 def experiments_dir() -> Path:
@@ -203,13 +215,16 @@ class Experiment:
         return folder / "best.pt"
 
     def alpha_dir(self, condition: str) -> Path:
+        cond = self.config.conditions[condition]
+        return self.alpha_for(cond.network, cond.sequence)
+
+    def alpha_for(self, network: str, sequence: str) -> Path:
         from .segmentation.train import infer_alpha, load_checkpoint
         from .sequences import Rellis3DSequence
 
-        cond = self.config.conditions[condition]
-        checkpoint = self.network(cond.network)
-        seq_dir = self.sequence_dir(cond.sequence)
-        folder = self.cache / "alpha" / f"{cond.network}-{cond.sequence}-{_digest(str(checkpoint), checkpoint.stat().st_mtime_ns, str(seq_dir))}"
+        checkpoint = self.network(network)
+        seq_dir = self.sequence_dir(sequence)
+        folder = self.cache / "alpha" / f"{network}-{sequence}-{_digest(str(checkpoint), checkpoint.stat().st_mtime_ns, str(seq_dir))}"
         if (folder / "done").exists():
             return folder
         folder.mkdir(parents=True, exist_ok=True)
@@ -217,13 +232,42 @@ class Experiment:
         frames = [f for f in seq.frames if f.image is not None]
         model, config, meta, _ = load_checkpoint(checkpoint)
         started = time.perf_counter()
-        self.log(f"[alpha] {cond.network} on {len(frames)} frames of {cond.sequence}")
+        self.log(f"[alpha] {network} on {len(frames)} frames of {sequence}")
         outputs = infer_alpha(model, config, meta, (seq.read_image(f) for f in frames), batch_size=8)
         for frame, (alpha, _) in tqdm(zip(frames, outputs), total=len(frames), unit="img", disable=not self.progress, desc="infer"):
             np.save(folder / f"{frame.index:06d}.npy", alpha)
         (folder / "done").write_text("")
-        self.timings[f"infer {condition}"] = time.perf_counter() - started
+        self.timings[f"infer {network} on {sequence}"] = time.perf_counter() - started
         return folder
+
+    def convbki_lengths(self, network: str, resolution_m: float) -> Path:
+        """ConvBKI's per-class length scales learned on the network's training sequences (cached)."""
+        from . import convbki
+        from .classes import class_set
+        from .sequences import Rellis3DSequence
+
+        spec, training = self.config.networks[network], self.config.convbki
+        folder = self.cache / "convbki"
+        path = folder / f"{network}-{_digest(str(self.network(network)), spec.train_on, resolution_m, dataclasses.asdict(training), __version__)}.json"
+        if path.exists():
+            return path
+        windows = []
+        for sequence in spec.train_on:
+            alpha = self.alpha_for(network, sequence)
+            windows += convbki.training_windows(
+                Rellis3DSequence(self.sequence_dir(sequence)),
+                lambda f, alpha=alpha: np.load(alpha / f"{f.index:06d}.npy").astype(np.float32) if (alpha / f"{f.index:06d}.npy").exists() else None,
+                self.config.projection, window_scans=training.window_scans, queries_per_window=training.queries_per_window)
+        if not windows:
+            raise ConfigError(f"networks.{network}: its training sequences have no scans with per-point labels to learn ConvBKI's lengths from")
+        windows = [windows[i] for i in np.linspace(0, len(windows) - 1, min(training.windows, len(windows))).astype(int)]
+        self.log(f"[convbki] learning length scales on {len(windows)} windows of {training.window_scans} scans")
+        started = time.perf_counter()
+        lengths, history = convbki.train_lengths(windows, len(class_set().names), resolution_m, epochs=training.epochs, progress=self.progress)
+        folder.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(lengths.as_dict() | {"loss_history": history}, indent=1))
+        self.timings[f"convbki lengths {network}"] = time.perf_counter() - started
+        return path
 
     def ground_truth(self, sequence: str) -> tuple[np.ndarray, np.ndarray]:
         from .sequences import Rellis3DSequence
@@ -261,14 +305,18 @@ class Experiment:
         from .mapping import Mapper
 
         run = load_config([_preset_path(self.config.mapping_preset)], method=method)
+        mapping = run.mapping
+        if mapping.kernel is Kernel.CONVBKI and not mapping.convbki_lengths_file:
+            lengths = self.convbki_lengths(self.config.conditions[condition].network, mapping.resolution_m)
+            mapping = dataclasses.replace(mapping, convbki_lengths_file=str(lengths))
         names = class_set().names
-        key = _digest(run.mapping.as_dict(), str(self.alpha_dir(condition)), dataclasses.asdict(self.config.projection), __version__)
+        key = _digest(mapping.as_dict(), str(self.alpha_dir(condition)), dataclasses.asdict(self.config.projection), __version__)
         map_path = self.out / "maps" / condition / f"{method}.npz"
         record_path = map_path.with_suffix(".json")
         if record_path.exists() and map_path.exists() and json.loads(record_path.read_text()).get("key") == key:
             mapper = load_map(map_path)
         else:
-            mapper = Mapper(run.mapping, len(names), class_names=names, device=self.device)
+            mapper = Mapper(mapping, len(names), class_names=names, device=self.device)
             started = time.perf_counter()
             points = 0
             for b in tqdm(bins, unit="bin", disable=not self.progress, desc=f"{condition}/{method}", leave=False):

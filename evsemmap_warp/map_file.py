@@ -120,9 +120,9 @@ def load_map(path, *, device: str | None = "cpu"):
 def _config_fields(mapping: dict) -> dict:
     from dataclasses import fields
 
-    from .config import Compat, Kernel, Media
+    from .config import Compat, Fusion, Kernel, Media
 
-    enums = {"kernel": Kernel, "media": Media, "compat": Compat}
+    enums = {"kernel": Kernel, "media": Media, "compat": Compat, "fusion": Fusion}
     known = {f.name for f in fields(MappingConfig)}
     unknown = set(mapping) - known
     if unknown:

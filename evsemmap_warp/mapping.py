@@ -18,8 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import __version__
-from .config import Compat, MappingConfig, PayloadType
-from .integrators import IntegrationStats, KernelIntegrator, SbkiCompatIntegrator, ScanPayload
+from .config import Compat, Fusion, Kernel, MappingConfig, PayloadType
+from .integrators import (ConvBkiIntegrator, IntegrationStats, KernelIntegrator, SbkiCompatIntegrator, ScanPayload,
+                          SeeCsomIntegrator)
 from .voxel_map import FLAG_TOUCHED, VoxelArrays, VoxelMap, sum_voxel_arrays
 
 
@@ -55,6 +56,30 @@ def summarize_dirichlet(alpha: np.ndarray, touched: np.ndarray) -> DirichletSumm
     state = np.where(label == FREE_CLASS, VoxelState.FREE, VoxelState.OCCUPIED).astype(np.int8)
     state[~np.asarray(touched, dtype=bool)] = VoxelState.UNKNOWN
     return DirichletSummary(label.astype(np.int32), probabilities, variance, state)
+
+
+def belief_masses(log_commonality: np.ndarray) -> np.ndarray:
+    """Dempster-Shafer masses [V, K] on the singletons from the accumulated log commonality ratios
+    D_k = sum_n log(1 + b'_nk / u'_n) (kernels/scatter.py): m_k = (e^D_k - 1) / (sum_j (e^D_j - 1) + 1);
+    the frame keeps 1 / (same). Computed in float64 relative to max D, so no exponent overflows."""
+    d = np.asarray(log_commonality, dtype=np.float64)
+    if d.size == 0:
+        return d.astype(np.float32)
+    top = d.max(axis=1, keepdims=True)
+    scaled = np.exp(d - top) - np.exp(-top)
+    return (scaled / (scaled.sum(axis=1, keepdims=True) + np.exp(-top))).astype(np.float32)
+
+
+def summarize_beliefs(masses: np.ndarray, touched: np.ndarray) -> DirichletSummary:
+    """Spec 3.10 read-out: label = argmax of the masses (all zero -> 0, FREE), probabilities =
+    masses / their sum, "variance" = the uncommitted mass 1 - sum m."""
+    masses = np.asarray(masses, dtype=np.float32)
+    committed = masses.sum(axis=1)
+    probabilities = np.divide(masses, committed[:, None], out=np.zeros_like(masses), where=committed[:, None] > 0)
+    label = np.argmax(masses, axis=1).astype(np.int32)
+    state = np.where(label == FREE_CLASS, VoxelState.FREE, VoxelState.OCCUPIED).astype(np.int8)
+    state[~np.asarray(touched, dtype=bool)] = VoxelState.UNKNOWN
+    return DirichletSummary(label, probabilities, (1.0 - committed).astype(np.float32), state)
 
 
 @dataclass
@@ -149,12 +174,16 @@ class Mapper:
         if class_names is not None and len(class_names) != self.num_classes:
             raise ValueError(f"class_names has {len(class_names)} names for {self.num_classes} classes")
         self.class_names = tuple(class_names) if class_names else tuple(f"class_{i}" for i in range(self.num_classes))
+        self.grid_offset_m = 0.0
         if config.compat is Compat.SBKI:
             self.integrator = SbkiCompatIntegrator(config)
             self.grid_offset_m = SbkiCompatIntegrator.grid_offset_m(config)
+        elif config.kernel is Kernel.CONVBKI:
+            self.integrator = ConvBkiIntegrator(config, self.num_classes)
+        elif config.kernel is Kernel.SEE_CSOM:
+            self.integrator = SeeCsomIntegrator(config, self.num_classes)
         else:
             self.integrator = KernelIntegrator(config)
-            self.grid_offset_m = 0.0
         self._initial_capacity = initial_capacity
         first = self._new_shard(device)
         self.device = first.device
@@ -190,9 +219,9 @@ class Mapper:
         scan = prepare_payload(points, payload, payload_type, self.num_classes)
         if len(scan.points) == 0:
             return IntegrationStats()
-        if isinstance(self.integrator, SbkiCompatIntegrator):
+        if isinstance(self.integrator, (SbkiCompatIntegrator, SeeCsomIntegrator)):
             if sensor_origin is None:
-                raise ValueError("sensor_origin: the sbki compatibility mode casts free-space rays from the sensor origin; pass it")
+                raise ValueError(f"sensor_origin: {self.config.method} adds the sensor origin (and free-space rays) as free samples; pass it")
             origin = _validate_points(np.asarray(sensor_origin, dtype=np.float64).reshape(1, 3), "sensor_origin")[0]
             stats = self.integrator.integrate(self.shards, scan, origin, self._executor)
         else:
@@ -207,12 +236,20 @@ class Mapper:
         """All stored voxels in key order and their post-pass (cached until the next integrate)."""
         if self._summary_cache is None:
             arrays = sum_voxel_arrays([shard.arrays() for shard in self.shards])
-            self._summary_cache = (arrays, summarize_dirichlet(self.concentrations(arrays.evidence), arrays.touched))
+            self._summary_cache = (arrays, self.summarize(arrays.evidence, arrays.touched))
         return self._summary_cache
 
     def concentrations(self, evidence: np.ndarray) -> np.ndarray:
-        """Dirichlet concentrations alpha = prior + evidence, in float32."""
+        """Dirichlet concentrations alpha = prior + evidence, in float32; for the Dempster-Shafer
+        method, the belief masses (what the map file stores as ``alpha`` for it)."""
+        if self.config.fusion is Fusion.DEMPSTER:
+            return belief_masses(evidence)
         return np.float32(self.config.prior) + np.asarray(evidence, dtype=np.float32)
+
+    def summarize(self, evidence: np.ndarray, touched: np.ndarray) -> DirichletSummary:
+        if self.config.fusion is Fusion.DEMPSTER:
+            return summarize_beliefs(belief_masses(evidence), touched)
+        return summarize_dirichlet(self.concentrations(evidence), touched)
 
     def voxel_centers(self, index: np.ndarray) -> np.ndarray:
         return (np.asarray(index, dtype=np.float64) + 0.5) * self.config.resolution_m + self.grid_offset_m
@@ -231,7 +268,7 @@ class Mapper:
                 evidence[hit] += shard.evidence.numpy()[slots[hit]]
                 touched[hit] |= shard.flags.numpy()[slots[hit], FLAG_TOUCHED] > 0
             found |= hit
-        summary = summarize_dirichlet(self.concentrations(evidence), touched)
+        summary = self.summarize(evidence, touched)
         label = np.where(found, summary.label, UNKNOWN_LABEL).astype(np.int32)
         return QueryResult(label, summary.probabilities, summary.variance, summary.state)
 

@@ -174,13 +174,24 @@ class VoxelMap:
         class_weights: np.ndarray | None = None,
         owner_blocks: np.ndarray | None = None,
         cells_per_block: int = 1,
+        fusion: int = sc.FUSION_BAYES,
+        stencil_weights: np.ndarray | None = None,
     ) -> int:
-        """One scatter launch over all points (relaunching failed ones after growth); returns updates."""
+        """One scatter launch over all points (relaunching failed ones after growth); returns updates.
+        ``stencil_weights`` [(2h + 1)^3, K] only with MODE_STENCIL."""
         n = len(points)
         if n == 0:
             return 0
+        stencil_half = 0
+        if mode == sc.MODE_STENCIL:
+            side = round(len(stencil_weights) ** (1 / 3))
+            if side**3 != len(stencil_weights) or side % 2 == 0:
+                raise ValueError(f"stencil_weights must have (2h + 1)^3 rows, got {len(stencil_weights)}")
+            stencil_half = side // 2
         if mode != sc.MODE_SBKI_OWN_BLOCK:
             reach = float(np.max(lengths)) * (sc.SBKI_REACH_FACTOR if mode == sc.MODE_SBKI_BLOCKS else 1.0)
+            if mode == sc.MODE_STENCIL:
+                reach = (stencil_half + 1) * self.resolution_m
             self._check_index_range(np.floor((points.min(axis=0) - reach - self.grid_offset_m) / self.resolution_m),
                                     np.floor((points.max(axis=0) + reach - self.grid_offset_m) / self.resolution_m))
         d = self.device
@@ -194,7 +205,9 @@ class VoxelMap:
             wp.array(np.ascontiguousarray(lengths, dtype=np.float32), dtype=float, device=d),
             wp.array(np.ascontiguousarray(point_uncertainty, dtype=np.float32), dtype=float, device=d),
             wp.array(empty_owners if owner_blocks is None else np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d),
-            int(mode), int(use_labels), self.resolution_m, self.grid_offset_m, float(sigma0), int(cells_per_block),
+            int(mode), int(use_labels), self.resolution_m, self.grid_offset_m, float(sigma0), int(cells_per_block), int(fusion),
+            wp.array(np.zeros((0, self.num_classes), np.float32) if stencil_weights is None else np.ascontiguousarray(stencil_weights, dtype=np.float32), dtype=float, device=d),
+            int(stencil_half),
         ]
         update_count = wp.zeros(1, dtype=int, device=d)
 
@@ -203,7 +216,34 @@ class VoxelMap:
                 ids, *inputs, self.keys, self.key_count, self._launch_fill_limit(),
                 self.evidence, self.stats, self.flags, failed, update_count])
 
-        self._launch_until_done(n, launch, may_insert=mode in (sc.MODE_RADIUS, sc.MODE_OWN_VOXEL))
+        self._launch_until_done(n, launch, may_insert=mode in (sc.MODE_RADIUS, sc.MODE_OWN_VOXEL, sc.MODE_STENCIL))
+        return int(update_count.numpy()[0])
+
+    def scatter_block_targets(self, points: np.ndarray, labels: np.ndarray, point_uncertainty: np.ndarray,
+                              owner_blocks: np.ndarray, target_lengths: np.ndarray, cells_per_block: int) -> int:
+        """SEE-CSOM's block-gated scatter (``kernels.scatter.scatter_block_targets``); returns updates."""
+        n = len(points)
+        if n == 0:
+            return 0
+        first = owner_blocks.astype(np.int64) * cells_per_block - cells_per_block // 2
+        self._check_index_range(first.min(axis=0) - cells_per_block, first.max(axis=0) + 2 * cells_per_block - 1)
+        d = self.device
+        inputs = [
+            wp.array(np.ascontiguousarray(points, dtype=np.float32), dtype=wp.vec3, device=d),
+            wp.array(np.ascontiguousarray(labels, dtype=np.int32), dtype=int, device=d),
+            wp.array(np.ascontiguousarray(point_uncertainty, dtype=np.float32), dtype=float, device=d),
+            wp.array(np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d),
+            wp.array(np.ascontiguousarray(target_lengths, dtype=np.float32), dtype=float, device=d),
+            self.resolution_m, self.grid_offset_m, int(cells_per_block),
+        ]
+        update_count = wp.zeros(1, dtype=int, device=d)
+
+        def launch(ids, failed):
+            wp.launch(sc.scatter_block_targets, dim=len(ids), device=d, inputs=[
+                ids, *inputs, self.keys, self.key_count, self._launch_fill_limit(),
+                self.evidence, self.stats, self.flags, failed, update_count])
+
+        self._launch_until_done(n, launch, may_insert=True)
         return int(update_count.numpy()[0])
 
     def insert_blocks(self, blocks: np.ndarray, cells_per_block: int, *, mark_touched: bool) -> None:

@@ -11,6 +11,14 @@ written once; what changes between methods is the small weight rule chosen by ``
   (scaled coordinates, float32, negatives clamped), restricted to voxels whose block is the
   point's owner block or one of its 6 face neighbours.
 * ``MODE_SBKI_OWN_BLOCK``: the original S-CSM rule: weight 1 on the owner block's single cell.
+* ``MODE_STENCIL``: ConvBKI: every voxel of the (2h + 1)^3 cube around the point's voxel, with a
+  per-class weight looked up by offset in ``stencil_weights`` (distances between voxel centres).
+
+``fusion`` 1 (Dempster-Shafer, spec 3.10, radius mode): instead of adding w * y, each point's belief
+masses b (``class_weights``) are discounted by min(w, 1) and the voxel accumulates the log
+commonality ratios log(1 + b'_c / u'), u' = 1 - sum b'. Dempster's rule multiplies commonalities, so
+these sums fuse any number of points in any order; ``mapping.summarize_beliefs`` turns them back
+into masses. ``scatter_block_targets`` is SEE-CSOM's block-gated traversal.
 
 In the clean modes every point runs two passes over its voxels: the first finds or inserts all
 of them, the second adds. A point whose insertion fails (table full) adds nothing and is flagged
@@ -30,6 +38,11 @@ MODE_RADIUS = 0
 MODE_OWN_VOXEL = 1
 MODE_SBKI_BLOCKS = 2
 MODE_SBKI_OWN_BLOCK = 3
+MODE_STENCIL = 4
+FUSION_BAYES = 0
+FUSION_DEMPSTER = 1
+# Belief masses are clamped to [0, 1 - BELIEF_EPSILON]: the spec's 1e-8 vanishes in float32.
+BELIEF_EPSILON = 1e-6
 
 # The C++ S-BKI writes pi as 3.1415926f; float32 rounding noise makes its kernel slightly positive
 # a little beyond d = ell, so the compat search reaches this far past the length.
@@ -47,6 +60,7 @@ def _series_coefficient(n: int) -> float:
 _C2, _C3, _C4, _C5, _C6, _C7 = (wp.constant(_series_coefficient(n)) for n in range(2, 8))
 _SBKI_PI = wp.constant(3.1415926)
 _SBKI_REACH = wp.constant(SBKI_REACH_FACTOR)
+_BELIEF_EPSILON = wp.constant(BELIEF_EPSILON)
 
 
 @wp.func
@@ -121,6 +135,9 @@ def range_end(mode: int, p: wp.vec3, reach: float, owner: wp.vec3i, resolution: 
     """First (side -1) or last (side +1) voxel index per axis that a point may reach."""
     if mode == MODE_SBKI_OWN_BLOCK:
         return owner
+    if mode == MODE_STENCIL:  # owner is the point's voxel, reach the stencil's half width in voxels
+        h = int(reach)
+        return owner + wp.vec3i(int(side) * h, int(side) * h, int(side) * h)
     if mode == MODE_OWN_VOXEL:
         reach = 0.0
     return wp.vec3i(
@@ -153,6 +170,9 @@ def scatter_points(
     grid_offset: float,
     sigma0: float,
     cells_per_block: int,
+    fusion: int,
+    stencil_weights: wp.array2d(dtype=float),
+    stencil_half: int,
     table_keys: wp.array(dtype=wp.int64),
     key_count: wp.array(dtype=int),
     max_count: int,
@@ -176,6 +196,9 @@ def scatter_points(
     if mode == MODE_SBKI_BLOCKS or mode == MODE_SBKI_OWN_BLOCK:
         owner = owner_blocks[i]
     reach = reach_of(mode, length, resolution)
+    if mode == MODE_STENCIL:
+        owner = wp.vec3i(voxel_of(p[0], resolution, grid_offset), voxel_of(p[1], resolution, grid_offset), voxel_of(p[2], resolution, grid_offset))
+        reach = float(stencil_half)
     reach2 = reach * reach
     lo = range_end(mode, p, reach, owner, resolution, grid_offset, -1.0)
     hi = range_end(mode, p, reach, owner, resolution, grid_offset, 1.0)
@@ -185,8 +208,10 @@ def scatter_points(
     # Pass 0 inserts (clean modes only: compat targets were inserted by insert_block_cells),
     # pass 1 adds; a point whose insertion fails adds nothing and is retried after growth.
     first_pass = 1
-    if mode == MODE_RADIUS or mode == MODE_OWN_VOXEL:
+    if mode == MODE_RADIUS or mode == MODE_OWN_VOXEL or mode == MODE_STENCIL:
         first_pass = 0
+    side = 2 * stencil_half + 1
+    num_classes = voxel_evidence.shape[1]
     n_updates = int(0)
     for pass_index in range(first_pass, 2):
         for ix in range(lo[0], hi[0] + 1):
@@ -201,7 +226,15 @@ def scatter_points(
                             dz = (float(iz) + 0.5) * resolution + grid_offset - p[2]
                             d2 = dx * dx + dy * dy + dz * dz
                             bxyz = bxy + block_step(mode, iz, owner[2], cells_per_block)
-                            if (not by_distance or d2 < reach2) and bxyz <= 1:
+                            # ConvBKI: the stencil row of this offset; offsets that add nothing are skipped.
+                            row = int(0)
+                            stencil_mass = float(1.0)
+                            if mode == MODE_STENCIL:
+                                row = ((ix - owner[0] + stencil_half) * side + (iy - owner[1] + stencil_half)) * side + (iz - owner[2] + stencil_half)
+                                stencil_mass = float(0.0)
+                                for c in range(num_classes):
+                                    stencil_mass += stencil_weights[row, c] * class_weights[i, c]
+                            if (not by_distance or d2 < reach2) and bxyz <= 1 and stencil_mass > 0.0:
                                 key = pack_key(ix, iy, iz)
                                 if pass_index == 0:
                                     if table_find_or_insert(table_keys, key_count, max_count, key) < 0:
@@ -212,6 +245,8 @@ def scatter_points(
                                 w = float(1.0)
                                 if mode == MODE_RADIUS:
                                     w = sparse_kernel(wp.sqrt(d2), length, sigma0)
+                                elif mode == MODE_STENCIL:
+                                    w = stencil_mass
                                 elif mode == MODE_SBKI_BLOCKS:
                                     w = sbki_sparse_kernel(voxel_center(ix, iy, iz, resolution, grid_offset), p, length, sigma0)
                                 if mode != MODE_SBKI_BLOCKS or w > 0.0:  # the C++ adds only positive kernel values
@@ -222,14 +257,96 @@ def scatter_points(
                                         return
                                     if use_labels == 1:
                                         wp.atomic_add(voxel_evidence, slot, labels[i], w)
+                                    elif mode == MODE_STENCIL:
+                                        for c in range(num_classes):
+                                            wp.atomic_add(voxel_evidence, slot, c, stencil_weights[row, c] * class_weights[i, c])
+                                    elif fusion == FUSION_DEMPSTER:
+                                        w = wp.min(w, 1.0)
+                                        committed = float(0.0)
+                                        for c in range(num_classes):
+                                            committed += wp.clamp(class_weights[i, c] * w, 0.0, 1.0 - _BELIEF_EPSILON)
+                                        uncommitted = wp.max(1.0 - committed, _BELIEF_EPSILON)
+                                        for c in range(num_classes):
+                                            b = wp.clamp(class_weights[i, c] * w, 0.0, 1.0 - _BELIEF_EPSILON)
+                                            wp.atomic_add(voxel_evidence, slot, c, wp.log(1.0 + b / uncommitted))
                                     else:
-                                        for c in range(class_weights.shape[1]):
+                                        for c in range(num_classes):
                                             wp.atomic_add(voxel_evidence, slot, c, w * class_weights[i, c])
                                     wp.atomic_add(voxel_stats, slot, 0, w)
                                     wp.atomic_add(voxel_stats, slot, 1, w * u)
                                     wp.atomic_add(voxel_flags, slot, 0, 1)
                                     voxel_flags[slot, 1] = 1
                                     n_updates += 1
+    wp.atomic_add(update_count, 0, n_updates)
+
+
+@wp.func
+def face_offset(j: int) -> wp.vec3i:
+    """0: the block itself; 1..6: its face neighbours -x, +x, -y, +y, -z, +z."""
+    if j == 0:
+        return wp.vec3i(0, 0, 0)
+    axis = (j - 1) / 2
+    step = 2 * ((j - 1) % 2) - 1
+    out = wp.vec3i(0, 0, 0)
+    out[axis] = step
+    return out
+
+
+@wp.kernel
+def scatter_block_targets(
+    point_ids: wp.array(dtype=int),
+    points: wp.array(dtype=wp.vec3),
+    labels: wp.array(dtype=int),
+    point_uncertainty: wp.array(dtype=float),
+    owner_blocks: wp.array(dtype=wp.vec3i),
+    target_lengths: wp.array2d(dtype=float),
+    resolution: float,
+    grid_offset: float,
+    cells_per_block: int,
+    table_keys: wp.array(dtype=wp.int64),
+    key_count: wp.array(dtype=int),
+    max_count: int,
+    voxel_evidence: wp.array2d(dtype=float),
+    voxel_stats: wp.array2d(dtype=float),
+    voxel_flags: wp.array2d(dtype=int),
+    failed: wp.array(dtype=int),
+    update_count: wp.array(dtype=int),
+):
+    """SEE-CSOM (baselines.md 3.2, 3.6): point i updates every cell of target block owner + face_offset(j)
+    for each j with target_lengths[i, j] > 0 (the host decided which blocks may use this point and with
+    which length), with the triangular kernel max(0, 1 - d / l). Every cell of a target block is
+    touched, as the original updates all of a block's nodes. Two passes: insert, then add."""
+    t = wp.tid()
+    i = point_ids[t]
+    p = points[i]
+    u = point_uncertainty[i]
+    n = cells_per_block
+    n_updates = int(0)
+    for pass_index in range(2):
+        for j in range(7):
+            ell = target_lengths[i, j]
+            if ell > 0.0:
+                first = (owner_blocks[i] + face_offset(j)) * n - wp.vec3i(n / 2, n / 2, n / 2)
+                for jx in range(n):
+                    for jy in range(n):
+                        for jz in range(n):
+                            ix = first[0] + jx
+                            iy = first[1] + jy
+                            iz = first[2] + jz
+                            key = pack_key(ix, iy, iz)
+                            if pass_index == 0:
+                                if table_find_or_insert(table_keys, key_count, max_count, key) < 0:
+                                    failed[t] = 1
+                                    return
+                            else:
+                                slot = table_find(table_keys, key)
+                                w = wp.max(1.0 - wp.length(voxel_center(ix, iy, iz, resolution, grid_offset) - p) / ell, 0.0)
+                                wp.atomic_add(voxel_evidence, slot, labels[i], w)
+                                wp.atomic_add(voxel_stats, slot, 0, w)
+                                wp.atomic_add(voxel_stats, slot, 1, w * u)
+                                wp.atomic_add(voxel_flags, slot, 0, 1)
+                                voxel_flags[slot, 1] = 1
+                                n_updates += 1
     wp.atomic_add(update_count, 0, n_updates)
 
 

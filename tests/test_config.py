@@ -74,5 +74,5 @@ def test_bad_configs_name_the_file_and_key(tmp_path, text, message):
 
 
 def test_unknown_method_lists_the_known_ones():
-    with pytest.raises(ConfigError, match="unknown method 'nope'; available: ebs"):
+    with pytest.raises(ConfigError, match="unknown method 'nope'; available: convbki, dempster, ebs"):
         load_config([], method="nope")

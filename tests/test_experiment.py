@@ -19,7 +19,8 @@ conditions:
   in-domain: {network: net, sequence: test}
 mapping_preset: offroad
 methods: [s-csm, ebs]
-ablation: {condition: in-domain, methods: [s-bki, prob]}
+ablation: {condition: in-domain, methods: [s-bki, prob, convbki]}
+convbki: {window_scans: 2, windows: 2, queries_per_window: 300, epochs: 1}
 """
 
 
@@ -30,7 +31,9 @@ def test_study_runs_writes_everything_and_reruns_from_cache(tmp_path):
     out = tmp_path / "out"
     first = Experiment(config, out, progress=False, log=lambda m: None)
     results = first.run()
-    assert set(results["in-domain"]) == {"s-csm", "ebs", "s-bki", "prob"}
+    assert set(results["in-domain"]) == {"s-csm", "ebs", "s-bki", "prob", "convbki"}
+    lengths = list((out / "cache" / "convbki").glob("net-*.json"))
+    assert len(lengths) == 1 and "ell_h" in json.loads(lengths[0].read_text())
     assert any(k.startswith("train") for k in first.timings) and any(k.startswith("render") for k in first.timings)
     for name in ("results.md", "scores.csv", "scores.json", "record.json", "iou_in-domain.png", "ablation.png",
                  "maps/in-domain/ebs.npz", "maps/in-domain/s-csm.npz"):
@@ -48,7 +51,7 @@ def test_study_runs_writes_everything_and_reruns_from_cache(tmp_path):
     config, _ = load_experiment(path)
     second = Experiment(config, out, progress=False, log=lambda m: None)
     second.run()
-    assert not any(k.startswith(("train", "render", "infer")) for k in second.timings)
+    assert not any(k.startswith(("train", "render", "infer", "convbki")) for k in second.timings)
     assert (out / "maps/in-domain/ebs.npz").stat().st_mtime_ns == ebs_mtime
     assert (out / "maps/in-domain/prob-thr.npz").exists()
 

@@ -5,6 +5,8 @@ implementation (evsemmap_warp/reference/scatter.py driven by the same per-scan r
 process, and next to the original C++ figures stored with the workload (its .json):
 
 * ``ebs``, ``s-bki``: the clean algorithm with the RELLIS-3D preset (paper Table I);
+* ``convbki``, ``see-csom``, ``dempster``: the comparison methods in the same engine, same preset
+  (ConvBKI with its initial 0.5 m lengths on the 5x5x5 stencil);
 * ``s-bki-compat@frF``: the sbki compatibility mode with the C++ S-BKI benchmark parameters
   (r 0.2, block depth 2, ell 0.3, sf2 10, prior 0.001, VoxelGrid 0.1, free_resolution F): the same map
   semantics as the C++ rows, so the ratio against them is like for like.
@@ -57,6 +59,10 @@ def compat_config(free_resolution: float) -> MappingConfig:
         compat=Compat.SBKI, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
         ds_resolution_m=0.1, free_resolution_m=free_resolution, max_range_m=-1.0,
     )
+
+
+# The paper's method, its baselines in this engine, and the Dempster-Shafer variant, same workload.
+METHODS = ("ebs", "s-bki", "convbki", "see-csom", "dempster")
 
 
 def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, repeats, progress):
@@ -124,12 +130,12 @@ def main() -> int:
     labels = [np.argmax(a, axis=1) for a in alphas]
 
     rows = {}
-    runs = (2 + len(args.free_resolutions)) * args.repeats + (0 if args.skip_numpy else 2)
+    runs = (len(METHODS) + len(args.free_resolutions)) * args.repeats + (0 if args.skip_numpy else 2)
     with tqdm(total=runs * n_points, unit="pt", unit_scale=True, desc="integrating", file=sys.stderr) as progress:
-        for method in ("ebs", "s-bki"):
+        for method in METHODS:
             cfg = load_config([PRESET], method=method).mapping
             rows[method] = time_mapper(cfg, scans, alphas, "alpha", args.device, args.repeats, progress)
-            if not args.skip_numpy:
+            if not args.skip_numpy and method in ("ebs", "s-bki"):  # the numpy twin times the radius rules
                 rows[f"numpy:{method}"] = time_numpy(cfg, scans, alphas)
                 progress.update(n_points)
         for fr in args.free_resolutions:

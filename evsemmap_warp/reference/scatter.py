@@ -16,7 +16,12 @@ MODE_RADIUS = 0
 MODE_OWN_VOXEL = 1
 MODE_SBKI_BLOCKS = 2
 MODE_SBKI_OWN_BLOCK = 3
+MODE_STENCIL = 4
+FUSION_BAYES = 0
+FUSION_DEMPSTER = 1
 SBKI_REACH_FACTOR = 1.05
+BELIEF_EPSILON = 1e-6
+FACE_OFFSETS = np.array([[0, 0, 0], [-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]])
 
 
 @dataclass
@@ -67,9 +72,14 @@ def block_of_voxel(index: np.ndarray, cells_per_block: int) -> np.ndarray:
     return np.floor_divide(index + cells_per_block // 2, cells_per_block)
 
 
-def _candidate_pairs(points, lengths, owners, mode, resolution, grid_offset):
+def _candidate_pairs(points, lengths, owners, mode, resolution, grid_offset, stencil_half=0):
     """All (point, voxel) pairs a point might reach: [P] point ids and [P, 3] voxel indices."""
     n = len(points)
+    if mode == MODE_STENCIL:
+        own = np.floor((points.astype(np.float32) - np.float32(grid_offset)) / np.float32(resolution)).astype(np.int64)
+        r = np.arange(-stencil_half, stencil_half + 1)
+        offsets = np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)
+        return np.repeat(np.arange(n), len(offsets)), (own[:, None, :] + offsets[None]).reshape(-1, 3)
     if mode == MODE_OWN_VOXEL:
         return np.arange(n), np.floor((points - grid_offset) / resolution).astype(np.int64)
     if mode == MODE_SBKI_OWN_BLOCK:
@@ -101,12 +111,25 @@ def scatter_points(
     sigma0: float,
     cells_per_block: int,
     num_classes: int,
+    fusion: int = FUSION_BAYES,
+    stencil_weights: np.ndarray | None = None,
 ) -> ScatterResult:
     """What one ``scatter_points`` launch adds to the map (see the kernel's docstring)."""
     points = np.asarray(points, dtype=np.float64)
     lengths = np.asarray(lengths, dtype=np.float64)
-    pid, vox = _candidate_pairs(points, lengths, owner_blocks, mode, resolution, grid_offset)
-    if mode in (MODE_OWN_VOXEL, MODE_SBKI_OWN_BLOCK):
+    stencil_half = round(len(stencil_weights) ** (1 / 3)) // 2 if mode == MODE_STENCIL else 0
+    pid, vox = _candidate_pairs(points, lengths, owner_blocks, mode, resolution, grid_offset, stencil_half)
+    per_class = None  # [P, K] additions where they are not weight * y
+    if mode == MODE_STENCIL:
+        side = 2 * stencil_half + 1
+        own = np.floor((points.astype(np.float32) - np.float32(grid_offset)) / np.float32(resolution)).astype(np.int64)
+        o = vox - own[pid] + stencil_half
+        rows = (o[:, 0] * side + o[:, 1]) * side + o[:, 2]
+        per_class = np.asarray(stencil_weights, np.float64)[rows] * np.asarray(class_weights, np.float64)[pid]
+        weight = per_class.sum(axis=1)
+        keep = weight > 0
+        pid, vox, weight, per_class = pid[keep], vox[keep], weight[keep], per_class[keep]
+    elif mode in (MODE_OWN_VOXEL, MODE_SBKI_OWN_BLOCK):
         weight = np.ones(len(pid))
     else:
         centers = (vox + 0.5) * resolution + grid_offset
@@ -119,10 +142,18 @@ def scatter_points(
             weight = sbki_sparse_kernel(centers.astype(np.float32), points[pid].astype(np.float32), lengths[pid], sigma0)
             keep = (block_dist <= 1) & (weight > 0)
         pid, vox, weight = pid[keep], vox[keep], weight[keep]
+        if fusion == FUSION_DEMPSTER:
+            weight = np.minimum(weight, 1.0)
+            beliefs = np.clip(np.asarray(class_weights, np.float64)[pid] * weight[:, None], 0.0, 1.0 - BELIEF_EPSILON)
+            uncommitted = np.maximum(1.0 - beliefs.sum(axis=1), BELIEF_EPSILON)
+            per_class = np.log1p(beliefs / uncommitted[:, None])
 
     uniq, inverse = _unique_rows(vox)
     alpha = np.zeros((len(uniq), num_classes))
-    if labels is not None:
+    if per_class is not None:
+        for k in range(num_classes):
+            alpha[:, k] = np.bincount(inverse, weights=per_class[:, k], minlength=len(uniq))
+    elif labels is not None:
         flat = inverse * num_classes + np.asarray(labels)[pid]
         alpha = np.bincount(flat, weights=weight, minlength=len(uniq) * num_classes).reshape(len(uniq), num_classes)
     else:
@@ -133,6 +164,38 @@ def scatter_points(
     unc_sum = np.bincount(inverse, weights=weight * np.asarray(point_uncertainty, dtype=np.float64)[pid], minlength=len(uniq))
     hits = np.bincount(inverse, minlength=len(uniq))
     return ScatterResult(uniq.reshape(-1, 3), alpha, weight_sum, unc_sum, hits, len(pid))
+
+
+def scatter_block_targets(
+    points: np.ndarray,
+    labels: np.ndarray,
+    point_uncertainty: np.ndarray,
+    owner_blocks: np.ndarray,
+    target_lengths: np.ndarray,
+    resolution: float,
+    grid_offset: float,
+    cells_per_block: int,
+    num_classes: int,
+) -> ScatterResult:
+    """SEE-CSOM: every cell of every target block with a positive length gets max(0, 1 - d / l)."""
+    n = cells_per_block
+    cells = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    pid, vox, ell = [], [], []
+    for j, offset in enumerate(FACE_OFFSETS):
+        use = np.flatnonzero(target_lengths[:, j] > 0)
+        first = (np.asarray(owner_blocks, np.int64)[use] + offset) * n - n // 2
+        pid.append(np.repeat(use, len(cells)))
+        vox.append((first[:, None, :] + cells[None]).reshape(-1, 3))
+        ell.append(np.repeat(target_lengths[use, j], len(cells)))
+    pid, vox, ell = np.concatenate(pid), np.concatenate(vox), np.concatenate(ell).astype(np.float64)
+    centers = (vox + 0.5) * resolution + grid_offset
+    weight = np.maximum(1.0 - np.linalg.norm(centers - np.asarray(points, np.float64)[pid], axis=1) / np.maximum(ell, 1e-300), 0.0)
+    uniq, inverse = _unique_rows(vox)
+    flat = inverse * num_classes + np.asarray(labels)[pid]
+    alpha = np.bincount(flat, weights=weight, minlength=len(uniq) * num_classes).reshape(len(uniq), num_classes)
+    weight_sum = np.bincount(inverse, weights=weight, minlength=len(uniq))
+    unc_sum = np.bincount(inverse, weights=weight * np.asarray(point_uncertainty, np.float64)[pid], minlength=len(uniq))
+    return ScatterResult(uniq.reshape(-1, 3), alpha, weight_sum, unc_sum, np.bincount(inverse, minlength=len(uniq)), len(pid))
 
 
 def _unique_rows(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
