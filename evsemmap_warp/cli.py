@@ -235,7 +235,8 @@ def _cmd_experiment(args) -> int:
     config, path = load_experiment(args.config)
     out = args.out or Path(f"results_{config.name}")
     started = time.perf_counter()
-    Experiment(config, out, device=args.device, progress=not args.quiet, log=lambda m: print(m, file=sys.stderr)).run()
+    Experiment(config, out, cache=getattr(args, "cache", None), device=args.device, progress=not args.quiet,
+               log=lambda m: print(m, file=sys.stderr)).run()
     print((out / "results.md").read_text())
     print(f"{config.name}: {time.perf_counter() - started:.0f} s; results, plots and maps in {out}/ "
           f"(view a map: evsemmap view {out}/maps/{next(iter(config.conditions))}/{config.methods[-1]}.npz)")
@@ -364,6 +365,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("experiment", help="run a study from a config: data, network, maps, scores, tables (cached, resumable)")
     p.add_argument("config", help="experiment YAML, or a built-in name (demo, paper-main, paper-robustness, paper-ablation)")
     p.add_argument("--out", type=Path, default=None, help="results folder (default: results_<name>)")
+    p.add_argument("--cache", type=Path, default=None, help="stage cache shared between studies (default: OUT/cache)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_experiment)

@@ -1,6 +1,6 @@
 """A whole study from one config: data -> network -> alpha -> projection -> maps -> scores -> tables.
 
-Stages are cached under ``OUT/cache`` by a hash of everything they depend on, and each stage writes
+Stages are cached under ``OUT/cache`` (or a shared ``cache`` folder) by a hash of everything they depend on, and each stage writes
 its "done" file last, so a rerun with one changed method redoes only that method's maps, and an
 interrupted run resumes from the stages it finished (training resumes from its last epoch).
 
@@ -157,9 +157,11 @@ def _preset_path(name: str) -> Path:
 
 
 class Experiment:
-    def __init__(self, config: ExperimentConfig, out, *, device: str | None = "cpu", progress: bool = True, log=print):
+    def __init__(self, config: ExperimentConfig, out, *, cache=None, device: str | None = "cpu", progress: bool = True, log=print):
+        """``cache``: the stage cache folder (default OUT/cache); studies that share it share data,
+        networks and alpha (stages are keyed by their inputs, not by the study)."""
         self.config, self.out, self.device, self.progress, self.log = config, Path(out), device, progress, log
-        self.cache = self.out / "cache"
+        self.cache = Path(cache) if cache is not None else self.out / "cache"
         self.timings: dict[str, float] = {}
         self._sequence_dirs: dict[str, Path] = {}
 
