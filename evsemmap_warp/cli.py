@@ -186,11 +186,12 @@ def _cmd_project(args) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     table = original_to_v3_table()
     colours = class_set("remap_v3").colors
+    by_index = {f.index: f for f in frames}
     points, labels, agree, compared = [], [], 0, 0
     for n, item in enumerate(project_frames(seq, frames, label_map_for(seq), config)):
         points.append(item.points)
         labels.append(item.values)
-        frame = frames[n]
+        frame = by_index[item.frame_index]
         if frame.point_labels is not None:
             own = table[np.clip(seq.read_point_labels(frame)[item.scan_rows], 0, 255)]
             agree += int((own == item.values).sum())

@@ -184,7 +184,7 @@ class Rellis3DSequence:
         """Raw ontology ids per point (including zero returns)."""
         if frame.point_labels is None:
             raise DataError(f"{frame.scan}: no per-point label file for this scan")
-        return read_point_labels(frame.point_labels, len(self.read_scan(frame)))
+        return read_point_labels(frame.point_labels, frame.scan.stat().st_size // 16)  # 16 bytes per scan point
 
     def read_image(self, frame: Frame) -> np.ndarray:
         with Image.open(frame.image) as img:
@@ -201,11 +201,6 @@ class Rellis3DSequence:
         if raw.ndim != 2:
             raise DataError(f"{frame.label_image}: an id label image must have one channel, got shape {list(raw.shape)}")
         return raw.astype(np.int64)
-
-
-@dataclass
-class KittiCalibration:
-    lidar_to_cam0: np.ndarray = field(default_factory=lambda: np.eye(4))
 
 
 class SemanticKittiSequence:
@@ -256,7 +251,7 @@ class SemanticKittiSequence:
     def read_point_labels(self, frame: Frame) -> np.ndarray:
         if frame.point_labels is None:
             raise DataError(f"{frame.scan}: no labels/{frame.scan.stem}.label")
-        return read_point_labels(frame.point_labels, len(self.read_scan(frame)))
+        return read_point_labels(frame.point_labels, frame.scan.stat().st_size // 16)  # 16 bytes per scan point
 
 
 def semantickitti_learning_map() -> np.ndarray:
@@ -339,7 +334,8 @@ def check_sequence(root, *, max_label_files: int = 50) -> CheckReport:
             if len(outside):
                 report.problems.append(f"{frame.label_image}: label ids outside the ontology: {outside.tolist()[:10]}")
             try:
-                image_size = Image.open(frame.image).size
+                with Image.open(frame.image) as img:
+                    image_size = img.size
                 if image_size != ids.shape[::-1]:
                     report.problems.append(f"{frame.image} is {image_size[0]}x{image_size[1]} but {frame.label_image} is {ids.shape[1]}x{ids.shape[0]}")
             except OSError as exc:
