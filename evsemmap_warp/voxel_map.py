@@ -182,6 +182,8 @@ class VoxelMap:
         n = len(points)
         if n == 0:
             return 0
+        if (mode == sc.MODE_STENCIL or fusion == sc.FUSION_DEMPSTER) and class_weights is None:
+            raise ValueError("the stencil mode and Dempster fusion read per-class weights: pass class_weights, not labels")
         stencil_half = 0
         if mode == sc.MODE_STENCIL:
             side = round(len(stencil_weights) ** (1 / 3))
