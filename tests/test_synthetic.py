@@ -110,3 +110,30 @@ def test_synth_and_check_data_commands(tmp_path, capsys):
     (tmp_path / "s" / "camera_info.txt").unlink()
     assert main(["check-data", str(tmp_path / "s")]) == 1
     assert "camera_info.txt: missing" in capsys.readouterr().out
+
+
+def test_project_and_train_convbki_commands(tiny_sequence, tmp_path, capsys):
+    import json
+
+    from evsemmap_warp.classes import remap_ids
+
+    out, _ = tiny_sequence
+    assert main(["project", str(out), "--out", str(tmp_path / "gt"), "--overlays", "1"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["frames"] == 6 and report["agreement_with_point_labels_v3"] > 0.9
+    assert (tmp_path / "gt" / "ground_truth.npz").exists() and len(list((tmp_path / "gt").glob("overlay_*.png"))) == 1
+    # alpha standing in for a network's: evidence 20 on each pixel's true class, at half resolution
+    seq = Rellis3DSequence(out)
+    (tmp_path / "alpha").mkdir()
+    for frame in seq.frames:
+        labels = remap_ids(seq.read_label_ids(frame), "t")[::2, ::2]
+        alpha = np.ones((9, *labels.shape), np.float16)
+        np.put_along_axis(alpha, labels[None], 21.0, axis=0)
+        np.save(tmp_path / "alpha" / f"{frame.image.stem}.npy", alpha)
+    assert main(["train-convbki", str(out), "--alpha", str(tmp_path / "alpha"), "--out", str(tmp_path / "l.json"),
+                 "--window-scans", "3", "--epochs", "2", "--quiet"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["windows"] == 2 and len(result["ell_h"]) == 9
+    from evsemmap_warp.convbki import load_lengths
+
+    assert load_lengths(tmp_path / "l.json", 9).horizontal.shape == (9,)
