@@ -154,6 +154,18 @@ def methods_dir() -> Path:
     return Path(str(resources.files("evsemmap_warp.configs") / "methods"))
 
 
+def preset_path(name_or_path: str) -> Path:
+    """A mapping preset by name (``configs/presets/NAME.yaml``, e.g. rellis3d, offroad) or path."""
+    path = Path(name_or_path)
+    if path.suffix in (".yaml", ".yml") and path.exists():
+        return path
+    candidate = Path(str(resources.files("evsemmap_warp.configs") / "presets")) / f"{name_or_path}.yaml"
+    if not candidate.exists():
+        known = sorted(p.stem for p in candidate.parent.glob("*.yaml"))
+        raise ConfigError(f"unknown mapping preset {name_or_path!r}; available: {', '.join(known)} (or a .yaml path)")
+    return candidate
+
+
 def available_methods() -> list[str]:
     return sorted(p.stem for p in methods_dir().glob("*.yaml"))
 

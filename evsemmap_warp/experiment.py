@@ -41,7 +41,7 @@ import yaml
 from tqdm import tqdm
 
 from . import __version__
-from .config import ConfigError, Kernel, PayloadType, dataclass_from_dict, load_config
+from .config import ConfigError, Kernel, PayloadType, dataclass_from_dict, load_config, preset_path
 from .evaluation import PAPER_SCORED_CLASSES, MapScores, evaluate_map, markdown_table
 from .projection import ProjectionConfig, bin_frames, label_map_for, project_frames
 
@@ -142,6 +142,7 @@ def load_experiment(name_or_path) -> tuple[ExperimentConfig, Path]:
         raise ConfigError(f"{src}: an experiment needs at least one condition and one method")
     for method in tuple(config.methods) + tuple(config.ablation.methods):
         load_config([], method=method)  # unknown methods fail now, not after training
+    preset_path(config.mapping_preset)  # an unknown preset fails now too
     if config.ablation.methods and config.ablation.condition not in config.conditions:
         raise ConfigError(f"{src}: ablation.condition {config.ablation.condition!r} is not a condition")
     return config, path
@@ -149,11 +150,6 @@ def load_experiment(name_or_path) -> tuple[ExperimentConfig, Path]:
 
 def _digest(*parts) -> str:
     return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:12]
-
-
-def _preset_path(name: str) -> Path:
-    path = Path(name)
-    return path if path.exists() else Path(str(resources.files("evsemmap_warp.configs") / "presets" / f"{name}.yaml"))
 
 
 class Experiment:
@@ -306,7 +302,7 @@ class Experiment:
         from .map_file import load_map, save_map
         from .mapping import Mapper
 
-        run = load_config([_preset_path(self.config.mapping_preset)], method=method)
+        run = load_config([preset_path(self.config.mapping_preset)], method=method)
         mapping = run.mapping
         if mapping.kernel is Kernel.CONVBKI and not mapping.convbki_lengths_file:
             lengths = self.convbki_lengths(self.config.conditions[condition].network, mapping.resolution_m)

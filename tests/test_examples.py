@@ -36,6 +36,13 @@ def test_synthetic_world(tmp_path):
     assert agreement > 90 and (tmp_path / "s" / "overlay.png").exists() and "OK" in out
 
 
+def test_compare_methods(tmp_path):
+    out = _run(str(REPO / "examples/04_compare_methods.py"), "--out", str(tmp_path / "c"), cwd=tmp_path)
+    rows = {line.split("|")[1].strip(): float(line.split("|")[2]) for line in out.splitlines() if line.startswith("| ") and "method" not in line}
+    assert set(rows) == {"s-csm", "s-bki", "convbki", "see-csom", "dempster", "ebs"}
+    assert all(0 < miou <= 100 for miou in rows.values()) and (tmp_path / "c" / "ebs.npz").exists()
+
+
 def test_examples_are_all_tested():
     names = sorted(p.name for p in (REPO / "examples").glob("*.py"))
-    assert names == ["00_quickstart.py", "01_sbki_toy_conformance.py", "02_view_map.py", "03_synthetic_world.py"], "add a test for each new example"
+    assert names == ["00_quickstart.py", "01_sbki_toy_conformance.py", "02_view_map.py", "03_synthetic_world.py", "04_compare_methods.py"], "add a test for each new example"
