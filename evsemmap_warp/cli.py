@@ -239,8 +239,9 @@ def _cmd_experiment(args) -> int:
     Experiment(config, out, cache=getattr(args, "cache", None), device=args.device, progress=not args.quiet,
                log=lambda m: print(m, file=sys.stderr)).run()
     print((out / "results.md").read_text())
-    print(f"{config.name}: {time.perf_counter() - started:.0f} s; results, plots and maps in {out}/ "
-          f"(view a map: evsemmap view {out}/maps/{next(iter(config.conditions))}/{config.methods[-1]}.npz)")
+    maps = out / "maps" / next(iter(config.conditions))
+    print(f"{config.name}: {time.perf_counter() - started:.0f} s; results, plots and maps in {out}/\n"
+          f"view a map: evsemmap view {maps}/{config.methods[-1]}.npz --trajectory {maps}/trajectory.txt")
     return 0
 
 

@@ -190,7 +190,7 @@ class Experiment:
         from .classes import class_set
         from .segmentation.config import ModelConfig
         from .segmentation.data import Rellis3DImages
-        from .segmentation.train import TrainConfig, train
+        from .segmentation.train import TrainConfig, evaluate_checkpoint, load_checkpoint, split_indices, train
 
         spec = self.config.networks[name]
         if spec.checkpoint:
@@ -206,6 +206,11 @@ class Experiment:
         folder.mkdir(parents=True, exist_ok=True)
         source = _ImageSubset([Rellis3DImages(s) for s in sources], spec.fraction)
         resume = folder / "last.pt" if (folder / "last.pt").exists() else None
+        if resume is not None and int(load_checkpoint(resume)[2]["epoch"]) >= config.epochs:
+            # interrupted after the last epoch's checkpoint, before the summary: only the summary is missing
+            _, val = split_indices(len(source), config.val_fraction, config.seed)
+            evaluate_checkpoint(folder / "best.pt", _Subset(source, val), folder)
+            return folder / "best.pt"
         self.log(f"[network] training {name} on {len(source)} frames of {', '.join(spec.train_on)}" + (" (resuming)" if resume else ""))
         started = time.perf_counter()
         train(source, classes.names, config, folder, resume=resume, progress=self.progress)
@@ -294,7 +299,12 @@ class Experiment:
         def values(frame):
             return np.load(alpha / f"{frame.index:06d}.npy").astype(np.float32)
 
-        projected = project_frames(seq, frames, values, self.config.projection, reference_pose=seq.pose(seq.frames[0]))
+        reference = seq.pose(seq.frames[0])
+        # The drive in the maps' frame, for `evsemmap view MAP --trajectory trajectory.txt`.
+        trajectory = np.array([(np.linalg.inv(reference) @ seq.pose(f))[:3, 3] for f in frames]).reshape(-1, 3)
+        (self.out / "maps" / condition).mkdir(parents=True, exist_ok=True)
+        np.savetxt(self.out / "maps" / condition / "trajectory.txt", trajectory, fmt="%.4f")
+        projected = project_frames(seq, frames, values, self.config.projection, reference_pose=reference)
         return list(bin_frames(projected, self.config.projection.bin_frames))
 
     def map_and_score(self, condition: str, method: str, bins: list, gt) -> MapScores:
@@ -454,6 +464,20 @@ class _ImageSubset:
     def __getitem__(self, i: int):
         source, j = self.items[i]
         return source[j]
+
+
+class _Subset:
+    def __init__(self, source, indices):
+        self.source, self.indices = source, list(indices)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def name(self, i: int) -> str:
+        return self.source.name(self.indices[i])
+
+    def __getitem__(self, i: int):
+        return self.source[self.indices[i]]
 
 
 def _versions() -> dict:

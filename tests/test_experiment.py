@@ -36,12 +36,16 @@ def test_study_runs_writes_everything_and_reruns_from_cache(tmp_path):
     assert len(lengths) == 1 and "ell_h" in json.loads(lengths[0].read_text())
     assert any(k.startswith("train") for k in first.timings) and any(k.startswith("render") for k in first.timings)
     for name in ("results.md", "scores.csv", "scores.json", "record.json", "iou_in-domain.png", "ablation.png",
-                 "maps/in-domain/ebs.npz", "maps/in-domain/s-csm.npz"):
+                 "maps/in-domain/ebs.npz", "maps/in-domain/s-csm.npz", "maps/in-domain/trajectory.txt"):
         assert (out / name).exists(), name
     text = (out / "results.md").read_text()
     assert "## in-domain" in text and "## Ablation (in-domain)" in text and "| ebs |" in text
     scores = json.loads((out / "scores.json").read_text())
     assert scores["in-domain"]["s-csm"]["scored_queries"] > 100
+    import numpy as np
+
+    trajectory = np.loadtxt(out / "maps/in-domain/trajectory.txt")
+    assert trajectory.shape == (6, 3) and np.allclose(trajectory[0], 0)  # the maps' frame is the first scan's
     record = json.loads((out / "record.json").read_text())
     assert record["versions"]["warp"] and record["experiment"]["name"] == "tiny-study"
 
@@ -77,3 +81,34 @@ def test_builtin_experiment_configs_load(capsys):
         assert config.conditions and config.methods
     assert main(["experiment", "no-such-study"]) == 2
     assert "no such experiment config" in capsys.readouterr().err
+
+
+def test_interrupted_training_resumes_from_its_last_epoch(tmp_path, monkeypatch):
+    import dataclasses
+
+    import evsemmap_warp.segmentation.train as train_module
+
+    path = tmp_path / "study.yaml"
+    path.write_text(CONFIG.replace("epochs: 1,", "epochs: 2,"))
+    config, _ = load_experiment(path)
+    real_train = train_module.train
+
+    def killed_after_first_epoch(source, names, train_config, out_dir, **kw):
+        real_train(source, names, dataclasses.replace(train_config, epochs=1), out_dir, **kw)
+        (out_dir / "metrics.json").unlink()  # the summary is written last: a kill leaves only checkpoints
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_module, "train", killed_after_first_epoch)
+    with pytest.raises(KeyboardInterrupt):
+        Experiment(config, tmp_path / "out", progress=False, log=lambda m: None).network("net")
+    monkeypatch.setattr(train_module, "train", real_train)
+    messages = []
+    best = Experiment(config, tmp_path / "out", progress=False, log=messages.append).network("net")
+    assert any("(resuming)" in m for m in messages)
+    history = json.loads((best.parent / "history.json").read_text())
+    assert [h["epoch"] for h in history] == [1, 2]
+    # killed after the last epoch: only the summary is redone, nothing is trained again
+    (best.parent / "metrics.json").unlink()
+    again = Experiment(config, tmp_path / "out", progress=False, log=lambda m: None)
+    assert again.network("net") == best and (best.parent / "metrics.json").exists()
+    assert not any(k.startswith("train") for k in again.timings)
