@@ -204,12 +204,15 @@ class Experiment:
         if (folder / "metrics.json").exists():  # written last by train()
             return folder / "best.pt"
         folder.mkdir(parents=True, exist_ok=True)
-        source = _ImageSubset([Rellis3DImages(s) for s in sources], spec.fraction)
+        if not 0 < spec.fraction <= 1:
+            raise ConfigError(f"networks.{name}.fraction must lie in (0, 1], got {spec.fraction}")
+        images = [Rellis3DImages(s) for s in sources]
+        source = _Frames([(s, i) for s in images for i in range(max(1, int(round(len(s) * spec.fraction))))])
         resume = folder / "last.pt" if (folder / "last.pt").exists() else None
         if resume is not None and int(load_checkpoint(resume)[2]["epoch"]) >= config.epochs:
             # interrupted after the last epoch's checkpoint, before the summary: only the summary is missing
             _, val = split_indices(len(source), config.val_fraction, config.seed)
-            evaluate_checkpoint(folder / "best.pt", _Subset(source, val), folder)
+            evaluate_checkpoint(folder / "best.pt", _Frames([source.items[i] for i in val]), folder)
             return folder / "best.pt"
         self.log(f"[network] training {name} on {len(source)} frames of {', '.join(spec.train_on)}" + (" (resuming)" if resume else ""))
         started = time.perf_counter()
@@ -444,15 +447,13 @@ class Experiment:
             plt.close(fig)
 
 
-class _ImageSubset:
-    """Several image datasets back to back, of which the first ``fraction`` of each is used."""
+class _Frames:
+    """An image dataset made of chosen frames (source, index) of other image datasets."""
 
     num_classes = 9
 
-    def __init__(self, sources, fraction: float):
-        if not 0 < fraction <= 1:
-            raise ConfigError(f"networks.*.fraction must lie in (0, 1], got {fraction}")
-        self.items = [(s, i) for s in sources for i in range(max(1, int(round(len(s) * fraction))))]
+    def __init__(self, items):
+        self.items = list(items)
 
     def __len__(self) -> int:
         return len(self.items)
@@ -464,20 +465,6 @@ class _ImageSubset:
     def __getitem__(self, i: int):
         source, j = self.items[i]
         return source[j]
-
-
-class _Subset:
-    def __init__(self, source, indices):
-        self.source, self.indices = source, list(indices)
-
-    def __len__(self) -> int:
-        return len(self.indices)
-
-    def name(self, i: int) -> str:
-        return self.source.name(self.indices[i])
-
-    def __getitem__(self, i: int):
-        return self.source[self.indices[i]]
 
 
 def _versions() -> dict:

@@ -29,6 +29,14 @@ def _check_points(points: np.ndarray, path: Path) -> np.ndarray:
     return points
 
 
+def read_kitti_bin(path) -> np.ndarray:
+    """KITTI-style .bin scan -> [N, 4] float32 (x, y, z, intensity), zero returns included."""
+    raw = np.fromfile(path, dtype=np.float32)
+    if raw.size % 4:
+        raise ValueError(f"{path}: {raw.size} floats is not a whole number of (x, y, z, intensity) points; truncated?")
+    return raw.reshape(-1, 4)
+
+
 def read_point_file(path) -> PointFile:
     path = Path(path)
     if path.suffix not in POINT_SUFFIXES:
@@ -40,10 +48,7 @@ def read_point_file(path) -> PointFile:
         fields = {k: v for k, v in cloud.fields.items() if k not in ("x", "y", "z")}
         return PointFile(_check_points(cloud.points.astype(np.float64), path), fields, path)
     if path.suffix == ".bin":
-        raw = np.fromfile(path, dtype=np.float32)
-        if raw.size % 4:
-            raise ValueError(f"{path}: {raw.size} floats is not a whole number of (x, y, z, intensity) points; truncated?")
-        raw = raw.reshape(-1, 4)
+        raw = read_kitti_bin(path)
         return PointFile(_check_points(raw[:, :3].astype(np.float64), path), {"intensity": raw[:, 3]}, path)
     if path.suffix == ".npy":
         try:

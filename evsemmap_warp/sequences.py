@@ -22,6 +22,7 @@ from PIL import Image
 
 from .camera import RELLIS3D_DISTORTION, PinholeCamera, quaternion_to_matrix, rigid
 from .classes import decode_color_labels, original_to_v3_table, palette
+from .point_files import read_kitti_bin
 
 EXTRINSIC_KEY = "os1_cloud_node-pylon_camera_node"
 _FRAME_NUMBER = re.compile(r"^frame(\d{6})")
@@ -54,14 +55,6 @@ def read_poses(path: Path) -> np.ndarray:
     poses = np.tile(np.eye(4), (len(data), 1, 1))
     poses[:, :3, :] = data.reshape(-1, 3, 4)
     return poses
-
-
-def read_scan(path: Path) -> np.ndarray:
-    """KITTI .bin scan -> [N, 4] float32 (x, y, z, intensity), zero returns included."""
-    raw = np.fromfile(path, dtype=np.float32)
-    if raw.size % 4:
-        raise DataError(f"{path}: {raw.size} floats is not a whole number of (x, y, z, intensity) points; truncated?")
-    return raw.reshape(-1, 4)
 
 
 def read_point_labels(path: Path, expected: int) -> np.ndarray:
@@ -178,7 +171,7 @@ class Rellis3DSequence:
 
     # Per-frame data ------------------------------------------------------------------------------
     def read_scan(self, frame: Frame) -> np.ndarray:
-        return read_scan(frame.scan)
+        return read_kitti_bin(frame.scan)
 
     def read_point_labels(self, frame: Frame) -> np.ndarray:
         """Raw ontology ids per point (including zero returns)."""
@@ -246,7 +239,7 @@ class SemanticKittiSequence:
         return self.poses[frame.index]
 
     def read_scan(self, frame: Frame) -> np.ndarray:
-        return read_scan(frame.scan)
+        return read_kitti_bin(frame.scan)
 
     def read_point_labels(self, frame: Frame) -> np.ndarray:
         if frame.point_labels is None:
