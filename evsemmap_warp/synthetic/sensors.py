@@ -58,8 +58,10 @@ def lidar_directions(params: LidarParams) -> np.ndarray:
     return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
 
 
-def scan_lidar(caster: RayCaster, world: World, pose: np.ndarray, params: LidarParams, rng: np.random.Generator) -> LidarScan:
-    local = lidar_directions(params)
+def scan_lidar(caster: RayCaster, world: World, pose: np.ndarray, params: LidarParams, rng: np.random.Generator,
+               local: np.ndarray | None = None) -> LidarScan:
+    """One scan from ``pose``; ``local``: the beam directions (``lidar_directions``), given when scanning many poses."""
+    local = lidar_directions(params) if local is None else local
     distance, face, normal = caster.cast(pose[:3, 3], local @ pose[:3, :3].T, params.max_range_m)
     hit = face >= 0
     material = np.where(hit, world.face_material[np.maximum(face, 0)], -1)
@@ -101,10 +103,14 @@ SKY_ORIGINAL_ID = 7
 
 
 def render_camera(caster: RayCaster, world: World, pose: np.ndarray, params: CameraParams, domain: str,
-                  noise_sigma: float, rng: np.random.Generator, max_distance: float = 400.0) -> CameraFrame:
-    camera = camera_model(params)
+                  noise_sigma: float, rng: np.random.Generator, max_distance: float = 400.0,
+                  pixel_rays: np.ndarray | None = None) -> CameraFrame:
+    """One image from the camera on the LiDAR at ``pose``; ``pixel_rays``: camera-frame rays [H * W, 3]
+    (``camera_model(params).pixel_rays()``), given when rendering many poses."""
+    if pixel_rays is None:
+        pixel_rays = camera_model(params).pixel_rays().reshape(-1, 3)
     camera_pose = pose @ camera_to_lidar(params)
-    directions = camera.pixel_rays().reshape(-1, 3) @ camera_pose[:3, :3].T
+    directions = pixel_rays @ camera_pose[:3, :3].T
     origin = camera_pose[:3, 3]
     distance, face, normal = caster.cast(origin, directions, max_distance)
     hit = face >= 0

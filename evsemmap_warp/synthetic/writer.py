@@ -26,7 +26,7 @@ from ..camera import matrix_to_quaternion
 from ..classes import palette
 from .preset import SynthPreset
 from .scene import generate_world, road_trajectory
-from .sensors import RayCaster, camera_model, camera_to_lidar, render_camera, scan_lidar
+from .sensors import RayCaster, camera_model, camera_to_lidar, lidar_directions, render_camera, scan_lidar
 
 FRAME_PERIOD_S = 0.1  # 10 Hz, like RELLIS-3D's LiDAR
 
@@ -72,11 +72,14 @@ def generate_sequence(preset: SynthPreset, out, *, device: str | None = "cpu", p
         folder.mkdir(parents=True, exist_ok=True)
     write_sequence_metadata(out, preset, poses)
     lut = colour_lut()
-    rays = lidar_rays = 0
+    beams = lidar_directions(preset.lidar)
+    pixel_rays = camera_model(preset.camera).pixel_rays().reshape(-1, 3)
+    lidar_rays = 0
     for index in tqdm(range(len(poses)), desc=f"synth {preset.name}", unit="frame", disable=not progress):
         rng = np.random.default_rng([preset.seed, index])
-        scan = scan_lidar(caster, world, poses[index], preset.lidar, rng)
-        frame = render_camera(caster, world, poses[index], preset.camera, preset.appearance.domain, preset.appearance.noise_sigma, rng)
+        scan = scan_lidar(caster, world, poses[index], preset.lidar, rng, beams)
+        frame = render_camera(caster, world, poses[index], preset.camera, preset.appearance.domain, preset.appearance.noise_sigma, rng,
+                              pixel_rays=pixel_rays)
         scan.points.tofile(folders["os1_cloud_node_kitti_bin"] / f"{index:06d}.bin")
         scan.original_id.tofile(folders["os1_cloud_node_semantickitti_label_id"] / f"{index:06d}.label")
         stem = frame_stem(index)
@@ -84,7 +87,6 @@ def generate_sequence(preset: SynthPreset, out, *, device: str | None = "cpu", p
         Image.fromarray(lut[frame.original_id]).save(folders["pylon_camera_node_label_color"] / f"{stem}.png")
         Image.fromarray(frame.original_id).save(folders["pylon_camera_node_label_id"] / f"{stem}.png")
         lidar_rays += len(scan.points)
-        rays += len(scan.points) + 2 * frame.rgb.shape[0] * frame.rgb.shape[1]
     elapsed = time.perf_counter() - started
     summary = {
         "frames": len(poses), "triangles": int(len(world.faces)), "lidar_rays": int(lidar_rays),
