@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .voxel_map import pack_voxel_keys
+
 CELLS_PER_BLOCK = 2
 ENTROPY_GATE = 0.3  # hard-coded in the original
 SANDWICH_NEIGHBOURS = 2
@@ -25,8 +27,8 @@ def block_of_points(points: np.ndarray, resolution_m: float, grid_offset_m: floa
 
 
 def _pack(blocks: np.ndarray) -> np.ndarray:
-    b = blocks.astype(np.int64) + (1 << 20)
-    return (b[..., 0] << 42) | (b[..., 1] << 21) | b[..., 2]
+    """Block indices [..., 3] -> one sortable int64 each (the hash table's key packing)."""
+    return pack_voxel_keys(blocks.reshape(-1, 3)).reshape(blocks.shape[:-1])
 
 
 def block_entropy(histogram: np.ndarray, num_classes: int) -> np.ndarray:
