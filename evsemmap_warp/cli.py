@@ -175,7 +175,7 @@ def _cmd_project(args) -> int:
     """Project a sequence's 2D labels onto its scans: 3D ground truth, agreement with the per-point
     labels where the sequence has them, and overlay images."""
     from .classes import class_set, original_to_v3_table
-    from .projection import ProjectionConfig, label_map_for, project_frames, save_overlay
+    from .projection import ProjectionConfig, depth_colours, label_map_for, project_frames, save_overlay
     from .sequences import Rellis3DSequence
 
     seq = Rellis3DSequence(args.sequence)
@@ -197,7 +197,9 @@ def _cmd_project(args) -> int:
             agree += int((own == item.values).sum())
             compared += len(own)
         if n < args.overlays:
-            save_overlay(args.out / f"overlay_{frame.index:06d}.png", seq.read_image(frame), item.pixel, colours[item.values])
+            depth = np.linalg.norm(item.points - item.sensor_origin, axis=1)
+            shown = depth_colours(depth) if args.colour_by == "depth" else colours[item.values]
+            save_overlay(args.out / f"overlay_{frame.index:06d}.png", seq.read_image(frame), item.pixel, shown)
     np.savez_compressed(args.out / "ground_truth.npz", points=np.concatenate(points), labels=np.concatenate(labels))
     report = {"frames": len(frames), "points": int(sum(len(p) for p in points)), "out": str(args.out)}
     if compared:
@@ -349,7 +351,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("sequence", type=Path)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--zbuffer", action="store_true", help="drop points hidden behind nearer points")
-    p.add_argument("--overlays", type=int, default=3, help="overlay images to write (points in their label colours)")
+    p.add_argument("--overlays", type=int, default=3, help="overlay images to write")
+    p.add_argument("--colour-by", choices=("label", "depth"), default="label", help="overlay points in their label's colour or by range")
     p.add_argument("--max-frames", type=int, default=None)
     p.set_defaults(func=_cmd_project)
 

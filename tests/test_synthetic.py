@@ -122,6 +122,9 @@ def test_project_and_train_convbki_commands(tiny_sequence, tmp_path, capsys):
     report = json.loads(capsys.readouterr().out)
     assert report["frames"] == 6 and report["agreement_with_point_labels_v3"] > 0.9
     assert (tmp_path / "gt" / "ground_truth.npz").exists() and len(list((tmp_path / "gt").glob("overlay_*.png"))) == 1
+    assert main(["project", str(out), "--out", str(tmp_path / "depth"), "--overlays", "2", "--colour-by", "depth"]) == 0
+    capsys.readouterr()
+    assert len(list((tmp_path / "depth").glob("overlay_*.png"))) == 2
     # alpha standing in for a network's: evidence 20 on each pixel's true class, at half resolution
     seq = Rellis3DSequence(out)
     (tmp_path / "alpha").mkdir()
