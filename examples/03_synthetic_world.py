@@ -7,7 +7,6 @@ LiDAR points (the evaluation's 3D ground truth) and write a debug overlay image.
 import argparse
 from pathlib import Path
 
-import numpy as np
 
 from evsemmap_warp.classes import class_set, original_to_v3_table
 from evsemmap_warp.projection import ProjectionConfig, label_map_for, project_frames, save_overlay

@@ -1,7 +1,6 @@
 """Loaders on small fixture folders in each real layout: RELLIS-3D (sequence layout and loose files),
 SemanticKITTI, and plain point files (PCD, PLY, npy, .bin)."""
 
-import shutil
 
 import numpy as np
 import pytest

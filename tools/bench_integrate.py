@@ -21,7 +21,6 @@ method name -> input points per second.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import statistics
 import sys
