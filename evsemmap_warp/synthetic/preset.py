@@ -18,6 +18,7 @@ class WorldParams:
     hill_amplitude_m: float = 2.0
     road_half_width_m: float = 3.0
     trail_half_width_m: float = 1.4
+    gravel_road_fraction: float = 0.35  # share of the road's length that is unpaved (gravel), not asphalt
     dirt_fraction: float = 0.08  # share of the open ground covered by dirt patches
     puddles: int = 12
     trees_per_hectare: float = 50.0
@@ -29,6 +30,8 @@ class WorldParams:
     barriers: int = 4  # void obstacles (RELLIS "barrier")
 
     def __post_init__(self):
+        if not 0 <= self.gravel_road_fraction <= 1:
+            raise ConfigError(f"world: gravel_road_fraction must lie in [0, 1], got {self.gravel_road_fraction}")
         if self.size_m <= 0 or self.terrain_cell_m <= 0 or self.size_m / self.terrain_cell_m > 4000:
             raise ConfigError(f"world: size_m {self.size_m} / terrain_cell_m {self.terrain_cell_m} must be positive and give <= 4000 cells a side")
 

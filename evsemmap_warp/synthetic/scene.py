@@ -1,8 +1,9 @@
 """A procedural off-road world: one triangle mesh (trimesh) with a material, and through it a RELLIS-3D
 ontology id, per face.
 
-Rolling terrain carries a paved road (the trajectory follows it), an unpaved trail, dirt and mud
-patches and puddles on grass; trees, bushes, rocks, poles, barrels, vehicles and barriers stand on it.
+Rolling terrain carries a road, paved except for a gravel stretch (the trajectory follows it), an
+unpaved trail, dirt and mud patches and puddles on grass; trees, bushes, rocks, poles, barrels,
+vehicles and barriers stand on it.
 Sky is whatever a ray misses. Everything is drawn from one seeded generator, so a preset and a seed
 give the same world on every machine.
 """
@@ -183,7 +184,13 @@ def _terrain_mesh(terrain: _Terrain, params: WorldParams, rng: np.random.Generat
     material[trail_distance < params.trail_half_width_m] = MATERIAL_INDEX["gravel"]
     muddy = (trail_distance >= params.trail_half_width_m) & (trail_distance < params.trail_half_width_m + 0.6)
     material[muddy & (value_noise(centre[:, :2], 2.0, seed + 12) > 0.6)] = MATERIAL_INDEX["mud"]
-    material[_road_distance(terrain, cx, cy) < params.road_half_width_m] = MATERIAL_INDEX["asphalt"]
+    road = _road_distance(terrain, cx, cy) < params.road_half_width_m
+    material[road] = MATERIAL_INDEX["asphalt"]
+    # Off-road tracks change surface: one stretch of the road is gravel (its own generator, so that the
+    # rest of the world does not depend on it).
+    stretch = params.gravel_road_fraction * params.size_m
+    start = np.random.default_rng(seed + 13).uniform(-params.size_m / 2, params.size_m / 2 - stretch) if stretch else 0.0
+    material[road & (cx >= start) & (cx < start + stretch)] = MATERIAL_INDEX["gravel"]
     for px, py, radius in puddles:
         material[(cx - px) ** 2 + (cy - py) ** 2 < radius**2] = MATERIAL_INDEX["puddle"]
     return vertices, faces, material
