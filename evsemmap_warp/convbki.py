@@ -97,11 +97,15 @@ def stencil_weights(lengths: ConvBkiLengths, resolution_m: float, half: int) -> 
 
 def voxelise(points: np.ndarray, evidence: np.ndarray, resolution_m: float, grid_offset_m: float = 0.0):
     """Sum the evidence [N, K] of the points in each voxel: (voxel indices [V, 3], summed [V, K])."""
+    from .voxel_map import pack_voxel_keys, unpack_voxel_keys
+
     index = np.floor((np.asarray(points, np.float64) - grid_offset_m) / resolution_m).astype(np.int64)
-    voxels, inverse = np.unique(index, axis=0, return_inverse=True)
-    summed = np.zeros((len(voxels), evidence.shape[1]))
-    np.add.at(summed, inverse.ravel(), evidence)
-    return voxels, summed
+    # one int64 key per voxel: np.unique on them is far faster than on [N, 3] rows
+    keys, inverse = np.unique(pack_voxel_keys(index), return_inverse=True)
+    inverse = inverse.ravel()
+    evidence = np.asarray(evidence, np.float64)
+    summed = np.stack([np.bincount(inverse, weights=evidence[:, c], minlength=len(keys)) for c in range(evidence.shape[1])], axis=1)
+    return unpack_voxel_keys(keys), summed.reshape(len(keys), evidence.shape[1])
 
 
 # --- training (PyTorch) ----------------------------------------------------------------------------
