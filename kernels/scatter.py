@@ -148,6 +148,15 @@ def range_end(mode: int, p: wp.vec3, reach: float, owner: wp.vec3i, resolution: 
 
 
 @wp.func
+def record_contribution(voxel_stats: wp.array2d(dtype=float), voxel_flags: wp.array2d(dtype=int), slot: int, w: float, u: float):
+    """The per-voxel bookkeeping of one contribution: weight and weight * uncertainty sums, count, touched."""
+    wp.atomic_add(voxel_stats, slot, 0, w)
+    wp.atomic_add(voxel_stats, slot, 1, w * u)
+    wp.atomic_add(voxel_flags, slot, 0, 1)
+    voxel_flags[slot, 1] = 1
+
+
+@wp.func
 def block_step(mode: int, i: int, owner_i: int, cells_per_block: int) -> int:
     """|block of voxel i - owner block| on one axis (0 outside the block-restricted mode)."""
     if mode == MODE_SBKI_BLOCKS:
@@ -272,10 +281,7 @@ def scatter_points(
                                     else:
                                         for c in range(num_classes):
                                             wp.atomic_add(voxel_evidence, slot, c, w * class_weights[i, c])
-                                    wp.atomic_add(voxel_stats, slot, 0, w)
-                                    wp.atomic_add(voxel_stats, slot, 1, w * u)
-                                    wp.atomic_add(voxel_flags, slot, 0, 1)
-                                    voxel_flags[slot, 1] = 1
+                                    record_contribution(voxel_stats, voxel_flags, slot, w, u)
                                     n_updates += 1
     wp.atomic_add(update_count, 0, n_updates)
 
@@ -342,10 +348,7 @@ def scatter_block_targets(
                                 slot = table_find(table_keys, key)
                                 w = wp.max(1.0 - wp.length(voxel_center(ix, iy, iz, resolution, grid_offset) - p) / ell, 0.0)
                                 wp.atomic_add(voxel_evidence, slot, labels[i], w)
-                                wp.atomic_add(voxel_stats, slot, 0, w)
-                                wp.atomic_add(voxel_stats, slot, 1, w * u)
-                                wp.atomic_add(voxel_flags, slot, 0, 1)
-                                voxel_flags[slot, 1] = 1
+                                record_contribution(voxel_stats, voxel_flags, slot, w, u)
                                 n_updates += 1
     wp.atomic_add(update_count, 0, n_updates)
 
