@@ -38,6 +38,7 @@ class MapScores:
     scored_queries: int
     occupied_queries: int
     scored_voxels: int
+    truth_counts: np.ndarray = None  # [K] scored ground-truth queries per class (occupied or not)
     extra: dict = field(default_factory=dict)
 
     def row(self) -> dict:
@@ -53,7 +54,7 @@ class MapScores:
                 "occupied_accuracy": self.occupied_accuracy, "brier_minmax": self.brier_minmax,
                 "brier_analytic": self.brier_analytic, "brier_per_query": self.brier_per_query,
                 "scored_queries": self.scored_queries, "occupied_queries": self.occupied_queries,
-                "scored_voxels": self.scored_voxels} | self.extra
+                "scored_voxels": self.scored_voxels, "truth_counts": self.truth_counts.tolist()} | self.extra
 
 
 def _brier(correct: np.ndarray, variance: np.ndarray, low: float, high: float) -> float | None:
@@ -79,19 +80,9 @@ def evaluate_map(mapper, points: np.ndarray, labels: np.ndarray, scored_classes=
     occupied = result.state == VoxelState.OCCUPIED
     truth, predicted = labels[occupied], result.label[occupied].astype(np.int64)
     confusion = np.bincount(truth * k + predicted, minlength=k * k).reshape(k, k)
-    iou = {}
-    present = []
-    for c in scored_classes:
-        tp = confusion[c, c]
-        fp = confusion[:, c].sum() - tp
-        fn = confusion[c, :].sum() - tp
-        if (labels == c).any():
-            iou[mapper.class_names[c]] = float(tp / (tp + fp + fn)) if tp + fp + fn > 0 else 0.0
-            present.append(iou[mapper.class_names[c]])
-        else:
-            iou[mapper.class_names[c]] = None
+    truth_counts = np.bincount(labels, minlength=k)
+    iou, miou, accuracy, occupied_accuracy = _confusion_scores(confusion, truth_counts, scored_classes, mapper.class_names)
     occupied_count = int(occupied.sum())
-    accuracy = float(np.trace(confusion) / occupied_count) if occupied_count else 0.0
 
     # Brier score per occupied voxel with ground truth: group the occupied queries by voxel.
     variance = result.variance[occupied].astype(np.float64)
@@ -115,10 +106,49 @@ def evaluate_map(mapper, points: np.ndarray, labels: np.ndarray, scored_classes=
         brier_query = _brier(truth == predicted, variance, variance.min(), variance.max())
     return MapScores(
         class_names=tuple(mapper.class_names), scored_classes=scored_classes, confusion=confusion, iou=iou,
-        miou=float(np.mean(present)) if present else 0.0, accuracy=accuracy,
-        occupied_accuracy=float(occupied_count / len(labels)) if len(labels) else 0.0,
+        miou=miou, accuracy=accuracy, occupied_accuracy=occupied_accuracy,
         brier_minmax=brier_minmax, brier_analytic=brier_analytic, brier_per_query=brier_query,
-        scored_queries=int(len(labels)), occupied_queries=occupied_count, scored_voxels=voxels,
+        scored_queries=int(len(labels)), occupied_queries=occupied_count, scored_voxels=voxels, truth_counts=truth_counts,
+    )
+
+
+def _confusion_scores(confusion: np.ndarray, truth_counts: np.ndarray, scored_classes, class_names):
+    """IoU per scored class (None where the ground truth lacks it), mIoU over the present ones, Acc
+    over the occupied queries (the confusion matrix), O.Acc = occupied / scored queries."""
+    iou, present = {}, []
+    for c in scored_classes:
+        tp = confusion[c, c]
+        fp = confusion[:, c].sum() - tp
+        fn = confusion[c, :].sum() - tp
+        if truth_counts[c] > 0:
+            iou[class_names[c]] = float(tp / (tp + fp + fn)) if tp + fp + fn > 0 else 0.0
+            present.append(iou[class_names[c]])
+        else:
+            iou[class_names[c]] = None
+    occupied, scored = int(confusion.sum()), int(truth_counts.sum())
+    return (iou, float(np.mean(present)) if present else 0.0, float(np.trace(confusion) / occupied) if occupied else 0.0,
+            float(occupied / scored) if scored else 0.0)
+
+
+def pool_scores(parts: list[MapScores]) -> MapScores:
+    """Spec 10.29: several maps (e.g. the 5 RELLIS-3D folds) scored as one, from their summed
+    confusion matrices and ground-truth counts. Brier scores are per-map normalised, so the pooled
+    ones are the means of the parts'."""
+    first = parts[0]
+    confusion = sum(p.confusion for p in parts)
+    truth_counts = sum(p.truth_counts for p in parts)
+    iou, miou, accuracy, occupied_accuracy = _confusion_scores(confusion, truth_counts, first.scored_classes, first.class_names)
+
+    def mean(name):
+        values = [getattr(p, name) for p in parts if getattr(p, name) is not None]
+        return float(np.mean(values)) if values else None
+
+    return MapScores(
+        class_names=first.class_names, scored_classes=first.scored_classes, confusion=confusion, iou=iou, miou=miou,
+        accuracy=accuracy, occupied_accuracy=occupied_accuracy, brier_minmax=mean("brier_minmax"),
+        brier_analytic=mean("brier_analytic"), brier_per_query=mean("brier_per_query"),
+        scored_queries=sum(p.scored_queries for p in parts), occupied_queries=sum(p.occupied_queries for p in parts),
+        scored_voxels=sum(p.scored_voxels for p in parts), truth_counts=truth_counts,
     )
 
 

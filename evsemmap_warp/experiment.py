@@ -42,7 +42,7 @@ from tqdm import tqdm
 
 from . import __version__
 from .config import ConfigError, Kernel, PayloadType, dataclass_from_dict, load_config, preset_path
-from .evaluation import PAPER_SCORED_CLASSES, MapScores, evaluate_map, markdown_table
+from .evaluation import PAPER_SCORED_CLASSES, MapScores, evaluate_map, markdown_table, pool_scores
 from .projection import ProjectionConfig, bin_frames, label_map_for, project_frames
 
 
@@ -104,6 +104,9 @@ class ExperimentConfig:
     methods: tuple = ()
     ablation: AblationSpec = field(default_factory=AblationSpec)
     scored_classes: tuple = PAPER_SCORED_CLASSES
+    # name -> conditions scored as one (spec 10.29: the RELLIS-3D folds; pooled confusion matrices,
+    # and the mean of the per-condition scores beside them)
+    pools: dict = field(default_factory=dict)
     convbki: ConvBkiTraining = field(default_factory=ConvBkiTraining)
 
 
@@ -143,8 +146,11 @@ def load_experiment(name_or_path) -> tuple[ExperimentConfig, Path]:
     for method in tuple(config.methods) + tuple(config.ablation.methods):
         load_config([], method=method)  # unknown methods fail now, not after training
     preset_path(config.mapping_preset)  # an unknown preset fails now too
-    if config.ablation.methods and config.ablation.condition not in config.conditions:
-        raise ConfigError(f"{src}: ablation.condition {config.ablation.condition!r} is not a condition")
+    for name, members in config.pools.items():
+        if not isinstance(members, list) or not members or any(m not in config.conditions for m in members):
+            raise ConfigError(f"{src}: pools.{name} must list conditions defined above, got {members!r}")
+    if config.ablation.methods and config.ablation.condition not in config.conditions and config.ablation.condition not in config.pools:
+        raise ConfigError(f"{src}: ablation.condition {config.ablation.condition!r} is neither a condition nor a pool")
     return config, path
 
 
@@ -349,7 +355,7 @@ class Experiment:
         ablation = self.config.ablation
         for condition, cond in self.config.conditions.items():
             methods = list(self.config.methods)
-            if ablation.condition == condition:
+            if condition in self.config.pools.get(ablation.condition, [ablation.condition]):
                 methods += [m for m in ablation.methods if m not in methods]
             bins = self.bins(condition)
             gt = self.ground_truth(cond.sequence)
@@ -361,10 +367,12 @@ class Experiment:
                          f"Acc {100 * results[condition][method].accuracy:5.1f}")
             self.timings[f"map+score {condition}"] = time.perf_counter() - stage
         self.timings["total"] = time.perf_counter() - started
-        self._write_results(results)
-        return results
+        pooled = {f"pool:{name}": {m: pool_scores([results[c][m] for c in members]) for m in results[members[0]]}
+                  for name, members in self.config.pools.items()}
+        self._write_results(results, pooled)
+        return results | pooled
 
-    def _write_results(self, results: dict[str, dict[str, MapScores]]) -> None:
+    def _write_results(self, results: dict[str, dict[str, MapScores]], pooled: dict[str, dict[str, MapScores]]) -> None:
         from .evaluation import scored_class_names
 
         config = self.config
@@ -378,6 +386,13 @@ class Experiment:
             rows = {m: s.row() for m, s in by_method.items() if m in config.methods}
             sections.append(f"## {condition} (network '{cond.network}' on sequence '{cond.sequence}')\n")
             sections.append(markdown_table(rows, class_names + ["mIoU", "Acc"]) + "\n")
+        for pool, members in config.pools.items():
+            rows = {m: p.row() for m, p in pooled[f"pool:{pool}"].items() if m in config.methods}
+            for m in config.methods:
+                rows[m]["mean mIoU"] = float(np.mean([100 * results[c][m].miou for c in members]))
+                rows[m]["mean Acc"] = float(np.mean([100 * results[c][m].accuracy for c in members]))
+            sections.append(f"## Pooled: {pool} ({', '.join(members)}; confusion matrices summed, then the mean of the per-condition scores)\n")
+            sections.append(markdown_table(rows, class_names + ["mIoU", "Acc", "mean mIoU", "mean Acc"]) + "\n")
         if len(results) > 1:
             rows = {m: {} for m in config.methods}
             for condition, by_method in results.items():
@@ -386,7 +401,7 @@ class Experiment:
             sections.append("## Robustness: mIoU / Acc per condition\n")
             sections.append(markdown_table(rows, list(results)) + "\n")
         if config.ablation.methods:
-            by_method = results[config.ablation.condition]
+            by_method = results.get(config.ablation.condition) or pooled[f"pool:{config.ablation.condition}"]
             rows = {m: by_method[m].row() for m in config.ablation.methods}
             sections.append(f"## Ablation ({config.ablation.condition})\n")
             sections.append(markdown_table(rows, ["mIoU", "Acc", "O.Acc", "BS", "BS (analytic)", "BS (per query)"]) + "\n")
@@ -395,13 +410,13 @@ class Experiment:
             columns = ["condition", "method"] + class_names + ["mIoU", "Acc", "O.Acc", "BS", "BS (analytic)", "BS (per query)", "scored_queries", "occupied_queries"]
             writer = csv.DictWriter(f, columns)
             writer.writeheader()
-            for condition, by_method in results.items():
+            for condition, by_method in (results | pooled).items():
                 for method, scores in by_method.items():
                     row = scores.row() | {"condition": condition, "method": method, "scored_queries": scores.scored_queries,
                                           "occupied_queries": scores.occupied_queries}
                     writer.writerow({k: ("" if row.get(k) is None else row.get(k)) for k in columns})
-        (self.out / "scores.json").write_text(json.dumps({c: {m: s.as_dict() for m, s in r.items()} for c, r in results.items()}, indent=1))
-        self._plots(results, class_names)
+        (self.out / "scores.json").write_text(json.dumps({c: {m: s.as_dict() for m, s in r.items()} for c, r in (results | pooled).items()}, indent=1))
+        self._plots(results, pooled, class_names)
         for name in config.networks:
             folder = self.network(name).parent
             for plot in ("reliability.png", "uncertainty.png"):
@@ -411,7 +426,7 @@ class Experiment:
                   "versions": _versions(), "sequences": {k: str(v) for k, v in self._sequence_dirs.items()}}
         (self.out / "record.json").write_text(json.dumps(record, indent=1, default=str))
 
-    def _plots(self, results, class_names) -> None:
+    def _plots(self, results, pooled, class_names) -> None:
         import matplotlib
 
         matplotlib.use("Agg")
@@ -432,7 +447,7 @@ class Experiment:
             fig.savefig(self.out / f"iou_{condition}.png", dpi=110)
             plt.close(fig)
         if self.config.ablation.methods:
-            by_method = results[self.config.ablation.condition]
+            by_method = results.get(self.config.ablation.condition) or pooled[f"pool:{self.config.ablation.condition}"]
             metrics = ["mIoU", "Acc", "O.Acc", "BS"]
             fig, ax = plt.subplots(figsize=(8, 4))
             width = 0.8 / len(self.config.ablation.methods)

@@ -53,3 +53,15 @@ def test_bad_ground_truth_is_an_error(mapper):
         evaluate_map(mapper, np.zeros((2, 3)), np.array([3]))
     empty = evaluate_map(mapper, np.zeros((0, 3)), np.zeros(0, int))
     assert empty.scored_queries == 0 and empty.miou == 0.0 and empty.brier_minmax is None
+
+
+def test_pooled_scores_equal_scoring_the_union(mapper):
+    from evsemmap_warp.evaluation import pool_scores
+
+    a_points, a_labels = np.array([[0.2, 0.2, 0.2], [1.5, 0.5, 0.5]]), np.array([GRASS, PAVED])
+    b_points, b_labels = np.array([[0.8, 0.8, 0.8], [2.5, 0.5, 0.5], [9.5, 9.5, 9.5]]), np.array([DIRT, GRASS, GRASS])
+    pooled = pool_scores([evaluate_map(mapper, a_points, a_labels), evaluate_map(mapper, b_points, b_labels)])
+    whole = evaluate_map(mapper, np.concatenate([a_points, b_points]), np.concatenate([a_labels, b_labels]))
+    assert (pooled.confusion == whole.confusion).all()
+    assert pooled.iou == whole.iou and pooled.miou == pytest.approx(whole.miou)
+    assert pooled.accuracy == pytest.approx(whole.accuracy) and pooled.occupied_accuracy == pytest.approx(whole.occupied_accuracy)

@@ -76,7 +76,7 @@ def test_config_errors_come_before_any_work(tmp_path, change, message):
 
 
 def test_builtin_experiment_configs_load(capsys):
-    for name in ("demo", "paper-main", "paper-robustness", "paper-ablation"):
+    for name in ("demo", "paper-main", "paper-robustness", "paper-ablation", "rellis3d-5fold"):
         config, _ = load_experiment(name)
         assert config.conditions and config.methods
     assert main(["experiment", "no-such-study"]) == 2
@@ -112,3 +112,24 @@ def test_interrupted_training_resumes_from_its_last_epoch(tmp_path, monkeypatch)
     again = Experiment(config, tmp_path / "out", progress=False, log=lambda m: None)
     assert again.network("net") == best and (best.parent / "metrics.json").exists()
     assert not any(k.startswith("train") for k in again.timings)
+
+
+def test_conditions_pool_into_one_table(tmp_path):
+    """Two conditions on two worlds, pooled as the RELLIS-3D folds are (spec 10.29), ablation on the pool."""
+    text = CONFIG.replace("  test: {preset: tiny}", "  test: {preset: tiny}\n  test-b: {preset: tiny, seed: 4, frames: 3}")
+    text = text.replace("  in-domain: {network: net, sequence: test}", "  in-domain: {network: net, sequence: test}\n  other: {network: net, sequence: test-b}")
+    text = text.replace("ablation: {condition: in-domain, methods: [s-bki, prob, convbki]}", "ablation: {condition: both, methods: [s-bki, prob]}")
+    path = tmp_path / "pooled.yaml"
+    path.write_text(text + "pools:\n  both: [in-domain, other]\n")
+    config, _ = load_experiment(path)
+    results = Experiment(config, tmp_path / "out", progress=False, log=lambda m: None).run()
+    pooled, parts = results["pool:both"]["s-csm"], [results["in-domain"]["s-csm"], results["other"]["s-csm"]]
+    assert (pooled.confusion == parts[0].confusion + parts[1].confusion).all()
+    assert pooled.scored_queries == sum(p.scored_queries for p in parts)
+    assert set(results["pool:both"]) >= {"s-csm", "ebs", "s-bki", "prob"}  # the ablation ran on every member
+    text = (tmp_path / "out" / "results.md").read_text()
+    assert "## Pooled: both" in text and "## Ablation (both)" in text
+    assert "pool:both" in (tmp_path / "out" / "scores.csv").read_text()
+    path.write_text(CONFIG + "pools:\n  bad: [nowhere]\n")
+    with pytest.raises(ConfigError, match="pools.bad must list conditions defined above"):
+        load_experiment(path)
