@@ -65,7 +65,33 @@ def read_point_labels(path: Path, expected: int) -> np.ndarray:
     return (raw & 0xFFFF).astype(np.int64)
 
 
-class Rellis3DSequence:
+class _ScanSequence:
+    """What RELLIS-3D and SemanticKITTI sequences share: frames with scans, optional poses, labels."""
+
+    root: Path
+    frames: list[Frame]
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def _pose_line(self, poses: np.ndarray | None, frame: Frame) -> np.ndarray:
+        if poses is None:
+            return np.eye(4)
+        if frame.index >= len(poses):
+            raise DataError(f"{self.root / 'poses.txt'}: {len(poses)} poses, but scan {frame.index} needs line {frame.index + 1}")
+        return poses[frame.index]
+
+    def read_scan(self, frame: Frame) -> np.ndarray:
+        return read_kitti_bin(frame.scan)
+
+    def read_point_labels(self, frame: Frame) -> np.ndarray:
+        """Raw label ids per point (including zero returns)."""
+        if frame.point_labels is None:
+            raise DataError(f"{frame.scan}: no per-point label file for this scan")
+        return read_point_labels(frame.point_labels, frame.scan.stat().st_size // 16)  # 16 bytes per scan point
+
+
+class Rellis3DSequence(_ScanSequence):
     def __init__(self, root):
         self.root = Path(root)
         if not self.root.is_dir():
@@ -107,9 +133,6 @@ class Rellis3DSequence:
         if color.exists():
             return color, True
         return (ids, False) if ids.exists() else (None, True)
-
-    def __len__(self) -> int:
-        return len(self.frames)
 
     # Calibration ---------------------------------------------------------------------------------
     @property
@@ -162,23 +185,9 @@ class Rellis3DSequence:
         return self._poses
 
     def pose(self, frame: Frame) -> np.ndarray:
-        poses = self.poses
-        if poses is None:
-            return np.eye(4)
-        if frame.index >= len(poses):
-            raise DataError(f"{self.root / 'poses.txt'}: {len(poses)} poses, but frame {frame.index} needs line {frame.index + 1}")
-        return poses[frame.index]
+        return self._pose_line(self.poses, frame)
 
     # Per-frame data ------------------------------------------------------------------------------
-    def read_scan(self, frame: Frame) -> np.ndarray:
-        return read_kitti_bin(frame.scan)
-
-    def read_point_labels(self, frame: Frame) -> np.ndarray:
-        """Raw ontology ids per point (including zero returns)."""
-        if frame.point_labels is None:
-            raise DataError(f"{frame.scan}: no per-point label file for this scan")
-        return read_point_labels(frame.point_labels, frame.scan.stat().st_size // 16)  # 16 bytes per scan point
-
     def read_image(self, frame: Frame) -> np.ndarray:
         with Image.open(frame.image) as img:
             return np.asarray(img.convert("RGB"))
@@ -196,7 +205,7 @@ class Rellis3DSequence:
         return raw.astype(np.int64)
 
 
-class SemanticKittiSequence:
+class SemanticKittiSequence(_ScanSequence):
     """``sequences/XX``: velodyne/NNNNNN.bin, labels/NNNNNN.label, poses.txt (cam0 frame), calib.txt (Tr).
     LiDAR poses are inv(Tr) * pose * Tr (spec 8.3)."""
 
@@ -228,23 +237,8 @@ class SemanticKittiSequence:
                 return tr
         raise DataError(f"{path}: no 'Tr:' line")
 
-    def __len__(self) -> int:
-        return len(self.frames)
-
     def pose(self, frame: Frame) -> np.ndarray:
-        if self.poses is None:
-            return np.eye(4)
-        if frame.index >= len(self.poses):
-            raise DataError(f"{self.root / 'poses.txt'}: {len(self.poses)} poses, but scan {frame.index} needs line {frame.index + 1}")
-        return self.poses[frame.index]
-
-    def read_scan(self, frame: Frame) -> np.ndarray:
-        return read_kitti_bin(frame.scan)
-
-    def read_point_labels(self, frame: Frame) -> np.ndarray:
-        if frame.point_labels is None:
-            raise DataError(f"{frame.scan}: no labels/{frame.scan.stem}.label")
-        return read_point_labels(frame.point_labels, frame.scan.stat().st_size // 16)  # 16 bytes per scan point
+        return self._pose_line(self.poses, frame)
 
 
 def semantickitti_learning_map() -> np.ndarray:
