@@ -13,8 +13,8 @@ import argparse
 from pathlib import Path
 
 from evsemmap_warp import Mapper, load_config
-from evsemmap_warp.datasets import open_dataset
-from evsemmap_warp.viewer import MapViewer
+from evsemmap_warp.data.datasets import open_dataset
+from evsemmap_warp.apps.viewer import MapViewer
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -13,7 +13,7 @@ TOY_DIR = REPO / "tests" / "data" / "sbki_toy"
 
 
 def available_devices() -> list[str]:
-    from evsemmap_warp._warp_runtime import init_warp
+    from evsemmap_warp.core.warp_runtime import init_warp
 
     wp = init_warp()
     return ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])

@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 import torch
 
-from evsemmap_warp import convbki, see_csom
+from evsemmap_warp.methods import convbki, see_csom
 from evsemmap_warp.config import ConfigError, load_config
 from evsemmap_warp.kernels import scatter as sc
-from evsemmap_warp.map_file import load_map, save_map
-from evsemmap_warp.mapping import Mapper, VoxelState
+from evsemmap_warp.core.map_file import load_map, save_map
+from evsemmap_warp.core.mapper import Mapper, VoxelState
 from evsemmap_warp.reference import dempster as dempster_ref
 from evsemmap_warp.reference import scatter as ref
-from evsemmap_warp.voxel_map import VoxelMap
+from evsemmap_warp.core.voxel_map import VoxelMap
 from test_scatter import _compare
 
 
@@ -207,7 +207,7 @@ def test_dempster_vacuous_voxels_are_free_with_full_uncommitted_mass():
 
 
 def test_mass_readout_survives_huge_evidence():
-    from evsemmap_warp.mapping import belief_masses
+    from evsemmap_warp.core.mapper import belief_masses
 
     masses = belief_masses(np.array([[400.0, 0.0, 0.0], [400.0, 400.0, 0.0], [0.0, 0.0, 0.0]]))
     assert np.isfinite(masses).all()
@@ -217,7 +217,7 @@ def test_mass_readout_survives_huge_evidence():
 # --- every method through query, save / load and the viewer -------------------------------------
 @pytest.mark.parametrize("method", ["convbki", "see-csom", "dempster"])
 def test_methods_round_trip_through_files_and_viewer(method, tmp_path):
-    from evsemmap_warp.viewer import MapViewer, free_port
+    from evsemmap_warp.apps.viewer import MapViewer, free_port
 
     rng = np.random.default_rng(0)
     points = rng.uniform(0, 2, (500, 3))

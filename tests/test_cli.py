@@ -4,8 +4,8 @@ import json
 
 import numpy as np
 
-from evsemmap_warp.cli import main
-from evsemmap_warp.map_file import read_map_arrays
+from evsemmap_warp.apps.cli import main
+from evsemmap_warp.core.map_file import read_map_arrays
 
 from conftest import REPO
 

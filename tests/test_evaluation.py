@@ -5,10 +5,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from evsemmap_warp.classes import class_set
+from evsemmap_warp.data.classes import class_set
 from evsemmap_warp.config import load_config
-from evsemmap_warp.evaluation import evaluate_map, markdown_table
-from evsemmap_warp.mapping import Mapper
+from evsemmap_warp.apps.evaluation import evaluate_map, markdown_table
+from evsemmap_warp.core.mapper import Mapper
 
 GRASS, DIRT, PAVED, SKY, VOID = 7, 6, 4, 1, 0
 
@@ -56,7 +56,7 @@ def test_bad_ground_truth_is_an_error(mapper):
 
 
 def test_pooled_scores_equal_scoring_the_union(mapper):
-    from evsemmap_warp.evaluation import pool_scores
+    from evsemmap_warp.apps.evaluation import pool_scores
 
     a_points, a_labels = np.array([[0.2, 0.2, 0.2], [1.5, 0.5, 0.5]]), np.array([GRASS, PAVED])
     b_points, b_labels = np.array([[0.8, 0.8, 0.8], [2.5, 0.5, 0.5], [9.5, 9.5, 9.5]]), np.array([DIRT, GRASS, GRASS])

@@ -24,7 +24,7 @@ def test_sbki_toy_conformance(tmp_path):
 
 
 def test_view_map(tmp_path):
-    from evsemmap_warp.viewer import free_port
+    from evsemmap_warp.apps.viewer import free_port
 
     out = _run(str(REPO / "examples/02_view_map.py"), "--no-serve", "--port", str(free_port()), "--out-dir", str(tmp_path), cwd=tmp_path)
     assert "toy_maps.html" in out and (tmp_path / "toy_s-bki.npz").exists() and (tmp_path / "toy_s-csm.npz").exists()

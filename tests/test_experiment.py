@@ -4,9 +4,9 @@ import json
 
 import pytest
 
-from evsemmap_warp.cli import main
+from evsemmap_warp.apps.cli import main
 from evsemmap_warp.config import ConfigError
-from evsemmap_warp.experiment import Experiment, load_experiment
+from evsemmap_warp.apps.experiment import Experiment, load_experiment
 
 CONFIG = """
 name: tiny-study

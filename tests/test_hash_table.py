@@ -6,7 +6,8 @@ import warp as wp
 
 from evsemmap_warp.kernels import hash_table as ht
 from evsemmap_warp.reference import hash_table as ref
-from evsemmap_warp.voxel_map import VoxelMap, pack_voxel_keys, unpack_voxel_keys
+from evsemmap_warp.core.voxel_map import VoxelMap
+from evsemmap_warp.voxel_keys import pack_voxel_keys, unpack_voxel_keys
 
 
 def _insert(keys_np, capacity, max_count, device):

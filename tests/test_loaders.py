@@ -8,10 +8,10 @@ import trimesh
 
 from conftest import TOY_DIR, shared_path
 from evsemmap_warp.config import ConfigError, DatasetConfig, PayloadType
-from evsemmap_warp.datasets import open_dataset
-from evsemmap_warp.pcd import ExtraColumnsWarning
-from evsemmap_warp.point_files import read_point_file
-from evsemmap_warp.sequences import DataError, Rellis3DSequence, SemanticKittiSequence, check_sequence
+from evsemmap_warp.data.datasets import open_dataset
+from evsemmap_warp.data.pcd import ExtraColumnsWarning
+from evsemmap_warp.data.point_files import read_point_file
+from evsemmap_warp.data.sequences import DataError, Rellis3DSequence, SemanticKittiSequence, check_sequence
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from evsemmap_warp.config import load_config
-from evsemmap_warp.map_file import FORMAT_VERSION, MapFileError, load_map, read_map_arrays, save_map
-from evsemmap_warp.mapping import Mapper
+from evsemmap_warp.core.map_file import FORMAT_VERSION, MapFileError, load_map, read_map_arrays, save_map
+from evsemmap_warp.core.mapper import Mapper
 
 from conftest import REPO
 

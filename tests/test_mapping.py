@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, load_config
-from evsemmap_warp.integrators import uncertainty_quantile_mask
+from evsemmap_warp.core.integrators import uncertainty_quantile_mask
 from evsemmap_warp.kernels import scatter as sc
-from evsemmap_warp.mapping import UNKNOWN_LABEL, Mapper, VoxelState, summarize_dirichlet
+from evsemmap_warp.core.mapper import UNKNOWN_LABEL, Mapper, VoxelState, summarize_dirichlet
 from evsemmap_warp.reference import scatter as ref
 
 K = 5

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from evsemmap_warp.pcd import ExtraColumnsWarning, PcdError, read_pcd
+from evsemmap_warp.data.pcd import ExtraColumnsWarning, PcdError, read_pcd
 
 from conftest import TOY_DIR
 

@@ -6,10 +6,10 @@ import pytest
 import torch
 
 from conftest import shared_path
-from evsemmap_warp.camera import PinholeCamera, matrix_to_quaternion, quaternion_to_matrix
-from evsemmap_warp.classes import original_to_v3_table
-from evsemmap_warp.projection import Bin, ProjectedFrame, ProjectionConfig, bin_frames, project_scan, sample_map
-from evsemmap_warp.sequences import Rellis3DSequence
+from evsemmap_warp.geometry.camera import PinholeCamera, matrix_to_quaternion, quaternion_to_matrix
+from evsemmap_warp.data.classes import original_to_v3_table
+from evsemmap_warp.geometry.projection import Bin, ProjectedFrame, ProjectionConfig, bin_frames, project_scan, sample_map
+from evsemmap_warp.data.sequences import Rellis3DSequence
 
 CAMERA = PinholeCamera(100.0, 100.0, 50.0, 40.0, 100, 80)
 

@@ -6,11 +6,11 @@ import warnings
 import numpy as np
 import pytest
 
-from evsemmap_warp import sbki_compat as sb
+from evsemmap_warp.methods import sbki_compat as sb
 from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, load_config
-from evsemmap_warp.datasets import open_dataset
-from evsemmap_warp.mapping import Mapper, VoxelState
-from evsemmap_warp.pcd import read_pcd
+from evsemmap_warp.data.datasets import open_dataset
+from evsemmap_warp.core.mapper import Mapper, VoxelState
+from evsemmap_warp.data.pcd import read_pcd
 from evsemmap_warp.reference.sbki import sbki_insert
 
 from conftest import REPO, TOY_DIR, shared_path

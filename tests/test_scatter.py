@@ -10,7 +10,7 @@ import pytest
 
 from evsemmap_warp.kernels import scatter as sc
 from evsemmap_warp.reference import scatter as ref
-from evsemmap_warp.voxel_map import VoxelMap
+from evsemmap_warp.core.voxel_map import VoxelMap
 
 MODES = {"radius": sc.MODE_RADIUS, "own_voxel": sc.MODE_OWN_VOXEL}
 

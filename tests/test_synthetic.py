@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 import yaml
 
-from evsemmap_warp.cli import main
+from evsemmap_warp.apps.cli import main
 from evsemmap_warp.config import ConfigError, DatasetConfig, PayloadType, load_config
-from evsemmap_warp.datasets import open_dataset
-from evsemmap_warp.mapping import Mapper
-from evsemmap_warp.projection import ProjectionConfig, label_map_for, project_frames
-from evsemmap_warp.sequences import Rellis3DSequence, check_sequence
+from evsemmap_warp.data.datasets import open_dataset
+from evsemmap_warp.core.mapper import Mapper
+from evsemmap_warp.geometry.projection import ProjectionConfig, label_map_for, project_frames
+from evsemmap_warp.data.sequences import Rellis3DSequence, check_sequence
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.scene import generate_world
 from evsemmap_warp.synthetic.writer import generate_sequence
@@ -46,7 +46,7 @@ def test_scans_labels_and_images_agree(tiny_sequence):
     the camera model, the extrinsic, the poses and the label writers against one another."""
     out, _ = tiny_sequence
     seq = Rellis3DSequence(out)
-    from evsemmap_warp.classes import original_to_v3_table
+    from evsemmap_warp.data.classes import original_to_v3_table
 
     table = original_to_v3_table()
     agree = total = 0
@@ -115,7 +115,7 @@ def test_synth_and_check_data_commands(tmp_path, capsys):
 def test_project_and_train_convbki_commands(tiny_sequence, tmp_path, capsys):
     import json
 
-    from evsemmap_warp.classes import remap_ids
+    from evsemmap_warp.data.classes import remap_ids
 
     out, _ = tiny_sequence
     assert main(["project", str(out), "--out", str(tmp_path / "gt"), "--overlays", "1"]) == 0
@@ -137,6 +137,6 @@ def test_project_and_train_convbki_commands(tiny_sequence, tmp_path, capsys):
                  "--window-scans", "3", "--epochs", "2", "--quiet"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["windows"] == 2 and len(result["ell_h"]) == 9
-    from evsemmap_warp.convbki import load_lengths
+    from evsemmap_warp.methods.convbki import load_lengths
 
     assert load_lengths(tmp_path / "l.json", 9).horizontal.shape == (9,)

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from evsemmap_warp.cli import main
+from evsemmap_warp.apps.cli import main
 from evsemmap_warp.config import load_config
-from evsemmap_warp.mapping import Mapper
-from evsemmap_warp.viewer import CLASS_COLORS, MapViewer, colormap, free_port, load_points, load_trajectory
+from evsemmap_warp.core.mapper import Mapper
+from evsemmap_warp.apps.viewer import CLASS_COLORS, MapViewer, colormap, free_port, load_points, load_trajectory
 
 from conftest import REPO
 

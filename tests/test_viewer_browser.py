@@ -11,7 +11,7 @@ from io import BytesIO
 import numpy as np
 import pytest
 
-from evsemmap_warp.viewer import CLASS_COLORS, MapViewer, free_port
+from evsemmap_warp.apps.viewer import CLASS_COLORS, MapViewer, free_port
 
 from test_viewer import make_map
 

@@ -34,10 +34,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, load_config  # noqa: E402
-from evsemmap_warp.datasets import open_dataset  # noqa: E402
-from evsemmap_warp.integrators import uncertainty_quantile_mask  # noqa: E402
+from evsemmap_warp.data.datasets import open_dataset  # noqa: E402
+from evsemmap_warp.core.integrators import uncertainty_quantile_mask  # noqa: E402
 from evsemmap_warp.kernels import scatter as sc  # noqa: E402
-from evsemmap_warp.mapping import Mapper  # noqa: E402
+from evsemmap_warp.core.mapper import Mapper  # noqa: E402
 from evsemmap_warp.reference import scatter as ref  # noqa: E402
 
 DATASET = REPO / "configs/datasets/bench_rellis_like.yaml"

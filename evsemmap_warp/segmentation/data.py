@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from ..classes import decode_color_labels, palette, read_rugd_colormap, remap_ids
+from ..data.classes import decode_color_labels, palette, read_rugd_colormap, remap_ids
 from ..synthetic.appearance import DOMAINS
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)

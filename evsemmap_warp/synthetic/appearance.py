@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .noise import value_noise
+
 # Per-class base colours (by v3 class name), the sun's elevation and strength, sky colours, haze.
 DOMAINS = {
     "summer": {"sky": (150, 190, 235), "vegetation": (40, 100, 35), "grass": (95, 160, 60), "dirt": (120, 90, 60),
@@ -59,8 +61,6 @@ def shade(
     ``face_material`` [N] indexes ``materials`` (scene.MATERIALS); ``lit`` [N] bool says whether the
     sun reaches the point; ``face_index`` [N] gives each object part a stable colour variation.
     """
-    from .scene import value_noise
-
     style = DOMAINS[domain]
     base = np.array([np.array(style[m.colour_class], float) * m.tint for m in materials])
     scale = np.array([m.texture_scale_m for m in materials])

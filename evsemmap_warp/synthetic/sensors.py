@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._warp_runtime import init_warp, resolve_device
-from ..camera import PinholeCamera, rigid, transform_points
+from ..core.warp_runtime import init_warp, resolve_device
+from ..geometry.camera import PinholeCamera, rigid, transform_points
 from .appearance import add_sensor_noise, shade, sky_colour, sun_direction
 from .preset import CameraParams, LidarParams
 from .scene import MATERIAL_INDEX, MATERIALS, World

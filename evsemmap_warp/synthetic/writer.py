@@ -22,8 +22,8 @@ from PIL import Image
 from tqdm import tqdm
 
 from .. import __version__
-from ..camera import matrix_to_quaternion
-from ..classes import palette
+from ..geometry.camera import matrix_to_quaternion
+from ..data.classes import palette
 from .preset import SynthPreset
 from .scene import generate_world, road_trajectory
 from .sensors import RayCaster, camera_model, camera_to_lidar, lidar_directions, render_camera, scan_lidar

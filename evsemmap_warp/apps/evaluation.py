@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .mapping import VoxelState
+from ..core.mapper import VoxelState
 
 PAPER_SCORED_CLASSES = (2, 3, 4, 5, 6, 7, 8)
 

@@ -12,7 +12,7 @@ from typing import Iterator, Protocol
 
 import numpy as np
 
-from .config import ConfigError, DatasetConfig, PayloadType
+from ..config import ConfigError, DatasetConfig, PayloadType
 from .pcd import ExtraColumnsWarning, read_pcd
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import ConfigError, MappingConfig
+from ..config import ConfigError, MappingConfig
 from .voxel_map import VoxelArrays
 
 FORMAT_NAME = "evsemmap_warp.map"
@@ -94,7 +94,7 @@ def read_map_arrays(path) -> tuple[dict[str, np.ndarray], dict]:
 
 
 def load_map(path, *, device: str | None = "cpu"):
-    from .mapping import Mapper
+    from .mapper import Mapper
 
     arrays, meta = read_map_arrays(path)
     try:
@@ -120,7 +120,7 @@ def load_map(path, *, device: str | None = "cpu"):
 def _config_fields(mapping: dict) -> dict:
     from dataclasses import fields
 
-    from .config import Compat, Fusion, Kernel, Media
+    from ..config import Compat, Fusion, Kernel, Media
 
     enums = {"kernel": Kernel, "media": Media, "compat": Compat, "fusion": Fusion}
     known = {f.name for f in fields(MappingConfig)}

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .classes import named_colors
-from .map_file import read_map_arrays
-from .point_files import read_point_file
-from .voxel_map import pack_voxel_keys
+from ..data.classes import named_colors
+from ..core.map_file import read_map_arrays
+from ..data.point_files import read_point_file
+from ..voxel_keys import pack_voxel_keys
 
 STATE_NAMES = ("UNKNOWN", "FREE", "OCCUPIED")
 COLOR_MODES = ("semantic", "variance", "mean uncertainty", "observations")

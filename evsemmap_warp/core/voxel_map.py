@@ -20,12 +20,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._warp_runtime import init_warp, resolve_device
+from ..voxel_keys import check_index_range, pack_voxel_keys, unpack_voxel_keys
+from .warp_runtime import init_warp, resolve_device
 
 wp = init_warp()
 
-from .kernels import hash_table as ht  # noqa: E402
-from .kernels import scatter as sc  # noqa: E402
+from ..kernels import hash_table as ht  # noqa: E402
+from ..kernels import scatter as sc  # noqa: E402
 
 STAT_WEIGHT = 0
 STAT_WEIGHTED_UNCERTAINTY = 1
@@ -361,14 +362,3 @@ def sum_voxel_arrays(parts: list[VoxelArrays]) -> VoxelArrays:
         hits=add("hits").astype(np.int32),
         touched=add("touched") > 0,
     )
-
-
-def pack_voxel_keys(index: np.ndarray) -> np.ndarray:
-    """[V, 3] voxel indices -> the table's int64 keys; their order is x, then y, then z index."""
-    index = np.asarray(index, dtype=np.int64) + ht.KEY_OFFSET
-    return (index[:, 0] << 42) | (index[:, 1] << 21) | index[:, 2]
-
-
-def unpack_voxel_keys(keys: np.ndarray) -> np.ndarray:
-    field = (1 << ht.KEY_BITS) - 1
-    return np.stack([(keys >> 42) & field, (keys >> 21) & field, keys & field], axis=1) - ht.KEY_OFFSET

@@ -21,7 +21,7 @@ import numpy as np
 from PIL import Image
 
 from .camera import PinholeCamera, transform_points
-from .config import ConfigError
+from ..config import ConfigError
 
 
 @dataclass(frozen=True)
@@ -186,7 +186,7 @@ def _merge(items: list[ProjectedFrame]) -> Bin:
 
 def label_map_for(sequence) -> Callable:
     """values_for_frame that gives each frame's 2D ground truth as v3 ids (frames without labels skipped)."""
-    from .classes import remap_ids
+    from ..data.classes import remap_ids
 
     def values(frame):
         if frame.label_image is None:

@@ -20,7 +20,7 @@ import numpy as np
 import yaml
 from PIL import Image
 
-from .camera import RELLIS3D_DISTORTION, PinholeCamera, quaternion_to_matrix, rigid
+from ..geometry.camera import RELLIS3D_DISTORTION, PinholeCamera, quaternion_to_matrix, rigid
 from .classes import decode_color_labels, original_to_v3_table, palette
 from .point_files import read_kitti_bin
 

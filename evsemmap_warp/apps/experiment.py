@@ -40,10 +40,10 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from . import __version__
-from .config import ConfigError, Kernel, PayloadType, dataclass_from_dict, load_config, preset_path
+from .. import __version__
+from ..config import ConfigError, Kernel, PayloadType, dataclass_from_dict, load_config, preset_path
 from .evaluation import PAPER_SCORED_CLASSES, MapScores, evaluate_map, markdown_table, pool_scores
-from .projection import ProjectionConfig, bin_frames, label_map_for, project_frames
+from ..geometry.projection import ProjectionConfig, bin_frames, label_map_for, project_frames
 
 
 @dataclass(frozen=True)
@@ -178,8 +178,8 @@ class Experiment:
                 raise ConfigError(f"sequences.{name}.path: {path} is not a folder")
             self._sequence_dirs[name] = path
             return path
-        from .synthetic.preset import load_preset
-        from .synthetic.writer import generate_sequence
+        from ..synthetic.preset import load_preset
+        from ..synthetic.writer import generate_sequence
 
         preset = load_preset(spec.preset, seed=None if spec.seed < 0 else spec.seed, appearance__domain=spec.domain or None,
                              trajectory__frames=spec.frames or None, trajectory__spacing_m=spec.spacing_m or None)
@@ -193,10 +193,10 @@ class Experiment:
         return folder
 
     def network(self, name: str) -> Path:
-        from .classes import class_set
-        from .segmentation.config import ModelConfig
-        from .segmentation.data import Rellis3DImages
-        from .segmentation.train import TrainConfig, evaluate_checkpoint, load_checkpoint, split_indices, train
+        from ..data.classes import class_set
+        from ..segmentation.config import ModelConfig
+        from ..segmentation.data import Rellis3DImages
+        from ..segmentation.train import TrainConfig, evaluate_checkpoint, load_checkpoint, split_indices, train
 
         spec = self.config.networks[name]
         if spec.checkpoint:
@@ -231,8 +231,8 @@ class Experiment:
         return self.alpha_for(cond.network, cond.sequence)
 
     def alpha_for(self, network: str, sequence: str) -> Path:
-        from .segmentation.train import infer_alpha, load_checkpoint
-        from .sequences import Rellis3DSequence
+        from ..segmentation.train import infer_alpha, load_checkpoint
+        from ..data.sequences import Rellis3DSequence
 
         checkpoint = self.network(network)
         seq_dir = self.sequence_dir(sequence)
@@ -254,9 +254,9 @@ class Experiment:
 
     def convbki_lengths(self, network: str, resolution_m: float) -> Path:
         """ConvBKI's per-class length scales learned on the network's training sequences (cached)."""
-        from . import convbki
-        from .classes import class_set
-        from .sequences import Rellis3DSequence
+        from ..methods import convbki
+        from ..data.classes import class_set
+        from ..data.sequences import Rellis3DSequence
 
         spec, training = self.config.networks[network], self.config.convbki
         folder = self.cache / "convbki"
@@ -282,7 +282,7 @@ class Experiment:
         return path
 
     def ground_truth(self, sequence: str) -> tuple[np.ndarray, np.ndarray]:
-        from .sequences import Rellis3DSequence
+        from ..data.sequences import Rellis3DSequence
 
         seq_dir = self.sequence_dir(sequence)
         path = self.cache / "ground_truth" / f"{sequence}-{_digest(str(seq_dir), dataclasses.asdict(self.config.projection))}.npz"
@@ -298,7 +298,7 @@ class Experiment:
         return data["points"], data["labels"]
 
     def bins(self, condition: str) -> list:
-        from .sequences import Rellis3DSequence
+        from ..data.sequences import Rellis3DSequence
 
         cond = self.config.conditions[condition]
         alpha = self.alpha_dir(condition)
@@ -317,9 +317,9 @@ class Experiment:
         return list(bin_frames(projected, self.config.projection.bin_frames))
 
     def map_and_score(self, condition: str, method: str, bins: list, gt) -> MapScores:
-        from .classes import class_set
-        from .map_file import load_map, save_map
-        from .mapping import Mapper
+        from ..data.classes import class_set
+        from ..core.map_file import load_map, save_map
+        from ..core.mapper import Mapper
 
         run = load_config([preset_path(self.config.mapping_preset)], method=method)
         mapping = run.mapping

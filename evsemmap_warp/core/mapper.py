@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import __version__
-from .config import Compat, Fusion, Kernel, MappingConfig, PayloadType
+from .. import __version__
+from ..config import Compat, Fusion, Kernel, MappingConfig, PayloadType
 from .integrators import (ConvBkiIntegrator, IntegrationStats, KernelIntegrator, SbkiCompatIntegrator, ScanPayload,
                           SeeCsomIntegrator)
 from .voxel_map import FLAG_TOUCHED, VoxelArrays, VoxelMap, sum_voxel_arrays

@@ -11,15 +11,15 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from .config import ConfigError, available_methods, load_config
+from ..config import ConfigError, available_methods, load_config
 
 
 def _cmd_map(args) -> int:
     from tqdm import tqdm
 
-    from .datasets import open_dataset
-    from .map_file import save_map
-    from .mapping import Mapper, VoxelState
+    from ..data.datasets import open_dataset
+    from ..core.map_file import save_map
+    from ..core.mapper import Mapper, VoxelState
 
     run = load_config(args.configs, method=args.method)
     if run.dataset is None:
@@ -56,7 +56,7 @@ def _cmd_map(args) -> int:
 
 
 def _cmd_info(args) -> int:
-    from .map_file import read_map_arrays
+    from ..core.map_file import read_map_arrays
 
     arrays, meta = read_map_arrays(args.map)
     state = arrays["state"]
@@ -90,7 +90,7 @@ def _cmd_view(args) -> int:
 
 
 def _segmentation_source(args):
-    from .segmentation.data import Rellis3DImages, RugdImages, SyntheticOffroad
+    from ..segmentation.data import Rellis3DImages, RugdImages, SyntheticOffroad
 
     if args.dataset == "synthetic":
         return SyntheticOffroad(args.synthetic_frames, tuple(args.input_size), domain=args.domain, seed=args.seed)
@@ -100,9 +100,9 @@ def _segmentation_source(args):
 
 
 def _cmd_train_seg(args) -> int:
-    from .classes import class_set
-    from .segmentation.config import ModelConfig
-    from .segmentation.train import TrainConfig, train
+    from ..data.classes import class_set
+    from ..segmentation.config import ModelConfig
+    from ..segmentation.train import TrainConfig, train
 
     classes = class_set()
     config = TrainConfig(
@@ -118,7 +118,7 @@ def _cmd_train_seg(args) -> int:
 
 
 def _cmd_eval_seg(args) -> int:
-    from .segmentation.train import evaluate_checkpoint
+    from ..segmentation.train import evaluate_checkpoint
 
     summary = evaluate_checkpoint(args.checkpoint, _segmentation_source(args), args.out)
     print(json.dumps(summary, indent=1))
@@ -129,7 +129,7 @@ def _cmd_infer(args) -> int:
     from PIL import Image
     from tqdm import tqdm
 
-    from .segmentation.train import infer_alpha, load_checkpoint
+    from ..segmentation.train import infer_alpha, load_checkpoint
 
     model, config, meta, _ = load_checkpoint(args.checkpoint)
     paths = sorted(p for p in args.images.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png")) if args.images.is_dir() else [args.images]
@@ -153,8 +153,8 @@ def _cmd_infer(args) -> int:
 
 
 def _cmd_synth(args) -> int:
-    from .synthetic.preset import load_preset
-    from .synthetic.writer import generate_sequence
+    from ..synthetic.preset import load_preset
+    from ..synthetic.writer import generate_sequence
 
     preset = load_preset(args.preset, seed=args.seed, appearance__domain=args.domain, trajectory__frames=args.frames)
     summary = generate_sequence(preset, args.out, device=args.device, progress=not args.quiet)
@@ -163,7 +163,7 @@ def _cmd_synth(args) -> int:
 
 
 def _cmd_check_data(args) -> int:
-    from .sequences import check_sequence
+    from ..data.sequences import check_sequence
 
     reports = [check_sequence(d) for d in args.folders]
     for report in reports:
@@ -174,9 +174,9 @@ def _cmd_check_data(args) -> int:
 def _cmd_project(args) -> int:
     """Project a sequence's 2D labels onto its scans: 3D ground truth, agreement with the per-point
     labels where the sequence has them, and overlay images."""
-    from .classes import class_set, original_to_v3_table
-    from .projection import ProjectionConfig, depth_colours, label_map_for, project_frames, save_overlay
-    from .sequences import Rellis3DSequence
+    from ..data.classes import class_set, original_to_v3_table
+    from ..geometry.projection import ProjectionConfig, depth_colours, label_map_for, project_frames, save_overlay
+    from ..data.sequences import Rellis3DSequence
 
     seq = Rellis3DSequence(args.sequence)
     config = ProjectionConfig(zbuffer=args.zbuffer)
@@ -209,10 +209,10 @@ def _cmd_project(args) -> int:
 
 
 def _cmd_train_convbki(args) -> int:
-    from . import convbki
-    from .classes import class_set
-    from .projection import ProjectionConfig
-    from .sequences import Rellis3DSequence
+    from ..methods import convbki
+    from ..data.classes import class_set
+    from ..geometry.projection import ProjectionConfig
+    from ..data.sequences import Rellis3DSequence
 
     seq = Rellis3DSequence(args.sequence)
 
@@ -262,7 +262,7 @@ def _cmd_dump_config(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .segmentation.config import ModelConfig
+    from ..segmentation.config import ModelConfig
 
     parser = argparse.ArgumentParser(prog="evsemmap", description="Evidential semantic mapping on Warp kernels.")
     sub = parser.add_subparsers(dest="command", required=True)

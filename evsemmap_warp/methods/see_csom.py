@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .voxel_map import pack_voxel_keys
+from ..voxel_keys import pack_voxel_keys
 
 CELLS_PER_BLOCK = 2
 ENTROPY_GATE = 0.3  # hard-coded in the original

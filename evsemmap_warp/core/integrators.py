@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import convbki, sbki_compat, see_csom
-from .config import Fusion, Kernel, MappingConfig, Media
-from .kernels import scatter as sc
+from ..methods import convbki, sbki_compat, see_csom
+from ..config import Fusion, Kernel, MappingConfig, Media
+from ..kernels import scatter as sc
 from .voxel_map import VoxelMap
 
 # Below this many points per shard, splitting a launch costs more than it saves.

@@ -97,7 +97,7 @@ def stencil_weights(lengths: ConvBkiLengths, resolution_m: float, half: int) -> 
 
 def voxelise(points: np.ndarray, evidence: np.ndarray, resolution_m: float, grid_offset_m: float = 0.0):
     """Sum the evidence [N, K] of the points in each voxel: (voxel indices [V, 3], summed [V, K])."""
-    from .voxel_map import pack_voxel_keys, unpack_voxel_keys
+    from ..voxel_keys import pack_voxel_keys, unpack_voxel_keys
 
     index = np.floor((np.asarray(points, np.float64) - grid_offset_m) / resolution_m).astype(np.int64)
     # one int64 key per voxel: np.unique on them is far faster than on [N, 3] rows
@@ -198,8 +198,8 @@ def training_windows(sequence, alpha_for_frame, projection, *, window_scans: int
     """Windows of ``window_scans`` consecutive scans of a RELLIS-3D-layout ``sequence``: every scan's
     points carry the network's normalised alpha (``alpha_for_frame(frame)`` -> [K, h, w], projected),
     and the last scan's points (up to ``queries_per_window``) their own per-point labels (v3)."""
-    from .classes import original_to_v3_table
-    from .projection import project_frames
+    from ..data.classes import original_to_v3_table
+    from ..geometry.projection import project_frames
 
     table = original_to_v3_table()
     rng = np.random.default_rng(seed)

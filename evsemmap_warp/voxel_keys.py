@@ -1,0 +1,30 @@
+"""Host side of the hash table's key layout (``kernels/hash_table.py`` defines it): voxel indices
+relative to the map origin, 21 bits per axis, packed into one int64. Packing refuses indices outside
+the key range instead of wrapping them onto voxels near the origin."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .kernels.hash_table import INDEX_LIMIT, KEY_BITS, KEY_OFFSET
+
+
+def check_index_range(index: np.ndarray, what: str = "voxel indices") -> None:
+    """Raise ValueError when any index [..., 3] lies outside [-INDEX_LIMIT, INDEX_LIMIT)."""
+    index = np.asarray(index)
+    if index.size and (int(index.min()) < -INDEX_LIMIT or int(index.max()) >= INDEX_LIMIT):
+        raise ValueError(f"{what} reach {int(index.min())}..{int(index.max())}, outside the map's key range "
+                         f"[{-INDEX_LIMIT}, {INDEX_LIMIT}) voxels around the map origin")
+
+
+def pack_voxel_keys(index: np.ndarray) -> np.ndarray:
+    """[V, 3] voxel indices -> the table's int64 keys; their order is x, then y, then z index."""
+    check_index_range(index)
+    index = np.asarray(index, dtype=np.int64) + KEY_OFFSET
+    return (index[:, 0] << 42) | (index[:, 1] << 21) | index[:, 2]
+
+
+def unpack_voxel_keys(keys: np.ndarray) -> np.ndarray:
+    field = (1 << KEY_BITS) - 1
+    keys = np.asarray(keys, dtype=np.int64)
+    return np.stack([(keys >> 42) & field, (keys >> 21) & field, keys & field], axis=1) - KEY_OFFSET
