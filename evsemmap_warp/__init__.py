@@ -6,8 +6,8 @@ Importing the package initialises Warp but compiles nothing; kernels build on th
 __version__ = "0.1.0"
 
 from .config import Compat, ConfigError, Kernel, MappingConfig, Media, PayloadType, load_config  # noqa: E402
-from .core.map_file import MapFileError, load_map, save_map  # noqa: E402
-from .core.mapper import UNKNOWN_LABEL, Mapper, QueryResult, VoxelState  # noqa: E402
+from .core.map_file import MapFileError  # noqa: E402
+from .core.mapper import UNKNOWN_LABEL, Mapper, QueryResult, VoxelState, load_map, save_map  # noqa: E402
 from .data.pcd import PcdError, read_pcd  # noqa: E402
 
 __all__ = [

@@ -1,6 +1,7 @@
 """Keys-only open-addressing hash table of voxel indices (Warp).
 
-Keys are int3 voxel indices packed into one int64 (21 bits per axis, offset 2**20), slots are found
+Keys are int3 voxel indices relative to the map origin, packed into one int64 (21 bits per axis,
+offset 2**20; ``evsemmap_warp/voxel_keys.py`` packs the same way on the host), slots are found
 by a splitmix64 hash and linear probing, insertion claims a slot with ``atomic_cas``. The table
 holds keys only: callers keep per-voxel values in their own ``[capacity, ...]`` arrays indexed by
 slot. An insertion fails (returns -1) instead of overfilling the table once ``max_count`` keys are
@@ -8,8 +9,6 @@ in; the host then grows the table and re-runs the failed work, so nothing is eve
 
 numpy twin: ``evsemmap_warp/reference/hash_table.py``.
 """
-
-from typing import Any
 
 import warp as wp
 
@@ -56,7 +55,9 @@ def hash_slot(key: wp.int64, mask: int) -> int:
 
 @wp.func
 def table_find(keys: wp.array(dtype=wp.int64), key: wp.int64) -> int:
-    """Slot holding ``key``, or -1 when it is absent."""
+    """Slot holding ``key``, or -1 when it is absent (the empty sentinel is never a stored key)."""
+    if key == _EMPTY:
+        return -1
     mask = keys.shape[0] - 1
     slot = hash_slot(key, mask)
     for _probe in range(keys.shape[0]):
@@ -73,7 +74,10 @@ def table_find(keys: wp.array(dtype=wp.int64), key: wp.int64) -> int:
 def table_find_or_insert(
     keys: wp.array(dtype=wp.int64), key_count: wp.array(dtype=int), max_count: int, key: wp.int64
 ) -> int:
-    """Slot of ``key``, inserting it if absent; -1 when the table is at ``max_count`` keys."""
+    """Slot of ``key``, inserting it if absent; -1 when the table is at ``max_count`` keys (or for
+    the empty sentinel, which no in-range index packs to)."""
+    if key == _EMPTY:
+        return -1
     mask = keys.shape[0] - 1
     slot = hash_slot(key, mask)
     for _probe in range(keys.shape[0]):
@@ -115,21 +119,35 @@ def lookup_keys(
     slots_out[i] = table_find(table_keys, keys_in[i])
 
 
+@wp.func
+def voxel_index_of(x: wp.float64, resolution: wp.float64) -> int:
+    """floor(x / resolution) as an int, or INDEX_LIMIT (outside the key range) when it does not fit."""
+    f = wp.floor(x / resolution)
+    index = int(_KEY_OFFSET)
+    if f >= wp.float64(-_KEY_OFFSET) and f < wp.float64(_KEY_OFFSET):
+        index = int(f)
+    return index
+
+
 @wp.kernel
 def lookup_points(
-    points: wp.array(dtype=wp.vec3),
-    resolution: float,
-    grid_offset: float,
+    points: wp.array(dtype=wp.vec3d),
+    resolution: wp.float64,
+    grid_offset: wp.float64,
     table_keys: wp.array(dtype=wp.int64),
     slots_out: wp.array(dtype=int),
 ):
-    """Slot of the voxel containing each point (voxel i spans [i r + o, (i + 1) r + o))."""
+    """Slot of the voxel containing each point (voxel i spans [i r + o, (i + 1) r + o), coordinates
+    relative to the map origin); -1 for points outside the key range or in voxels not stored."""
     i = wp.tid()
     p = points[i]
-    ix = int(wp.floor((p[0] - grid_offset) / resolution))
-    iy = int(wp.floor((p[1] - grid_offset) / resolution))
-    iz = int(wp.floor((p[2] - grid_offset) / resolution))
-    slots_out[i] = table_find(table_keys, pack_key(ix, iy, iz))
+    ix = voxel_index_of(p[0] - grid_offset, resolution)
+    iy = voxel_index_of(p[1] - grid_offset, resolution)
+    iz = voxel_index_of(p[2] - grid_offset, resolution)
+    if ix == _KEY_OFFSET or iy == _KEY_OFFSET or iz == _KEY_OFFSET:
+        slots_out[i] = -1
+    else:
+        slots_out[i] = table_find(table_keys, pack_key(ix, iy, iz))
 
 
 @wp.kernel
@@ -149,11 +167,19 @@ def rehash(
 
 
 @wp.kernel
-def move_rows(src: wp.array2d(dtype=Any), dst: wp.array2d(dtype=Any), dst_rows: wp.array(dtype=int)):
+def move_rows(src: wp.array2d(dtype=wp.float64), dst: wp.array2d(dtype=wp.float64), dst_rows: wp.array(dtype=int)):
     """dst[dst_rows[i], :] = src[i, :] for every i with dst_rows[i] >= 0 (values follow a rehash).
-    Generic: one overload per value dtype (float32 evidence and stats, int32 flags)."""
+    Not generic: a generic kernel would be instantiated lazily on first use, inside a worker thread."""
     i = wp.tid()
     row = dst_rows[i]
     if row >= 0:
         for c in range(src.shape[1]):
             dst[row, c] = src[i, c]
+
+
+@wp.kernel
+def gather_rows(src: wp.array2d(dtype=wp.float64), rows: wp.array(dtype=int), dst: wp.array2d(dtype=wp.float64)):
+    """dst[i, :] = src[rows[i], :]: the rows a query needs, without copying the whole table to the host."""
+    i = wp.tid()
+    for c in range(src.shape[1]):
+        dst[i, c] = src[rows[i], c]

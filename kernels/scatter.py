@@ -25,6 +25,12 @@ of them, the second adds. A point whose insertion fails (table full) adds nothin
 in ``failed``; the host grows the table and relaunches only those points, so each point lands
 exactly once. The compat modes only add: their target cells are inserted beforehand.
 
+Arithmetic is float64 throughout (positions relative to the map origin, weights, sums), so evidence
+keeps growing on long drives and a far-away scan maps exactly as the same scan near the origin; only
+the S-BKI compatibility kernel runs in float32, as the C++ does. A voxel's data lie together in one
+row of ``voxel_data`` [capacity, K + 4]: K evidence columns, then the weight sum, the weight *
+uncertainty sum, the contribution count and the touched flag (counts in float64 are exact to 2^53).
+
 numpy twin: ``evsemmap_warp/reference/scatter.py``.
 """
 
@@ -41,14 +47,17 @@ MODE_SBKI_OWN_BLOCK = 3
 MODE_STENCIL = 4
 FUSION_BAYES = 0
 FUSION_DEMPSTER = 1
-# Belief masses are clamped to [0, 1 - BELIEF_EPSILON]: the spec's 1e-8 vanishes in float32.
+# Belief masses are clamped to [0, 1 - BELIEF_EPSILON] (docs/algorithm.md, Dempster-Shafer).
 BELIEF_EPSILON = 1e-6
+# Columns of voxel_data after the K evidence columns.
+EXTRA_COLUMNS = 4
+COL_WEIGHT, COL_WEIGHTED_UNCERTAINTY, COL_HITS, COL_TOUCHED = range(4)  # offsets from K
 
 # The C++ S-BKI writes pi as 3.1415926f; float32 rounding noise makes its kernel slightly positive
 # a little beyond d = ell, so the compat search reaches this far past the length.
 SBKI_REACH_FACTOR = 1.05
 
-_TWO_PI = wp.constant(6.283185307179586)
+f64 = wp.float64
 
 
 def _series_coefficient(n: int) -> float:
@@ -57,33 +66,47 @@ def _series_coefficient(n: int) -> float:
     return 1.0 / (3.0 * factorial(2 * n)) - 1.0 / factorial(2 * n + 1)
 
 
-_C2, _C3, _C4, _C5, _C6, _C7 = (wp.constant(_series_coefficient(n)) for n in range(2, 8))
+# c_2 .. c_11 of the series in sparse_kernel: ten terms are exact to float64 for t < 1/4.
+_C2, _C3, _C4, _C5, _C6, _C7, _C8, _C9, _C10, _C11 = (wp.constant(f64(_series_coefficient(n))) for n in range(2, 12))
+_ZERO = wp.constant(f64(0.0))
+_HALF = wp.constant(f64(0.5))
+_ONE = wp.constant(f64(1.0))
+_QUARTER = wp.constant(f64(0.25))
+_THREE = wp.constant(f64(3.0))
+_TWO_PI = wp.constant(f64(6.283185307179586))
 _SBKI_PI = wp.constant(3.1415926)
-_SBKI_REACH = wp.constant(SBKI_REACH_FACTOR)
-_BELIEF_EPSILON = wp.constant(BELIEF_EPSILON)
+_SBKI_REACH = wp.constant(f64(SBKI_REACH_FACTOR))
+_BELIEF_EPSILON = wp.constant(f64(BELIEF_EPSILON))
+_EXTRA = wp.constant(EXTRA_COLUMNS)
 
 
 @wp.func
-def sparse_kernel(d: float, length: float, sigma0: float) -> float:
-    """k'(d, l, sigma0) of spec 3.5 for d < l.
+def sparse_kernel(d: wp.float64, length: wp.float64, sigma0: wp.float64) -> wp.float64:
+    """k'(d, l, sigma0) (docs/algorithm.md) for d < l, in float64.
 
-    Near the support edge the closed form is the difference of two O(1 - d/l) terms, and float32
-    turns it into rounding noise (1e-8..5e-7, reference_sbki.md 7.5) that can flip prior-level
-    argmax ties. With t = 1 - d/l and a = 2 pi t the kernel is sigma0 t f(a), f(a) =
-    (2 + cos a) / 3 - sin(a) / a = sum_{n>=2} (-1)^n c_n a^(2n), c_n = 1/(3 (2n)!) - 1/(2n+1)!;
-    six terms are exact to float32 for t < 1/4, where the series is used instead.
+    Near the support edge the closed form is the difference of two O(1 - d/l) terms. With t = 1 - d/l
+    and a = 2 pi t the kernel is sigma0 t f(a), f(a) = (2 + cos a) / 3 - sin(a) / a =
+    sum_{n>=2} (-1)^n c_n a^(2n), c_n = 1/(3 (2n)!) - 1/(2n+1)!; for t < 1/4 the series is used.
     """
     x = d / length
-    t = 1.0 - x
-    if t <= 0.0:
-        return 0.0
-    if t < 0.25:
+    t = _ONE - x
+    if t <= _ZERO:
+        return _ZERO
+    if t < _QUARTER:
         a = _TWO_PI * t
         a2 = a * a
-        f = a2 * a2 * (_C2 - a2 * (_C3 - a2 * (_C4 - a2 * (_C5 - a2 * (_C6 - a2 * _C7)))))
-        return sigma0 * t * f
+        s = _C10 - a2 * _C11
+        s = _C9 - a2 * s
+        s = _C8 - a2 * s
+        s = _C7 - a2 * s
+        s = _C6 - a2 * s
+        s = _C5 - a2 * s
+        s = _C4 - a2 * s
+        s = _C3 - a2 * s
+        s = _C2 - a2 * s
+        return sigma0 * t * a2 * a2 * s
     a = _TWO_PI * x
-    return wp.max(sigma0 * ((2.0 + wp.cos(a)) * t / 3.0 + wp.sin(a) / _TWO_PI), 0.0)
+    return wp.max(sigma0 * ((f64(2.0) + wp.cos(a)) * t / _THREE + wp.sin(a) / _TWO_PI), _ZERO)
 
 
 @wp.func
@@ -96,7 +119,8 @@ def sbki_sparse_kernel(cell: wp.vec3, point: wp.vec3, ell: float, sf2: float) ->
 
 
 @wp.func
-def voxel_center(ix: int, iy: int, iz: int, resolution: float, grid_offset: float) -> wp.vec3:
+def sbki_voxel_center(ix: int, iy: int, iz: int, resolution: float, grid_offset: float) -> wp.vec3:
+    """A cell centre in float32, as the compat kernel evaluates it."""
     return wp.vec3(
         (float(ix) + 0.5) * resolution + grid_offset,
         (float(iy) + 0.5) * resolution + grid_offset,
@@ -105,7 +129,16 @@ def voxel_center(ix: int, iy: int, iz: int, resolution: float, grid_offset: floa
 
 
 @wp.func
-def voxel_of(p: float, resolution: float, grid_offset: float) -> int:
+def voxel_center(ix: int, iy: int, iz: int, resolution: wp.float64, grid_offset: wp.float64) -> wp.vec3d:
+    return wp.vec3d(
+        (f64(ix) + _HALF) * resolution + grid_offset,
+        (f64(iy) + _HALF) * resolution + grid_offset,
+        (f64(iz) + _HALF) * resolution + grid_offset,
+    )
+
+
+@wp.func
+def voxel_of(p: wp.float64, resolution: wp.float64, grid_offset: wp.float64) -> int:
     return int(wp.floor((p - grid_offset) / resolution))
 
 
@@ -121,7 +154,7 @@ def block_of_voxel(i: int, cells_per_block: int) -> int:
 
 
 @wp.func
-def reach_of(mode: int, length: float, resolution: float) -> float:
+def reach_of(mode: int, length: wp.float64, resolution: wp.float64) -> wp.float64:
     """How far from the point a target voxel centre may lie."""
     if mode == MODE_SBKI_BLOCKS:
         return length * _SBKI_REACH
@@ -131,29 +164,31 @@ def reach_of(mode: int, length: float, resolution: float) -> float:
 
 
 @wp.func
-def range_end(mode: int, p: wp.vec3, reach: float, owner: wp.vec3i, resolution: float, grid_offset: float, side: float) -> wp.vec3i:
+def range_end(mode: int, p: wp.vec3d, reach: wp.float64, owner: wp.vec3i, resolution: wp.float64, grid_offset: wp.float64, side: int) -> wp.vec3i:
     """First (side -1) or last (side +1) voxel index per axis that a point may reach."""
     if mode == MODE_SBKI_OWN_BLOCK:
         return owner
     if mode == MODE_STENCIL:  # owner is the point's voxel, reach the stencil's half width in voxels
         h = int(reach)
-        return owner + wp.vec3i(int(side) * h, int(side) * h, int(side) * h)
+        return owner + wp.vec3i(side * h, side * h, side * h)
+    r = reach
     if mode == MODE_OWN_VOXEL:
-        reach = 0.0
+        r = _ZERO
+    s = f64(side)
     return wp.vec3i(
-        voxel_of(p[0] + side * reach, resolution, grid_offset),
-        voxel_of(p[1] + side * reach, resolution, grid_offset),
-        voxel_of(p[2] + side * reach, resolution, grid_offset),
+        voxel_of(p[0] + s * r, resolution, grid_offset),
+        voxel_of(p[1] + s * r, resolution, grid_offset),
+        voxel_of(p[2] + s * r, resolution, grid_offset),
     )
 
 
 @wp.func
-def record_contribution(voxel_stats: wp.array2d(dtype=float), voxel_flags: wp.array2d(dtype=int), slot: int, w: float, u: float):
+def record_contribution(voxel_data: wp.array2d(dtype=wp.float64), slot: int, num_classes: int, w: wp.float64, u: wp.float64):
     """The per-voxel bookkeeping of one contribution: weight and weight * uncertainty sums, count, touched."""
-    wp.atomic_add(voxel_stats, slot, 0, w)
-    wp.atomic_add(voxel_stats, slot, 1, w * u)
-    wp.atomic_add(voxel_flags, slot, 0, 1)
-    voxel_flags[slot, 1] = 1
+    wp.atomic_add(voxel_data, slot, num_classes + COL_WEIGHT, w)
+    wp.atomic_add(voxel_data, slot, num_classes + COL_WEIGHTED_UNCERTAINTY, w * u)
+    wp.atomic_add(voxel_data, slot, num_classes + COL_HITS, _ONE)
+    voxel_data[slot, num_classes + COL_TOUCHED] = _ONE
 
 
 @wp.func
@@ -167,35 +202,32 @@ def block_step(mode: int, i: int, owner_i: int, cells_per_block: int) -> int:
 @wp.kernel
 def scatter_points(
     point_ids: wp.array(dtype=int),
-    points: wp.array(dtype=wp.vec3),
+    points: wp.array(dtype=wp.vec3d),
     labels: wp.array(dtype=int),
-    class_weights: wp.array2d(dtype=float),
-    lengths: wp.array(dtype=float),
-    point_uncertainty: wp.array(dtype=float),
+    class_weights: wp.array2d(dtype=wp.float64),
+    lengths: wp.array(dtype=wp.float64),
+    point_uncertainty: wp.array(dtype=wp.float64),
     owner_blocks: wp.array(dtype=wp.vec3i),
     mode: int,
     use_labels: int,
-    resolution: float,
-    grid_offset: float,
-    sigma0: float,
+    resolution: wp.float64,
+    grid_offset: wp.float64,
+    sigma0: wp.float64,
     cells_per_block: int,
     fusion: int,
-    stencil_weights: wp.array2d(dtype=float),
+    stencil_weights: wp.array2d(dtype=wp.float64),
     stencil_half: int,
     table_keys: wp.array(dtype=wp.int64),
     key_count: wp.array(dtype=int),
     max_count: int,
-    voxel_evidence: wp.array2d(dtype=float),
-    voxel_stats: wp.array2d(dtype=float),
-    voxel_flags: wp.array2d(dtype=int),
+    voxel_data: wp.array2d(dtype=wp.float64),
     failed: wp.array(dtype=int),
-    update_count: wp.array(dtype=int),
+    update_count: wp.array(dtype=wp.int64),
 ):
     """Integrate points[point_ids[t]] into the map.
 
-    voxel_evidence[:, k] += weight * y_k (y one-hot labels[i] or class_weights[i]),
-    voxel_stats[:, 0] += weight, voxel_stats[:, 1] += weight * uncertainty,
-    voxel_flags[:, 0] += 1 per contribution, voxel_flags[:, 1] = 1 (touched).
+    voxel_data[:, k] += weight * y_k (y one-hot labels[i] or class_weights[i]), then per contribution
+    weight sum += weight, weight * uncertainty sum += weight * u, count += 1, touched = 1.
     """
     t = wp.tid()
     i = point_ids[t]
@@ -207,11 +239,17 @@ def scatter_points(
     reach = reach_of(mode, length, resolution)
     if mode == MODE_STENCIL:
         owner = wp.vec3i(voxel_of(p[0], resolution, grid_offset), voxel_of(p[1], resolution, grid_offset), voxel_of(p[2], resolution, grid_offset))
-        reach = float(stencil_half)
+        reach = f64(stencil_half)
     reach2 = reach * reach
-    lo = range_end(mode, p, reach, owner, resolution, grid_offset, -1.0)
-    hi = range_end(mode, p, reach, owner, resolution, grid_offset, 1.0)
+    lo = range_end(mode, p, reach, owner, resolution, grid_offset, -1)
+    hi = range_end(mode, p, reach, owner, resolution, grid_offset, 1)
     u = point_uncertainty[i]
+    # The compat kernel sees the point, the length and the grid in float32, as the C++ does.
+    p32 = wp.vec3(float(p[0]), float(p[1]), float(p[2]))
+    length32 = float(length)
+    sigma32 = float(sigma0)
+    resolution32 = float(resolution)
+    offset32 = float(grid_offset)
     # Only the radius modes test distances; the own-voxel/own-block ranges hold exactly the target.
     by_distance = mode == MODE_RADIUS or mode == MODE_SBKI_BLOCKS
     # Pass 0 inserts (clean modes only: compat targets were inserted by insert_block_cells),
@@ -220,30 +258,30 @@ def scatter_points(
     if mode == MODE_RADIUS or mode == MODE_OWN_VOXEL or mode == MODE_STENCIL:
         first_pass = 0
     side = 2 * stencil_half + 1
-    num_classes = voxel_evidence.shape[1]
-    n_updates = int(0)
+    num_classes = voxel_data.shape[1] - _EXTRA
+    n_updates = wp.int64(0)
     for pass_index in range(first_pass, 2):
         for ix in range(lo[0], hi[0] + 1):
-            dx = (float(ix) + 0.5) * resolution + grid_offset - p[0]
+            dx = (f64(ix) + _HALF) * resolution + grid_offset - p[0]
             bx = block_step(mode, ix, owner[0], cells_per_block)
             if (not by_distance or dx * dx < reach2) and bx <= 1:
                 for iy in range(lo[1], hi[1] + 1):
-                    dy = (float(iy) + 0.5) * resolution + grid_offset - p[1]
+                    dy = (f64(iy) + _HALF) * resolution + grid_offset - p[1]
                     bxy = bx + block_step(mode, iy, owner[1], cells_per_block)
                     if (not by_distance or dx * dx + dy * dy < reach2) and bxy <= 1:
                         for iz in range(lo[2], hi[2] + 1):
-                            dz = (float(iz) + 0.5) * resolution + grid_offset - p[2]
+                            dz = (f64(iz) + _HALF) * resolution + grid_offset - p[2]
                             d2 = dx * dx + dy * dy + dz * dz
                             bxyz = bxy + block_step(mode, iz, owner[2], cells_per_block)
                             # ConvBKI: the stencil row of this offset; offsets that add nothing are skipped.
                             row = int(0)
-                            stencil_mass = float(1.0)
+                            stencil_mass = _ONE
                             if mode == MODE_STENCIL:
                                 row = ((ix - owner[0] + stencil_half) * side + (iy - owner[1] + stencil_half)) * side + (iz - owner[2] + stencil_half)
-                                stencil_mass = float(0.0)
+                                stencil_mass = _ZERO
                                 for c in range(num_classes):
                                     stencil_mass += stencil_weights[row, c] * class_weights[i, c]
-                            if (not by_distance or d2 < reach2) and bxyz <= 1 and stencil_mass > 0.0:
+                            if (not by_distance or d2 < reach2) and bxyz <= 1 and stencil_mass > _ZERO:
                                 key = pack_key(ix, iy, iz)
                                 if pass_index == 0:
                                     if table_find_or_insert(table_keys, key_count, max_count, key) < 0:
@@ -251,38 +289,38 @@ def scatter_points(
                                         return
                                     continue
                                 # The weight is needed only here, in the adding pass.
-                                w = float(1.0)
+                                w = _ONE
                                 if mode == MODE_RADIUS:
                                     w = sparse_kernel(wp.sqrt(d2), length, sigma0)
                                 elif mode == MODE_STENCIL:
                                     w = stencil_mass
                                 elif mode == MODE_SBKI_BLOCKS:
-                                    w = sbki_sparse_kernel(voxel_center(ix, iy, iz, resolution, grid_offset), p, length, sigma0)
-                                if mode != MODE_SBKI_BLOCKS or w > 0.0:  # the C++ adds only positive kernel values
+                                    w = f64(sbki_sparse_kernel(sbki_voxel_center(ix, iy, iz, resolution32, offset32), p32, length32, sigma32))
+                                if mode != MODE_SBKI_BLOCKS or w > _ZERO:  # the C++ adds only positive kernel values
                                     slot = table_find(table_keys, key)
                                     if slot < 0:
                                         # Only reachable in the compat modes, if a target cell was not pre-inserted.
                                         failed[t] = 1
                                         return
                                     if use_labels == 1:
-                                        wp.atomic_add(voxel_evidence, slot, labels[i], w)
+                                        wp.atomic_add(voxel_data, slot, labels[i], w)
                                     elif mode == MODE_STENCIL:
                                         for c in range(num_classes):
-                                            wp.atomic_add(voxel_evidence, slot, c, stencil_weights[row, c] * class_weights[i, c])
+                                            wp.atomic_add(voxel_data, slot, c, stencil_weights[row, c] * class_weights[i, c])
                                     elif fusion == FUSION_DEMPSTER:
-                                        w = wp.min(w, 1.0)
-                                        committed = float(0.0)
+                                        w = wp.min(w, _ONE)
+                                        committed = _ZERO
                                         for c in range(num_classes):
-                                            committed += wp.clamp(class_weights[i, c] * w, 0.0, 1.0 - _BELIEF_EPSILON)
-                                        uncommitted = wp.max(1.0 - committed, _BELIEF_EPSILON)
+                                            committed += wp.clamp(class_weights[i, c] * w, _ZERO, _ONE - _BELIEF_EPSILON)
+                                        uncommitted = wp.max(_ONE - committed, _BELIEF_EPSILON)
                                         for c in range(num_classes):
-                                            b = wp.clamp(class_weights[i, c] * w, 0.0, 1.0 - _BELIEF_EPSILON)
-                                            wp.atomic_add(voxel_evidence, slot, c, wp.log(1.0 + b / uncommitted))
+                                            b = wp.clamp(class_weights[i, c] * w, _ZERO, _ONE - _BELIEF_EPSILON)
+                                            wp.atomic_add(voxel_data, slot, c, wp.log(_ONE + b / uncommitted))
                                     else:
                                         for c in range(num_classes):
-                                            wp.atomic_add(voxel_evidence, slot, c, w * class_weights[i, c])
-                                    record_contribution(voxel_stats, voxel_flags, slot, w, u)
-                                    n_updates += 1
+                                            wp.atomic_add(voxel_data, slot, c, w * class_weights[i, c])
+                                    record_contribution(voxel_data, slot, num_classes, w, u)
+                                    n_updates += wp.int64(1)
     wp.atomic_add(update_count, 0, n_updates)
 
 
@@ -301,37 +339,36 @@ def face_offset(j: int) -> wp.vec3i:
 @wp.kernel
 def scatter_block_targets(
     point_ids: wp.array(dtype=int),
-    points: wp.array(dtype=wp.vec3),
+    points: wp.array(dtype=wp.vec3d),
     labels: wp.array(dtype=int),
-    point_uncertainty: wp.array(dtype=float),
+    point_uncertainty: wp.array(dtype=wp.float64),
     owner_blocks: wp.array(dtype=wp.vec3i),
-    target_lengths: wp.array2d(dtype=float),
-    resolution: float,
-    grid_offset: float,
+    target_lengths: wp.array2d(dtype=wp.float64),
+    resolution: wp.float64,
+    grid_offset: wp.float64,
     cells_per_block: int,
     table_keys: wp.array(dtype=wp.int64),
     key_count: wp.array(dtype=int),
     max_count: int,
-    voxel_evidence: wp.array2d(dtype=float),
-    voxel_stats: wp.array2d(dtype=float),
-    voxel_flags: wp.array2d(dtype=int),
+    voxel_data: wp.array2d(dtype=wp.float64),
     failed: wp.array(dtype=int),
-    update_count: wp.array(dtype=int),
+    update_count: wp.array(dtype=wp.int64),
 ):
-    """SEE-CSOM (baselines.md 3.2, 3.6): point i updates every cell of target block owner + face_offset(j)
-    for each j with target_lengths[i, j] > 0 (the host decided which blocks may use this point and with
-    which length), with the triangular kernel max(0, 1 - d / l). Every cell of a target block is
-    touched, as the original updates all of a block's nodes. Two passes: insert, then add."""
+    """SEE-CSOM (docs/compatibility.md): point i updates every cell of target block owner +
+    face_offset(j) for each j with target_lengths[i, j] > 0 (the host decided which blocks may use this
+    point and with which length), with the triangular kernel max(0, 1 - d / l). Every cell of a target
+    block is touched, as the original updates all of a block's nodes. Two passes: insert, then add."""
     t = wp.tid()
     i = point_ids[t]
     p = points[i]
     u = point_uncertainty[i]
     n = cells_per_block
-    n_updates = int(0)
+    num_classes = voxel_data.shape[1] - _EXTRA
+    n_updates = wp.int64(0)
     for pass_index in range(2):
         for j in range(7):
             ell = target_lengths[i, j]
-            if ell > 0.0:
+            if ell > _ZERO:
                 first = (owner_blocks[i] + face_offset(j)) * n - wp.vec3i(n / 2, n / 2, n / 2)
                 for jx in range(n):
                     for jy in range(n):
@@ -346,10 +383,10 @@ def scatter_block_targets(
                                     return
                             else:
                                 slot = table_find(table_keys, key)
-                                w = wp.max(1.0 - wp.length(voxel_center(ix, iy, iz, resolution, grid_offset) - p) / ell, 0.0)
-                                wp.atomic_add(voxel_evidence, slot, labels[i], w)
-                                record_contribution(voxel_stats, voxel_flags, slot, w, u)
-                                n_updates += 1
+                                w = wp.max(_ONE - wp.length(voxel_center(ix, iy, iz, resolution, grid_offset) - p) / ell, _ZERO)
+                                wp.atomic_add(voxel_data, slot, labels[i], w)
+                                record_contribution(voxel_data, slot, num_classes, w, u)
+                                n_updates += wp.int64(1)
     wp.atomic_add(update_count, 0, n_updates)
 
 
@@ -362,13 +399,14 @@ def insert_block_cells(
     table_keys: wp.array(dtype=wp.int64),
     key_count: wp.array(dtype=int),
     max_count: int,
-    voxel_flags: wp.array2d(dtype=int),
+    voxel_data: wp.array2d(dtype=wp.float64),
     failed: wp.array(dtype=int),
 ):
     """Insert every cell of blocks[block_ids[t]] (S-BKI/S-CSM test blocks); optionally mark touched."""
     t = wp.tid()
     b = blocks[block_ids[t]]
     n = cells_per_block
+    touched_column = voxel_data.shape[1] - _EXTRA + COL_TOUCHED
     first = b * n - wp.vec3i(n / 2, n / 2, n / 2)
     ok = int(1)
     for jx in range(n):
@@ -378,6 +416,6 @@ def insert_block_cells(
                 if slot < 0:
                     ok = 0
                 elif mark_touched == 1:
-                    voxel_flags[slot, 1] = 1
+                    voxel_data[slot, touched_column] = _ONE
     if ok == 0:
         failed[t] = 1

@@ -10,7 +10,7 @@ import torch
 from evsemmap_warp.methods import convbki, see_csom
 from evsemmap_warp.config import ConfigError, load_config
 from evsemmap_warp.kernels import scatter as sc
-from evsemmap_warp.core.map_file import load_map, save_map
+from evsemmap_warp.core.mapper import load_map, save_map
 from evsemmap_warp.core.mapper import Mapper, VoxelState
 from evsemmap_warp.reference import dempster as dempster_ref
 from evsemmap_warp.reference import scatter as ref

@@ -5,6 +5,7 @@ import pytest
 import warp as wp
 
 from evsemmap_warp.kernels import hash_table as ht
+from evsemmap_warp.kernels import scatter as sc
 from evsemmap_warp.reference import hash_table as ref
 from evsemmap_warp.core.voxel_map import VoxelMap
 from evsemmap_warp.voxel_keys import pack_voxel_keys, unpack_voxel_keys
@@ -101,14 +102,12 @@ def test_growth_keeps_every_key_and_value(device):
     index = np.unique(rng.integers(-30, 30, size=(2000, 3)), axis=0)
     slots = vm.insert_voxels(index)
     assert vm.grow_count >= 1 and vm.voxel_count == len(index)
-    values = rng.random((len(index), 4)).astype(np.float32)
-    ev = vm.evidence.numpy()
-    ev[slots] = values
-    vm.evidence = wp.array(ev, dtype=float, device=device)
-    hits = rng.integers(0, 1000, len(index)).astype(np.int32)
-    flags = vm.flags.numpy().copy()
-    flags[slots, 0] = hits
-    vm.flags = wp.array(flags, dtype=int, device=device)
+    values = rng.random((len(index), 4))
+    hits = rng.integers(0, 1000, len(index))
+    data = vm.data.numpy().copy()
+    data[slots, :4] = values
+    data[slots, 4 + sc.COL_HITS] = hits
+    vm.data = wp.array(data, dtype=wp.float64, device=device)
     old_keys = vm.keys.numpy().copy()
     vm.grow(vm.capacity * 4)
     ref_keys, ref_new_slot = ref.rehash(old_keys, vm.capacity)
@@ -118,4 +117,4 @@ def test_growth_keeps_every_key_and_value(device):
     order = np.lexsort(index.T[::-1])
     np.testing.assert_array_equal(arrays.index, index[order])
     np.testing.assert_array_equal(arrays.evidence, values[order])
-    np.testing.assert_array_equal(arrays.hits, hits[order])  # the int overload of move_rows
+    np.testing.assert_array_equal(arrays.hits, hits[order])

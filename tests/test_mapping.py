@@ -134,7 +134,7 @@ def test_merge_of_disjoint_scan_sets_equals_one_map(device):
     np.testing.assert_array_equal(a.touched, b.touched)
     assert (sa.label != sb.label).sum() <= 2  # only near-ties may flip with the summation order
     assert merged.scans_integrated == 4
-    with pytest.raises(ValueError, match="same method"):
+    with pytest.raises(ValueError, match="different methods"):
         first.merge(Mapper(_config("s-bki"), K, device=device))
 
 
@@ -177,7 +177,7 @@ def test_empty_scan_is_a_no_op(mapper):
         (np.zeros((2, 3)), np.array([0, 5]), "label", r"must lie in \[0, 4\]"),
         (np.zeros((2, 3)), np.array([0.5, 1]), "label", "must be integers"),
         (np.zeros((2, 3)), np.array([0]), "label", r"shape \[2\]"),
-        (np.full((1, 3), 1e9), np.ones((1, K)) * 2, "alpha", "outside the map's key range"),
+        (np.array([[0.0, 0, 0], [1e9, 0, 0]]), np.ones((2, K)) * 2, "alpha", "outside the key range"),
     ],
 )
 def test_bad_input_gets_a_clear_error(mapper, points, payload, kind, message):

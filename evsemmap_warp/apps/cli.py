@@ -18,8 +18,7 @@ def _cmd_map(args) -> int:
     from tqdm import tqdm
 
     from ..data.datasets import open_dataset
-    from ..core.map_file import save_map
-    from ..core.mapper import Mapper, VoxelState
+    from ..core.mapper import Mapper, VoxelState, save_map
 
     run = load_config(args.configs, method=args.method)
     if run.dataset is None:

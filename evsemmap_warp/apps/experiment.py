@@ -318,8 +318,7 @@ class Experiment:
 
     def map_and_score(self, condition: str, method: str, bins: list, gt) -> MapScores:
         from ..data.classes import class_set
-        from ..core.map_file import load_map, save_map
-        from ..core.mapper import Mapper
+        from ..core.mapper import Mapper, load_map, save_map
 
         run = load_config([preset_path(self.config.mapping_preset)], method=method)
         mapping = run.mapping

@@ -6,12 +6,19 @@
     mapper.save("map.npz")
 
 Input checks live here, before any launch: shapes, NaN/inf, class counts, negative evidence.
+
+Coordinates: the map keeps a float64 origin, a multiple of ORIGIN_STEP_VOXELS voxels near the
+first scan, and hands the integrators points relative to it, so kernels see small numbers however
+far from (0, 0, 0) the data lie (UTM coordinates, say). Voxel indices outside the Mapper are global
+(relative to the lattice's zero), so maps of one area from different drives stay comparable and
+mergeable whatever origin each picked.
 """
 
 from __future__ import annotations
 
 import enum
 import os
+from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -19,9 +26,11 @@ import numpy as np
 
 from .. import __version__
 from ..config import Compat, Fusion, Kernel, MappingConfig, PayloadType
+from ..voxel_keys import check_index_range
+from . import map_file
 from .integrators import (ConvBkiIntegrator, IntegrationStats, KernelIntegrator, SbkiCompatIntegrator, ScanPayload,
                           SeeCsomIntegrator)
-from .voxel_map import FLAG_TOUCHED, VoxelArrays, VoxelMap, sum_voxel_arrays
+from .voxel_map import EXTRA_COLUMNS, VoxelArrays, VoxelMap, add_duplicate_voxels, sum_voxel_arrays
 
 
 class VoxelState(enum.IntEnum):
@@ -32,6 +41,10 @@ class VoxelState(enum.IntEnum):
 
 UNKNOWN_LABEL = -1  # query label of a point whose voxel is not in the map
 FREE_CLASS = 0  # label 0 (void) means free space
+# The automatic origin is a multiple of this many voxels (1.6 km at 0.2 m): data within half of it
+# of (0, 0, 0) keep the origin at zero, and it is a multiple of every block size (S-BKI's 2^(depth-1)
+# cells, SEE-CSOM's 2), so blocks line up between maps of one area.
+ORIGIN_STEP_VOXELS = 8192
 
 
 @dataclass
@@ -46,13 +59,13 @@ class DirichletSummary:
 
 
 def summarize_dirichlet(alpha: np.ndarray, touched: np.ndarray) -> DirichletSummary:
-    # float32 throughout, as the original code, so near-ties resolve the same way.
-    alpha = np.asarray(alpha, dtype=np.float32)
-    total = alpha.sum(axis=1, dtype=np.float32)
+    # float64: concentrations of a long drive's ground voxels differ in digits float32 does not hold.
+    alpha = np.asarray(alpha, dtype=np.float64)
+    total = alpha.sum(axis=1)
     probabilities = alpha / total[:, None]
     label = np.argmax(probabilities, axis=1)
     p = probabilities[np.arange(len(label)), label]
-    variance = ((p - p * p) / (total + np.float32(1.0))).astype(np.float32)
+    variance = (p - p * p) / (total + 1.0)
     state = np.where(label == FREE_CLASS, VoxelState.FREE, VoxelState.OCCUPIED).astype(np.int8)
     state[~np.asarray(touched, dtype=bool)] = VoxelState.UNKNOWN
     return DirichletSummary(label.astype(np.int32), probabilities, variance, state)
@@ -64,22 +77,22 @@ def belief_masses(log_commonality: np.ndarray) -> np.ndarray:
     the frame keeps 1 / (same). Computed in float64 relative to max D, so no exponent overflows."""
     d = np.asarray(log_commonality, dtype=np.float64)
     if d.size == 0:
-        return d.astype(np.float32)
+        return d
     top = d.max(axis=1, keepdims=True)
     scaled = np.exp(d - top) - np.exp(-top)
-    return (scaled / (scaled.sum(axis=1, keepdims=True) + np.exp(-top))).astype(np.float32)
+    return scaled / (scaled.sum(axis=1, keepdims=True) + np.exp(-top))
 
 
 def summarize_beliefs(masses: np.ndarray, touched: np.ndarray) -> DirichletSummary:
     """Spec 3.10 read-out: label = argmax of the masses (all zero -> 0, FREE), probabilities =
     masses / their sum, "variance" = the uncommitted mass 1 - sum m."""
-    masses = np.asarray(masses, dtype=np.float32)
+    masses = np.asarray(masses, dtype=np.float64)
     committed = masses.sum(axis=1)
     probabilities = np.divide(masses, committed[:, None], out=np.zeros_like(masses), where=committed[:, None] > 0)
     label = np.argmax(masses, axis=1).astype(np.int32)
     state = np.where(label == FREE_CLASS, VoxelState.FREE, VoxelState.OCCUPIED).astype(np.int8)
     state[~np.asarray(touched, dtype=bool)] = VoxelState.UNKNOWN
-    return DirichletSummary(label, probabilities, (1.0 - committed).astype(np.float32), state)
+    return DirichletSummary(label, probabilities, 1.0 - committed, state)
 
 
 @dataclass
@@ -157,7 +170,9 @@ class Mapper:
 
     ``workers``: CPU threads that scatter in parallel, each into its own shard (default: up to 2 on
     the CPU, where one Warp launch uses one core; always 1 on CUDA). Results do not depend on it
-    beyond float32 summation order."""
+    beyond float64 summation order. ``origin`` [3] (m): where the map's key range is centred; by
+    default the first scan's bounding-box centre. Either is snapped to a multiple of
+    ORIGIN_STEP_VOXELS voxels; the map spans +-2^20 voxels around it."""
 
     def __init__(
         self,
@@ -168,6 +183,7 @@ class Mapper:
         device: str | None = "cpu",
         initial_capacity: int = 1 << 16,
         workers: int | None = None,
+        origin=None,
     ):
         self.config = config
         self.num_classes = int(num_classes)
@@ -193,6 +209,9 @@ class Mapper:
             raise ValueError(f"workers must be >= 1, and 1 on a CUDA device; got {workers} on {self.device}")
         self.shards = [first] + [self._new_shard(self.device) for _ in range(workers - 1)]
         self._executor = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="evsemmap") if workers > 1 else None
+        self.origin_index: np.ndarray | None = None  # [3] int64, global index of the origin voxel corner
+        if origin is not None:
+            self.origin_index = self._snap_origin(_validate_points(np.asarray(origin, dtype=np.float64).reshape(1, 3), "origin")[0])
         self.scans_integrated = 0
         self.points_integrated = 0
         self._summary_cache: tuple[VoxelArrays, DirichletSummary] | None = None
@@ -200,6 +219,19 @@ class Mapper:
     def _new_shard(self, device) -> VoxelMap:
         return VoxelMap(self.num_classes, self.config.resolution_m, prior=self.config.prior,
                         grid_offset_m=self.grid_offset_m, device=device, initial_capacity=self._initial_capacity)
+
+    def _snap_origin(self, point: np.ndarray) -> np.ndarray:
+        step = ORIGIN_STEP_VOXELS * self.config.resolution_m
+        return (np.round(point / step) * ORIGIN_STEP_VOXELS).astype(np.int64)
+
+    @property
+    def origin(self) -> np.ndarray:
+        """The map origin (m, float64): a point of the voxel lattice, kernels work relative to it."""
+        index = self.origin_index if self.origin_index is not None else np.zeros(3, np.int64)
+        return index.astype(np.float64) * self.config.resolution_m
+
+    def _local(self, points: np.ndarray) -> np.ndarray:
+        return points - self.origin
 
     @property
     def voxel_count(self) -> int:
@@ -219,11 +251,14 @@ class Mapper:
         scan = prepare_payload(points, payload, payload_type, self.num_classes)
         if len(scan.points) == 0:
             return IntegrationStats()
+        if self.origin_index is None:
+            self.origin_index = self._snap_origin((scan.points.min(axis=0) + scan.points.max(axis=0)) / 2)
+        scan.points = self._local(scan.points)
         if isinstance(self.integrator, (SbkiCompatIntegrator, SeeCsomIntegrator)):
             if sensor_origin is None:
                 raise ValueError(f"sensor_origin: {self.config.method} adds the sensor origin (and free-space rays) as free samples; pass it")
             origin = _validate_points(np.asarray(sensor_origin, dtype=np.float64).reshape(1, 3), "sensor_origin")[0]
-            stats = self.integrator.integrate(self.shards, scan, origin, self._executor)
+            stats = self.integrator.integrate(self.shards, scan, self._local(origin), self._executor)
         else:
             stats = self.integrator.integrate(self.shards, scan, self._executor)
         self.scans_integrated += 1
@@ -232,19 +267,25 @@ class Mapper:
         return stats
 
     # ------------------------------------------------------------------ reading
+    def _local_voxels(self) -> VoxelArrays:
+        return sum_voxel_arrays([shard.arrays() for shard in self.shards])
+
     def voxels(self) -> tuple[VoxelArrays, DirichletSummary]:
-        """All stored voxels in key order and their post-pass (cached until the next integrate)."""
+        """All stored voxels in key order, with global indices, and their post-pass (cached until the
+        next integrate)."""
         if self._summary_cache is None:
-            arrays = sum_voxel_arrays([shard.arrays() for shard in self.shards])
+            arrays = self._local_voxels()
+            if self.origin_index is not None:
+                arrays.index = arrays.index + self.origin_index
             self._summary_cache = (arrays, self.summarize(arrays.evidence, arrays.touched))
         return self._summary_cache
 
     def concentrations(self, evidence: np.ndarray) -> np.ndarray:
-        """Dirichlet concentrations alpha = prior + evidence, in float32; for the Dempster-Shafer
+        """Dirichlet concentrations alpha = prior + evidence (float64); for the Dempster-Shafer
         method, the belief masses (what the map file stores as ``alpha`` for it)."""
         if self.config.fusion is Fusion.DEMPSTER:
             return belief_masses(evidence)
-        return np.float32(self.config.prior) + np.asarray(evidence, dtype=np.float32)
+        return self.config.prior + np.asarray(evidence, dtype=np.float64)
 
     def summarize(self, evidence: np.ndarray, touched: np.ndarray) -> DirichletSummary:
         if self.config.fusion is Fusion.DEMPSTER:
@@ -252,23 +293,24 @@ class Mapper:
         return summarize_dirichlet(self.concentrations(evidence), touched)
 
     def voxel_centers(self, index: np.ndarray) -> np.ndarray:
+        """World centres (m, float64) of global voxel indices."""
         return (np.asarray(index, dtype=np.float64) + 0.5) * self.config.resolution_m + self.grid_offset_m
 
     def query(self, points) -> QueryResult:
-        """Label, probabilities, variance and state of the voxel containing each point [M, 3]."""
+        """Label, probabilities, variance and state of the voxel containing each point [M, 3];
+        label -1 (UNKNOWN state) for points in no stored voxel, however far away."""
         points = _validate_points(points, "query points")
-        m, k = len(points), self.num_classes
-        evidence = np.zeros((m, k), dtype=np.float32)
-        touched = np.zeros(m, dtype=bool)
+        m = len(points)
+        rows = np.zeros((m, self.num_classes + EXTRA_COLUMNS))
         found = np.zeros(m, dtype=bool)
-        for shard in self.shards:
-            slots = shard.lookup_points(points)
-            hit = slots >= 0
-            if hit.any():
-                evidence[hit] += shard.evidence.numpy()[slots[hit]]
-                touched[hit] |= shard.flags.numpy()[slots[hit], FLAG_TOUCHED] > 0
-            found |= hit
-        summary = self.summarize(evidence, touched)
+        if self.origin_index is not None and m:
+            local = self._local(points)
+            for shard in self.shards:
+                slots = shard.lookup_points(local)
+                rows += shard.rows_at(slots)
+                found |= slots >= 0
+        arrays = VoxelArrays.from_rows(np.zeros((m, 3), np.int64), rows)
+        summary = self.summarize(arrays.evidence, arrays.touched)
         label = np.where(found, summary.label, UNKNOWN_LABEL).astype(np.int32)
         return QueryResult(label, summary.probabilities, summary.variance, summary.state)
 
@@ -277,39 +319,82 @@ class Mapper:
         return {s.name: int((summary.state == s).sum()) for s in VoxelState}
 
     # ------------------------------------------------------------------ files and merging
-    def save(self, path) -> None:
-        from .map_file import save_map
-
-        save_map(path, self)
+    def save(self, path) -> Path:
+        """Write the map file (schema in ``core/map_file.py``)."""
+        arrays, summary = self.voxels()
+        return map_file.write_map_file(path, map_file.MapContents(
+            meta=self.metadata(), origin=self.origin, index=arrays.index, evidence=arrays.evidence,
+            alpha=self.concentrations(arrays.evidence), centers=self.voxel_centers(arrays.index), summary=summary,
+            weight_sum=arrays.weight_sum, weighted_uncertainty_sum=arrays.weighted_uncertainty_sum, hits=arrays.hits,
+            touched=arrays.touched, resolution=self.config.resolution_m))
 
     @classmethod
     def load(cls, path, *, device: str | None = "cpu") -> "Mapper":
-        from .map_file import load_map
+        """A map file (validated on reading) as a Mapper that can be queried, extended and merged."""
+        contents = map_file.read_map_file(path)
+        meta = contents.meta
+        mapper = cls(contents.config, int(meta["num_classes"]), class_names=meta["classes"], device=device)
+        try:
+            mapper.load_voxels(VoxelArrays(index=contents.index, evidence=contents.evidence, weight_sum=contents.weight_sum,
+                                           weighted_uncertainty_sum=contents.weighted_uncertainty_sum, hits=contents.hits,
+                                           touched=contents.touched), origin_index=contents.origin_index)
+        except ValueError as exc:
+            raise map_file.MapFileError(f"{path}: {exc}") from None
+        mapper.scans_integrated = int(meta["scans_integrated"])
+        mapper.points_integrated = int(meta["points_integrated"])
+        return mapper
 
-        return load_map(path, device=device)
+    def check_mergeable(self, other: "Mapper") -> None:
+        """Raise ValueError naming what differs when the two maps cannot be added up."""
+        if self.class_names != other.class_names:
+            raise ValueError(f"merge: the maps have different classes ({list(self.class_names)} vs {list(other.class_names)})")
+        if self.config.resolution_m != other.config.resolution_m:
+            raise ValueError(f"merge: the maps have different resolutions ({self.config.resolution_m} m vs {other.config.resolution_m} m)")
+        if self.config.method != other.config.method:
+            raise ValueError(f"merge: the maps come from different methods ({self.config.method} vs {other.config.method})")
+        mine, theirs = self.config.as_dict(), other.config.as_dict()
+        differing = sorted(k for k in mine if mine[k] != theirs[k])
+        if differing:
+            raise ValueError("merge: the maps' parameters differ: " + ", ".join(f"{k} {mine[k]!r} vs {theirs[k]!r}" for k in differing))
 
     def merge(self, other: "Mapper") -> "Mapper":
-        """A new map holding the evidence of both: evidence (concentration above the prior), weights
-        and counts add, touched is or-ed. Exact up to float32 summation order: BKI updates are sums."""
-        if self.config != other.config or self.num_classes != other.num_classes:
-            raise ValueError("merge: both maps must come from the same method, parameters and class count")
-        merged = sum_voxel_arrays([self.voxels()[0], other.voxels()[0]])
+        """A new map holding the evidence of both (maps of disjoint scan sets): evidence (concentration
+        above the prior), weights and counts add, touched is or-ed; a map with another origin on the
+        same lattice is re-indexed. Exact up to float64 summation order: BKI updates are sums."""
+        self.check_mergeable(other)
         out = Mapper(self.config, self.num_classes, class_names=self.class_names, device=self.device, workers=len(self.shards))
-        out.load_voxels(merged)
+        out.origin_index = self.origin_index if self.origin_index is not None else other.origin_index
+        parts = [m.voxels()[0] for m in (self, other) if m.origin_index is not None]
+        if parts:
+            index = np.concatenate([p.index for p in parts])
+            merged = VoxelArrays.from_rows(index, np.concatenate([p.rows() for p in parts]))
+            try:
+                out.load_voxels(merged, origin_index=out.origin_index)
+            except ValueError as exc:
+                raise ValueError(f"merge: the maps lie too far apart for one map ({exc})") from None
         out.scans_integrated = self.scans_integrated + other.scans_integrated
         out.points_integrated = self.points_integrated + other.points_integrated
         return out
 
-    def load_voxels(self, voxels: VoxelArrays) -> None:
-        """Replace the map's contents with ``voxels`` exactly (file loading, merging)."""
-        self.shards[0].load_arrays(voxels)
+    def load_voxels(self, voxels: VoxelArrays, *, origin_index=None) -> None:
+        """Replace the map's contents with ``voxels`` (global indices; several rows of one voxel are
+        added up), re-indexed around ``origin_index`` (default: the map's own, or the data's centre)."""
+        if origin_index is None:
+            origin_index = self.origin_index
+        if origin_index is None and len(voxels.index):
+            centre = (voxels.index.min(axis=0) + voxels.index.max(axis=0)) // 2
+            origin_index = self._snap_origin(centre * self.config.resolution_m)
+        self.origin_index = None if origin_index is None else np.asarray(origin_index, np.int64).reshape(3)
+        local = voxels.index - (self.origin_index if self.origin_index is not None else 0)
+        check_index_range(local, "voxel indices")
+        self.shards[0].load_arrays(add_duplicate_voxels(local, voxels.rows()))
         for i in range(1, len(self.shards)):
             self.shards[i] = self._new_shard(self.device)
         self._summary_cache = None
 
     def metadata(self) -> dict:
         return {
-            "format": "evsemmap_warp.map",
+            "format": map_file.FORMAT_NAME,
             "classes": list(self.class_names),
             "num_classes": self.num_classes,
             "method": self.config.method,
@@ -319,3 +404,11 @@ class Mapper:
             "points_integrated": self.points_integrated,
             "written_by": f"evsemmap_warp {__version__}",
         }
+
+
+def save_map(path, mapper: Mapper) -> Path:
+    return mapper.save(path)
+
+
+def load_map(path, *, device: str | None = "cpu") -> Mapper:
+    return Mapper.load(path, device=device)

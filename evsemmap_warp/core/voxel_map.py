@@ -1,14 +1,15 @@
 """The sparse voxel map: a Warp hash table of voxel keys plus per-voxel arrays on one device.
 
-Voxel i spans [i r + o, (i + 1) r + o) on every axis (r = resolution, o = grid offset, 0 except
-for the S-CSM compatibility grid), so its centre is (i + 0.5) r + o. Per slot the map keeps:
+Voxel i spans [i r + o, (i + 1) r + o) on every axis in coordinates relative to the map origin
+(r = resolution, o = grid offset, 0 except for the S-CSM compatibility grid), so its centre is
+(i + 0.5) r + o. Per slot the map keeps one float64 row ``data`` [capacity, K + 4]:
 
-* ``evidence`` [capacity, K] float32: kernel-weighted evidence added so far; the Dirichlet
-  concentrations are prior + evidence (stored without the prior so that fresh slots are zero
-  pages and maps merge by plain addition);
-* ``stats`` [capacity, 2] float32: sum of kernel weights, sum of weight * input uncertainty;
-* ``flags`` [capacity, 2] int32: number of contributions, touched (1 once any update landed).
+* K columns of kernel-weighted evidence added so far; the Dirichlet concentrations are prior +
+  evidence (stored without the prior so that fresh slots are zero pages and maps merge by addition);
+* the sum of kernel weights and of weight * input uncertainty;
+* the number of contributions and the touched flag (1 once any update landed).
 
+float64, because evidence on a ground voxel of a long drive passes float32's 2^24 integer limit.
 The table grows (2x, rehash) before it passes ``max_load`` and whenever a launch runs out of room;
 the points or blocks that could not be inserted are relaunched, so a voxel is never dropped or
 overwritten. This class only launches kernels; methods, payloads and files live elsewhere.
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..voxel_keys import check_index_range, pack_voxel_keys, unpack_voxel_keys
+from ..voxel_keys import pack_voxel_keys, unpack_voxel_keys
 from .warp_runtime import init_warp, resolve_device
 
 wp = init_warp()
@@ -28,10 +29,7 @@ wp = init_warp()
 from ..kernels import hash_table as ht  # noqa: E402
 from ..kernels import scatter as sc  # noqa: E402
 
-STAT_WEIGHT = 0
-STAT_WEIGHTED_UNCERTAINTY = 1
-FLAG_HITS = 0
-FLAG_TOUCHED = 1
+EXTRA_COLUMNS = sc.EXTRA_COLUMNS
 
 MIN_CAPACITY = 16
 # Inside one launch the table may fill up to this fraction before insertions fail and it grows;
@@ -41,14 +39,27 @@ LAUNCH_FILL_LIMIT = 0.75
 
 @dataclass
 class VoxelArrays:
-    """Host copy of every stored voxel, in ascending key order (x, then y, then z index)."""
+    """Host copy of every stored voxel, in ascending key order (x, then y, then z index); indices
+    are relative to the map origin."""
 
     index: np.ndarray  # [V, 3] int64 voxel indices
-    evidence: np.ndarray  # [V, K] float32; concentrations are prior + evidence
-    weight_sum: np.ndarray  # [V] float32
-    weighted_uncertainty_sum: np.ndarray  # [V] float32
-    hits: np.ndarray  # [V] int32
+    evidence: np.ndarray  # [V, K] float64; concentrations are prior + evidence
+    weight_sum: np.ndarray  # [V] float64
+    weighted_uncertainty_sum: np.ndarray  # [V] float64
+    hits: np.ndarray  # [V] int64
     touched: np.ndarray  # [V] bool
+
+    @classmethod
+    def from_rows(cls, index: np.ndarray, rows: np.ndarray) -> "VoxelArrays":
+        k = rows.shape[1] - EXTRA_COLUMNS
+        return cls(index=np.asarray(index, np.int64), evidence=rows[:, :k].copy(),
+                   weight_sum=rows[:, k + sc.COL_WEIGHT].copy(), weighted_uncertainty_sum=rows[:, k + sc.COL_WEIGHTED_UNCERTAINTY].copy(),
+                   hits=rows[:, k + sc.COL_HITS].astype(np.int64), touched=rows[:, k + sc.COL_TOUCHED] > 0)
+
+    def rows(self) -> np.ndarray:
+        """The [V, K + 4] float64 layout of the table's data array."""
+        return np.column_stack([self.evidence, self.weight_sum, self.weighted_uncertainty_sum,
+                                self.hits.astype(np.float64), self.touched.astype(np.float64)])
 
 
 def _next_pow2(n: int) -> int:
@@ -96,9 +107,7 @@ class VoxelMap:
         self.capacity = capacity
         self.keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
         self.key_count = wp.zeros(1, dtype=int, device=self.device)
-        self.evidence = self._filled((capacity, self.num_classes), 0.0, wp.float32)
-        self.stats = self._filled((capacity, 2), 0.0, wp.float32)
-        self.flags = self._filled((capacity, 2), 0, wp.int32)
+        self.data = self._filled((capacity, self.num_classes + EXTRA_COLUMNS), 0.0, wp.float64)
 
     @property
     def voxel_count(self) -> int:
@@ -106,8 +115,8 @@ class VoxelMap:
 
     @property
     def table_bytes(self) -> int:
-        """Device bytes of the table and per-slot arrays (key, evidence, stats, flags)."""
-        return (8 + 4 * self.num_classes + 4 * 2 + 4 * 2) * self.capacity
+        """Device bytes of the table and its per-slot data (key, K + 4 float64 columns)."""
+        return (8 + 8 * (self.num_classes + EXTRA_COLUMNS)) * self.capacity
 
     def _launch_fill_limit(self) -> int:
         return max(1, int(self.capacity * LAUNCH_FILL_LIMIT))
@@ -126,12 +135,11 @@ class VoxelMap:
         new_capacity = _next_pow2(new_capacity)
         if new_capacity < self.voxel_count / LAUNCH_FILL_LIMIT:
             raise ValueError(f"cannot shrink the table to {new_capacity} slots: it holds {self.voxel_count} voxels")
-        old_keys, old_evidence, old_stats, old_flags, old_capacity = self.keys, self.evidence, self.stats, self.flags, self.capacity
+        old_keys, old_data, old_capacity = self.keys, self.data, self.capacity
         self._allocate(new_capacity)
         new_slot = wp.empty(old_capacity, dtype=int, device=self.device)
         wp.launch(ht.rehash, dim=old_capacity, inputs=[old_keys, self.keys, self.key_count, new_slot], device=self.device)
-        for src, dst in ((old_evidence, self.evidence), (old_stats, self.stats), (old_flags, self.flags)):
-            wp.launch(ht.move_rows, dim=old_capacity, inputs=[src, dst, new_slot], device=self.device)
+        wp.launch(ht.move_rows, dim=old_capacity, inputs=[old_data, self.data, new_slot], device=self.device)
         self.grow_count += 1
 
     # ------------------------------------------------------------------ launches
@@ -140,8 +148,9 @@ class VoxelMap:
         lo, hi = int(np.min(lo_index)), int(np.max(hi_index))
         if lo < -limit or hi >= limit:
             raise ValueError(
-                f"points reach voxel indices {lo}..{hi}, outside the map's key range +-{limit} at resolution "
-                f"{self.resolution_m} m (|coordinates| must stay below {limit * self.resolution_m:.0f} m); recentre the data"
+                f"points reach voxel indices {lo}..{hi} around the map origin, outside the key range +-{limit} at resolution "
+                f"{self.resolution_m} m: one map spans at most +-{limit * self.resolution_m:.0f} m around its origin "
+                f"(split the data into maps of separate areas)"
             )
 
     def _launch_until_done(self, n: int, launch, *, may_insert: bool) -> None:
@@ -199,25 +208,25 @@ class VoxelMap:
                                     np.floor((points.max(axis=0) + reach - self.grid_offset_m) / self.resolution_m))
         d = self.device
         use_labels = labels is not None
-        empty_weights = np.zeros((0, self.num_classes), np.float32)
+        empty_weights = np.zeros((0, self.num_classes), np.float64)
         empty_owners = np.zeros((0, 3), np.int32)
         inputs = [
-            wp.array(np.ascontiguousarray(points, dtype=np.float32), dtype=wp.vec3, device=d),
+            _points_array(points, d),
             wp.array(np.ascontiguousarray(labels if use_labels else [], dtype=np.int32), dtype=int, device=d),
-            wp.array(empty_weights if use_labels else np.ascontiguousarray(class_weights, dtype=np.float32), dtype=float, device=d),
-            wp.array(np.ascontiguousarray(lengths, dtype=np.float32), dtype=float, device=d),
-            wp.array(np.ascontiguousarray(point_uncertainty, dtype=np.float32), dtype=float, device=d),
+            _float_array(empty_weights if use_labels else class_weights, d),
+            _float_array(lengths, d),
+            _float_array(point_uncertainty, d),
             wp.array(empty_owners if owner_blocks is None else np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d),
-            int(mode), int(use_labels), self.resolution_m, self.grid_offset_m, float(sigma0), int(cells_per_block), int(fusion),
-            wp.array(np.zeros((0, self.num_classes), np.float32) if stencil_weights is None else np.ascontiguousarray(stencil_weights, dtype=np.float32), dtype=float, device=d),
+            int(mode), int(use_labels), wp.float64(self.resolution_m), wp.float64(self.grid_offset_m), wp.float64(sigma0),
+            int(cells_per_block), int(fusion),
+            _float_array(empty_weights if stencil_weights is None else stencil_weights, d),
             int(stencil_half),
         ]
-        update_count = wp.zeros(1, dtype=int, device=d)
+        update_count = wp.zeros(1, dtype=wp.int64, device=d)
 
         def launch(ids, failed):
             wp.launch(sc.scatter_points, dim=len(ids), device=d, inputs=[
-                ids, *inputs, self.keys, self.key_count, self._launch_fill_limit(),
-                self.evidence, self.stats, self.flags, failed, update_count])
+                ids, *inputs, self.keys, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
 
         self._launch_until_done(n, launch, may_insert=mode in (sc.MODE_RADIUS, sc.MODE_OWN_VOXEL, sc.MODE_STENCIL))
         return int(update_count.numpy()[0])
@@ -232,19 +241,18 @@ class VoxelMap:
         self._check_index_range(first.min(axis=0) - cells_per_block, first.max(axis=0) + 2 * cells_per_block - 1)
         d = self.device
         inputs = [
-            wp.array(np.ascontiguousarray(points, dtype=np.float32), dtype=wp.vec3, device=d),
+            _points_array(points, d),
             wp.array(np.ascontiguousarray(labels, dtype=np.int32), dtype=int, device=d),
-            wp.array(np.ascontiguousarray(point_uncertainty, dtype=np.float32), dtype=float, device=d),
+            _float_array(point_uncertainty, d),
             wp.array(np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d),
-            wp.array(np.ascontiguousarray(target_lengths, dtype=np.float32), dtype=float, device=d),
-            self.resolution_m, self.grid_offset_m, int(cells_per_block),
+            _float_array(target_lengths, d),
+            wp.float64(self.resolution_m), wp.float64(self.grid_offset_m), int(cells_per_block),
         ]
-        update_count = wp.zeros(1, dtype=int, device=d)
+        update_count = wp.zeros(1, dtype=wp.int64, device=d)
 
         def launch(ids, failed):
             wp.launch(sc.scatter_block_targets, dim=len(ids), device=d, inputs=[
-                ids, *inputs, self.keys, self.key_count, self._launch_fill_limit(),
-                self.evidence, self.stats, self.flags, failed, update_count])
+                ids, *inputs, self.keys, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
 
         self._launch_until_done(n, launch, may_insert=True)
         return int(update_count.numpy()[0])
@@ -262,7 +270,7 @@ class VoxelMap:
         def launch(ids, failed):
             wp.launch(sc.insert_block_cells, dim=len(ids), device=d, inputs=[
                 ids, blocks_wp, int(cells_per_block), int(mark_touched),
-                self.keys, self.key_count, self._launch_fill_limit(), self.flags, failed])
+                self.keys, self.key_count, self._launch_fill_limit(), self.data, failed])
 
         self._launch_until_done(len(blocks), launch, may_insert=True)
 
@@ -282,9 +290,9 @@ class VoxelMap:
         """Slot of the voxel containing each point [M, 3], -1 where that voxel is not stored."""
         if len(points) == 0:
             return np.zeros(0, dtype=np.int64)
-        pts = wp.array(np.ascontiguousarray(points, dtype=np.float32), dtype=wp.vec3, device=self.device)
         slots = wp.empty(len(points), dtype=int, device=self.device)
-        wp.launch(ht.lookup_points, dim=len(points), inputs=[pts, self.resolution_m, self.grid_offset_m, self.keys, slots], device=self.device)
+        wp.launch(ht.lookup_points, dim=len(points), device=self.device,
+                  inputs=[_points_array(points, self.device), wp.float64(self.resolution_m), wp.float64(self.grid_offset_m), self.keys, slots])
         return slots.numpy().astype(np.int64)
 
     # ------------------------------------------------------------------ host views
@@ -296,33 +304,39 @@ class VoxelMap:
 
     def arrays(self) -> VoxelArrays:
         slots = self.occupied_slots()
-        keys = self.keys.numpy()[slots]
-        stats = self.stats.numpy()[slots]
-        flags = self.flags.numpy()[slots]
-        return VoxelArrays(
-            index=unpack_voxel_keys(keys),
-            evidence=self.evidence.numpy()[slots].copy(),
-            weight_sum=stats[:, STAT_WEIGHT].copy(),
-            weighted_uncertainty_sum=stats[:, STAT_WEIGHTED_UNCERTAINTY].copy(),
-            hits=flags[:, FLAG_HITS].astype(np.int32),
-            touched=flags[:, FLAG_TOUCHED].astype(bool),
-        )
+        return VoxelArrays.from_rows(unpack_voxel_keys(self.keys.numpy()[slots]), self.data.numpy()[slots])
+
+    def rows_at(self, slots: np.ndarray) -> np.ndarray:
+        """The [len(slots), K + 4] data rows of the given slots (zeros for slot -1); copies only those
+        rows to the host."""
+        slots = np.asarray(slots, dtype=np.int64)
+        out = np.zeros((len(slots), self.num_classes + EXTRA_COLUMNS))
+        hit = np.flatnonzero(slots >= 0)
+        if len(hit):
+            if self.device == "cpu":
+                out[hit] = self.data.numpy()[slots[hit]]
+            else:
+                picked = wp.empty((len(hit), out.shape[1]), dtype=wp.float64, device=self.device)
+                wp.launch(ht.gather_rows, dim=len(hit), device=self.device,
+                          inputs=[self.data, wp.array(slots[hit].astype(np.int32), dtype=int, device=self.device), picked])
+                out[hit] = picked.numpy()
+        return out
 
     def load_arrays(self, voxels: VoxelArrays) -> None:
         """Replace the contents with ``voxels`` (exactly: the values are copied, not re-added)."""
         self._allocate(max(MIN_CAPACITY, _next_pow2(int(len(voxels.index) / self.max_load) + 1)))
         slots = self.insert_voxels(voxels.index) if len(voxels.index) else np.zeros(0, np.int64)
-        evidence = np.zeros((self.capacity, self.num_classes), dtype=np.float32)
-        stats = np.zeros((self.capacity, 2), dtype=np.float32)
-        flags = np.zeros((self.capacity, 2), dtype=np.int32)
-        evidence[slots] = voxels.evidence
-        stats[slots, STAT_WEIGHT] = voxels.weight_sum
-        stats[slots, STAT_WEIGHTED_UNCERTAINTY] = voxels.weighted_uncertainty_sum
-        flags[slots, FLAG_HITS] = voxels.hits
-        flags[slots, FLAG_TOUCHED] = voxels.touched
-        self.evidence = wp.array(evidence, dtype=float, device=self.device)
-        self.stats = wp.array(stats, dtype=float, device=self.device)
-        self.flags = wp.array(flags, dtype=int, device=self.device)
+        data = np.zeros((self.capacity, self.num_classes + EXTRA_COLUMNS))
+        data[slots] = voxels.rows()
+        self.data = wp.array(data, dtype=wp.float64, device=self.device)
+
+
+def _points_array(points: np.ndarray, device: str):
+    return wp.array(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3), dtype=wp.vec3d, device=device)
+
+
+def _float_array(values: np.ndarray, device: str):
+    return wp.array(np.ascontiguousarray(values, dtype=np.float64), dtype=wp.float64, device=device)
 
 
 _loaded_devices: set[str] = set()
@@ -338,27 +352,18 @@ def _load_kernels(device: str) -> None:
 
 
 def sum_voxel_arrays(parts: list[VoxelArrays]) -> VoxelArrays:
-    """Union of several maps' voxels, adding evidence, weights and hits and or-ing touched.
-    BKI updates are sums, so this is exact up to float32 summation order."""
+    """Union of several maps' voxels (indices relative to one origin), adding evidence, weights and
+    hits and or-ing touched. BKI updates are sums, so this is exact up to float64 summation order."""
     if len(parts) == 1:
         return parts[0]
-    index = np.concatenate([p.index for p in parts])
-    packed = pack_voxel_keys(index)
-    keys, first, inverse = np.unique(packed, return_index=True, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    v = len(keys)
+    return add_duplicate_voxels(np.concatenate([p.index for p in parts]), np.concatenate([p.rows() for p in parts]))
 
-    def add(name):
-        values = np.concatenate([getattr(p, name) for p in parts])
-        if values.ndim == 1:
-            return np.bincount(inverse, weights=values, minlength=v)
-        return np.stack([np.bincount(inverse, weights=values[:, k], minlength=v) for k in range(values.shape[1])], axis=1)
 
-    return VoxelArrays(
-        index=index[first],
-        evidence=add("evidence").astype(np.float32),
-        weight_sum=add("weight_sum").astype(np.float32),
-        weighted_uncertainty_sum=add("weighted_uncertainty_sum").astype(np.float32),
-        hits=add("hits").astype(np.int32),
-        touched=add("touched") > 0,
-    )
+def add_duplicate_voxels(index: np.ndarray, rows: np.ndarray) -> VoxelArrays:
+    """One row per distinct voxel of ``index`` [N, 3] (relative to the origin), in key order: the
+    [N, K + 4] data rows of repeated voxels are added, their touched flags or-ed."""
+    keys, first, inverse = np.unique(pack_voxel_keys(index), return_index=True, return_inverse=True)
+    summed = np.zeros((len(keys), rows.shape[1]))
+    np.add.at(summed, inverse.reshape(-1), rows)
+    summed[:, -1] = np.minimum(summed[:, -1], 1.0)  # touched is or-ed, not added
+    return VoxelArrays.from_rows(np.asarray(index, np.int64)[first].reshape(-1, 3), summed)

@@ -32,6 +32,8 @@ def hash_slot(key: int, mask: int) -> int:
 
 
 def table_find(table_keys: np.ndarray, key: int) -> int:
+    if key == EMPTY_KEY:
+        return -1
     mask = len(table_keys) - 1
     slot = hash_slot(key, mask)
     for _ in range(len(table_keys)):
@@ -44,6 +46,8 @@ def table_find(table_keys: np.ndarray, key: int) -> int:
 
 
 def table_find_or_insert(table_keys: np.ndarray, key_count: list[int], max_count: int, key: int) -> int:
+    if key == EMPTY_KEY:
+        return -1
     mask = len(table_keys) - 1
     slot = hash_slot(key, mask)
     for _ in range(len(table_keys)):
@@ -69,8 +73,12 @@ def lookup_keys(keys_in: np.ndarray, table_keys: np.ndarray) -> np.ndarray:
 
 
 def lookup_points(points: np.ndarray, resolution: float, grid_offset: float, table_keys: np.ndarray) -> np.ndarray:
-    index = np.floor((np.asarray(points, dtype=np.float64) - grid_offset) / resolution).astype(np.int64)
-    return lookup_keys(pack_key(index), table_keys)
+    """Slot of each point's voxel; -1 outside the key range or where the voxel is not stored."""
+    index = np.floor((np.asarray(points, dtype=np.float64) - grid_offset) / resolution)
+    inside = np.all((index >= -KEY_OFFSET) & (index < KEY_OFFSET), axis=-1)
+    slots = np.full(len(index), -1, dtype=np.int64)
+    slots[inside] = lookup_keys(pack_key(index[inside].astype(np.int64)), table_keys)
+    return slots
 
 
 def rehash(old_keys: np.ndarray, new_capacity: int) -> tuple[np.ndarray, np.ndarray]:
@@ -88,3 +96,8 @@ def move_rows(src: np.ndarray, dst: np.ndarray, dst_rows: np.ndarray) -> None:
     """dst[dst_rows[i]] = src[i] wherever dst_rows[i] >= 0 (in place)."""
     keep = dst_rows >= 0
     dst[dst_rows[keep]] = src[keep]
+
+
+def gather_rows(src: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """src[rows[i]] for every i."""
+    return np.asarray(src)[np.asarray(rows, dtype=np.int64)]

@@ -76,7 +76,7 @@ def _candidate_pairs(points, lengths, owners, mode, resolution, grid_offset, ste
     """All (point, voxel) pairs a point might reach: [P] point ids and [P, 3] voxel indices."""
     n = len(points)
     if mode == MODE_STENCIL:
-        own = np.floor((points.astype(np.float32) - np.float32(grid_offset)) / np.float32(resolution)).astype(np.int64)
+        own = np.floor((points - grid_offset) / resolution).astype(np.int64)
         r = np.arange(-stencil_half, stencil_half + 1)
         offsets = np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)
         return np.repeat(np.arange(n), len(offsets)), (own[:, None, :] + offsets[None]).reshape(-1, 3)
@@ -85,11 +85,8 @@ def _candidate_pairs(points, lengths, owners, mode, resolution, grid_offset, ste
     if mode == MODE_SBKI_OWN_BLOCK:
         return np.arange(n), owners.astype(np.int64)
     reach = lengths * (SBKI_REACH_FACTOR if mode == MODE_SBKI_BLOCKS else 1.0)
-    # float32 for the range, as the kernel computes it, so both see the same candidate voxels.
-    p32 = points.astype(np.float32)
-    r32 = reach.astype(np.float32)[:, None]
-    lo = np.floor((p32 - r32 - np.float32(grid_offset)) / np.float32(resolution)).astype(np.int64)
-    hi = np.floor((p32 + r32 - np.float32(grid_offset)) / np.float32(resolution)).astype(np.int64)
+    lo = np.floor((points - reach[:, None] - grid_offset) / resolution).astype(np.int64)
+    hi = np.floor((points + reach[:, None] - grid_offset) / resolution).astype(np.int64)
     span = int((hi - lo).max()) + 1 if n else 1
     offsets = np.stack(np.meshgrid(*[np.arange(span)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
     point_ids = np.repeat(np.arange(n), len(offsets))
@@ -122,7 +119,7 @@ def scatter_points(
     per_class = None  # [P, K] additions where they are not weight * y
     if mode == MODE_STENCIL:
         side = 2 * stencil_half + 1
-        own = np.floor((points.astype(np.float32) - np.float32(grid_offset)) / np.float32(resolution)).astype(np.int64)
+        own = np.floor((points - grid_offset) / resolution).astype(np.int64)
         o = vox - own[pid] + stencil_half
         rows = (o[:, 0] * side + o[:, 1]) * side + o[:, 2]
         per_class = np.asarray(stencil_weights, np.float64)[rows] * np.asarray(class_weights, np.float64)[pid]
@@ -139,7 +136,8 @@ def scatter_points(
             weight = sparse_kernel(d, lengths[pid], sigma0)
         else:
             block_dist = np.abs(block_of_voxel(vox, cells_per_block) - owner_blocks[pid]).sum(axis=1)
-            weight = sbki_sparse_kernel(centers.astype(np.float32), points[pid].astype(np.float32), lengths[pid], sigma0)
+            centers32 = (vox.astype(np.float32) + np.float32(0.5)) * np.float32(resolution) + np.float32(grid_offset)
+            weight = sbki_sparse_kernel(centers32, points[pid].astype(np.float32), lengths[pid].astype(np.float32), np.float32(sigma0))
             keep = (block_dist <= 1) & (weight > 0)
         pid, vox, weight = pid[keep], vox[keep], weight[keep]
         if fusion == FUSION_DEMPSTER:
