@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -41,6 +42,11 @@ class Media(str, enum.Enum):
 class Compat(str, enum.Enum):
     CLEAN = "clean"  # the paper's algorithm with a true radius search (default)
     SBKI = "sbki"  # reproduce the original S-BKI / S-CSM C++ (reference_sbki.md section 4)
+
+
+# A kernel that visits more voxels than this per point is a mistake (a length in the wrong unit, say),
+# not a map: 50 m at 0.2 m would be 65 million voxels per point, hours for one scan.
+MAX_VOXELS_PER_POINT = 50_000
 
 
 class PayloadType(str, enum.Enum):
@@ -82,6 +88,10 @@ class MappingConfig:
             if not ok:
                 raise ConfigError(f"mapping.{name} = {getattr(self, name)!r}: {text}")
 
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                need(False, f.name, "must be a finite number")
         need(self.resolution_m > 0, "resolution_m", "must be > 0")
         need(self.prior > 0, "prior", "must be > 0 (a Dirichlet concentration)")
         need(self.length_m > 0, "length_m", "must be > 0")
@@ -93,6 +103,13 @@ class MappingConfig:
         need(self.ds_resolution_m > 0, "ds_resolution_m", "must be > 0")
         need(self.free_resolution_m > 0, "free_resolution_m", "must be > 0")
         need(0 <= self.convbki_stencil_half <= 8, "convbki_stencil_half", "must lie in 0..8")
+        visits = self.voxels_per_point()
+        if visits > MAX_VOXELS_PER_POINT:
+            longest = self.longest_length_m()
+            raise ConfigError(
+                f"mapping.length_m = {self.length_m!r} at resolution_m = {self.resolution_m!r}: each point would visit about "
+                f"{visits:,.0f} voxels (kernel reach {longest:.3g} m = {longest / self.resolution_m:.0f} voxels; at most "
+                f"{MAX_VOXELS_PER_POINT:,} allowed); is a length in the wrong unit?")
         if self.kernel is Kernel.SEE_CSOM:
             need(self.media is Media.ONEHOT, "media", "SEE-CSOM takes hard labels (its code has no soft-label path)")
         if self.fusion is Fusion.DEMPSTER:
@@ -104,6 +121,26 @@ class MappingConfig:
             need(self.media is Media.ONEHOT, "media", "the sbki compatibility mode reproduces S-BKI/S-CSM, which take one-hot labels")
             need(not self.adaptive_length, "adaptive_length", "the original S-BKI has no adaptive length")
             need(not self.uncertainty_threshold, "uncertainty_threshold", "the original S-BKI has no uncertainty threshold")
+
+    def longest_length_m(self) -> float:
+        """The longest kernel length any point can get (u = 0 with the adaptive length)."""
+        if self.kernel is not Kernel.SPARSE:
+            return self.resolution_m
+        return self.length_m * self.beta * math.e if self.adaptive_length else self.length_m
+
+    def voxels_per_point(self) -> float:
+        """About how many voxels one point's kernel visits (the ball of the longest length)."""
+        if self.kernel is Kernel.COUNT:
+            return 1.0
+        if self.kernel is Kernel.CONVBKI:
+            return float((2 * self.convbki_stencil_half + 1) ** 3)
+        if self.kernel is Kernel.SEE_CSOM:
+            return 7.0 * 8.0  # a block and its 6 face neighbours, 2x2x2 cells each
+        reach = self.longest_length_m() / self.resolution_m
+        ball = 4.0 / 3.0 * math.pi * (reach + 0.5) ** 3
+        if self.compat is Compat.SBKI:
+            return min(ball, 7.0 * 8.0 ** (self.block_depth - 1))  # the owner block and its 6 face neighbours
+        return ball
 
     @property
     def keep_quantile(self) -> float:
@@ -191,6 +228,9 @@ def _read_yaml(path: Path) -> dict[str, Any]:
         return {}
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of sections at the top level, got {type(data).__name__}")
+    not_names = [k for k in data if not isinstance(k, str)]
+    if not_names:
+        raise ConfigError(f"{path}: top-level key {not_names[0]!r} is not a section name (a {type(not_names[0]).__name__})")
     unknown = set(data) - set(_SECTIONS) - {"pipeline"}
     if unknown:
         raise ConfigError(f"{path}: unknown section(s) {sorted(unknown)}; known: {sorted(_SECTIONS)} and pipeline")
@@ -200,6 +240,8 @@ def _read_yaml(path: Path) -> dict[str, Any]:
 def _convert(cls, name: str, value: Any, source: str) -> Any:
     ftype = {f.name: f.type for f in dataclasses.fields(cls)}[name]
     default = {f.name: f.default for f in dataclasses.fields(cls)}[name]
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ConfigError(f"{source}: {name} = {value!r} must be a finite number")
     try:
         if isinstance(default, enum.Enum):
             return type(default)(value)
@@ -216,8 +258,15 @@ def _convert(cls, name: str, value: Any, source: str) -> Any:
                 raise TypeError
             return float(value)
         if isinstance(default, tuple):
-            return tuple(value) if isinstance(value, (list, tuple)) else (value,)
-        return str(value)
+            items = tuple(value) if isinstance(value, (list, tuple)) else (value,)
+            if any(isinstance(item, (dict, list, tuple)) for item in items):
+                raise TypeError
+            return items
+        if isinstance(default, str):
+            if not isinstance(value, str):
+                raise TypeError
+            return value
+        return value
     except (TypeError, ValueError):
         raise ConfigError(f"{source}: {name} = {value!r} is not a valid {ftype}") from None
 
@@ -238,6 +287,8 @@ def load_config(config_paths: list[str | Path], method: str | None = None) -> Ru
                 raise ConfigError(f"{path}: section {section!r} must be a mapping")
             cls = _SECTIONS[section]
             for key, value in values.items():
+                if not isinstance(key, str):
+                    raise ConfigError(f"{path}: key {key!r} in section {section!r} is not a name (a {type(key).__name__})")
                 if section == "method":
                     if key not in _METHOD_KEYS:
                         raise ConfigError(f"{path}: method.{key} is not a method switch; allowed: {sorted(_METHOD_KEYS)}")
@@ -268,6 +319,9 @@ def dataclass_from_dict(cls, data: Any, source: str):
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: expected a mapping, got {type(data).__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
+    not_names = [k for k in data if not isinstance(k, str)]
+    if not_names:
+        raise ConfigError(f"{source}: key {not_names[0]!r} is not a name (a {type(not_names[0]).__name__})")
     unknown = set(data) - set(fields)
     if unknown:
         raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)}; known: {sorted(fields)}")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -260,10 +261,55 @@ def _cmd_dump_config(args) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the CLI's error form: one line naming the flag and value, exit code 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _port(text: str) -> int:
+    value = _int(text)
+    if not 1 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"port {value} is outside 1..65535")
+    return value
+
+
+def _int(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+
+
+def _non_negative(text: str) -> int:
+    value = _int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value} is negative")
+    return value
+
+
+def _positive(text: str) -> int:
+    value = _int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} must be at least 1")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"{text} must be a finite number > 0")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     from ..segmentation.config import ModelConfig
 
-    parser = argparse.ArgumentParser(prog="evsemmap", description="Evidential semantic mapping on Warp kernels.")
+    parser = _Parser(prog="evsemmap", description="Evidential semantic mapping on Warp kernels.")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("map", help="map a dataset with a method and write the map file")
@@ -271,16 +317,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", required=True, help=f"method name ({', '.join(available_methods())}) or a method YAML file")
     p.add_argument("--out", required=True, type=Path, help="map file to write (.npz)")
     p.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N or auto")
-    p.add_argument("--workers", type=int, default=None, help="CPU threads, each scattering into its own map shard (default: up to 2 on the CPU)")
+    p.add_argument("--workers", type=_positive, default=None, help="CPU threads, each scattering into its own map shard (default: up to 2 on the CPU)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_map)
 
     p = sub.add_parser("view", help="inspect map files in a browser (viser)")
     p.add_argument("maps", nargs="+", type=Path, help="map files; several are switchable or side by side")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
-    p.add_argument("--port", type=int, default=8080)
+    p.add_argument("--port", type=_port, default=8080)
     p.add_argument("--style", choices=("points", "boxes"), default="points", help="voxels as point sprites or instanced boxes")
-    p.add_argument("--max-voxels", type=int, default=500_000, help="decimate beyond this many visible voxels (the GUI can show all)")
+    p.add_argument("--max-voxels", type=_positive, default=500_000, help="decimate beyond this many visible voxels (the GUI can show all)")
     p.add_argument("--trajectory", type=Path, help="poses.txt (3x4 per line) or N x 3 positions (.txt/.npy)")
     p.add_argument("--scan", type=Path, help="current scan's points (.pcd, .npy or KITTI .bin)")
     p.add_argument("--export-html", type=Path, help="write a standalone HTML of the scene")
@@ -292,8 +338,8 @@ def build_parser() -> argparse.ArgumentParser:
     def add_dataset_args(p, frames: int, seed: int, size_help: str) -> None:
         p.add_argument("--dataset", choices=("synthetic", "rellis3d", "rugd"), default="synthetic")
         p.add_argument("--data", type=Path, help="dataset root (RELLIS-3D sequences folder or RUGD root)")
-        p.add_argument("--synthetic-frames", type=int, default=frames)
-        p.add_argument("--input-size", type=int, nargs=2, default=[128, 256], metavar=("H", "W"), help=size_help)
+        p.add_argument("--synthetic-frames", type=_positive, default=frames)
+        p.add_argument("--input-size", type=_positive, nargs=2, default=[128, 256], metavar=("H", "W"), help=size_help)
         p.add_argument("--domain", default="summer", help="synthetic appearance domain: summer, autumn, dusk")
         p.add_argument("--seed", type=int, default=seed, help="seed of the split, the initialisation and synthetic frames")
 
@@ -301,16 +347,16 @@ def build_parser() -> argparse.ArgumentParser:
     add_dataset_args(p, 400, 1, "network input size (and synthetic frame size)")
     p.add_argument("--out", type=Path, required=True, help="folder for checkpoints, history, metrics and plots")
     p.add_argument("--arch", default=ModelConfig.arch, help="r18-os16 (CPU default), r50-os8 (full size) or torchvision-r50")
-    p.add_argument("--width", type=int, default=ModelConfig.width, help="channels of the first ResNet stage (64 = standard)")
-    p.add_argument("--aspp-channels", type=int, default=ModelConfig.aspp_channels)
+    p.add_argument("--width", type=_positive, default=ModelConfig.width, help="channels of the first ResNet stage (64 = standard)")
+    p.add_argument("--aspp-channels", type=_positive, default=ModelConfig.aspp_channels)
     p.add_argument("--head", choices=("evidential", "softmax"), default="evidential")
-    p.add_argument("--epochs", type=int, default=20)
-    p.add_argument("--batch-size", type=int, default=8)
-    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--epochs", type=_positive, default=20)
+    p.add_argument("--batch-size", type=_positive, default=8)
+    p.add_argument("--lr", type=_positive_float, default=2e-3)
     p.add_argument("--kl-schedule", choices=("paper", "release"), default="paper")
     p.add_argument("--val-fraction", type=float, default=0.1)
-    p.add_argument("--time-budget", type=float, default=None, help="stop after the epoch that passes this many seconds")
-    p.add_argument("--logit-clamp", type=float, default=10.0, help="evidence = exp(clamp(logit, -c, c))")
+    p.add_argument("--time-budget", type=_positive_float, default=None, help="stop after the epoch that passes this many seconds")
+    p.add_argument("--logit-clamp", type=_positive_float, default=10.0, help="evidence = exp(clamp(logit, -c, c))")
     p.add_argument("--normalization", choices=("imagenet", "caffe"), default="imagenet")
     p.add_argument("--backbone-weights", type=Path, help="backbone state dict to start from (nothing is downloaded)")
     p.add_argument("--resume", type=Path, help="checkpoint to continue from")
@@ -328,7 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("checkpoint", type=Path)
     p.add_argument("images", type=Path, help="an image or a folder of .jpg/.png images")
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--batch-size", type=int, default=4)
+    p.add_argument("--batch-size", type=_positive, default=4)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_infer)
 
@@ -337,7 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="sequence folder to write")
     p.add_argument("--domain", default=None, help="appearance domain (summer, autumn, dusk); default: the preset's")
     p.add_argument("--seed", type=int, default=None, help="world seed; default: the preset's")
-    p.add_argument("--frames", type=int, default=None, help="number of frames; default: the preset's")
+    p.add_argument("--frames", type=_positive, default=None, help="number of frames; default: the preset's")
     p.add_argument("--device", default="cpu", help="Warp device for the ray casting")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_synth)
@@ -350,19 +396,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("sequence", type=Path)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--zbuffer", action="store_true", help="drop points hidden behind nearer points")
-    p.add_argument("--overlays", type=int, default=3, help="overlay images to write")
+    p.add_argument("--overlays", type=_non_negative, default=3, help="overlay images to write")
     p.add_argument("--colour-by", choices=("label", "depth"), default="label", help="overlay points in their label's colour or by range")
-    p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--max-frames", type=_positive, default=None)
     p.set_defaults(func=_cmd_project)
 
     p = sub.add_parser("train-convbki", help="learn ConvBKI's per-class length scales from a projected, labelled sequence")
     p.add_argument("sequence", type=Path, help="RELLIS-3D-layout sequence with per-point labels")
     p.add_argument("--alpha", type=Path, required=True, help="folder of per-frame alpha .npy (evsemmap infer output)")
     p.add_argument("--out", type=Path, required=True, help="length-scale file to write (.json; use as mapping.convbki_lengths_file)")
-    p.add_argument("--resolution", type=float, default=0.3, help="voxel size of the map it will be used with (m)")
-    p.add_argument("--epochs", type=int, default=15)
-    p.add_argument("--window-scans", type=int, default=10)
-    p.add_argument("--queries", type=int, default=4000, help="ground-truth points scored per window")
+    p.add_argument("--resolution", type=_positive_float, default=0.3, help="voxel size of the map it will be used with (m)")
+    p.add_argument("--epochs", type=_positive, default=15)
+    p.add_argument("--window-scans", type=_positive, default=10)
+    p.add_argument("--queries", type=_positive, default=4000, help="ground-truth points scored per window")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_train_convbki)
 
@@ -396,8 +442,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (ConfigError, ValueError, OSError) as exc:  # OSError: missing or unreadable files, named by the OS
-        print(f"evsemmap: error: {exc}", file=sys.stderr)
+        # One line, even for messages that carry their own line breaks (YAML parser errors).
+        text = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+        print(f"evsemmap: error: {text}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("evsemmap: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

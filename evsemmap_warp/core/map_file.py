@@ -142,7 +142,16 @@ def read_map_arrays(path) -> tuple[dict[str, np.ndarray], dict]:
     elif "origin" not in arrays:
         raise MapFileError(f"{path}: not an evsemmap map file (missing ['origin'])")
     _validate_arrays(path, arrays, meta)
+    mapping_config(path, meta)
     return arrays, meta
+
+
+def mapping_config(path, meta: dict) -> MappingConfig:
+    """The map's MappingConfig from meta.mapping, or a MapFileError naming what is wrong."""
+    try:
+        return dataclass_from_dict(MappingConfig, meta["mapping"], "meta.mapping")
+    except ConfigError as exc:
+        raise MapFileError(f"{path}: field 'meta.mapping' is not a valid mapping config ({exc})") from None
 
 
 def _read_meta(path: Path, arrays: dict) -> dict:
@@ -229,10 +238,7 @@ def _validate_arrays(path: Path, arrays: dict, meta: dict) -> None:
 def read_map_file(path) -> MapContents:
     """A validated map file with its mapping config, ready to become a Mapper."""
     arrays, meta = read_map_arrays(path)
-    try:
-        config = dataclass_from_dict(MappingConfig, meta["mapping"], "meta.mapping")
-    except ConfigError as exc:
-        raise MapFileError(f"{path}: field 'meta.mapping' is not a valid mapping config ({exc})") from None
+    config = mapping_config(path, meta)
     origin = arrays["origin"].astype(np.float64)
     return MapContents(
         meta=meta, origin=origin, index=arrays["voxel_index"].astype(np.int64), evidence=arrays["evidence"].astype(np.float64),

@@ -50,16 +50,25 @@ class PcdSequence:
             raise ConfigError(f"dataset: {len(missing)} scan file(s) missing, first {missing[0]}")
         self.num_classes = config.num_classes
         self.class_names = config.class_names
+        self._extra_columns_reported = False
 
     def __len__(self) -> int:
         return len(self.files)
 
     def __iter__(self) -> Iterator[Scan]:
-        for n, path in enumerate(self.files):
-            with warnings.catch_warnings():
-                if n > 0:  # the S-BKI toy files all carry one undeclared column: say so once
-                    warnings.simplefilter("ignore", ExtraColumnsWarning)
+        for path in self.files:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
                 cloud = read_pcd(path)
+            for w in caught:
+                if issubclass(w.category, ExtraColumnsWarning):
+                    # the S-BKI toy files all carry one undeclared column: say so once per dataset
+                    if self._extra_columns_reported:
+                        continue
+                    self._extra_columns_reported = True
+                    w.message = ExtraColumnsWarning(f"{self.root}: the scan files carry more columns than their headers "
+                                                    f"declare (first {path.name}); the extra columns are ignored")
+                warnings.warn(w.message, w.category, stacklevel=2)
             if "label" not in cloud.fields:
                 raise ConfigError(f"{path}: no 'label' field; a pcd_sequence needs per-point labels")
             yield Scan(path.name, cloud.points, cloud.fields["label"].astype(np.int64), PayloadType.LABEL, cloud.sensor_origin)

@@ -68,6 +68,9 @@ def read_pcd(path) -> PointCloud:
         need = record.itemsize * n
         if len(raw) - offset < need:
             raise PcdError(f"{path}: truncated binary data: {len(raw) - offset} bytes for {n} points of {record.itemsize} bytes")
+        if len(raw) - offset > need:
+            raise PcdError(f"{path}: {len(raw) - offset} bytes of binary data, but the header declares {n} points of "
+                           f"{record.itemsize} bytes ({need} bytes): POINTS, SIZE or COUNT is wrong")
         rec = np.frombuffer(raw, dtype=record, count=n, offset=offset)
         columns = np.concatenate([rec[f"f{i}"].astype(np.float64).reshape(n, -1) for i in range(len(names))], axis=1) if n else np.zeros((0, sum(counts)))
     else:
@@ -123,10 +126,18 @@ def _parse_header(raw: bytes, path: Path):
     lengths = {len(header[k]) for k in ("FIELDS", "SIZE", "TYPE", "COUNT")}
     if len(lengths) != 1:
         raise PcdError(f"{path}: FIELDS, SIZE, TYPE and COUNT list different numbers of entries")
+    for key in ("POINTS", "WIDTH", "HEIGHT"):
+        if header.get(key) is not None and header[key] < 0:
+            raise PcdError(f"{path}: {key} {header[key]} is negative")
+    if any(c < 1 for c in header["COUNT"]) or any(s < 1 for s in header["SIZE"]):
+        raise PcdError(f"{path}: SIZE and COUNT entries must be >= 1 (SIZE {header['SIZE']}, COUNT {header['COUNT']})")
+    organised = header["WIDTH"] * (header.get("HEIGHT") or 1) if header.get("WIDTH") is not None else None
     if header.get("POINTS") is None:
-        if header.get("WIDTH") is None:
+        if organised is None:
             raise PcdError(f"{path}: header has neither POINTS nor WIDTH")
-        header["POINTS"] = header["WIDTH"] * (header.get("HEIGHT") or 1)
+        header["POINTS"] = organised
+    elif organised is not None and organised != header["POINTS"]:
+        raise PcdError(f"{path}: header declares POINTS {header['POINTS']} but WIDTH x HEIGHT = {organised}")
     return header, offset
 
 
@@ -142,8 +153,7 @@ def _read_ascii(body: bytes, n: int, declared_columns: int, path: Path) -> np.nd
     if len(lines) < n:
         raise PcdError(f"{path}: truncated: header declares {n} points, file has {len(lines)} data rows")
     if len(lines) > n:
-        warnings.warn(f"{path}: {len(lines) - n} data rows beyond the declared {n} points are ignored")
-    lines = lines[:n]
+        raise PcdError(f"{path}: header declares POINTS {n}, but the file has {len(lines)} data rows")
     widths = {len(ln.split()) for ln in lines}
     if min(widths, default=declared_columns) < declared_columns:
         raise PcdError(f"{path}: some data rows have fewer than the {declared_columns} declared values")

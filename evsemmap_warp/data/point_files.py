@@ -31,10 +31,26 @@ def _check_points(points: np.ndarray, path: Path) -> np.ndarray:
 
 def read_kitti_bin(path) -> np.ndarray:
     """KITTI-style .bin scan -> [N, 4] float32 (x, y, z, intensity), zero returns included."""
-    raw = np.fromfile(path, dtype=np.float32)
-    if raw.size % 4:
-        raise ValueError(f"{path}: {raw.size} floats is not a whole number of (x, y, z, intensity) points; truncated?")
-    return raw.reshape(-1, 4)
+    size = Path(path).stat().st_size
+    if size % 16:
+        raise ValueError(f"{path}: {size} bytes is not a whole number of 16-byte (x, y, z, intensity) float32 points; truncated?")
+    return np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+
+
+def read_npy(path) -> np.ndarray:
+    """One .npy array, refusing what np.load would accept or crash on: an .npz archive under an .npy
+    name, an empty or truncated file, pickled objects."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        magic = f.read(6)
+    if magic.startswith(b"PK"):
+        raise ValueError(f"{path}: is an .npz archive (zip), not an .npy array; rename it or save the array with np.save")
+    if magic != b"\x93NUMPY":
+        raise ValueError(f"{path}: not an .npy array ({'empty file' if not magic else 'no NUMPY header'})")
+    try:
+        return np.load(path, allow_pickle=False)
+    except (ValueError, EOFError, OSError) as exc:
+        raise ValueError(f"{path}: not a readable npy array ({exc})") from None
 
 
 def read_point_file(path) -> PointFile:
@@ -51,11 +67,8 @@ def read_point_file(path) -> PointFile:
         raw = read_kitti_bin(path)
         return PointFile(_check_points(raw[:, :3].astype(np.float64), path), {"intensity": raw[:, 3]}, path)
     if path.suffix == ".npy":
-        try:
-            data = np.load(path, allow_pickle=False)
-        except ValueError as exc:
-            raise ValueError(f"{path}: not a readable npy array ({exc})") from None
-        if data.ndim != 2 or data.shape[1] < 3:
+        data = read_npy(path)
+        if data.ndim != 2 or data.shape[1] < 3 or not np.issubdtype(data.dtype, np.number):
             raise ValueError(f"{path}: expected an [N, >=3] array (x y z, then per-point values), got shape {list(data.shape)}")
         fields = {"values": data[:, 3:]} if data.shape[1] > 3 else {}
         return PointFile(_check_points(data[:, :3].astype(np.float64), path), fields, path)
@@ -66,9 +79,13 @@ def read_point_file(path) -> PointFile:
             loaded = trimesh.load(path, process=False)
         except Exception as exc:  # trimesh raises many types for a broken file
             raise ValueError(f"{path}: not a readable PLY ({type(exc).__name__}: {exc})") from None
-        vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), np.float64)
         raw = loaded.metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
-        fields = {}
-        if raw is not None and raw.dtype.names:
-            fields = {name: np.asarray(raw[name]) for name in raw.dtype.names if name not in ("x", "y", "z")}
+        names = tuple(raw.keys()) if isinstance(raw, dict) else (raw.dtype.names or ()) if raw is not None else ()
+        if all(a in names for a in "xyz"):
+            # the raw vertex table: trimesh's own vertex list may drop or merge NaN rows
+            vertices = np.stack([np.asarray(raw[a], np.float64).reshape(-1) for a in "xyz"], axis=1)
+        else:
+            vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), np.float64).reshape(-1, 3)
+        fields = {name: np.asarray(raw[name]).reshape(len(vertices), -1).squeeze(1) if np.asarray(raw[name]).size == len(vertices)
+                  else np.asarray(raw[name]) for name in names if name not in ("x", "y", "z")}
         return PointFile(_check_points(vertices, path), fields, path)

@@ -161,7 +161,16 @@ class Rellis3DSequence(_ScanSequence):
             raise DataError(f"{self.root}: no camera images, so the image size is unknown")
         with Image.open(first) as img:
             width, height = img.size
+        if not (0 < cx < width and 0 < cy < height):
+            raise DataError(f"{info}: principal point ({cx}, {cy}) lies outside the {width}x{height} camera images ({first.name}): "
+                            f"camera_info.txt belongs to another camera or resolution")
         return PinholeCamera(fx, fy, cx, cy, width, height, distortion)
+
+    def _check_image_size(self, path: Path, height: int, width: int) -> None:
+        camera = self.camera
+        if (height, width) != (camera.height, camera.width):
+            raise DataError(f"{path}: {width}x{height} pixels, but the sequence's camera (camera_info.txt with "
+                            f"{self.frames[0].image.name if self.frames[0].image else 'its first image'}) is {camera.width}x{camera.height}")
 
     @property
     def lidar_to_camera(self) -> np.ndarray:
@@ -190,7 +199,9 @@ class Rellis3DSequence(_ScanSequence):
     # Per-frame data ------------------------------------------------------------------------------
     def read_image(self, frame: Frame) -> np.ndarray:
         with Image.open(frame.image) as img:
-            return np.asarray(img.convert("RGB"))
+            image = np.asarray(img.convert("RGB"))
+        self._check_image_size(frame.image, *image.shape[:2])
+        return image
 
     def read_label_ids(self, frame: Frame) -> np.ndarray:
         """[H, W] raw ontology ids of the frame's 2D labels (colour PNGs decoded with the palette)."""
@@ -199,9 +210,11 @@ class Rellis3DSequence(_ScanSequence):
         with Image.open(frame.label_image) as img:
             raw = np.asarray(img.convert("RGB") if frame.label_is_color else img)
         if frame.label_is_color:
+            self._check_image_size(frame.label_image, *raw.shape[:2])
             return decode_color_labels(raw, palette("rellis3d_colors"), str(frame.label_image))
         if raw.ndim != 2:
             raise DataError(f"{frame.label_image}: an id label image must have one channel, got shape {list(raw.shape)}")
+        self._check_image_size(frame.label_image, *raw.shape[:2])
         return raw.astype(np.int64)
 
 

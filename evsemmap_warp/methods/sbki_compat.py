@@ -17,6 +17,8 @@ FREE_LABEL = 0
 # A block and its 6 face neighbours: S-BKI's "extended block" (the 27-block variant is compiled out).
 EXTENDED_BLOCK_OFFSETS = np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.int64)
 _INT32_MAX = np.iinfo(np.int32).max
+# More free samples than this in one scan means a far sensor origin or a missing range limit, not a map.
+MAX_FREE_SAMPLES_PER_SCAN = 50_000_000
 
 
 def block_size_m(resolution_m: float, block_depth: int) -> np.float32:
@@ -80,8 +82,14 @@ def free_space_samples(hits: np.ndarray, origin: np.ndarray, free_resolution_m: 
     ray_length = np.sqrt(np.sum(diff * diff, axis=1, dtype=np.float32), dtype=np.float32)
     with np.errstate(invalid="ignore", divide="ignore"):
         direction = diff / ray_length[:, None]
-    steps = [f]
     longest = ray_length.max()
+    estimate = float(np.sum(ray_length, dtype=np.float64) / float(f)) + 2 * len(hits)
+    if estimate > MAX_FREE_SAMPLES_PER_SCAN:
+        raise ValueError(
+            f"free-space rays would place about {estimate:,.0f} samples in one scan (points up to {float(longest):,.0f} m from "
+            f"the sensor origin {origin.tolist()}, one sample per free_resolution_m = {float(f)} m; at most "
+            f"{MAX_FREE_SAMPLES_PER_SCAN:,}): set mapping.max_range_m, a larger free_resolution_m, or check the sensor origin")
+    steps = [f]
     while steps[-1] < longest:
         steps.append(np.float32(steps[-1] + f))
     steps = np.array(steps, dtype=np.float32)

@@ -135,7 +135,14 @@ def build_model(config: ModelConfig) -> nn.Module:
 
 def load_backbone_weights(model: nn.Module, path) -> None:
     """Fill the backbone from a state dict file (weights_only); every backbone tensor must load."""
-    state = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such weights file") from None
+    except Exception as exc:  # torch raises many types for files that are not state dicts
+        raise ValueError(f"{path}: not a readable state dict ({type(exc).__name__}: {exc})") from None
+    if not isinstance(state, dict):
+        raise ValueError(f"{path}: expected a state dict (name -> tensor), got {type(state).__name__}")
     state = state.get("state_dict", state)
     backbone = model.backbone if hasattr(model, "backbone") else model.net.backbone
     own = backbone.state_dict()

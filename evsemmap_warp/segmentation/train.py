@@ -107,6 +107,8 @@ def load_checkpoint(path, class_names=None):
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
         meta = ckpt["meta"]
         cfg = json.loads(meta["train_config"])
+        if not isinstance(cfg, dict) or not isinstance(cfg.get("model"), dict):
+            raise TypeError("train_config is not a mapping with a model section")
     except FileNotFoundError:
         raise ValueError(f"{path}: no such checkpoint") from None
     except Exception as exc:  # torch raises many types for corrupt files
@@ -115,9 +117,16 @@ def load_checkpoint(path, class_names=None):
         raise ValueError(f"{path}: checkpoint format {meta.get('format_version')}, this version reads {CHECKPOINT_VERSION}")
     if class_names is not None and list(class_names) != list(meta["classes"]):
         raise ValueError(f"{path}: trained for classes {meta['classes']}, but {list(class_names)} were asked for")
-    config = TrainConfig(**{**cfg, "model": ModelConfig(**cfg["model"]), "input_size": tuple(cfg["input_size"])})
+    try:
+        config = TrainConfig(**{**cfg, "model": ModelConfig(**cfg["model"]), "input_size": tuple(cfg["input_size"])})
+    except (TypeError, KeyError, ValueError) as exc:  # unknown or missing config keys
+        raise ValueError(f"{path}: the checkpoint's training config does not fit this version ({exc})") from None
     model = build_model(config.model)
-    model.load_state_dict(ckpt["model"])
+    try:
+        model.load_state_dict(ckpt["model"])
+    except (RuntimeError, KeyError, TypeError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"{path}: the weights do not fit a {config.model.arch} network of its config ({first})") from None
     model.eval()
     return model, config, meta, ckpt
 

@@ -1,0 +1,295 @@
+"""Bad input, one case per row: the CLI answers with one line that names the file, key or value and
+exit code 2, never a traceback; the library raises a ValueError saying the same. Each case was a crash,
+a hang or a silently wrong result once (the outside trial's list)."""
+
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evsemmap_warp.apps.cli import main
+from evsemmap_warp.config import ConfigError, MappingConfig, load_config
+from evsemmap_warp.core.map_file import MapFileError
+from evsemmap_warp.core.mapper import Mapper, load_map
+from evsemmap_warp.data.point_files import read_point_file
+
+REPO = Path(__file__).resolve().parents[1]
+PRESET = REPO / "configs/presets/offroad.yaml"
+
+
+def run_cli(capsys, *argv) -> str:
+    """Run the CLI; assert exit 2 and one line on stderr without a traceback; return that line."""
+    try:
+        code = main([str(a) for a in argv])
+    except SystemExit as exc:  # argparse
+        code = exc.code
+    err = capsys.readouterr().err.strip().splitlines()
+    err = [line for line in err if not line.startswith("Warp CUDA warning")]
+    assert code == 2, err
+    assert len(err) == 1, err
+    assert "Traceback" not in err[0]
+    return err[0]
+
+
+# ------------------------------------------------------------------------------------- configs
+CONFIG_CASES = {
+    "not-a-mapping": ("- 1\n- 2\n", "expected a mapping"),
+    "nan-resolution": ("mapping:\n  resolution_m: .nan\n", "resolution_m.*finite"),
+    "inf-length": ("mapping:\n  length_m: .inf\n", "length_m.*finite"),
+    "negative-resolution": ("mapping:\n  resolution_m: -0.2\n", "resolution_m.*> 0"),
+    "zero-length": ("mapping:\n  length_m: 0\n", "length_m.*> 0"),
+    "threshold-above-one": ("mapping:\n  uncertainty_drop_fraction: 1.5\n", r"uncertainty_drop_fraction.*\[0, 1\)"),
+    "threshold-negative": ("mapping:\n  uncertainty_drop_fraction: -0.1\n", "uncertainty_drop_fraction"),
+    "integer-key": ("mapping:\n  1: 2\n", "key 1 .*not a name"),
+    "integer-section": ("1:\n  resolution_m: 0.2\n", "not a section name"),
+    "string-for-number": ("mapping:\n  resolution_m: fine\n", "resolution_m = 'fine'"),
+    "list-for-string": ("mapping:\n  convbki_lengths_file: [1, 2]\n", "convbki_lengths_file"),
+    "bool-for-number": ("mapping:\n  sigma0: true\n", "sigma0"),
+    "section-not-mapping": ("mapping: 3\n", "section 'mapping' must be a mapping"),
+    "unknown-key": ("mapping:\n  resolution: 0.2\n", "unknown key mapping.resolution"),
+    "kernel-too-long": ("mapping:\n  length_m: 50\n  resolution_m: 0.2\n", "visit about [0-9,]+ voxels"),
+    "broken-yaml": ("mapping: [1, 2\n", "not valid YAML"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CONFIG_CASES))
+def test_bad_config_is_one_line_naming_file_and_key(tmp_path, capsys, case):
+    text, pattern = CONFIG_CASES[case]
+    path = tmp_path / f"{case}.yaml"
+    path.write_text(text)
+    line = run_cli(capsys, "dump-config", PRESET, path, "--method", "ebs")
+    assert str(path) in line
+    import re
+
+    assert re.search(pattern, line), line
+
+
+def test_a_kernel_that_would_run_for_hours_is_refused_with_the_estimate():
+    with pytest.raises(ConfigError, match=r"65,[0-9]{3},[0-9]{3} voxels"):
+        MappingConfig(length_m=50.0, resolution_m=0.2, adaptive_length=False)
+    # the paper's lengths stay far below the limit
+    assert load_config([PRESET], method="ebs").mapping.voxels_per_point() < 1000
+
+
+def test_free_space_rays_from_a_far_sensor_origin_are_refused():
+    cfg = load_config([PRESET], method="s-bki").mapping
+    import dataclasses
+
+    from evsemmap_warp.config import Compat
+
+    mapper = Mapper(dataclasses.replace(cfg, compat=Compat.SBKI, free_resolution_m=0.5), 3)
+    pts = np.random.default_rng(0).uniform(-5, 5, (2000, 3))
+    with pytest.raises(ValueError, match=r"free-space rays would place about .* set mapping.max_range_m"):
+        mapper.integrate(pts, np.zeros(2000, np.int64), payload_type="label", sensor_origin=[5e6, 0, 0])
+    assert mapper.voxel_count == 0
+
+
+# ------------------------------------------------------------------------------------- point files
+def _pcd(header_points="3", size="4 4 4", count="1 1 1", width="3", data=b"", kind="binary"):
+    head = (f"VERSION 0.7\nFIELDS x y z\nSIZE {size}\nTYPE F F F\nCOUNT {count}\nWIDTH {width}\nHEIGHT 1\n"
+            f"POINTS {header_points}\nDATA {kind}\n").encode()
+    return head + data
+
+
+_THREE_POINTS = np.arange(9, dtype=np.float32).tobytes()
+POINT_FILE_CASES = {
+    "bin-not-multiple-of-16.bin": (np.arange(9, dtype=np.float32).tobytes(), "not a whole number of 16-byte"),
+    "pcd-negative-points.pcd": (_pcd(header_points="-3", width="-3", data=_THREE_POINTS), "negative"),
+    "pcd-too-few-points.pcd": (_pcd(header_points="2", width="2", data=_THREE_POINTS), "header declares 2 points"),
+    "pcd-too-many-points.pcd": (_pcd(header_points="5", width="5", data=_THREE_POINTS), "truncated binary data"),
+    "pcd-width-disagrees.pcd": (_pcd(width="7", data=_THREE_POINTS), "WIDTH x HEIGHT = 7"),
+    "pcd-wrong-size.pcd": (_pcd(size="4 4 2", data=_THREE_POINTS), "unsupported TYPE F SIZE 2"),
+    "pcd-zero-count.pcd": (_pcd(count="1 0 1", data=_THREE_POINTS), "COUNT entries must be >= 1"),
+    "pcd-ascii-extra-rows.pcd": (_pcd(header_points="1", width="1", kind="ascii", data=b"0 0 0\n1 1 1\n"), "2 data rows"),
+    "empty.npy": (b"", "empty file"),
+    "ply-nan.ply": (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+                    b"0 0 0\nnan 1 1\n", "NaN or inf"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(POINT_FILE_CASES))
+def test_bad_point_file_is_refused_naming_it(tmp_path, capsys, name):
+    data, pattern = POINT_FILE_CASES[name]
+    path = tmp_path / name
+    path.write_bytes(data)
+    with pytest.raises(ValueError, match=pattern):
+        read_point_file(path)
+    line = run_cli(capsys, "view", _small_map_file(tmp_path), "--scan", path, "--no-serve")
+    assert str(path) in line
+
+
+def test_npz_renamed_npy_and_npy_renamed_npz(tmp_path, capsys):
+    npz_as_npy = tmp_path / "points.npy"
+    with open(npz_as_npy, "wb") as f:
+        np.savez(f, points=np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="is an .npz archive"):
+        read_point_file(npz_as_npy)
+    npy_as_npz = tmp_path / "map.npz"
+    with open(npy_as_npz, "wb") as f:
+        np.save(f, np.zeros((3, 3)))
+    line = run_cli(capsys, "info", npy_as_npz)
+    assert str(npy_as_npz) in line and "corrupt or truncated" in line
+
+
+# ------------------------------------------------------------------------------------- map files
+def _small_map_file(tmp_path) -> Path:
+    path = tmp_path / "small.npz"
+    if not path.exists():
+        rng = np.random.default_rng(0)
+        mapper = Mapper(load_config([PRESET], method="ebs").mapping, 3)
+        mapper.integrate(rng.uniform(-2, 2, (300, 3)), rng.gamma(1, 3, (300, 3)) + 1, payload_type="alpha")
+        mapper.save(path)
+    return path
+
+
+def _rewrite(src: Path, dst: Path, **changes) -> Path:
+    with np.load(src, allow_pickle=False) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(str(arrays["meta"]))
+    for key, value in changes.pop("meta", {}).items():
+        if value is None:
+            meta.pop(key)
+        else:
+            meta[key] = value
+    arrays["meta"] = np.array(json.dumps(meta))
+    arrays.update({k: v(arrays) if callable(v) else v for k, v in changes.items()})
+    with open(dst, "wb") as f:
+        np.savez(f, **arrays)
+    return dst
+
+
+def _with(name, fn):
+    def change(arrays):
+        out = arrays[name].copy()
+        fn(out)
+        return out
+    return change
+
+
+MAP_FILE_CASES = {
+    "nan-evidence": ({"evidence": _with("evidence", lambda a: a.__setitem__((0, 0), np.nan))}, "'evidence' holds 1 NaN/inf"),
+    "negative-evidence": ({"evidence": _with("evidence", lambda a: a.__setitem__((0, 0), -1.0))}, "'evidence' holds negative"),
+    "float-indices": ({"voxel_index": lambda a: a["voxel_index"].astype(np.float64)}, "'voxel_index' must hold integers"),
+    "duplicate-index": ({"voxel_index": _with("voxel_index", lambda a: a.__setitem__(1, a[0])),
+                         "centers": _with("centers", lambda a: a.__setitem__(1, a[0]))}, "appears more than once"),
+    "index-out-of-range": ({"voxel_index": _with("voxel_index", lambda a: a.__setitem__((0, 0), 1 << 22))}, "outside the map's key range"),
+    "resolution-disagrees": ({"resolution": np.float64(0.5)}, "disagrees with meta.mapping.resolution_m"),
+    "missing-meta-key": ({"meta": {"num_classes": None}}, "meta lacks the key 'num_classes'"),
+    "wrong-meta-type": ({"meta": {"scans_integrated": "many"}}, "meta.scans_integrated = 'many' has the wrong type"),
+    "origin-off-lattice": ({"origin": np.array([0.05, 0.0, 0.0])}, "not on the voxel lattice"),
+    "centers-disagree": ({"centers": lambda a: a["centers"] + 1.0}, "'centers' disagrees"),
+    "bad-state": ({"state": _with("state", lambda a: a.__setitem__(0, 7))}, "'state' holds values other than"),
+    "unknown-mapping-key": ({"meta": {"mapping": {"resolution_m": 0.2, "warp_speed": 9}}}, "unknown key"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(MAP_FILE_CASES))
+def test_inconsistent_map_file_is_refused_on_load(tmp_path, capsys, case):
+    changes, pattern = MAP_FILE_CASES[case]
+    if case == "unknown-mapping-key":
+        with np.load(_small_map_file(tmp_path)) as data:
+            mapping = json.loads(str(data["meta"]))["mapping"]
+        changes = {"meta": {"mapping": mapping | {"warp_speed": 9}}}
+    bad = _rewrite(_small_map_file(tmp_path), tmp_path / f"{case}.npz", **changes)
+    with pytest.raises(MapFileError, match=pattern):
+        load_map(bad)
+    line = run_cli(capsys, "info", bad)
+    assert str(bad) in line
+
+
+def test_a_member_declaring_an_absurd_size_is_refused_before_allocation(tmp_path, capsys):
+    src = _small_map_file(tmp_path)
+    bad = tmp_path / "huge.npz"
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(bad, "w") as zout:
+        for item in zin.infolist():
+            data = zin.read(item)
+            if item.filename == "evidence.npy":
+                header_end = data.index(b"\n") + 1
+                header = data[:header_end].decode("latin1")
+                start = header.index("'shape': (") + len("'shape': (")
+                end = header.index(")", start)
+                lying = header[:start] + "4000000000000, 3" + header[end:]
+                lying = lying[:-1].ljust(len(header) - 1) + "\n" if len(lying) <= len(header) else lying
+                data = lying.encode("latin1") + data[header_end:]
+            zout.writestr(item, data)
+    with pytest.raises(MapFileError, match="declares shape .* truncated or corrupt"):
+        load_map(bad)
+    assert "declares shape" in run_cli(capsys, "info", bad)
+
+
+# ------------------------------------------------------------------------------------- checkpoints
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    import torch
+
+    from evsemmap_warp.segmentation.config import ModelConfig
+    from evsemmap_warp.segmentation.model import build_model
+    from evsemmap_warp.segmentation.train import TrainConfig, save_checkpoint
+
+    config = TrainConfig(model=ModelConfig(num_classes=3, width=8, aspp_channels=8), input_size=(32, 64))
+    model = build_model(config.model)
+    path = tmp_path_factory.mktemp("ckpt") / "good.pt"
+    save_checkpoint(path, model, torch.optim.SGD(model.parameters(), lr=0.1), 1, config, ["a", "b", "c"], [])
+    return path
+
+
+def _tampered_checkpoint(src: Path, dst: Path, how: str) -> Path:
+    import torch
+
+    ckpt = torch.load(src, weights_only=True)
+    cfg = json.loads(ckpt["meta"]["train_config"])
+    if how == "unknown-key":
+        cfg["warp_factor"] = 9
+    elif how == "other-shape":
+        cfg["model"]["width"] = 16
+    ckpt["meta"]["train_config"] = json.dumps(cfg)
+    torch.save(ckpt, dst)
+    return dst
+
+
+@pytest.mark.parametrize("how,pattern", [("unknown-key", "training config does not fit"),
+                                          ("other-shape", "weights do not fit"),
+                                          ("not-a-checkpoint", "not a readable evsemmap segmentation checkpoint")])
+def test_bad_checkpoint_is_one_line(tmp_path, capsys, checkpoint, how, pattern):
+    if how == "not-a-checkpoint":
+        bad = tmp_path / "junk.pt"
+        bad.write_bytes(b"this is not a checkpoint")
+    else:
+        bad = _tampered_checkpoint(checkpoint, tmp_path / f"{how}.pt", how)
+    from PIL import Image
+
+    Image.fromarray(np.zeros((32, 64, 3), np.uint8)).save(tmp_path / "img.png")
+    line = run_cli(capsys, "infer", bad, tmp_path / "img.png", "--out", tmp_path / "out")
+    assert str(bad) in line and pattern in line
+
+
+# ------------------------------------------------------------------------------------- flags
+@pytest.mark.parametrize("argv,pattern", [
+    (["view", "{map}", "--port", "99999"], "port 99999 is outside"),
+    (["view", "{map}", "--max-voxels", "-5"], "--max-voxels: -5"),
+    (["project", "{tmp}", "--out", "{tmp}/o", "--max-frames", "-1"], "--max-frames: -1"),
+    (["map", "{preset}", "--method", "ebs", "--out", "{tmp}/m.npz", "--workers", "0"], "--workers: 0"),
+    (["train-seg", "--out", "{tmp}/o", "--lr", "nan"], "--lr: nan"),
+])
+def test_bad_flag_values_are_one_line(tmp_path, capsys, argv, pattern):
+    argv = [a.format(map=_small_map_file(tmp_path), tmp=tmp_path, preset=PRESET) for a in argv]
+    assert pattern in run_cli(capsys, *argv)
+
+
+def test_project_refuses_images_of_another_size_than_the_camera(tmp_path, capsys):
+    from PIL import Image
+
+    from evsemmap_warp.synthetic.preset import load_preset
+    from evsemmap_warp.synthetic.writer import generate_sequence
+
+    seq = tmp_path / "seq"
+    generate_sequence(load_preset("tiny"), seq, progress=False)
+    from evsemmap_warp.data.sequences import Rellis3DSequence
+
+    label = Rellis3DSequence(seq).frames[1].label_image
+    with Image.open(label) as img:
+        img.resize((img.width // 2, img.height // 2), Image.NEAREST).save(label)
+    line = run_cli(capsys, "project", seq, "--out", tmp_path / "gt")
+    assert str(label) in line and "but the sequence's camera" in line
