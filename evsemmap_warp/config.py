@@ -271,12 +271,26 @@ def _convert(cls, name: str, value: Any, source: str) -> Any:
         raise ConfigError(f"{source}: {name} = {value!r} is not a valid {ftype}") from None
 
 
+def dataset_for_folder(folder: Path) -> dict[str, Any]:
+    """The dataset section for a sequence folder named on the command line instead of a dataset
+    config: SemanticKITTI when it has velodyne/, else the RELLIS-3D layout (also what synth writes)."""
+    kind = "semantickitti" if (folder / "velodyne").is_dir() else "rellis3d"
+    return {"kind": kind, "paths": (str(folder.resolve()),), "config_dir": str(folder.resolve())}
+
+
 def load_config(config_paths: list[str | Path], method: str | None = None) -> RunConfig:
-    """Merge the method file (if any) and the given files, later ones winning; validate."""
+    """Merge the method file (if any) and the given files, later ones winning; validate. A folder
+    among the paths is a sequence to map (``dataset_for_folder``)."""
     mapping: dict[str, Any] = {}
     dataset: dict[str, Any] = {}
     sources = []
-    files = ([method_path(method)] if method else []) + [Path(p) for p in config_paths]
+    folders = [Path(p) for p in config_paths if Path(p).is_dir()]
+    if len(folders) > 1:
+        raise ConfigError(f"one sequence folder per run, got {len(folders)}: {[str(f) for f in folders]}")
+    if folders:
+        dataset.update(dataset_for_folder(folders[0]))
+        sources.append(str(folders[0]))
+    files = ([method_path(method)] if method else []) + [Path(p) for p in config_paths if not Path(p).is_dir()]
     for path in files:
         data = _read_yaml(path)
         sources.append(str(path))
