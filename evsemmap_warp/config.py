@@ -25,13 +25,13 @@ class ConfigError(ValueError):
 class Kernel(str, enum.Enum):
     SPARSE = "sparse"  # BKI sparse kernel k'(d, l, sigma0)
     COUNT = "count"  # counting sensor model: weight 1 inside the point's own voxel
-    CONVBKI = "convbki"  # ConvBKI: per-class compound kernel on a voxel-centre stencil (baselines.md 2)
-    SEE_CSOM = "see-csom"  # SEE-CSOM: entropy-gated blocks, triangular kernel (baselines.md 3)
+    CONVBKI = "convbki"  # ConvBKI: per-class compound kernel on a voxel-centre stencil (docs/compatibility.md §2)
+    SEE_CSOM = "see-csom"  # SEE-CSOM: entropy-gated blocks, triangular kernel (docs/compatibility.md §3)
 
 
 class Fusion(str, enum.Enum):
     BAYES = "bayes"  # Dirichlet concentrations add up (every BKI / CSM method)
-    DEMPSTER = "dempster"  # belief masses fused with Dempster's rule (spec 3.10)
+    DEMPSTER = "dempster"  # belief masses fused with Dempster's rule (docs/algorithm.md §3.7)
 
 
 class Media(str, enum.Enum):
@@ -41,7 +41,7 @@ class Media(str, enum.Enum):
 
 class Compat(str, enum.Enum):
     CLEAN = "clean"  # the paper's algorithm with a true radius search (default)
-    SBKI = "sbki"  # reproduce the original S-BKI / S-CSM C++ (reference_sbki.md section 4)
+    SBKI = "sbki"  # reproduce the original S-BKI / S-CSM C++ (docs/compatibility.md §1)
 
 
 # A kernel that visits more voxels than this per point is a mistake (a length in the wrong unit, say),
@@ -57,7 +57,7 @@ class PayloadType(str, enum.Enum):
 
 @dataclass(frozen=True)
 class MappingConfig:
-    """Everything the mapper needs. Lengths in metres; see spec sections 3 and 6."""
+    """Everything the mapper needs. Lengths in metres; see docs/algorithm.md §3."""
 
     method: str = "ebs"
     kernel: Kernel = Kernel.SPARSE
@@ -73,7 +73,7 @@ class MappingConfig:
     gamma: float = 10.0
     uncertainty_drop_fraction: float = 0.1  # u~: the most uncertain fraction dropped per insertion
     sigma0: float = 1.0
-    # S-BKI compatibility mode only (spec 3.2-3.4, reference_sbki.md 4):
+    # S-BKI compatibility mode only (docs/compatibility.md §1):
     block_depth: int = 2
     ds_resolution_m: float = 0.1
     free_resolution_m: float = 4.0
@@ -280,7 +280,7 @@ def dataset_for_folder(folder: Path) -> dict[str, Any]:
 
 def load_config(config_paths: list[str | Path], method: str | None = None) -> RunConfig:
     """Merge the method file (if any) and the given files, later ones winning; validate. A folder
-    among the paths is a sequence to map (``dataset_for_folder``)."""
+    among the paths is a sequence to map (``dataset_for_folder``), a bare name a built-in preset."""
     mapping: dict[str, Any] = {}
     dataset: dict[str, Any] = {}
     sources = []
@@ -290,7 +290,9 @@ def load_config(config_paths: list[str | Path], method: str | None = None) -> Ru
     if folders:
         dataset.update(dataset_for_folder(folders[0]))
         sources.append(str(folders[0]))
-    files = ([method_path(method)] if method else []) + [Path(p) for p in config_paths if not Path(p).is_dir()]
+    # a bare name (no .yaml, no such file) is a built-in mapping preset: rellis3d, offroad, ...
+    files = ([method_path(method)] if method else []) + [
+        preset_path(str(p)) if not Path(p).exists() and Path(p).suffix == "" else Path(p) for p in config_paths if not Path(p).is_dir()]
     for path in files:
         data = _read_yaml(path)
         sources.append(str(path))

@@ -2,7 +2,7 @@
 
 Maps the 12 toy scans with S-CSM and S-BKI exactly as ganlumomo/BKISemanticMapping does (VoxelGrid,
 free-space rays, block support) and prints the cell states next to those of the original C++
-(../shared/docs/reference_sbki.md section 5).
+(docs/compatibility.md §1.5).
 
     python examples/01_sbki_toy_conformance.py [--device cpu]
 """

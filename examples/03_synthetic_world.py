@@ -8,7 +8,7 @@ import argparse
 from pathlib import Path
 
 
-from evsemmap_warp.data.classes import class_set, original_to_v3_table
+from evsemmap_warp.classes import class_set, original_to_v3_table
 from evsemmap_warp.geometry.projection import ProjectionConfig, label_map_for, project_frames, save_overlay
 from evsemmap_warp.data.sequences import Rellis3DSequence, check_sequence
 from evsemmap_warp.synthetic.preset import load_preset

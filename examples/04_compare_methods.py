@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from evsemmap_warp import Mapper, load_config
-from evsemmap_warp.data.classes import class_set, remap_ids
+from evsemmap_warp.classes import class_set, remap_ids
 from evsemmap_warp.config import available_methods, preset_path
 from evsemmap_warp.apps.evaluation import evaluate_map, markdown_table
 from evsemmap_warp.geometry.projection import ProjectionConfig, label_map_for, project_frames

@@ -14,7 +14,7 @@ written once; what changes between methods is the small weight rule chosen by ``
 * ``MODE_STENCIL``: ConvBKI: every voxel of the (2h + 1)^3 cube around the point's voxel, with a
   per-class weight looked up by offset in ``stencil_weights`` (distances between voxel centres).
 
-``fusion`` 1 (Dempster-Shafer, spec 3.10, radius mode): instead of adding w * y, each point's belief
+``fusion`` 1 (Dempster-Shafer, docs/algorithm.md §3.7, radius mode): instead of adding w * y, each point's belief
 masses b (``class_weights``) are discounted by min(w, 1) and the voxel accumulates the log
 commonality ratios log(1 + b'_c / u'), u' = 1 - sum b'. Dempster's rule multiplies commonalities, so
 these sums fuse any number of points in any order; ``mapping.summarize_beliefs`` turns them back
@@ -47,7 +47,7 @@ MODE_SBKI_OWN_BLOCK = 3
 MODE_STENCIL = 4
 FUSION_BAYES = 0
 FUSION_DEMPSTER = 1
-# Belief masses are clamped to [0, 1 - BELIEF_EPSILON] (docs/algorithm.md, Dempster-Shafer).
+# Belief masses are clamped to [0, 1 - BELIEF_EPSILON] (docs/algorithm.md §3.7).
 BELIEF_EPSILON = 1e-6
 # Columns of voxel_data after the K evidence columns.
 EXTRA_COLUMNS = 4
@@ -82,7 +82,7 @@ _EXTRA = wp.constant(EXTRA_COLUMNS)
 
 @wp.func
 def sparse_kernel(d: wp.float64, length: wp.float64, sigma0: wp.float64) -> wp.float64:
-    """k'(d, l, sigma0) (docs/algorithm.md) for d < l, in float64.
+    """k'(d, l, sigma0) (docs/algorithm.md §3.3) for d < l, in float64.
 
     Near the support edge the closed form is the difference of two O(1 - d/l) terms. With t = 1 - d/l
     and a = 2 pi t the kernel is sigma0 t f(a), f(a) = (2 + cos a) / 3 - sin(a) / a =
@@ -354,7 +354,7 @@ def scatter_block_targets(
     failed: wp.array(dtype=int),
     update_count: wp.array(dtype=wp.int64),
 ):
-    """SEE-CSOM (docs/compatibility.md): point i updates every cell of target block owner +
+    """SEE-CSOM (docs/compatibility.md §3.3): point i updates every cell of target block owner +
     face_offset(j) for each j with target_lengths[i, j] > 0 (the host decided which blocks may use this
     point and with which length), with the triangular kernel max(0, 1 - d / l). Every cell of a target
     block is touched, as the original updates all of a block's nodes. Two passes: insert, then add."""

@@ -58,7 +58,7 @@ def test_stencil_kernel_matches_twin(device):
 
 
 def test_convbki_map_equals_a_dense_depthwise_conv3d():
-    """baselines.md 2.8: the scatter equals its authors' dense conv3d of the voxelised evidence."""
+    """docs/compatibility.md §2.2: the scatter equals its authors' dense conv3d of the voxelised evidence."""
     rng = np.random.default_rng(0)
     k, res = 4, 0.25
     lengths = convbki.ConvBkiLengths(rng.uniform(0.2, 0.7, k), rng.uniform(0.2, 0.7, k))

@@ -1,11 +1,11 @@
-"""Evaluation (spec 4, items 27-29 of section 10) on a hand-built map with hand-computed scores."""
+"""Evaluation (docs/algorithm.md §4) on a hand-built map with hand-computed scores."""
 
 import dataclasses
 
 import numpy as np
 import pytest
 
-from evsemmap_warp.data.classes import class_set
+from evsemmap_warp.classes import class_set
 from evsemmap_warp.config import load_config
 from evsemmap_warp.apps.evaluation import evaluate_map, markdown_table
 from evsemmap_warp.core.mapper import Mapper

@@ -46,3 +46,22 @@ def test_compare_methods(tmp_path):
 def test_examples_are_all_tested():
     names = sorted(p.name for p in (REPO / "examples").glob("*.py"))
     assert names == ["00_quickstart.py", "01_sbki_toy_conformance.py", "02_view_map.py", "03_synthetic_world.py", "04_compare_methods.py"], "add a test for each new example"
+
+
+def test_readme_python_snippet_makes_a_sensible_map(tmp_path, monkeypatch):
+    """The README's Python block, run as written on a tiny synthetic sequence in place of the default one."""
+    import re
+
+    from evsemmap_warp.synthetic.preset import load_preset
+    from evsemmap_warp.synthetic.writer import generate_sequence
+
+    readme = (REPO / "README.md").read_text()
+    snippet = re.search(r"```python\n(.*?)```", readme, re.S).group(1)
+    assert "data/synth/00000" in snippet
+    generate_sequence(load_preset("tiny"), tmp_path / "data/synth/00000", progress=False)
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {}
+    exec(compile(snippet, "README.md", "exec"), namespace)
+    mapper, result, scan = namespace["mapper"], namespace["result"], namespace["scan"]
+    assert mapper.voxel_count > 1000 and (tmp_path / "synth_ebs.npz").exists()
+    assert (result.label == scan.payload).mean() > 0.9  # the map gives the scan's own labels back

@@ -115,7 +115,7 @@ def test_interrupted_training_resumes_from_its_last_epoch(tmp_path, monkeypatch)
 
 
 def test_conditions_pool_into_one_table(tmp_path):
-    """Two conditions on two worlds, pooled as the RELLIS-3D folds are (spec 10.29), ablation on the pool."""
+    """Two conditions on two worlds, pooled as the RELLIS-3D folds are (docs/algorithm.md §4.5), ablation on the pool."""
     text = CONFIG.replace("  test: {preset: tiny}", "  test: {preset: tiny}\n  test-b: {preset: tiny, seed: 4, frames: 3}")
     text = text.replace("  in-domain: {network: net, sequence: test}", "  in-domain: {network: net, sequence: test}\n  other: {network: net, sequence: test-b}")
     text = text.replace("ablation: {condition: in-domain, methods: [s-bki, prob, convbki]}", "ablation: {condition: both, methods: [s-bki, prob]}")

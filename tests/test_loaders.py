@@ -30,7 +30,7 @@ def test_rellis3d_loose_files_of_the_real_example():
     assert seq.read_scan(frame).shape == (131072, 4)
     assert seq.camera.width == 1920 and seq.camera.height == 1200 and seq.camera.fx == pytest.approx(2813.643275)
     assert seq.camera.distortion[0] == pytest.approx(-0.134313)  # RELLIS-3D's hard-coded coefficients
-    # spec 2.1: with this extrinsic the LiDAR +x axis points along the camera's -z axis
+    # docs/algorithm.md §2.1: with this extrinsic the LiDAR +x axis points along the camera's -z axis
     np.testing.assert_allclose(seq.lidar_to_camera[:3, :3] @ [1, 0, 0], [0, 0, -1], atol=0.05)
     assert set(np.unique(seq.read_point_labels(frame))) == {0, 3, 4, 17, 18, 19, 23, 31, 33}
 

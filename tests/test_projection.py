@@ -1,4 +1,4 @@
-"""Projection (spec section 2) against hand-computed pixels, torch's bilinear upsampling, and one real
+"""Projection (docs/algorithm.md §2) against hand-computed pixels, torch's bilinear upsampling, and one real
 RELLIS-3D frame."""
 
 import numpy as np
@@ -7,7 +7,7 @@ import torch
 
 from conftest import shared_path
 from evsemmap_warp.geometry.camera import PinholeCamera, matrix_to_quaternion, quaternion_to_matrix
-from evsemmap_warp.data.classes import original_to_v3_table
+from evsemmap_warp.classes import original_to_v3_table
 from evsemmap_warp.geometry.projection import Bin, ProjectedFrame, ProjectionConfig, bin_frames, project_scan, sample_map
 from evsemmap_warp.data.sequences import Rellis3DSequence
 

@@ -106,7 +106,7 @@ def _toy_config(method):
 
 
 def test_toy_training_sets_match_the_cpp_per_scan():
-    # reference_sbki.md section 5: VoxelGrid hits and training points per scan, from the C++.
+    # docs/compatibility.md §1.5: VoxelGrid hits and training points per scan, from the C++.
     hits = [802, 1037, 436, 1313, 1103, 1202, 1141, 1373, 1099, 1105, 661, 1091]
     train = [2371, 2818, 702, 3659, 3511, 2859, 2612, 4470, 3745, 3701, 1603, 2606]
     for i in range(12):
@@ -141,7 +141,7 @@ def test_toy_sbki_reproduces_the_cpp_map_up_to_near_ties():
     mapper = _map_toy("s-bki")
     assert mapper.voxel_count == 215936
     counts = mapper.state_counts()
-    # reference_sbki.md 5 and 7.5: 163,872 FREE / 52,064 OCCUPIED; the authors' own float32
+    # docs/compatibility.md §1.3, §1.5: 163,872 FREE / 52,064 OCCUPIED; the authors' own float32
     # re-implementation flipped 10 near-tie cells, so a small band is allowed, nothing more.
     assert counts["UNKNOWN"] == 0
     assert abs(counts["FREE"] - 163872) <= 25 and abs(counts["OCCUPIED"] - 52064) <= 25

@@ -9,7 +9,7 @@ import pytest
 import torch
 from PIL import Image
 
-from evsemmap_warp.data.classes import class_set, decode_color_labels, palette, remap_ids
+from evsemmap_warp.classes import class_set, decode_color_labels, palette, remap_ids
 from evsemmap_warp.apps.cli import main
 from evsemmap_warp.segmentation.data import Rellis3DImages, RugdImages, SyntheticOffroad
 from evsemmap_warp.segmentation.evidential import dirichlet_from_logits, edl_loss, kl_to_uniform_dirichlet, kl_weight

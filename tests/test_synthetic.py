@@ -46,7 +46,7 @@ def test_scans_labels_and_images_agree(tiny_sequence):
     the camera model, the extrinsic, the poses and the label writers against one another."""
     out, _ = tiny_sequence
     seq = Rellis3DSequence(out)
-    from evsemmap_warp.data.classes import original_to_v3_table
+    from evsemmap_warp.classes import original_to_v3_table
 
     table = original_to_v3_table()
     agree = total = 0
@@ -115,7 +115,7 @@ def test_synth_and_check_data_commands(tmp_path, capsys):
 def test_project_and_train_convbki_commands(tiny_sequence, tmp_path, capsys):
     import json
 
-    from evsemmap_warp.data.classes import remap_ids
+    from evsemmap_warp.classes import remap_ids
 
     out, _ = tiny_sequence
     assert main(["project", str(out), "--out", str(tmp_path / "gt"), "--overlays", "1"]) == 0

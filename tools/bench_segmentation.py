@@ -25,7 +25,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from evsemmap_warp.data.classes import class_set  # noqa: E402
+from evsemmap_warp.classes import class_set  # noqa: E402
 from evsemmap_warp.segmentation.config import ModelConfig  # noqa: E402
 from evsemmap_warp.segmentation.evidential import edl_loss  # noqa: E402
 from evsemmap_warp.segmentation.data import SyntheticOffroad  # noqa: E402

@@ -100,7 +100,7 @@ def _segmentation_source(args):
 
 
 def _cmd_train_seg(args) -> int:
-    from ..data.classes import class_set
+    from ..classes import class_set
     from ..segmentation.config import ModelConfig
     from ..segmentation.train import TrainConfig, train
 
@@ -174,7 +174,7 @@ def _cmd_check_data(args) -> int:
 def _cmd_project(args) -> int:
     """Project a sequence's 2D labels onto its scans: 3D ground truth, agreement with the per-point
     labels where the sequence has them, and overlay images."""
-    from ..data.classes import class_set, original_to_v3_table
+    from ..classes import class_set, original_to_v3_table
     from ..geometry.projection import ProjectionConfig, depth_colours, label_map_for, project_frames, save_overlay
     from ..data.sequences import Rellis3DSequence
 
@@ -210,7 +210,7 @@ def _cmd_project(args) -> int:
 
 def _cmd_train_convbki(args) -> int:
     from ..methods import convbki
-    from ..data.classes import class_set
+    from ..classes import class_set
     from ..geometry.projection import ProjectionConfig
     from ..data.sequences import Rellis3DSequence
 

@@ -1,4 +1,4 @@
-"""Stage D (spec section 4 with section 10 items 27-29): a map queried at 3D ground-truth points.
+"""Stage D (docs/algorithm.md §4): a map queried at 3D ground-truth points.
 
 * Only ground-truth points of the scored classes (the paper's seven, ids 2..8) count.
 * The confusion matrix (full K x K, ground truth rows, prediction columns) holds the scored queries

@@ -13,7 +13,7 @@ Config (YAML)::
       test-dusk: {preset: demo, seed: 12, domain: dusk}
       rellis: {path: /data/Rellis-3D/00004}
     networks:             # segmentation networks and what they train on (or a checkpoint path)
-      summer: {train_on: [train], epochs: 12, time_budget_s: 150}
+      summer: {train_on: [train], epochs: 12}   # time_budget_s: S stops early, reported as a warning
     conditions:           # a network's alpha on a sequence, mapped and scored: one table row set each
       in-domain: {network: summer, sequence: test}
     mapping_preset: offroad   # configs/presets/NAME.yaml or a path, under every method
@@ -32,6 +32,7 @@ import platform
 import shutil
 import sys
 import time
+import warnings
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -104,7 +105,7 @@ class ExperimentConfig:
     methods: tuple = ()
     ablation: AblationSpec = field(default_factory=AblationSpec)
     scored_classes: tuple = PAPER_SCORED_CLASSES
-    # name -> conditions scored as one (spec 10.29: the RELLIS-3D folds; pooled confusion matrices,
+    # name -> conditions scored as one (docs/algorithm.md §4.5: the RELLIS-3D folds; pooled confusion matrices,
     # and the mean of the per-condition scores beside them)
     pools: dict = field(default_factory=dict)
     convbki: ConvBkiTraining = field(default_factory=ConvBkiTraining)
@@ -165,6 +166,8 @@ class Experiment:
         self.config, self.out, self.device, self.progress, self.log = config, Path(out), device, progress, log
         self.cache = Path(cache) if cache is not None else self.out / "cache"
         self.timings: dict[str, float] = {}
+        self.notes: list[str] = []
+        self._networks: dict[str, Path] = {}
         self._sequence_dirs: dict[str, Path] = {}
 
     # -- stages ----------------------------------------------------------------------------------
@@ -193,10 +196,16 @@ class Experiment:
         return folder
 
     def network(self, name: str) -> Path:
-        from ..data.classes import class_set
+        """The trained checkpoint of network ``name`` (trained, resumed or found in the cache once per run)."""
+        if name not in self._networks:
+            self._networks[name] = self._network(name)
+        return self._networks[name]
+
+    def _network(self, name: str) -> Path:
+        from ..classes import class_set
         from ..segmentation.config import ModelConfig
         from ..segmentation.data import Rellis3DImages
-        from ..segmentation.train import TrainConfig, evaluate_checkpoint, load_checkpoint, split_indices, train
+        from ..segmentation.train import TimeBudgetWarning, TrainConfig, evaluate_checkpoint, load_checkpoint, split_indices, train
 
         spec = self.config.networks[name]
         if spec.checkpoint:
@@ -208,7 +217,12 @@ class Experiment:
                              time_budget_s=spec.time_budget_s or None)
         folder = self.cache / "networks" / f"{name}-{_digest(dataclasses.asdict(spec), [s.name for s in sources], __version__)}"
         if (folder / "metrics.json").exists():  # written last by train()
-            return folder / "best.pt"
+            summary = json.loads((folder / "metrics.json").read_text())
+            if summary.get("epochs_run", spec.epochs) >= spec.epochs:
+                return folder / "best.pt"
+            # stopped by its time budget: never reused as finished; training goes on from its last epoch
+            self._note(f"network {name}: the cached network stopped after {summary['epochs_run']} of {spec.epochs} epochs "
+                       f"(time budget); training resumes")
         folder.mkdir(parents=True, exist_ok=True)
         if not 0 < spec.fraction <= 1:
             raise ConfigError(f"networks.{name}.fraction must lie in (0, 1], got {spec.fraction}")
@@ -222,9 +236,19 @@ class Experiment:
             return folder / "best.pt"
         self.log(f"[network] training {name} on {len(source)} frames of {', '.join(spec.train_on)}" + (" (resuming)" if resume else ""))
         started = time.perf_counter()
-        train(source, classes.names, config, folder, resume=resume, progress=self.progress)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", TimeBudgetWarning)  # reported below, into the results too
+            summary = train(source, classes.names, config, folder, resume=resume, progress=self.progress)
         self.timings[f"train {name}"] = time.perf_counter() - started
+        if summary["epochs_run"] < spec.epochs:
+            self._note(f"network {name}: training stopped by its time budget ({spec.time_budget_s:g} s) after "
+                       f"{summary['epochs_run']} of {spec.epochs} epochs; its scores depend on this machine's speed")
         return folder / "best.pt"
+
+    def _note(self, text: str) -> None:
+        """A warning the user must see: on the console now, and in results.md and record.json."""
+        self.log(f"WARNING: {text}")
+        self.notes.append(text)
 
     def alpha_dir(self, condition: str) -> Path:
         cond = self.config.conditions[condition]
@@ -255,7 +279,7 @@ class Experiment:
     def convbki_lengths(self, network: str, resolution_m: float) -> Path:
         """ConvBKI's per-class length scales learned on the network's training sequences (cached)."""
         from ..methods import convbki
-        from ..data.classes import class_set
+        from ..classes import class_set
         from ..data.sequences import Rellis3DSequence
 
         spec, training = self.config.networks[network], self.config.convbki
@@ -317,7 +341,7 @@ class Experiment:
         return list(bin_frames(projected, self.config.projection.bin_frames))
 
     def map_and_score(self, condition: str, method: str, bins: list, gt) -> MapScores:
-        from ..data.classes import class_set
+        from ..classes import class_set
         from ..core.mapper import Mapper, load_map, save_map
 
         run = load_config([preset_path(self.config.mapping_preset)], method=method)
@@ -404,6 +428,8 @@ class Experiment:
             rows = {m: by_method[m].row() for m in config.ablation.methods}
             sections.append(f"## Ablation ({config.ablation.condition})\n")
             sections.append(markdown_table(rows, ["mIoU", "Acc", "O.Acc", "BS", "BS (analytic)", "BS (per query)"]) + "\n")
+        if self.notes:
+            sections.insert(1, "**Warnings**\n\n" + "\n".join(f"- {n}" for n in self.notes) + "\n")
         (self.out / "results.md").write_text("\n".join(sections))
         with open(self.out / "scores.csv", "w", newline="") as f:
             columns = ["condition", "method"] + class_names + ["mIoU", "Acc", "O.Acc", "BS", "BS (analytic)", "BS (per query)", "scored_queries", "occupied_queries"]
@@ -421,7 +447,8 @@ class Experiment:
             for plot in ("reliability.png", "uncertainty.png"):
                 if (folder / plot).exists():
                     shutil.copy(folder / plot, self.out / f"network_{name}_{plot}")
-        record = {"experiment": dataclasses.asdict(config), "timings_s": {k: round(v, 2) for k, v in self.timings.items()},
+        record = {"experiment": dataclasses.asdict(config), "warnings": self.notes,
+                  "timings_s": {k: round(v, 2) for k, v in self.timings.items()},
                   "versions": _versions(), "sequences": {k: str(v) for k, v in self._sequence_dirs.items()}}
         (self.out / "record.json").write_text(json.dumps(record, indent=1, default=str))
 
@@ -433,29 +460,45 @@ class Experiment:
 
         for condition, by_method in results.items():
             methods = [m for m in self.config.methods if m in by_method]
-            fig, ax = plt.subplots(figsize=(1.2 * len(class_names) + 3, 4))
+            fig, ax = plt.subplots(figsize=(1.4 * len(class_names) + 3, 4.5))
             width = 0.8 / len(methods)
             for i, m in enumerate(methods):
-                values = [by_method[m].row()[c] or 0.0 for c in class_names]
-                ax.bar(np.arange(len(class_names)) + i * width, values, width, label=m)
+                row = by_method[m].row()
+                x = np.arange(len(class_names)) + i * width
+                scored = [j for j, c in enumerate(class_names) if row[c] is not None]
+                bars = ax.bar(x[scored], [row[class_names[j]] for j in scored], width, label=m)
+                ax.bar_label(bars, fmt="%.0f", fontsize=6, padding=1)
+            # a class absent from the ground truth has no IoU at all: marked, not drawn as a 0 bar
+            for j, c in enumerate(class_names):
+                if all(by_method[m].row()[c] is None for m in methods):
+                    ax.axvspan(j - width / 2, j + 0.8 - width / 2, color="0.9", zorder=0)
+                    ax.text(j + 0.4 - width / 2, 2, "absent from\nground truth", ha="center", va="bottom", fontsize=7, color="0.4")
             ax.set_xticks(np.arange(len(class_names)) + 0.4 - width / 2, class_names)
+            ax.set_xlabel("class")
             ax.set_ylabel("IoU [%]")
-            ax.set_title(f"Per-class IoU, {condition}")
-            ax.legend(fontsize=8)
+            ax.set_ylim(0, 105)
+            ax.set_title(f"Per-class IoU, {condition} (bars labelled with their value; 0 = scored and missed)")
+            ax.legend(fontsize=8, ncol=min(len(methods), 6), loc="upper left")
             fig.tight_layout()
             fig.savefig(self.out / f"iou_{condition}.png", dpi=110)
             plt.close(fig)
         if self.config.ablation.methods:
             by_method = results.get(self.config.ablation.condition) or pooled[f"pool:{self.config.ablation.condition}"]
-            metrics = ["mIoU", "Acc", "O.Acc", "BS"]
-            fig, ax = plt.subplots(figsize=(8, 4))
-            width = 0.8 / len(self.config.ablation.methods)
-            for i, m in enumerate(self.config.ablation.methods):
-                row = by_method[m].row()
-                ax.bar(np.arange(len(metrics)) + i * width, [row[k] or 0.0 for k in metrics], width, label=m)
-            ax.set_xticks(np.arange(len(metrics)) + 0.4 - width / 2, metrics)
-            ax.set_title(f"Ablation, {self.config.ablation.condition} (BS: lower is better)")
-            ax.legend(fontsize=8)
+            methods = list(self.config.ablation.methods)
+            panels = [(["mIoU", "Acc", "O.Acc"], "score [%] (higher is better)"), (["BS"], "Brier score x100 (lower is better)")]
+            fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), gridspec_kw={"width_ratios": [3, 1.3]})
+            width = 0.8 / len(methods)
+            for ax, (metrics, ylabel) in zip(axes, panels):
+                for i, m in enumerate(methods):
+                    row = by_method[m].row()
+                    bars = ax.bar(np.arange(len(metrics)) + i * width, [row[k] or 0.0 for k in metrics], width, label=m)
+                    ax.bar_label(bars, fmt="%.1f", fontsize=6, padding=1)
+                ax.set_xticks(np.arange(len(metrics)) + 0.4 - width / 2, metrics)
+                ax.set_xlabel("metric")
+                ax.set_ylabel(ylabel)
+            axes[0].set_ylim(0, 110)
+            axes[0].legend(fontsize=8, loc="lower left")
+            fig.suptitle(f"Ablation, {self.config.ablation.condition}")
             fig.tight_layout()
             fig.savefig(self.out / "ablation.png", dpi=110)
             plt.close(fig)

@@ -16,14 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data.classes import named_colors
+from ..classes import named_colors
 from ..core.map_file import read_map_arrays
 from ..data.point_files import read_point_file
 from ..voxel_keys import pack_voxel_keys
 
 STATE_NAMES = ("UNKNOWN", "FREE", "OCCUPIED")
 COLOR_MODES = ("semantic", "variance", "mean uncertainty", "observations")
-# Class colours come from configs/classes (spec 5.1 for the mapping classes); other names get tab10.
+# Class colours come from configs/classes (docs/algorithm.md §5.1 for the mapping classes); other names get tab10.
 CLASS_COLORS = named_colors()
 _FALLBACK = np.array([(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
                       (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)], np.uint8)
@@ -34,7 +34,7 @@ _NO_DATA = np.array([128, 128, 128], np.uint8)
 
 
 def class_palette(classes: list[str]) -> np.ndarray:
-    """[K, 3] uint8: the spec's colour for known class names, a tab10 colour otherwise."""
+    """[K, 3] uint8: the class set's colour for known class names, a tab10 colour otherwise."""
     return np.array([CLASS_COLORS.get(name.lower(), tuple(_FALLBACK[i % len(_FALLBACK)])) for i, name in enumerate(classes)], np.uint8)
 
 

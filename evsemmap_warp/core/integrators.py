@@ -1,11 +1,11 @@
 """Integrators: one job each, the map handed in. They turn a validated scan into kernel launches.
 
-* ``KernelIntegrator``: the paper's clean algorithm (spec 3.11) for S-CSM, S-BKI, EBS and the
+* ``KernelIntegrator``: the paper's clean algorithm (docs/algorithm.md §3) for S-CSM, S-BKI, EBS and the
   ablations: optional per-insertion uncertainty threshold, optional adaptive length, one scatter.
-  With ``fusion: dempster`` the same scatter fuses belief masses instead (spec 3.10).
-* ``ConvBkiIntegrator``: ConvBKI (baselines.md 2): voxelise, then a per-class stencil scatter.
-* ``SeeCsomIntegrator``: SEE-CSOM (baselines.md 3): block statistics, then a block-gated scatter.
-* ``SbkiCompatIntegrator``: the original S-BKI / S-CSM C++ (reference_sbki.md section 4).
+  With ``fusion: dempster`` the same scatter fuses belief masses instead (docs/algorithm.md §3.7).
+* ``ConvBkiIntegrator``: ConvBKI (docs/compatibility.md §2): voxelise, then a per-class stencil scatter.
+* ``SeeCsomIntegrator``: SEE-CSOM (docs/compatibility.md §3): block statistics, then a block-gated scatter.
+* ``SbkiCompatIntegrator``: the original S-BKI / S-CSM C++ (docs/compatibility.md §1).
 
 Both receive the map as a list of shards. Warp runs a CPU launch on one core, so on the CPU each
 worker thread scatters a contiguous part of the scan into its own shard (never a shared one: CPU
@@ -85,7 +85,7 @@ class KernelIntegrator:
         media = scan.labels[keep] if onehot else scan.probabilities[keep]
         fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
         if fusion == sc.FUSION_DEMPSTER:
-            # belief masses b_k = (alpha_k - 1) / S = p_k - u / K (spec 3.10)
+            # belief masses b_k = (alpha_k - 1) / S = p_k - u / K (docs/algorithm.md §3.7)
             media = np.clip(media - unc[:, None] / media.shape[1], 0.0, 1.0)
         if c.kernel is Kernel.COUNT:
             mode, sigma0, lengths = sc.MODE_OWN_VOXEL, 1.0, np.full(len(points), c.resolution_m)

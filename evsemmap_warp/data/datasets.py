@@ -128,7 +128,7 @@ class LabelledSequence:
             raise ConfigError(f"dataset.payload: a {config.kind} sequence is mapped from its per-point labels, got {config.payload.value!r}")
         root = config.resolve_path()
         if config.kind == "rellis3d":
-            from .classes import class_set, original_to_v3_table
+            from ..classes import class_set, original_to_v3_table
 
             self.sequence, self.table = Rellis3DSequence(root), original_to_v3_table().astype(np.int64)
             self.class_names = class_set("remap_v3").names

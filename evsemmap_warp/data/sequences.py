@@ -4,7 +4,7 @@ A sequence gives frames (scan, optional camera image and labels, pose) and its c
 are read on demand so long sequences stream. ``check_sequence`` lists what is missing or
 inconsistent before a long run fails halfway.
 
-RELLIS-3D (spec 8.1) is read from a sequence folder in its layout, or from loose files in one folder
+RELLIS-3D (docs/algorithm.md §5.3) is read from a sequence folder in its layout, or from loose files in one folder
 (``NNNNNN.bin``, ``NNNNNN.label``, ``frameNNNNNN-*.jpg`` and a ``.png`` label of the same stem, as in
 RELLIS-3D's ``utils/example``). Distortion comes from ``camera_distortion.txt`` when present (the
 synthetic world writes one), else RELLIS-3D's hard-coded coefficients.
@@ -21,7 +21,7 @@ import yaml
 from PIL import Image
 
 from ..geometry.camera import RELLIS3D_DISTORTION, PinholeCamera, quaternion_to_matrix, rigid
-from .classes import decode_color_labels, original_to_v3_table, palette
+from ..classes import decode_color_labels, original_to_v3_table, palette
 from .point_files import read_kitti_bin
 
 EXTRINSIC_KEY = "os1_cloud_node-pylon_camera_node"
@@ -220,7 +220,7 @@ class Rellis3DSequence(_ScanSequence):
 
 class SemanticKittiSequence(_ScanSequence):
     """``sequences/XX``: velodyne/NNNNNN.bin, labels/NNNNNN.label, poses.txt (cam0 frame), calib.txt (Tr).
-    LiDAR poses are inv(Tr) * pose * Tr (spec 8.3)."""
+    LiDAR poses are inv(Tr) * pose * Tr (docs/algorithm.md §5.4)."""
 
     def __init__(self, root):
         self.root = Path(root)
@@ -256,7 +256,7 @@ class SemanticKittiSequence(_ScanSequence):
 
 def semantickitti_learning_map() -> np.ndarray:
     """[260] raw SemanticKITTI id -> 19-class learning id (0 = ignore), from configs/classes/semantickitti.yaml."""
-    from .classes import classes_dir
+    from ..classes import classes_dir
 
     table = np.zeros(260, np.int64)
     for raw, learned in yaml.safe_load((classes_dir() / "semantickitti.yaml").read_text())["learning_map"].items():

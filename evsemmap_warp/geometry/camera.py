@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-# RELLIS-3D's distortion, hard-coded by its tools and by EvSemMap for every sequence (spec 2.1).
+# RELLIS-3D's distortion, hard-coded by its tools and by EvSemMap for every sequence (docs/algorithm.md §2.1).
 RELLIS3D_DISTORTION = (-0.134313, -0.025905, 0.002181, 0.00084, 0.0)
 
 

@@ -1,12 +1,12 @@
-"""Stage B (spec section 2): per-pixel values (network alpha, or 2D labels) onto the LiDAR points that
+"""Stage B (docs/algorithm.md §2): per-pixel values (network alpha, or 2D labels) onto the LiDAR points that
 fall inside the camera image, into the world frame with the poses, grouped into bins of frames.
 
 Per frame: zero returns are dropped; points go into camera coordinates; a FOV pre-filter keeps
 points strictly inside the image's angle of view widened by ``fov_margin_deg`` (which also rejects
 points behind the camera); the rest are projected with the full pinhole + distortion model and kept
 inside the image; each reads the value at its pixel. The value map may be smaller than the image
-(the network's output): ``nearest`` reads the map pixel that covers the point's image pixel (spec
-10.9 default), ``bilinear`` reproduces the release (bilinear upsampling to full size, then the
+(the network's output): ``nearest`` reads the map pixel that covers the point's image pixel (the
+default), ``bilinear`` reproduces the release (bilinear upsampling to full size, then the
 truncated pixel). An optional z-buffer drops points hidden behind nearer points of the same scan.
 
 The 3D ground truth of the evaluation comes from the same code with the 2D label images.
@@ -186,7 +186,7 @@ def _merge(items: list[ProjectedFrame]) -> Bin:
 
 def label_map_for(sequence) -> Callable:
     """values_for_frame that gives each frame's 2D ground truth as v3 ids (frames without labels skipped)."""
-    from ..data.classes import remap_ids
+    from ..classes import remap_ids
 
     def values(frame):
         if frame.label_image is None:

@@ -1,8 +1,8 @@
-"""ConvBKI (baselines.md section 2): per-class compound kernel on a voxel-centre stencil, its length
+"""ConvBKI (docs/compatibility.md §2): per-class compound kernel on a voxel-centre stencil, its length
 scales (loaded from a file or learned), and the voxelisation that precedes the "convolution".
 
 The dense depthwise conv3d of its authors equals, by linearity, a scatter of every occupied voxel's
-summed evidence onto its (2h + 1)^3 neighbours with the weight of their offset (baselines.md 2.3), so
+summed evidence onto its (2h + 1)^3 neighbours with the weight of their offset (docs/compatibility.md §2.2), so
 the map update is the engine's ordinary scatter in stencil mode; training needs the same sum
 differentiably, which ``stencil_evidence_at`` computes in PyTorch on a sorted-key lookup.
 """
@@ -146,7 +146,7 @@ class TrainingWindow:
 def train_lengths(windows: list[TrainingWindow], num_classes: int, resolution_m: float, *, half: int = 2, epochs: int = 15,
                   lr: float = 0.007, decay: float = 0.96, prior: float = 1e-6, ignore_class: int = 0, seed: int = 0,
                   progress: bool = True) -> tuple[ConvBkiLengths, list[float]]:
-    """Learn ell_h, ell_z per class as the authors do (baselines.md 2.6): each window's points go
+    """Learn ell_h, ell_z per class as the authors do (docs/compatibility.md §2.3): each window's points go
     through one stencil update of an empty map; the normalised concentrations at the last scan's
     points are scored with a class-weighted NLL (weights 1 / ln(frequency), ``ignore_class``
     ignored); Adam, exponential decay, lengths clamped to [0.01, 1.0] m after every step."""
@@ -198,7 +198,7 @@ def training_windows(sequence, alpha_for_frame, projection, *, window_scans: int
     """Windows of ``window_scans`` consecutive scans of a RELLIS-3D-layout ``sequence``: every scan's
     points carry the network's normalised alpha (``alpha_for_frame(frame)`` -> [K, h, w], projected),
     and the last scan's points (up to ``queries_per_window``) their own per-point labels (v3)."""
-    from ..data.classes import original_to_v3_table
+    from ..classes import original_to_v3_table
     from ..geometry.projection import project_frames
 
     table = original_to_v3_table()

@@ -1,6 +1,6 @@
 """Per-scan preprocessing of the original S-BKI / S-CSM, reproduced in numpy float32.
 
-What the C++ does before its kernel loops (reference_sbki.md section 4, BKISemanticMapping@66e3258):
+What the C++ does before its kernel loops (docs/compatibility.md §1, BKISemanticMapping@66e3258):
 PCL VoxelGrid downsampling of the hits (centroid, majority label, smallest label on ties), the
 range filter, free samples along each ray plus the sensor origin once per hit, a second VoxelGrid
 over the free samples, and block membership by inclusive float32 box tests (a point exactly on a

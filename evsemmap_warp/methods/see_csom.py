@@ -1,4 +1,4 @@
-"""SEE-CSOM's per-scan block statistics (baselines.md 3.2-3.3): which blocks may use which points,
+"""SEE-CSOM's per-scan block statistics (docs/compatibility.md §3.2-3.3): which blocks may use which points,
 and with which length. The scatter itself is ``kernels.scatter.scatter_block_targets``.
 
 Blocks are 2x2x2 voxels (block_depth 2). Per block with points: class entropy

@@ -1,4 +1,4 @@
-"""Sequential numpy reference of the Dempster-Shafer method (spec 3.10), point by point in the order
+"""Sequential numpy reference of the Dempster-Shafer method (docs/algorithm.md §3.7), point by point in the order
 given, exactly as the rule is written: the engine's order-free log-commonality formulation
 (kernels/scatter.py, fusion 1) is held against it. Not a kernel twin (no kernel of this name)."""
 

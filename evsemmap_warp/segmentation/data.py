@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from ..data.classes import decode_color_labels, palette, read_rugd_colormap, remap_ids
+from ..classes import decode_color_labels, palette, read_rugd_colormap, remap_ids
 from ..synthetic.appearance import DOMAINS
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -170,7 +170,7 @@ class RugdImages:
 
 def resize_pair(image: np.ndarray, label: np.ndarray | None, size: tuple[int, int]):
     """One resize path for training and inference: antialiased bilinear for the uint8 image,
-    nearest for labels (spec 10.4)."""
+    nearest for labels (docs/compatibility.md §5.1)."""
     h, w = size
     out = np.asarray(Image.fromarray(image).resize((w, h), Image.BILINEAR, reducing_gap=None)) if image.shape[:2] != (h, w) else image
     if label is None:

@@ -1,4 +1,4 @@
-"""The evidential head and loss of EvSemSeg (spec 1.3-1.4), numerically stable.
+"""The evidential head and loss of EvSemSeg (docs/algorithm.md §1.2-1.3), numerically stable.
 
 evidence = exp(clamp(logit, -c, c)), alpha = evidence + 1, S = sum alpha, p = alpha / S, u = K / S.
 Loss per pixel: log S - log alpha_gt (the EDL "log" loss) + lambda * KL(Dir(alpha~) || Dir(1)), where

@@ -1,9 +1,9 @@
 """DeepLabV3 (dilated ResNet + ASPP + 1x1 classifier, bilinear upsampling) in plain PyTorch.
 
 Written by hand because torchvision cannot be installed beside the CPU torch of these machines
-(stack_notes.md 4). Two sizes: ``r18-os16`` (BasicBlock ResNet-18 layout, output stride 16, ASPP
-rates 6/12/18; the CPU default) and ``r50-os8`` (Bottleneck ResNet-50 layout, output stride 8, ASPP
-rates 12/24/36, as the paper's torchvision model). ``torchvision-r50`` builds torchvision's own
+(PyPI's torchvision fails to import beside torch 2.13.0 CPU). Two sizes: ``r18-os16`` (BasicBlock
+ResNet-18 layout, output stride 16, ASPP rates 6/12/18; the CPU default) and ``r50-os8`` (Bottleneck
+ResNet-50 layout, output stride 8, ASPP rates 12/24/36, as the paper's torchvision model). ``torchvision-r50`` builds torchvision's own
 deeplabv3_resnet50 when torchvision is importable. No weights are downloaded: pretrained weights
 come only from a path the user gives (``load_backbone_weights``).
 """

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import random
 import time
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -42,7 +43,7 @@ class TrainConfig:
     val_fraction: float = 0.1
     seed: int = 1
     time_budget_s: float | None = None  # stop after the epoch that passes it
-    normalization: str = "imagenet"  # imagenet (RGB means) | caffe (the release's BGR means on RGB, spec 10.3)
+    normalization: str = "imagenet"  # imagenet (RGB means) | caffe (the release's BGR means on RGB, docs/compatibility.md §5.1)
     backbone_weights: str | None = None  # a state dict for the backbone; nothing is ever downloaded
 
     @property
@@ -85,6 +86,10 @@ def evaluate(model, loader, head: str, clamp: float, num_classes: int) -> Segmen
         _, probs, unc = predict(model, images, head, clamp)
         metrics.update(probs.numpy(), unc.numpy(), labels.numpy())
     return metrics
+
+
+class TimeBudgetWarning(UserWarning):
+    """Training ended before its last epoch because its time budget ran out."""
 
 
 def save_checkpoint(path, model, optimizer, epoch: int, config: TrainConfig, class_names, history) -> Path:
@@ -196,10 +201,17 @@ def train(source, class_names, config: TrainConfig, out_dir, *, resume=None, pro
         if metrics.miou > best:
             best = metrics.miou
             save_checkpoint(out_dir / "best.pt", model, optimizer, epoch, config, class_names, history)
-        if config.time_budget_s is not None and time.perf_counter() - started > config.time_budget_s:
+        if config.time_budget_s is not None and time.perf_counter() - started > config.time_budget_s and epoch < config.epochs:
             break
     bar.close()
-    summary = metrics.summary(class_names) | {"epochs_run": history[-1]["epoch"], "train_seconds": time.perf_counter() - started}
+    epochs_run = history[-1]["epoch"]
+    summary = metrics.summary(class_names) | {"epochs_run": epochs_run, "epochs_planned": config.epochs,
+                                              "train_seconds": time.perf_counter() - started}
+    if epochs_run < config.epochs:
+        summary["stopped_by_time_budget"] = config.time_budget_s
+        warnings.warn(f"{out_dir}: training stopped by its time budget ({config.time_budget_s:g} s) after {epochs_run} of "
+                      f"{config.epochs} epochs: the network is not trained to its config, and results depend on this "
+                      f"machine's speed", TimeBudgetWarning, stacklevel=2)
     (out_dir / "history.json").write_text(json.dumps(history, indent=1))
     (out_dir / "metrics.json").write_text(json.dumps(summary, indent=1))
     metrics.save_plots(out_dir)

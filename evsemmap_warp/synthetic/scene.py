@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from ..data.classes import original_to_v3_table
+from ..classes import original_to_v3_table
 from .noise import value_noise
 from .preset import TrajectoryParams, WorldParams
 

@@ -1,4 +1,4 @@
-"""Generate a synthetic sequence and write it in the RELLIS-3D layout (spec 8.1), so that the one
+"""Generate a synthetic sequence and write it in the RELLIS-3D layout (docs/algorithm.md §5.3), so that the one
 RELLIS-3D loader reads real and synthetic data alike.
 
 Written per sequence folder: ``os1_cloud_node_kitti_bin/NNNNNN.bin`` (float32 x y z intensity, every
@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from .. import __version__
 from ..geometry.camera import matrix_to_quaternion
-from ..data.classes import palette
+from ..classes import palette
 from .preset import SynthPreset
 from .scene import generate_world, road_trajectory
 from .sensors import RayCaster, camera_model, camera_to_lidar, lidar_directions, render_camera, scan_lidar

@@ -1,8 +1,8 @@
 """Class sets, colours and id remapping, read from the data files in ``configs/classes/``.
 
-``remap_v3.yaml`` holds the 9 mapping classes (spec 5.1) and the original-id -> v3 table shared by
-RELLIS-3D and RUGD (spec 5.2); ``rellis3d_colors.yaml`` and ``rugd_colors.yaml`` hold the colour-label
-palettes (spec 5.3, 5.4). Unknown colours and ids are errors that name the file and the values.
+``remap_v3.yaml`` holds the 9 mapping classes (docs/algorithm.md §5.1) and the original-id -> v3 table shared by
+RELLIS-3D and RUGD (docs/algorithm.md §5.2); ``rellis3d_colors.yaml`` and ``rugd_colors.yaml`` hold the colour-label
+palettes (docs/algorithm.md §5.2). Unknown colours and ids are errors that name the file and the values.
 """
 
 from __future__ import annotations
