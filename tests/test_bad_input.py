@@ -293,3 +293,16 @@ def test_project_refuses_images_of_another_size_than_the_camera(tmp_path, capsys
         img.resize((img.width // 2, img.height // 2), Image.NEAREST).save(label)
     line = run_cli(capsys, "project", seq, "--out", tmp_path / "gt")
     assert str(label) in line and "but the sequence's camera" in line
+
+
+@pytest.mark.parametrize("text,pattern", [
+    ("- 1\n", "expected a mapping of sections"),
+    ("networks:\n  a: {epochs: .nan}\n", "epochs = nan must be a finite number"),
+    ("projection: {fov_margin_deg: 400}\n", "fov_margin_deg must lie in"),
+    ("networks:\n  a: {train_on: [s], epochs: 2}\nsequences:\n  s: {preset: tiny, frames: -3}\n", "frames"),
+])
+def test_bad_experiment_config_is_one_line(tmp_path, capsys, text, pattern):
+    path = tmp_path / "study.yaml"
+    path.write_text(text)
+    line = run_cli(capsys, "experiment", path, "--out", tmp_path / "out")
+    assert str(path) in line and pattern in line

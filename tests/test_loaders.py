@@ -1,6 +1,7 @@
 """Loaders on small fixture folders in each real layout: RELLIS-3D (sequence layout and loose files),
 SemanticKITTI, and plain point files (PCD, PLY, npy, .bin)."""
 
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -132,3 +133,19 @@ def test_point_files_of_every_kind(tmp_path):
     (tmp_path / "broken.ply").write_text("ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\nend_header\n1\n")
     with pytest.raises(ValueError, match="broken.ply"):
         read_point_file(tmp_path / "broken.ply")
+
+
+def test_the_toy_scans_extra_column_warning_comes_once_per_dataset():
+    import warnings
+
+    from evsemmap_warp.config import load_config
+
+    run = load_config([Path(__file__).resolve().parents[1] / "configs/datasets/sbki_toy.yaml"], method="s-bki")
+    dataset = open_dataset(run.dataset)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for _ in range(2):
+            assert sum(1 for _ in dataset) == 12
+    extra = [w for w in caught if issubclass(w.category, ExtraColumnsWarning)]
+    assert len(extra) == 1, [str(w.message) for w in extra]
+    assert "sim_unstructured_annotated_1.pcd" in str(extra[0].message)

@@ -73,7 +73,9 @@ def test_a_far_scan_maps_as_the_same_scan_near_the_origin(method):
         np.testing.assert_array_equal(a.hits, b.hits)
     # Queries at the far coordinates find the same voxels.
     q = scans[0][0][:200]
-    np.testing.assert_array_equal(near.query(q).label, far.query(q + shift).label)
+    near_hits, far_hits = near.query(q), far.query(q + shift)
+    np.testing.assert_array_equal(near_hits.label, far_hits.label)
+    np.testing.assert_array_equal(near_hits.voxel_index + offset, far_hits.voxel_index)
 
 
 def test_float32_positions_would_have_lost_the_far_map():
@@ -226,3 +228,20 @@ def test_no_kernel_is_generic():
         for name, obj in vars(module).items():
             if isinstance(obj, wp.Kernel):
                 assert not obj.is_generic, f"kernels/{info.name}.py: {name} is generic"
+
+
+def test_a_far_map_file_round_trips_and_the_viewer_finds_its_voxels(tmp_path):
+    from evsemmap_warp.apps.viewer import MapLayer
+
+    rng = np.random.default_rng(8)
+    mapper = _integrate(Mapper(_config("ebs"), K), [_scan(rng, 2000, centre=FAR)])
+    path = mapper.save(tmp_path / "far.npz")
+    loaded = Mapper.load(path)
+    np.testing.assert_array_equal(loaded.origin, mapper.origin)
+    (a, _), (b, _) = mapper.voxels(), loaded.voxels()
+    np.testing.assert_array_equal(a.index, b.index)
+    np.testing.assert_array_equal(a.evidence, b.evidence)
+    layer = MapLayer.from_file(path)
+    rows = layer.voxel_at(layer.centers[:50])
+    np.testing.assert_array_equal(rows, np.arange(50))
+    assert (layer.voxel_at(np.array([[0.0, 0.0, 0.0]])) == -1).all()

@@ -86,7 +86,7 @@ def evaluate_map(mapper, points: np.ndarray, labels: np.ndarray, scored_classes=
 
     # Brier score per occupied voxel with ground truth: group the occupied queries by voxel.
     variance = result.variance[occupied].astype(np.float64)
-    voxel = np.floor((points[occupied] - mapper.grid_offset_m) / mapper.config.resolution_m).astype(np.int64)
+    voxel = result.voxel_index[occupied]
     brier_minmax = brier_analytic = brier_query = None
     voxels = 0
     if occupied_count:

@@ -127,6 +127,8 @@ def load_experiment(name_or_path) -> tuple[ExperimentConfig, Path]:
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from None
     src = str(path)
+    if not isinstance(data, dict):
+        raise ConfigError(f"{src}: expected a mapping of sections at the top level, got {type(data).__name__}")
     for section, cls in (("sequences", SequenceSpec), ("networks", NetworkSpec), ("conditions", ConditionSpec)):
         if not isinstance(data.get(section, {}), dict):
             raise ConfigError(f"{src}: {section} must be a mapping of names")
@@ -135,7 +137,12 @@ def load_experiment(name_or_path) -> tuple[ExperimentConfig, Path]:
     for name, seq in config.sequences.items():
         if bool(seq.preset) == bool(seq.path):
             raise ConfigError(f"{src}: sequences.{name} needs exactly one of preset (synthetic) or path (a RELLIS-3D-layout folder)")
+        if seq.frames < 0 or seq.spacing_m < 0:
+            raise ConfigError(f"{src}: sequences.{name}: frames ({seq.frames}) and spacing_m ({seq.spacing_m}) must be >= 0 (0: the preset's)")
     for name, net in config.networks.items():
+        if net.epochs < 1 or net.batch_size < 1 or not net.lr > 0 or net.time_budget_s < 0 or not 0 < net.fraction <= 1:
+            raise ConfigError(f"{src}: networks.{name}: need epochs >= 1, batch_size >= 1, lr > 0, time_budget_s >= 0 "
+                              f"and fraction in (0, 1]; got {net.epochs}, {net.batch_size}, {net.lr}, {net.time_budget_s}, {net.fraction}")
         missing = [s for s in net.train_on if s not in config.sequences]
         if missing or (not net.train_on and not net.checkpoint):
             raise ConfigError(f"{src}: networks.{name} trains on unknown sequences {missing} or on nothing (give train_on or checkpoint)")
@@ -224,8 +231,6 @@ class Experiment:
             self._note(f"network {name}: the cached network stopped after {summary['epochs_run']} of {spec.epochs} epochs "
                        f"(time budget); training resumes")
         folder.mkdir(parents=True, exist_ok=True)
-        if not 0 < spec.fraction <= 1:
-            raise ConfigError(f"networks.{name}.fraction must lie in (0, 1], got {spec.fraction}")
         images = [Rellis3DImages(s) for s in sources]
         source = _Frames([(s, i) for s in images for i in range(max(1, int(round(len(s) * spec.fraction))))])
         resume = folder / "last.pt" if (folder / "last.pt").exists() else None

@@ -19,7 +19,6 @@ import numpy as np
 from ..classes import named_colors
 from ..core.map_file import read_map_arrays
 from ..data.point_files import read_point_file
-from ..voxel_keys import pack_voxel_keys
 
 STATE_NAMES = ("UNKNOWN", "FREE", "OCCUPIED")
 COLOR_MODES = ("semantic", "variance", "mean uncertainty", "observations")
@@ -78,10 +77,23 @@ class MapLayer:
 
     def voxel_at(self, points_world: np.ndarray) -> np.ndarray:
         """Row of the voxel containing each point, -1 where none is stored (map files are sorted by key)."""
-        keys = pack_voxel_keys(np.floor((points_world - self.grid_offset) / self.resolution).astype(np.int64))
-        stored = pack_voxel_keys(self.voxel_index)
+        if len(self.voxel_index) == 0:
+            return np.full(len(points_world), -1)
+        # Global indices can exceed the table's 21-bit key range (far maps), so pack relative to the
+        # map's own bounding box; the order stays x, then y, then z, as the file is sorted.
+        index = np.floor((np.asarray(points_world, np.float64) - self.grid_offset) / self.resolution)
+        lo, hi = self.voxel_index.min(axis=0), self.voxel_index.max(axis=0)
+        inside = np.all((index >= lo) & (index <= hi), axis=1)
+        span = hi - lo + 1
+
+        def pack(rows):
+            rows = np.asarray(rows, np.int64) - lo
+            return (rows[:, 0] * span[1] + rows[:, 1]) * span[2] + rows[:, 2]
+
+        stored = pack(self.voxel_index)
+        keys = pack(np.where(inside[:, None], index, lo).astype(np.int64))
         rows = np.clip(np.searchsorted(stored, keys), 0, len(stored) - 1)
-        return np.where((len(stored) > 0) & (stored[rows] == keys), rows, -1)
+        return np.where(inside & (stored[rows] == keys), rows, -1)
 
 
 def load_trajectory(path) -> np.ndarray:

@@ -98,12 +98,14 @@ def summarize_beliefs(masses: np.ndarray, touched: np.ndarray) -> DirichletSumma
 @dataclass
 class QueryResult:
     """Per query point: label (-1 where the voxel is not in the map), probabilities [M, K],
-    variance of the label's class, state (VoxelState values)."""
+    variance of the label's class, state (VoxelState values), and the global index [M, 3] of the
+    voxel the point falls in (stored or not)."""
 
     label: np.ndarray
     probabilities: np.ndarray
     variance: np.ndarray
     state: np.ndarray
+    voxel_index: np.ndarray
 
 
 def _validate_points(points, what: str = "points") -> np.ndarray:
@@ -312,7 +314,12 @@ class Mapper:
         arrays = VoxelArrays.from_rows(np.zeros((m, 3), np.int64), rows)
         summary = self.summarize(arrays.evidence, arrays.touched)
         label = np.where(found, summary.label, UNKNOWN_LABEL).astype(np.int32)
-        return QueryResult(label, summary.probabilities, summary.variance, summary.state)
+        # the kernel's floor((p - origin - offset) / r), in the same float64 arithmetic
+        origin_index = self.origin_index if self.origin_index is not None else np.zeros(3, np.int64)
+        with np.errstate(invalid="ignore", over="ignore"):
+            local_index = np.floor((self._local(points) - self.grid_offset_m) / self.config.resolution_m)
+        voxel_index = np.nan_to_num(local_index, posinf=0, neginf=0).clip(-2**62, 2**62).astype(np.int64) + origin_index
+        return QueryResult(label, summary.probabilities, summary.variance, summary.state, voxel_index)
 
     def state_counts(self) -> dict[str, int]:
         _, summary = self.voxels()

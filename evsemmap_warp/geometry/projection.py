@@ -36,6 +36,8 @@ class ProjectionConfig:
     def __post_init__(self):
         if self.lookup not in ("nearest", "bilinear"):
             raise ConfigError(f"projection.lookup must be 'nearest' or 'bilinear', got {self.lookup!r}")
+        if not 0 <= self.fov_margin_deg < 90:
+            raise ConfigError(f"projection.fov_margin_deg must lie in [0, 90), got {self.fov_margin_deg!r}")
         if self.bin_frames < 1 or self.zbuffer_cell_px < 1 or self.zbuffer_tolerance_m < 0:
             raise ConfigError(f"projection: bin_frames and zbuffer_cell_px must be >= 1 and zbuffer_tolerance_m >= 0, got {self}")
 

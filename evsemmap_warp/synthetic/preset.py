@@ -62,6 +62,8 @@ class LidarParams:
     def __post_init__(self):
         if self.beams < 1 or self.azimuth_steps < 1 or not self.fov_down_deg < self.fov_up_deg:
             raise ConfigError(f"lidar: need beams >= 1, azimuth_steps >= 1 and fov_down_deg < fov_up_deg, got {self}")
+        if not (self.max_range_m > 0 and self.range_noise_m >= 0):
+            raise ConfigError(f"lidar: max_range_m must be > 0 and range_noise_m >= 0, got {self.max_range_m}, {self.range_noise_m}")
         if not (0 <= self.dropout < 1 and 0 <= self.water_dropout <= 1):
             raise ConfigError(f"lidar: dropout probabilities must lie in [0, 1), got {self.dropout}, {self.water_dropout}")
 
