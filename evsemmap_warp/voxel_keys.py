@@ -9,12 +9,14 @@ import numpy as np
 from .kernels.hash_table import INDEX_LIMIT, KEY_BITS, KEY_OFFSET
 
 
-def check_index_range(index: np.ndarray, what: str = "voxel indices") -> None:
+def check_index_range(index: np.ndarray, what: str = "voxel indices", resolution_m: float | None = None) -> None:
     """Raise ValueError when any index [..., 3] lies outside [-INDEX_LIMIT, INDEX_LIMIT)."""
     index = np.asarray(index)
     if index.size and (int(index.min()) < -INDEX_LIMIT or int(index.max()) >= INDEX_LIMIT):
-        raise ValueError(f"{what} reach {int(index.min())}..{int(index.max())}, outside the map's key range "
-                         f"[{-INDEX_LIMIT}, {INDEX_LIMIT}) voxels around the map origin")
+        span = "" if resolution_m is None else (f": one map spans at most +-{INDEX_LIMIT * resolution_m:.0f} m around its origin "
+                                                f"at {resolution_m} m voxels (split the data into maps of separate areas)")
+        raise ValueError(f"{what} reach {int(index.min())}..{int(index.max())}, outside the key range "
+                         f"[{-INDEX_LIMIT}, {INDEX_LIMIT}) voxels around the map origin{span}")
 
 
 def pack_voxel_keys(index: np.ndarray) -> np.ndarray:

@@ -174,7 +174,7 @@ MAP_FILE_CASES = {
     "float-indices": ({"voxel_index": lambda a: a["voxel_index"].astype(np.float64)}, "'voxel_index' must hold integers"),
     "duplicate-index": ({"voxel_index": _with("voxel_index", lambda a: a.__setitem__(1, a[0])),
                          "centers": _with("centers", lambda a: a.__setitem__(1, a[0]))}, "appears more than once"),
-    "index-out-of-range": ({"voxel_index": _with("voxel_index", lambda a: a.__setitem__((0, 0), 1 << 22))}, "outside the map's key range"),
+    "index-out-of-range": ({"voxel_index": _with("voxel_index", lambda a: a.__setitem__((0, 0), 1 << 22))}, "outside the key range"),
     "resolution-disagrees": ({"resolution": np.float64(0.5)}, "disagrees with meta.mapping.resolution_m"),
     "missing-meta-key": ({"meta": {"num_classes": None}}, "meta lacks the key 'num_classes'"),
     "wrong-meta-type": ({"meta": {"scans_integrated": "many"}}, "meta.scans_integrated = 'many' has the wrong type"),

@@ -112,7 +112,7 @@ def test_every_layer_is_known_and_every_package_has_an_init():
 
 
 def test_code_cites_only_documents_the_repository_has():
-    cited = re.compile(r"(?:spec \d|spec section|reference_sbki\.md|baselines\.md|stack_notes\.md|peer_timings\.md)")
+    cited = re.compile(r"(?:spec \d|spec section|reference_sbki\.md|baselines\.md|stack_notes\.md|peer_timings\.md)", re.I)
     sections = re.compile(r"docs/(algorithm|compatibility)\.md §([\d.]+)")
     docs = {name: (REPO / "docs" / f"{name}.md").read_text() for name in ("algorithm", "compatibility")}
     for path in [*PACKAGE.rglob("*.py"), *(REPO / "kernels").rglob("*.py"), *(REPO / "configs").rglob("*.yaml")]:

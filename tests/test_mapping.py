@@ -29,7 +29,7 @@ def _alpha_scan(rng, n, spread=4.0):
 
 
 def _expected_evidence(cfg: MappingConfig, pts, alpha):
-    """Spec 3.11 in numpy: quantile threshold, adaptive length, scatter of p or one-hot."""
+    """docs/algorithm.md §3 in numpy: quantile threshold, adaptive length, scatter of p or one-hot."""
     s = alpha.sum(1)
     u, p = K / s, alpha / s[:, None]
     keep = np.ones(len(pts), bool)

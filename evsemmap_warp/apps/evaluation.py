@@ -131,7 +131,7 @@ def _confusion_scores(confusion: np.ndarray, truth_counts: np.ndarray, scored_cl
 
 
 def pool_scores(parts: list[MapScores]) -> MapScores:
-    """Spec 10.29: several maps (e.g. the 5 RELLIS-3D folds) scored as one, from their summed
+    """docs/algorithm.md §4.5: several maps (e.g. the 5 RELLIS-3D folds) scored as one, from their summed
     confusion matrices and ground-truth counts. Brier scores are per-map normalised, so the pooled
     ones are the means of the parts'."""
     first = parts[0]

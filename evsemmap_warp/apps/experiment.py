@@ -502,9 +502,10 @@ class Experiment:
                 ax.set_xlabel("metric")
                 ax.set_ylabel(ylabel)
             axes[0].set_ylim(0, 110)
-            axes[0].legend(fontsize=8, loc="lower left")
+            handles, labels = axes[0].get_legend_handles_labels()
+            fig.legend(handles, labels, loc="lower center", ncol=len(methods), fontsize=8)
             fig.suptitle(f"Ablation, {self.config.ablation.condition}")
-            fig.tight_layout()
+            fig.tight_layout(rect=(0, 0.07, 1, 1))
             fig.savefig(self.out / "ablation.png", dpi=110)
             plt.close(fig)
 

@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import enum
 import os
-from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -84,7 +84,7 @@ def belief_masses(log_commonality: np.ndarray) -> np.ndarray:
 
 
 def summarize_beliefs(masses: np.ndarray, touched: np.ndarray) -> DirichletSummary:
-    """Spec 3.10 read-out: label = argmax of the masses (all zero -> 0, FREE), probabilities =
+    """The Dempster-Shafer read-out (docs/algorithm.md §3.7): label = argmax of the masses (all zero -> 0, FREE), probabilities =
     masses / their sum, "variance" = the uncommitted mass 1 - sum m."""
     masses = np.asarray(masses, dtype=np.float64)
     committed = masses.sum(axis=1)

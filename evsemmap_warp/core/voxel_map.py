@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..voxel_keys import pack_voxel_keys, unpack_voxel_keys
+from ..voxel_keys import check_index_range, pack_voxel_keys, unpack_voxel_keys
 from .warp_runtime import init_warp, resolve_device
 
 wp = init_warp()
@@ -144,14 +144,8 @@ class VoxelMap:
 
     # ------------------------------------------------------------------ launches
     def _check_index_range(self, lo_index: np.ndarray, hi_index: np.ndarray) -> None:
-        limit = ht.INDEX_LIMIT - 1
-        lo, hi = int(np.min(lo_index)), int(np.max(hi_index))
-        if lo < -limit or hi >= limit:
-            raise ValueError(
-                f"points reach voxel indices {lo}..{hi} around the map origin, outside the key range +-{limit} at resolution "
-                f"{self.resolution_m} m: one map spans at most +-{limit * self.resolution_m:.0f} m around its origin "
-                f"(split the data into maps of separate areas)"
-            )
+        """Refuse a launch whose points would reach voxels outside the key range (before any write)."""
+        check_index_range(np.array([np.min(lo_index), np.max(hi_index)]), "the points' kernels", self.resolution_m)
 
     def _launch_until_done(self, n: int, launch, *, may_insert: bool) -> None:
         """launch(ids, failed) over range(n), relaunching the failed ids after the table grew.
