@@ -91,7 +91,7 @@ class VoxelMap:
         self.max_load = float(max_load)
         self.device = resolve_device(device)
         self.grow_count = 0
-        self._last_new_voxels = 0
+        self._last_new_voxels: dict[str, int] = {}  # per kind of launch: how many voxels the last one made
         _load_kernels(self.device)
         self._allocate(max(MIN_CAPACITY, _next_pow2(initial_capacity)))
 
@@ -147,12 +147,12 @@ class VoxelMap:
         """Refuse a launch whose points would reach voxels outside the key range (before any write)."""
         check_index_range(np.array([np.min(lo_index), np.max(hi_index)]), "the points' kernels", self.resolution_m)
 
-    def _launch_until_done(self, n: int, launch, *, may_insert: bool) -> None:
+    def _launch_until_done(self, n: int, launch, *, may_insert: bool, kind: str, most_new: int) -> None:
         """launch(ids, failed) over range(n), relaunching the failed ids after the table grew.
 
-        The table is first grown for as many new voxels as the previous launch made: a wrong guess
-        costs a relaunch of the items that did not fit, never a voxel."""
-        self.reserve(min(n, self._last_new_voxels))
+        The table is first grown for as many new voxels as the previous launch of this kind made, at
+        most ``most_new``: a wrong guess costs a relaunch of the items that did not fit, never a voxel."""
+        self.reserve(min(most_new, self._last_new_voxels.get(kind, 0)) if may_insert else 0)
         before = self.voxel_count
         pending = np.arange(n, dtype=np.int32)
         while len(pending):
@@ -163,7 +163,7 @@ class VoxelMap:
                 if not may_insert:
                     raise RuntimeError(f"{len(pending)} items reached voxels that were never inserted (a bug)")
                 self.grow(self.capacity * 2)
-        self._last_new_voxels = self.voxel_count - before
+        self._last_new_voxels[kind] = self.voxel_count - before
         self.reserve(0)
 
     def scatter(
@@ -222,7 +222,7 @@ class VoxelMap:
             wp.launch(sc.scatter_points, dim=len(ids), device=d, inputs=[
                 ids, *inputs, self.keys, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
 
-        self._launch_until_done(n, launch, may_insert=mode in (sc.MODE_RADIUS, sc.MODE_OWN_VOXEL, sc.MODE_STENCIL))
+        self._launch_until_done(n, launch, may_insert=mode in (sc.MODE_RADIUS, sc.MODE_OWN_VOXEL, sc.MODE_STENCIL), kind=f"scatter{mode}", most_new=n)
         return int(update_count.numpy()[0])
 
     def scatter_block_targets(self, points: np.ndarray, labels: np.ndarray, point_uncertainty: np.ndarray,
@@ -248,7 +248,7 @@ class VoxelMap:
             wp.launch(sc.scatter_block_targets, dim=len(ids), device=d, inputs=[
                 ids, *inputs, self.keys, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
 
-        self._launch_until_done(n, launch, may_insert=True)
+        self._launch_until_done(n, launch, may_insert=True, kind="block_targets", most_new=n * 7 * cells_per_block**3)
         return int(update_count.numpy()[0])
 
     def insert_blocks(self, blocks: np.ndarray, cells_per_block: int, *, mark_touched: bool) -> None:
@@ -266,7 +266,7 @@ class VoxelMap:
                 ids, blocks_wp, int(cells_per_block), int(mark_touched),
                 self.keys, self.key_count, self._launch_fill_limit(), self.data, failed])
 
-        self._launch_until_done(len(blocks), launch, may_insert=True)
+        self._launch_until_done(len(blocks), launch, may_insert=True, kind="block_cells", most_new=len(blocks) * cells_per_block**3)
 
     def insert_voxels(self, voxel_index: np.ndarray) -> np.ndarray:
         """Insert voxel indices [V, 3]; returns their slots (growing as needed)."""
