@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..methods import convbki, sbki_compat, see_csom
 from ..config import Fusion, Kernel, MappingConfig, Media
 from ..kernels import scatter as sc
+from ..methods import convbki, sbki_compat, see_csom
 from .voxel_map import VoxelMap
 
 # Below this many points per shard, splitting a launch costs more than it saves.
@@ -30,8 +30,9 @@ MIN_POINTS_PER_SHARD = 4096
 
 @dataclass
 class ScanPayload:
-    """A validated scan: points [N, 3] float64 (world, m), class probabilities [N, K], input
-    uncertainty [N] (K / S for alpha, 1 - max p for probabilities, 0 for labels), labels [N]."""
+    """A validated scan: points [N, 3] float64 (m, relative to the map origin when an integrator gets
+    them), class probabilities [N, K], input uncertainty [N] (K / S for alpha, 1 - max p for
+    probabilities, 0 for labels), labels [N]."""
 
     points: np.ndarray
     probabilities: np.ndarray
