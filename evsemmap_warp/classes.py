@@ -66,7 +66,11 @@ def palette(name: str) -> dict[tuple[int, int, int], int]:
 def read_rugd_colormap(path) -> dict[tuple[int, int, int], int]:
     """RUGD_annotation-colormap.txt: lines 'id name R G B'."""
     out = {}
-    for n, line in enumerate(Path(path).read_text().splitlines(), 1):
+    try:
+        text = Path(path).read_text()
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a text file (a RUGD colour map was expected)") from None
+    for n, line in enumerate(text.splitlines(), 1):
         parts = line.split()
         if not parts:
             continue

@@ -217,13 +217,22 @@ def method_path(name_or_path: str) -> Path:
     return candidate
 
 
-def _read_yaml(path: Path) -> dict[str, Any]:
+def read_yaml_file(path, what: str = "config file") -> Any:
+    """A YAML (or JSON) file's content, or a ConfigError naming the file when it is missing, not text
+    (binary junk) or not YAML."""
+    path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        return yaml.safe_load(path.read_text())
     except FileNotFoundError:
-        raise ConfigError(f"{path}: no such config file") from None
+        raise ConfigError(f"{path}: no such {what}") from None
+    except (UnicodeDecodeError, IsADirectoryError):
+        raise ConfigError(f"{path}: not a text file (a YAML {what} was expected)") from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    data = read_yaml_file(path)
     if data is None:
         return {}
     if not isinstance(data, dict):

@@ -306,3 +306,71 @@ def test_bad_experiment_config_is_one_line(tmp_path, capsys, text, pattern):
     path.write_text(text)
     line = run_cli(capsys, "experiment", path, "--out", tmp_path / "out")
     assert str(path) in line and pattern in line
+
+
+# ------------------------------------------------------------------------------------- sequences
+@pytest.fixture(scope="module")
+def tiny_sequence(tmp_path_factory):
+    from evsemmap_warp.synthetic.preset import load_preset
+    from evsemmap_warp.synthetic.writer import generate_sequence
+
+    root = tmp_path_factory.mktemp("seq") / "base"
+    generate_sequence(load_preset("tiny"), root, progress=False)
+    return root
+
+
+def _first(folder: Path, pattern: str) -> Path:
+    return sorted(folder.glob(pattern))[0]
+
+
+def _truncate(path: Path, nbytes: int) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[:-nbytes])
+
+
+def _poke_floats(path: Path, dtype, rows: dict) -> None:
+    values = np.fromfile(path, dtype=dtype)
+    for i, v in rows.items():
+        values[i] = v
+    values.tofile(path)
+
+
+SEQUENCE_CASES = {
+    "truncated-scan": (lambda s: _truncate(_first(s, "os1_cloud_node_kitti_bin/*.bin"), 5), "map", "not a whole number of 16-byte"),
+    "short-label-file": (lambda s: _truncate(_first(s, "os1_cloud_node_semantickitti_label_id/*.label"), 8), "map", "labels for a scan of"),
+    "poses-run-short": (lambda s: (s / "poses.txt").write_text("\n".join((s / "poses.txt").read_text().splitlines()[:2]) + "\n"), "map", "2 poses, but scan 2"),
+    "nan-pose": (lambda s: (s / "poses.txt").write_text("nan 0 0 0 0 1 0 0 0 0 1 0\n" + "\n".join((s / "poses.txt").read_text().splitlines()[1:]) + "\n"), "map", "has NaN or inf"),
+    "label-ids-outside-table": (lambda s: _poke_floats(_first(s, "os1_cloud_node_semantickitti_label_id/*.label"), np.uint32, {0: 999}), "map", "outside the class table: [999]"),
+    "label-ids-outside-table-project": (lambda s: _poke_floats(_first(s, "os1_cloud_node_semantickitti_label_id/*.label"), np.uint32, {0: 999}), "project", "outside the class table: [999]"),
+    "nan-scan-point": (lambda s: _poke_floats(_first(s, "os1_cloud_node_kitti_bin/*.bin"), np.float32, {0: np.nan}), "map", "NaN or inf coordinates"),
+    "binary-camera-info": (lambda s: (s / "camera_info.txt").write_bytes(bytes(range(128, 256))), "project", "camera_info.txt: not a text file"),
+    "binary-transforms": (lambda s: (s / "transforms.yaml").write_bytes(bytes(range(128, 256))), "project", "transforms.yaml: not a text file"),
+    "broken-image": (lambda s: _first(s, "pylon_camera_node/*.jpg").write_bytes(b"not a jpeg"), "project", "pylon_camera_node/"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(SEQUENCE_CASES))
+def test_broken_sequence_is_one_line_naming_the_file(tmp_path, capsys, tiny_sequence, case):
+    import shutil
+
+    damage, command, pattern = SEQUENCE_CASES[case]
+    seq = tmp_path / "seq"
+    shutil.copytree(tiny_sequence, seq)
+    damage(seq)
+    argv = ["map", seq, "--method", "ebs", "--out", tmp_path / "m.npz", "--quiet"] if command == "map" else ["project", seq, "--out", tmp_path / "gt"]
+    line = run_cli(capsys, *argv)
+    assert str(seq) in line and pattern in line, line
+
+
+@pytest.mark.parametrize("argv,pattern", [
+    (["map", "{junk}", "--method", "ebs", "--out", "{tmp}/m.npz"], "not a text file"),
+    (["experiment", "{junk}"], "not a text file"),
+    (["synth", "--preset", "{junk}", "--out", "{tmp}/s"], "not a text file"),
+    (["view", "{map}", "--trajectory", "{junk}", "--no-serve"], "not a table of numbers"),
+    (["view", "{map}", "--host", "999.1.1.1", "--no-serve"], "cannot serve on host '999.1.1.1'"),
+])
+def test_binary_junk_and_unusable_hosts_are_one_line(tmp_path, capsys, argv, pattern):
+    junk = tmp_path / "junk.yaml"
+    junk.write_bytes(bytes(range(128, 256)) * 4)
+    argv = [a.format(junk=junk, tmp=tmp_path, map=_small_map_file(tmp_path)) for a in argv]
+    assert pattern in run_cli(capsys, *argv)

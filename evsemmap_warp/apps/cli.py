@@ -26,13 +26,17 @@ def _cmd_map(args) -> int:
         raise ConfigError(f"none of {list(args.configs)} has a 'dataset' section: name a dataset config, e.g. configs/datasets/sbki_toy.yaml")
     dataset = open_dataset(run.dataset)
     mapper = Mapper(run.mapping, dataset.num_classes, class_names=dataset.class_names or None, device=args.device, workers=args.workers)
-    print(f"mapping {len(dataset)} scans with {run.mapping.method} ({run.mapping.compat.value} mode) on {mapper.device}, "
-          f"{len(mapper.shards)} worker(s)", file=sys.stderr)
+    if not args.quiet:
+        print(f"mapping {len(dataset)} scans with {run.mapping.method} ({run.mapping.compat.value} mode) on {mapper.device}, "
+              f"{len(mapper.shards)} worker(s)", file=sys.stderr)
     elapsed = 0.0
     points = 0
     for scan in tqdm(dataset, total=len(dataset), unit="scan", disable=args.quiet, dynamic_ncols=True):
         start = time.perf_counter()
-        mapper.integrate(scan.points, scan.payload, payload_type=scan.payload_type, sensor_origin=scan.sensor_origin)
+        try:
+            mapper.integrate(scan.points, scan.payload, payload_type=scan.payload_type, sensor_origin=scan.sensor_origin)
+        except ValueError as exc:  # the Mapper names the problem, this the scan it is in
+            raise ValueError(f"{scan.name}: {exc}") from None
         elapsed += time.perf_counter() - start
         points += len(scan.points)
     save_map(args.out, mapper)
@@ -176,7 +180,7 @@ def _cmd_project(args) -> int:
     labels where the sequence has them, and overlay images."""
     from ..classes import class_set, original_to_v3_table
     from ..geometry.projection import ProjectionConfig, depth_colours, label_map_for, project_frames, save_overlay
-    from ..data.sequences import Rellis3DSequence
+    from ..data.sequences import Rellis3DSequence, remap_point_labels
 
     seq = Rellis3DSequence(args.sequence)
     config = ProjectionConfig(zbuffer=args.zbuffer)
@@ -193,7 +197,7 @@ def _cmd_project(args) -> int:
         labels.append(item.values)
         frame = by_index[item.frame_index]
         if frame.point_labels is not None:
-            own = table[np.clip(seq.read_point_labels(frame)[item.scan_rows], 0, 255)]
+            own = remap_point_labels(seq.read_point_labels(frame), table, frame.point_labels)[item.scan_rows]
             agree += int((own == item.values).sum())
             compared += len(own)
         if n < args.overlays:
@@ -318,7 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path, help="map file to write (.npz)")
     p.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N or auto")
     p.add_argument("--workers", type=_positive, default=None, help="CPU threads, each scattering into its own map shard (default: up to 2 on the CPU)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or start-up line")
     p.set_defaults(func=_cmd_map)
 
     p = sub.add_parser("view", help="inspect map files in a browser (viser)")

@@ -38,11 +38,10 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
-import yaml
 from tqdm import tqdm
 
 from .. import __version__
-from ..config import ConfigError, Kernel, PayloadType, dataclass_from_dict, load_config, preset_path
+from ..config import ConfigError, Kernel, PayloadType, dataclass_from_dict, load_config, preset_path, read_yaml_file
 from .evaluation import PAPER_SCORED_CLASSES, MapScores, evaluate_map, markdown_table, pool_scores
 from ..geometry.projection import ProjectionConfig, bin_frames, label_map_for, project_frames
 
@@ -122,10 +121,7 @@ def load_experiment(name_or_path) -> tuple[ExperimentConfig, Path]:
         if not path.exists():
             known = sorted(p.stem for p in experiments_dir().glob("*.yaml"))
             raise ConfigError(f"{name_or_path}: no such experiment config (built in: {', '.join(known)})")
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    data = read_yaml_file(path, "experiment config") or {}
     src = str(path)
     if not isinstance(data, dict):
         raise ConfigError(f"{src}: expected a mapping of sections at the top level, got {type(data).__name__}")

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..classes import named_colors
 from ..core.map_file import read_map_arrays
-from ..data.point_files import read_point_file
+from ..data.point_files import read_npy, read_point_file
 
 STATE_NAMES = ("UNKNOWN", "FREE", "OCCUPIED")
 COLOR_MODES = ("semantic", "variance", "mean uncertainty", "observations")
@@ -99,7 +99,13 @@ class MapLayer:
 def load_trajectory(path) -> np.ndarray:
     """Positions [N, 3] from a KITTI/RELLIS poses.txt (12 numbers per line), or N x 3 .txt/.npy."""
     path = Path(path)
-    data = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, ndmin=2)
+    if path.suffix == ".npy":
+        data = read_npy(path)
+    else:
+        try:
+            data = np.loadtxt(path, ndmin=2)
+        except ValueError as exc:  # UnicodeDecodeError included: binary junk
+            raise ValueError(f"{path}: not a table of numbers ({exc})") from None
     if data.ndim == 2 and data.shape[1] == 12:
         return data[:, [3, 7, 11]]
     if data.ndim == 2 and data.shape[1] == 3:
@@ -110,6 +116,18 @@ def load_trajectory(path) -> np.ndarray:
 def load_points(path) -> np.ndarray:
     """Points [N, 3] from any plain point file (.pcd, .ply, .npy, KITTI .bin)."""
     return read_point_file(path).points
+
+
+def check_address(host: str, port: int) -> None:
+    """Refuse a host this machine cannot serve on (viser would wait forever on it) or a port out of range."""
+    if not 0 < int(port) < 65536:
+        raise ValueError(f"port {port} is outside 1..65535")
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)[0]
+        with socket.socket(family, kind, proto) as probe:
+            probe.bind((address[0], 0))  # any free port: only whether the address is ours is in question
+    except (OSError, UnicodeError) as exc:
+        raise ValueError(f"cannot serve on host {host!r}: {exc}") from None
 
 
 def free_port() -> int:
@@ -146,6 +164,7 @@ class MapViewer:
         self._lod_order = [np.random.default_rng(0).permutation(len(layer.centers)) for layer in self.layers]
         self.visible_rows: list[np.ndarray] = [np.zeros(0, np.int64) for _ in self.layers]
 
+        check_address(host, port)
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.scene.set_up_direction("+z")
         extent = float(max(np.max(hi - lo), 1.0))

@@ -71,7 +71,7 @@ class PcdSequence:
                 warnings.warn(w.message, w.category, stacklevel=2)
             if "label" not in cloud.fields:
                 raise ConfigError(f"{path}: no 'label' field; a pcd_sequence needs per-point labels")
-            yield Scan(path.name, cloud.points, cloud.fields["label"].astype(np.int64), PayloadType.LABEL, cloud.sensor_origin)
+            yield Scan(str(path), cloud.points, cloud.fields["label"].astype(np.int64), PayloadType.LABEL, cloud.sensor_origin)
 
 
 class BenchNpz:
@@ -112,7 +112,7 @@ class BenchNpz:
                 payload = self.data["label"][a:b].astype(np.int64)
             else:
                 payload = self.scan_alpha(i)
-            yield Scan(f"scan_{i:02d}", self.scan_points(i), payload, self.payload_type, origin)
+            yield Scan(f"{self.path} scan {i}", self.scan_points(i), payload, self.payload_type, origin)
 
 
 class LabelledSequence:
@@ -145,20 +145,18 @@ class LabelledSequence:
         return len(self.frames)
 
     def __iter__(self) -> Iterator[Scan]:
+        from .sequences import remap_point_labels
+
         reference = None
         for frame in self.frames:
             scan = self.sequence.read_scan(frame)
-            raw = self.sequence.read_point_labels(frame)
-            labels = self.table[np.clip(raw, 0, len(self.table) - 1)]
-            outside = (raw >= len(self.table)) | (labels < 0)
-            if outside.any():
-                raise ConfigError(f"{frame.point_labels}: label ids outside the class table: {np.unique(raw[outside])[:10].tolist()}")
+            labels = remap_point_labels(self.sequence.read_point_labels(frame), self.table, frame.point_labels)
             pose = self.sequence.pose(frame)
             reference = np.linalg.inv(pose) if reference is None else reference
             to_world = reference @ pose
             returned = np.any(scan[:, :3] != 0, axis=1)
             points = scan[returned, :3].astype(np.float64) @ to_world[:3, :3].T + to_world[:3, 3]
-            yield Scan(frame.scan.stem, points, labels[returned], PayloadType.LABEL, to_world[:3, 3].copy())
+            yield Scan(str(frame.scan), points, labels[returned], PayloadType.LABEL, to_world[:3, 3].copy())
 
 
 DATASETS = {"pcd_sequence": PcdSequence, "bench_npz": BenchNpz, "rellis3d": LabelledSequence, "semantickitti": LabelledSequence}

@@ -23,6 +23,8 @@ class PointFile:
 
 
 def _check_points(points: np.ndarray, path: Path) -> np.ndarray:
+    if len(points) == 0:
+        raise ValueError(f"{path}: holds no points")
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any():
         raise ValueError(f"{path}: {int(bad.sum())} of {len(points)} points have NaN or inf coordinates, first at row {int(np.flatnonzero(bad)[0])}")

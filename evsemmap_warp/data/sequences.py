@@ -42,6 +42,24 @@ class Frame:
     label_is_color: bool = True
 
 
+def read_text(path: Path) -> str:
+    """A small text file (calibration, transforms), or a DataError naming it when it is binary."""
+    try:
+        return Path(path).read_text()
+    except UnicodeDecodeError:
+        raise DataError(f"{path}: not a text file") from None
+
+
+def remap_point_labels(raw: np.ndarray, table: np.ndarray, path) -> np.ndarray:
+    """Raw per-point label ids through a class table; ids outside it are an error naming the file."""
+    raw = np.asarray(raw, np.int64)
+    labels = table[np.clip(raw, 0, len(table) - 1)]
+    outside = (raw < 0) | (raw >= len(table)) | (labels < 0)
+    if outside.any():
+        raise DataError(f"{path}: label ids outside the class table: {np.unique(raw[outside])[:10].tolist()}")
+    return labels
+
+
 def read_poses(path: Path) -> np.ndarray:
     """KITTI/RELLIS poses.txt: [N, 4, 4] from 12 row-major numbers per line."""
     try:
@@ -82,7 +100,11 @@ class _ScanSequence:
         return poses[frame.index]
 
     def read_scan(self, frame: Frame) -> np.ndarray:
-        return read_kitti_bin(frame.scan)
+        scan = read_kitti_bin(frame.scan)
+        bad = ~np.isfinite(scan[:, :3]).all(axis=1)
+        if bad.any():
+            raise DataError(f"{frame.scan}: {int(bad.sum())} points have NaN or inf coordinates, first at row {int(np.flatnonzero(bad)[0])}")
+        return scan
 
     def read_point_labels(self, frame: Frame) -> np.ndarray:
         """Raw label ids per point (including zero returns)."""
@@ -145,7 +167,7 @@ class Rellis3DSequence(_ScanSequence):
         info = self.root / "camera_info.txt"
         if not info.exists():
             raise DataError(f"{info}: missing (RELLIS-3D ships it in the 'camera intrinsic' archive: fx fy cx cy)")
-        values = info.read_text().split()
+        values = read_text(info).split()
         try:
             fx, fy, cx, cy = (float(v) for v in values)
         except ValueError:
@@ -153,7 +175,10 @@ class Rellis3DSequence(_ScanSequence):
         distortion = RELLIS3D_DISTORTION
         distortion_file = self.root / "camera_distortion.txt"
         if distortion_file.exists():
-            distortion = tuple(float(v) for v in distortion_file.read_text().split())
+            try:
+                distortion = tuple(float(v) for v in read_text(distortion_file).split())
+            except ValueError:
+                raise DataError(f"{distortion_file}: expected five numbers k1 k2 p1 p2 k3") from None
             if len(distortion) != 5:
                 raise DataError(f"{distortion_file}: expected five numbers k1 k2 p1 p2 k3, got {len(distortion)}")
         first = next((f.image for f in self.frames if f.image is not None), None)
@@ -179,7 +204,7 @@ class Rellis3DSequence(_ScanSequence):
         if not path.exists():
             raise DataError(f"{path}: missing (RELLIS-3D ships it in the 'camera to LiDAR' archive)")
         try:
-            entry = yaml.safe_load(path.read_text())[EXTRINSIC_KEY]
+            entry = yaml.safe_load(read_text(path))[EXTRINSIC_KEY]
             q = [entry["q"][k] for k in "xyzw"]
             t = [entry["t"][k] for k in "xyz"]
         except (yaml.YAMLError, KeyError, TypeError) as exc:
@@ -240,7 +265,7 @@ class SemanticKittiSequence(_ScanSequence):
         path = self.root / "calib.txt"
         if not path.exists():
             return np.eye(4)
-        for line in path.read_text().splitlines():
+        for line in read_text(path).splitlines():
             if line.startswith("Tr:"):
                 values = [float(v) for v in line.split()[1:]]
                 if len(values) != 12:

@@ -10,11 +10,13 @@ differentiably, which ``stencil_evidence_at`` computes in PyTorch on a sorted-ke
 from __future__ import annotations
 
 import json
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
+
+from ..config import read_yaml_file
 
 INITIAL_LENGTH_M = 0.5  # the authors' initialisation ("max_dist")
 LENGTH_RANGE_M = (0.01, 1.0)  # clamped after every training step, as the authors do
@@ -36,22 +38,26 @@ def default_lengths(num_classes: int) -> ConvBkiLengths:
 def load_lengths(path, num_classes: int) -> ConvBkiLengths:
     """ell_h and ell_z [K] from a .pt state dict (BKI_ROS weights), .json, .yaml or .npz."""
     path = Path(path)
-    try:
-        if path.suffix == ".pt":
-            import torch
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such ConvBKI length-scale file")
+    if path.suffix == ".pt":
+        import torch
 
+        try:
             data = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # torch raises many types for files that are not state dicts
+            raise ValueError(f"{path}: not a readable ConvBKI length-scale state dict ({type(exc).__name__})") from None
+        if isinstance(data, dict):
             data = {k: np.asarray(v.detach().cpu().numpy() if hasattr(v, "detach") else v, np.float64) for k, v in data.items()}
-        elif path.suffix == ".npz":
+    elif path.suffix == ".npz":
+        try:
             data = dict(np.load(path, allow_pickle=False))
-        elif path.suffix in (".json", ".yaml", ".yml"):
-            data = yaml.safe_load(path.read_text())  # JSON is YAML
-        else:
-            raise ValueError(f"{path}: ConvBKI length scales must be .pt, .npz, .json or .yaml, got {path.suffix!r}")
-    except FileNotFoundError:
-        raise FileNotFoundError(f"{path}: no such ConvBKI length-scale file") from None
-    except (OSError, RuntimeError, yaml.YAMLError) as exc:
-        raise ValueError(f"{path}: not a readable ConvBKI length-scale file ({exc})") from None
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+            raise ValueError(f"{path}: not a readable ConvBKI length-scale npz ({type(exc).__name__}: {exc})") from None
+    elif path.suffix in (".json", ".yaml", ".yml"):
+        data = read_yaml_file(path, "ConvBKI length-scale file")  # JSON is YAML
+    else:
+        raise ValueError(f"{path}: ConvBKI length scales must be .pt, .npz, .json or .yaml, got {path.suffix!r}")
     if not isinstance(data, dict) or "ell_h" not in data or "ell_z" not in data:
         raise ValueError(f"{path}: expected the keys ell_h and ell_z (one length per class), got {sorted(data) if isinstance(data, dict) else type(data).__name__}")
     lengths = ConvBkiLengths(np.asarray(data["ell_h"], np.float64).ravel(), np.asarray(data["ell_z"], np.float64).ravel())

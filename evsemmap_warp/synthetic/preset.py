@@ -6,9 +6,7 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-import yaml
-
-from ..config import ConfigError, dataclass_from_dict
+from ..config import ConfigError, dataclass_from_dict, read_yaml_file
 
 
 @dataclass(frozen=True)
@@ -124,10 +122,9 @@ def load_preset(name_or_path: str, **overrides) -> SynthPreset:
         path = presets_dir() / f"{name_or_path}.yaml"
         if not path.exists():
             raise ConfigError(f"unknown synthetic preset {name_or_path!r}; available: {', '.join(available_presets())}")
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    data = read_yaml_file(path, "synthetic preset") or {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of sections at the top level, got {type(data).__name__}")
     data.setdefault("name", path.stem)
     for key, value in overrides.items():
         if value is None:
