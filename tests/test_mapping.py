@@ -218,3 +218,9 @@ def test_two_workers_give_the_single_worker_map(method):
     np.testing.assert_array_equal(qa.state, qb.state)
     np.testing.assert_allclose(qa.probabilities, qb.probabilities, rtol=1e-5, atol=1e-6)
     assert maps[1].voxel_count == maps[0].voxel_count
+
+
+@pytest.mark.parametrize("origin,pattern", [([1.0, 2.0], "expected 3 coordinates"), ([np.nan, 0, 0], "NaN/inf"), ("abc", "expected 3 coordinates")])
+def test_a_bad_map_origin_is_named(origin, pattern):
+    with pytest.raises(ValueError, match=f"origin: .*{pattern}"):
+        Mapper(_config("ebs"), K, origin=origin)

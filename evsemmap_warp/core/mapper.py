@@ -122,6 +122,14 @@ def _validate_points(points, what: str = "points") -> np.ndarray:
     return points
 
 
+def _validate_point(point, what: str) -> np.ndarray:
+    """One [3] position (an origin), as _validate_points checks a scan."""
+    values = np.asarray(point).reshape(-1)
+    if len(values) != 3:
+        raise ValueError(f"{what}: expected 3 coordinates (x, y, z), got {len(values)}")
+    return _validate_points(values.reshape(1, 3), what)[0]
+
+
 def prepare_payload(points, payload, payload_type: PayloadType | str, num_classes: int) -> ScanPayload:
     """Validate a scan and derive probabilities, uncertainty and labels from its payload."""
     payload_type = PayloadType(payload_type)
@@ -213,7 +221,7 @@ class Mapper:
         self._executor = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="evsemmap") if workers > 1 else None
         self.origin_index: np.ndarray | None = None  # [3] int64, global index of the origin voxel corner
         if origin is not None:
-            self.origin_index = self._snap_origin(_validate_points(np.asarray(origin, dtype=np.float64).reshape(1, 3), "origin")[0])
+            self.origin_index = self._snap_origin(_validate_point(origin, "origin"))
         self.scans_integrated = 0
         self.points_integrated = 0
         self._summary_cache: tuple[VoxelArrays, DirichletSummary] | None = None
@@ -259,7 +267,7 @@ class Mapper:
         if isinstance(self.integrator, (SbkiCompatIntegrator, SeeCsomIntegrator)):
             if sensor_origin is None:
                 raise ValueError(f"sensor_origin: {self.config.method} adds the sensor origin (and free-space rays) as free samples; pass it")
-            origin = _validate_points(np.asarray(sensor_origin, dtype=np.float64).reshape(1, 3), "sensor_origin")[0]
+            origin = _validate_point(sensor_origin, "sensor_origin")
             stats = self.integrator.integrate(self.shards, scan, self._local(origin), self._executor)
         else:
             stats = self.integrator.integrate(self.shards, scan, self._executor)
