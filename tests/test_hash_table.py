@@ -118,3 +118,34 @@ def test_growth_keeps_every_key_and_value(device):
     np.testing.assert_array_equal(arrays.index, index[order])
     np.testing.assert_array_equal(arrays.evidence, values[order])
     np.testing.assert_array_equal(arrays.hits, hits[order])
+
+
+def test_lookup_points_outside_the_key_range_find_nothing_like_the_twin(device):
+    vm = VoxelMap(3, 0.5, device=device, initial_capacity=64)
+    vm.insert_voxels(np.array([[0, 0, 0], [ht.INDEX_LIMIT - 1, 0, 0], [-ht.INDEX_LIMIT, 0, 0]]))
+    limit = ht.INDEX_LIMIT * 0.5
+    pts = np.array([[0.1, 0.1, 0.1], [limit - 0.1, 0.1, 0.1], [-limit + 0.1, 0.1, 0.1], [limit + 0.1, 0.1, 0.1],
+                    [2 * limit + 0.1, 0.1, 0.1], [0.1, -3 * limit, 0.1], [1e300, 0, 0], [-1e300, 0, 0]])
+    slots = vm.lookup_points(pts)
+    np.testing.assert_array_equal(slots, ref.lookup_points(pts, 0.5, 0.0, vm.keys.numpy()))
+    assert (slots[:3] >= 0).all() and (slots[3:] == -1).all()
+
+
+def test_gather_rows_matches_the_twin(device):
+    rng = np.random.default_rng(9)
+    src = rng.random((50, 7))
+    for rows in (np.array([3], np.int32), np.array([0, 49, 0], np.int32), rng.integers(0, 50, 200).astype(np.int32)):
+        dst = wp.empty((len(rows), 7), dtype=wp.float64, device=device)
+        wp.launch(ht.gather_rows, dim=len(rows), inputs=[wp.array(src, dtype=wp.float64, device=device), wp.array(rows, dtype=int, device=device), dst], device=device)
+        np.testing.assert_array_equal(dst.numpy(), ref.gather_rows(src, rows))
+
+
+def test_rows_at_returns_zero_rows_for_missing_slots(device):
+    vm = VoxelMap(3, 0.5, device=device, initial_capacity=64)
+    slots = vm.insert_voxels(np.array([[0, 0, 0], [1, 0, 0]]))
+    data = vm.data.numpy().copy()
+    data[slots, 0] = [5.0, 7.0]
+    vm.data = wp.array(data, dtype=wp.float64, device=device)
+    rows = vm.rows_at(np.array([slots[1], -1, slots[0]]))
+    np.testing.assert_array_equal(rows[:, 0], [7.0, 0.0, 5.0])
+    assert vm.rows_at(np.zeros(0, np.int64)).shape == (0, 3 + sc.EXTRA_COLUMNS)
