@@ -36,7 +36,11 @@ def read_kitti_bin(path) -> np.ndarray:
     size = Path(path).stat().st_size
     if size % 16:
         raise ValueError(f"{path}: {size} bytes is not a whole number of 16-byte (x, y, z, intensity) float32 points; truncated?")
-    return np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+    scan = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+    bad = ~np.isfinite(scan[:, :3]).all(axis=1)
+    if bad.any():
+        raise ValueError(f"{path}: {int(bad.sum())} of {len(scan)} points have NaN or inf coordinates, first at row {int(np.flatnonzero(bad)[0])}")
+    return scan
 
 
 def read_npy(path) -> np.ndarray:

@@ -100,11 +100,7 @@ class _ScanSequence:
         return poses[frame.index]
 
     def read_scan(self, frame: Frame) -> np.ndarray:
-        scan = read_kitti_bin(frame.scan)
-        bad = ~np.isfinite(scan[:, :3]).all(axis=1)
-        if bad.any():
-            raise DataError(f"{frame.scan}: {int(bad.sum())} points have NaN or inf coordinates, first at row {int(np.flatnonzero(bad)[0])}")
-        return scan
+        return read_kitti_bin(frame.scan)
 
     def read_point_labels(self, frame: Frame) -> np.ndarray:
         """Raw label ids per point (including zero returns)."""
