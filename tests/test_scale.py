@@ -192,7 +192,7 @@ def test_merge_refuses_incompatible_maps_with_the_reason():
 
 
 _COLD_CACHE_SCRIPT = """
-import numpy as np, dataclasses
+import numpy as np
 from evsemmap_warp import Mapper, load_config
 cfg = load_config([], method="ebs").mapping
 m = Mapper(cfg, 3, workers=2, initial_capacity=16)

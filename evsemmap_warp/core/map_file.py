@@ -101,6 +101,11 @@ def write_map_file(path, contents: MapContents) -> Path:
     return path
 
 
+def lattice_index(origin: np.ndarray, resolution: float) -> np.ndarray:
+    """[3] int64: the voxel-lattice index nearest a map origin (m)."""
+    return np.round(np.asarray(origin, np.float64) / resolution).astype(np.int64)
+
+
 def _check_member_sizes(path: Path) -> None:
     """Refuse a member whose .npy header declares more data than the member holds (a lying or
     corrupt header would otherwise make numpy allocate it), or an object array (pickle)."""
@@ -215,13 +220,12 @@ def _validate_arrays(path: Path, arrays: dict, meta: dict) -> None:
     mapping = meta["mapping"]
     if not resolution > 0 or mapping.get("resolution_m") != resolution:
         fail(f"resolution {resolution} disagrees with meta.mapping.resolution_m {mapping.get('resolution_m')!r}")
-    origin_voxels = arrays["origin"] / resolution
-    origin_index = np.round(origin_voxels)
-    if np.abs(origin_voxels - origin_index).max() > _LATTICE_TOLERANCE:
+    origin_index = lattice_index(arrays["origin"], resolution)
+    if np.abs(arrays["origin"] / resolution - origin_index).max() > _LATTICE_TOLERANCE:
         fail(f"origin {arrays['origin'].tolist()} is not on the voxel lattice (a whole number of {resolution} m voxels)")
     index = arrays["voxel_index"].astype(np.int64)
     try:
-        check_index_range(index - origin_index.astype(np.int64), "voxel indices")
+        check_index_range(index - origin_index, "voxel indices")
     except ValueError as exc:
         fail(str(exc))
     if v:
@@ -245,5 +249,5 @@ def read_map_file(path) -> MapContents:
         alpha=arrays["alpha"], centers=arrays["centers"], summary=None, weight_sum=arrays["weight_sum"].astype(np.float64),
         weighted_uncertainty_sum=arrays["weighted_uncertainty_sum"].astype(np.float64), hits=arrays["hits"].astype(np.int64),
         touched=arrays["touched"].astype(bool), resolution=float(arrays["resolution"]), config=config,
-        origin_index=np.round(origin / float(arrays["resolution"])).astype(np.int64),
+        origin_index=lattice_index(origin, float(arrays["resolution"])),
     )
