@@ -151,11 +151,57 @@ class MappingConfig:
 
 
 @dataclass(frozen=True)
+class BagConfig:
+    """How to read a robot log (``dataset.kind: bag``): topics, frames and the pose source. Empty
+    topics are not read; an empty frame is taken from the messages' headers. The built-in preset
+    ``rellis3d-bag`` holds RELLIS-3D's topic names."""
+
+    cloud_topic: str = ""  # sensor_msgs/PointCloud2; "": the log's only PointCloud2 topic
+    label_field: str = "label"  # per-point labels in this cloud field (as S-BKI's /labeled_pointcloud)
+    label_ontology: str = "rellis3d"  # rellis3d (ids remapped to the 9 v3 classes), semantickitti, or none (class ids)
+    image_topic: str = ""  # sensor_msgs/Image or CompressedImage
+    camera_info_topic: str = ""  # sensor_msgs/CameraInfo of image_topic
+    label_image_topic: str = ""  # 2D label ids (mono8/mono16 Image, or a PNG CompressedImage), for ground truth
+    image_tolerance_s: float = 0.05  # a cloud pairs with the nearest image at most this far apart in time
+    pose_source: str = "tf"  # tf: the TF tree from fixed_frame to the LiDAR; odometry: odometry_topic + extrinsic
+    fixed_frame: str = ""  # "": the root of the LiDAR's TF tree (tf) or the odometry's header frame (odometry)
+    lidar_frame: str = ""  # "": the clouds' header frame
+    camera_frame: str = ""  # "": the images' header frame
+    odometry_topic: str = ""  # nav_msgs/Odometry, when pose_source is odometry
+    tf_topic: str = "/tf"
+    tf_static_topic: str = "/tf_static"
+    # x y z qx qy qz qw; empty: from the TF tree. lidar: the LiDAR's pose in the odometry's child frame;
+    # camera: the camera's pose in the LiDAR frame (what RELLIS-3D's transforms.yaml stores).
+    lidar_extrinsic: tuple[float, ...] = ()
+    camera_extrinsic: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, name: str, text: str) -> None:
+            if not ok:
+                raise ConfigError(f"dataset.bag.{name} = {getattr(self, name)!r}: {text}")
+
+        need(self.pose_source in ("tf", "odometry"), "pose_source", "must be tf or odometry")
+        need(self.pose_source != "odometry" or bool(self.odometry_topic), "odometry_topic", "pose_source odometry needs an odometry topic")
+        need(self.label_ontology in ("rellis3d", "semantickitti", "none"), "label_ontology", "must be rellis3d, semantickitti or none")
+        need(math.isfinite(self.image_tolerance_s) and self.image_tolerance_s >= 0, "image_tolerance_s", "must be a finite number >= 0")
+        for name in ("lidar_extrinsic", "camera_extrinsic"):
+            value = getattr(self, name)
+            need(len(value) in (0, 7), name, "must be empty or 7 numbers x y z qx qy qz qw")
+            need(all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value), name, "must be finite numbers")
+            need(not value or any(value[3:]), name, "has a zero quaternion")
+        need(not self.label_image_topic or bool(self.image_topic), "label_image_topic", "label images pair with camera images: set image_topic too")
+
+
+@dataclass(frozen=True)
 class DatasetConfig:
-    """Where scans come from. ``paths`` are candidates, the first existing one is used."""
+    """Where scans come from. ``paths`` are candidates, the first existing one is used; a ``bag``
+    dataset reads every one of its ``logs`` in order instead (ROS 1 .bag files, ROS 2 bag folders,
+    .db3 or .mcap files), as ``bag`` says."""
 
     kind: str = ""
     paths: tuple[str, ...] = ()
+    logs: tuple[str, ...] = ()
+    bag: BagConfig = field(default_factory=BagConfig)
     pattern: str = ""
     first_index: int = 1
     last_index: int = 1
@@ -175,12 +221,25 @@ class DatasetConfig:
                 return path
         raise ConfigError(f"dataset.paths: none of these exists: {tried}")
 
+    def resolve_logs(self) -> list[Path]:
+        if not self.logs:
+            raise ConfigError("dataset.logs: a bag dataset needs at least one log (a .bag, .mcap or .db3 file or a ROS 2 bag folder)")
+        resolved = []
+        for candidate in self.logs:
+            path = Path(candidate).expanduser()
+            path = path if path.is_absolute() else (Path(self.config_dir) / path).resolve()
+            if not path.exists():
+                raise ConfigError(f"dataset.logs: {path} does not exist")
+            resolved.append(path)
+        return resolved
+
 
 @dataclass(frozen=True)
 class RunConfig:
     mapping: MappingConfig
     dataset: DatasetConfig | None = None
     sources: tuple[str, ...] = field(default_factory=tuple)
+    bin_frames: int = 1  # pipeline.bin_frames: camera-labelled frames integrated together (docs/algorithm.md §2)
 
 
 _SECTIONS = {"method": MappingConfig, "mapping": MappingConfig, "dataset": DatasetConfig}
@@ -287,13 +346,32 @@ def dataset_for_folder(folder: Path) -> dict[str, Any]:
     return {"kind": kind, "paths": (str(folder.resolve()),), "config_dir": str(folder.resolve())}
 
 
+LOG_SUFFIXES = (".bag", ".mcap", ".db3")
+
+
+def is_robot_log(path) -> bool:
+    """A ROS 1 .bag, a bare .mcap or .db3 file, or a ROS 2 bag folder (it has metadata.yaml)."""
+    path = Path(path)
+    return (path.is_file() and path.suffix in LOG_SUFFIXES) or (path.is_dir() and (path / "metadata.yaml").is_file())
+
+
 def load_config(config_paths: list[str | Path], method: str | None = None) -> RunConfig:
     """Merge the method file (if any) and the given files, later ones winning; validate. A folder
-    among the paths is a sequence to map (``dataset_for_folder``), a bare name a built-in preset."""
+    among the paths is a sequence to map (``dataset_for_folder``), robot logs are a ``bag`` dataset
+    (read in the order given), a bare name a built-in preset."""
     mapping: dict[str, Any] = {}
     dataset: dict[str, Any] = {}
+    bag: dict[str, Any] = {}
+    bin_frames = 1
     sources = []
+    logs = [Path(p) for p in config_paths if is_robot_log(p)]
+    if logs:
+        dataset.update(kind="bag", logs=tuple(str(p.resolve()) for p in logs))
+        sources += [str(p) for p in logs]
+    config_paths = [p for p in config_paths if not is_robot_log(p)]
     folders = [Path(p) for p in config_paths if Path(p).is_dir()]
+    if folders and logs:
+        raise ConfigError(f"map either a sequence folder or robot logs, got both: {str(folders[0])!r} and {str(logs[0])!r}")
     if len(folders) > 1:
         raise ConfigError(f"one sequence folder per run, got {len(folders)}: {[str(f) for f in folders]}")
     if folders:
@@ -307,6 +385,13 @@ def load_config(config_paths: list[str | Path], method: str | None = None) -> Ru
         sources.append(str(path))
         for section, values in data.items():
             if section == "pipeline":
+                if not isinstance(values, dict) or set(values) - {"bin_frames"}:
+                    raise ConfigError(f"{path}: pipeline takes only bin_frames, got {values!r}")
+                if "bin_frames" in values:
+                    bins = values["bin_frames"]
+                    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
+                        raise ConfigError(f"{path}: pipeline.bin_frames = {bins!r} must be a whole number >= 1")
+                    bin_frames = bins
                 continue
             if not isinstance(values, dict):
                 raise ConfigError(f"{path}: section {section!r} must be a mapping")
@@ -321,10 +406,22 @@ def load_config(config_paths: list[str | Path], method: str | None = None) -> Ru
                 known = {f.name for f in dataclasses.fields(cls)} - {"config_dir"}
                 if key not in known:
                     raise ConfigError(f"{path}: unknown key {section}.{key}; known: {sorted(known)}")
+                if section == "dataset" and key == "bag":
+                    # key by key, so a user's file can change one topic of a preset
+                    if not isinstance(value, dict):
+                        raise ConfigError(f"{path}: dataset.bag must be a mapping, got {type(value).__name__}")
+                    known = {f.name for f in dataclasses.fields(BagConfig)}
+                    unknown = sorted(str(k) for k in value if k not in known)
+                    if unknown:  # named now, with its file; values are checked once all files are merged
+                        raise ConfigError(f"{path}: unknown key(s) dataset.bag.{unknown[0]}; known: {sorted(known)}")
+                    bag.update(value)
+                    continue
+                if section == "dataset" and key == "logs" and "logs" in dataset and logs:
+                    continue  # logs named on the command line win over a config's
                 converted = _convert(cls, key, value, f"{path}: {section}")
                 if section == "dataset":
                     dataset[key] = converted
-                    if key == "paths":  # relative paths belong to the file that names them
+                    if key in ("paths", "logs"):  # relative paths belong to the file that names them
                         dataset["config_dir"] = str(path.resolve().parent)
                 else:
                     mapping[key] = converted
@@ -332,8 +429,12 @@ def load_config(config_paths: list[str | Path], method: str | None = None) -> Ru
         mapping_cfg = MappingConfig(**mapping)
     except ConfigError as exc:
         raise ConfigError(f"{' + '.join(sources)}: {exc}") from None
+    if bag:
+        dataset["bag"] = dataclass_from_dict(BagConfig, bag, " + ".join(sources) + ": dataset.bag")
     dataset_cfg = DatasetConfig(**dataset) if dataset else None
-    return RunConfig(mapping=mapping_cfg, dataset=dataset_cfg, sources=tuple(sources))
+    if dataset_cfg is not None and dataset_cfg.kind == "bag" and not dataset_cfg.logs:
+        raise ConfigError(f"{' + '.join(sources)}: a bag dataset needs its logs: name them on the command line or in dataset.logs")
+    return RunConfig(mapping=mapping_cfg, dataset=dataset_cfg, sources=tuple(sources), bin_frames=bin_frames)
 
 
 def dataclass_from_dict(cls, data: Any, source: str):

@@ -133,3 +133,42 @@ def test_conditions_pool_into_one_table(tmp_path):
     path.write_text(CONFIG + "pools:\n  bad: [nowhere]\n")
     with pytest.raises(ConfigError, match="pools.bad must list conditions defined above"):
         load_experiment(path)
+
+
+def test_a_study_on_robot_logs_scores_as_on_their_folders(tmp_path):
+    """Sequences given as logs (ROS 1 bag, MCAP) train, infer, project and score exactly as the same
+    drives given as folders."""
+    pytest.importorskip("rosbags")
+    from evsemmap_warp.data.log_writer import write_log
+    from evsemmap_warp.synthetic.preset import load_preset
+    from evsemmap_warp.synthetic.writer import generate_sequence
+
+    folders = {name: tmp_path / name for name in ("train", "test")}
+    generate_sequence(load_preset("tiny", seed=3, trajectory__frames=4), folders["train"], progress=False)
+    generate_sequence(load_preset("tiny"), folders["test"], progress=False)
+    logs = {"train": tmp_path / "train.bag", "test": tmp_path / "test.mcap"}
+    write_log(folders["train"], logs["train"], "rosbag1")
+    write_log(folders["test"], logs["test"], "mcap")
+    study = """
+name: paths
+sequences:
+  train: {{path: {train}}}
+  test: {{path: {test}}}
+networks:
+  net: {{train_on: [train], epochs: 1, batch_size: 2, input_size: [64, 128]}}
+conditions:
+  in-domain: {{network: net, sequence: test}}
+mapping_preset: offroad
+methods: [s-csm, ebs]
+"""
+    scores = {}
+    for kind, paths in (("folders", folders), ("logs", logs)):
+        path = tmp_path / f"{kind}.yaml"
+        path.write_text(study.format(**{k: str(v) for k, v in paths.items()}))
+        config, _ = load_experiment(path)
+        results = Experiment(config, tmp_path / kind, progress=False, log=lambda m: None).run()
+        scores[kind] = {m: (s.miou, s.accuracy, s.extra["voxels"]) for m, s in results["in-domain"].items()}
+    assert scores["folders"]["ebs"][2] > 100
+    for method, (miou, accuracy, voxels) in scores["folders"].items():
+        log_miou, log_accuracy, log_voxels = scores["logs"][method]
+        assert voxels == log_voxels and abs(miou - log_miou) < 1e-9 and abs(accuracy - log_accuracy) < 1e-9, method

@@ -24,10 +24,11 @@ def _cmd_map(args) -> int:
     run = load_config(args.configs, method=args.method)
     if run.dataset is None:
         raise ConfigError(f"none of {list(args.configs)} has a 'dataset' section: name a dataset config, e.g. configs/datasets/sbki_toy.yaml")
-    dataset = open_dataset(run.dataset)
+    dataset = CameraLabelledScans(run, args.checkpoint, args.bin_frames, args.batch_size) if args.checkpoint else open_dataset(run.dataset)
     mapper = Mapper(run.mapping, dataset.num_classes, class_names=dataset.class_names or None, device=args.device, workers=args.workers)
     if not args.quiet:
-        print(f"mapping {len(dataset)} scans with {run.mapping.method} ({run.mapping.compat.value} mode) on {mapper.device}, "
+        what = f"{len(dataset)} bins of camera-labelled frames" if args.checkpoint else f"{len(dataset)} scans"
+        print(f"mapping {what} with {run.mapping.method} ({run.mapping.compat.value} mode) on {mapper.device}, "
               f"{len(mapper.shards)} worker(s)", file=sys.stderr)
     elapsed = 0.0
     points = 0
@@ -57,6 +58,44 @@ def _cmd_map(args) -> int:
     }
     print(json.dumps(report, indent=1))
     return 0
+
+
+class CameraLabelledScans:
+    """Scans labelled by a segmentation checkpoint from the camera (a sequence folder or robot logs):
+    batched inference on each frame's image, projection of its Dirichlet onto the scan, bins of
+    ``bin_frames`` frames (docs/algorithm.md §2)."""
+
+    def __init__(self, run, checkpoint: Path, bin_frames: int | None, batch_size: int):
+        from ..data.datasets import open_sequence
+        from ..segmentation.train import load_checkpoint
+
+        self.sequence = open_sequence(list(run.sources))
+        self.model, self.train_config, self.meta, _ = load_checkpoint(checkpoint)
+        self.frames = [f for f in self.sequence.frames if f.image is not None]
+        if not self.frames:
+            raise ValueError(f"{' '.join(run.sources)}: no scan has a camera image to label it from")
+        self.bin_frames = bin_frames or run.bin_frames
+        self.batch_size = batch_size
+        self.class_names = tuple(self.meta["classes"])
+        self.num_classes = self.train_config.model.num_classes
+
+    def __len__(self) -> int:
+        return -(-len(self.frames) // self.bin_frames)
+
+    def __iter__(self):
+        from ..config import PayloadType
+        from ..data.datasets import Scan
+        from ..geometry.projection import ProjectionConfig, bin_frames, project_frames
+        from ..segmentation.train import infer_alpha
+
+        outputs = infer_alpha(self.model, self.train_config, self.meta, (self.sequence.read_image(f) for f in self.frames),
+                              batch_size=self.batch_size)
+        # project_frames asks for the frames' values in the order inference yields them
+        projected = project_frames(self.sequence, self.frames, lambda frame: next(outputs)[0].astype(np.float32), ProjectionConfig(),
+                                   reference_pose=self.sequence.pose(self.sequence.frames[0]))
+        payload = PayloadType.ALPHA if self.train_config.head == "evidential" else PayloadType.PROB
+        for b in bin_frames(projected, self.bin_frames):
+            yield Scan(f"frames {b.frames[0]}..{b.frames[-1]}", b.points, b.values, payload, b.sensor_origin)
 
 
 def _cmd_info(args) -> int:
@@ -163,15 +202,46 @@ def _cmd_synth(args) -> int:
     from ..synthetic.writer import generate_sequence
 
     preset = load_preset(args.preset, seed=args.seed, appearance__domain=args.domain, trajectory__frames=args.frames)
-    summary = generate_sequence(preset, args.out, device=args.device, progress=not args.quiet)
-    print(json.dumps({"out": str(args.out), **summary}, indent=1))
+    if args.format == "folder":
+        summary = generate_sequence(preset, args.out, device=args.device, progress=not args.quiet)
+        print(json.dumps({"out": str(args.out), **summary}, indent=1))
+        return 0
+    import shutil
+    import tempfile
+
+    from ..data.log_writer import write_log
+
+    if args.out.exists():
+        raise ValueError(f"{args.out} exists already; a log is written to a new path")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    # the frames are rendered in the folder layout beside the log, then streamed into it frame by frame
+    staging = Path(tempfile.mkdtemp(prefix=f".{args.out.name}-frames-", dir=args.out.parent))
+    try:
+        summary = generate_sequence(preset, staging, device=args.device, progress=not args.quiet)
+        written = write_log(staging, args.out, args.format, progress=not args.quiet)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    print(json.dumps({"out": str(args.out), **summary, **written}, indent=1))
     return 0
 
 
+def _bag_config(logs, configs) -> "BagConfig":
+    """The dataset.bag settings of the given config files and preset names (defaults without any)."""
+    run = load_config([str(p) for p in logs] + list(configs))
+    return run.dataset.bag
+
+
 def _cmd_check_data(args) -> int:
+    from ..config import is_robot_log
+    from ..data.logs import check_log
     from ..data.sequences import check_sequence
 
-    reports = [check_sequence(d) for d in args.folders]
+    logs = [p for p in args.paths if is_robot_log(p)]
+    configs = [str(p) for p in args.paths if not is_robot_log(p) and (p.suffix in (".yaml", ".yml") or (not p.exists() and p.suffix == ""))]
+    folders = [p for p in args.paths if p not in logs and str(p) not in configs]
+    reports = [check_sequence(d) for d in folders]
+    if logs:
+        reports.append(check_log(logs, _bag_config(logs, configs)))
     for report in reports:
         print(report.text())
     return 0 if all(r.ok for r in reports) else 1
@@ -182,13 +252,14 @@ def _cmd_project(args) -> int:
     labels where the sequence has them, and overlay images."""
     from ..classes import class_set, original_to_v3_table
     from ..geometry.projection import ProjectionConfig, depth_colours, label_map_for, project_frames, save_overlay
-    from ..data.sequences import Rellis3DSequence, remap_point_labels
+    from ..data.datasets import open_sequence
+    from ..data.sequences import remap_point_labels
 
-    seq = Rellis3DSequence(args.sequence)
+    seq = open_sequence(args.sequence)
     config = ProjectionConfig(zbuffer=args.zbuffer)
     frames = [f for f in seq.frames if f.label_image is not None][: args.max_frames]
     if not frames:
-        raise ValueError(f"{args.sequence}: no frame has a 2D label image")
+        raise ValueError(f"{' '.join(args.sequence)}: no frame has a 2D label image")
     args.out.mkdir(parents=True, exist_ok=True)
     table = original_to_v3_table()
     colours = class_set("remap_v3").colors
@@ -324,6 +395,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path, help="map file to write (.npz)")
     p.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N or auto")
     p.add_argument("--workers", type=_positive, default=None, help="CPU threads, each scattering into its own map shard (default: up to 2 on the CPU)")
+    p.add_argument("--checkpoint", type=Path, help="label the scans from the camera with this segmentation checkpoint "
+                                                   "(evsemmap train-seg) instead of their per-point labels")
+    p.add_argument("--bin-frames", type=_positive, default=None, help="with --checkpoint: frames integrated together (default: the "
+                                                                    "preset's pipeline.bin_frames, else 1)")
+    p.add_argument("--batch-size", type=_positive, default=4, help="with --checkpoint: images per inference batch")
     p.add_argument("--quiet", action="store_true", help="no progress bar or start-up line")
     p.set_defaults(func=_cmd_map)
 
@@ -391,15 +467,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=None, help="world seed; default: the preset's")
     p.add_argument("--frames", type=_positive, default=None, help="number of frames; default: the preset's")
     p.add_argument("--device", default="cpu", help="Warp device for the ray casting")
+    p.add_argument("--format", choices=("folder", "rosbag1", "rosbag2", "mcap"), default="folder",
+                   help="folder: the RELLIS-3D layout (default); rosbag1: a ROS 1 .bag; rosbag2: a ROS 2 bag folder (sqlite3); "
+                        "mcap: a bare .mcap file (logs need the [ros] extra)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_synth)
 
-    p = sub.add_parser("check-data", help="report what is missing or inconsistent in RELLIS-3D-layout sequence folders")
-    p.add_argument("folders", nargs="+", type=Path)
+    p = sub.add_parser("check-data", help="report what is missing or inconsistent in sequence folders or robot logs (exit 1 on problems)")
+    p.add_argument("paths", nargs="+", type=Path,
+                   help="RELLIS-3D-layout folders, or robot logs (.bag, .mcap, .db3, ROS 2 bag folders; read as one sequence) "
+                        "with the dataset configs or presets that say their topics (e.g. rellis3d-bag)")
     p.set_defaults(func=_cmd_check_data)
 
     p = sub.add_parser("project", help="project a sequence's 2D labels onto its LiDAR points (3D ground truth + overlays)")
-    p.add_argument("sequence", type=Path)
+    p.add_argument("sequence", nargs="+", help="a RELLIS-3D-layout folder, or robot logs with the configs or presets that say their "
+                                               "topics (e.g. drive.bag rellis3d-bag)")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--zbuffer", action="store_true", help="drop points hidden behind nearer points")
     p.add_argument("--overlays", type=_non_negative, default=3, help="overlay images to write")

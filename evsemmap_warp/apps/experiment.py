@@ -41,15 +41,17 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import __version__
-from ..config import ConfigError, Kernel, PayloadType, dataclass_from_dict, load_config, preset_path, read_yaml_file
+from ..config import ConfigError, Kernel, PayloadType, dataclass_from_dict, is_robot_log, load_config, preset_path, read_yaml_file
 from .evaluation import PAPER_SCORED_CLASSES, MapScores, evaluate_map, markdown_table, pool_scores
+from ..geometry.camera import relative_pose
 from ..geometry.projection import ProjectionConfig, bin_frames, label_map_for, project_frames
 
 
 @dataclass(frozen=True)
 class SequenceSpec:
     preset: str = ""
-    path: str = ""
+    path: str = ""  # a RELLIS-3D-layout folder, or a robot log read with log_config
+    log_config: str = "rellis3d-bag"  # for a log: the preset or dataset config that says its topics
     seed: int = -1  # -1: the preset's
     domain: str = ""
     frames: int = 0  # 0: the preset's
@@ -132,7 +134,7 @@ def load_experiment(name_or_path) -> tuple[ExperimentConfig, Path]:
     config = dataclass_from_dict(ExperimentConfig, data, src)
     for name, seq in config.sequences.items():
         if bool(seq.preset) == bool(seq.path):
-            raise ConfigError(f"{src}: sequences.{name} needs exactly one of preset (synthetic) or path (a RELLIS-3D-layout folder)")
+            raise ConfigError(f"{src}: sequences.{name} needs exactly one of preset (synthetic) or path (a RELLIS-3D-layout folder or a robot log)")
         if seq.frames < 0 or seq.spacing_m < 0:
             raise ConfigError(f"{src}: sequences.{name}: frames ({seq.frames}) and spacing_m ({seq.spacing_m}) must be >= 0 (0: the preset's)")
     for name, net in config.networks.items():
@@ -172,16 +174,31 @@ class Experiment:
         self.notes: list[str] = []
         self._networks: dict[str, Path] = {}
         self._sequence_dirs: dict[str, Path] = {}
+        self._sequences: dict = {}
 
     # -- stages ----------------------------------------------------------------------------------
+    def _source_key(self, name: str) -> str:
+        """What a sequence's cached stages depend on: its path, and for a log the config that reads it."""
+        path = self.sequence_dir(name)
+        return f"{path} {self.config.sequences[name].log_config}" if is_robot_log(path) else str(path)
+
+    def sequence(self, name: str):
+        """The sequence (folder or robot log) named ``name``; a log is indexed once per study."""
+        from ..data.datasets import open_sequence
+
+        if name not in self._sequences:
+            path = self.sequence_dir(name)
+            self._sequences[name] = open_sequence([path] + ([self.config.sequences[name].log_config] if is_robot_log(path) else []))
+        return self._sequences[name]
+
     def sequence_dir(self, name: str) -> Path:
         if name in self._sequence_dirs:
             return self._sequence_dirs[name]
         spec = self.config.sequences[name]
         if spec.path:
             path = Path(spec.path).expanduser()
-            if not path.is_dir():
-                raise ConfigError(f"sequences.{name}.path: {path} is not a folder")
+            if not path.is_dir() and not is_robot_log(path):
+                raise ConfigError(f"sequences.{name}.path: {path} is neither a folder nor a robot log (.bag, .mcap, .db3)")
             self._sequence_dirs[name] = path
             return path
         from ..synthetic.preset import load_preset
@@ -207,7 +224,7 @@ class Experiment:
     def _network(self, name: str) -> Path:
         from ..classes import class_set
         from ..segmentation.config import ModelConfig
-        from ..segmentation.data import Rellis3DImages
+        from ..segmentation.data import Rellis3DImages, SequenceImages
         from ..segmentation.train import TimeBudgetWarning, TrainConfig, evaluate_checkpoint, load_checkpoint, split_indices, train
 
         spec = self.config.networks[name]
@@ -227,7 +244,7 @@ class Experiment:
             self._note(f"network {name}: the cached network stopped after {summary['epochs_run']} of {spec.epochs} epochs "
                        f"(time budget); training resumes")
         folder.mkdir(parents=True, exist_ok=True)
-        images = [Rellis3DImages(s) for s in sources]
+        images = [SequenceImages(self.sequence(s)) if is_robot_log(path) else Rellis3DImages(path) for s, path in zip(spec.train_on, sources)]
         source = _Frames([(s, i) for s in images for i in range(max(1, int(round(len(s) * spec.fraction))))])
         resume = folder / "last.pt" if (folder / "last.pt").exists() else None
         if resume is not None and int(load_checkpoint(resume)[2]["epoch"]) >= config.epochs:
@@ -257,15 +274,13 @@ class Experiment:
 
     def alpha_for(self, network: str, sequence: str) -> Path:
         from ..segmentation.train import infer_alpha, load_checkpoint
-        from ..data.sequences import Rellis3DSequence
 
         checkpoint = self.network(network)
-        seq_dir = self.sequence_dir(sequence)
-        folder = self.cache / "alpha" / f"{network}-{sequence}-{_digest(str(checkpoint), checkpoint.stat().st_mtime_ns, str(seq_dir))}"
+        folder = self.cache / "alpha" / f"{network}-{sequence}-{_digest(str(checkpoint), checkpoint.stat().st_mtime_ns, self._source_key(sequence))}"
         if (folder / "done").exists():
             return folder
         folder.mkdir(parents=True, exist_ok=True)
-        seq = Rellis3DSequence(seq_dir)
+        seq = self.sequence(sequence)
         frames = [f for f in seq.frames if f.image is not None]
         model, config, meta, _ = load_checkpoint(checkpoint)
         started = time.perf_counter()
@@ -281,8 +296,6 @@ class Experiment:
         """ConvBKI's per-class length scales learned on the network's training sequences (cached)."""
         from ..methods import convbki
         from ..classes import class_set
-        from ..data.sequences import Rellis3DSequence
-
         spec, training = self.config.networks[network], self.config.convbki
         folder = self.cache / "convbki"
         path = folder / f"{network}-{_digest(str(self.network(network)), spec.train_on, resolution_m, dataclasses.asdict(training), __version__)}.json"
@@ -292,7 +305,7 @@ class Experiment:
         for sequence in spec.train_on:
             alpha = self.alpha_for(network, sequence)
             windows += convbki.training_windows(
-                Rellis3DSequence(self.sequence_dir(sequence)),
+                self.sequence(sequence),
                 lambda f, alpha=alpha: np.load(alpha / f"{f.index:06d}.npy").astype(np.float32) if (alpha / f"{f.index:06d}.npy").exists() else None,
                 self.config.projection, window_scans=training.window_scans, queries_per_window=training.queries_per_window)
         if not windows:
@@ -307,12 +320,9 @@ class Experiment:
         return path
 
     def ground_truth(self, sequence: str) -> tuple[np.ndarray, np.ndarray]:
-        from ..data.sequences import Rellis3DSequence
-
-        seq_dir = self.sequence_dir(sequence)
-        path = self.cache / "ground_truth" / f"{sequence}-{_digest(str(seq_dir), dataclasses.asdict(self.config.projection))}.npz"
+        path = self.cache / "ground_truth" / f"{sequence}-{_digest(self._source_key(sequence), dataclasses.asdict(self.config.projection))}.npz"
         if not path.exists():
-            seq = Rellis3DSequence(seq_dir)
+            seq = self.sequence(sequence)
             frames = [f for f in seq.frames if f.label_image is not None]
             if not frames:
                 raise ConfigError(f"sequences.{sequence}: no frame has a 2D label image, so there is no 3D ground truth")
@@ -323,11 +333,9 @@ class Experiment:
         return data["points"], data["labels"]
 
     def bins(self, condition: str) -> list:
-        from ..data.sequences import Rellis3DSequence
-
         cond = self.config.conditions[condition]
         alpha = self.alpha_dir(condition)
-        seq = Rellis3DSequence(self.sequence_dir(cond.sequence))
+        seq = self.sequence(cond.sequence)
         frames = [f for f in seq.frames if (alpha / f"{f.index:06d}.npy").exists()]
 
         def values(frame):
@@ -335,7 +343,7 @@ class Experiment:
 
         reference = seq.pose(seq.frames[0])
         # The drive in the maps' frame, for `evsemmap view MAP --trajectory trajectory.txt`.
-        trajectory = np.array([(np.linalg.inv(reference) @ seq.pose(f))[:3, 3] for f in frames]).reshape(-1, 3)
+        trajectory = np.array([relative_pose(reference, seq.pose(f))[:3, 3] for f in frames]).reshape(-1, 3)
         (self.out / "maps" / condition).mkdir(parents=True, exist_ok=True)
         np.savetxt(self.out / "maps" / condition / "trajectory.txt", trajectory, fmt="%.4f")
         projected = project_frames(seq, frames, values, self.config.projection, reference_pose=reference)

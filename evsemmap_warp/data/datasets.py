@@ -7,6 +7,7 @@ Every dataset yields ``Scan`` records one at a time, so a sequence of any length
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 from dataclasses import dataclass
 from typing import Iterator, Protocol
 
@@ -116,28 +117,31 @@ class BenchNpz:
 
 
 class LabelledSequence:
-    """A RELLIS-3D-layout sequence (``rellis3d``; real, or ``evsemmap synth`` output) or a SemanticKITTI
-    sequence (``semantickitti``) mapped from its per-point label files: RELLIS ids remapped to the
-    9 v3 classes, SemanticKITTI ids to its 19 learning classes. World frame = the first scan's LiDAR
-    frame. Zero returns are dropped."""
+    """A sequence mapped from its per-point labels: a RELLIS-3D-layout folder (``rellis3d``; real, or
+    ``evsemmap synth`` output), a SemanticKITTI sequence (``semantickitti``) or a robot log whose clouds
+    carry a label field (``bag``). RELLIS ids are remapped to the 9 v3 classes, SemanticKITTI ids to its
+    19 learning classes. World frame = the first scan's LiDAR frame. Zero returns are dropped."""
 
     def __init__(self, config: DatasetConfig):
-        from .sequences import Rellis3DSequence, SemanticKittiSequence, semantickitti_learning_map
-
         if config.payload is not PayloadType.LABEL:
             raise ConfigError(f"dataset.payload: a {config.kind} sequence is mapped from its per-point labels, got {config.payload.value!r}")
-        root = config.resolve_path()
-        if config.kind == "rellis3d":
-            from ..classes import class_set, original_to_v3_table
+        if config.kind == "bag":
+            from .logs import LogSequence
 
-            self.sequence, self.table = Rellis3DSequence(root), original_to_v3_table().astype(np.int64)
-            self.class_names = class_set("remap_v3").names
+            self.sequence = LogSequence(config.resolve_logs(), config.bag)
+            ontology = config.bag.label_ontology
         else:
-            self.sequence, self.table = SemanticKittiSequence(root), semantickitti_learning_map()
-            self.class_names = ("unlabeled",) + tuple(f"class_{i}" for i in range(1, 20))
+            from .sequences import Rellis3DSequence, SemanticKittiSequence
+
+            root = config.resolve_path()
+            self.sequence = Rellis3DSequence(root) if config.kind == "rellis3d" else SemanticKittiSequence(root)
+            ontology = "rellis3d" if config.kind == "rellis3d" else "semantickitti"
+        self.table, self.class_names = label_table(ontology, config.num_classes)
         self.frames = [f for f in self.sequence.frames if f.point_labels is not None]
         if not self.frames:
-            raise ConfigError(f"{root}: no scan has a per-point label file")
+            if config.kind == "bag" and self.sequence.frames:
+                self.sequence.read_point_labels(self.sequence.frames[0])  # raises, naming the field and the cloud's fields
+            raise ConfigError(f"{self.sequence.root}: no scan has a per-point label file")
         self.num_classes = config.num_classes or len(self.class_names)
         self.class_names = config.class_names or self.class_names
 
@@ -145,6 +149,7 @@ class LabelledSequence:
         return len(self.frames)
 
     def __iter__(self) -> Iterator[Scan]:
+        from ..geometry.camera import relative_pose
         from .sequences import remap_point_labels
 
         reference = None
@@ -152,17 +157,53 @@ class LabelledSequence:
             scan = self.sequence.read_scan(frame)
             labels = remap_point_labels(self.sequence.read_point_labels(frame), self.table, frame.point_labels)
             pose = self.sequence.pose(frame)
-            reference = np.linalg.inv(pose) if reference is None else reference
-            to_world = reference @ pose
+            reference = pose if reference is None else reference
+            to_world = relative_pose(reference, pose)
             returned = np.any(scan[:, :3] != 0, axis=1)
             points = scan[returned, :3].astype(np.float64) @ to_world[:3, :3].T + to_world[:3, 3]
             yield Scan(str(frame.scan), points, labels[returned], PayloadType.LABEL, to_world[:3, 3].copy())
 
 
-DATASETS = {"pcd_sequence": PcdSequence, "bench_npz": BenchNpz, "rellis3d": LabelledSequence, "semantickitti": LabelledSequence}
+def label_table(ontology: str, num_classes: int = 0) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Raw per-point label id -> class id, and the class names, for an ontology: rellis3d (to the 9
+    v3 classes), semantickitti (to its 19 learning classes) or none (ids are already classes)."""
+    if ontology == "rellis3d":
+        from ..classes import class_set, original_to_v3_table
+
+        return original_to_v3_table().astype(np.int64), class_set("remap_v3").names
+    if ontology == "semantickitti":
+        from .sequences import semantickitti_learning_map
+
+        return semantickitti_learning_map(), ("unlabeled",) + tuple(f"class_{i}" for i in range(1, 20))
+    if num_classes < 1:
+        raise ConfigError("dataset.num_classes: labels that are class ids already (label_ontology none) need the number of classes")
+    return np.arange(num_classes, dtype=np.int64), tuple(f"class_{i}" for i in range(num_classes))
+
+
+DATASETS = {"pcd_sequence": PcdSequence, "bench_npz": BenchNpz, "rellis3d": LabelledSequence, "semantickitti": LabelledSequence,
+            "bag": LabelledSequence}
 
 
 def open_dataset(config: DatasetConfig) -> Dataset:
     if config.kind not in DATASETS:
         raise ConfigError(f"dataset.kind {config.kind!r} is unknown; known: {sorted(DATASETS)}")
     return DATASETS[config.kind](config)
+
+
+def open_sequence(sources) -> "Rellis3DSequence | LogSequence":
+    """A sequence with cameras (for projection, inference and experiments) from what a user names: a
+    RELLIS-3D-layout folder, or robot logs with the config files or presets that say their topics."""
+    from ..config import load_config
+    from .sequences import Rellis3DSequence
+
+    sources = [str(s) for s in ([sources] if isinstance(sources, (str, Path)) else sources)]
+    run = load_config(sources)
+    dataset = run.dataset
+    if dataset is None or dataset.kind not in ("rellis3d", "bag"):
+        what = "no dataset" if dataset is None else f"a {dataset.kind!r} dataset"
+        raise ConfigError(f"{' '.join(sources)}: {what}; a sequence with a camera is a RELLIS-3D-layout folder or robot logs (kind: bag)")
+    if dataset.kind == "bag":
+        from .logs import LogSequence
+
+        return LogSequence(dataset.resolve_logs(), dataset.bag)
+    return Rellis3DSequence(dataset.resolve_path())

@@ -196,6 +196,12 @@ class Rellis3DSequence(_ScanSequence):
     @property
     def lidar_to_camera(self) -> np.ndarray:
         """4x4 transform of LiDAR coordinates into camera coordinates (the inverse of the stored T)."""
+        q, t = self.camera_mount
+        return np.linalg.inv(rigid(quaternion_to_matrix(q), t))
+
+    @property
+    def camera_mount(self) -> tuple[list[float], list[float]]:
+        """The camera's pose in the LiDAR frame as transforms.yaml stores it: quaternion (x, y, z, w), translation."""
         path = self.root / "transforms.yaml"
         if not path.exists():
             raise DataError(f"{path}: missing (RELLIS-3D ships it in the 'camera to LiDAR' archive)")
@@ -205,7 +211,7 @@ class Rellis3DSequence(_ScanSequence):
             t = [entry["t"][k] for k in "xyz"]
         except (yaml.YAMLError, KeyError, TypeError) as exc:
             raise DataError(f"{path}: expected {EXTRINSIC_KEY}: {{q: {{x, y, z, w}}, t: {{x, y, z}}}} ({type(exc).__name__}: {exc})") from None
-        return np.linalg.inv(rigid(quaternion_to_matrix(q), t))
+        return q, t
 
     @property
     def poses(self) -> np.ndarray | None:
@@ -294,13 +300,16 @@ class CheckReport:
     with_labels: int = 0
     problems: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    details: list[str] = field(default_factory=list)  # what the source holds (a log's topics), before the verdict
+    unit: str = "scans"
 
     @property
     def ok(self) -> bool:
         return not self.problems
 
     def text(self) -> str:
-        lines = [f"{self.root}: {self.frames} scans, {self.with_images} with a camera image, {self.with_labels} with a 2D label image"]
+        lines = [f"{self.root}: {self.frames} {self.unit}, {self.with_images} with a camera image, {self.with_labels} with a 2D label image"]
+        lines += [f"  {d}" for d in self.details]
         lines += [f"  problem: {p}" for p in self.problems]
         lines += [f"  note: {n}" for n in self.notes]
         lines.append("  OK" if self.ok else f"  {len(self.problems)} problem(s)")

@@ -86,16 +86,26 @@ def quaternion_to_matrix(q) -> np.ndarray:
 
 
 def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
-    """3x3 rotation -> (x, y, z, w) with w >= 0."""
+    """3x3 rotation -> (x, y, z, w) with w >= 0. Shepperd's method: the largest component comes from
+    the diagonal, the others from sums and differences of off-diagonal pairs, so no component loses
+    digits to cancellation (a rotation survives the round trip to float64 rounding)."""
     m = np.asarray(rotation, np.float64)
-    w = np.sqrt(max(0.0, 1 + m[0, 0] + m[1, 1] + m[2, 2])) / 2
-    x = np.sqrt(max(0.0, 1 + m[0, 0] - m[1, 1] - m[2, 2])) / 2
-    y = np.sqrt(max(0.0, 1 - m[0, 0] + m[1, 1] - m[2, 2])) / 2
-    z = np.sqrt(max(0.0, 1 - m[0, 0] - m[1, 1] + m[2, 2])) / 2
-    x = np.copysign(x, m[2, 1] - m[1, 2])
-    y = np.copysign(y, m[0, 2] - m[2, 0])
-    z = np.copysign(z, m[1, 0] - m[0, 1])
-    return np.array([x, y, z, w])
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    largest = int(np.argmax([trace, m[0, 0], m[1, 1], m[2, 2]]))
+    if largest == 0:
+        s = 2.0 * np.sqrt(1.0 + trace)
+        q = np.array([(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4])
+    elif largest == 1:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = np.array([s / 4, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s])
+    elif largest == 2:
+        s = 2.0 * np.sqrt(1.0 - m[0, 0] + m[1, 1] - m[2, 2])
+        q = np.array([(m[0, 1] + m[1, 0]) / s, s / 4, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s])
+    else:
+        s = 2.0 * np.sqrt(1.0 - m[0, 0] - m[1, 1] + m[2, 2])
+        q = np.array([(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4, (m[1, 0] - m[0, 1]) / s])
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
 
 
 def rigid(rotation: np.ndarray, translation) -> np.ndarray:
@@ -103,6 +113,15 @@ def rigid(rotation: np.ndarray, translation) -> np.ndarray:
     out[:3, :3] = rotation
     out[:3, 3] = translation
     return out
+
+
+def relative_pose(reference: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """inv(reference) @ pose, and exactly the identity for the reference pose itself: the world frame
+    is the first scan's own frame, so its points keep their coordinates bit for bit (a point on a
+    voxel face stays on it however the poses were stored)."""
+    if np.array_equal(reference, pose):
+        return np.eye(4)
+    return np.linalg.inv(reference) @ pose
 
 
 def transform_points(transform: np.ndarray, points: np.ndarray) -> np.ndarray:

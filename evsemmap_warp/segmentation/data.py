@@ -137,6 +137,29 @@ class Rellis3DImages:
         return image, remap_ids(original, str(label_path))
 
 
+class SequenceImages:
+    """The labelled camera frames of an opened sequence (a robot log, or a folder): what
+    Rellis3DImages gives for a folder of files, read through the sequence's own readers."""
+
+    num_classes = 9
+
+    def __init__(self, sequence):
+        self.sequence = sequence
+        self.frames = [f for f in sequence.frames if f.label_image is not None]
+        if not self.frames:
+            raise ValueError(f"{sequence.root}: no camera frame has a 2D label image to train on")
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def name(self, i: int) -> str:
+        return f"frame{self.frames[i].index:06d}"
+
+    def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        frame = self.frames[i]
+        return self.sequence.read_image(frame), remap_ids(self.sequence.read_label_ids(frame), f"{self.sequence.root} frame {frame.index}")
+
+
 class RugdImages:
     num_classes = 9
 

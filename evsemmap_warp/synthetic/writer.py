@@ -54,7 +54,8 @@ def write_sequence_metadata(out: Path, preset: SynthPreset, poses: np.ndarray) -
         "q": {"w": float(q[3]), "x": float(q[0]), "y": float(q[1]), "z": float(q[2])},
         "t": {"x": float(t[0]), "y": float(t[1]), "z": float(t[2])}}}
     (out / "transforms.yaml").write_text(yaml.safe_dump(transforms, sort_keys=False))
-    np.savetxt(out / "poses.txt", poses[:, :3, :].reshape(len(poses), 12), fmt="%.9f")
+    # every digit: a log written from this folder carries the poses as quaternions, and maps from both agree to rounding
+    np.savetxt(out / "poses.txt", poses[:, :3, :].reshape(len(poses), 12), fmt="%.17g")
 
 
 def generate_sequence(preset: SynthPreset, out, *, device: str | None = "cpu", progress: bool = True) -> dict:

@@ -1,0 +1,421 @@
+"""Robot logs as sequences, without a ROS install: ROS 1 ``.bag`` files, ROS 2 bag folders (sqlite3
+or MCAP) and bare ``.mcap`` / ``.db3`` files, read with the pure-Python ``rosbags`` package.
+
+``LogSequence`` offers what a sequence folder offers (frames, camera, LiDAR-to-camera transform,
+poses, scans, images, labels), so projection, mapping and the experiments read logs and folders
+alike. Opening a log indexes it once: each cloud's and image's header stamp (read from the raw
+bytes, nothing decoded), the transforms (``/tf``, ``/tf_static``, odometry) and the camera info. Scans
+and images are then decoded one at a time as they are asked for, by a cursor that moves forward
+through the log, so a log larger than memory streams and a sequential pass reads each message once.
+World frame = the first cloud's LiDAR frame, as for folders.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..config import BagConfig, ConfigError
+from ..geometry.camera import PinholeCamera
+from ..geometry.transform_tree import TransformError, TransformTree, format_stamp
+from .ros_messages import MessageError, camera_from_info, cloud_xyz, decode_cloud, decode_image, header_stamp_ns
+from .sequences import CheckReport, DataError
+
+CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+INSTALL_HINT = 'reading robot logs needs the rosbags package: pip install "evsemmap_warp[ros]"'
+
+
+def open_reader(logs: list[Path]):
+    """An opened ``rosbags`` AnyReader over the logs (several ROS 1 bags, or ROS 2 bags / files)."""
+    try:
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError:
+        raise ConfigError(INSTALL_HINT) from None
+    kinds = {p.suffix == ".bag" for p in logs}
+    if len(kinds) > 1:
+        raise DataError(f"{logs[0]} and {logs[-1]}: ROS 1 bags and ROS 2 logs cannot be read as one sequence; map them separately and merge the maps")
+    reader = AnyReader(logs, default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+    try:
+        reader.open()
+    except Exception as exc:  # rosbags raises its own error types per format; all mean "not a readable log"
+        raise DataError(f"{', '.join(map(str, logs))}: not a readable robot log ({type(exc).__name__}: {exc})") from None
+    return reader
+
+
+@dataclass
+class LogFrame:
+    """One cloud of the log; ``image`` / ``label_image``: (log time, header stamp) of the paired
+    messages, None without one. ``scan`` and ``point_labels`` name the message in errors."""
+
+    index: int
+    stamp_ns: int
+    log_time_ns: int
+    scan: str
+    image: tuple[int, int] | None = None
+    label_image: tuple[int, int] | None = None
+    point_labels: str | None = None
+
+
+class _Cursor:
+    """Reads the messages of some connections forward in log time; asking for an earlier message
+    starts again from there (random access costs a seek, a sequential pass reads each message once)."""
+
+    def __init__(self, reader, connections):
+        self.reader, self.connections = reader, connections
+        self._messages = None
+        self._last = -1
+
+    def get(self, log_time_ns: int, stamp_ns: int, ros2: bool, where: str):
+        if self._messages is None or log_time_ns < self._last:
+            self._messages = self.reader.messages(connections=self.connections, start=log_time_ns)
+        for connection, time_ns, raw in self._messages:
+            self._last = time_ns
+            if time_ns > log_time_ns:
+                break
+            if time_ns == log_time_ns and header_stamp_ns(raw, ros2) == stamp_ns:
+                return self.reader.deserialize(raw, connection.msgtype)
+        self._messages = None
+        raise DataError(f"{where}: the message is no longer where the index found it (was the log changed while reading?)")
+
+
+def _transform_parts(transform) -> tuple[np.ndarray, np.ndarray]:
+    t, q = transform.translation, transform.rotation
+    return np.array([t.x, t.y, t.z], np.float64), np.array([q.x, q.y, q.z, q.w], np.float64)
+
+
+def _stamp(header) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+class LogSequence:
+    """A robot log read as a sequence (see the module text). ``problems`` gathers what would make
+    mapping fail (for ``check-data``); using a broken part raises a DataError naming it."""
+
+    def __init__(self, logs, config: BagConfig = BagConfig()):
+        self.logs = [Path(p) for p in logs]
+        self.root = self.logs[0]
+        self.config = config
+        self.reader = open_reader(self.logs)
+        self.ros2 = bool(self.reader.is2)
+        self.missing_topics: dict[str, str] = {}  # dataset.bag key -> what is missing
+        self.topics = {c.topic: c.msgtype for c in self.reader.connections}
+        self.cloud_topic = self._cloud_topic()
+        self.frames: list[LogFrame] = []
+        self.tree = TransformTree()
+        self._camera_info = None
+        self._cloud_fields: tuple[str, ...] = ()
+        self._index()
+        self._poses: dict[int, np.ndarray] = {}
+        self._cursors = {}
+        self._decoded: tuple[int, np.ndarray, np.ndarray | None] | None = None
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def close(self) -> None:
+        self.reader.close()
+
+    def describe(self) -> str:
+        return ", ".join(str(p) for p in self.logs)
+
+    # Index -----------------------------------------------------------------------------------------
+    def _connections(self, topic: str, types: tuple[str, ...], key: str, required: bool = True):
+        """The log's connections of a configured topic. A missing camera topic is noted, not fatal:
+        mapping from point labels needs no camera, and reading an image then names the topic."""
+        if not topic:
+            return []
+        found = [c for c in self.reader.connections if c.topic == topic]
+        if not found:
+            text = f"{self.describe()}: topic {topic!r} (dataset.bag.{key}) is not in the log; its topics: {sorted(self.topics)}"
+            if required:
+                raise DataError(text)
+            self.missing_topics[key] = text
+            return []
+        wrong = [c.msgtype for c in found if c.msgtype not in types]
+        if wrong:
+            raise DataError(f"{self.describe()}: topic {topic!r} (dataset.bag.{key}) carries {wrong[0]}, expected {' or '.join(types)}")
+        return found
+
+    def _cloud_topic(self) -> str:
+        if self.config.cloud_topic:
+            return self.config.cloud_topic
+        clouds = sorted(t for t, kind in self.topics.items() if kind == CLOUD_TYPE)
+        if len(clouds) != 1:
+            raise DataError(f"{self.describe()}: set dataset.bag.cloud_topic: the log has {len(clouds)} PointCloud2 topics {clouds} "
+                            f"(the rellis3d-bag preset names RELLIS-3D's)")
+        return clouds[0]
+
+    def _index(self) -> None:
+        c = self.config
+        cloud = self._connections(self.cloud_topic, (CLOUD_TYPE,), "cloud_topic")
+        image = self._connections(c.image_topic, IMAGE_TYPES, "image_topic", required=False)
+        label_image = self._connections(c.label_image_topic, IMAGE_TYPES, "label_image_topic", required=False)
+        info = self._connections(c.camera_info_topic, (CAMERA_INFO_TYPE,), "camera_info_topic", required=False)
+        odometry = self._connections(c.odometry_topic, (ODOMETRY_TYPE,), "odometry_topic") if c.pose_source == "odometry" else []
+        tf = [x for x in self.reader.connections if x.topic == c.tf_topic and x.msgtype == TF_TYPE] if c.pose_source == "tf" else []
+        tf_static = [x for x in self.reader.connections if x.topic == c.tf_static_topic and x.msgtype == TF_TYPE]
+        self._connection_sets = {"cloud": cloud, "image": image, "label_image": label_image}
+        kinds = {x.id: kind for kind, conns in (("cloud", cloud), ("image", image), ("label_image", label_image), ("info", info),
+                                                 ("odometry", odometry), ("tf", tf), ("tf_static", tf_static)) for x in conns}
+        wanted = [x for conns in (cloud, image, label_image, info, odometry, tf, tf_static) for x in conns]
+        stamps = {"cloud": [], "image": [], "label_image": []}
+        first_cloud = None
+        for connection, time_ns, raw in self.reader.messages(connections=wanted):
+            kind = kinds[connection.id]
+            if kind in stamps:
+                stamps[kind].append((time_ns, header_stamp_ns(raw, self.ros2)))
+                if kind == "cloud" and first_cloud is None:
+                    first_cloud = self.reader.deserialize(raw, connection.msgtype)
+                continue
+            msg = self.reader.deserialize(raw, connection.msgtype)
+            try:
+                if kind == "info":
+                    if self._camera_info is None:
+                        self._camera_info = camera_from_info(msg, f"{self.describe()} {connection.topic}")
+                elif kind == "odometry":
+                    pose = msg.pose.pose
+                    self.tree.add_timed(msg.header.frame_id, msg.child_frame_id, _stamp(msg.header),
+                                        [pose.position.x, pose.position.y, pose.position.z],
+                                        [pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w])
+                else:
+                    for t in msg.transforms:
+                        translation, rotation = _transform_parts(t.transform)
+                        if kind == "tf_static":
+                            self.tree.add_static(t.header.frame_id, t.child_frame_id, translation, rotation)
+                        else:
+                            self.tree.add_timed(t.header.frame_id, t.child_frame_id, _stamp(t.header), translation, rotation)
+            except (TransformError, MessageError) as exc:
+                raise DataError(f"{self.describe()} {connection.topic} at {format_stamp(time_ns)}: {exc}") from None
+        if first_cloud is None:
+            raise DataError(f"{self.describe()}: no message on {self.cloud_topic!r}")
+        self.lidar_frame = c.lidar_frame or first_cloud.header.frame_id
+        self._cloud_fields = tuple(f.name for f in first_cloud.fields)
+        has_labels = bool(c.label_field) and c.label_field in self._cloud_fields
+        self._add_extrinsics()
+        images = sorted(stamps["image"], key=lambda s: s[1])
+        labels = {s[1]: s for s in stamps["label_image"]}
+        image_stamps = np.array([s[1] for s in images], np.int64)
+        tolerance = int(round(c.image_tolerance_s * 1e9))
+        for index, (time_ns, stamp) in enumerate(stamps["cloud"]):
+            where = f"{self.describe()} {self.cloud_topic} message {index} ({format_stamp(stamp)})"
+            frame = LogFrame(index, stamp, time_ns, where, point_labels=f"{where} field {c.label_field!r}" if has_labels else None)
+            if len(image_stamps):
+                at = int(np.searchsorted(image_stamps, stamp))
+                nearest = min((i for i in (at - 1, at) if 0 <= i < len(images)), key=lambda i: abs(int(image_stamps[i]) - stamp))
+                if abs(int(image_stamps[nearest]) - stamp) <= tolerance:
+                    frame.image = images[nearest]
+                    frame.label_image = labels.get(frame.image[1])
+            self.frames.append(frame)
+
+    def _add_extrinsics(self) -> None:
+        c = self.config
+        try:
+            if c.lidar_extrinsic:
+                base = self._odometry_child()
+                self.tree.add_static(base, self.lidar_frame, c.lidar_extrinsic[:3], c.lidar_extrinsic[3:])
+            if c.camera_extrinsic:
+                self.tree.add_static(self.lidar_frame, self.camera_frame, c.camera_extrinsic[:3], c.camera_extrinsic[3:])
+        except TransformError as exc:
+            raise DataError(f"dataset.bag extrinsics: {exc}") from None
+
+    def _odometry_child(self) -> str:
+        children = [f for f in self.tree.frames if self.tree.is_timed(f)]
+        if len(children) != 1:
+            raise DataError(f"{self.describe()}: dataset.bag.lidar_extrinsic needs one odometry child frame, found {sorted(children)}")
+        return children[0]
+
+    # Calibration and poses ---------------------------------------------------------------------
+    @property
+    def camera_frame(self) -> str:
+        if self.config.camera_frame:
+            return self.config.camera_frame
+        if self._camera_info is not None and self._camera_info.frame_id:
+            return self._camera_info.frame_id
+        raise DataError(f"{self.describe()}: set dataset.bag.camera_frame (no camera info names the camera's frame)")
+
+    @property
+    def camera(self) -> PinholeCamera:
+        if self._camera_info is None and "camera_info_topic" in self.missing_topics:
+            raise DataError(self.missing_topics["camera_info_topic"])
+        if self._camera_info is None:
+            what = repr(self.config.camera_info_topic) if self.config.camera_info_topic else "(dataset.bag.camera_info_topic is not set)"
+            raise DataError(f"{self.describe()}: no camera info message on {what}; projection needs the camera's intrinsics")
+        return self._camera_info.camera
+
+    @property
+    def fixed_frame(self) -> str:
+        if self.config.fixed_frame:
+            return self.config.fixed_frame
+        try:
+            return self.tree.root(self.lidar_frame)
+        except TransformError as exc:
+            raise DataError(f"{self.describe()}: {exc}") from None
+
+    @property
+    def lidar_to_camera(self) -> np.ndarray:
+        """4x4 transform of LiDAR coordinates into camera coordinates."""
+        try:
+            if not self.tree.is_static_between(self.camera_frame, self.lidar_frame):
+                raise DataError(f"{self.describe()}: the camera ({self.camera_frame!r}) and LiDAR ({self.lidar_frame!r}) frames are joined by a moving "
+                                f"transform; give dataset.bag.camera_extrinsic")
+            return self.tree.lookup(self.camera_frame, self.lidar_frame, self.frames[0].stamp_ns if self.frames else 0)
+        except TransformError as exc:
+            raise DataError(f"{self.describe()}: LiDAR to camera: {exc} (give dataset.bag.camera_extrinsic if the log has no such transform)") from None
+
+    def pose(self, frame: LogFrame) -> np.ndarray:
+        """4x4 pose of the LiDAR in the fixed frame at the cloud's stamp."""
+        if frame.index not in self._poses:
+            try:
+                self._poses[frame.index] = self.tree.lookup(self.fixed_frame, self.lidar_frame, frame.stamp_ns)
+            except TransformError as exc:
+                raise DataError(f"{frame.scan}: no pose: {exc}") from None
+        return self._poses[frame.index]
+
+    # Per-frame data ------------------------------------------------------------------------------
+    def _message(self, kind: str, log_time_ns: int, stamp_ns: int, where: str):
+        if kind not in self._cursors:
+            self._cursors[kind] = _Cursor(self.reader, self._connection_sets[kind])
+        return self._cursors[kind].get(log_time_ns, stamp_ns, self.ros2, where)
+
+    def _decode(self, frame: LogFrame) -> tuple[np.ndarray, np.ndarray | None]:
+        if self._decoded is None or self._decoded[0] != frame.index:
+            msg = self._message("cloud", frame.log_time_ns, frame.stamp_ns, frame.scan)
+            try:
+                cloud = decode_cloud(msg)
+                xyz = cloud_xyz(cloud, frame.scan)
+            except MessageError as exc:
+                raise DataError(f"{frame.scan}: {exc}") from None
+            # organised clouds and is_dense: false mark missing returns with NaN: they are no points
+            finite = np.isfinite(xyz).all(axis=1)
+            scan = np.zeros((int(finite.sum()), 4), np.float32)
+            scan[:, :3] = xyz[finite]
+            if "intensity" in cloud.dtype.names:
+                scan[:, 3] = cloud["intensity"][finite]
+            labels = None
+            if frame.point_labels is not None:
+                labels = cloud[self.config.label_field][finite].astype(np.int64)
+            self._decoded = (frame.index, scan, labels)
+        return self._decoded[1], self._decoded[2]
+
+    def read_scan(self, frame: LogFrame) -> np.ndarray:
+        """[N, 4] float32 x y z intensity in the LiDAR frame; points without a return (NaN) dropped."""
+        return self._decode(frame)[0]
+
+    def read_point_labels(self, frame: LogFrame) -> np.ndarray:
+        """Raw label ids of the points ``read_scan`` gives."""
+        if frame.point_labels is None:
+            raise DataError(f"{frame.scan}: the cloud has no {self.config.label_field!r} field (dataset.bag.label_field); its fields: "
+                            f"{list(self._cloud_fields)}. Map it from camera images with a segmentation checkpoint instead")
+        return self._decode(frame)[1]
+
+    def read_image(self, frame: LogFrame) -> np.ndarray:
+        if "image_topic" in self.missing_topics:
+            raise DataError(self.missing_topics["image_topic"])
+        if frame.image is None:
+            raise DataError(f"{frame.scan}: no camera image within {self.config.image_tolerance_s} s")
+        where = f"{self.describe()} {self.config.image_topic} ({format_stamp(frame.image[1])})"
+        try:
+            image = decode_image(self._message("image", *frame.image, where), where)
+        except MessageError as exc:
+            raise DataError(str(exc)) from None
+        if image.ndim == 2:
+            image = np.repeat(image[..., None], 3, axis=2).astype(np.uint8)
+        if image.shape[:2] != (self.camera.height, self.camera.width):
+            raise DataError(f"{where}: {image.shape[1]}x{image.shape[0]} pixels, but the camera info says {self.camera.width}x{self.camera.height}")
+        return image
+
+    def read_label_ids(self, frame: LogFrame) -> np.ndarray:
+        """[H, W] raw ontology ids of the frame's 2D labels (one-channel ids, or RELLIS-3D colours)."""
+        if frame.label_image is None:
+            raise DataError(self.missing_topics.get("label_image_topic", f"{frame.scan}: no label image paired with its camera image"))
+        where = f"{self.describe()} {self.config.label_image_topic} ({format_stamp(frame.label_image[1])})"
+        try:
+            raw = decode_image(self._message("label_image", *frame.label_image, where), where)
+        except MessageError as exc:
+            raise DataError(str(exc)) from None
+        if raw.ndim == 3:
+            from ..classes import decode_color_labels, palette
+
+            return decode_color_labels(raw, palette("rellis3d_colors"), where)
+        return raw.astype(np.int64)
+
+
+def check_log(logs, config: BagConfig = BagConfig()) -> CheckReport:
+    """What ``check-data`` says about a log: topics, types, counts, rates and time range; configured
+    topics that are missing; clouds without an image or a pose; TF frames that never connect."""
+    logs = [Path(p) for p in logs]
+    report = CheckReport(logs[0], unit="clouds")
+    try:
+        reader = open_reader(logs)
+    except DataError as exc:
+        report.problems.append(str(exc))
+        return report
+    try:
+        start, end = reader.start_time, reader.end_time
+        span = max(end - start, 1) / 1e9
+        report.details.append(f"time range {format_stamp(start)} .. {format_stamp(end)} ({span:.1f} s)")
+        counts = {}
+        for c in reader.connections:
+            counts[(c.topic, c.msgtype)] = counts.get((c.topic, c.msgtype), 0) + c.msgcount
+        width = max((len(t) for t, _ in counts), default=5)
+        for (topic, msgtype), n in sorted(counts.items()):
+            report.details.append(f"{topic:<{width}}  {msgtype:<32} {n:>7} msgs  {n / span:7.2f}/s")
+    finally:
+        reader.close()
+    try:
+        seq = LogSequence(logs, config)
+    except DataError as exc:
+        report.problems.append(str(exc))
+        return report
+    try:
+        _check_sequence(seq, report)
+    finally:
+        seq.close()
+    return report
+
+
+def _check_sequence(seq: LogSequence, report: CheckReport) -> None:
+    c = seq.config
+    report.frames = len(seq)
+    report.with_images = sum(f.image is not None for f in seq.frames)
+    report.with_labels = sum(f.label_image is not None for f in seq.frames)
+    report.problems += list(seq.missing_topics.values())
+    for name in ("image_topic", "camera_info_topic", "label_image_topic", "odometry_topic"):
+        if not getattr(c, name) and (name != "odometry_topic"):
+            report.notes.append(f"dataset.bag.{name} is not set: {'no camera projection' if name != 'label_image_topic' else 'no 2D ground truth'}")
+    if not seq.frames[0].point_labels:
+        report.notes.append(f"the clouds have no {c.label_field!r} field: mapping needs camera images and a segmentation checkpoint")
+    if c.image_topic:
+        missing = [f for f in seq.frames if f.image is None]
+        if missing:
+            report.problems.append(f"{len(missing)} of {len(seq)} clouds have no image within {c.image_tolerance_s} s (first {missing[0].scan})")
+        for what in ("camera", "lidar_to_camera"):
+            try:
+                getattr(seq, what)
+            except DataError as exc:
+                report.problems.append(str(exc))
+    try:
+        fixed = seq.fixed_frame
+        report.details.append(f"poses: {c.pose_source}, LiDAR frame {seq.lidar_frame!r} in fixed frame {fixed!r}")
+    except DataError as exc:
+        report.problems.append(str(exc))
+        return
+    unposed = []
+    for frame in seq.frames:
+        try:
+            seq.pose(frame)
+        except DataError as exc:
+            unposed.append(str(exc))
+    if unposed:
+        report.problems.append(f"{len(unposed)} of {len(seq)} clouds have no pose; first: {unposed[0]}")
+    lidar_root = seq.tree.root(seq.lidar_frame)
+    apart = sorted(f for f in seq.tree.frames if seq.tree.root(f) != lidar_root)
+    if apart:
+        report.problems.append(f"TF frames that never connect to the LiDAR's tree (rooted at {lidar_root!r}): {apart}")

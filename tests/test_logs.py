@@ -1,0 +1,264 @@
+"""Robot logs straight in: the synthetic drive written as a ROS 1 bag, a ROS 2 sqlite3 bag and a bare
+MCAP file maps to the same map as the same drive from its folder; a hand-made log with NaN points,
+an organised cloud and a TF tree at its own rate is read as ROS would; check-data explains logs that
+cannot be mapped; configs and missing packages fail with one line."""
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rosbags")
+
+from evsemmap_warp.apps.cli import main  # noqa: E402
+from evsemmap_warp.config import ConfigError, load_config  # noqa: E402
+from evsemmap_warp.core.mapper import Mapper  # noqa: E402
+from evsemmap_warp.data.datasets import open_dataset, open_sequence  # noqa: E402
+from evsemmap_warp.data.log_writer import _LogOut, write_log  # noqa: E402
+from evsemmap_warp.data.logs import LogSequence, check_log  # noqa: E402
+from evsemmap_warp.data.sequences import DataError  # noqa: E402
+from evsemmap_warp.geometry.camera import quaternion_to_matrix, rigid  # noqa: E402
+from evsemmap_warp.geometry.projection import label_map_for, project_frames  # noqa: E402
+from evsemmap_warp.synthetic.preset import load_preset  # noqa: E402
+from evsemmap_warp.synthetic.writer import generate_sequence  # noqa: E402
+
+METHODS = ["ebs", "s-bki", "dempster", "see-csom"]
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    """The tiny synthetic drive as a folder and as a log of each format (and in two halves)."""
+    root = tmp_path_factory.mktemp("drive")
+    folder = root / "folder"
+    generate_sequence(load_preset("tiny"), folder, progress=False)
+    logs = {"rosbag1": root / "drive.bag", "rosbag2": root / "drive_ros2", "mcap": root / "drive.mcap"}
+    for fmt, path in logs.items():
+        write_log(folder, path, fmt)
+    halves = [root / "first.bag", root / "second.bag"]
+    write_log(folder, halves[0], "rosbag1", frames=slice(0, 3))
+    write_log(folder, halves[1], "rosbag1", frames=slice(3, None))
+    return folder, logs, halves
+
+
+def _map(sources, method):
+    run = load_config([str(s) for s in sources], method=method)
+    dataset = open_dataset(run.dataset)
+    mapper = Mapper(run.mapping, dataset.num_classes, class_names=dataset.class_names)
+    for scan in dataset:
+        mapper.integrate(scan.points, scan.payload, payload_type=scan.payload_type, sensor_origin=scan.sensor_origin)
+    return mapper
+
+
+def _assert_same_map(a: Mapper, b: Mapper):
+    (va, sa), (vb, sb) = a.voxels(), b.voxels()
+    np.testing.assert_array_equal(va.index, vb.index)
+    np.testing.assert_array_equal(sa.label, sb.label)
+    np.testing.assert_array_equal(sa.state, sb.state)
+    np.testing.assert_array_equal(va.hits, vb.hits)
+    # the folder's poses are 3x3 matrices, a log's quaternions: the round trip costs float64 rounding
+    np.testing.assert_allclose(va.evidence, vb.evidence, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_each_log_format_maps_to_the_folder_map(drive, method):
+    folder, logs, _ = drive
+    reference = _map([folder], method)
+    assert reference.voxel_count > 1000
+    for fmt, log in logs.items():
+        _assert_same_map(reference, _map([log, "rellis3d-bag"], method))
+
+
+def test_a_drive_split_over_two_logs_maps_as_one(drive):
+    _, logs, halves = drive
+    _assert_same_map(_map([logs["rosbag1"], "rellis3d-bag"], "ebs"), _map([*halves, "rellis3d-bag"], "ebs"))
+
+
+def test_a_bare_sqlite_file_reads_like_its_bag_folder(drive):
+    _, logs, _ = drive
+    (db3,) = logs["rosbag2"].glob("*.db3")
+    a, b = open_sequence([logs["rosbag2"], "rellis3d-bag"]), open_sequence([db3, "rellis3d-bag"])
+    assert len(a) == len(b) == 6
+    assert np.array_equal(a.read_scan(a.frames[4]), b.read_scan(b.frames[4]))
+
+
+def test_projection_from_a_log_equals_the_folder(drive):
+    folder, logs, _ = drive
+    seq_folder = open_sequence(folder)
+    for log in logs.values():
+        seq_log = open_sequence([log, "rellis3d-bag"])
+        assert np.array_equal(seq_log.lidar_to_camera, seq_folder.lidar_to_camera)
+        assert seq_log.camera == seq_folder.camera
+        pairs = zip(project_frames(seq_folder, seq_folder.frames, label_map_for(seq_folder)),
+                    project_frames(seq_log, seq_log.frames, label_map_for(seq_log)))
+        for a, b in pairs:
+            assert np.array_equal(a.scan_rows, b.scan_rows)
+            np.testing.assert_allclose(a.points, b.points, atol=1e-9)
+            np.testing.assert_array_equal(a.values, b.values)
+        # raw and compressed images hold the same pixels (the compressed one is the folder's JPEG)
+        image = seq_log.read_image(seq_log.frames[2])
+        assert np.array_equal(image, seq_folder.read_image(seq_folder.frames[2]))
+
+
+def test_reading_streams_forward_and_seeks_back(drive):
+    _, logs, _ = drive
+    seq = open_sequence([logs["rosbag1"], "rellis3d-bag"])
+    scans = [seq.read_scan(f).copy() for f in seq.frames]
+    assert np.array_equal(seq.read_scan(seq.frames[1]), scans[1])  # backwards: the cursor starts again
+    assert np.array_equal(seq.read_scan(seq.frames[5]), scans[5])
+    # the Ouster layout pads each 48-byte point; its label field gives the folder's labels
+    folder_seq = open_sequence(drive[0])
+    assert np.array_equal(seq.read_point_labels(seq.frames[3]), folder_seq.read_point_labels(folder_seq.frames[3]))
+
+
+# A hand-made log: NaN points, organised cloud, TF at its own rate ---------------------------------
+def _yaw(degrees):
+    half = np.radians(degrees) / 2
+    return np.array([0, 0, np.sin(half), np.cos(half)])
+
+
+def _hand_made_log(path: Path, fmt="rosbag1", *, lidar_frame="lidar"):
+    log = _LogOut(path, fmt)
+    s = 1_000_000_000
+    t0 = 100 * s
+    static = [log.transform("base", "mast", rigid(quaternion_to_matrix(_yaw(90)), [0.5, 0, 1]), t0),
+              log.transform("mast", "lidar", rigid(quaternion_to_matrix(_yaw(180)), [0, 0, 0.1]), t0)]
+    log.write("/tf_static", log.tf(static), t0)
+    for k, (x, angle) in enumerate(((0.0, 0.0), (2.0, 40.0))):  # TF at 1 Hz
+        log.write("/tf", log.tf([log.transform("odom", "base", rigid(quaternion_to_matrix(_yaw(angle)), [x, 0, 0]), t0 + k * s)]), t0 + k * s)
+    nan = np.float32("nan")
+    xyz = np.array([[1, 0, 0], [nan, nan, nan], [0, 2, 0], [0, 0, 3], [nan, 0, 0], [4, 4, 4]], np.float32)
+    columns = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "intensity": np.arange(6, dtype=np.float32),
+               "t": np.zeros(6, np.uint32), "reflectivity": np.zeros(6, np.uint16), "ring": np.array([0, 0, 0, 1, 1, 1], np.uint16),
+               "label": np.array([1, 3, 4, 3, 1, 19], np.uint32), "range": np.zeros(6, np.uint32)}
+    for k, stamp in enumerate((t0 + s // 4, t0 + 3 * s // 2)):  # the second cloud comes after the last transform
+        msg = log.cloud(columns, stamp, lidar_frame, k, height=2)
+        msg.is_dense = False
+        log.write("/os1_cloud_node/points", msg, stamp)
+    log.close()
+    return path
+
+
+def test_nan_points_go_and_poses_are_interpolated_through_a_chain_of_three_frames(tmp_path):
+    seq = LogSequence([_hand_made_log(tmp_path / "hand.bag")])
+    first, late = seq.frames
+    scan = seq.read_scan(first)
+    assert scan.shape == (4, 4)  # the two points with NaN dropped
+    np.testing.assert_array_equal(scan[:, 3], [0, 2, 3, 5])
+    np.testing.assert_array_equal(seq.read_point_labels(first), [1, 4, 3, 19])
+    base = rigid(quaternion_to_matrix(_yaw(10)), [0.5, 0, 0])  # a quarter of the way from (0 m, 0 deg) to (2 m, 40 deg)
+    lidar = rigid(quaternion_to_matrix(_yaw(90)), [0.5, 0, 1]) @ rigid(quaternion_to_matrix(_yaw(180)), [0, 0, 0.1])
+    np.testing.assert_allclose(seq.pose(first), base @ lidar, atol=1e-12)
+    assert seq.fixed_frame == "odom"
+    with pytest.raises(DataError, match=r"message 1 .*no pose: no transform odom -> base at t = 101\.500000 s"):
+        seq.pose(late)
+
+
+def test_check_data_explains_a_log_that_cannot_be_mapped(tmp_path, capsys):
+    path = _hand_made_log(tmp_path / "broken.bag", lidar_frame="velodyne")  # the cloud's frame is in no TF tree
+    report = check_log([path])
+    assert not report.ok
+    text = report.text()
+    assert "/os1_cloud_node/points" in text and "sensor_msgs/msg/PointCloud2" in text and "2 msgs" in text
+    assert "never connect" in text and "'base'" in text
+    assert main(["check-data", str(path)]) == 1
+    late = _hand_made_log(tmp_path / "late.bag")
+    report = check_log([late])
+    assert any("1 of 2 clouds have no pose" in p and "odom -> base" in p for p in report.problems), report.problems
+
+
+def test_check_data_on_the_synthetic_logs_is_clean(drive, capsys):
+    _, logs, _ = drive
+    assert main(["check-data", str(logs["mcap"]), "rellis3d-bag"]) == 0
+    out = capsys.readouterr().out
+    assert "6 clouds, 6 with a camera image, 6 with a 2D label image" in out
+    assert "/pylon_camera_node/image_raw/compressed" in out and "OK" in out
+
+
+def test_the_cli_maps_a_log_and_check_data_names_a_missing_topic(drive, tmp_path, capsys):
+    _, logs, _ = drive
+    out = tmp_path / "map.npz"
+    assert main(["map", str(logs["rosbag1"]), "rellis3d", "rellis3d-bag", "--method", "ebs", "--out", str(out), "--quiet"]) == 0
+    assert json.loads(capsys.readouterr().out)["scans"] == 6
+    config = tmp_path / "wrong.yaml"
+    config.write_text("dataset:\n  bag:\n    image_topic: /camera/nope\n")
+    assert main(["check-data", str(logs["rosbag1"]), "rellis3d-bag", str(config)]) == 1
+    assert "'/camera/nope' (dataset.bag.image_topic) is not in the log" in capsys.readouterr().out
+
+
+# Configs and refusals -------------------------------------------------------------------------------
+def test_bag_configs_merge_key_by_key_and_name_wrong_keys(drive, tmp_path):
+    _, logs, _ = drive
+    run = load_config([str(logs["rosbag1"]), "rellis3d-bag"])
+    assert run.dataset.kind == "bag" and run.dataset.bag.odometry_topic == "/odometry/filtered"
+    override = tmp_path / "mine.yaml"
+    override.write_text("dataset:\n  bag:\n    pose_source: tf\n")
+    run = load_config([str(logs["rosbag1"]), "rellis3d-bag", str(override)])
+    assert run.dataset.bag.pose_source == "tf" and run.dataset.bag.image_topic == "/pylon_camera_node/image_raw"
+    override.write_text("dataset:\n  bag:\n    cloud_topc: /x\n")
+    with pytest.raises(ConfigError, match=r"mine\.yaml: unknown key\(s\) dataset\.bag\.cloud_topc"):
+        load_config([str(logs["rosbag1"]), str(override)])
+    override.write_text("dataset:\n  bag:\n    pose_source: odometry\n")
+    with pytest.raises(ConfigError, match="odometry_topic.*needs an odometry topic"):
+        load_config([str(logs["rosbag1"]), str(override)])
+    override.write_text("dataset:\n  kind: bag\n  bag:\n    camera_extrinsic: [1, 2, 3]\n")
+    with pytest.raises(ConfigError, match="camera_extrinsic.*7 numbers"):
+        load_config([str(logs["rosbag1"]), str(override)])
+    with pytest.raises(ConfigError, match="needs its logs"):
+        load_config(["rellis3d-bag"])
+
+
+def test_ros1_and_ros2_logs_are_not_mixed_and_junk_is_named(drive, tmp_path):
+    _, logs, _ = drive
+    with pytest.raises(DataError, match="cannot be read as one sequence"):
+        open_sequence([logs["rosbag1"], logs["mcap"], "rellis3d-bag"])
+    junk = tmp_path / "junk.bag"
+    junk.write_bytes(b"#ROSBAG V2.0\n" + b"\0" * 64)
+    with pytest.raises(DataError, match=r"junk\.bag: not a readable robot log"):
+        open_sequence([junk])
+    assert main(["map", str(junk), "--method", "ebs", "--out", str(tmp_path / "x.npz"), "--quiet"]) == 2
+
+
+def test_without_rosbags_a_log_says_how_to_install_it(drive, monkeypatch):
+    _, logs, _ = drive
+    monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)
+    with pytest.raises(ConfigError, match=r'pip install "evsemmap_warp\[ros\]"'):
+        open_sequence([logs["rosbag1"]])
+
+
+def test_camera_labelled_maps_from_a_log_equal_the_folder(drive, tmp_path, capsys):
+    """map --checkpoint: inference on each frame's image, projection, bins: from the folder and from
+    the log (raw images hold the folder JPEG's pixels) the same map."""
+    import torch
+
+    from evsemmap_warp.apps.cli import CameraLabelledScans
+    from evsemmap_warp.classes import class_set
+    from evsemmap_warp.segmentation.config import ModelConfig
+    from evsemmap_warp.segmentation.model import build_model
+    from evsemmap_warp.segmentation.train import TrainConfig, save_checkpoint
+
+    torch.manual_seed(0)
+    names = class_set().names
+    config = TrainConfig(model=ModelConfig(num_classes=len(names), width=8, aspp_channels=8), input_size=(32, 64))
+    model = build_model(config.model)
+    checkpoint = tmp_path / "net.pt"
+    save_checkpoint(checkpoint, model, torch.optim.SGD(model.parameters(), lr=0.1), 1, config, names, [])
+    folder, logs, _ = drive
+
+    def camera_map(sources):
+        run = load_config([str(s) for s in sources], method="prob")  # no uncertainty cut: an untrained net is unsure of everything
+        scans = CameraLabelledScans(run, checkpoint, 2, 4)
+        assert len(scans) == 3 and scans.num_classes == len(names)
+        mapper = Mapper(run.mapping, scans.num_classes, class_names=scans.class_names)
+        for scan in scans:
+            mapper.integrate(scan.points, scan.payload, payload_type=scan.payload_type, sensor_origin=scan.sensor_origin)
+        return mapper
+
+    reference = camera_map([folder])
+    assert reference.voxel_count > 100
+    _assert_same_map(reference, camera_map([logs["rosbag2"], "rellis3d-bag"]))
+    out = tmp_path / "m.npz"
+    assert main(["map", str(logs["mcap"]), "rellis3d", "rellis3d-bag", "--method", "prob", "--checkpoint", str(checkpoint),
+                 "--out", str(out), "--quiet"]) == 0
+    assert json.loads(capsys.readouterr().out)["scans"] == 1  # the rellis3d preset bins 30 frames: the 6 frames make one bin
