@@ -223,7 +223,8 @@ class DatasetConfig:
 
     def resolve_logs(self) -> list[Path]:
         if not self.logs:
-            raise ConfigError("dataset.logs: a bag dataset needs at least one log (a .bag, .mcap or .db3 file or a ROS 2 bag folder)")
+            raise ConfigError("dataset.logs: a bag dataset needs at least one log (a .bag, .mcap or .db3 file or a ROS 2 bag folder): "
+                              "name them on the command line or in dataset.logs")
         resolved = []
         for candidate in self.logs:
             path = Path(candidate).expanduser()
@@ -432,8 +433,6 @@ def load_config(config_paths: list[str | Path], method: str | None = None) -> Ru
     if bag:
         dataset["bag"] = dataclass_from_dict(BagConfig, bag, " + ".join(sources) + ": dataset.bag")
     dataset_cfg = DatasetConfig(**dataset) if dataset else None
-    if dataset_cfg is not None and dataset_cfg.kind == "bag" and not dataset_cfg.logs:
-        raise ConfigError(f"{' + '.join(sources)}: a bag dataset needs its logs: name them on the command line or in dataset.logs")
     return RunConfig(mapping=mapping_cfg, dataset=dataset_cfg, sources=tuple(sources), bin_frames=bin_frames)
 
 

@@ -3,6 +3,8 @@
 import subprocess
 import sys
 
+import pytest
+
 from conftest import REPO
 
 
@@ -43,9 +45,16 @@ def test_compare_methods(tmp_path):
     assert all(0 < miou <= 100 for miou in rows.values()) and (tmp_path / "c" / "ebs.npz").exists()
 
 
+def test_robot_log(tmp_path):
+    pytest.importorskip("rosbags")
+    out = _run(str(REPO / "examples/05_robot_log.py"), "--format", "rosbag1", "--out", str(tmp_path / "l"), cwd=tmp_path)
+    assert "the folder's map is the same: True" in out and "OK" in out and (tmp_path / "l" / "drive.bag").exists()
+
+
 def test_examples_are_all_tested():
     names = sorted(p.name for p in (REPO / "examples").glob("*.py"))
-    assert names == ["00_quickstart.py", "01_sbki_toy_conformance.py", "02_view_map.py", "03_synthetic_world.py", "04_compare_methods.py"], "add a test for each new example"
+    assert names == ["00_quickstart.py", "01_sbki_toy_conformance.py", "02_view_map.py", "03_synthetic_world.py", "04_compare_methods.py",
+                     "05_robot_log.py"], "add a test for each new example"
 
 
 def test_readme_python_snippet_makes_a_sensible_map(tmp_path, monkeypatch):

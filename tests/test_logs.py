@@ -70,6 +70,21 @@ def test_each_log_format_maps_to_the_folder_map(drive, method):
         _assert_same_map(reference, _map([log, "rellis3d-bag"], method))
 
 
+def test_tf_poses_and_compressed_images_read_the_same_drive(drive, tmp_path):
+    """pose_source tf (the /tf samples, with halfway ones between clouds) instead of odometry, and the
+    JPEG-compressed image topic instead of the raw one."""
+    folder, logs, _ = drive
+    override = tmp_path / "tf.yaml"
+    override.write_text("dataset:\n  bag:\n    pose_source: tf\n    image_topic: /pylon_camera_node/image_raw/compressed\n")
+    _assert_same_map(_map([folder], "ebs"), _map([logs["rosbag2"], "rellis3d-bag", override], "ebs"))
+    seq, seq_folder = open_sequence([logs["rosbag2"], "rellis3d-bag", override]), open_sequence(folder)
+    assert np.array_equal(seq.read_image(seq.frames[1]), seq_folder.read_image(seq_folder.frames[1]))
+    # halfway between two clouds the pose is interpolated (the log holds a sample there: the writer's slerp)
+    halfway = (seq.frames[1].stamp_ns + seq.frames[2].stamp_ns) // 2
+    pose = seq.tree.lookup(seq.fixed_frame, seq.lidar_frame, halfway)
+    np.testing.assert_allclose(pose[:3, 3], (seq.pose(seq.frames[1])[:3, 3] + seq.pose(seq.frames[2])[:3, 3]) / 2, atol=0.05)
+
+
 def test_a_drive_split_over_two_logs_maps_as_one(drive):
     _, logs, halves = drive
     _assert_same_map(_map([logs["rosbag1"], "rellis3d-bag"], "ebs"), _map([*halves, "rellis3d-bag"], "ebs"))
@@ -118,13 +133,17 @@ def _yaw(degrees):
     return np.array([0, 0, np.sin(half), np.cos(half)])
 
 
-def _hand_made_log(path: Path, fmt="rosbag1", *, lidar_frame="lidar"):
+BASE_TO_LIDAR = rigid(quaternion_to_matrix(_yaw(90)), [0.5, 0, 1]) @ rigid(quaternion_to_matrix(_yaw(180)), [0, 0, 0.1])
+
+
+def _hand_made_log(path: Path, fmt="rosbag1", *, lidar_frame="lidar", static=True):
     log = _LogOut(path, fmt)
     s = 1_000_000_000
     t0 = 100 * s
-    static = [log.transform("base", "mast", rigid(quaternion_to_matrix(_yaw(90)), [0.5, 0, 1]), t0),
-              log.transform("mast", "lidar", rigid(quaternion_to_matrix(_yaw(180)), [0, 0, 0.1]), t0)]
-    log.write("/tf_static", log.tf(static), t0)
+    if static:
+        chain = [log.transform("base", "mast", rigid(quaternion_to_matrix(_yaw(90)), [0.5, 0, 1]), t0),
+                 log.transform("mast", "lidar", rigid(quaternion_to_matrix(_yaw(180)), [0, 0, 0.1]), t0)]
+        log.write("/tf_static", log.tf(chain), t0)
     for k, (x, angle) in enumerate(((0.0, 0.0), (2.0, 40.0))):  # TF at 1 Hz
         log.write("/tf", log.tf([log.transform("odom", "base", rigid(quaternion_to_matrix(_yaw(angle)), [x, 0, 0]), t0 + k * s)]), t0 + k * s)
     nan = np.float32("nan")
@@ -148,11 +167,24 @@ def test_nan_points_go_and_poses_are_interpolated_through_a_chain_of_three_frame
     np.testing.assert_array_equal(scan[:, 3], [0, 2, 3, 5])
     np.testing.assert_array_equal(seq.read_point_labels(first), [1, 4, 3, 19])
     base = rigid(quaternion_to_matrix(_yaw(10)), [0.5, 0, 0])  # a quarter of the way from (0 m, 0 deg) to (2 m, 40 deg)
-    lidar = rigid(quaternion_to_matrix(_yaw(90)), [0.5, 0, 1]) @ rigid(quaternion_to_matrix(_yaw(180)), [0, 0, 0.1])
-    np.testing.assert_allclose(seq.pose(first), base @ lidar, atol=1e-12)
+    np.testing.assert_allclose(seq.pose(first), base @ BASE_TO_LIDAR, atol=1e-12)
     assert seq.fixed_frame == "odom"
     with pytest.raises(DataError, match=r"message 1 .*no pose: no transform odom -> base at t = 101\.500000 s"):
         seq.pose(late)
+
+
+def test_a_given_lidar_extrinsic_stands_in_for_missing_static_transforms(tmp_path):
+    from evsemmap_warp.config import BagConfig
+    from evsemmap_warp.geometry.camera import matrix_to_quaternion
+
+    path = _hand_made_log(tmp_path / "no_static.bag", static=False)
+    alone = LogSequence([path])
+    with pytest.raises(DataError, match="LiDAR frame 'lidar' is in no TF tree .frames known: base, odom."):
+        alone.pose(alone.frames[0])  # not the identity: that would map a moving robot as standing still
+    extrinsic = tuple(BASE_TO_LIDAR[:3, 3]) + tuple(matrix_to_quaternion(BASE_TO_LIDAR[:3, :3]))
+    seq = LogSequence([path], BagConfig(lidar_extrinsic=extrinsic))
+    with_static = LogSequence([_hand_made_log(tmp_path / "static.bag")])
+    np.testing.assert_allclose(seq.pose(seq.frames[0]), with_static.pose(with_static.frames[0]), atol=1e-12)
 
 
 def test_check_data_explains_a_log_that_cannot_be_mapped(tmp_path, capsys):
@@ -205,8 +237,8 @@ def test_bag_configs_merge_key_by_key_and_name_wrong_keys(drive, tmp_path):
     override.write_text("dataset:\n  kind: bag\n  bag:\n    camera_extrinsic: [1, 2, 3]\n")
     with pytest.raises(ConfigError, match="camera_extrinsic.*7 numbers"):
         load_config([str(logs["rosbag1"]), str(override)])
-    with pytest.raises(ConfigError, match="needs its logs"):
-        load_config(["rellis3d-bag"])
+    with pytest.raises(ConfigError, match="needs at least one log"):
+        open_dataset(load_config(["rellis3d-bag"]).dataset)
 
 
 def test_ros1_and_ros2_logs_are_not_mixed_and_junk_is_named(drive, tmp_path):

@@ -254,9 +254,14 @@ class LogSequence:
         if self.config.fixed_frame:
             return self.config.fixed_frame
         try:
-            return self.tree.root(self.lidar_frame)
+            root = self.tree.root(self.lidar_frame)
         except TransformError as exc:
             raise DataError(f"{self.describe()}: {exc}") from None
+        if root == self.lidar_frame:  # no parent: every pose would be the identity, a map of a robot standing still
+            known = ", ".join(sorted(self.tree.frames)) or "none"
+            raise DataError(f"{self.describe()}: the LiDAR frame {self.lidar_frame!r} is in no TF tree (frames known: {known}); check "
+                            f"dataset.bag.lidar_frame, give dataset.bag.lidar_extrinsic, or set fixed_frame to it for a sensor that never moves")
+        return root
 
     @property
     def lidar_to_camera(self) -> np.ndarray:
@@ -401,6 +406,10 @@ def _check_sequence(seq: LogSequence, report: CheckReport) -> None:
                 getattr(seq, what)
             except DataError as exc:
                 report.problems.append(str(exc))
+    lidar_root = seq.tree.root(seq.lidar_frame)
+    apart = sorted(f for f in seq.tree.frames if seq.tree.root(f) != lidar_root)
+    if apart:
+        report.problems.append(f"TF frames that never connect to the LiDAR's tree (rooted at {lidar_root!r}): {apart}")
     try:
         fixed = seq.fixed_frame
         report.details.append(f"poses: {c.pose_source}, LiDAR frame {seq.lidar_frame!r} in fixed frame {fixed!r}")
@@ -415,7 +424,3 @@ def _check_sequence(seq: LogSequence, report: CheckReport) -> None:
             unposed.append(str(exc))
     if unposed:
         report.problems.append(f"{len(unposed)} of {len(seq)} clouds have no pose; first: {unposed[0]}")
-    lidar_root = seq.tree.root(seq.lidar_frame)
-    apart = sorted(f for f in seq.tree.frames if seq.tree.root(f) != lidar_root)
-    if apart:
-        report.problems.append(f"TF frames that never connect to the LiDAR's tree (rooted at {lidar_root!r}): {apart}")
