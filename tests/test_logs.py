@@ -264,7 +264,7 @@ def test_camera_labelled_maps_from_a_log_equal_the_folder(drive, tmp_path, capsy
     the log (raw images hold the folder JPEG's pixels) the same map."""
     import torch
 
-    from evsemmap_warp.apps.cli import CameraLabelledScans
+    from evsemmap_warp.apps.scan_sources import CheckpointScans
     from evsemmap_warp.classes import class_set
     from evsemmap_warp.segmentation.config import ModelConfig
     from evsemmap_warp.segmentation.model import build_model
@@ -280,7 +280,7 @@ def test_camera_labelled_maps_from_a_log_equal_the_folder(drive, tmp_path, capsy
 
     def camera_map(sources):
         run = load_config([str(s) for s in sources], method="prob")  # no uncertainty cut: an untrained net is unsure of everything
-        scans = CameraLabelledScans(run, checkpoint, 2, 4)
+        scans = CheckpointScans(run, checkpoint, 2, 4)
         assert len(scans) == 3 and scans.num_classes == len(names)
         mapper = Mapper(run.mapping, scans.num_classes, class_names=scans.class_names)
         for scan in scans:

@@ -18,16 +18,16 @@ from ..config import ConfigError, available_methods, load_config
 def _cmd_map(args) -> int:
     from tqdm import tqdm
 
-    from ..data.datasets import open_dataset
     from ..core.mapper import Mapper, VoxelState, save_map
+    from .scan_sources import open_scan_source
 
     run = load_config(args.configs, method=args.method)
     if run.dataset is None:
         raise ConfigError(f"none of {list(args.configs)} has a 'dataset' section: name a dataset config, e.g. configs/datasets/sbki_toy.yaml")
-    dataset = CameraLabelledScans(run, args.checkpoint, args.bin_frames, args.batch_size) if args.checkpoint else open_dataset(run.dataset)
+    dataset = open_scan_source(run, checkpoint=args.checkpoint, alpha_dir=args.alpha, bin_frames=args.bin_frames, batch_size=args.batch_size)
     mapper = Mapper(run.mapping, dataset.num_classes, class_names=dataset.class_names or None, device=args.device, workers=args.workers)
     if not args.quiet:
-        what = f"{len(dataset)} bins of camera-labelled frames" if args.checkpoint else f"{len(dataset)} scans"
+        what = f"{len(dataset)} bins of camera-labelled frames" if args.checkpoint or args.alpha else f"{len(dataset)} scans"
         print(f"mapping {what} with {run.mapping.method} ({run.mapping.compat.value} mode) on {mapper.device}, "
               f"{len(mapper.shards)} worker(s)", file=sys.stderr)
     elapsed = 0.0
@@ -60,46 +60,74 @@ def _cmd_map(args) -> int:
     return 0
 
 
-class CameraLabelledScans:
-    """Scans labelled by a segmentation checkpoint from the camera (a sequence folder or robot logs):
-    batched inference on each frame's image, projection of its Dirichlet onto the scan, bins of
-    ``bin_frames`` frames (docs/algorithm.md §2)."""
+def _cmd_batch(args) -> int:
+    from .batch import BatchOptions, run_batch
 
-    def __init__(self, run, checkpoint: Path, bin_frames: int | None, batch_size: int):
-        from ..data.datasets import open_sequence
-        from ..segmentation.train import load_checkpoint
+    options = BatchOptions(method=args.method, out=args.out, executor=args.executor, workers=args.workers, chunk_frames=args.chunk_frames,
+                           ray_address=args.ray_address, checkpoint=args.checkpoint, alpha=args.alpha, bin_frames=args.bin_frames,
+                           batch_size=args.batch_size, tile_voxels=args.tile_voxels, discard_partials=args.discard_partials,
+                           progress=not args.quiet)
+    if args.ray_address and args.executor != "ray":
+        raise ConfigError("--ray-address needs --executor ray")
+    summary = run_batch(list(args.configs), options, log=(lambda m: None) if args.quiet else (lambda m: print(m, file=sys.stderr)))
+    print(json.dumps(summary, indent=1))
+    return 0
 
-        self.sequence = open_sequence(list(run.sources))
-        self.model, self.train_config, self.meta, _ = load_checkpoint(checkpoint)
-        self.frames = [f for f in self.sequence.frames if f.image is not None]
-        if not self.frames:
-            raise ValueError(f"{' '.join(run.sources)}: no scan has a camera image to label it from")
-        self.bin_frames = bin_frames or run.bin_frames
-        self.batch_size = batch_size
-        self.class_names = tuple(self.meta["classes"])
-        self.num_classes = self.train_config.model.num_classes
 
-    def __len__(self) -> int:
-        return -(-len(self.frames) // self.bin_frames)
+def _load_map_or_store(path: Path):
+    """A map file as a Mapper, or a store (whole) as one."""
+    from ..core.map_store import MapStore, is_store
+    from ..core.mapper import load_map
 
-    def __iter__(self):
-        from ..config import PayloadType
-        from ..data.datasets import Scan
-        from ..geometry.projection import ProjectionConfig, bin_frames, project_frames
-        from ..segmentation.train import infer_alpha
+    return MapStore(path).to_mapper() if is_store(path) else load_map(path)
 
-        outputs = infer_alpha(self.model, self.train_config, self.meta, (self.sequence.read_image(f) for f in self.frames),
-                              batch_size=self.batch_size)
-        # project_frames asks for the frames' values in the order inference yields them
-        projected = project_frames(self.sequence, self.frames, lambda frame: next(outputs)[0].astype(np.float32), ProjectionConfig(),
-                                   reference_pose=self.sequence.pose(self.sequence.frames[0]))
-        payload = PayloadType.ALPHA if self.train_config.head == "evidential" else PayloadType.PROB
-        for b in bin_frames(projected, self.bin_frames):
-            yield Scan(f"frames {b.frames[0]}..{b.frames[-1]}", b.points, b.values, payload, b.sensor_origin)
+
+def _cmd_export(args) -> int:
+    from ..core.map_store import MapStore
+    from ..core.mapper import save_map
+
+    store = MapStore(args.store)
+    bounds = None
+    if args.bounds is not None:
+        bounds = np.asarray(args.bounds, np.float64).reshape(2, 3)
+        if np.any(bounds[0] > bounds[1]):
+            raise ValueError(f"--bounds {args.bounds}: each minimum must be <= its maximum (x0 y0 z0 x1 y1 z1)")
+    mapper = store.to_mapper(bounds)
+    save_map(args.out, mapper)
+    print(json.dumps({"store": str(args.store), "out": str(args.out), "voxels": mapper.voxel_count, "tiles_read": store.tiles_loaded}, indent=1))
+    return 0
+
+
+def _cmd_merge(args) -> int:
+    """Maps and stores of disjoint scan sets (several drives or robots over one area) into one."""
+    from ..core.mapper import save_map
+
+    if len(args.inputs) < 2:
+        raise ValueError(f"merge: give at least two maps or stores, got {len(args.inputs)}")
+    merged = None
+    for path in args.inputs:
+        part = _load_map_or_store(path)
+        try:
+            merged = part if merged is None else merged.merge(part)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+    if args.out.suffix == ".npz":
+        save_map(args.out, merged)
+    else:
+        from .batch import write_store_from_mapper
+
+        write_store_from_mapper(merged, args.out, args.tile_voxels, [str(p) for p in args.inputs])
+    print(json.dumps({"inputs": [str(p) for p in args.inputs], "out": str(args.out), "voxels": merged.voxel_count}, indent=1))
+    return 0
 
 
 def _cmd_info(args) -> int:
     from ..core.map_file import read_map_arrays
+    from ..core.map_store import MapStore, is_store
+
+    if is_store(args.map) or (args.map.is_dir() and (args.map / "work").is_dir()):
+        print(json.dumps(MapStore(args.map).summary(), indent=1))
+        return 0
 
     arrays, meta = read_map_arrays(args.map)
     state = arrays["state"]
@@ -203,7 +231,7 @@ def _cmd_synth(args) -> int:
 
     preset = load_preset(args.preset, seed=args.seed, appearance__domain=args.domain, trajectory__frames=args.frames)
     if args.format == "folder":
-        summary = generate_sequence(preset, args.out, device=args.device, progress=not args.quiet)
+        summary = generate_sequence(preset, args.out, device=args.device, progress=not args.quiet, camera=not args.no_camera)
         print(json.dumps({"out": str(args.out), **summary}, indent=1))
         return 0
     import shutil
@@ -217,7 +245,7 @@ def _cmd_synth(args) -> int:
     # the frames are rendered in the folder layout beside the log, then streamed into it frame by frame
     staging = Path(tempfile.mkdtemp(prefix=f".{args.out.name}-frames-", dir=args.out.parent))
     try:
-        summary = generate_sequence(preset, staging, device=args.device, progress=not args.quiet)
+        summary = generate_sequence(preset, staging, device=args.device, progress=not args.quiet, camera=not args.no_camera)
         written = write_log(staging, args.out, args.format, progress=not args.quiet)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
@@ -397,11 +425,43 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=_positive, default=None, help="CPU threads, each scattering into its own map shard (default: up to 2 on the CPU)")
     p.add_argument("--checkpoint", type=Path, help="label the scans from the camera with this segmentation checkpoint "
                                                    "(evsemmap train-seg) instead of their per-point labels")
-    p.add_argument("--bin-frames", type=_positive, default=None, help="with --checkpoint: frames integrated together (default: the "
-                                                                    "preset's pipeline.bin_frames, else 1)")
+    p.add_argument("--alpha", type=Path, help="label the scans from the camera with the per-image alpha files `evsemmap infer` wrote "
+                                              "into this folder (NAME.npy per image, or NNNNNN.npy per frame)")
+    p.add_argument("--bin-frames", type=_positive, default=None, help="with --checkpoint or --alpha: frames integrated together "
+                                                                    "(default: the preset's pipeline.bin_frames, else 1)")
     p.add_argument("--batch-size", type=_positive, default=4, help="with --checkpoint: images per inference batch")
     p.add_argument("--quiet", action="store_true", help="no progress bar or start-up line")
     p.set_defaults(func=_cmd_map)
+
+    p = sub.add_parser("batch", help="map long sequences on every core (or a Ray cluster) into a tiled map store; resumable")
+    p.add_argument("configs", nargs="+", help="sequences (folders, robot logs, dataset configs: each one input, mapped in order into one map) "
+                                              "and the presets / configs they share")
+    p.add_argument("--method", required=True, help=f"method name ({', '.join(available_methods())}) or a method YAML file")
+    p.add_argument("--out", required=True, type=Path, help="the map store (a folder) to write, or to finish when a run was interrupted")
+    p.add_argument("--executor", choices=("local", "ray"), default="local", help="local: a process pool (default); ray: Ray tasks")
+    p.add_argument("--workers", type=_positive, default=None, help="worker processes (default: one per core; with ray: the cluster's CPUs)")
+    p.add_argument("--chunk-frames", type=_positive, default=100, help="frames per task, rounded to whole bins (default 100)")
+    p.add_argument("--ray-address", default=None, help="an existing Ray cluster: auto, or ray://host:port (default: a local Ray instance)")
+    p.add_argument("--checkpoint", type=Path, help="label the scans from the camera with this segmentation checkpoint (inference in each task)")
+    p.add_argument("--alpha", type=Path, help="label the scans from the camera with the alpha files of `evsemmap infer` in this folder")
+    p.add_argument("--bin-frames", type=_positive, default=None, help="with --checkpoint or --alpha: frames per insertion (default: the preset's)")
+    p.add_argument("--batch-size", type=_positive, default=4, help="with --checkpoint: images per inference batch")
+    p.add_argument("--tile-voxels", type=_positive, default=256, help="tile edge in voxels (default 256: 51.2 m at 0.2 m)")
+    p.add_argument("--discard-partials", action="store_true", help="delete the per-chunk partial maps at the end (a rerun then starts over)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_batch)
+
+    p = sub.add_parser("export", help="a map store (or the part of it inside --bounds) as one map file")
+    p.add_argument("store", type=Path)
+    p.add_argument("--bounds", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"), help="keep voxels whose centres lie in this box (m)")
+    p.add_argument("--out", type=Path, required=True, help="map file to write (.npz)")
+    p.set_defaults(func=_cmd_export)
+
+    p = sub.add_parser("merge", help="add up maps or stores of disjoint scan sets (several drives over one area) into one")
+    p.add_argument("inputs", nargs="+", type=Path, help="map files (.npz) and map stores, at least two")
+    p.add_argument("--out", type=Path, required=True, help="a map file (.npz) or a map store (a folder)")
+    p.add_argument("--tile-voxels", type=_positive, default=256, help="tile edge in voxels when writing a store")
+    p.set_defaults(func=_cmd_merge)
 
     p = sub.add_parser("view", help="inspect map files in a browser (viser)")
     p.add_argument("maps", nargs="+", type=Path, help="map files; several are switchable or side by side")
@@ -461,7 +521,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_infer)
 
     p = sub.add_parser("synth", help="generate a synthetic off-road sequence in the RELLIS-3D layout")
-    p.add_argument("--preset", default="default", help="tiny, demo, default or a preset YAML file")
+    p.add_argument("--preset", default="default", help="tiny, demo, default, long (a 2 km drive) or a preset YAML file")
     p.add_argument("--out", type=Path, required=True, help="sequence folder to write")
     p.add_argument("--domain", default=None, help="appearance domain (summer, autumn, dusk); default: the preset's")
     p.add_argument("--seed", type=int, default=None, help="world seed; default: the preset's")
@@ -470,6 +530,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=("folder", "rosbag1", "rosbag2", "mcap"), default="folder",
                    help="folder: the RELLIS-3D layout (default); rosbag1: a ROS 1 .bag; rosbag2: a ROS 2 bag folder (sqlite3); "
                         "mcap: a bare .mcap file (logs need the [ros] extra)")
+    p.add_argument("--no-camera", action="store_true", help="LiDAR scans with point labels and poses only: no images (fast)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_synth)
 
@@ -514,7 +575,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_demo)
 
-    p = sub.add_parser("info", help="summarise a map file")
+    p = sub.add_parser("info", help="summarise a map file or a map store")
     p.add_argument("map", type=Path)
     p.set_defaults(func=_cmd_info)
 

@@ -76,8 +76,8 @@ def write_map_file(path, contents: MapContents) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        with open(temporary, "wb") as f:  # a file object keeps numpy from appending ".npz" to other names
-            np.savez(
+        with open(temporary, "wb") as f:
+            write_npz(
                 f,
                 centers=contents.centers,
                 voxel_index=contents.index.astype(np.int64),
@@ -99,6 +99,18 @@ def write_map_file(path, contents: MapContents) -> Path:
     finally:
         temporary.unlink(missing_ok=True)
     return path
+
+
+def write_npz(file, **arrays: np.ndarray) -> None:
+    """np.savez's format (an uncompressed zip of .npy members, readable by np.load) with fixed member
+    timestamps, so that the same arrays give the same bytes: np.savez stamps each member with the
+    time of writing, and stores and maps are compared byte for byte."""
+    with zipfile.ZipFile(file, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as archive:
+        for name, value in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.external_attr = 0o644 << 16
+            with archive.open(info, "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
 
 
 def lattice_index(origin: np.ndarray, resolution: float) -> np.ndarray:

@@ -27,6 +27,10 @@ class Scan:
 
 
 class Dataset(Protocol):
+    """``len`` insertions (scans, or bins of frames); ``scans(start, stop)`` yields insertions
+    start..stop-1 exactly as iterating the whole dataset yields them (same world frame), so that
+    batch workers map chunks of one sequence; datasets pickle, for those workers."""
+
     num_classes: int
     class_names: tuple[str, ...]
 
@@ -34,8 +38,22 @@ class Dataset(Protocol):
 
     def __iter__(self) -> Iterator[Scan]: ...
 
+    def scans(self, start: int, stop: int) -> Iterator[Scan]: ...
 
-class PcdSequence:
+    def frames_in(self, start: int, stop: int) -> int: ...
+
+
+class _Insertions:
+    """What every dataset shares: iteration is scans(0, len); one frame per insertion."""
+
+    def __iter__(self) -> Iterator[Scan]:
+        return self.scans(0, len(self))
+
+    def frames_in(self, start: int, stop: int) -> int:
+        return max(0, min(stop, len(self)) - start)
+
+
+class PcdSequence(_Insertions):
     """Numbered PCD files (``pattern`` with ``{index}``), labels in the ``label`` field, the sensor
     origin from VIEWPOINT (the S-BKI datasets' layout)."""
 
@@ -56,8 +74,8 @@ class PcdSequence:
     def __len__(self) -> int:
         return len(self.files)
 
-    def __iter__(self) -> Iterator[Scan]:
-        for path in self.files:
+    def scans(self, start: int, stop: int) -> Iterator[Scan]:
+        for path in self.files[start:stop]:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 cloud = read_pcd(path)
@@ -75,20 +93,30 @@ class PcdSequence:
             yield Scan(str(path), cloud.points, cloud.fields["label"].astype(np.int64), PayloadType.LABEL, cloud.sensor_origin)
 
 
-class BenchNpz:
+class BenchNpz(_Insertions):
     """The shared benchmark workload (rellis_like_30scans.npz): per-scan points in millimetres and a
     two-class sparse evidence vector per point, expanded here to alpha [N, 9]."""
 
     def __init__(self, config: DatasetConfig):
         self.path = config.resolve_path()
-        try:
-            self.data = np.load(self.path, allow_pickle=False)
-            self.offsets = self.data["scan_offsets"]
-        except (OSError, ValueError, KeyError) as exc:
-            raise ConfigError(f"{self.path}: not a readable benchmark npz ({exc})") from None
+        self._data = None
+        self.offsets = self.data["scan_offsets"]
         self.num_classes = config.num_classes or 9
         self.class_names = config.class_names
         self.payload_type = config.payload
+
+    @property
+    def data(self):
+        if self._data is None:
+            try:
+                self._data = np.load(self.path, allow_pickle=False)
+                self._data["scan_offsets"]
+            except (OSError, ValueError, KeyError) as exc:
+                raise ConfigError(f"{self.path}: not a readable benchmark npz ({exc})") from None
+        return self._data
+
+    def __getstate__(self):
+        return self.__dict__ | {"_data": None}  # the open file stays behind; a worker opens its own
 
     def __len__(self) -> int:
         return len(self.offsets) - 1
@@ -105,8 +133,8 @@ class BenchNpz:
         alpha[rows, self.data["alpha_second_class"][a:b]] += self.data["alpha_second_evidence"][a:b].astype(np.float32)
         return alpha
 
-    def __iter__(self) -> Iterator[Scan]:
-        for i in range(len(self)):
+    def scans(self, start: int, stop: int) -> Iterator[Scan]:
+        for i in range(start, min(stop, len(self))):
             a, b = self.offsets[i], self.offsets[i + 1]
             origin = self.data["origins_mm"][i] / 1000.0
             if self.payload_type is PayloadType.LABEL:
@@ -116,7 +144,7 @@ class BenchNpz:
             yield Scan(f"{self.path} scan {i}", self.scan_points(i), payload, self.payload_type, origin)
 
 
-class LabelledSequence:
+class LabelledSequence(_Insertions):
     """A sequence mapped from its per-point labels: a RELLIS-3D-layout folder (``rellis3d``; real, or
     ``evsemmap synth`` output), a SemanticKITTI sequence (``semantickitti``) or a robot log whose clouds
     carry a label field (``bag``). RELLIS ids are remapped to the 9 v3 classes, SemanticKITTI ids to its
@@ -148,16 +176,15 @@ class LabelledSequence:
     def __len__(self) -> int:
         return len(self.frames)
 
-    def __iter__(self) -> Iterator[Scan]:
+    def scans(self, start: int, stop: int) -> Iterator[Scan]:
         from ..geometry.camera import relative_pose
         from .sequences import remap_point_labels
 
-        reference = None
-        for frame in self.frames:
+        reference = self.sequence.pose(self.frames[0])
+        for frame in self.frames[start:stop]:
             scan = self.sequence.read_scan(frame)
             labels = remap_point_labels(self.sequence.read_point_labels(frame), self.table, frame.point_labels)
             pose = self.sequence.pose(frame)
-            reference = pose if reference is None else reference
             to_world = relative_pose(reference, pose)
             returned = np.any(scan[:, :3] != 0, axis=1)
             points = scan[returned, :3].astype(np.float64) @ to_world[:3, :3].T + to_world[:3, 3]

@@ -188,7 +188,9 @@ def write_log(folder, out, fmt: str, *, frames: slice = slice(None), progress: b
     seq.frames = seq.frames[frames]
     if not seq.frames:
         raise ConfigError(f"{folder}: no frames in {frames}")
-    camera, (mount_q, mount_t) = seq.camera, seq.camera_mount
+    has_images = any(f.image is not None for f in seq.frames)
+    camera = seq.camera if has_images else None  # a LiDAR-only folder (synth --no-camera) has no image size
+    mount_q, mount_t = seq.camera_mount
     base_to_lidar = BASE_TO_SENSOR @ SENSOR_TO_LIDAR
     lidar_to_base = np.linalg.inv(base_to_lidar)
     base_poses = [seq.pose(f) @ lidar_to_base for f in seq.frames]

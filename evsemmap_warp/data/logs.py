@@ -102,8 +102,8 @@ class LogSequence:
         self.logs = [Path(p) for p in logs]
         self.root = self.logs[0]
         self.config = config
-        self.reader = open_reader(self.logs)
-        self.ros2 = bool(self.reader.is2)
+        self._reader = open_reader(self.logs)
+        self.ros2 = bool(self._reader.is2)
         self.missing_topics: dict[str, str] = {}  # dataset.bag key -> what is missing
         self.topics = {c.topic: c.msgtype for c in self.reader.connections}
         self.cloud_topic = self._cloud_topic()
@@ -119,8 +119,19 @@ class LogSequence:
     def __len__(self) -> int:
         return len(self.frames)
 
+    @property
+    def reader(self):
+        if self._reader is None:  # unpickled in a batch worker: the index came along, the file is opened here
+            self._reader = open_reader(self.logs)
+        return self._reader
+
+    def __getstate__(self):
+        return self.__dict__ | {"_reader": None, "_cursors": {}, "_decoded": None}
+
     def close(self) -> None:
-        self.reader.close()
+        if self._reader is not None:
+            self._reader.close()
+            self._reader = None
 
     def describe(self) -> str:
         return ", ".join(str(p) for p in self.logs)
@@ -161,7 +172,8 @@ class LogSequence:
         odometry = self._connections(c.odometry_topic, (ODOMETRY_TYPE,), "odometry_topic") if c.pose_source == "odometry" else []
         tf = [x for x in self.reader.connections if x.topic == c.tf_topic and x.msgtype == TF_TYPE] if c.pose_source == "tf" else []
         tf_static = [x for x in self.reader.connections if x.topic == c.tf_static_topic and x.msgtype == TF_TYPE]
-        self._connection_sets = {"cloud": cloud, "image": image, "label_image": label_image}
+        # topics, not connections: a connection refers to its open reader, and the sequence pickles without one
+        self._topics = {"cloud": self.cloud_topic, "image": c.image_topic if image else "", "label_image": c.label_image_topic if label_image else ""}
         kinds = {x.id: kind for kind, conns in (("cloud", cloud), ("image", image), ("label_image", label_image), ("info", info),
                                                  ("odometry", odometry), ("tf", tf), ("tf_static", tf_static)) for x in conns}
         wanted = [x for conns in (cloud, image, label_image, info, odometry, tf, tf_static) for x in conns]
@@ -286,7 +298,8 @@ class LogSequence:
     # Per-frame data ------------------------------------------------------------------------------
     def _message(self, kind: str, log_time_ns: int, stamp_ns: int, where: str):
         if kind not in self._cursors:
-            self._cursors[kind] = _Cursor(self.reader, self._connection_sets[kind])
+            connections = [x for x in self.reader.connections if x.topic == self._topics[kind]]
+            self._cursors[kind] = _Cursor(self.reader, connections)
         return self._cursors[kind].get(log_time_ns, stamp_ns, self.ros2, where)
 
     def _decode(self, frame: LogFrame) -> tuple[np.ndarray, np.ndarray | None]:

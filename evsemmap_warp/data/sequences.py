@@ -328,7 +328,8 @@ def check_sequence(root, *, max_label_files: int = 50) -> CheckReport:
     report.frames = len(seq)
     report.with_images = sum(f.image is not None for f in seq.frames)
     report.with_labels = sum(f.label_image is not None for f in seq.frames)
-    for what in ("camera", "lidar_to_camera"):
+    lidar_only = report.with_images == 0 and all(f.point_labels is not None for f in seq.frames)
+    for what in ("lidar_to_camera",) if lidar_only else ("camera", "lidar_to_camera"):
         try:
             getattr(seq, what)
         except DataError as exc:
@@ -341,7 +342,9 @@ def check_sequence(root, *, max_label_files: int = 50) -> CheckReport:
             report.problems.append(f"poses.txt has {len(poses)} lines but scan numbers reach {max(f.index for f in seq.frames)}")
     except DataError as exc:
         report.problems.append(str(exc))
-    if report.with_images == 0:
+    if lidar_only:
+        report.notes.append("LiDAR only (no camera images): it maps from its per-point labels; projection and camera-labelled mapping need images")
+    elif report.with_images == 0:
         report.problems.append("no camera image pairs with any scan (expected pylon_camera_node/frameNNNNNN-*.jpg)")
     elif report.with_images < report.frames:
         report.notes.append(f"{report.frames - report.with_images} scans have no camera image and will be skipped by projection")

@@ -26,8 +26,13 @@ class WorldParams:
     poles: int = 10
     barrels: int = 8
     barriers: int = 4  # void obstacles (RELLIS "barrier")
+    # > 0: a corridor of this many size_m squares along x, generated tile by tile as the drive reaches
+    # them (only the tiles in sensor range are held), for drives of any length
+    corridor_tiles: int = 0
 
     def __post_init__(self):
+        if self.corridor_tiles < 0:
+            raise ConfigError(f"world: corridor_tiles must be >= 0, got {self.corridor_tiles}")
         if not 0 <= self.gravel_road_fraction <= 1:
             raise ConfigError(f"world: gravel_road_fraction must lie in [0, 1], got {self.gravel_road_fraction}")
         if self.size_m <= 0 or self.terrain_cell_m <= 0 or self.size_m / self.terrain_cell_m > 4000:

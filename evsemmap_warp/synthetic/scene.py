@@ -78,29 +78,37 @@ class World:
 
 
 class _Terrain:
-    """Height field with a road flattened into it; heights of any (x, y) by bilinear lookup."""
+    """Height field with a road flattened into it; heights of any (x, y) by bilinear lookup.
 
-    def __init__(self, params: WorldParams, rng: np.random.Generator):
+    The hills and the road are drawn from ``shape_rng``, everything else from ``rng``; they are one
+    generator for a single world. A corridor world (tiles along x) shares ``shape_rng``'s draws
+    between its tiles and shifts each tile by ``x_offset``: hills, noise and road are functions of
+    world coordinates, so neighbouring tiles meet without a seam."""
+
+    def __init__(self, params: WorldParams, rng: np.random.Generator, shape_rng: np.random.Generator | None = None, x_offset: float = 0.0):
+        shape_rng = rng if shape_rng is None else shape_rng
         self.params = params
         half = params.size_m / 2
         self.n = int(round(params.size_m / params.terrain_cell_m))
-        self.axis = np.linspace(-half, half, self.n + 1)
-        x, y = np.meshgrid(self.axis, self.axis, indexing="ij")
+        self.axis = np.linspace(-half, half, self.n + 1)  # y
+        self.x_axis = x_offset + self.axis
+        x, y = np.meshgrid(self.x_axis, self.axis, indexing="ij")
         height = np.zeros_like(x)
         for _ in range(4):  # rolling hills: a few random plane waves, 25-70 m long
-            direction = rng.normal(size=2)
+            direction = shape_rng.normal(size=2)
             direction /= np.linalg.norm(direction)
-            wavelength = rng.uniform(25, 70)
-            height += params.hill_amplitude_m / 2 * np.sin(2 * np.pi * (x * direction[0] + y * direction[1]) / wavelength + rng.uniform(0, 2 * np.pi))
-        height += 0.15 * (value_noise(np.stack([x, y], -1), 3.0, int(rng.integers(1 << 30))) - 0.5)
-        self.road_amplitude = rng.uniform(0.08, 0.15) * params.size_m
-        self.road_wavelength = rng.uniform(0.7, 1.1) * params.size_m
-        self.road_phase = rng.uniform(0, 2 * np.pi)
+            wavelength = shape_rng.uniform(25, 70)
+            height += params.hill_amplitude_m / 2 * np.sin(2 * np.pi * (x * direction[0] + y * direction[1]) / wavelength + shape_rng.uniform(0, 2 * np.pi))
+        height += 0.15 * (value_noise(np.stack([x, y], -1), 3.0, int(shape_rng.integers(1 << 30))) - 0.5)
+        self.road_amplitude = shape_rng.uniform(0.08, 0.15) * params.size_m
+        self.road_wavelength = shape_rng.uniform(0.7, 1.1) * params.size_m
+        self.road_phase = shape_rng.uniform(0, 2 * np.pi)
+        self.x_offset = x_offset
         # The road is graded: near it the ground blends into the height of the road's centre line.
         road_height = self._grid_height(height, x, self.road_y(x))
         blend = np.clip((np.abs(y - self.road_y(x)) - params.road_half_width_m - 0.5) / 4.0, 0, 1)
         self.height = road_height + (height - road_height) * blend
-        self.trail_x0 = rng.uniform(-0.25, 0.25) * params.size_m
+        self.trail_x0 = x_offset + rng.uniform(-0.25, 0.25) * params.size_m
         self.trail_amplitude = rng.uniform(0.05, 0.12) * params.size_m
         self.trail_phase = rng.uniform(0, 2 * np.pi)
 
@@ -112,7 +120,7 @@ class _Terrain:
 
     def _grid_height(self, height, x, y):
         c = self.params.terrain_cell_m
-        fx = np.clip((x - self.axis[0]) / c, 0, self.n - 1e-6)
+        fx = np.clip((x - self.x_axis[0]) / c, 0, self.n - 1e-6)
         fy = np.clip((y - self.axis[0]) / c, 0, self.n - 1e-6)
         i, j = fx.astype(int), fy.astype(int)
         ax, ay = fx - i, fy - j
@@ -135,9 +143,9 @@ def _trail_distance(terrain: _Terrain, x, y):
     return np.abs(x - terrain.trail_x(y)) / np.sqrt(1 + slope**2)
 
 
-def _terrain_mesh(terrain: _Terrain, params: WorldParams, rng: np.random.Generator, seed: int):
+def _terrain_mesh(terrain: _Terrain, params: WorldParams, rng: np.random.Generator, seed: int, tile: int | None = None):
     n = terrain.n
-    x, y = np.meshgrid(terrain.axis, terrain.axis, indexing="ij")
+    x, y = np.meshgrid(terrain.x_axis, terrain.axis, indexing="ij")
     height = terrain.height.copy()
     # Puddles: shallow flat discs on the trail and beside the road, where water gathers.
     puddles = []
@@ -146,7 +154,7 @@ def _terrain_mesh(terrain: _Terrain, params: WorldParams, rng: np.random.Generat
             py = rng.uniform(-0.4, 0.4) * params.size_m
             px = terrain.trail_x(py) + rng.uniform(-0.5, 0.5) * params.trail_half_width_m
         else:
-            px = rng.uniform(-0.4, 0.4) * params.size_m
+            px = terrain.x_offset + rng.uniform(-0.4, 0.4) * params.size_m
             py = terrain.road_y(px) + rng.choice([-1, 1]) * (params.road_half_width_m + rng.uniform(0.8, 2.5))
         radius = rng.uniform(0.8, 2.2)
         inside = (x - px) ** 2 + (y - py) ** 2 < (radius + params.terrain_cell_m) ** 2
@@ -171,7 +179,8 @@ def _terrain_mesh(terrain: _Terrain, params: WorldParams, rng: np.random.Generat
     # Off-road tracks change surface: one stretch of the road is gravel (its own generator, so that the
     # rest of the world does not depend on it).
     stretch = params.gravel_road_fraction * params.size_m
-    start = np.random.default_rng(seed + 13).uniform(-params.size_m / 2, params.size_m / 2 - stretch) if stretch else 0.0
+    stretch_rng = np.random.default_rng(seed + 13 if tile is None else [seed + 13, tile])
+    start = terrain.x_offset + stretch_rng.uniform(-params.size_m / 2, params.size_m / 2 - stretch) if stretch else 0.0
     material[road & (cx >= start) & (cx < start + stretch)] = MATERIAL_INDEX["gravel"]
     for px, py, radius in puddles:
         material[(cx - px) ** 2 + (cy - py) ** 2 < radius**2] = MATERIAL_INDEX["puddle"]
@@ -185,6 +194,7 @@ def _place(terrain, rng, count, min_road_m, size_m):
         if len(out) >= count:
             break
         x, y = rng.uniform(-0.48, 0.48, 2) * size_m
+        x = terrain.x_offset + x
         if _road_distance(terrain, x, y) >= min_road_m:
             out.append((x, y))
     return out
@@ -193,7 +203,7 @@ def _place(terrain, rng, count, min_road_m, size_m):
 def _roadside(terrain, rng, count, params, offset):
     out = []
     for _ in range(count):
-        x = rng.uniform(-0.45, 0.45) * params.size_m
+        x = terrain.x_offset + rng.uniform(-0.45, 0.45) * params.size_m
         side = rng.choice([-1, 1])
         out.append((x, terrain.road_y(x) + side * (params.road_half_width_m + offset + rng.uniform(0, 1.5))))
     return out
@@ -204,10 +214,13 @@ def _jitter(mesh: trimesh.Trimesh, rng, amount):
     return mesh
 
 
-def generate_world(params: WorldParams, seed: int) -> World:
-    rng = np.random.default_rng(seed)
-    terrain = _Terrain(params, rng)
-    vertices, faces, material = _terrain_mesh(terrain, params, rng, seed)
+def generate_world(params: WorldParams, seed: int, *, tile: int | None = None) -> World:
+    """The world of ``seed``; with ``tile``, the tile-th square of the corridor world of ``seed``
+    (centred at x = tile * size_m; its hills and road continue into its neighbours, its objects,
+    puddles, trail and patches are its own), so a drive of any length needs only the tiles in view."""
+    rng = np.random.default_rng(seed if tile is None else [seed, tile])
+    terrain = _corridor_terrain(params, seed, tile, rng) if tile is not None else _Terrain(params, rng)
+    vertices, faces, material = _terrain_mesh(terrain, params, rng, seed, tile)
     parts: list[tuple[trimesh.Trimesh, str]] = []
     hectares = params.size_m**2 / 10_000
     road_clear = params.road_half_width_m + 4
@@ -264,7 +277,7 @@ def generate_world(params: WorldParams, seed: int) -> World:
         all_faces.append(np.asarray(mesh.faces) + offset)
         all_material.append(np.full(len(mesh.faces), MATERIAL_INDEX[name], np.int16))
         offset += len(mesh.vertices)
-    road_x = np.linspace(-params.size_m / 2, params.size_m / 2, int(params.size_m * 4) + 1)
+    road_x = terrain.x_offset + np.linspace(-params.size_m / 2, params.size_m / 2, int(params.size_m * 4) + 1)
     road_y = terrain.road_y(road_x)
     road = np.stack([road_x, road_y, terrain.height_at(road_x, road_y)], 1)
     return World(
@@ -277,18 +290,54 @@ def generate_world(params: WorldParams, seed: int) -> World:
     )
 
 
+def concatenate_worlds(worlds: list[World]) -> World:
+    """Several worlds (a corridor's tiles) as one mesh, with the first one's parameters."""
+    offsets = np.cumsum([0] + [len(w.vertices) for w in worlds[:-1]])
+    return World(
+        vertices=np.concatenate([w.vertices for w in worlds]),
+        faces=np.concatenate([w.faces + o for w, o in zip(worlds, offsets)]).astype(np.int32),
+        face_material=np.concatenate([w.face_material for w in worlds]),
+        road=np.concatenate([w.road for w in worlds]),
+        params=worlds[0].params,
+        seed=worlds[0].seed,
+    )
+
+
+def _corridor_terrain(params: WorldParams, seed: int, tile: int, rng: np.random.Generator) -> _Terrain:
+    return _Terrain(params, rng, shape_rng=np.random.default_rng(seed), x_offset=tile * params.size_m)
+
+
+def corridor_road(params: WorldParams, seed: int, tiles: int) -> np.ndarray:
+    """[M, 3] the road's centre line through a corridor world of ``tiles`` tiles (terrain only: no
+    tile's objects are built)."""
+    parts = []
+    for tile in range(tiles):
+        terrain = _corridor_terrain(params, seed, tile, np.random.default_rng([seed, tile]))
+        x = terrain.x_offset + np.linspace(-params.size_m / 2, params.size_m / 2, int(params.size_m * 4) + 1)
+        y = terrain.road_y(x)
+        parts.append(np.stack([x, y, terrain.height_at(x, y)], 1)[(1 if tile else 0):])  # seam points once
+    return np.concatenate(parts)
+
+
 def road_trajectory(world: World, params: TrajectoryParams) -> np.ndarray:
     """[F, 4, 4] LiDAR poses (LiDAR -> world) every ``spacing_m`` along the road, x forward along it,
     z up, ``sensor_height_m`` above the road; fewer than ``frames`` if the road is too short."""
-    road = world.road
+    half = world.params.size_m / 2 - params.margin_m
+    return poses_along_road(world.road, -half, half, params, f"a {world.params.size_m} m world")
+
+
+def poses_along_road(road: np.ndarray, x_min: float, x_max: float, params: TrajectoryParams, where: str) -> np.ndarray:
+    """The poses of ``road_trajectory`` along any road polyline, between x_min and x_max."""
     step = np.linalg.norm(np.diff(road[:, :2], axis=0), axis=1)
     arc = np.concatenate([[0.0], np.cumsum(step)])
-    usable = (np.abs(road[:, 0]) < world.params.size_m / 2 - params.margin_m)
+    usable = (road[:, 0] > x_min) & (road[:, 0] < x_max)
+    if not usable.any():
+        raise ValueError(f"the road has no usable stretch inside {where} with margin {params.margin_m} m")
     start, end = arc[usable][0], arc[usable][-1]
     stations = start + params.spacing_m * np.arange(params.frames)
     stations = stations[stations <= end]
     if len(stations) == 0:
-        raise ValueError(f"the road has no usable stretch inside a {world.params.size_m} m world with margin {params.margin_m} m")
+        raise ValueError(f"the road has no usable stretch inside {where} with margin {params.margin_m} m")
     poses = np.zeros((len(stations), 4, 4))
     for n, s in enumerate(stations):
         position = np.array([np.interp(s, arc, road[:, k]) for k in range(3)])

@@ -25,7 +25,7 @@ from .. import __version__
 from ..geometry.camera import matrix_to_quaternion
 from ..classes import palette
 from .preset import SynthPreset
-from .scene import generate_world, road_trajectory
+from .scene import concatenate_worlds, corridor_road, generate_world, poses_along_road, road_trajectory
 from .sensors import RayCaster, camera_model, camera_to_lidar, lidar_directions, render_camera, scan_lidar
 
 FRAME_PERIOD_S = 0.1  # 10 Hz, like RELLIS-3D's LiDAR
@@ -58,40 +58,87 @@ def write_sequence_metadata(out: Path, preset: SynthPreset, poses: np.ndarray) -
     np.savetxt(out / "poses.txt", poses[:, :3, :].reshape(len(poses), 12), fmt="%.17g")
 
 
-def generate_sequence(preset: SynthPreset, out, *, device: str | None = "cpu", progress: bool = True) -> dict:
+class _CorridorWorld:
+    """The tiles of a corridor world within sensor range of a pose, built when the drive reaches
+    them and dropped behind it: memory stays that of three tiles for a drive of any length."""
+
+    def __init__(self, preset: SynthPreset, device):
+        self.preset, self.device = preset, device
+        self.window: tuple[int, ...] = ()
+        self.world = self.caster = None
+        reach = max(preset.lidar.max_range_m, 60.0)  # the camera sees what the LiDAR sees, and the sky beyond
+        self.tiles_each_side = int(np.ceil(reach / preset.world.size_m))
+
+    def at(self, pose: np.ndarray):
+        size, tiles = self.preset.world.size_m, self.preset.world.corridor_tiles
+        centre = int(np.floor((pose[0, 3] + size / 2) / size))
+        window = tuple(t for t in range(centre - self.tiles_each_side, centre + self.tiles_each_side + 1) if 0 <= t < tiles)
+        if window != self.window:
+            parts = [generate_world(self.preset.world, self.preset.seed, tile=t) for t in window]
+            self.world = concatenate_worlds(parts)
+            self.caster = RayCaster(self.world.vertices, self.world.faces, device=self.device)
+            self.window = window
+        return self.world, self.caster
+
+
+def sequence_poses(preset: SynthPreset) -> np.ndarray:
+    """The drive's LiDAR poses: along the road of the square world, or of the whole corridor."""
+    if preset.world.corridor_tiles:
+        size, tiles = preset.world.size_m, preset.world.corridor_tiles
+        road = corridor_road(preset.world, preset.seed, tiles)
+        return poses_along_road(road, -size / 2 + preset.trajectory.margin_m, (tiles - 0.5) * size - preset.trajectory.margin_m,
+                                preset.trajectory, f"a corridor of {tiles} x {size} m")
+    return road_trajectory(generate_world(preset.world, preset.seed), preset.trajectory)
+
+
+def generate_sequence(preset: SynthPreset, out, *, device: str | None = "cpu", progress: bool = True, camera: bool = True) -> dict:
     """Render ``preset`` into the folder ``out`` (created; existing frame files are overwritten).
+    ``camera=False`` writes the LiDAR scans, their labels and the poses only (no images: fast).
     Returns a summary with the counts and timings."""
     out = Path(out)
     started = time.perf_counter()
-    world = generate_world(preset.world, preset.seed)
-    poses = road_trajectory(world, preset.trajectory)
-    caster = RayCaster(world.vertices, world.faces, device=device)
+    corridor = _CorridorWorld(preset, device) if preset.world.corridor_tiles else None
+    if corridor is None:
+        world = generate_world(preset.world, preset.seed)
+        poses = road_trajectory(world, preset.trajectory)
+        caster = RayCaster(world.vertices, world.faces, device=device)
+    else:
+        poses = sequence_poses(preset)
     world_s = time.perf_counter() - started
-    folders = {name: out / name for name in ("os1_cloud_node_kitti_bin", "os1_cloud_node_semantickitti_label_id", "pylon_camera_node",
-                                             "pylon_camera_node_label_color", "pylon_camera_node_label_id")}
+    names = ["os1_cloud_node_kitti_bin", "os1_cloud_node_semantickitti_label_id"]
+    if camera:
+        names += ["pylon_camera_node", "pylon_camera_node_label_color", "pylon_camera_node_label_id"]
+    folders = {name: out / name for name in names}
     for folder in folders.values():
         folder.mkdir(parents=True, exist_ok=True)
     write_sequence_metadata(out, preset, poses)
     lut = colour_lut()
     beams = lidar_directions(preset.lidar)
-    pixel_rays = camera_model(preset.camera).pixel_rays().reshape(-1, 3)
+    pixel_rays = camera_model(preset.camera).pixel_rays().reshape(-1, 3) if camera else None
     lidar_rays = 0
+    triangles = 0
     for index in tqdm(range(len(poses)), desc=f"synth {preset.name}", unit="frame", disable=not progress):
+        if corridor is not None:
+            world, caster = corridor.at(poses[index])
+        triangles = max(triangles, len(world.faces))
         rng = np.random.default_rng([preset.seed, index])
         scan = scan_lidar(caster, world, poses[index], preset.lidar, rng, beams)
-        frame = render_camera(caster, world, poses[index], preset.camera, preset.appearance.domain, preset.appearance.noise_sigma, rng,
-                              pixel_rays=pixel_rays)
         scan.points.tofile(folders["os1_cloud_node_kitti_bin"] / f"{index:06d}.bin")
         scan.original_id.tofile(folders["os1_cloud_node_semantickitti_label_id"] / f"{index:06d}.label")
+        lidar_rays += len(scan.points)
+        if not camera:
+            continue
+        frame = render_camera(caster, world, poses[index], preset.camera, preset.appearance.domain, preset.appearance.noise_sigma, rng,
+                              pixel_rays=pixel_rays)
         stem = frame_stem(index)
         Image.fromarray(frame.rgb).save(folders["pylon_camera_node"] / f"{stem}.jpg", quality=preset.camera.jpeg_quality)
         Image.fromarray(lut[frame.original_id]).save(folders["pylon_camera_node_label_color"] / f"{stem}.png")
         Image.fromarray(frame.original_id).save(folders["pylon_camera_node_label_id"] / f"{stem}.png")
-        lidar_rays += len(scan.points)
     elapsed = time.perf_counter() - started
+    drive = float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum()) if len(poses) > 1 else 0.0
     summary = {
-        "frames": len(poses), "triangles": int(len(world.faces)), "lidar_rays": int(lidar_rays),
-        "world_seconds": round(world_s, 3), "seconds": round(elapsed, 3),
+        "frames": len(poses), "triangles": int(triangles), "lidar_rays": int(lidar_rays), "drive_m": round(drive, 1),
+        "camera": camera, "world_seconds": round(world_s, 3), "seconds": round(elapsed, 3),
     }
     record = {"generator": "evsemmap_warp", "version": __version__, "preset": dataclasses.asdict(preset), "summary": summary}
     (out / "synth.yaml").write_text(yaml.safe_dump(record, sort_keys=False))

@@ -1,0 +1,546 @@
+"""``evsemmap batch``: map long sequences on every core of a machine, or on a Ray cluster, into a map
+store (core/map_store.py).
+
+BKI maps are sums, so partial maps of disjoint scan sets add up exactly. A run:
+
+1. plans: the inputs' insertions (scans, or bins of camera-labelled frames) are cut into chunks of
+   consecutive insertions (``--chunk-frames`` frames, rounded to whole bins, so per-insertion rules see
+   what ``evsemmap map`` shows them); the map origin is that ``evsemmap map`` picks (the first scan's);
+2. maps each chunk in a worker into a partial map, written per spatial tile under ``STORE/work``
+   (a chunk is done when its folder is renamed into place, so a killed worker leaves nothing that
+   counts);
+3. reduces each tile: its partials summed in chunk order (the result does not depend on which chunk
+   finished first), written in the map-file schema under ``STORE/tiles``;
+4. writes ``STORE/store.json`` last.
+
+A rerun of the same command skips finished chunks and reduces again, so an interrupted run finishes
+without counting any chunk twice; a worker that dies is replaced and its chunk mapped again. The same
+inputs give the same store, byte for byte, whatever the executor, worker count or completion order.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import resource
+import shutil
+import sys
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..config import ConfigError, MappingConfig, is_robot_log, load_config
+from ..core import map_store
+from ..core.mapper import Mapper, VoxelState
+from ..core.voxel_map import EXTRA_COLUMNS, VoxelArrays
+from .scan_sources import open_scan_source
+
+# Fault injection for the tests (never set in use): "kill-chunk:N" makes the worker that maps chunk N
+# die halfway through its first attempt, as a killed process would.
+FAULT_VARIABLE = "EVSEMMAP_BATCH_FAULT"
+WORKER_OVERHEAD_BYTES = 450 * 2**20  # a worker process with numpy, Warp and its kernels loaded (measured: ~0.4 GB)
+DRIVER_OVERHEAD_BYTES = 450 * 2**20
+
+
+@dataclass(frozen=True)
+class BatchOptions:
+    method: str
+    out: Path
+    executor: str = "local"  # local | ray
+    workers: int | None = None  # default: one per core (local), the cluster's CPUs (ray)
+    chunk_frames: int = 100
+    ray_address: str | None = None
+    checkpoint: Path | None = None
+    alpha: Path | None = None
+    bin_frames: int | None = None
+    batch_size: int = 4
+    tile_voxels: int = map_store.DEFAULT_TILE_VOXELS
+    discard_partials: bool = False
+    progress: bool = True
+
+
+@dataclass(frozen=True)
+class Chunk:
+    number: int
+    sequence: int  # which input
+    start: int  # insertions start..stop-1 of that input
+    stop: int
+    frames: int
+
+
+@dataclass
+class Context:
+    """What every task needs; sent once to each worker (a process pool's initializer, a Ray object)."""
+
+    store: Path
+    sources: list
+    config: MappingConfig
+    num_classes: int
+    class_names: tuple[str, ...]
+    origin_index: np.ndarray
+    tile_voxels: int
+
+    def template(self) -> Mapper:
+        mapper = Mapper(self.config, self.num_classes, class_names=self.class_names, workers=1, initial_capacity=16)
+        mapper.origin_index = np.asarray(self.origin_index, np.int64)
+        return mapper
+
+
+# Planning ------------------------------------------------------------------------------------------
+def split_inputs(paths: list[str]) -> tuple[list[str], list[str]]:
+    """The inputs (sequence folders, robot logs, config files with a dataset section: one sequence
+    each) and the configs shared by all of them (presets by name, files without a dataset)."""
+    inputs, shared = [], []
+    for text in paths:
+        path = Path(text)
+        if path.is_dir() or is_robot_log(path):
+            inputs.append(text)
+        elif path.suffix in (".yaml", ".yml") and path.is_file() and "dataset" in (load_yaml_sections(path)):
+            inputs.append(text)
+        else:
+            shared.append(text)
+    if not inputs:
+        raise ConfigError(f"batch: none of {paths} is a sequence (a folder, a robot log or a config with a dataset section)")
+    return inputs, shared
+
+
+def load_yaml_sections(path: Path) -> set:
+    from ..config import read_yaml_file
+
+    data = read_yaml_file(path)
+    return set(data) if isinstance(data, dict) else set()
+
+
+def _input_identity(paths: list[str]) -> list:
+    """What a resumed run must find unchanged: each file's or folder's size and modification time."""
+    out = []
+    for text in paths:
+        path = Path(text)
+        if path.exists():
+            stat = path.stat()
+            out.append([str(path.resolve()), stat.st_size if path.is_file() else None, stat.st_mtime_ns])
+        else:
+            out.append([text, None, None])
+    return out
+
+
+def plan_batch(paths: list[str], options: BatchOptions):
+    """The sources, the mapping config, the chunks and the identity of the run (for resuming)."""
+    inputs, shared = split_inputs(paths)
+    sources, runs = [], []
+    for text in inputs:
+        run = load_config([text] + shared, method=options.method)
+        if run.dataset is None:
+            raise ConfigError(f"{text}: no dataset section")
+        runs.append(run)
+        sources.append(open_scan_source(run, checkpoint=options.checkpoint, alpha_dir=options.alpha, bin_frames=options.bin_frames,
+                                        batch_size=options.batch_size))
+    config = runs[0].mapping
+    for text, run, source in zip(inputs, runs, sources):
+        if run.mapping != config:
+            mine, theirs = config.as_dict(), run.mapping.as_dict()
+            raise ConfigError(f"{text}: its mapping parameters differ from {inputs[0]}'s: "
+                              + ", ".join(f"{k} {mine[k]!r} vs {theirs[k]!r}" for k in mine if mine[k] != theirs[k]))
+        if source.num_classes != sources[0].num_classes:
+            raise ConfigError(f"{text}: {source.num_classes} classes, {inputs[0]} has {sources[0].num_classes}")
+    chunks = []
+    for s, source in enumerate(sources):
+        per_bin = max(1, getattr(source, "bin_frames", 1))
+        insertions = max(1, options.chunk_frames // per_bin)  # whole bins: a chunk never splits one
+        for start in range(0, len(source), insertions):
+            stop = min(start + insertions, len(source))
+            chunks.append(Chunk(len(chunks), s, start, stop, source.frames_in(start, stop)))
+    if not chunks:
+        raise ConfigError(f"batch: the inputs {inputs} hold no scans")
+    identity = {
+        "inputs": [_input_identity([text] + shared) for text in inputs], "method": options.method, "mapping": config.as_dict(),
+        "chunk_frames": options.chunk_frames, "tile_voxels": options.tile_voxels,
+        "payload": {"checkpoint": _input_identity([str(options.checkpoint)]) if options.checkpoint else None,
+                    "alpha": _input_identity([str(options.alpha)]) if options.alpha else None, "bin_frames": options.bin_frames},
+    }
+    return inputs, sources, config, chunks, identity
+
+
+def probe(sources, config: MappingConfig) -> tuple[np.ndarray, int, int]:
+    """The origin ``evsemmap map`` would pick (the first non-empty scan's), and the voxels of the
+    first insertion and of the first two (for the memory estimate)."""
+    source = sources[0]
+    mapper = Mapper(config, source.num_classes, class_names=source.class_names or None, workers=1)
+    counts = []
+    for i in range(len(source)):
+        for scan in source.scans(i, i + 1):
+            mapper.integrate(scan.points, scan.payload, payload_type=scan.payload_type, sensor_origin=scan.sensor_origin)
+        if mapper.origin_index is not None:
+            counts.append(mapper.voxel_count)
+        if len(counts) == 2:
+            break
+    if mapper.origin_index is None:
+        raise ConfigError("batch: every scan of the first input is empty")
+    return mapper.origin_index.copy(), counts[0], counts[-1]
+
+
+def available_memory() -> int:
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")
+
+
+def bytes_per_voxel(num_classes: int) -> int:
+    """A worker's memory per voxel of its partial map: the hash table and its [K + 4] float64 rows
+    (kept below half full, so ~2-4x the voxels), the host copy, the post-pass and the tile split."""
+    row = (num_classes + EXTRA_COLUMNS) * 8
+    return 3 * (row + 16) + 3 * row
+
+
+def check_memory(options: BatchOptions, workers: int, chunk_insertions: int, first: int, first_two: int, num_classes: int) -> dict:
+    """Refuse, before any work, a configuration whose workers cannot fit in this machine's memory."""
+    new_per_insertion = max(first_two - first, first // 4)
+    chunk_voxels = first + (chunk_insertions - 1) * new_per_insertion
+    per_worker = WORKER_OVERHEAD_BYTES + chunk_voxels * bytes_per_voxel(num_classes)
+    need = DRIVER_OVERHEAD_BYTES + workers * per_worker
+    have = available_memory()
+    budget = {"chunk_voxels_estimate": int(chunk_voxels), "per_worker_mb": round(per_worker / 2**20), "total_mb": round(need / 2**20),
+              "available_mb": round(have / 2**20)}
+    if options.executor == "local" and need > have:
+        room = (have - DRIVER_OVERHEAD_BYTES) / workers - WORKER_OVERHEAD_BYTES
+        fitting = max(0, int((room / bytes_per_voxel(num_classes) - first) / max(new_per_insertion, 1)) + 1)
+        raise ConfigError(f"batch: --chunk-frames {options.chunk_frames} with {workers} workers needs about {need / 2**30:.1f} GB "
+                          f"({per_worker / 2**30:.2f} GB per worker for ~{chunk_voxels:,} voxels a chunk), but {have / 2**30:.1f} GB "
+                          f"are available; use --chunk-frames {max(fitting, 1)} or fewer --workers")
+    return budget
+
+
+# Worker tasks ----------------------------------------------------------------------------------------
+_CONTEXT: Context | None = None
+
+
+def _init_worker(context: Context, threads: int) -> None:
+    global _CONTEXT
+    _CONTEXT = context
+    try:
+        import torch
+
+        torch.set_num_threads(threads)  # workers share the cores: no worker's inference takes them all
+    except ImportError:  # pragma: no cover - torch is a dependency
+        pass
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _chunk_dir(store: Path, number: int) -> Path:
+    return store / "work" / f"chunk_{number:06d}"
+
+
+def _inject_fault(context: Context, chunk: Chunk, partial_dir: Path) -> None:
+    fault = os.environ.get(FAULT_VARIABLE, "")
+    if fault == f"kill-chunk:{chunk.number}":
+        marker = context.store / "work" / f".fault-{chunk.number}"
+        if not marker.exists():
+            marker.write_text("killed once\n")
+            partial_dir.mkdir(parents=True, exist_ok=True)
+            (partial_dir / "0_0_0.npz").write_bytes(b"half a file")
+            os._exit(137)
+
+
+def map_chunk(chunk: Chunk, context: Context | None = None) -> dict:
+    """Map one chunk into its partial map, written per tile; returns its counts and costs."""
+    context = context or _CONTEXT
+    started = time.perf_counter()
+    done = _chunk_dir(context.store, chunk.number)
+    if (done / "done.json").is_file():  # a retried task whose first attempt finished after all
+        return json.loads((done / "done.json").read_text()) | {"seconds": 0.0, "peak_rss_mb": _peak_rss_mb()}
+    partial = context.store / "work" / f".chunk_{chunk.number:06d}.{os.getpid()}.tmp"
+    shutil.rmtree(partial, ignore_errors=True)
+    _inject_fault(context, chunk, partial)
+    source = context.sources[chunk.sequence]
+    mapper = Mapper(context.config, context.num_classes, class_names=context.class_names, workers=1,
+                    origin=context.origin_index * context.config.resolution_m)
+    points = scans = 0
+    for scan in source.scans(chunk.start, chunk.stop):
+        try:
+            mapper.integrate(scan.points, scan.payload, payload_type=scan.payload_type, sensor_origin=scan.sensor_origin)
+        except ValueError as exc:
+            raise ValueError(f"{scan.name}: {exc}") from None
+        points += len(scan.points)
+        scans += 1
+    voxels, _ = mapper.voxels()
+    parts = map_store.split_by_tile(voxels.index, voxels.rows(), context.tile_voxels)
+    partial.mkdir(parents=True, exist_ok=True)
+    for name, (index, rows) in parts.items():
+        map_store.write_partial(partial / f"{name}.npz", index, rows)
+    record = {"number": chunk.number, "frames": chunk.frames, "scans": scans, "points": points, "voxels": int(len(voxels.index)),
+              "tiles": list(parts)}
+    map_store.write_json(partial / "done.json", record)
+    try:
+        os.rename(partial, done)  # the chunk counts from here on, all of it or nothing
+    except OSError:  # another attempt of this chunk got there first: same content
+        shutil.rmtree(partial, ignore_errors=True)
+    return record | {"seconds": time.perf_counter() - started, "peak_rss_mb": _peak_rss_mb()}
+
+
+def reduce_tile(name: str, chunks: list[int], totals: dict, context: Context | None = None) -> dict:
+    """Sum one tile's partials in chunk order and write the tile; returns its index entry."""
+    context = context or _CONTEXT
+    started = time.perf_counter()
+    template = context.template()
+    columns = context.num_classes + EXTRA_COLUMNS
+    parts = [map_store.read_partial(_chunk_dir(context.store, n) / f"{name}.npz", columns) for n in chunks]
+    voxels = map_store.reduce_partials(template, parts)
+    entry = _write_tile(context.store, name, template, voxels, totals)
+    return entry | {"seconds": time.perf_counter() - started, "peak_rss_mb": _peak_rss_mb()}
+
+
+def _write_tile(store: Path, name: str, template: Mapper, voxels, totals: dict) -> dict:
+    """Write one tile; its entry in the store index (voxels, bounds, states)."""
+    map_store.write_tile(store / "tiles" / f"{name}.npz", template, voxels, totals)
+    summary = template.summarize(voxels.evidence, voxels.touched)
+    centres = template.voxel_centers(voxels.index)
+    half = template.config.resolution_m / 2
+    return {"voxels": int(len(voxels.index)), "bounds_m": [(centres.min(axis=0) - half).tolist(), (centres.max(axis=0) + half).tolist()],
+            "states": {s.name: int((summary.state == s).sum()) for s in VoxelState}}
+
+
+def _store_index(template: Mapper, tile_voxels: int, entries: dict, inputs: list, chunks: list, totals: dict) -> dict:
+    """store.json: everything but the tiles' voxels; nothing that depends on how or when it ran."""
+    config = template.config
+    return {
+        "format": map_store.STORE_FORMAT, "format_version": map_store.STORE_VERSION, "resolution_m": config.resolution_m,
+        "origin_index": [int(v) for v in template.origin_index], "origin_m": template.origin.tolist(),
+        "grid_offset_m": template.grid_offset_m, "classes": list(template.class_names), "method": config.method,
+        "mapping": config.as_dict(), "tile_voxels": tile_voxels,
+        "tiles": {name: {k: e[k] for k in ("voxels", "bounds_m", "states")} for name, e in sorted(entries.items())},
+        "inputs": inputs, "chunks": chunks, "scans": int(totals["scans"]), "points": int(totals["points"]),
+    }
+
+
+def write_store_from_mapper(mapper: Mapper, out, tile_voxels: int, sources: list[str]) -> Path:
+    """A whole map (a merge's result) written as a store."""
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise ConfigError(f"{out}: exists and is not empty; a store is written to a new folder")
+    voxels, _ = mapper.voxels()
+    template = Mapper(mapper.config, mapper.num_classes, class_names=mapper.class_names, workers=1, initial_capacity=16)
+    template.origin_index = mapper.origin_index if mapper.origin_index is not None else np.zeros(3, np.int64)
+    totals = {"scans": mapper.scans_integrated, "points": mapper.points_integrated}
+    entries = {name: _write_tile(out, name, template, VoxelArrays.from_rows(index, rows), totals)
+               for name, (index, rows) in map_store.split_by_tile(voxels.index, voxels.rows(), tile_voxels).items()}
+    map_store.write_json(out / map_store.INDEX_NAME, _store_index(template, tile_voxels, entries, [{"source": s} for s in sources], [], totals))
+    return out
+
+
+# Executors -----------------------------------------------------------------------------------------
+class LocalExecutor:
+    """A process pool, one worker per core by default; a pool whose worker died is replaced and the
+    unfinished tasks are run again (each at most ``retries`` more times)."""
+
+    name = "local"
+
+    def __init__(self, workers: int, context: Context, retries: int = 3, log=None):
+        import multiprocessing
+
+        self.workers, self.context, self.retries, self.log = workers, context, retries, log or (lambda m: None)
+        self._mp = multiprocessing.get_context("spawn")  # no fork of a process with Warp and threads loaded
+        self._threads = max(1, (os.cpu_count() or 1) // workers)
+        self._pool = None
+
+    def _new_pool(self):
+        return ProcessPoolExecutor(self.workers, mp_context=self._mp, initializer=_init_worker, initargs=(self.context, self._threads))
+
+    def run(self, fn, items: list, on_done) -> None:
+        """``fn(*item)`` for every item, at most two per worker in flight; ``on_done(item, result)``."""
+        pending = list(items)
+        attempts = {i: 0 for i in range(len(items))}
+        order = {id(item): i for i, item in enumerate(items)}
+        while pending:
+            self._pool = self._pool or self._new_pool()
+            flight = {}
+            broken = False
+            queue = list(pending)
+            try:
+                while queue or flight:
+                    while queue and len(flight) < 2 * self.workers:
+                        item = queue.pop(0)
+                        flight[self._pool.submit(fn, *item)] = item
+                    finished, _ = wait(flight, return_when=FIRST_COMPLETED)
+                    for future in finished:
+                        item = flight.pop(future)
+                        on_done(item, future.result())
+                        pending.remove(item)
+            except BrokenProcessPool:
+                broken = True
+            if broken:
+                self._pool.shutdown(wait=False, cancel_futures=True)
+                self._pool = None
+                for item in pending:
+                    attempts[order[id(item)]] += 1
+                    if attempts[order[id(item)]] > self.retries:
+                        raise RuntimeError(f"batch: a worker died {self.retries + 1} times running {item[0]}; giving up")
+                self.log(f"a worker died; a new pool runs the {len(pending)} unfinished task(s) again")
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
+
+def _ray_task(fn, threads: int, context: Context, *args):
+    """A Ray task: Ray hands over the context (put once by the driver) as an object."""
+    _init_worker(context, threads)
+    return fn(*args, context=context)
+
+
+class RayExecutor:
+    """The same tasks on Ray: a local instance (started and stopped here) or a cluster (``address``:
+    "auto" or "ray://host:port"). Ray retries a task whose worker died."""
+
+    name = "ray"
+
+    def __init__(self, workers: int | None, context: Context, address: str | None, log=None):
+        try:
+            import ray
+        except ImportError:
+            raise ConfigError('--executor ray needs Ray: pip install "evsemmap_warp[ray]"') from None
+        self.ray, self.log = ray, log or (lambda m: None)
+        self.started = not ray.is_initialized()
+        if self.started:
+            env = {k: v for k, v in os.environ.items() if k in ("WARP_CACHE_PATH", FAULT_VARIABLE, "XDG_CACHE_HOME")}
+            kwargs = {"address": address} if address else {"num_cpus": workers or os.cpu_count()}
+            ray.init(**kwargs, include_dashboard=False, logging_level="ERROR", log_to_driver=False,
+                     runtime_env={"env_vars": env} if env else None)
+        self.workers = workers or int(ray.cluster_resources().get("CPU", 1))
+        self.context_ref = ray.put(context)
+        self._task = ray.remote(num_cpus=1, max_retries=3)(_ray_task)
+
+    def run(self, fn, items: list, on_done) -> None:
+        queue = list(items)
+        flight = {}
+        threads = max(1, (os.cpu_count() or 1) // self.workers)
+        while queue or flight:
+            while queue and len(flight) < 2 * self.workers:
+                item = queue.pop(0)
+                flight[self._task.remote(fn, threads, self.context_ref, *item)] = item
+            finished, _ = self.ray.wait(list(flight), num_returns=1)
+            for ref in finished:
+                on_done(flight.pop(ref), self.ray.get(ref))
+
+    def close(self) -> None:
+        if self.started:
+            self.ray.shutdown()
+
+
+# The run ----------------------------------------------------------------------------------------------
+def _check_store(out: Path, identity: dict) -> None:
+    plan_path = out / "work" / "plan.json"
+    if plan_path.is_file():
+        earlier = json.loads(plan_path.read_text())
+        if earlier != identity:
+            differing = sorted(k for k in set(earlier) | set(identity) if earlier.get(k) != identity.get(k))
+            raise ConfigError(f"{out}: holds a batch run of other inputs or settings (differing: {', '.join(differing)}); "
+                              f"give a new --out, or delete {out} to start over")
+    elif (out / map_store.INDEX_NAME).is_file():
+        raise ConfigError(f"{out}: a finished store whose partial maps were discarded (--discard-partials); delete it to map again, "
+                          f"or give a new --out")
+    elif out.exists() and any(out.iterdir()):
+        raise ConfigError(f"{out}: exists and is not a batch store; give a new --out")
+
+
+def run_batch(paths: list[str], options: BatchOptions, log=None) -> dict:
+    """Plan, map chunks, reduce tiles and write the store; returns the summary."""
+    log = log or (lambda m: print(m, file=sys.stderr))
+    times = {}
+    started = time.perf_counter()
+    out = Path(options.out)
+    if options.executor not in ("local", "ray"):
+        raise ConfigError(f"--executor {options.executor!r}: local or ray")
+    inputs, sources, config, chunks, identity = plan_batch(paths, options)
+    _check_store(out, identity)
+    origin_index, first, first_two = probe(sources, config)
+    workers = options.workers or (os.cpu_count() or 1)
+    insertions = max(c.stop - c.start for c in chunks)
+    budget = check_memory(options, workers, insertions, first, first_two, sources[0].num_classes)
+    times["plan"] = time.perf_counter() - started
+    (out / "work").mkdir(parents=True, exist_ok=True)
+    map_store.write_json(out / "work" / "plan.json", identity)
+    for stale in (out / "work").glob(".chunk_*"):  # what killed workers left: never counted
+        shutil.rmtree(stale, ignore_errors=True)
+    context = Context(out, sources, config, sources[0].num_classes, tuple(sources[0].class_names or ()) or tuple(
+        f"class_{i}" for i in range(sources[0].num_classes)), origin_index, options.tile_voxels)
+    finished = [c for c in chunks if (_chunk_dir(out, c.number) / "done.json").is_file()]
+    todo = [c for c in chunks if c not in finished]
+    total_frames = sum(c.frames for c in chunks)
+    if finished:
+        log(f"resuming: {len(finished)} of {len(chunks)} chunks are mapped already")
+    executor = RayExecutor(options.workers, context, options.ray_address, log) if options.executor == "ray" else LocalExecutor(workers, context, log=log)
+    records = {}
+    try:
+        from tqdm import tqdm
+
+        stage = time.perf_counter()
+        bar = tqdm(total=total_frames, initial=sum(c.frames for c in finished), unit="frame", desc=f"batch {executor.name} x{executor.workers}",
+                   disable=not options.progress, dynamic_ncols=True)
+        costs = []
+
+        def chunk_done(item, result):
+            costs.append(result)
+            bar.update(item[0].frames)
+
+        executor.run(map_chunk, [(c,) for c in todo], chunk_done)
+        bar.close()
+        times["map"] = time.perf_counter() - stage
+        for c in chunks:
+            records[c.number] = json.loads((_chunk_dir(out, c.number) / "done.json").read_text())
+        totals = {"scans": sum(r["scans"] for r in records.values()), "points": sum(r["points"] for r in records.values())}
+        tiles: dict[str, list[int]] = {}
+        for c in chunks:
+            for name in records[c.number]["tiles"]:
+                tiles.setdefault(name, []).append(c.number)
+        largest = max((sum((_chunk_dir(out, n) / f"{name}.npz").stat().st_size for n in numbers) for name, numbers in tiles.items()), default=0)
+        reducer_bytes = WORKER_OVERHEAD_BYTES + 3 * largest
+        if options.executor == "local" and DRIVER_OVERHEAD_BYTES + min(workers, max(len(tiles), 1)) * reducer_bytes > available_memory():
+            raise ConfigError(f"batch: reducing the largest tile needs about {reducer_bytes / 2**30:.1f} GB per reducer; "
+                              f"use a smaller --tile-size or fewer --workers (the mapped chunks are kept: rerun to resume)")
+        stage = time.perf_counter()
+        entries = {}
+        executor.run(reduce_tile, [(name, numbers, totals) for name, numbers in sorted(tiles.items())],
+                     lambda item, result: entries.__setitem__(item[0], result))
+        executor.close()
+        times["reduce"] = time.perf_counter() - stage
+    finally:
+        executor.close()
+    stage = time.perf_counter()
+    for old in (out / "tiles").glob("*.npz"):
+        if old.stem not in entries:
+            old.unlink()
+    inputs_entry = [{"source": str(Path(text).resolve()) if Path(text).exists() else text, "insertions": len(s), "frames": s.frames_in(0, len(s))}
+                    for text, s in zip(inputs, sources)]
+    chunks_entry = [dataclasses.asdict(c) | {k: records[c.number][k] for k in ("scans", "points", "voxels")} for c in chunks]
+    index = _store_index(context.template(), options.tile_voxels, entries, inputs_entry, chunks_entry, totals)
+    map_store.write_json(out / map_store.INDEX_NAME, index)
+    if options.discard_partials:
+        shutil.rmtree(out / "work", ignore_errors=True)
+    times["index"] = time.perf_counter() - stage
+    times["total"] = time.perf_counter() - started
+    chunk_seconds = [r["seconds"] for r in costs]
+    return {
+        "store": str(out), "executor": executor.name, "workers": executor.workers, "inputs": len(inputs), "frames": total_frames,
+        "chunks": len(chunks), "chunks_resumed": len(finished), "input_points": totals["points"],
+        "voxels": sum(e["voxels"] for e in entries.values()), "tiles": len(entries),
+        "seconds": {k: round(v, 3) for k, v in times.items()},
+        "frames_per_second": round(sum(c.frames for c in todo) / times["map"], 2) if todo and times["map"] > 0 else None,
+        "chunk_seconds_median": round(float(np.median(chunk_seconds)), 3) if chunk_seconds else None,
+        "tile_seconds_median": round(float(np.median([e["seconds"] for e in entries.values()])), 3) if entries else None,
+        "peak_rss_mb": {"worker_max": round(max([r["peak_rss_mb"] for r in costs] + [e["peak_rss_mb"] for e in entries.values()]), 1),
+                        "driver": round(_peak_rss_mb(), 1)},
+        "memory_budget": budget,
+    }
