@@ -51,7 +51,7 @@ DRIVER_OVERHEAD_BYTES = 450 * 2**20
 class BatchOptions:
     method: str
     out: Path
-    executor: str = "local"  # local | ray
+    executor: str = "local"  # local | ray (| inline: in this process, for tests and debugging)
     workers: int | None = None  # default: one per core (local), the cluster's CPUs (ray)
     chunk_frames: int = 100
     ray_address: str | None = None
@@ -340,6 +340,24 @@ def write_store_from_mapper(mapper: Mapper, out, tile_voxels: int, sources: list
 
 
 # Executors -----------------------------------------------------------------------------------------
+class InlineExecutor:
+    """The tasks one after another in this process (tests and debugging: the same task functions,
+    without the process boundary)."""
+
+    name = "inline"
+    workers = 1
+
+    def __init__(self, context: Context):
+        self.context = context
+
+    def run(self, fn, items: list, on_done) -> None:
+        for item in items:
+            on_done(item, fn(*item, context=self.context))
+
+    def close(self) -> None:
+        pass
+
+
 class LocalExecutor:
     """A process pool, one worker per core by default; a pool whose worker died is replaced and the
     unfinished tasks are run again (each at most ``retries`` more times)."""
@@ -461,7 +479,7 @@ def run_batch(paths: list[str], options: BatchOptions, log=None) -> dict:
     times = {}
     started = time.perf_counter()
     out = Path(options.out)
-    if options.executor not in ("local", "ray"):
+    if options.executor not in ("local", "ray", "inline"):
         raise ConfigError(f"--executor {options.executor!r}: local or ray")
     inputs, sources, config, chunks, identity = plan_batch(paths, options)
     _check_store(out, identity)
@@ -481,7 +499,12 @@ def run_batch(paths: list[str], options: BatchOptions, log=None) -> dict:
     total_frames = sum(c.frames for c in chunks)
     if finished:
         log(f"resuming: {len(finished)} of {len(chunks)} chunks are mapped already")
-    executor = RayExecutor(options.workers, context, options.ray_address, log) if options.executor == "ray" else LocalExecutor(workers, context, log=log)
+    if options.executor == "ray":
+        executor = RayExecutor(options.workers, context, options.ray_address, log)
+    elif options.executor == "inline":
+        executor = InlineExecutor(context)
+    else:
+        executor = LocalExecutor(workers, context, log=log)
     records = {}
     try:
         from tqdm import tqdm
@@ -497,6 +520,8 @@ def run_batch(paths: list[str], options: BatchOptions, log=None) -> dict:
 
         executor.run(map_chunk, [(c,) for c in todo], chunk_done)
         bar.close()
+        for stale in (out / "work").glob(".chunk_*"):  # what workers that died halfway left: never counted
+            shutil.rmtree(stale, ignore_errors=True)
         times["map"] = time.perf_counter() - stage
         for c in chunks:
             records[c.number] = json.loads((_chunk_dir(out, c.number) / "done.json").read_text())

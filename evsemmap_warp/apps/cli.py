@@ -463,8 +463,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tile-voxels", type=_positive, default=256, help="tile edge in voxels when writing a store")
     p.set_defaults(func=_cmd_merge)
 
-    p = sub.add_parser("view", help="inspect map files in a browser (viser)")
-    p.add_argument("maps", nargs="+", type=Path, help="map files; several are switchable or side by side")
+    p = sub.add_parser("view", help="inspect map files and map stores in a browser (viser)")
+    p.add_argument("maps", nargs="+", type=Path, help="map files or stores (a store: a decimated overview, any tile in full); several "
+                                                      "are switchable or side by side")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=_port, default=8080)
     p.add_argument("--style", choices=("points", "boxes"), default="points", help="voxels as point sprites or instanced boxes")

@@ -69,9 +69,13 @@ class MapLayer:
     @classmethod
     def from_file(cls, path) -> "MapLayer":
         arrays, meta = read_map_arrays(path)
+        return cls.from_arrays(Path(path).stem, Path(path), arrays, meta)
+
+    @classmethod
+    def from_arrays(cls, name: str, path: Path, arrays: dict, meta: dict) -> "MapLayer":
         with np.errstate(invalid="ignore", divide="ignore"):
             mean_unc = np.where(arrays["weight_sum"] > 0, arrays["weighted_uncertainty_sum"] / arrays["weight_sum"], np.nan)
-        return cls(Path(path).stem, Path(path), list(meta["classes"]), float(arrays["resolution"]), float(meta.get("grid_offset_m", 0.0)),
+        return cls(name, path, list(meta["classes"]), float(arrays["resolution"]), float(meta.get("grid_offset_m", 0.0)),
                    arrays["centers"], arrays["voxel_index"].astype(np.int64), arrays["alpha"], arrays["label"], arrays["state"],
                    arrays["variance"], arrays["hits"], mean_unc, meta["method"])
 
@@ -94,6 +98,46 @@ class MapLayer:
         keys = pack(np.where(inside[:, None], index, lo).astype(np.int64))
         rows = np.clip(np.searchsorted(stored, keys), 0, len(stored) - 1)
         return np.where(inside & (stored[rows] == keys), rows, -1)
+
+
+_LAYER_ARRAYS = ("centers", "voxel_index", "alpha", "label", "state", "variance", "hits", "weight_sum", "weighted_uncertainty_sum")
+
+
+class StoreOverview:
+    """A map store in the viewer: every tile decimated to a share of ``max_voxels`` (read one tile at
+    a time, so the overview, not the store, is what is held), and one selected tile in full detail."""
+
+    def __init__(self, path, max_voxels: int):
+        from ..core.map_store import MapStore
+
+        self.store = MapStore(path, cache_tiles=1)
+        self.path = Path(path)
+        total = max(self.store.voxel_count, 1)
+        self.parts: dict[str, dict] = {}
+        self.meta = None
+        for name in sorted(self.store.tiles):
+            arrays, meta = read_map_arrays(self.store.tile_path(name))
+            self.meta = self.meta or meta
+            n = len(arrays["state"])
+            keep = max(1, int(max_voxels * n / total)) if n else 0
+            rows = np.linspace(0, n - 1, min(keep, n)).astype(np.int64) if n else np.zeros(0, np.int64)
+            self.parts[name] = {k: arrays[k][rows] for k in _LAYER_ARRAYS} | {"resolution": arrays["resolution"]}
+        self.detail = ""
+
+    def layer(self, detail: str = "") -> MapLayer:
+        """The overview, with tile ``detail`` (a tile name; "" for none) in full."""
+        parts = dict(self.parts)
+        if detail:
+            arrays, _ = read_map_arrays(self.store.tile_path(detail))
+            parts[detail] = {k: arrays[k] for k in _LAYER_ARRAYS} | {"resolution": arrays["resolution"]}
+        self.detail = detail
+        joined = {k: np.concatenate([p[k] for p in parts.values()]) for k in _LAYER_ARRAYS} if parts else {}
+        if not parts:
+            raise ValueError(f"{self.path}: the store has no tiles")
+        joined["resolution"] = next(iter(parts.values()))["resolution"]
+        order = np.lexsort(joined["voxel_index"].T[::-1])  # key order (x, then y, then z), as a map file's: voxel_at needs it
+        joined.update({k: joined[k][order] for k in _LAYER_ARRAYS})
+        return MapLayer.from_arrays(self.path.name, self.path, joined, self.meta)
 
 
 def load_trajectory(path) -> np.ndarray:
@@ -149,7 +193,10 @@ class MapViewer:
             raise ValueError(f"style must be 'points' or 'boxes', got {style!r}")
         if not map_paths:
             raise ValueError("give at least one map file")
-        self.layers = [MapLayer.from_file(p) for p in map_paths]
+        from ..core.map_store import is_store
+
+        self.stores = {i: StoreOverview(p, max_voxels) for i, p in enumerate(map_paths) if is_store(p)}
+        self.layers = [self.stores[i].layer() if i in self.stores else MapLayer.from_file(p) for i, p in enumerate(map_paths)]
         self.style = style
         self.max_voxels = int(max_voxels)
         self.export_dir = Path(export_dir) if export_dir else self.layers[0].path.parent
@@ -202,6 +249,11 @@ class MapViewer:
             self.gui_show_free = gui.add_checkbox("Show FREE", initial_value=False)
             self.gui_show_unknown = gui.add_checkbox("Show UNKNOWN", initial_value=False)
             self.gui_full_map = gui.add_checkbox("Full map (no decimation)", initial_value=False)
+            self.gui_tile = None
+            if self.stores:  # a store: its overview, and one tile in full detail
+                tiles = ("(overview only)",) + tuple(f"{i}: {t}" for i, o in self.stores.items() for t in sorted(o.store.tiles))
+                self.gui_tile = gui.add_dropdown("Store tile in full", options=tiles, initial_value=tiles[0])
+                self.gui_tile.on_update(lambda _event: self.show_tile(self.gui_tile.value))
             self.gui_status = gui.add_markdown("")
         with gui.add_folder("Classes"):
             self.gui_classes = {name: gui.add_checkbox(name, initial_value=True) for name in self.classes}
@@ -218,6 +270,16 @@ class MapViewer:
             handle.on_update(lambda _event: self.refresh())
         self.gui_export_html.on_click(lambda _event: self._export_from_gui("html"))
         self.gui_export_ply.on_click(lambda _event: self._export_from_gui("ply"))
+
+    def show_tile(self, choice: str) -> None:
+        """Show a store's tile ("i: X_Y_Z", or "(overview only)") in full detail over its overview."""
+        chosen = None if choice.startswith("(") else (int(choice.split(":")[0]), choice.split(": ")[1])
+        for i, overview in self.stores.items():
+            detail = chosen[1] if chosen and chosen[0] == i else ""
+            if detail != overview.detail:
+                self.layers[i] = overview.layer(detail)
+                self._lod_order[i] = np.random.default_rng(0).permutation(len(self.layers[i].centers))
+        self.refresh()
 
     def _shown_layers(self) -> list[int]:
         if self.gui_side_by_side.value:
@@ -269,7 +331,8 @@ class MapViewer:
                 total_visible += int(keep.sum())
                 order = self._lod_order[i]
                 rows = order[keep[order]]
-                if not self.gui_full_map.value and len(rows) > self.max_voxels:
+                # a store's layer is decimated already (its overview), except the tile asked for in full
+                if not self.gui_full_map.value and len(rows) > self.max_voxels and i not in self.stores:
                     rows = rows[: self.max_voxels]
                 rows = np.sort(rows)
                 self.visible_rows[i] = rows

@@ -1,0 +1,266 @@
+"""Batch mapping into map stores: the exported store is the map `evsemmap map` makes, for every method,
+any chunk size, any worker count and either executor; stores are byte-identical whatever ran them;
+killed workers and drivers change nothing; stores answer queries from the tiles they need; bad
+configurations stop before any work."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import REPO
+from evsemmap_warp.apps import batch
+from evsemmap_warp.apps.batch import BatchOptions, run_batch
+from evsemmap_warp.apps.cli import main
+from evsemmap_warp.config import ConfigError, load_config
+from evsemmap_warp.core.map_store import MapStore, StoreError
+from evsemmap_warp.core.mapper import Mapper
+from evsemmap_warp.data.datasets import open_dataset
+from evsemmap_warp.synthetic.preset import load_preset
+from evsemmap_warp.synthetic.writer import generate_sequence
+
+METHODS = ["s-csm", "s-bki", "ebs", "prob-adap-thr", "convbki", "see-csom", "dempster"]
+TOY = REPO / "configs" / "datasets" / "sbki_toy.yaml"
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("batch") / "drive"
+    generate_sequence(load_preset("tiny"), folder, progress=False)
+    return folder
+
+
+def _map(sources, method) -> Mapper:
+    """What `evsemmap map` computes (same code path: datasets, Mapper with its default workers)."""
+    run = load_config([str(s) for s in sources], method=method)
+    dataset = open_dataset(run.dataset)
+    mapper = Mapper(run.mapping, dataset.num_classes, class_names=dataset.class_names or None)
+    for scan in dataset:
+        mapper.integrate(scan.points, scan.payload, payload_type=scan.payload_type, sensor_origin=scan.sensor_origin)
+    return mapper
+
+
+def _batch(sources, out, method="ebs", **options) -> dict:
+    options.setdefault("progress", False)
+    return run_batch([str(s) for s in sources], BatchOptions(method=method, out=out, **options), log=lambda m: None)
+
+
+def _assert_same_map(a: Mapper, b: Mapper, rtol=1e-12):
+    (va, sa), (vb, sb) = a.voxels(), b.voxels()
+    np.testing.assert_array_equal(va.index, vb.index)
+    np.testing.assert_array_equal(sa.label, sb.label)
+    np.testing.assert_array_equal(sa.state, sb.state)
+    np.testing.assert_array_equal(va.hits, vb.hits)
+    np.testing.assert_array_equal(va.touched, vb.touched)
+    np.testing.assert_allclose(va.evidence, vb.evidence, rtol=rtol, atol=1e-12)
+    np.testing.assert_allclose(va.weight_sum, vb.weight_sum, rtol=rtol, atol=1e-12)
+    assert a.scans_integrated == b.scans_integrated and a.points_integrated == b.points_integrated
+
+
+def _files(store: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(store)): p.read_bytes() for p in sorted(store.rglob("*")) if p.is_file() and not p.name.startswith(".fault")}
+
+
+def _assert_same_bytes(a: Path, b: Path):
+    fa, fb = _files(a), _files(b)
+    assert sorted(fa) == sorted(fb)
+    different = [name for name in fa if fa[name] != fb[name]]
+    assert not different, different
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_the_exported_store_is_the_map_for_every_method(drive, tmp_path, method):
+    summary = _batch([drive], tmp_path / "store", method, executor="inline", chunk_frames=2)
+    assert summary["chunks"] == 3 and summary["tiles"] > 1
+    store = MapStore(tmp_path / "store")
+    _assert_same_map(_map([drive], method), store.to_mapper())
+    assert store.voxel_count == summary["voxels"]
+
+
+@pytest.mark.parametrize("method", ["s-bki", "s-csm"])
+def test_the_sbki_compatibility_mode_batches_exactly(tmp_path, method):
+    _batch([TOY], tmp_path / "store", method, executor="inline", chunk_frames=5, tile_voxels=64)
+    _assert_same_map(_map([TOY], method), MapStore(tmp_path / "store").to_mapper())
+
+
+def test_any_chunk_size_and_any_worker_count_give_the_map_and_one_store(drive, tmp_path):
+    reference = _map([drive], "ebs")
+    for chunk in (1, 4):
+        _batch([drive], tmp_path / f"inline{chunk}", executor="inline", chunk_frames=chunk)
+        _assert_same_map(reference, MapStore(tmp_path / f"inline{chunk}").to_mapper())
+    _batch([drive], tmp_path / "two", executor="local", workers=2, chunk_frames=1)
+    _batch([drive], tmp_path / "one", executor="local", workers=1, chunk_frames=1)
+    _assert_same_bytes(tmp_path / "inline1", tmp_path / "two")
+    _assert_same_bytes(tmp_path / "inline1", tmp_path / "one")
+
+
+def test_the_ray_executor_on_a_local_instance_it_starts_and_stops(drive, tmp_path):
+    ray = pytest.importorskip("ray")
+    _batch([drive], tmp_path / "inline", executor="inline", chunk_frames=2)
+    summary = _batch([drive], tmp_path / "ray", executor="ray", workers=2, chunk_frames=2)
+    assert summary["executor"] == "ray" and summary["workers"] == 2
+    assert not ray.is_initialized()  # the instance it started is gone
+    _assert_same_bytes(tmp_path / "inline", tmp_path / "ray")
+
+
+@pytest.mark.parametrize("executor", ["local", "ray"])
+def test_a_worker_killed_in_the_middle_of_a_chunk_changes_nothing(drive, tmp_path, monkeypatch, executor):
+    if executor == "ray":
+        pytest.importorskip("ray")
+    _batch([drive], tmp_path / "clean", executor="inline", chunk_frames=2)
+    monkeypatch.setenv(batch.FAULT_VARIABLE, "kill-chunk:1")
+    _batch([drive], tmp_path / "killed", executor=executor, workers=2, chunk_frames=2)
+    assert (tmp_path / "killed" / "work" / ".fault-1").exists()  # the worker did die once
+    assert not list((tmp_path / "killed" / "work").glob(".chunk_*"))  # and left nothing behind
+    _assert_same_bytes(tmp_path / "clean", tmp_path / "killed")
+
+
+def test_a_killed_driver_resumes_without_redoing_or_counting_twice(tmp_path):
+    folder = tmp_path / "drive"
+    generate_sequence(load_preset("tiny", trajectory__frames=20, trajectory__spacing_m=1.0), folder, progress=False)
+    chunks = _batch([folder], tmp_path / "clean", executor="inline", chunk_frames=1)["chunks"]
+    assert chunks >= 15
+    out = tmp_path / "store"
+    command = [sys.executable, "-m", "evsemmap_warp.apps.cli", "batch", str(folder), "--method", "ebs", "--out", str(out),
+               "--workers", "1", "--chunk-frames", "1", "--quiet"]
+    process = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while time.time() < deadline and len(list((out / "work").glob("chunk_*"))) < 3:
+        time.sleep(0.02)
+    os.killpg(process.pid, signal.SIGKILL)  # the driver and its workers, as a reboot would
+    process.wait()
+    finished = {p.name: p.stat().st_mtime_ns for p in (out / "work").glob("chunk_*")}
+    assert 3 <= len(finished) < chunks and not (out / "store.json").exists()
+    done = subprocess.run(command[:-1], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert f"resuming: {len(finished)} of {chunks} chunks are mapped already" in done.stderr
+    assert json.loads(done.stdout)["chunks_resumed"] == len(finished)
+    assert all((out / "work" / name).stat().st_mtime_ns == mtime for name, mtime in finished.items())  # not redone
+    _assert_same_bytes(tmp_path / "clean", out)
+
+
+def test_queries_read_only_the_tiles_their_points_fall_in(drive, tmp_path):
+    _batch([drive], tmp_path / "store", executor="inline", chunk_frames=3, tile_voxels=32)
+    store = MapStore(tmp_path / "store")
+    mapper = _map([drive], "ebs")
+    voxels, _ = mapper.voxels()
+    assert len(store.tiles) > 10
+    some = mapper.voxel_centers(voxels.index[::997])
+    name = sorted(store.tiles)[len(store.tiles) // 2]
+    inside = mapper.voxel_centers(store.tile(name).voxels()[0].index[:50])
+    fresh = MapStore(tmp_path / "store")
+    result = fresh.query(inside)
+    assert fresh.tiles_loaded == 1
+    expected = mapper.query(inside)
+    np.testing.assert_array_equal(result.label, expected.label)
+    np.testing.assert_allclose(result.probabilities, expected.probabilities, rtol=1e-12)
+    far = fresh.query(np.array([[1e6, 0, 0], [-5e5, 3e5, 10]]))
+    assert (far.label == -1).all() and fresh.tiles_loaded == 1  # no tile there, none read
+    everywhere = MapStore(tmp_path / "store").query(some)
+    np.testing.assert_array_equal(everywhere.label, mapper.query(some).label)
+    np.testing.assert_array_equal(everywhere.voxel_index, mapper.query(some).voxel_index)
+
+
+def test_export_bounds_info_merge_and_view_of_stores(tmp_path, capsys):
+    import yaml
+
+    halves = []
+    for name, first, last in (("a", 1, 6), ("b", 7, 12)):
+        config = yaml.safe_load(TOY.read_text())
+        config["dataset"].update(paths=[str(REPO / "tests/data/sbki_toy")], first_index=first, last_index=last)
+        halves.append(tmp_path / f"{name}.yaml")
+        halves[-1].write_text(yaml.safe_dump(config))
+    for name, config in zip("ab", halves):
+        assert main(["batch", str(config), "--method", "s-csm", "--out", str(tmp_path / name), "--workers", "1", "--quiet"]) == 0
+    capsys.readouterr()
+    full = _map([TOY], "s-csm")
+    # two drives over one area: merged, as maps and as stores
+    assert main(["merge", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "ab.npz")]) == 0
+    _assert_same_map(full, Mapper.load(tmp_path / "ab.npz"))
+    assert main(["export", str(tmp_path / "b"), "--out", str(tmp_path / "b.npz")]) == 0
+    assert main(["merge", str(tmp_path / "a"), str(tmp_path / "b.npz"), "--out", str(tmp_path / "ab_store"), "--tile-voxels", "64"]) == 0
+    _assert_same_map(full, MapStore(tmp_path / "ab_store").to_mapper())
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "ab_store")]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["voxels"] == full.voxel_count and info["tiles"] > 1 and info["method"] == "s-csm"
+    # a box: exactly the map's voxels whose centres lie in it, from the tiles that meet it
+    bounds = np.array([[-5.0, -5.0, -2.0], [5.0, 5.0, 2.0]])
+    assert main(["export", str(tmp_path / "ab_store"), "--bounds", *map(str, bounds.ravel()), "--out", str(tmp_path / "box.npz")]) == 0
+    report = json.loads(capsys.readouterr().out)
+    box = Mapper.load(tmp_path / "box.npz")
+    voxels, _ = full.voxels()
+    centres = full.voxel_centers(voxels.index)
+    inside = np.all((centres >= bounds[0]) & (centres <= bounds[1]), axis=1)
+    np.testing.assert_array_equal(box.voxels()[0].index, voxels.index[inside])
+    assert report["tiles_read"] < info["tiles"]
+    # the viewer: a decimated overview of every tile, one tile in full
+    from evsemmap_warp.apps.viewer import MapViewer, free_port
+
+    viewer = MapViewer([tmp_path / "ab_store"], port=free_port(), max_voxels=2000)
+    try:
+        overview = len(viewer.layers[0].centers)
+        assert overview <= 2000 + len(viewer.stores[0].parts)
+        tile = sorted(viewer.stores[0].store.tiles, key=lambda t: -viewer.stores[0].store.tiles[t]["voxels"])[0]
+        viewer.show_tile(f"0: {tile}")
+        assert len(viewer.layers[0].centers) >= overview + viewer.stores[0].store.tiles[tile]["voxels"] - len(viewer.stores[0].parts[tile]["state"])
+        layer = viewer.layers[0]
+        np.testing.assert_array_equal(layer.voxel_at(layer.centers[::37]), np.arange(len(layer.centers))[::37])  # picking works
+    finally:
+        viewer.server.stop()
+
+
+def test_configurations_that_cannot_work_stop_before_any_work(drive, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(batch, "available_memory", lambda: 1 << 30)
+    with pytest.raises(ConfigError, match=r"--chunk-frames 100 with 4 workers needs about .* GB .* use --chunk-frames \d+ or fewer --workers"):
+        _batch([drive], tmp_path / "small", workers=4)
+    assert not (tmp_path / "small").exists()
+    monkeypatch.undo()
+    _batch([drive], tmp_path / "store", executor="inline", chunk_frames=2)
+    with pytest.raises(ConfigError, match="holds a batch run of other inputs or settings .differing: mapping, method"):
+        _batch([drive], tmp_path / "store", "s-csm", executor="inline", chunk_frames=2)
+    monkeypatch.setitem(sys.modules, "ray", None)
+    assert main(["batch", str(drive), "--method", "ebs", "--out", str(tmp_path / "r"), "--executor", "ray", "--quiet"]) == 2
+    assert 'pip install "evsemmap_warp[ray]"' in capsys.readouterr().err
+    assert main(["batch", str(drive), "--method", "ebs", "--out", str(tmp_path / "x"), "--ray-address", "auto"]) == 2
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "store.json").write_text("{not json")
+    with pytest.raises(StoreError, match="not a readable store index"):
+        MapStore(tmp_path / "junk")
+    assert main(["merge", str(tmp_path / "store"), "--out", str(tmp_path / "m.npz")]) == 2
+
+
+def test_a_corridor_world_is_seamless_and_long_drives_need_only_tiles_in_view(tmp_path):
+    from evsemmap_warp.synthetic.scene import generate_world
+    from evsemmap_warp.synthetic.writer import sequence_poses
+
+    preset = load_preset("long", world__size_m=30, world__corridor_tiles=3, trajectory__frames=120, trajectory__spacing_m=0.5,
+                         trajectory__margin_m=5, lidar__max_range_m=15)
+    tiles = [generate_world(preset.world, preset.seed, tile=t) for t in range(2)]
+    seam = [w.vertices[np.isclose(w.vertices[:, 0], 15.0) & (np.abs(w.vertices[:, 1]) < 14.5)] for w in tiles]
+    ground = [s[np.argsort(s[:, 1])][:, 1:] for s in seam]
+    assert len(ground[0]) > 50
+    np.testing.assert_allclose(ground[0], ground[1], atol=0.05)  # the terrain meets at the seam (puddles may dip 3 cm)
+    poses = sequence_poses(preset)
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    assert len(poses) == 120 and poses[-1, 0, 3] > 30 and steps.max() < 0.6  # across two seams, no jump
+    summary = generate_sequence(preset, tmp_path / "long", progress=False, camera=False)
+    assert summary["frames"] == 120 and not summary["camera"] and summary["drive_m"] > 55
+    assert summary["triangles"] < 3.5 * len(tiles[0].faces)  # a window of tiles, never the whole corridor
+    assert not (tmp_path / "long" / "pylon_camera_node").exists()
+    # every scan equals one of the whole corridor held at once: the window held every tile in range
+    from evsemmap_warp.synthetic.scene import concatenate_worlds
+    from evsemmap_warp.synthetic.sensors import RayCaster, lidar_directions, scan_lidar
+
+    whole = concatenate_worlds([generate_world(preset.world, preset.seed, tile=t) for t in range(3)])
+    caster = RayCaster(whole.vertices, whole.faces)
+    for index in range(0, 120, 7):
+        scan = scan_lidar(caster, whole, poses[index], preset.lidar, np.random.default_rng([preset.seed, index]), lidar_directions(preset.lidar))
+        written = np.fromfile(tmp_path / "long" / "os1_cloud_node_kitti_bin" / f"{index:06d}.bin", np.float32).reshape(-1, 4)
+        np.testing.assert_array_equal(written, scan.points)
