@@ -294,3 +294,25 @@ def test_camera_labelled_maps_from_a_log_equal_the_folder(drive, tmp_path, capsy
     assert main(["map", str(logs["mcap"]), "rellis3d", "rellis3d-bag", "--method", "prob", "--checkpoint", str(checkpoint),
                  "--out", str(out), "--quiet"]) == 0
     assert json.loads(capsys.readouterr().out)["scans"] == 1  # the rellis3d preset bins 30 frames: the 6 frames make one bin
+
+
+def test_batch_maps_a_log_in_worker_processes_as_the_folder(drive, tmp_path):
+    """A log's index travels to the workers (pickled without its open reader); each reopens the log."""
+    from evsemmap_warp.apps.batch import BatchOptions, run_batch
+    from evsemmap_warp.core.map_store import MapStore
+
+    folder, logs, _ = drive
+    run_batch([str(logs["rosbag1"]), "rellis3d-bag"], BatchOptions(method="ebs", out=tmp_path / "store", workers=2, chunk_frames=2,
+                                                                    progress=False), log=lambda m: None)
+    _assert_same_map(_map([folder], "ebs"), MapStore(tmp_path / "store").to_mapper())
+
+
+def test_dump_config_shows_the_bag_settings_and_the_preset_bins(drive, capsys):
+    import yaml
+
+    folder, logs, _ = drive
+    assert main(["dump-config", str(logs["rosbag1"]), "rellis3d", "rellis3d-bag"]) == 0
+    dumped = yaml.safe_load(capsys.readouterr().out)
+    assert dumped["dataset"]["bag"]["odometry_topic"] == "/odometry/filtered" and dumped["pipeline"]["bin_frames"] == 30
+    assert main(["dump-config", str(folder)]) == 0
+    assert "bag" not in yaml.safe_load(capsys.readouterr().out)["dataset"]

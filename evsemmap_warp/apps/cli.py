@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -361,7 +362,14 @@ def _cmd_dump_config(args) -> int:
     run = load_config(args.configs, method=args.method)
     out = {"mapping": run.mapping.as_dict()}
     if run.dataset is not None:
-        out["dataset"] = {k: (list(v) if isinstance(v, tuple) else getattr(v, "value", v)) for k, v in vars(run.dataset).items()}
+        def plain(value):
+            if dataclasses.is_dataclass(value):
+                return {k: plain(v) for k, v in vars(value).items()}
+            return list(value) if isinstance(value, tuple) else getattr(value, "value", value)
+
+        out["dataset"] = {k: plain(v) for k, v in vars(run.dataset).items() if k != "bag" or run.dataset.kind == "bag"}
+    if run.bin_frames != 1:
+        out["pipeline"] = {"bin_frames": run.bin_frames}
     print(yaml.safe_dump(out, sort_keys=False), end="")
     return 0
 

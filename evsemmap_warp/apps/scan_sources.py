@@ -18,6 +18,9 @@ from ..data.datasets import Scan, open_dataset, open_sequence
 from ..geometry.projection import ProjectionConfig, bin_frames, project_frames
 
 
+_NETWORKS: dict = {}  # checkpoint (path, mtime) -> loaded network, per process
+
+
 class _CameraScans:
     """Frames with a camera image, their values projected onto their scans, in bins of ``bin_frames``."""
 
@@ -72,8 +75,12 @@ class CheckpointScans(_CameraScans):
         from ..segmentation.train import infer_alpha, load_checkpoint
 
         if self._network is None:
-            model, train_config, meta, _ = load_checkpoint(self.checkpoint)
-            self._network = (model, train_config, meta)
+            key = (str(self.checkpoint.resolve()), self.checkpoint.stat().st_mtime_ns)
+            if key not in _NETWORKS:  # once per worker process, however many tasks it runs
+                model, train_config, meta, _ = load_checkpoint(self.checkpoint)
+                _NETWORKS.clear()
+                _NETWORKS[key] = (model, train_config, meta)
+            self._network = _NETWORKS[key]
         model, train_config, meta = self._network
         outputs = infer_alpha(model, train_config, meta, (self.sequence.read_image(f) for f in frames), batch_size=self.batch_size)
         return lambda frame: next(outputs)[0].astype(np.float32)
