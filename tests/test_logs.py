@@ -18,6 +18,7 @@ from evsemmap_warp.core.mapper import Mapper  # noqa: E402
 from evsemmap_warp.data.datasets import open_dataset, open_sequence  # noqa: E402
 from evsemmap_warp.data.log_writer import _LogOut, write_log  # noqa: E402
 from evsemmap_warp.data.logs import LogSequence, check_log  # noqa: E402
+from evsemmap_warp.data.ros_messages import encode_cloud  # noqa: E402
 from evsemmap_warp.data.sequences import DataError  # noqa: E402
 from evsemmap_warp.geometry.camera import quaternion_to_matrix, rigid  # noqa: E402
 from evsemmap_warp.geometry.projection import label_map_for, project_frames  # noqa: E402
@@ -316,3 +317,20 @@ def test_dump_config_shows_the_bag_settings_and_the_preset_bins(drive, capsys):
     assert dumped["dataset"]["bag"]["odometry_topic"] == "/odometry/filtered" and dumped["pipeline"]["bin_frames"] == 30
     assert main(["dump-config", str(folder)]) == 0
     assert "bag" not in yaml.safe_load(capsys.readouterr().out)["dataset"]
+
+
+def test_messages_sharing_a_log_time_are_found_in_any_order(tmp_path):
+    log = _LogOut(tmp_path / "same_time.bag", "rosbag1")
+    t0 = 50 * 1_000_000_000
+    log.write("/tf_static", log.tf([log.transform("odom", "lidar", np.eye(4), t0)]), t0)
+    for k in range(3):  # three clouds recorded at one instant, stamped 10 ms apart
+        xyz = np.full((2, 3), k + 1, np.float32)
+        columns = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}
+        msg = log.types["sensor_msgs/msg/PointCloud2"](header=log.header(t0 + k * 10_000_000, "lidar"), is_dense=True, fields=[
+            log.types["sensor_msgs/msg/PointField"](name=n, offset=o, datatype=d, count=c)
+            for n, o, d, c in encode_cloud(columns)["fields"]], **{k2: v for k2, v in encode_cloud(columns).items() if k2 != "fields"})
+        log.write("/os1_cloud_node/points", msg, t0)
+    log.close()
+    seq = LogSequence([tmp_path / "same_time.bag"])
+    for frame in (seq.frames[2], seq.frames[0], seq.frames[1], seq.frames[1], seq.frames[2]):
+        assert seq.read_scan(frame)[0, 0] == frame.index + 1

@@ -73,7 +73,8 @@ class _Cursor:
         self._last = -1
 
     def get(self, log_time_ns: int, stamp_ns: int, ros2: bool, where: str):
-        if self._messages is None or log_time_ns < self._last:
+        # at or before the last message read: start again there (messages may share a log time)
+        if self._messages is None or log_time_ns <= self._last:
             self._messages = self.reader.messages(connections=self.connections, start=log_time_ns)
         for connection, time_ns, raw in self._messages:
             self._last = time_ns
@@ -95,8 +96,9 @@ def _stamp(header) -> int:
 
 
 class LogSequence:
-    """A robot log read as a sequence (see the module text). ``problems`` gathers what would make
-    mapping fail (for ``check-data``); using a broken part raises a DataError naming it."""
+    """A robot log read as a sequence (see the module text). ``missing_topics`` lists configured
+    camera topics the log lacks (for ``check-data``); using a missing or broken part raises a
+    DataError naming it."""
 
     def __init__(self, logs, config: BagConfig = BagConfig()):
         self.logs = [Path(p) for p in logs]
