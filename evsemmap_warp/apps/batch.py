@@ -86,9 +86,7 @@ class Context:
     tile_voxels: int
 
     def template(self) -> Mapper:
-        mapper = Mapper(self.config, self.num_classes, class_names=self.class_names, workers=1, initial_capacity=16)
-        mapper.origin_index = np.asarray(self.origin_index, np.int64)
-        return mapper
+        return map_store.template_mapper(self.config, self.class_names, self.origin_index)
 
 
 # Planning ------------------------------------------------------------------------------------------
@@ -330,8 +328,8 @@ def write_store_from_mapper(mapper: Mapper, out, tile_voxels: int, sources: list
     if out.exists() and any(out.iterdir()):
         raise ConfigError(f"{out}: exists and is not empty; a store is written to a new folder")
     voxels, _ = mapper.voxels()
-    template = Mapper(mapper.config, mapper.num_classes, class_names=mapper.class_names, workers=1, initial_capacity=16)
-    template.origin_index = mapper.origin_index if mapper.origin_index is not None else np.zeros(3, np.int64)
+    template = map_store.template_mapper(mapper.config, mapper.class_names,
+                                         mapper.origin_index if mapper.origin_index is not None else np.zeros(3, np.int64))
     totals = {"scans": mapper.scans_integrated, "points": mapper.points_integrated}
     entries = {name: _write_tile(out, name, template, VoxelArrays.from_rows(index, rows), totals)
                for name, (index, rows) in map_store.split_by_tile(voxels.index, voxels.rows(), tile_voxels).items()}

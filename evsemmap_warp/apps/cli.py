@@ -254,7 +254,7 @@ def _cmd_synth(args) -> int:
     return 0
 
 
-def _bag_config(logs, configs) -> "BagConfig":
+def _bag_config(logs, configs):
     """The dataset.bag settings of the given config files and preset names (defaults without any)."""
     run = load_config([str(p) for p in logs] + list(configs))
     return run.dataset.bag

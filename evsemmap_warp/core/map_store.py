@@ -121,6 +121,14 @@ def reduce_partials(template: Mapper, parts: list[tuple[np.ndarray, np.ndarray]]
     return summed
 
 
+def template_mapper(config: MappingConfig, class_names, origin_index) -> Mapper:
+    """An empty Mapper with a store's parameters and origin: the read-out (labels, states,
+    concentrations, centres) of tiles and partials, without a table of its own to speak of."""
+    mapper = Mapper(config, len(class_names), class_names=tuple(class_names), workers=1, initial_capacity=16)
+    mapper.origin_index = np.asarray(origin_index, np.int64).reshape(3)
+    return mapper
+
+
 def write_tile(path: Path, template: Mapper, voxels: VoxelArrays, totals: dict) -> Path:
     """One tile in the map-file schema; ``template`` (an empty Mapper with the store's config and
     origin) gives the read-out, ``totals`` the whole map's scan and point counts."""
@@ -154,8 +162,7 @@ class MapStore:
         self.num_classes = len(self.class_names)
         self.tile_voxels = int(self.index["tile_voxels"])
         self.tiles = {name: info for name, info in self.index["tiles"].items()}
-        self.template = Mapper(self.config, self.num_classes, class_names=self.class_names, workers=1, initial_capacity=16)
-        self.template.origin_index = np.asarray(self.index["origin_index"], np.int64)
+        self.template = template_mapper(self.config, self.class_names, self.index["origin_index"])
         self._cache: OrderedDict[str, Mapper] = OrderedDict()
         self.cache_tiles = cache_tiles
         self.tiles_loaded = 0  # how many tile files were read (tests hold queries to the tiles they need)

@@ -7,8 +7,8 @@ Every dataset yields ``Scan`` records one at a time, so a sequence of any length
 from __future__ import annotations
 
 import warnings
-from pathlib import Path
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Iterator, Protocol
 
 import numpy as np

@@ -335,31 +335,30 @@ class LogSequence:
                             f"{list(self._cloud_fields)}. Map it from camera images with a segmentation checkpoint instead")
         return self._decode(frame)[1]
 
+    def _picture(self, kind: str, message: tuple[int, int], topic: str) -> tuple[np.ndarray, str]:
+        """A camera or label image message decoded, checked against the camera info's size."""
+        where = f"{self.describe()} {topic} ({format_stamp(message[1])})"
+        try:
+            pixels = decode_image(self._message(kind, *message, where), where)
+        except MessageError as exc:
+            raise DataError(str(exc)) from None
+        if pixels.shape[:2] != (self.camera.height, self.camera.width):
+            raise DataError(f"{where}: {pixels.shape[1]}x{pixels.shape[0]} pixels, but the camera info says {self.camera.width}x{self.camera.height}")
+        return pixels, where
+
     def read_image(self, frame: LogFrame) -> np.ndarray:
         if "image_topic" in self.missing_topics:
             raise DataError(self.missing_topics["image_topic"])
         if frame.image is None:
             raise DataError(f"{frame.scan}: no camera image within {self.config.image_tolerance_s} s")
-        where = f"{self.describe()} {self.config.image_topic} ({format_stamp(frame.image[1])})"
-        try:
-            image = decode_image(self._message("image", *frame.image, where), where)
-        except MessageError as exc:
-            raise DataError(str(exc)) from None
-        if image.ndim == 2:
-            image = np.repeat(image[..., None], 3, axis=2).astype(np.uint8)
-        if image.shape[:2] != (self.camera.height, self.camera.width):
-            raise DataError(f"{where}: {image.shape[1]}x{image.shape[0]} pixels, but the camera info says {self.camera.width}x{self.camera.height}")
-        return image
+        image, _ = self._picture("image", frame.image, self.config.image_topic)
+        return np.repeat(image[..., None], 3, axis=2).astype(np.uint8) if image.ndim == 2 else image
 
     def read_label_ids(self, frame: LogFrame) -> np.ndarray:
         """[H, W] raw ontology ids of the frame's 2D labels (one-channel ids, or RELLIS-3D colours)."""
         if frame.label_image is None:
             raise DataError(self.missing_topics.get("label_image_topic", f"{frame.scan}: no label image paired with its camera image"))
-        where = f"{self.describe()} {self.config.label_image_topic} ({format_stamp(frame.label_image[1])})"
-        try:
-            raw = decode_image(self._message("label_image", *frame.label_image, where), where)
-        except MessageError as exc:
-            raise DataError(str(exc)) from None
+        raw, where = self._picture("label_image", frame.label_image, self.config.label_image_topic)
         if raw.ndim == 3:
             from ..classes import decode_color_labels, palette
 
