@@ -334,3 +334,24 @@ def test_messages_sharing_a_log_time_are_found_in_any_order(tmp_path):
     seq = LogSequence([tmp_path / "same_time.bag"])
     for frame in (seq.frames[2], seq.frames[0], seq.frames[1], seq.frames[1], seq.frames[2]):
         assert seq.read_scan(frame)[0, 0] == frame.index + 1
+
+
+def test_a_log_damaged_mid_read_is_one_line_naming_it(drive, tmp_path, monkeypatch, capsys):
+    """What rosbags raises on a damaged chunk or message (its own error types) becomes one line."""
+    from rosbags.highlevel import AnyReader, AnyReaderError
+
+    _, logs, _ = drive
+    original = AnyReader.deserialize
+
+    def damaged(self, raw, msgtype):
+        if msgtype == "sensor_msgs/msg/PointCloud2":
+            raise AnyReaderError("Could not deserialize message: buffer too short")
+        return original(self, raw, msgtype)
+
+    seq = open_sequence([logs["rosbag1"], "rellis3d-bag"])  # indexed intact; the clouds break afterwards
+    monkeypatch.setattr(AnyReader, "deserialize", damaged)
+    with pytest.raises(DataError, match=r"drive\.bag .*the log is damaged \(AnyReaderError: Could not deserialize"):
+        seq.read_scan(seq.frames[3])
+    assert main(["map", str(logs["rosbag1"]), "rellis3d-bag", "--method", "ebs", "--out", str(tmp_path / "m.npz"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "the log is damaged" in err and "Traceback" not in err

@@ -49,6 +49,23 @@ def open_reader(logs: list[Path]):
     return reader
 
 
+class _ReadingErrors:
+    """Turns what a damaged log makes rosbags raise mid-read (its reader, deserialiser and
+    decompression errors: no common base class) into one DataError naming the log; the project's
+    own errors pass through."""
+
+    def __init__(self, where: str):
+        self.where = where
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, exc, traceback):
+        if exc is None or isinstance(exc, (ValueError, KeyboardInterrupt, MemoryError, GeneratorExit)):
+            return False
+        raise DataError(f"{self.where}: the log is damaged ({type(exc).__name__}: {exc})") from None
+
+
 @dataclass
 class LogFrame:
     """One cloud of the log; ``image`` / ``label_image``: (log time, header stamp) of the paired
@@ -76,12 +93,13 @@ class _Cursor:
         # at or before the last message read: start again there (messages may share a log time)
         if self._messages is None or log_time_ns <= self._last:
             self._messages = self.reader.messages(connections=self.connections, start=log_time_ns)
-        for connection, time_ns, raw in self._messages:
-            self._last = time_ns
-            if time_ns > log_time_ns:
-                break
-            if time_ns == log_time_ns and header_stamp_ns(raw, ros2) == stamp_ns:
-                return self.reader.deserialize(raw, connection.msgtype)
+        with _ReadingErrors(where):
+            for connection, time_ns, raw in self._messages:
+                self._last = time_ns
+                if time_ns > log_time_ns:
+                    break
+                if time_ns == log_time_ns and header_stamp_ns(raw, ros2) == stamp_ns:
+                    return self.reader.deserialize(raw, connection.msgtype)
         self._messages = None
         raise DataError(f"{where}: the message is no longer where the index found it (was the log changed while reading?)")
 
@@ -180,6 +198,32 @@ class LogSequence:
                                                  ("odometry", odometry), ("tf", tf), ("tf_static", tf_static)) for x in conns}
         wanted = [x for conns in (cloud, image, label_image, info, odometry, tf, tf_static) for x in conns]
         stamps = {"cloud": [], "image": [], "label_image": []}
+        with _ReadingErrors(self.describe()):
+            first_cloud = self._read_index(wanted, kinds, stamps)
+        if first_cloud is None:
+            raise DataError(f"{self.describe()}: no message on {self.cloud_topic!r}")
+        self.lidar_frame = c.lidar_frame or first_cloud.header.frame_id
+        self._cloud_fields = tuple(f.name for f in first_cloud.fields)
+        has_labels = bool(c.label_field) and c.label_field in self._cloud_fields
+        self._add_extrinsics()
+        images = sorted(stamps["image"], key=lambda s: s[1])
+        labels = {s[1]: s for s in stamps["label_image"]}
+        image_stamps = np.array([s[1] for s in images], np.int64)
+        tolerance = int(round(c.image_tolerance_s * 1e9))
+        for index, (time_ns, stamp) in enumerate(stamps["cloud"]):
+            where = f"{self.describe()} {self.cloud_topic} message {index} ({format_stamp(stamp)})"
+            frame = LogFrame(index, stamp, time_ns, where, point_labels=f"{where} field {c.label_field!r}" if has_labels else None)
+            if len(image_stamps):
+                at = int(np.searchsorted(image_stamps, stamp))
+                nearest = min((i for i in (at - 1, at) if 0 <= i < len(images)), key=lambda i: abs(int(image_stamps[i]) - stamp))
+                if abs(int(image_stamps[nearest]) - stamp) <= tolerance:
+                    frame.image = images[nearest]
+                    frame.label_image = labels.get(frame.image[1])
+            self.frames.append(frame)
+
+    def _read_index(self, wanted, kinds: dict, stamps: dict):
+        """One pass over the log: stamps of clouds and images (from the raw bytes), transforms,
+        odometry and the camera info; returns the first cloud, decoded (its frame and fields)."""
         first_cloud = None
         for connection, time_ns, raw in self.reader.messages(connections=wanted):
             kind = kinds[connection.id]
@@ -207,26 +251,7 @@ class LogSequence:
                             self.tree.add_timed(t.header.frame_id, t.child_frame_id, _stamp(t.header), translation, rotation)
             except (TransformError, MessageError) as exc:
                 raise DataError(f"{self.describe()} {connection.topic} at {format_stamp(time_ns)}: {exc}") from None
-        if first_cloud is None:
-            raise DataError(f"{self.describe()}: no message on {self.cloud_topic!r}")
-        self.lidar_frame = c.lidar_frame or first_cloud.header.frame_id
-        self._cloud_fields = tuple(f.name for f in first_cloud.fields)
-        has_labels = bool(c.label_field) and c.label_field in self._cloud_fields
-        self._add_extrinsics()
-        images = sorted(stamps["image"], key=lambda s: s[1])
-        labels = {s[1]: s for s in stamps["label_image"]}
-        image_stamps = np.array([s[1] for s in images], np.int64)
-        tolerance = int(round(c.image_tolerance_s * 1e9))
-        for index, (time_ns, stamp) in enumerate(stamps["cloud"]):
-            where = f"{self.describe()} {self.cloud_topic} message {index} ({format_stamp(stamp)})"
-            frame = LogFrame(index, stamp, time_ns, where, point_labels=f"{where} field {c.label_field!r}" if has_labels else None)
-            if len(image_stamps):
-                at = int(np.searchsorted(image_stamps, stamp))
-                nearest = min((i for i in (at - 1, at) if 0 <= i < len(images)), key=lambda i: abs(int(image_stamps[i]) - stamp))
-                if abs(int(image_stamps[nearest]) - stamp) <= tolerance:
-                    frame.image = images[nearest]
-                    frame.label_image = labels.get(frame.image[1])
-            self.frames.append(frame)
+        return first_cloud
 
     def _add_extrinsics(self) -> None:
         c = self.config
