@@ -221,6 +221,10 @@ def test_configurations_that_cannot_work_stop_before_any_work(drive, tmp_path, m
     with pytest.raises(ConfigError, match=r"--chunk-frames 100 with 4 workers needs about .* GB .* use --chunk-frames \d+ or fewer --workers"):
         _batch([drive], tmp_path / "small", workers=4)
     assert not (tmp_path / "small").exists()
+    calls = []  # room to map, none to reduce: the reducer's check names its own flag
+    monkeypatch.setattr(batch, "available_memory", lambda: calls.append(1) or ((1 << 40) if len(calls) == 1 else (1 << 20)))
+    with pytest.raises(ConfigError, match=r"reducing the largest tile .* use a smaller --tile-voxels or fewer --workers"):
+        _batch([drive], tmp_path / "reduce", workers=1, chunk_frames=3)
     monkeypatch.undo()
     _batch([drive], tmp_path / "store", executor="inline", chunk_frames=2)
     with pytest.raises(ConfigError, match="holds a batch run of other inputs or settings .differing: mapping, method"):

@@ -50,7 +50,7 @@ def median_time(fn, repeats: int) -> tuple[float, object]:
 
 
 def raw_pass(log: Path, topics: set[str]) -> tuple[int, int]:
-    reader = open_reader([log] if log.suffix else [log])
+    reader = open_reader([log])
     try:
         connections = [c for c in reader.connections if c.topic in topics]
         count = size = 0

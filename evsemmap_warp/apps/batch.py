@@ -164,9 +164,10 @@ def plan_batch(paths: list[str], options: BatchOptions):
     return inputs, sources, config, chunks, identity
 
 
-def probe(sources, config: MappingConfig) -> tuple[np.ndarray, int, int]:
-    """The origin ``evsemmap map`` would pick (the first non-empty scan's), and the voxels of the
-    first insertion and of the first two (for the memory estimate)."""
+def probe(sources, config: MappingConfig) -> tuple[np.ndarray, tuple[str, ...], int, int]:
+    """The origin and class names ``evsemmap map`` would give the map (the origin of the first
+    non-empty scan), and the voxels of the first insertion and of the first two (for the memory
+    estimate)."""
     source = sources[0]
     mapper = Mapper(config, source.num_classes, class_names=source.class_names or None, workers=1)
     counts = []
@@ -179,7 +180,7 @@ def probe(sources, config: MappingConfig) -> tuple[np.ndarray, int, int]:
             break
     if mapper.origin_index is None:
         raise ConfigError("batch: every scan of the first input is empty")
-    return mapper.origin_index.copy(), counts[0], counts[-1]
+    return mapper.origin_index.copy(), mapper.class_names, counts[0], counts[-1]
 
 
 def available_memory() -> int:
@@ -482,6 +483,12 @@ def _check_store(out: Path, identity: dict) -> None:
         raise ConfigError(f"{out}: exists and is not a batch store; give a new --out")
 
 
+def _remove_unfinished_chunks(out: Path) -> None:
+    """What workers killed halfway left (temporary chunk folders): never counted, removed."""
+    for stale in (out / "work").glob(".chunk_*"):
+        shutil.rmtree(stale, ignore_errors=True)
+
+
 def run_batch(paths: list[str], options: BatchOptions, log=None) -> dict:
     """Plan, map chunks, reduce tiles and write the store; returns the summary."""
     log = log or (lambda m: print(m, file=sys.stderr))
@@ -492,17 +499,15 @@ def run_batch(paths: list[str], options: BatchOptions, log=None) -> dict:
         raise ConfigError(f"--executor {options.executor!r}: local or ray")
     inputs, sources, config, chunks, identity = plan_batch(paths, options)
     _check_store(out, identity)
-    origin_index, first, first_two = probe(sources, config)
+    origin_index, class_names, first, first_two = probe(sources, config)
     workers = options.workers or (os.cpu_count() or 1)
     insertions = max(c.stop - c.start for c in chunks)
     budget = check_memory(options, workers, insertions, first, first_two, sources[0].num_classes)
     times["plan"] = time.perf_counter() - started
     (out / "work").mkdir(parents=True, exist_ok=True)
     map_store.write_json(out / "work" / "plan.json", identity)
-    for stale in (out / "work").glob(".chunk_*"):  # what killed workers left: never counted
-        shutil.rmtree(stale, ignore_errors=True)
-    context = Context(out, sources, config, sources[0].num_classes, tuple(sources[0].class_names or ()) or tuple(
-        f"class_{i}" for i in range(sources[0].num_classes)), origin_index, options.tile_voxels)
+    _remove_unfinished_chunks(out)
+    context = Context(out, sources, config, sources[0].num_classes, class_names, origin_index, options.tile_voxels)
     finished = [c for c in chunks if (_chunk_dir(out, c.number) / "done.json").is_file()]
     todo = [c for c in chunks if c not in finished]
     total_frames = sum(c.frames for c in chunks)
@@ -529,8 +534,7 @@ def run_batch(paths: list[str], options: BatchOptions, log=None) -> dict:
 
         executor.run(map_chunk, [(c,) for c in todo], chunk_done)
         bar.close()
-        for stale in (out / "work").glob(".chunk_*"):  # what workers that died halfway left: never counted
-            shutil.rmtree(stale, ignore_errors=True)
+        _remove_unfinished_chunks(out)
         times["map"] = time.perf_counter() - stage
         for c in chunks:
             records[c.number] = json.loads((_chunk_dir(out, c.number) / "done.json").read_text())
@@ -543,12 +547,11 @@ def run_batch(paths: list[str], options: BatchOptions, log=None) -> dict:
         reducer_bytes = WORKER_OVERHEAD_BYTES + 3 * largest
         if options.executor == "local" and DRIVER_OVERHEAD_BYTES + min(workers, max(len(tiles), 1)) * reducer_bytes > available_memory():
             raise ConfigError(f"batch: reducing the largest tile needs about {reducer_bytes / 2**30:.1f} GB per reducer; "
-                              f"use a smaller --tile-size or fewer --workers (the mapped chunks are kept: rerun to resume)")
+                              f"use a smaller --tile-voxels or fewer --workers (the mapped chunks are kept: rerun to resume)")
         stage = time.perf_counter()
         entries = {}
         executor.run(reduce_tile, [(name, numbers, totals) for name, numbers in sorted(tiles.items())],
                      lambda item, result: entries.__setitem__(item[0], result))
-        executor.close()
         times["reduce"] = time.perf_counter() - stage
     finally:
         executor.close()
@@ -574,7 +577,7 @@ def run_batch(paths: list[str], options: BatchOptions, log=None) -> dict:
         "frames_per_second": round(sum(c.frames for c in todo) / times["map"], 2) if todo and times["map"] > 0 else None,
         "chunk_seconds_median": round(float(np.median(chunk_seconds)), 3) if chunk_seconds else None,
         "tile_seconds_median": round(float(np.median([e["seconds"] for e in entries.values()])), 3) if entries else None,
-        "peak_rss_mb": {"worker_max": round(max([r["peak_rss_mb"] for r in costs] + [e["peak_rss_mb"] for e in entries.values()]), 1),
+        "peak_rss_mb": {"worker_max": round(max([r["peak_rss_mb"] for r in costs] + [e["peak_rss_mb"] for e in entries.values()], default=0.0), 1),
                         "driver": round(_peak_rss_mb(), 1)},
         "memory_budget": budget,
     }

@@ -231,9 +231,12 @@ class MapStore:
         variance = np.zeros(m)
         state = np.full(m, int(VoxelState.UNKNOWN), np.int8)
         voxel_index = self.voxel_index_of(points)
-        names = np.array([tile_name(k) for k in tile_keys(voxel_index, self.tile_voxels)]) if m else np.zeros(0, str)
-        for name in sorted(set(names.tolist()) & set(self.tiles)):
-            rows = np.flatnonzero(names == name)
+        # one name per tile met, not per point: queries may hold millions of points
+        keys, inverse = np.unique(tile_keys(voxel_index, self.tile_voxels), axis=0, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        met = {tile_name(key): t for t, key in enumerate(keys)}
+        for name in sorted(set(met) & set(self.tiles)):
+            rows = np.flatnonzero(inverse == met[name])
             result = self.tile(name).query(points[rows])
             label[rows], probabilities[rows], variance[rows], state[rows] = result.label, result.probabilities, result.variance, result.state
         return QueryResult(label, probabilities, variance, state, voxel_index)

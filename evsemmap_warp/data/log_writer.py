@@ -158,14 +158,10 @@ class _LogOut:
                                                distortion_model="plumb_bob", binning_x=0, binning_y=0, roi=roi, **matrices)
 
 
-def _beams(folder: Path, points: int) -> int:
-    """Rows of the organised cloud: the synthetic LiDAR's beams when synth.yaml says, else 1."""
+def _beams(folder: Path) -> int:
+    """Rows of the organised clouds: the synthetic LiDAR's beams when synth.yaml says, else 1."""
     record = folder / "synth.yaml"
-    if record.exists():
-        beams = int(yaml.safe_load(record.read_text())["preset"]["lidar"]["beams"])
-        if points % beams == 0:
-            return beams
-    return 1
+    return int(yaml.safe_load(record.read_text())["preset"]["lidar"]["beams"]) if record.exists() else 1
 
 
 def _halfway(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -194,6 +190,7 @@ def write_log(folder, out, fmt: str, *, frames: slice = slice(None), progress: b
     base_to_lidar = BASE_TO_SENSOR @ SENSOR_TO_LIDAR
     lidar_to_base = np.linalg.inv(base_to_lidar)
     base_poses = [seq.pose(f) @ lidar_to_base for f in seq.frames]
+    lidar_beams = _beams(folder)  # read once, not per frame
     log = _LogOut(out, fmt)
     counts = {"clouds": 0, "images": 0, "transforms": 0}
     try:
@@ -213,7 +210,7 @@ def write_log(folder, out, fmt: str, *, frames: slice = slice(None), progress: b
             counts["transforms"] += 2
             scan = seq.read_scan(frame)
             labels = seq.read_point_labels(frame).astype(np.uint32) if frame.point_labels is not None else np.zeros(len(scan), np.uint32)
-            beams = _beams(folder, len(scan))
+            beams = lidar_beams if len(scan) % lidar_beams == 0 else 1
             columns = {"x": scan[:, 0], "y": scan[:, 1], "z": scan[:, 2], "intensity": scan[:, 3],
                        "t": np.zeros(len(scan), np.uint32), "reflectivity": np.zeros(len(scan), np.uint16),
                        "ring": np.repeat(np.arange(beams, dtype=np.uint16), len(scan) // beams), "label": labels,
