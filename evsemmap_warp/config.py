@@ -42,6 +42,7 @@ class Media(str, enum.Enum):
 class Compat(str, enum.Enum):
     CLEAN = "clean"  # the paper's algorithm with a true radius search (default)
     SBKI = "sbki"  # reproduce the original S-BKI / S-CSM C++ (docs/compatibility.md §1)
+    EVSEMMAP = "evsemmap"  # reproduce the released EvSemMap C++ for ebs / dempster (docs/compatibility.md §4)
 
 
 # A kernel that visits more voxels than this per point is a mistake (a length in the wrong unit, say),
@@ -78,6 +79,9 @@ class MappingConfig:
     ds_resolution_m: float = 0.1
     free_resolution_m: float = 4.0
     max_range_m: float = -1.0  # <= 0 disables the range filter
+    # EvSemMap release mode only: each 0.4 m block keeps its first ds_multiplier + 1 points per scan;
+    # -1: the release's own value, 10 for ebs (Bayes fusion) and 5 for dempster.
+    ds_multiplier: int = -1
     # ConvBKI only: per-class length scales (a .pt state dict with ell_h / ell_z, or .json / .yaml /
     # .npz with the same keys); empty: every class at its authors' initial 0.5 m.
     convbki_lengths_file: str = ""
@@ -121,6 +125,13 @@ class MappingConfig:
             need(self.media is Media.ONEHOT, "media", "the sbki compatibility mode reproduces S-BKI/S-CSM, which take one-hot labels")
             need(not self.adaptive_length, "adaptive_length", "the original S-BKI has no adaptive length")
             need(not self.uncertainty_threshold, "uncertainty_threshold", "the original S-BKI has no uncertainty threshold")
+        need(self.ds_multiplier >= -1, "ds_multiplier", "must be >= 0 (or -1: the release's value for the fusion)")
+        if self.compat is Compat.EVSEMMAP:
+            need(self.kernel is Kernel.SPARSE, "kernel", "the evsemmap compatibility mode reproduces the release's ebs and dempster (sparse kernel)")
+            need(self.media is Media.PROB, "media", "the released ebs and dempster read class probabilities (media prob)")
+            need(self.adaptive_length and self.beta == 1.0 and self.gamma == 0.0, "adaptive_length",
+                 "the release's kernel length is the constant length_m * e: set adaptive_length true, beta 1, gamma 0")
+            need(self.uncertainty_threshold, "uncertainty_threshold", "the released ebs and dempster cut the most uncertain points")
 
     def longest_length_m(self) -> float:
         """The longest kernel length any point can get (u = 0 with the adaptive length)."""
@@ -140,7 +151,16 @@ class MappingConfig:
         ball = 4.0 / 3.0 * math.pi * (reach + 0.5) ** 3
         if self.compat is Compat.SBKI:
             return min(ball, 7.0 * 8.0 ** (self.block_depth - 1))  # the owner block and its 6 face neighbours
+        if self.compat is Compat.EVSEMMAP:
+            return 25.0 * 8.0 ** (self.block_depth - 1)  # the blocks within L1 distance 2 of the point's block
         return ball
+
+    @property
+    def release_block_cap(self) -> int:
+        """Points each block keeps per scan in the evsemmap mode: ds_multiplier + 1."""
+        if self.ds_multiplier >= 0:
+            return self.ds_multiplier + 1
+        return (5 if self.fusion is Fusion.DEMPSTER else 10) + 1
 
     @property
     def keep_quantile(self) -> float:

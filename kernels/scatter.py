@@ -419,3 +419,4 @@ def insert_block_cells(
                     voxel_data[slot, touched_column] = _ONE
     if ok == 0:
         failed[t] = 1
+

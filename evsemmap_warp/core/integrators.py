@@ -6,6 +6,7 @@
 * ``ConvBkiIntegrator``: ConvBKI (docs/compatibility.md §2): voxelise, then a per-class stencil scatter.
 * ``SeeCsomIntegrator``: SEE-CSOM (docs/compatibility.md §3): block statistics, then a block-gated scatter.
 * ``SbkiCompatIntegrator``: the original S-BKI / S-CSM C++ (docs/compatibility.md §1).
+* ``ReleaseCompatIntegrator``: the released EvSemMap C++ for ebs and dempster (docs/compatibility.md §4).
 
 Both receive the map as a list of shards. Warp runs a CPU launch on one core, so on the CPU each
 worker thread scatters a contiguous part of the scan into its own shard (never a shared one: CPU
@@ -18,10 +19,12 @@ from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import numpy as np
+import warp as wp
 
 from ..config import Fusion, Kernel, MappingConfig, Media
+from ..kernels import release
 from ..kernels import scatter as sc
-from ..methods import convbki, sbki_compat, see_csom
+from ..methods import convbki, evsemmap_release, sbki_compat, see_csom
 from .voxel_map import VoxelMap
 
 # Below this many points per shard, splitting a launch costs more than it saves.
@@ -204,3 +207,78 @@ class SbkiCompatIntegrator:
 
         stats.voxel_updates = sum(split_over_shards(shards, executor, len(point_ids), job))
         return stats
+
+
+class ReleaseCompatIntegrator:
+    """The released EvSemMap (``mapping.compat: evsemmap``): per-scan uncertainty cut, the per-block
+    cap, then the block models as one scatter (``methods.evsemmap_release``). Takes alpha payloads."""
+
+    def __init__(self, config: MappingConfig):
+        self.config = config
+        self.cells_per_block = 2 ** (config.block_depth - 1)
+        self.block_size = sbki_compat.block_size_m(config.resolution_m, config.block_depth)
+        self.length = evsemmap_release.kernel_length(config.length_m)
+
+    def training_points(self, scan: ScanPayload, sensor_origin: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
+        """Indices of the scan's points the models train on, and how many each step kept."""
+        c = self.config
+        keep = np.arange(len(scan.points))
+        if c.max_range_m > 0:
+            keep = keep[np.linalg.norm(scan.points.astype(np.float32).astype(np.float64) - sensor_origin, axis=1) <= c.max_range_m]
+        cut, _ = evsemmap_release.uncertainty_cut(scan.uncertainty[keep], c.keep_quantile)
+        keep = keep[cut]
+        counts = {"after_cut": len(keep)}
+        if len(keep):
+            blocks = evsemmap_release.snapped_block_keys(scan.points[keep], c.ds_resolution_m, self.block_size)
+            keep = keep[evsemmap_release.first_per_block(blocks, c.release_block_cap)]
+        counts["after_ds"] = len(keep)
+        return keep, counts
+
+    def integrate(self, shards: list[VoxelMap], scan: ScanPayload, sensor_origin: np.ndarray, executor: Executor | None = None) -> IntegrationStats:
+        c = self.config
+        stats = IntegrationStats(input_points=len(scan.points))
+        keep, _ = self.training_points(scan, sensor_origin)
+        stats.kept_points = len(keep)
+        if len(keep) == 0:
+            return stats
+        points = scan.points[keep].astype(np.float32)
+        pair_points, member_blocks = sbki_compat.block_memberships(points, self.block_size)
+        models = evsemmap_release.release_blocks(member_blocks)
+        first = models.blocks * self.cells_per_block - self.cells_per_block // 2
+        shards[0]._check_index_range(first.min(axis=0), first.max(axis=0) + self.cells_per_block - 1)
+        fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
+        sorted_points = pair_points[models.pair_order]
+        weights = scan.probabilities[keep][sorted_points]
+        unc = scan.uncertainty[keep][sorted_points]
+        if fusion == sc.FUSION_DEMPSTER:
+            weights = np.clip(weights - unc[:, None] / weights.shape[1], 0.0, 1.0)  # b_k = (alpha_k - 1) / S
+        d = shards[0].device
+        gather_inputs = [
+            wp.array(models.blocks.astype(np.int32), dtype=wp.vec3i, device=d),
+            wp.array(models.source_blocks, dtype=int, device=d), wp.array(models.source_mult, dtype=int, device=d),
+            wp.array(models.point_start.astype(np.int32), dtype=int, device=d),
+            wp.array(np.ascontiguousarray(points[sorted_points]), dtype=wp.vec3, device=d),
+            wp.array(np.ascontiguousarray(weights, dtype=np.float64), dtype=release.vector_type(weights.shape[1]), device=d),
+            wp.array(np.ascontiguousarray(unc, dtype=np.float64), dtype=wp.float64, device=d),
+            wp.float64(self.length), float(c.sigma0), float(c.resolution_m), int(self.cells_per_block), int(fusion),
+        ]
+        # Each target block belongs to one shard, chosen by its index alone: a cell is always summed in
+        # the same shard in the same order, so the map is bit for bit the same for any number of workers.
+        owner = block_shard(models.blocks, len(shards))
+
+        def job(shard: VoxelMap, index: int) -> int:
+            mine = np.flatnonzero(owner == index)
+            shard.insert_blocks(models.blocks[mine], self.cells_per_block, mark_touched=True)
+            return shard.gather_release_blocks(gather_inputs, mine, cells_per_block=self.cells_per_block)
+
+        if executor is None or len(shards) == 1:
+            stats.voxel_updates = sum(job(shard, i) for i, shard in enumerate(shards))
+        else:
+            stats.voxel_updates = sum(executor.map(job, shards, range(len(shards))))
+        return stats
+
+
+def block_shard(blocks: np.ndarray, shards: int) -> np.ndarray:
+    """The shard of each block [B, 3]: a fixed hash of its index, so it never depends on the scan."""
+    b = np.asarray(blocks, dtype=np.int64)
+    return ((b[:, 0] * 73856093) ^ (b[:, 1] * 19349663) ^ (b[:, 2] * 83492791)) % shards

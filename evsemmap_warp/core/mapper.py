@@ -28,7 +28,7 @@ from .. import __version__
 from ..config import Compat, Fusion, Kernel, MappingConfig, PayloadType
 from ..voxel_keys import check_index_range
 from . import map_file
-from .integrators import (ConvBkiIntegrator, IntegrationStats, KernelIntegrator, SbkiCompatIntegrator, ScanPayload,
+from .integrators import (ConvBkiIntegrator, IntegrationStats, KernelIntegrator, ReleaseCompatIntegrator, SbkiCompatIntegrator, ScanPayload,
                           SeeCsomIntegrator)
 from .voxel_map import EXTRA_COLUMNS, VoxelArrays, VoxelMap, add_duplicate_voxels, sum_voxel_arrays
 
@@ -204,6 +204,8 @@ class Mapper:
         if config.compat is Compat.SBKI:
             self.integrator = SbkiCompatIntegrator(config)
             self.grid_offset_m = SbkiCompatIntegrator.grid_offset_m(config)
+        elif config.compat is Compat.EVSEMMAP:
+            self.integrator = ReleaseCompatIntegrator(config)
         elif config.kernel is Kernel.CONVBKI:
             self.integrator = ConvBkiIntegrator(config, self.num_classes)
         elif config.kernel is Kernel.SEE_CSOM:
@@ -264,7 +266,12 @@ class Mapper:
         if self.origin_index is None:
             self.origin_index = self._snap_origin((scan.points.min(axis=0) + scan.points.max(axis=0)) / 2)
         scan.points = self._local(scan.points)
-        if isinstance(self.integrator, (SbkiCompatIntegrator, SeeCsomIntegrator)):
+        if isinstance(self.integrator, ReleaseCompatIntegrator) and PayloadType(payload_type) is not PayloadType.ALPHA:
+            raise ValueError(f"payload_type {PayloadType(payload_type).value}: the evsemmap compatibility mode reproduces the release, "
+                             "which reads evidential alpha (its uncertainty cut is K / sum(alpha))")
+        if isinstance(self.integrator, (SbkiCompatIntegrator, SeeCsomIntegrator, ReleaseCompatIntegrator)):
+            if sensor_origin is None and isinstance(self.integrator, ReleaseCompatIntegrator) and self.config.max_range_m <= 0:
+                sensor_origin = self.origin  # unused: the release reads the sensor origin only for its range filter
             if sensor_origin is None:
                 raise ValueError(f"sensor_origin: {self.config.method} adds the sensor origin (and free-space rays) as free samples; pass it")
             origin = _validate_point(sensor_origin, "sensor_origin")

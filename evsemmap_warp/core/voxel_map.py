@@ -27,6 +27,7 @@ from .warp_runtime import init_warp, resolve_device
 wp = init_warp()
 
 from ..kernels import hash_table as ht  # noqa: E402
+from ..kernels import release  # noqa: E402
 from ..kernels import scatter as sc  # noqa: E402
 
 EXTRA_COLUMNS = sc.EXTRA_COLUMNS
@@ -249,6 +250,24 @@ class VoxelMap:
                 ids, *inputs, self.keys, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
 
         self._launch_until_done(n, launch, may_insert=True, kind="block_targets", most_new=n * 7 * cells_per_block**3)
+        return int(update_count.numpy()[0])
+
+    def gather_release_blocks(self, gather_inputs: list, block_ids: np.ndarray, *, cells_per_block: int) -> int:
+        """The released EvSemMap's block models in gather form (``kernels.release``)
+        for the cells of the target blocks ``block_ids``; ``gather_inputs`` are that kernel's arguments from
+        ``blocks`` to ``fusion`` (device arrays shared by the shards). The cells must be inserted."""
+        if len(block_ids) == 0:
+            return 0
+        d = self.device
+        ids = wp.array(np.ascontiguousarray(block_ids, dtype=np.int32), dtype=int, device=d)
+        n = len(block_ids) * cells_per_block**3
+        failed = wp.zeros(n, dtype=int, device=d)
+        update_count = wp.zeros(1, dtype=wp.int64, device=d)
+        blocks, *rest = gather_inputs
+        kernel = release.gather_release_kernel(self.num_classes)
+        wp.launch(kernel, dim=n, device=d, inputs=[blocks, ids, *rest, self.keys, self.data, failed, update_count])
+        if failed.numpy().any():
+            raise RuntimeError("a release-mode cell was never inserted (a bug)")
         return int(update_count.numpy()[0])
 
     def insert_blocks(self, blocks: np.ndarray, cells_per_block: int, *, mark_touched: bool) -> None:

@@ -1,0 +1,142 @@
+"""Per-scan preprocessing of the released EvSemMap C++ (junwon-vision/EvSemMap, docs/compatibility.md §4).
+
+What ``SemanticBKIOctoMap::insert_pointcloud`` does before its models (with prob media and the
+adaptive/threshold policy of the release's ``ebs`` and ``dempster`` configs):
+
+1. the uncertainty cut: u = K / sum(alpha) in double; the threshold is the float32 value at index
+   int(N * unc_thres) of the ascending u (stored as float32); points with double u <= it are kept (ties kept);
+2. the "ds" step: each kept point is snapped per axis to the nearest line of a ds-grid anchored at the
+   kept points' float32 bounding-box minimum (its search loop: ties go up, past the last line the
+   maximum), the snapped point is hashed by its 0.4 m block, and each block keeps its first
+   ds_multiplier + 1 points in input order (at their own, unsnapped coordinates);
+3. no free-space samples: every mapped cell holds hits only.
+
+The models and their updates (each block holding points trains on its own and its 6 face neighbours'
+points and predicts for those of its face neighbours that hold points) are the gather kernel
+``kernels.release``; ``release_blocks`` prepares its tables.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..voxel_keys import pack_voxel_keys
+
+# Offsets of the target blocks a point can reach through one model: L1 distance <= 2 (1 + 6 + 12 + 6).
+TARGET_BLOCK_OFFSETS = np.array(
+    [o for o in np.ndindex(5, 5, 5) if sum(abs(c - 2) for c in o) <= 2], dtype=np.int64) - 2
+FACE_OFFSETS = np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.int64)
+# The C++ hashes blocks as int64(x / (double) size + 524288.5): the nearest block centre for |x| < 2^19 blocks.
+_BLOCK_KEY_SHIFT = 524288.5
+
+
+def kernel_length(length_m: float) -> float:
+    """The release divides its float32 distances in double by ell * e, its ell a float32."""
+    return float(np.float32(length_m)) * math.e
+
+
+def uncertainty_cut(uncertainty: np.ndarray, keep_quantile: float) -> tuple[np.ndarray, float]:
+    """The release's per-scan cut on u = K / sum(alpha) (double): keep u <= the float32 value at index
+    int(N * keep_quantile) of the ascending u."""
+    u = np.asarray(uncertainty, dtype=np.float64)
+    n = len(u)
+    if n == 0:
+        return np.zeros(0, bool), float("nan")
+    index = min(int(n * keep_quantile), n - 1)
+    threshold = float(np.partition(u.astype(np.float32), index)[index])
+    return u <= threshold, threshold
+
+
+def _snap_axis(p: np.ndarray, lo: np.float32, hi: np.float32, ds: np.float32) -> np.ndarray:
+    """coord_to_voxel_center_coord on one axis, in float32 as the C++ loop runs it."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        last = int(np.float32((hi - lo) / ds))
+        i = ((p - lo) / ds).astype(np.int64) - 1  # (int) truncates; p - lo >= 0
+    out = np.full(len(p), hi, dtype=np.float32)
+    pending = np.arange(len(p))
+    while len(pending):
+        pending = pending[i[pending] <= last]
+        if not len(pending):
+            break
+        k = i[pending]
+        cur = (lo + k.astype(np.float32) * ds).astype(np.float32)
+        nxt = (lo + (k + 1).astype(np.float32) * ds).astype(np.float32)
+        pp = p[pending]
+        done = (pp - cur) < (nxt - pp)
+        out[pending[done]] = cur[done]
+        pending = pending[~done]
+        i[pending] += 1
+    return out
+
+
+def snapped_block_keys(points: np.ndarray, ds_resolution_m: float, block_size: np.float32) -> np.ndarray:
+    """The block each point is counted in by the "ds" step: [N, 3] int64 (C++ key fields, offset removed)."""
+    points = np.asarray(points, dtype=np.float32)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    ds = np.float32(ds_resolution_m)
+    size = np.float64(np.float32(block_size))
+    keys = np.empty((len(points), 3), np.int64)
+    for axis in range(3):
+        snapped = _snap_axis(points[:, axis], lo[axis], hi[axis], ds)
+        keys[:, axis] = (snapped.astype(np.float64) / size + _BLOCK_KEY_SHIFT).astype(np.int64) - int(_BLOCK_KEY_SHIFT)
+    return keys
+
+
+def first_per_block(block_keys: np.ndarray, cap: int) -> np.ndarray:
+    """Mask keeping the first ``cap`` points (input order) of each block key."""
+    n = len(block_keys)
+    if n == 0:
+        return np.zeros(0, bool)
+    packed = ((block_keys[:, 0] + (1 << 20)) << 42) | ((block_keys[:, 1] + (1 << 20)) << 21) | (block_keys[:, 2] + (1 << 20))
+    order = np.argsort(packed, kind="stable")
+    sorted_keys = packed[order]
+    starts = np.r_[0, np.flatnonzero(sorted_keys[1:] != sorted_keys[:-1]) + 1]
+    rank = np.arange(n) - np.repeat(starts, np.diff(np.r_[starts, n]))
+    keep = np.zeros(n, bool)
+    keep[order[rank < cap]] = True
+    return keep
+
+
+@dataclass
+class ReleaseBlocks:
+    """One scan's blocks and models for the gather kernel: the blocks holding points [B, 3] (key
+    order), the (point, block) pairs sorted by block (``pair_order`` into the pairs, block s owning
+    sorted pairs point_start[s]:point_start[s + 1]), and per block and TARGET_BLOCK_OFFSETS entry o
+    the block at blocks[b] + o (-1 if it holds no points) and how many models carry its points into b."""
+
+    blocks: np.ndarray
+    pair_order: np.ndarray
+    point_start: np.ndarray
+    source_blocks: np.ndarray
+    source_mult: np.ndarray
+
+
+def release_blocks(member_blocks: np.ndarray) -> ReleaseBlocks:
+    member_blocks = np.asarray(member_blocks, dtype=np.int64).reshape(-1, 3)
+    keys, inverse = np.unique(pack_voxel_keys(member_blocks), return_inverse=True)
+    inverse = inverse.reshape(-1)
+    order = np.argsort(inverse, kind="stable")
+    point_start = np.r_[0, np.cumsum(np.bincount(inverse, minlength=len(keys)))]
+    blocks = np.empty((len(keys), 3), np.int64)
+    blocks[inverse] = member_blocks
+
+    def index_of(index: np.ndarray) -> np.ndarray:
+        packed = pack_voxel_keys(index)
+        pos = np.minimum(np.searchsorted(keys, packed), len(keys) - 1)
+        return np.where(keys[pos] == packed, pos, -1)
+
+    source = np.full((len(keys), len(TARGET_BLOCK_OFFSETS)), -1, np.int64)
+    mult = np.zeros_like(source)
+    for o, offset in enumerate(TARGET_BLOCK_OFFSETS):
+        src = blocks + offset
+        source[:, o] = index_of(src)
+        for face in FACE_OFFSETS:
+            # model = source + face is one of the source's models if it holds points; it predicts for
+            # blocks[b] when blocks[b] lies in its extended block: |offset + face|_1 <= 1.
+            if np.abs(offset + face).sum() <= 1:
+                mult[:, o] += index_of(src + face) >= 0
+    mult[source < 0] = 0
+    return ReleaseBlocks(blocks, order, point_start, source.astype(np.int32), mult.astype(np.int32))

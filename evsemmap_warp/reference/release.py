@@ -1,0 +1,72 @@
+"""Brute-force twin of the EvSemMap release mode's block models, shaped like the C++ loops.
+
+The engine (``kernels/release.py``) gathers per cell over its source blocks with a multiplicity
+per block. The release trains one model per block holding points, on the points of its extended
+block (a point on a shared face counts once per block it lies in), and lets each model predict
+for every block of its extended block that holds points. This file does the latter, literally,
+with the kernel evaluated in float32 trig as the C++ does, so the tests can check that the two agree.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .sbki import _EXTENDED, _blocks_containing
+
+BELIEF_EPSILON = 1e-6
+
+
+def release_kernel(cells: np.ndarray, point: np.ndarray, length: float, sf2: float) -> np.ndarray:
+    """covSparseUnc of the release: float32 distances divided in double by ell * e, float32 formula."""
+    d = np.sqrt(np.sum((cells - point) ** 2, axis=1, dtype=np.float32), dtype=np.float32)
+    x = (d.astype(np.float64) / length).astype(np.float32)
+    two_pi = np.float32(2.0) * np.float32(3.1415926)
+    k = ((np.float32(2.0) + np.cos(x * two_pi)) * (np.float32(1.0) - x) / np.float32(3.0) + np.sin(x * two_pi) / two_pi) * np.float32(sf2)
+    return np.maximum(k, 0).astype(np.float64)
+
+
+def release_insert(points, class_weights, uncertainty, *, resolution_m: float, block_depth: int, length: float, sf2: float,
+                   dempster: bool) -> dict[tuple[int, int, int], np.ndarray]:
+    """One release insertion of training points [N, 3] float32 with per-class weights [N, K] (class
+    probabilities, or belief masses with ``dempster``). Returns {cell index: row [K + 3]}: evidence
+    (Bayes) or log commonality ratio sums (Dempster), weight sum, weight * u sum, contributions."""
+    points = np.asarray(points, dtype=np.float32)
+    size = np.float32(np.float32(2 ** (block_depth - 1)) * np.float32(resolution_m))
+    n = 2 ** (block_depth - 1)
+    r = np.float32(resolution_m)
+    k = class_weights.shape[1]
+    members: dict[tuple[int, int, int], list[int]] = {}
+    for i, p in enumerate(points):
+        for b in _blocks_containing(p, size):
+            members.setdefault(b, []).append(i)
+    local = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    cells: dict[tuple[int, int, int], np.ndarray] = {}
+    for block in members:  # every block holding points gets all its cells
+        for idx in map(tuple, np.array(block) * n - n // 2 + local):
+            cells[idx] = np.zeros(k + 3)
+    for model in sorted(members):
+        train = [i for e in _EXTENDED for i in members.get(tuple(np.add(model, e)), [])]
+        for e in _EXTENDED:
+            target = tuple(np.add(model, e))
+            if target not in members:
+                continue
+            first = np.array(target) * n - n // 2
+            cell_xyz = ((first + local).astype(np.float32) + np.float32(0.5)) * r
+            for i in train:
+                w = release_kernel(cell_xyz, points[i], length, sf2)
+                for j, idx in enumerate(map(tuple, first + local)):
+                    if w[j] <= 0:
+                        continue
+                    row = cells[idx]
+                    if dempster:
+                        b = np.clip(class_weights[i] * min(w[j], 1.0), 0.0, 1.0 - BELIEF_EPSILON)
+                        row[:k] += np.log1p(b / max(1.0 - b.sum(), BELIEF_EPSILON))
+                    else:
+                        row[:k] += w[j] * class_weights[i]
+                    row[k] += w[j]
+                    row[k + 1] += w[j] * uncertainty[i]
+                    row[k + 2] += 1
+    return cells
+

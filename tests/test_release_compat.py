@@ -1,0 +1,175 @@
+"""The EvSemMap release compatibility mode (mapping.compat: evsemmap, docs/compatibility.md §4)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from conftest import REPO, shared_path
+
+from evsemmap_warp.config import ConfigError, load_config
+from evsemmap_warp.core.integrators import ReleaseCompatIntegrator
+from evsemmap_warp.core.mapper import Mapper, prepare_payload
+from evsemmap_warp.methods import evsemmap_release as er
+from evsemmap_warp.reference.release import release_insert
+
+PRESET = REPO / "configs/presets/evsemmap-release.yaml"
+
+
+def _config(method: str, **overrides):
+    cfg = load_config([PRESET], method=method).mapping
+    return dataclasses.replace(cfg, **overrides)
+
+
+def _snap_literal(p: np.float32, lo: np.float32, hi: np.float32, ds: np.float32) -> np.float32:
+    """coord_to_voxel_center_coord on one axis, one point, as the C++ loop is written."""
+    stride = np.float32((hi - lo) / ds)
+    i = int(np.float32((p - lo) / ds)) - 1
+    while i <= int(stride):
+        cur = np.float32(lo + np.float32(i) * ds)
+        nxt = np.float32(lo + np.float32(i + 1) * ds)
+        if np.float32(p - cur) < np.float32(nxt - p):
+            return cur
+        i += 1
+    return hi
+
+
+def test_snapping_follows_the_cpp_loop_ties_and_the_last_line():
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-3, 5, 2000).astype(np.float32)
+    p[:20] = (np.float32(-3) + np.arange(20, dtype=np.float32) * np.float32(0.005)).astype(np.float32)  # exact half-way ties
+    lo, hi, ds = p.min(), p.max(), np.float32(0.01)
+    want = np.array([_snap_literal(v, lo, hi, ds) for v in p], np.float32)
+    np.testing.assert_array_equal(er._snap_axis(p, lo, hi, ds), want)
+    assert er._snap_axis(np.array([hi], np.float32), lo, hi, ds)[0] == _snap_literal(hi, lo, hi, ds)
+
+
+def test_block_cap_keeps_the_first_points_in_input_order():
+    keys = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 0], [0, 0, 0], [1, 0, 0], [0, 0, 0]])
+    np.testing.assert_array_equal(er.first_per_block(keys, 2), [True, True, True, False, True, False])
+    np.testing.assert_array_equal(er.first_per_block(keys[:0], 2), np.zeros(0, bool))
+
+
+def test_uncertainty_cut_keeps_ties_at_the_float32_threshold():
+    u = np.array([0.5, 0.1, 0.3, 0.3, 0.3, 0.9, 0.2, 0.4, 0.6, 0.7])
+    keep, threshold = er.uncertainty_cut(u, 0.3)  # index int(10 * 0.3) = 3 of the ascending u: 0.3
+    assert threshold == float(np.float32(0.3))
+    # double 0.3 > float32(0.3)? float32(0.3) = 0.30000001192..., so the ties are kept
+    np.testing.assert_array_equal(keep, u <= float(np.float32(0.3)))
+    assert keep.sum() == 5
+    assert er.uncertainty_cut(np.zeros(0), 0.9)[0].shape == (0,)
+
+
+def _scan(rng, n, spread=1.6):
+    pts = rng.uniform(0, spread, (n, 3)).astype(np.float32)
+    pts[:6, 0] = np.float32(0.2)  # on the face between blocks 0 and 1 (block centres at 0.4 k)
+    pts[6:10, 1] = np.float32(0.6)
+    pts[10:12] = np.float32(0.2)  # on an edge and a corner
+    alpha = np.ones((n, 5))
+    alpha[np.arange(n), rng.integers(1, 5, n)] += rng.uniform(0, 30, n)
+    alpha[np.arange(n), rng.integers(1, 5, n)] += rng.uniform(0, 5, n)
+    return pts, alpha
+
+
+@pytest.mark.parametrize("method", ["ebs", "dempster"])
+@pytest.mark.parametrize("n", [1, 2, 150])
+def test_gather_kernel_matches_the_literal_block_models(device, method, n):
+    rng = np.random.default_rng(n)
+    pts, alpha = _scan(rng, max(n, 12))
+    pts, alpha = pts[:n] if n < 12 else pts, alpha[:n] if n < 12 else alpha
+    cfg = _config(method, ds_resolution_m=0.01)
+    mapper = Mapper(cfg, 5, device=device, origin=np.zeros(3))
+    mapper.integrate(pts, alpha, payload_type="alpha")
+    # the twin on the same training points (cut and cap from the integrator's own rule)
+    payload = prepare_payload(pts, alpha, "alpha", 5)
+    keep, _ = ReleaseCompatIntegrator(cfg).training_points(payload, np.zeros(3))
+    weights = payload.probabilities[keep]
+    if method == "dempster":
+        weights = np.clip(weights - payload.uncertainty[keep, None] / 5, 0, 1)
+    expected = release_insert(pts[keep], weights, payload.uncertainty[keep], resolution_m=0.2, block_depth=2,
+                              length=er.kernel_length(0.3), sf2=1.0, dempster=method == "dempster")
+    arrays, summary = mapper.voxels()
+    assert {tuple(v) for v in arrays.index} == set(expected)
+    want = np.array([expected[tuple(v)] for v in arrays.index])
+    np.testing.assert_allclose(arrays.evidence, want[:, :5], rtol=2e-6, atol=1e-6)
+    np.testing.assert_allclose(arrays.weight_sum, want[:, 5], rtol=2e-6, atol=1e-6)
+    # Contributions are counted where the kernel is > 0: the C++'s float32 trig is noise around d = l, the
+    # engine's polynomial exactly positive below it; the weights above agree, so the extra ones weigh ~0.
+    assert (arrays.hits >= want[:, 7]).all() and (arrays.hits - want[:, 7]).sum() <= 0.05 * want[:, 7].sum()
+    assert (summary.state == 2).all()  # no free-space samples: every cell is OCCUPIED
+
+
+def test_a_point_weighs_7x_in_its_own_block_2x_in_face_and_edge_neighbours_0x_in_corners():
+    faces = [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
+    occupied = np.array([[0, 0, 0], *faces, [1, 1, 0], [1, 1, 1], [2, 0, 0]])
+    models = er.release_blocks(occupied)
+    offsets = {tuple(o): j for j, o in enumerate(er.TARGET_BLOCK_OFFSETS)}
+
+    def mult(source, target):
+        b = next(i for i, blk in enumerate(models.blocks) if tuple(blk) == tuple(target))
+        o = offsets.get(tuple(np.subtract(source, target)))
+        return 0 if o is None or models.source_blocks[b, o] < 0 else int(models.source_mult[b, o])
+
+    assert mult([0, 0, 0], [0, 0, 0]) == 7  # its own model and the 6 face neighbours' models
+    assert mult([0, 0, 0], [1, 0, 0]) == 2  # face neighbour: its model and the source's
+    assert mult([0, 0, 0], [1, 1, 0]) == 2  # edge neighbour: through (1, 0, 0) and (0, 1, 0)
+    assert mult([0, 0, 0], [1, 1, 1]) == 0  # corner neighbour: no model holds both
+    assert mult([0, 0, 0], [2, 0, 0]) == 1  # two blocks along an axis: through (1, 0, 0) only
+    assert mult([1, 1, 1], [1, 1, 0]) == 2  # a corner block's point still reaches its own face neighbours
+    # the literal twin agrees: a point at the centre block's centre, alone vs with the others
+    alone = release_insert(np.zeros((1, 3), np.float32), np.eye(3)[[1]], np.zeros(1), resolution_m=0.2, block_depth=2,
+                           length=er.kernel_length(0.3), sf2=1.0, dempster=False)
+    points = np.concatenate([[[0.0, 0.0, 0.0]], 0.4 * occupied[1:] + 0.15]).astype(np.float32)
+    weights = np.eye(3)[[1] + [2] * (len(points) - 1)]
+    together = release_insert(points, weights, np.zeros(len(points)), resolution_m=0.2, block_depth=2,
+                              length=er.kernel_length(0.3), sf2=1.0, dempster=False)
+    np.testing.assert_allclose(together[(0, 0, 0)][1], 7 * alone[(0, 0, 0)][1], rtol=1e-12)
+
+
+def test_two_workers_give_the_one_worker_map_bit_for_bit():
+    rng = np.random.default_rng(5)
+    pts, alpha = _scan(rng, 40000, spread=12.0)
+    maps = []
+    for workers in (1, 2):
+        mapper = Mapper(_config("ebs"), 5, workers=workers)
+        mapper.integrate(pts, alpha, payload_type="alpha")
+        mapper.integrate(pts[::-1] + np.float32(0.05), alpha[::-1], payload_type="alpha")
+        maps.append(mapper)
+    assert min(shard.voxel_count for shard in maps[1].shards) > 0
+    (a, _), (b, _) = maps[0].voxels(), maps[1].voxels()
+    np.testing.assert_array_equal(a.index, b.index)
+    np.testing.assert_array_equal(a.rows(), b.rows())
+
+
+def test_refusals_name_the_key():
+    with pytest.raises(ConfigError, match="mapping.media"):
+        _config("s-bki")
+    with pytest.raises(ConfigError, match="beta 1, gamma 0"):
+        _config("ebs", gamma=10.0)
+    with pytest.raises(ConfigError, match="ds_multiplier"):
+        _config("ebs", ds_multiplier=-2)
+    mapper = Mapper(_config("ebs"), 3)
+    with pytest.raises(ValueError, match="evidential alpha"):
+        mapper.integrate(np.zeros((4, 3)), np.ones(4, int), payload_type="label")
+
+
+def test_block_cap_follows_the_fusion_unless_set():
+    assert _config("ebs").release_block_cap == 11
+    assert _config("dempster").release_block_cap == 6
+    assert _config("ebs", ds_multiplier=0).release_block_cap == 1
+
+
+@pytest.mark.parametrize("method, after_ds, cells", [("ebs", 845_312, 225_872), ("dempster", 638_662, 225_672)])
+def test_bench_workload_gives_the_release_counts_exactly(method, after_ds, cells):
+    # ../shared/data/bench/rellis_like_30scans.json: the release's own counts on this workload
+    shared_path("data", "bench", "rellis_like_30scans.npz")
+    from evsemmap_warp.data.datasets import open_dataset
+
+    run = load_config([PRESET, REPO / "configs/datasets/bench_rellis_like.yaml"], method=method)
+    mapper = Mapper(run.mapping, 9)
+    after_cut = kept = 0
+    for scan in open_dataset(run.dataset):
+        payload = prepare_payload(scan.points - mapper.origin, scan.payload, "alpha", 9)
+        after_cut += ReleaseCompatIntegrator(run.mapping).training_points(payload, np.zeros(3))[1]["after_cut"]
+        kept += mapper.integrate(scan.points, scan.payload, payload_type="alpha").kept_points
+    assert (after_cut, kept, mapper.voxel_count) == (1_618_253, after_ds, cells)
+    assert mapper.state_counts()["OCCUPIED"] == cells
