@@ -9,12 +9,16 @@ process, and next to the original C++ figures stored with the workload (its .jso
   (ConvBKI with its initial 0.5 m lengths on the 5x5x5 stencil);
 * ``s-bki-compat@frF``: the sbki compatibility mode with the C++ S-BKI benchmark parameters
   (r 0.2, block depth 2, ell 0.3, sf2 10, prior 0.001, VoxelGrid 0.1, free_resolution F): the same map
-  semantics as the C++ rows, so the ratio against them is like for like.
+  semantics as the C++ rows, so the ratio against them is like for like;
+* ``ebs-release``, ``dempster-release``: the release-compatibility mode (configs/presets/evsemmap-release.yaml)
+  against the released EvSemMap C++ (its counts after the cut, after "ds" and its cells are checked).
 
-Throughput = input points / summed wall time of the integrate calls (loading excluded), median of
---repeats fresh maps after one warm-up (kernel compile); the numpy twin likewise. The C++ figures are
-the workload's own, at the C++'s best thread count (1 or 2). The last line printed is one JSON object:
-method name -> input points per second.
+The like-for-like rows run at 1 and 2 worker threads (``@1t``, ``@2t``): ``@1t`` is compared with the
+C++ on 1 thread, ``@2t`` with the C++ at its best thread count (1 or 2; its 2-thread runs are often
+slower). Throughput = input points / summed wall time of the integrate calls (loading excluded),
+median of --repeats fresh maps after one warm-up (kernel compile); the numpy twin likewise, at one
+thread (numpy's scatter does not thread). The C++ figures are the workload's own (its .json). The last
+line printed is one JSON object: row name -> input points per second.
 
     python tools/bench_integrate.py [--repeats 3] [--device cpu] [--plot bench.png]
 """
@@ -63,14 +67,25 @@ def compat_config(free_resolution: float) -> MappingConfig:
 
 # The paper's method, its baselines in this engine, and the Dempster-Shafer variant, same workload.
 METHODS = ("ebs", "s-bki", "convbki", "see-csom", "dempster")
+RELEASE_PRESET = REPO / "configs/presets/evsemmap-release.yaml"
+RELEASE_METHODS = ("ebs", "dempster")
 
 
-def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, repeats, progress):
-    warm = Mapper(config, 9, device=device)
+def release_counts(config: MappingConfig, scans) -> int:
+    """Points after the release's uncertainty cut, summed over the scans (untimed; a check)."""
+    from evsemmap_warp.core.integrators import ReleaseCompatIntegrator
+    from evsemmap_warp.core.mapper import prepare_payload
+
+    integrator = ReleaseCompatIntegrator(config)
+    return sum(integrator.training_points(prepare_payload(s.points, s.payload, "alpha", 9), s.sensor_origin)[1]["after_cut"] for s in scans)
+
+
+def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, repeats, progress, workers=None):
+    warm = Mapper(config, 9, device=device, workers=workers)
     warm.integrate(scans[0].points[:1000], payloads[0][:1000], payload_type=payload_type, sensor_origin=scans[0].sensor_origin)
     runs = []
     for _ in range(repeats):
-        mapper = Mapper(config, 9, device=device)
+        mapper = Mapper(config, 9, device=device, workers=workers)
         elapsed, updates, kept = 0.0, 0, 0
         for scan, payload in zip(scans, payloads):
             start = time.perf_counter()
@@ -122,7 +137,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--free-resolutions", nargs="*", default=["100", "4"], help="S-BKI compat free_resolution values (C++ has 0.5, 4, 100)")
+    parser.add_argument("--free-resolutions", nargs="*", default=["100", "4", "0.5"], help="S-BKI compat free_resolution values (C++ has 0.5, 4, 100)")
     parser.add_argument("--skip-numpy", action="store_true")
     parser.add_argument("--plot", type=Path, default=None, help="write a bar chart of the throughputs (needs matplotlib)")
     args = parser.parse_args()
@@ -137,7 +152,9 @@ def main() -> int:
     labels = [np.argmax(a, axis=1) for a in alphas]
 
     rows = {}
-    runs = (len(METHODS) + len(args.free_resolutions)) * args.repeats + (0 if args.skip_numpy else 2 * args.repeats)
+    thread_counts = (1, 2) if args.device == "cpu" else (1,)
+    like_for_like = [f"s-bki-compat@fr{fr}" for fr in args.free_resolutions] + [f"{m}-release" for m in RELEASE_METHODS]
+    runs = (len(METHODS) + len(like_for_like) * len(thread_counts)) * args.repeats + (0 if args.skip_numpy else 2 * args.repeats)
     with tqdm(total=runs * n_points, unit="pt", unit_scale=True, desc="integrating", file=sys.stderr) as progress:
         for method in METHODS:
             cfg = load_config([PRESET], method=method).mapping
@@ -145,36 +162,72 @@ def main() -> int:
             if not args.skip_numpy and method in ("ebs", "s-bki"):  # the numpy twin times the radius rules
                 rows[f"numpy:{method}"] = time_numpy(cfg, scans, alphas, args.repeats)
                 progress.update(n_points * args.repeats)
-        for fr in args.free_resolutions:
-            rows[f"s-bki-compat@fr{fr}"] = time_mapper(compat_config(float(fr)), scans, labels, "label", args.device, args.repeats, progress)
+        for threads in thread_counts:
+            for fr in args.free_resolutions:
+                rows[f"s-bki-compat@fr{fr}@{threads}t"] = time_mapper(compat_config(float(fr)), scans, labels, "label", args.device,
+                                                                      args.repeats, progress, workers=threads)
+            for method in RELEASE_METHODS:
+                cfg = load_config([RELEASE_PRESET], method=method).mapping
+                rows[f"{method}-release@{threads}t"] = time_mapper(cfg, scans, alphas, "alpha", args.device, args.repeats, progress, workers=threads)
+        release_after_cut = {m: release_counts(load_config([RELEASE_PRESET], method=m).mapping, scans) for m in RELEASE_METHODS}
 
-    # The C++ at its best thread count (1 or 2), as measured with the workload.
+    # The C++ on one thread and at its best thread count (1 or 2), as measured with the workload.
     evsemmap, sbki = cpp["evsemmap"]["results"], cpp["sbki_original"]["results"]
-    baselines = {"ebs": max(evsemmap[f"ebs_t{t}"]["pts_per_s"] for t in (1, 2))}
+    cpp_rate, cpp_cells = {}, {}
+    for method in RELEASE_METHODS:
+        for t in (1, 2):
+            cpp_rate[(f"{method}-release", t)] = evsemmap[f"{method}_t{t}"]["pts_per_s"]
+        cpp_cells[f"{method}-release"] = evsemmap[f"{method}_t1"]["cells"]
     for fr, key in CPP_SBKI.items():
-        baselines[f"s-bki-compat@fr{fr}"] = max(sbki[f"{key}_t{t}"]["input_pts_per_s"] for t in (1, 2))
-        baselines[f"cpp-cells@fr{fr}"] = sbki[f"{key}_t1"]["cells"]
+        for t in (1, 2):
+            cpp_rate[(f"s-bki-compat@fr{fr}", t)] = sbki[f"{key}_t{t}"]["input_pts_per_s"]
+        cpp_cells[f"s-bki-compat@fr{fr}"] = sbki[f"{key}_t1"]["cells"]
+    cpp_rate[("ebs", 2)] = max(cpp_rate[("ebs-release", 1)], cpp_rate[("ebs-release", 2)])  # other map semantics
 
     print(f"{n_points:,} input points in {len(scans)} scans, device {args.device}, median of {args.repeats}")
-    print(f"{'method':24s} {'s':>7s} {'input pts/s':>12s} {'voxel upd/s':>12s} {'voxels':>9s} {'B/voxel':>8s}  vs numpy  "
-          f"vs C++ (best of 1/2 threads; ebs: other map semantics)")
-    throughput = {}
+    print(f"{'row':28s} {'s':>7s} {'input pts/s':>12s} {'voxel upd/s':>12s} {'voxels':>9s} {'B/voxel':>8s}  vs numpy  "
+          f"vs C++ (@1t: C++ 1 thread; @2t and others: C++ at its best of 1/2 threads)")
+    throughput, references = {}, {}
     for name, row in rows.items():
         pts = n_points / row["seconds"]
         throughput[name] = round(pts)
         vs_numpy = ""
         if f"numpy:{name}" in rows:
             vs_numpy = f"x{rows[f'numpy:{name}']['seconds'] / row['seconds']:.1f}"
-        vs_cpp = f"x{pts / baselines[name]:.1f} ({baselines[name] / 1e3:.0f}k)" if name in baselines else ""
-        print(f"{name:24s} {row['seconds']:7.2f} {pts:12,.0f} {row['voxel_updates'] / row['seconds']:12,.0f} "
+        base, _, threads = name.rpartition("@")
+        if threads == "1t":
+            reference = cpp_rate.get((base, 1))
+        else:
+            base = base if threads == "2t" else name
+            reference = max(cpp_rate.get((base, 1), 0), cpp_rate.get((base, 2), 0)) or None
+        vs_cpp = f"x{pts / reference:.1f} ({reference / 1e3:.0f}k)" if reference else ""
+        if reference:
+            references[name] = reference
+        if name == "ebs":
+            vs_cpp += " other map semantics"
+        print(f"{name:28s} {row['seconds']:7.2f} {pts:12,.0f} {row['voxel_updates'] / row['seconds']:12,.0f} "
               f"{row['voxels']:9,d} {row.get('bytes_per_voxel', float('nan')):8.1f}  {vs_numpy:8s}  {vs_cpp}")
-    for fr in args.free_resolutions:
-        row = rows[f"s-bki-compat@fr{fr}"]
-        print(f"s-bki-compat@fr{fr}: {row['voxels']:,} cells (C++ {baselines[f'cpp-cells@fr{fr}']:,}), FREE {row['free']:,}, OCCUPIED {row['occupied']:,}")
+    problems = []
+    for name in like_for_like:
+        row = rows[f"{name}@{thread_counts[-1]}t"]
+        line = f"{name}: {row['voxels']:,} cells (C++ {cpp_cells[name]:,}), FREE {row['free']:,}, OCCUPIED {row['occupied']:,}"
+        if name.endswith("-release"):
+            method = name.removesuffix("-release")
+            want = (evsemmap[f"{method}_t1"]["after_unc"], evsemmap[f"{method}_t1"]["after_ds"])
+            got = (release_after_cut[method], row["kept_or_training_points"])
+            line += f"; after the cut {got[0]:,} (C++ {want[0]:,}), after ds {got[1]:,} (C++ {want[1]:,})"
+            if got != want:
+                problems.append(f"{name}: counts {got} differ from the C++'s {want}")
+        if row["voxels"] != cpp_cells[name] and name.endswith("-release"):
+            problems.append(f"{name}: {row['voxels']:,} cells, the C++ has {cpp_cells[name]:,}")
+        print(line)
     print("details: " + json.dumps(rows, default=lambda o: None))
     if args.plot:
-        plot(throughput, baselines, args.plot)
+        plot(throughput, references, args.plot)
     print(json.dumps(throughput))
+    if problems:
+        print("MISMATCH: " + "; ".join(problems), file=sys.stderr)
+        return 1
     return 0
 
 
@@ -185,10 +238,10 @@ def plot(throughput, baselines, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     names = list(throughput)
-    fig, ax = plt.subplots(figsize=(9, 4))
+    fig, ax = plt.subplots(figsize=(9, 6))
     ax.barh(names, [throughput[n] / 1e6 for n in names], color=["#3b7dd8" if not n.startswith("numpy") else "#999999" for n in names], label="evsemmap_warp / numpy")
     cpp_names = [n for n in names if n in baselines]
-    ax.scatter([baselines[n] / 1e6 for n in cpp_names], cpp_names, color="#d83b3b", zorder=3, label="original C++, best of 1/2 threads")
+    ax.scatter([baselines[n] / 1e6 for n in cpp_names], cpp_names, color="#d83b3b", zorder=3, label="original C++ (1 thread for @1t rows, else its best)")
     ax.set_xlabel("input points per second (millions)")
     ax.set_title("Integration throughput on rellis_like_30scans (1.8M points)")
     ax.legend(loc="center right")

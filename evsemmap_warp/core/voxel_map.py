@@ -29,6 +29,7 @@ wp = init_warp()
 from ..kernels import hash_table as ht  # noqa: E402
 from ..kernels import release  # noqa: E402
 from ..kernels import scatter as sc  # noqa: E402
+from ..kernels import sorted_scatter as ss  # noqa: E402
 
 EXTRA_COLUMNS = sc.EXTRA_COLUMNS
 
@@ -93,7 +94,7 @@ class VoxelMap:
         self.device = resolve_device(device)
         self.grow_count = 0
         self._last_new_voxels: dict[str, int] = {}  # per kind of launch: how many voxels the last one made
-        _load_kernels(self.device)
+        _load_kernels(self.device, self.num_classes)
         self._allocate(max(MIN_CAPACITY, _next_pow2(initial_capacity)))
 
     # ------------------------------------------------------------------ storage
@@ -226,6 +227,53 @@ class VoxelMap:
         self._launch_until_done(n, launch, may_insert=mode in (sc.MODE_RADIUS, sc.MODE_OWN_VOXEL, sc.MODE_STENCIL), kind=f"scatter{mode}", most_new=n)
         return int(update_count.numpy()[0])
 
+    def scatter_sorted(self, points: np.ndarray, lengths: np.ndarray, point_uncertainty: np.ndarray, *, sigma0: float,
+                       labels: np.ndarray | None = None, class_weights: np.ndarray | None = None) -> int:
+        """The radius kernel (MODE_RADIUS, Bayes) by sort-then-reduce (``kernels.sorted_scatter``): the
+        same map as ``scatter``, summed in a fixed order (bit-identical on every device). Returns updates."""
+        n = len(points)
+        if n == 0:
+            return 0
+        reach = float(np.max(lengths))
+        self._check_index_range(np.floor((points.min(axis=0) - reach - self.grid_offset_m) / self.resolution_m),
+                                np.floor((points.max(axis=0) + reach - self.grid_offset_m) / self.resolution_m))
+        d = self.device
+        points_wp, lengths_wp = _points_array(points, d), _float_array(lengths, d)
+        res, offset = wp.float64(self.resolution_m), wp.float64(self.grid_offset_m)
+        counts = wp.empty(n, dtype=int, device=d)
+        wp.launch(ss.count_pairs, dim=n, device=d, inputs=[points_wp, lengths_wp, res, offset, counts])
+        offsets = wp.empty(n, dtype=int, device=d)
+        wp.utils.array_scan(counts, offsets, inclusive=False)
+        pairs = int(offsets.numpy()[-1] + counts.numpy()[-1]) if d == "cpu" else int((offsets[n - 1:n].numpy() + counts[n - 1:n].numpy())[0])
+        if pairs == 0:
+            return 0
+        keys = wp.empty(2 * pairs, dtype=wp.int64, device=d)  # radix_sort_pairs needs room for 2x
+        ids = wp.empty(2 * pairs, dtype=int, device=d)
+        pair_point = wp.empty(pairs, dtype=int, device=d)
+        pair_weight = wp.empty(pairs, dtype=wp.float64, device=d)
+        wp.launch(ss.expand_pairs, dim=n, device=d, inputs=[points_wp, lengths_wp, res, offset, wp.float64(sigma0), offsets,
+                                                             keys, ids, pair_point, pair_weight])
+        wp.utils.radix_sort_pairs(keys, ids, pairs)
+        heads = wp.empty(pairs, dtype=int, device=d)
+        wp.launch(ss.mark_heads, dim=pairs, device=d, inputs=[keys, heads])
+        rank = wp.empty(pairs, dtype=int, device=d)
+        wp.utils.array_scan(heads, rank, inclusive=True)
+        distinct = int(rank[pairs - 1:pairs].numpy()[0])
+        starts = wp.empty(distinct, dtype=int, device=d)
+        wp.launch(ss.segment_starts, dim=pairs, device=d, inputs=[heads, rank, starts])
+        use_labels = labels is not None
+        inputs = [wp.array(np.ascontiguousarray(labels if use_labels else [], dtype=np.int32), dtype=int, device=d),
+                  _float_array(np.zeros((0, self.num_classes)) if use_labels else class_weights, d), int(use_labels),
+                  _float_array(point_uncertainty, d)]
+        self.reserve(distinct)  # every distinct voxel fits: the reduction never fails for room
+        failed = wp.zeros(distinct, dtype=int, device=d)
+        wp.launch(ss.reduce_voxels, dim=distinct, device=d, inputs=[starts, pairs, keys, ids, pair_point, pair_weight, *inputs,
+                                                                    self.keys, self.key_count, self._launch_fill_limit(), self.data, failed])
+        if failed.numpy().any():
+            raise RuntimeError("the sorted reduction ran out of table room after reserving it (a bug)")
+        self.reserve(0)
+        return pairs
+
     def scatter_block_targets(self, points: np.ndarray, labels: np.ndarray, point_uncertainty: np.ndarray,
                               owner_blocks: np.ndarray, target_lengths: np.ndarray, cells_per_block: int) -> int:
         """SEE-CSOM's block-gated scatter (``kernels.scatter.scatter_block_targets``); returns updates."""
@@ -352,16 +400,20 @@ def _float_array(values: np.ndarray, device: str):
     return wp.array(np.ascontiguousarray(values, dtype=np.float64), dtype=wp.float64, device=device)
 
 
-_loaded_devices: set[str] = set()
+_loaded_devices: set = set()  # devices, and (device, K) for the per-K kernels
 
 
-def _load_kernels(device: str) -> None:
-    """Compile/load both kernel modules up front: worker threads then only launch, and a module
+def _load_kernels(device: str, num_classes: int) -> None:
+    """Compile/load the kernel modules up front: worker threads then only launch, and a module
     load never races between threads."""
     if device not in _loaded_devices:
         wp.load_module(ht, device=device)
         wp.load_module(sc, device=device)
+        wp.load_module(ss, device=device)
         _loaded_devices.add(device)
+    if (device, num_classes) not in _loaded_devices:
+        release.gather_release_kernel(num_classes).module.load(device)
+        _loaded_devices.add((device, num_classes))
 
 
 def sum_voxel_arrays(parts: list[VoxelArrays]) -> VoxelArrays:
