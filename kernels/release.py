@@ -149,6 +149,10 @@ def gather_release_kernel(num_classes: int):
     return gather_release_blocks
 
 
+# Kernels made by factories, by name (tests/test_twins.py looks their twins up by these names).
+KERNEL_FACTORIES = {"gather_release_blocks": gather_release_kernel}
+
+
 def vector_type(num_classes: int):
     """The per-point class-weight row type the kernel for K classes reads."""
     return wp.types.vector(length=num_classes, dtype=wp.float64)

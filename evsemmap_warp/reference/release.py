@@ -70,3 +70,29 @@ def release_insert(points, class_weights, uncertainty, *, resolution_m: float, b
                     row[k + 2] += 1
     return cells
 
+
+
+def gather_release_blocks(blocks, source_blocks, source_mult, point_start, points, class_weights, point_uncertainty, *,
+                          length: float, sf2: float, resolution_m: float, cells_per_block: int) -> dict:
+    """What the gather kernel computes from its tables (Bayes fusion): {cell index: row [K + 3]}."""
+    n = cells_per_block
+    local = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    k = class_weights.shape[1]
+    out = {}
+    for b, block in enumerate(blocks):
+        index = np.asarray(block) * n - n // 2 + local
+        centres = (index.astype(np.float32) + np.float32(0.5)) * np.float32(resolution_m)
+        rows = np.zeros((len(index), k + 3))
+        for o in range(source_blocks.shape[1]):
+            s = source_blocks[b, o]
+            if s < 0:
+                continue
+            for q in range(point_start[s], point_start[s + 1]):
+                w = release_kernel(centres, points[q], length, sf2)
+                hit = w > 0
+                rows[hit, :k] += source_mult[b, o] * w[hit, None] * class_weights[q]
+                rows[hit, k] += source_mult[b, o] * w[hit]
+                rows[hit, k + 1] += source_mult[b, o] * w[hit] * point_uncertainty[q]
+                rows[hit, k + 2] += source_mult[b, o]
+        out.update({tuple(i): r for i, r in zip(index, rows)})
+    return out

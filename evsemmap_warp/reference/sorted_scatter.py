@@ -1,0 +1,49 @@
+"""numpy twin of ``kernels/sorted_scatter.py``: the same stages, vectorised."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .hash_table import pack_key
+from .scatter import MODE_RADIUS, _candidate_pairs, sparse_kernel
+
+
+def _pairs(points, lengths, resolution, grid_offset):
+    """Point ids, voxel indices and distances of the pairs with the voxel centre within the length."""
+    points, lengths = np.asarray(points, np.float64), np.asarray(lengths, np.float64)
+    point_id, index = _candidate_pairs(points, lengths, None, MODE_RADIUS, resolution, grid_offset)
+    d = np.linalg.norm((index + 0.5) * resolution + grid_offset - points[point_id], axis=1)
+    inside = d < lengths[point_id]
+    return point_id[inside], index[inside], d[inside]
+
+
+def count_pairs(points, lengths, resolution, grid_offset) -> np.ndarray:
+    point_id = _pairs(points, lengths, resolution, grid_offset)[0]
+    return np.bincount(point_id, minlength=len(points))
+
+
+def expand_pairs(points, lengths, resolution, grid_offset, sigma0):
+    """Pairs in point order: keys, point ids, weights."""
+    point_id, index, d = _pairs(points, lengths, resolution, grid_offset)
+    order = np.argsort(point_id, kind="stable")
+    weights = sparse_kernel(d, np.asarray(lengths, np.float64)[point_id], sigma0)
+    return pack_key(index[order]), point_id[order], weights[order]
+
+
+def mark_heads(sorted_keys: np.ndarray) -> np.ndarray:
+    return np.r_[True, sorted_keys[1:] != sorted_keys[:-1]].astype(np.int32) if len(sorted_keys) else np.zeros(0, np.int32)
+
+
+def segment_starts(heads: np.ndarray) -> np.ndarray:
+    return np.flatnonzero(heads)
+
+
+def reduce_voxels(sorted_keys, pair_point, pair_weight, class_weights, point_uncertainty):
+    """Per distinct key: its key, the class sums, weight sum, weight * u sum and count."""
+    starts = segment_starts(mark_heads(sorted_keys))
+    seg = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(sorted_keys)]))
+    k = class_weights.shape[1]
+    rows = np.zeros((len(starts), k + 3))
+    np.add.at(rows, seg, np.column_stack([pair_weight[:, None] * class_weights[pair_point], pair_weight,
+                                          pair_weight * point_uncertainty[pair_point], np.ones(len(seg))]))
+    return sorted_keys[starts], rows

@@ -1,0 +1,30 @@
+"""Kernels that only the performance study launches (tools/kernel_study.py): a streaming copy for the
+bandwidth roof, and a keyed row add in float32 and float64 for the cost of the precision (Warp).
+
+numpy twin: ``evsemmap_warp/reference/microbench.py``.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def stream_copy(src: wp.array(dtype=wp.float64), dst: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    dst[i] = src[i]
+
+
+@wp.kernel
+def add_rows64(rows: wp.array(dtype=int), weights: wp.array(dtype=wp.float64), data: wp.array2d(dtype=wp.float64)):
+    """data[rows[t], :] += weights[t] with atomics, as the scatter's per-update row add."""
+    t = wp.tid()
+    for c in range(data.shape[1]):
+        wp.atomic_add(data, rows[t], c, weights[t])
+
+
+@wp.kernel
+def add_rows32(rows: wp.array(dtype=int), weights: wp.array(dtype=wp.float32), data: wp.array2d(dtype=wp.float32)):
+    t = wp.tid()
+    for c in range(data.shape[1]):
+        wp.atomic_add(data, rows[t], c, weights[t])
