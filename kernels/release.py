@@ -15,7 +15,6 @@ per contribution.
 numpy twin: ``evsemmap_warp/reference/release.py`` (a literal block-by-block model loop).
 """
 
-from __future__ import annotations
 
 import functools
 
@@ -46,27 +45,40 @@ def _sparse_kernel_polynomial(degree: int = 14):
 _POLY = _sparse_kernel_polynomial()
 _vec_poly = wp.types.vector(length=len(_POLY), dtype=wp.float64)
 _POLY_COEFFS = wp.constant(_vec_poly(*[float(c) for c in _POLY]))
-_POLY_TOP = wp.constant(len(_POLY) - 1)
+assert len(_POLY) == 15, "release_sparse_kernel's Estrin scheme is written for degree 14"
 
 
 @wp.func
-def release_sparse_kernel(d2: float, length: wp.float64, sf2: float) -> float:
-    """The release's covSparseUnc for a float32 squared distance d2: the distance divided in double by
-    ell * e, the kernel shape (polynomial above), times sf2, rounded to float32; 0 from d = l on."""
-    x = f64(wp.sqrt(d2)) / length
+def release_sparse_kernel(d2: float, inverse_length: wp.float64, sf2: float) -> float:
+    """The release's covSparseUnc for a float32 squared distance d2: the distance over ell * e in double
+    (times its reciprocal: within an ulp of the C++'s division), the kernel shape (polynomial above, by
+    Estrin's scheme: four dependent steps instead of fourteen), times sf2, rounded to float32; 0 from
+    d = l on."""
+    x = f64(wp.sqrt(d2)) * inverse_length
     if x >= _ONE:
         return 0.0
     s = f64(2.0) * x - _ONE
-    k = _POLY_COEFFS[_POLY_TOP]
-    for i in range(_POLY_TOP):
-        k = k * s + _POLY_COEFFS[_POLY_TOP - 1 - i]
+    s2 = s * s
+    s4 = s2 * s2
+    c = _POLY_COEFFS
+    q0 = (c[0] + c[1] * s) + (c[2] + c[3] * s) * s2
+    q1 = (c[4] + c[5] * s) + (c[6] + c[7] * s) * s2
+    q2 = (c[8] + c[9] * s) + (c[10] + c[11] * s) * s2
+    q3 = (c[12] + c[13] * s) + c[14] * s2
+    k = (q0 + q1 * s4) + (q2 + q3 * s4) * (s4 * s4)
     return float(wp.max(k, _ZERO)) * sf2
 
 
 @functools.cache
-def gather_release_kernel(num_classes: int):
-    """The gather kernel for K = num_classes (one Warp module per K, compiled on first use)."""
+def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
+    """The gather kernel for K = num_classes and blocks of cells_per_block^3 cells (one Warp module per
+    pair, compiled on first use)."""
+    n = cells_per_block
+    n3 = n * n * n
     vec_k = wp.types.vector(length=num_classes, dtype=wp.float64)
+    cell_sums = wp.types.matrix(shape=(n3, num_classes), dtype=wp.float64)
+    cell_scalars = wp.types.vector(length=n3, dtype=wp.float64)
+    cell_centres = wp.types.matrix(shape=(n3, 3), dtype=wp.float32)
 
     @wp.kernel(module="unique")
     def gather_release_blocks(
@@ -81,72 +93,110 @@ def gather_release_kernel(num_classes: int):
         length: wp.float64,
         sigma0: float,
         resolution: float,
-        cells_per_block: int,
         fusion: int,
         table_keys: wp.array(dtype=wp.int64),
         voxel_data: wp.array2d(dtype=wp.float64),
         failed: wp.array(dtype=int),
         update_count: wp.array(dtype=wp.int64),
     ):
-        """One thread per cell of target block blocks[block_ids[t / cells^3]]: the points of its source
-        blocks source_blocks[b, :] (indices into ``blocks``, -1 for none; block s owns points
+        """One thread per target block blocks[block_ids[t]], holding its n^3 cells' sums: the points of
+        its source blocks source_blocks[b, :] (indices into ``blocks``, -1 for none; block s owns points
         point_start[s]:point_start[s + 1], one row per (point, block holding it) pair), each counted
-        source_mult[b, :] times. Adds k(d) * y (Bayes) or the log commonality ratios (Dempster) and the
-        bookkeeping columns into the cell's row, which must exist."""
+        source_mult[b, :] times, are read once and weighed against every cell (independent chains the
+        CPU overlaps). Adds k(d) * y (Bayes) or the log commonality ratios (Dempster) and the
+        bookkeeping columns into each cell's row, which must exist."""
         t = wp.tid()
-        n = cells_per_block
-        n3 = n * n * n
-        b = block_ids[t / n3]
-        j = t - (t / n3) * n3
-        first = blocks[b] * n - wp.vec3i(n / 2, n / 2, n / 2)
-        ix = first[0] + j / (n * n)
-        iy = first[1] + (j / n) % n
-        iz = first[2] + j % n
-        slot = table_find(table_keys, pack_key(ix, iy, iz))
-        if slot < 0:
-            failed[t] = 1
-            return
-        centre = sbki_voxel_center(ix, iy, iz, resolution, 0.0)
+        b = block_ids[t]
+        first = blocks[b] * n - wp.vec3i(n // 2, n // 2, n // 2)
+        centres = cell_centres()
+        for j in range(n3):
+            centre = sbki_voxel_center(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n, resolution, 0.0)
+            centres[j, 0] = centre[0]
+            centres[j, 1] = centre[1]
+            centres[j, 2] = centre[2]
         reach = float(length)
         reach2 = reach * reach
-        evidence = vec_k()
-        weight_sum = _ZERO
-        weighted_u = _ZERO
-        hits = _ZERO
+        inverse_length = _ONE / length
+        evidence = cell_sums()
+        weight_sum = cell_scalars()
+        weighted_u = cell_scalars()
+        hits = cell_scalars()
         for o in range(source_blocks.shape[1]):
             s = source_blocks[b, o]
             if s >= 0:
                 mult = f64(source_mult[b, o])
                 for q in range(point_start[s], point_start[s + 1]):
                     p = points[q]
-                    diff = centre - p
-                    d2 = wp.dot(diff, diff)
-                    if d2 < reach2:
-                        w = f64(release_sparse_kernel(d2, length, sigma0))
-                        if w > _ZERO:
-                            y = class_weights[q]
-                            if fusion == FUSION_DEMPSTER:
-                                wb = wp.min(w, _ONE)
-                                committed = _ZERO
-                                for c in range(num_classes):
-                                    committed += wp.clamp(y[c] * wb, _ZERO, _ONE - _BELIEF_EPSILON)
-                                uncommitted = wp.max(_ONE - committed, _BELIEF_EPSILON)
-                                for c in range(num_classes):
-                                    evidence[c] += mult * wp.log(_ONE + wp.clamp(y[c] * wb, _ZERO, _ONE - _BELIEF_EPSILON) / uncommitted)
-                            else:
-                                evidence += (mult * w) * y
-                            weight_sum += mult * w
-                            weighted_u += mult * w * point_uncertainty[q]
-                            hits += mult
-        for c in range(num_classes):
-            voxel_data[slot, c] = voxel_data[slot, c] + evidence[c]
+                    y = class_weights[q]
+                    u = point_uncertainty[q]
+                    for j in range(n3):
+                        dx = centres[j, 0] - p[0]
+                        dy = centres[j, 1] - p[1]
+                        dz = centres[j, 2] - p[2]
+                        d2 = dx * dx + dy * dy + dz * dz
+                        if d2 < reach2:
+                            w = f64(release_sparse_kernel(d2, inverse_length, sigma0))
+                            if w > _ZERO:
+                                if fusion == FUSION_DEMPSTER:
+                                    wb = wp.min(w, _ONE)
+                                    committed = _ZERO
+                                    for c in range(num_classes):
+                                        committed += wp.clamp(y[c] * wb, _ZERO, _ONE - _BELIEF_EPSILON)
+                                    uncommitted = wp.max(_ONE - committed, _BELIEF_EPSILON)
+                                    for c in range(num_classes):
+                                        evidence[j, c] = evidence[j, c] + mult * wp.log(_ONE + wp.clamp(y[c] * wb, _ZERO, _ONE - _BELIEF_EPSILON) / uncommitted)
+                                else:
+                                    mw = mult * w
+                                    for c in range(num_classes):
+                                        evidence[j, c] = evidence[j, c] + mw * y[c]
+                                weight_sum[j] = weight_sum[j] + mult * w
+                                weighted_u[j] = weighted_u[j] + mult * w * u
+                                hits[j] = hits[j] + mult
         k = num_classes
-        voxel_data[slot, k + COL_WEIGHT] = voxel_data[slot, k + COL_WEIGHT] + weight_sum
-        voxel_data[slot, k + COL_WEIGHTED_UNCERTAINTY] = voxel_data[slot, k + COL_WEIGHTED_UNCERTAINTY] + weighted_u
-        voxel_data[slot, k + COL_HITS] = voxel_data[slot, k + COL_HITS] + hits
-        wp.atomic_add(update_count, 0, wp.int64(hits))
+        total_hits = _ZERO
+        for j in range(n3):
+            slot = table_find(table_keys, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
+            if slot < 0:
+                failed[t] = 1
+            else:
+                for c in range(num_classes):
+                    voxel_data[slot, c] = voxel_data[slot, c] + evidence[j, c]
+                voxel_data[slot, k + COL_WEIGHT] = voxel_data[slot, k + COL_WEIGHT] + weight_sum[j]
+                voxel_data[slot, k + COL_WEIGHTED_UNCERTAINTY] = voxel_data[slot, k + COL_WEIGHTED_UNCERTAINTY] + weighted_u[j]
+                voxel_data[slot, k + COL_HITS] = voxel_data[slot, k + COL_HITS] + hits[j]
+                total_hits += hits[j]
+        wp.atomic_add(update_count, 0, wp.int64(total_hits))
 
     return gather_release_blocks
+
+
+@wp.func
+def _grid_index(grid: wp.array3d(dtype=int), lo: wp.vec3i, b: wp.vec3i) -> int:
+    g = b - lo
+    return grid[g[0], g[1], g[2]]
+
+
+@wp.kernel
+def block_models(blocks: wp.array(dtype=wp.vec3i), grid: wp.array3d(dtype=int), lo: wp.vec3i,
+                 target_offsets: wp.array(dtype=wp.vec3i), face_offsets: wp.array(dtype=wp.vec3i),
+                 source_blocks: wp.array2d(dtype=int), source_mult: wp.array2d(dtype=int)):
+    """For block b and target offset o: the block at blocks[b] + o (its index from ``grid``, a dense
+    map of the scan's blocks over their bounding box widened by 3; -1 none) and the number of its
+    models that predict for blocks[b]: occupied blocks source + f, f a face offset or 0, with
+    |o + f|_1 <= 1."""
+    b, o = wp.tid()
+    offset = target_offsets[o]
+    source = blocks[b] + offset
+    index = _grid_index(grid, lo, source)
+    mult = int(0)
+    if index >= 0:
+        for f in range(face_offsets.shape[0]):
+            step = offset + face_offsets[f]
+            if wp.abs(step[0]) + wp.abs(step[1]) + wp.abs(step[2]) <= 1:
+                if _grid_index(grid, lo, source + face_offsets[f]) >= 0:
+                    mult += 1
+    source_blocks[b, o] = index
+    source_mult[b, o] = mult
 
 
 # Kernels made by factories, by name (tests/test_twins.py looks their twins up by these names).

@@ -173,3 +173,33 @@ def test_bench_workload_gives_the_release_counts_exactly(method, after_ds, cells
         kept += mapper.integrate(scan.points, scan.payload, payload_type="alpha").kept_points
     assert (after_cut, kept, mapper.voxel_count) == (1_618_253, after_ds, cells)
     assert mapper.state_counts()["OCCUPIED"] == cells
+
+
+def test_block_tables_are_the_same_from_the_dense_grid_and_the_binary_search(monkeypatch):
+    rng = np.random.default_rng(9)
+    members = np.concatenate([rng.integers(-6, 6, (400, 3)), [[500_000, -400_000, 3]]])  # one far block: a huge box
+    far = er.release_blocks(members)
+    near = er.release_blocks(members[:-1])
+    monkeypatch.setattr(er, "MAX_DENSE_LOOKUP_CELLS", 0)
+    for got, want in ((er.release_blocks(members), far), (er.release_blocks(members[:-1]), near)):
+        for field in ("blocks", "pair_order", "point_start", "source_blocks", "source_mult"):
+            np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
+    assert far.source_blocks[-1].max() == len(far.blocks) - 1 and (far.source_blocks[-1] >= 0).sum() == 1  # alone: only itself
+
+
+def test_block_models_kernel_matches_its_numpy_twin(device):
+    from evsemmap_warp.core.voxel_map import block_model_tables
+
+    rng = np.random.default_rng(10)
+    members = rng.integers(-5, 5, (300, 3))
+    twin = er.release_blocks(members)
+    got = er.release_blocks(members, lambda b, g, lo: block_model_tables(b, g, lo, device))
+    np.testing.assert_array_equal(got.source_blocks, twin.source_blocks)
+    np.testing.assert_array_equal(got.source_mult, twin.source_mult)
+    from evsemmap_warp.reference.release import block_models
+
+    literal = block_models(twin.blocks, er.TARGET_BLOCK_OFFSETS)
+    np.testing.assert_array_equal(literal[0], twin.source_blocks)
+    np.testing.assert_array_equal(literal[1], twin.source_mult)
+    one = er.release_blocks(members[:1], lambda b, g, lo: block_model_tables(b, g, lo, device))
+    assert one.source_mult[0].tolist() == [1 if tuple(o) == (0, 0, 0) else 0 for o in er.TARGET_BLOCK_OFFSETS]

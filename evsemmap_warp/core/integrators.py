@@ -25,7 +25,7 @@ from ..config import Fusion, Kernel, MappingConfig, Media
 from ..kernels import release
 from ..kernels import scatter as sc
 from ..methods import convbki, evsemmap_release, sbki_compat, see_csom
-from .voxel_map import VoxelMap
+from .voxel_map import VoxelMap, block_model_tables
 
 # Below this many points per shard, splitting a launch costs more than it saves.
 MIN_POINTS_PER_SHARD = 4096
@@ -245,7 +245,8 @@ class ReleaseCompatIntegrator:
             return stats
         points = scan.points[keep].astype(np.float32)
         pair_points, member_blocks = sbki_compat.block_memberships(points, self.block_size)
-        models = evsemmap_release.release_blocks(member_blocks)
+        device = shards[0].device
+        models = evsemmap_release.release_blocks(member_blocks, lambda b, g, lo: block_model_tables(b, g, lo, device))
         first = models.blocks * self.cells_per_block - self.cells_per_block // 2
         shards[0]._check_index_range(first.min(axis=0), first.max(axis=0) + self.cells_per_block - 1)
         fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
@@ -262,7 +263,7 @@ class ReleaseCompatIntegrator:
             wp.array(np.ascontiguousarray(points[sorted_points]), dtype=wp.vec3, device=d),
             wp.array(np.ascontiguousarray(weights, dtype=np.float64), dtype=release.vector_type(weights.shape[1]), device=d),
             wp.array(np.ascontiguousarray(unc, dtype=np.float64), dtype=wp.float64, device=d),
-            wp.float64(self.length), float(c.sigma0), float(c.resolution_m), int(self.cells_per_block), int(fusion),
+            wp.float64(self.length), float(c.sigma0), float(c.resolution_m), int(fusion),
         ]
         # Each target block belongs to one shard, chosen by its index alone: a cell is always summed in
         # the same shard in the same order, so the map is bit for bit the same for any number of workers.

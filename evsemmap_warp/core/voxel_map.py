@@ -301,19 +301,18 @@ class VoxelMap:
         return int(update_count.numpy()[0])
 
     def gather_release_blocks(self, gather_inputs: list, block_ids: np.ndarray, *, cells_per_block: int) -> int:
-        """The released EvSemMap's block models in gather form (``kernels.release``)
-        for the cells of the target blocks ``block_ids``; ``gather_inputs`` are that kernel's arguments from
-        ``blocks`` to ``fusion`` (device arrays shared by the shards). The cells must be inserted."""
+        """The released EvSemMap's block models in gather form (``kernels.release``) for the cells of the
+        target blocks ``block_ids``; ``gather_inputs`` are that kernel's arguments from ``blocks`` to
+        ``fusion`` (device arrays shared by the shards). The cells must be inserted."""
         if len(block_ids) == 0:
             return 0
         d = self.device
         ids = wp.array(np.ascontiguousarray(block_ids, dtype=np.int32), dtype=int, device=d)
-        n = len(block_ids) * cells_per_block**3
-        failed = wp.zeros(n, dtype=int, device=d)
+        failed = wp.zeros(len(block_ids), dtype=int, device=d)
         update_count = wp.zeros(1, dtype=wp.int64, device=d)
         blocks, *rest = gather_inputs
-        kernel = release.gather_release_kernel(self.num_classes)
-        wp.launch(kernel, dim=n, device=d, inputs=[blocks, ids, *rest, self.keys, self.data, failed, update_count])
+        kernel = release.gather_release_kernel(self.num_classes, cells_per_block)
+        wp.launch(kernel, dim=len(block_ids), device=d, inputs=[blocks, ids, *rest, self.keys, self.data, failed, update_count])
         if failed.numpy().any():
             raise RuntimeError("a release-mode cell was never inserted (a bug)")
         return int(update_count.numpy()[0])
@@ -392,6 +391,21 @@ class VoxelMap:
         self.data = wp.array(data, dtype=wp.float64, device=self.device)
 
 
+def block_model_tables(blocks: np.ndarray, grid: np.ndarray, lo: np.ndarray, device: str):
+    """``kernels.release.block_models`` over every (block, target offset): the release mode's source
+    blocks and model counts [B, 25] from a dense grid of the scan's blocks."""
+    from ..methods.evsemmap_release import FACE_OFFSETS, TARGET_BLOCK_OFFSETS
+
+    n, m = len(blocks), len(TARGET_BLOCK_OFFSETS)
+    source = wp.empty((n, m), dtype=int, device=device)
+    mult = wp.empty((n, m), dtype=int, device=device)
+    wp.launch(release.block_models, dim=(n, m), device=device, inputs=[
+        wp.array(blocks.astype(np.int32), dtype=wp.vec3i, device=device), wp.array(grid, dtype=int, device=device),
+        wp.vec3i(*[int(v) for v in lo]), wp.array(TARGET_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device),
+        wp.array(FACE_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device), source, mult])
+    return source.numpy(), mult.numpy()
+
+
 def _points_array(points: np.ndarray, device: str):
     return wp.array(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3), dtype=wp.vec3d, device=device)
 
@@ -412,7 +426,8 @@ def _load_kernels(device: str, num_classes: int) -> None:
         wp.load_module(ss, device=device)
         _loaded_devices.add(device)
     if (device, num_classes) not in _loaded_devices:
-        release.gather_release_kernel(num_classes).module.load(device)
+        release.gather_release_kernel(num_classes, 2).module.load(device)
+        wp.load_module(release, device=device)
         _loaded_devices.add((device, num_classes))
 
 

@@ -114,7 +114,16 @@ class ReleaseBlocks:
     source_mult: np.ndarray
 
 
-def release_blocks(member_blocks: np.ndarray) -> ReleaseBlocks:
+# Above this many cells the block lookup falls back from a dense grid over the scan's blocks to a
+# binary search (the grid is int32: 64 MB at this size).
+MAX_DENSE_LOOKUP_CELLS = 1 << 24
+
+
+def release_blocks(member_blocks: np.ndarray, block_models=None) -> ReleaseBlocks:
+    """The gather kernel's tables for one scan's (point, block) memberships [P, 3]. ``block_models``
+    (blocks, grid, lo) -> (source, mult) computes the per-block tables from the dense grid when the
+    scan's blocks fit one (the engine passes ``kernels.release.block_models``); else, and as that
+    kernel's twin, numpy does."""
     member_blocks = np.asarray(member_blocks, dtype=np.int64).reshape(-1, 3)
     keys, inverse = np.unique(pack_voxel_keys(member_blocks), return_inverse=True)
     inverse = inverse.reshape(-1)
@@ -122,13 +131,39 @@ def release_blocks(member_blocks: np.ndarray) -> ReleaseBlocks:
     point_start = np.r_[0, np.cumsum(np.bincount(inverse, minlength=len(keys)))]
     blocks = np.empty((len(keys), 3), np.int64)
     blocks[inverse] = member_blocks
+    grid, lo = _dense_grid(blocks)
+    if block_models is not None and grid is not None:
+        source, mult = block_models(blocks, grid, lo)
+    else:
+        source, mult = _block_models_numpy(blocks, keys, grid, lo)
+    return ReleaseBlocks(blocks, order, point_start, source, mult)
 
-    def index_of(index: np.ndarray) -> np.ndarray:
-        packed = pack_voxel_keys(index)
-        pos = np.minimum(np.searchsorted(keys, packed), len(keys) - 1)
-        return np.where(keys[pos] == packed, pos, -1)
 
-    source = np.full((len(keys), len(TARGET_BLOCK_OFFSETS)), -1, np.int64)
+def _dense_grid(blocks: np.ndarray):
+    """A dense int32 map of the blocks' positions over their bounding box widened by 3 (-1: none),
+    or None when it would exceed MAX_DENSE_LOOKUP_CELLS."""
+    if len(blocks) == 0:
+        return None, None
+    lo = blocks.min(axis=0) - 3
+    shape = blocks.max(axis=0) + 4 - lo
+    if int(np.prod(shape)) > MAX_DENSE_LOOKUP_CELLS:
+        return None, lo
+    grid = np.full(tuple(shape), -1, np.int32)
+    grid[tuple((blocks - lo).T)] = np.arange(len(blocks), dtype=np.int32)
+    return grid, lo
+
+
+def _block_models_numpy(blocks, keys, grid, lo):
+    if grid is not None:
+        def index_of(index):
+            return grid[tuple((index - lo).T)].astype(np.int64)
+    else:
+        def index_of(index):
+            packed = pack_voxel_keys(index)
+            pos = np.minimum(np.searchsorted(keys, packed), len(keys) - 1)
+            return np.where(keys[pos] == packed, pos, -1)
+
+    source = np.full((len(blocks), len(TARGET_BLOCK_OFFSETS)), -1, np.int64)
     mult = np.zeros_like(source)
     for o, offset in enumerate(TARGET_BLOCK_OFFSETS):
         src = blocks + offset
@@ -139,4 +174,4 @@ def release_blocks(member_blocks: np.ndarray) -> ReleaseBlocks:
             if np.abs(offset + face).sum() <= 1:
                 mult[:, o] += index_of(src + face) >= 0
     mult[source < 0] = 0
-    return ReleaseBlocks(blocks, order, point_start, source.astype(np.int32), mult.astype(np.int32))
+    return source.astype(np.int32), mult.astype(np.int32)

@@ -96,3 +96,23 @@ def gather_release_blocks(blocks, source_blocks, source_mult, point_start, point
                 rows[hit, k + 2] += source_mult[b, o]
         out.update({tuple(i): r for i, r in zip(index, rows)})
     return out
+
+
+def block_models(blocks: np.ndarray, target_offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``kernels.release.block_models``, literally: for each block and target offset, the
+    index of the block there (-1 none) and how many occupied models hold it in their extended block
+    while predicting for the block."""
+    where = {tuple(b): i for i, b in enumerate(np.asarray(blocks).tolist())}
+    source = np.full((len(blocks), len(target_offsets)), -1, np.int32)
+    mult = np.zeros_like(source)
+    for b, block in enumerate(np.asarray(blocks).tolist()):
+        for o, offset in enumerate(np.asarray(target_offsets).tolist()):
+            src = tuple(np.add(block, offset))
+            if src not in where:
+                continue
+            source[b, o] = where[src]
+            for face in _EXTENDED:
+                model = tuple(np.add(src, face))
+                if model in where and np.abs(np.subtract(block, model)).sum() <= 1:
+                    mult[b, o] += 1
+    return source, mult
