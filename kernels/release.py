@@ -27,6 +27,7 @@ from .scatter import (_BELIEF_EPSILON, _ONE, _ZERO, COL_HITS, COL_WEIGHT, COL_WE
 wp.set_module_options({"enable_backward": False})
 
 f64 = wp.float64
+_MAX_FACTORS = wp.constant(wp.float64(40.0))  # 1e6^(40 + 7) = 1e282 < float64's 1.8e308
 
 
 def _sparse_kernel_polynomial(degree: int = 14):
@@ -69,6 +70,20 @@ def release_sparse_kernel(d2: float, inverse_length: wp.float64, sf2: float) -> 
     return float(wp.max(k, _ZERO)) * sf2
 
 
+@wp.func
+def integer_power(x: wp.float64, m: int) -> wp.float64:
+    """x^m for 0 <= m <= 7 (a model count) by squaring, without a loop."""
+    x2 = x * x
+    out = _ONE
+    if m & 1 != 0:
+        out = out * x
+    if m & 2 != 0:
+        out = out * x2
+    if m & 4 != 0:
+        out = out * (x2 * x2)
+    return out
+
+
 @functools.cache
 def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
     """The gather kernel for K = num_classes and blocks of cells_per_block^3 cells (one Warp module per
@@ -80,7 +95,7 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
     cell_scalars = wp.types.vector(length=n3, dtype=wp.float64)
     cell_centres = wp.types.matrix(shape=(n3, 3), dtype=wp.float32)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", module_options={"max_unroll": 1})
     def gather_release_blocks(
         blocks: wp.array(dtype=wp.vec3i),
         block_ids: wp.array(dtype=int),
@@ -118,6 +133,14 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
         reach2 = reach * reach
         inverse_length = _ONE / length
         evidence = cell_sums()
+        # Dempster: products of commonality ratios (each at most 1 / BELIEF_EPSILON = 1e6), folded into the
+        # log sums after at most _MAX_FACTORS ratios: about 1 log per cell and class per 40 points instead of 1 per point.
+        commonality = cell_sums()
+        factors = cell_scalars()
+        if fusion == FUSION_DEMPSTER:
+            for j in range(n3):
+                for c in range(num_classes):
+                    commonality[j, c] = _ONE
         weight_sum = cell_scalars()
         weighted_u = cell_scalars()
         hits = cell_scalars()
@@ -142,9 +165,17 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
                                     committed = _ZERO
                                     for c in range(num_classes):
                                         committed += wp.clamp(y[c] * wb, _ZERO, _ONE - _BELIEF_EPSILON)
-                                    uncommitted = wp.max(_ONE - committed, _BELIEF_EPSILON)
+                                    inverse_uncommitted = _ONE / wp.max(_ONE - committed, _BELIEF_EPSILON)
                                     for c in range(num_classes):
-                                        evidence[j, c] = evidence[j, c] + mult * wp.log(_ONE + wp.clamp(y[c] * wb, _ZERO, _ONE - _BELIEF_EPSILON) / uncommitted)
+                                        ratio = _ONE + wp.clamp(y[c] * wb, _ZERO, _ONE - _BELIEF_EPSILON) * inverse_uncommitted
+                                        commonality[j, c] = commonality[j, c] * integer_power(ratio, source_mult[b, o])
+                                    # each point multiplies in at most 1e6^7 = 1e42; fold before 1e250 could overflow
+                                    factors[j] = factors[j] + mult
+                                    if factors[j] > _MAX_FACTORS:
+                                        for c in range(num_classes):
+                                            evidence[j, c] = evidence[j, c] + wp.log(commonality[j, c])
+                                            commonality[j, c] = _ONE
+                                        factors[j] = _ZERO
                                 else:
                                     mw = mult * w
                                     for c in range(num_classes):
@@ -160,6 +191,8 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
                 failed[t] = 1
             else:
                 for c in range(num_classes):
+                    if fusion == FUSION_DEMPSTER:
+                        evidence[j, c] = evidence[j, c] + wp.log(commonality[j, c])
                     voxel_data[slot, c] = voxel_data[slot, c] + evidence[j, c]
                 voxel_data[slot, k + COL_WEIGHT] = voxel_data[slot, k + COL_WEIGHT] + weight_sum[j]
                 voxel_data[slot, k + COL_WEIGHTED_UNCERTAINTY] = voxel_data[slot, k + COL_WEIGHTED_UNCERTAINTY] + weighted_u[j]

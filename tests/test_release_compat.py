@@ -203,3 +203,24 @@ def test_block_models_kernel_matches_its_numpy_twin(device):
     np.testing.assert_array_equal(literal[1], twin.source_mult)
     one = er.release_blocks(members[:1], lambda b, g, lo: block_model_tables(b, g, lo, device))
     assert one.source_mult[0].tolist() == [1 if tuple(o) == (0, 0, 0) else 0 for o in er.TARGET_BLOCK_OFFSETS]
+
+
+def test_dempster_products_fold_before_they_overflow():
+    # 300 confident points in one block: each multiplies ratios of up to 1e6 into its cells; unfolded the
+    # products would pass float64's 1.8e308 after ~52 points.
+    rng = np.random.default_rng(12)
+    pts = (np.float32(0.1) + rng.uniform(-0.05, 0.05, (300, 3))).astype(np.float32)
+    alpha = np.ones((300, 3))
+    alpha[:, 1] = 1e7
+    cfg = _config("dempster", uncertainty_drop_fraction=0.0, ds_multiplier=1000)
+    mapper = Mapper(cfg, 3, origin=np.zeros(3))
+    mapper.integrate(pts, alpha, payload_type="alpha")
+    arrays, summary = mapper.voxels()
+    payload = prepare_payload(pts, alpha, "alpha", 3)
+    weights = np.clip(payload.probabilities - payload.uncertainty[:, None] / 3, 0, 1)
+    expected = release_insert(pts, weights, payload.uncertainty, resolution_m=0.2, block_depth=2,
+                              length=er.kernel_length(0.3), sf2=1.0, dempster=True)
+    want = np.array([expected[tuple(v)] for v in arrays.index])
+    assert np.isfinite(arrays.evidence).all() and arrays.evidence.max() > 1000  # far beyond one product's range
+    np.testing.assert_allclose(arrays.evidence, want[:, :3], rtol=2e-6)  # the kernel values: polynomial vs float32 trig
+    assert (summary.label == 1).all()
