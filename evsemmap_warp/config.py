@@ -80,7 +80,8 @@ class MappingConfig:
     free_resolution_m: float = 4.0
     max_range_m: float = -1.0  # <= 0 disables the range filter
     # How the radius kernel (clean mode, Bayes fusion) reaches the map: "atomic" (scatter with atomic
-    # adds) or "sorted" (sort-then-reduce: each voxel summed in a fixed order, docs/kernel_study.md).
+    # adds), "sorted" (sort-then-reduce) or "gather" (per voxel through a hash grid of the points); the
+    # last two sum each voxel in a fixed order (docs/kernel_study.md).
     scatter_strategy: str = "atomic"
     # EvSemMap release mode only: each 0.4 m block keeps its first ds_multiplier + 1 points per scan;
     # -1: the release's own value, 10 for ebs (Bayes fusion) and 5 for dempster.
@@ -128,10 +129,10 @@ class MappingConfig:
             need(self.media is Media.ONEHOT, "media", "the sbki compatibility mode reproduces S-BKI/S-CSM, which take one-hot labels")
             need(not self.adaptive_length, "adaptive_length", "the original S-BKI has no adaptive length")
             need(not self.uncertainty_threshold, "uncertainty_threshold", "the original S-BKI has no uncertainty threshold")
-        need(self.scatter_strategy in ("atomic", "sorted"), "scatter_strategy", "must be atomic or sorted")
-        if self.scatter_strategy == "sorted":
+        need(self.scatter_strategy in ("atomic", "sorted", "gather"), "scatter_strategy", "must be atomic, sorted or gather")
+        if self.scatter_strategy != "atomic":
             need(self.kernel is Kernel.SPARSE and self.fusion is Fusion.BAYES and self.compat is Compat.CLEAN, "scatter_strategy",
-                 "the sorted strategy integrates the clean sparse kernel with Bayes fusion (s-bki, ebs, prob*)")
+                 "the sorted and gather strategies integrate the clean sparse kernel with Bayes fusion (s-bki, ebs, prob*)")
         need(self.ds_multiplier >= -1, "ds_multiplier", "must be >= 0 (or -1: the release's value for the fusion)")
         if self.compat is Compat.EVSEMMAP:
             need(self.kernel is Kernel.SPARSE, "kernel", "the evsemmap compatibility mode reproduces the release's ebs and dempster (sparse kernel)")

@@ -31,25 +31,27 @@ def _cloud(rng, n):
 
 @pytest.mark.parametrize("n", [0, 1, 2, 500])
 @pytest.mark.parametrize("method", ["s-bki", "prob", "ebs"])
-def test_sorted_strategy_gives_the_atomic_map(device, method, n):
+def test_sorted_and_gather_strategies_give_the_atomic_map(device, method, n):
     rng = np.random.default_rng(n)
     pts, alpha = _cloud(rng, max(n, 1))
     pts, alpha = pts[:n], alpha[:n]
     base = load_config([REPO / "configs/presets/rellis3d.yaml"], method=method).mapping
     maps = []
-    for strategy in ("atomic", "sorted"):
+    for strategy in ("atomic", "sorted", "gather"):
         mapper = Mapper(dataclasses.replace(base, scatter_strategy=strategy), 5, device=device, origin=np.zeros(3), initial_capacity=16)
         mapper.integrate(pts, alpha, payload_type="alpha")
         mapper.integrate(pts + 0.05, alpha, payload_type="alpha")  # accumulation and table growth
         maps.append(mapper.voxels()[0])
-    np.testing.assert_array_equal(maps[0].index, maps[1].index)
-    np.testing.assert_allclose(maps[0].rows(), maps[1].rows(), rtol=1e-12, atol=1e-14)
+    for other in maps[1:]:
+        np.testing.assert_array_equal(maps[0].index, other.index)
+        np.testing.assert_allclose(maps[0].rows(), other.rows(), rtol=1e-12, atol=1e-14)
 
 
-def test_sorted_strategy_far_from_the_origin_maps_as_near_it():
+@pytest.mark.parametrize("strategy", ["sorted", "gather"])
+def test_deterministic_strategies_far_from_the_origin_map_as_near_it(strategy):
     rng = np.random.default_rng(3)
     pts, alpha = _cloud(rng, 300)
-    cfg = dataclasses.replace(load_config([REPO / "configs/presets/rellis3d.yaml"], method="s-bki").mapping, scatter_strategy="sorted")
+    cfg = dataclasses.replace(load_config([REPO / "configs/presets/rellis3d.yaml"], method="s-bki").mapping, scatter_strategy=strategy)
     shift = np.array([500_000.0, 4_000_000.0, 100.0])
     near, far = Mapper(cfg, 5), Mapper(cfg, 5)
     near.integrate(pts, alpha, payload_type="alpha")
@@ -115,3 +117,23 @@ def test_quick_study_runs_and_its_strategies_agree(tmp_path):
     assert "every strategy gave the atomic scatter's voxels" in report
     for png in ("strategies.png", "hash_load.png", "scaling.png"):
         assert (tmp_path / "kernel_study" / png).stat().st_size > 1000
+
+
+def test_hashgrid_stages_match_their_twins():
+    from evsemmap_warp.kernels import hashgrid_gather as hg
+    from evsemmap_warp.reference import hashgrid_gather as hg_ref
+
+    rng = np.random.default_rng(6)
+    pts, _ = _cloud(rng, 150)
+    lengths = rng.uniform(0.05, 0.5, 150)
+    keys = wp.full(4096, -1, dtype=wp.int64, device="cpu")
+    count, failed = wp.zeros(1, dtype=int, device="cpu"), wp.zeros(1, dtype=int, device="cpu")
+    wp.launch(hg.mark_reached, dim=150, inputs=[wp.array(pts, dtype=wp.vec3d, device="cpu"), wp.array(lengths, dtype=wp.float64, device="cpu"),
+                                                wp.float64(0.2), wp.float64(0.0), keys, count, 4096, failed], device="cpu")
+    got = np.sort(keys.numpy()[keys.numpy() != -1])
+    np.testing.assert_array_equal(got, hg_ref.mark_reached(pts, lengths, 0.2, 0.0))
+    assert int(count.numpy()[0]) == len(got) and not failed.numpy()[0]
+    tiny = wp.full(8, -1, dtype=wp.int64, device="cpu")  # a full key set reports instead of dropping
+    wp.launch(hg.mark_reached, dim=150, inputs=[wp.array(pts, dtype=wp.vec3d, device="cpu"), wp.array(lengths, dtype=wp.float64, device="cpu"),
+                                                wp.float64(0.2), wp.float64(0.0), tiny, wp.zeros(1, dtype=int, device="cpu"), 4, failed], device="cpu")
+    assert failed.numpy()[0] == 1

@@ -100,6 +100,8 @@ class KernelIntegrator:
             kw = {"labels": media[part]} if onehot else {"class_weights": media[part]}
             if c.scatter_strategy == "sorted" and mode == sc.MODE_RADIUS:
                 return shard.scatter_sorted(points[part], lengths[part], unc[part], sigma0=sigma0, **kw)
+            if c.scatter_strategy == "gather" and mode == sc.MODE_RADIUS:
+                return shard.scatter_hashgrid(points[part], lengths[part], unc[part], sigma0=sigma0, **kw)
             return shard.scatter(points[part], lengths[part], unc[part], mode=mode, sigma0=sigma0, fusion=fusion, **kw)
 
         stats.voxel_updates = sum(split_over_shards(shards, executor, len(points), job))

@@ -27,6 +27,7 @@ from .warp_runtime import init_warp, resolve_device
 wp = init_warp()
 
 from ..kernels import hash_table as ht  # noqa: E402
+from ..kernels import hashgrid_gather as hg  # noqa: E402
 from ..kernels import release  # noqa: E402
 from ..kernels import scatter as sc  # noqa: E402
 from ..kernels import sorted_scatter as ss  # noqa: E402
@@ -274,6 +275,49 @@ class VoxelMap:
         self.reserve(0)
         return pairs
 
+    def scatter_hashgrid(self, points: np.ndarray, lengths: np.ndarray, point_uncertainty: np.ndarray, *, sigma0: float,
+                         labels: np.ndarray | None = None, class_weights: np.ndarray | None = None) -> int:
+        """The radius kernel (MODE_RADIUS, Bayes) in gather form through ``wp.HashGrid``
+        (``kernels.hashgrid_gather``): the same map as ``scatter``, each voxel summed once in the grid's
+        fixed neighbour order. Returns updates."""
+        n = len(points)
+        if n == 0:
+            return 0
+        longest = float(np.max(lengths))
+        self._check_index_range(np.floor((points.min(axis=0) - longest - self.grid_offset_m) / self.resolution_m),
+                                np.floor((points.max(axis=0) + longest - self.grid_offset_m) / self.resolution_m))
+        d = self.device
+        points_wp, lengths_wp = _points_array(points, d), _float_array(lengths, d)
+        res, offset = wp.float64(self.resolution_m), wp.float64(self.grid_offset_m)
+        # The scan's reached voxels, in a key set sized for a voxel per point and grown when it is not enough.
+        capacity = _next_pow2(4 * n + 16)
+        while True:
+            scan_keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
+            scan_count = wp.zeros(1, dtype=int, device=d)
+            failed = wp.zeros(1, dtype=int, device=d)
+            wp.launch(hg.mark_reached, dim=n, device=d, inputs=[points_wp, lengths_wp, res, offset, scan_keys, scan_count,
+                                                               int(capacity * LAUNCH_FILL_LIMIT), failed])
+            if not failed.numpy()[0]:
+                break
+            capacity *= 4
+        reached = int(scan_count.numpy()[0])
+        grid = wp.HashGrid(128, 128, 128, device=d, dtype=wp.float64)
+        grid.build(points_wp, longest)
+        use_labels = labels is not None
+        self.reserve(reached)  # every reached voxel fits: the gather never fails for room
+        failed = wp.zeros(capacity, dtype=int, device=d)
+        update_count = wp.zeros(1, dtype=wp.int64, device=d)
+        wp.launch(hg.gather_voxels, dim=capacity, device=d, inputs=[
+            scan_keys, grid.id, points_wp, lengths_wp, wp.float64(longest),
+            wp.array(np.ascontiguousarray(labels if use_labels else [], dtype=np.int32), dtype=int, device=d),
+            _float_array(np.zeros((0, self.num_classes)) if use_labels else class_weights, d), int(use_labels),
+            _float_array(point_uncertainty, d), res, offset, wp.float64(sigma0),
+            self.keys, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
+        if failed.numpy().any():
+            raise RuntimeError("the hash-grid gather ran out of table room after reserving it (a bug)")
+        self.reserve(0)
+        return int(update_count.numpy()[0])
+
     def scatter_block_targets(self, points: np.ndarray, labels: np.ndarray, point_uncertainty: np.ndarray,
                               owner_blocks: np.ndarray, target_lengths: np.ndarray, cells_per_block: int) -> int:
         """SEE-CSOM's block-gated scatter (``kernels.scatter.scatter_block_targets``); returns updates."""
@@ -424,6 +468,7 @@ def _load_kernels(device: str, num_classes: int) -> None:
         wp.load_module(ht, device=device)
         wp.load_module(sc, device=device)
         wp.load_module(ss, device=device)
+        wp.load_module(hg, device=device)
         _loaded_devices.add(device)
     if (device, num_classes) not in _loaded_devices:
         release.gather_release_kernel(num_classes, 2).module.load(device)
