@@ -177,3 +177,44 @@ def test_compat_two_workers_give_the_single_worker_map(counting):
     np.testing.assert_allclose(a.evidence, b.evidence, rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(a.touched, b.touched)
     assert (sa.state != sb.state).sum() <= 5  # near-ties only
+
+
+@pytest.mark.parametrize("n", [1, 3, 400])
+def test_sbki_gather_kernel_matches_its_table_twin(device, n):
+    from evsemmap_warp.reference.block_gather import gather_sbki_blocks
+
+    rng = np.random.default_rng(20 + n)
+    pts = rng.uniform(0, 1.6, (n, 3)).astype(np.float32)
+    pts[: max(1, n // 8), 0] = np.float32(0.2)  # on a block face: in two blocks
+    labels = rng.integers(0, 4, n)
+    cfg = _compat_config(False, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
+                         ds_resolution_m=0.1, free_resolution_m=100.0)
+    mapper = Mapper(cfg, 4, device=device, origin=np.zeros(3))
+    origin = np.array([0.8, 0.8, 1.5])
+    mapper.integrate(pts, labels, payload_type="label", sensor_origin=origin)
+    train, train_labels, _ = sb.training_data(pts, labels, origin - mapper.origin, ds_resolution_m=0.1, free_resolution_m=100.0, max_range_m=-1)
+    ids, owners = sb.block_memberships(train, sb.block_size_m(0.2, 2))
+    tables = sb.gather_tables(owners)
+    order = ids[tables.pair_order]
+    expected = gather_sbki_blocks(tables.test_blocks, tables.sources, tables.point_start, train[order].astype(np.float64), train_labels[order],
+                                  length=0.3, sigma0=10.0, resolution_m=0.2, cells_per_block=2, num_classes=4)
+    arrays, _ = mapper.voxels()
+    assert {tuple(v) for v in arrays.index} == set(expected)
+    want = np.array([expected[tuple(v)] for v in arrays.index])
+    np.testing.assert_allclose(arrays.evidence, want[:, :4], rtol=1e-6, atol=1e-6)  # float32 trig: numpy vs C
+    np.testing.assert_array_equal(arrays.hits, want[:, 5])
+
+
+def test_sbki_maps_are_bit_identical_for_one_and_two_workers():
+    rng = np.random.default_rng(21)
+    cfg = _compat_config(False, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
+                         ds_resolution_m=0.05, free_resolution_m=4.0)
+    pts = rng.uniform(0, 8, (30000, 3)).astype(np.float32)
+    labels = rng.integers(1, 6, len(pts))
+    rows = []
+    for workers in (1, 2):
+        m = Mapper(cfg, 6, workers=workers)
+        m.integrate(pts, labels, payload_type="label", sensor_origin=np.array([4.0, 4.0, 0.5]))
+        rows.append(m.voxels()[0])
+    np.testing.assert_array_equal(rows[0].index, rows[1].index)
+    np.testing.assert_array_equal(rows[0].rows(), rows[1].rows())

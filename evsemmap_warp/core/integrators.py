@@ -191,26 +191,54 @@ class SbkiCompatIntegrator:
         if len(points) == 0:
             return stats
         point_ids, owners = sbki_compat.block_memberships(points, self.block_size)
-        is_csm = c.kernel is Kernel.COUNT
+        if c.kernel is Kernel.COUNT:
+            stats.voxel_updates = self._scatter_counts(shards, points, labels, point_ids, owners, executor)
+        else:
+            stats.voxel_updates = self._gather_sparse(shards, points, labels, point_ids, owners, executor)
+        return stats
+
+    def _scatter_counts(self, shards, points, labels, point_ids, owners, executor) -> int:
+        """S-CSM: each (point, block) pair adds 1 to its block's single cell."""
+        c = self.config
 
         def job(shard: VoxelMap, part: np.ndarray) -> int:
-            # Each shard holds the test blocks of its own points, so its targets are all present;
-            # a block in several shards is or-ed to touched when they are added up.
-            shard.insert_blocks(sbki_compat.test_blocks(owners[part]), self.cells_per_block, mark_touched=not is_csm)
+            # Each shard holds the test blocks of its own points, so its targets are all present.
+            shard.insert_blocks(sbki_compat.test_blocks(owners[part]), self.cells_per_block, mark_touched=False)
             ids = point_ids[part]
-            return shard.scatter(
-                points[ids].astype(np.float64),
-                np.full(len(ids), c.resolution_m if is_csm else c.length_m),
-                np.zeros(len(ids)),
-                mode=sc.MODE_SBKI_OWN_BLOCK if is_csm else sc.MODE_SBKI_BLOCKS,
-                sigma0=1.0 if is_csm else c.sigma0,
-                labels=labels[ids],
-                owner_blocks=owners[part],
-                cells_per_block=self.cells_per_block,
-            )
+            return shard.scatter(points[ids].astype(np.float64), np.full(len(ids), c.resolution_m), np.zeros(len(ids)),
+                                 mode=sc.MODE_SBKI_OWN_BLOCK, sigma0=1.0, labels=labels[ids], owner_blocks=owners[part],
+                                 cells_per_block=self.cells_per_block)
 
-        stats.voxel_updates = sum(split_over_shards(shards, executor, len(point_ids), job))
-        return stats
+        return sum(split_over_shards(shards, executor, len(point_ids), job))
+
+    def _gather_sparse(self, shards, points, labels, point_ids, owners, executor) -> int:
+        """S-BKI: every test block gathers from its extended block's points (``kernels.block_gather``)."""
+        c = self.config
+        tables = sbki_compat.gather_tables(owners)
+        first = tables.test_blocks * self.cells_per_block - self.cells_per_block // 2
+        shards[0]._check_index_range(first.min(axis=0), first.max(axis=0) + self.cells_per_block - 1)
+        sorted_points = point_ids[tables.pair_order]
+        d = shards[0].device
+        gather_inputs = [
+            wp.array(tables.test_blocks.astype(np.int32), dtype=wp.vec3i, device=d),
+            wp.array(tables.sources, dtype=int, device=d),
+            wp.array(tables.point_start.astype(np.int32), dtype=int, device=d),
+            wp.array(np.ascontiguousarray(points[sorted_points], dtype=np.float64), dtype=wp.vec3d, device=d),
+            wp.array(np.ascontiguousarray(labels[sorted_points], dtype=np.int32), dtype=int, device=d),
+            wp.float64(c.length_m), wp.float64(c.sigma0), wp.float64(c.resolution_m), wp.float64(self.grid_offset_m(c)),
+        ]
+        # Each test block belongs to one shard, chosen by its index: the map is the same for any worker count.
+        owner = block_shard(tables.test_blocks, len(shards))
+        shards[0].load_gather_kernels(self.cells_per_block)
+
+        def job(shard: VoxelMap, index: int) -> int:
+            mine = np.flatnonzero(owner == index)
+            shard.insert_blocks(tables.test_blocks[mine], self.cells_per_block, mark_touched=True)
+            return shard.gather_sbki_blocks(gather_inputs, mine, cells_per_block=self.cells_per_block)
+
+        if executor is None or len(shards) == 1:
+            return sum(job(shard, i) for i, shard in enumerate(shards))
+        return sum(executor.map(job, shards, range(len(shards))))
 
 
 class ReleaseCompatIntegrator:
@@ -270,6 +298,7 @@ class ReleaseCompatIntegrator:
         # Each target block belongs to one shard, chosen by its index alone: a cell is always summed in
         # the same shard in the same order, so the map is bit for bit the same for any number of workers.
         owner = block_shard(models.blocks, len(shards))
+        shards[0].load_gather_kernels(self.cells_per_block)
 
         def job(shard: VoxelMap, index: int) -> int:
             mine = np.flatnonzero(owner == index)

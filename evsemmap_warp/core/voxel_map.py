@@ -26,6 +26,7 @@ from .warp_runtime import init_warp, resolve_device
 
 wp = init_warp()
 
+from ..kernels import block_gather  # noqa: E402
 from ..kernels import hash_table as ht  # noqa: E402
 from ..kernels import hashgrid_gather as hg  # noqa: E402
 from ..kernels import release  # noqa: E402
@@ -95,7 +96,7 @@ class VoxelMap:
         self.device = resolve_device(device)
         self.grow_count = 0
         self._last_new_voxels: dict[str, int] = {}  # per kind of launch: how many voxels the last one made
-        _load_kernels(self.device, self.num_classes)
+        _load_kernels(self.device)
         self._allocate(max(MIN_CAPACITY, _next_pow2(initial_capacity)))
 
     # ------------------------------------------------------------------ storage
@@ -361,6 +362,33 @@ class VoxelMap:
             raise RuntimeError("a release-mode cell was never inserted (a bug)")
         return int(update_count.numpy()[0])
 
+    def load_gather_kernels(self, cells_per_block: int) -> None:
+        """Compile/load the block-gather kernels for this class count and block size before worker
+        threads launch them (a module load must not race between threads)."""
+        key = (self.device, self.num_classes, cells_per_block)
+        if key not in _loaded_devices:
+            release.gather_release_kernel(self.num_classes, cells_per_block).module.load(self.device)
+            block_gather.gather_sbki_kernel(self.num_classes, cells_per_block).module.load(self.device)
+            _loaded_devices.add(key)
+
+    def gather_sbki_blocks(self, gather_inputs: list, block_ids: np.ndarray, *, cells_per_block: int) -> int:
+        """S-BKI's block update in gather form (``kernels.block_gather``) for the test blocks ``block_ids``;
+        ``gather_inputs`` are that kernel's arguments from ``test_blocks`` to ``grid_offset`` (device arrays
+        shared by the shards). The cells must be inserted. Returns updates."""
+        if len(block_ids) == 0:
+            return 0
+        d = self.device
+        failed = wp.zeros(len(block_ids), dtype=int, device=d)
+        update_count = wp.zeros(1, dtype=wp.int64, device=d)
+        tests, *rest = gather_inputs
+        kernel = block_gather.gather_sbki_kernel(self.num_classes, cells_per_block)
+        wp.launch(kernel, dim=len(block_ids), device=d, inputs=[
+            tests, wp.array(np.ascontiguousarray(block_ids, dtype=np.int32), dtype=int, device=d), *rest,
+            self.keys, self.data, failed, update_count])
+        if failed.numpy().any():
+            raise RuntimeError("an S-BKI test-block cell was never inserted (a bug)")
+        return int(update_count.numpy()[0])
+
     def insert_blocks(self, blocks: np.ndarray, cells_per_block: int, *, mark_touched: bool) -> None:
         """Insert every cell of each block [B, 3] (block b holds voxels b n - n/2 ... b n + n/2 - 1)."""
         if len(blocks) == 0:
@@ -458,10 +486,10 @@ def _float_array(values: np.ndarray, device: str):
     return wp.array(np.ascontiguousarray(values, dtype=np.float64), dtype=wp.float64, device=device)
 
 
-_loaded_devices: set = set()  # devices, and (device, K) for the per-K kernels
+_loaded_devices: set = set()  # devices, and keys of the per-(K, block size) kernels
 
 
-def _load_kernels(device: str, num_classes: int) -> None:
+def _load_kernels(device: str) -> None:
     """Compile/load the kernel modules up front: worker threads then only launch, and a module
     load never races between threads."""
     if device not in _loaded_devices:
@@ -469,11 +497,8 @@ def _load_kernels(device: str, num_classes: int) -> None:
         wp.load_module(sc, device=device)
         wp.load_module(ss, device=device)
         wp.load_module(hg, device=device)
-        _loaded_devices.add(device)
-    if (device, num_classes) not in _loaded_devices:
-        release.gather_release_kernel(num_classes, 2).module.load(device)
         wp.load_module(release, device=device)
-        _loaded_devices.add((device, num_classes))
+        _loaded_devices.add(device)
 
 
 def sum_voxel_arrays(parts: list[VoxelArrays]) -> VoxelArrays:

@@ -167,15 +167,26 @@ def _dense_grid(blocks: np.ndarray):
     return grid, lo
 
 
-def _block_models_numpy(blocks, keys, grid, lo):
+def block_index(blocks: np.ndarray, keys: np.ndarray, grid=None, lo=None):
+    """index_of(int3 [M, 3]) -> position in ``blocks`` (packed ``keys``, ascending) or -1, for indices
+    within 3 of the blocks' bounding box: a dense grid when small enough, else a binary search."""
+    if grid is None and lo is None and len(blocks):
+        grid, lo = _dense_grid(blocks)
     if grid is not None:
-        def index_of(index):
-            return grid[tuple((index - lo).T)].astype(np.int64)
-    else:
-        def index_of(index):
-            packed = pack_voxel_keys(index)
-            pos = np.minimum(np.searchsorted(keys, packed), len(keys) - 1)
-            return np.where(keys[pos] == packed, pos, -1)
+        return lambda index: grid[tuple((index - lo).T)].astype(np.int64)
+
+    def search(index):
+        if len(keys) == 0:
+            return np.full(len(index), -1, np.int64)
+        packed = pack_voxel_keys(index)
+        pos = np.minimum(np.searchsorted(keys, packed), len(keys) - 1)
+        return np.where(keys[pos] == packed, pos, -1)
+
+    return search
+
+
+def _block_models_numpy(blocks, keys, grid, lo):
+    index_of = block_index(blocks, keys, grid, lo)
 
     source = np.full((len(blocks), len(TARGET_BLOCK_OFFSETS)), -1, np.int64)
     mult = np.zeros_like(source)

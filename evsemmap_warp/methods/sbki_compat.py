@@ -10,8 +10,11 @@ block face belongs to both blocks). The mapping itself then runs on the Warp sca
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
+
+from ..voxel_keys import pack_voxel_keys
 
 FREE_LABEL = 0
 # A block and its 6 face neighbours: S-BKI's "extended block" (the 27-block variant is compiled out).
@@ -175,3 +178,33 @@ def test_blocks(owner_blocks: np.ndarray) -> np.ndarray:
     """Blocks whose extended block (itself + 6 face neighbours) holds at least one point."""
     occupied = unique_rows(owner_blocks)
     return unique_rows((occupied[:, None, :] + EXTENDED_BLOCK_OFFSETS[None]).reshape(-1, 3))
+
+
+@dataclass
+class GatherTables:
+    """One scan's blocks for the S-BKI gather kernel: the blocks holding points [B, 3] (key order), the
+    (point, block) pairs sorted by block (``pair_order``; block s owns sorted pairs
+    point_start[s]:point_start[s + 1]), the test blocks [T, 3] and, per test block and
+    EXTENDED_BLOCK_OFFSETS entry f, the index of the block at test + f among the blocks (-1: none)."""
+
+    blocks: np.ndarray
+    pair_order: np.ndarray
+    point_start: np.ndarray
+    test_blocks: np.ndarray
+    sources: np.ndarray
+
+
+def gather_tables(owner_blocks: np.ndarray) -> GatherTables:
+    from .evsemmap_release import block_index
+
+    owner_blocks = np.asarray(owner_blocks, dtype=np.int64).reshape(-1, 3)
+    keys, inverse = np.unique(pack_voxel_keys(owner_blocks), return_inverse=True)
+    inverse = inverse.reshape(-1)
+    order = np.argsort(inverse, kind="stable")
+    point_start = np.r_[0, np.cumsum(np.bincount(inverse, minlength=len(keys)))]
+    blocks = np.empty((len(keys), 3), np.int64)
+    blocks[inverse] = owner_blocks
+    tests = unique_rows((blocks[:, None, :] + EXTENDED_BLOCK_OFFSETS[None]).reshape(-1, 3))
+    index_of = block_index(blocks, keys)
+    sources = np.stack([index_of(tests + f) for f in EXTENDED_BLOCK_OFFSETS], axis=1) if len(tests) else np.zeros((0, 7), np.int64)
+    return GatherTables(blocks, order, point_start, tests, sources.astype(np.int32))

@@ -1,0 +1,103 @@
+"""The original S-BKI's block update as a gather kernel (docs/compatibility.md §1) (Warp).
+
+S-BKI predicts, for every test block T (a block holding points or a face neighbour of one), from the
+points of the blocks of T's extended block (T and its 6 face neighbours). Here one thread per test
+block reads those points once and weighs each against all of T's cells, with the same float64 reach
+test and float32 kernel as the scatter form (``kernels.scatter`` MODE_SBKI_BLOCKS): one find per
+cell instead of one per update, no atomics, and a fixed order for every sum.
+
+The kernel is made per (class count, cells per block) (``gather_sbki_kernel``); its loops are not
+unrolled (a 4 s cold compile instead of 30 s, at the same speed).
+
+numpy twin: ``evsemmap_warp/reference/block_gather.py``.
+"""
+
+import functools
+
+import warp as wp
+
+from .hash_table import pack_key, table_find
+from .scatter import _HALF, _ZERO, COL_HITS, COL_WEIGHT, SBKI_REACH_FACTOR, sbki_sparse_kernel, sbki_voxel_center
+
+wp.set_module_options({"enable_backward": False})
+
+f64 = wp.float64
+
+
+@functools.cache
+def gather_sbki_kernel(num_classes: int, cells_per_block: int):
+    n = cells_per_block
+    n3 = n * n * n
+    cell_sums = wp.types.matrix(shape=(n3, num_classes), dtype=wp.float64)
+    cell_scalars = wp.types.vector(length=n3, dtype=wp.float64)
+
+    @wp.kernel(module="unique", module_options={"max_unroll": 1})
+    def gather_sbki_blocks(
+        test_blocks: wp.array(dtype=wp.vec3i),
+        block_ids: wp.array(dtype=int),
+        sources: wp.array2d(dtype=int),
+        point_start: wp.array(dtype=int),
+        points: wp.array(dtype=wp.vec3d),
+        labels: wp.array(dtype=int),
+        length: wp.float64,
+        sigma0: wp.float64,
+        resolution: wp.float64,
+        grid_offset: wp.float64,
+        table_keys: wp.array(dtype=wp.int64),
+        voxel_data: wp.array2d(dtype=wp.float64),
+        failed: wp.array(dtype=int),
+        update_count: wp.array(dtype=wp.int64),
+    ):
+        """Test block test_blocks[block_ids[t]]: for each of its 7 source blocks sources[b, :] (-1: holds
+        no points; block s owns points point_start[s]:point_start[s + 1]), each point adds the S-BKI
+        kernel (where positive) for its label to every cell whose centre lies within 1.05 * length."""
+        t = wp.tid()
+        b = block_ids[t]
+        first = test_blocks[b] * n - wp.vec3i(n // 2, n // 2, n // 2)
+        reach = length * f64(SBKI_REACH_FACTOR)
+        reach2 = reach * reach
+        length32 = float(length)
+        sigma32 = float(sigma0)
+        resolution32 = float(resolution)
+        offset32 = float(grid_offset)
+        evidence = cell_sums()
+        weight_sum = cell_scalars()
+        hits = cell_scalars()
+        for f in range(sources.shape[1]):
+            s = sources[b, f]
+            if s >= 0:
+                for q in range(point_start[s], point_start[s + 1]):
+                    p = points[q]
+                    p32 = wp.vec3(float(p[0]), float(p[1]), float(p[2]))
+                    label = labels[q]
+                    for j in range(n3):
+                        ix = first[0] + j // (n * n)
+                        iy = first[1] + (j // n) % n
+                        iz = first[2] + j % n
+                        dx = (f64(ix) + _HALF) * resolution + grid_offset - p[0]
+                        dy = (f64(iy) + _HALF) * resolution + grid_offset - p[1]
+                        dz = (f64(iz) + _HALF) * resolution + grid_offset - p[2]
+                        if dx * dx + dy * dy + dz * dz < reach2:
+                            w = f64(sbki_sparse_kernel(sbki_voxel_center(ix, iy, iz, resolution32, offset32), p32, length32, sigma32))
+                            if w > _ZERO:  # the C++ adds only positive kernel values
+                                evidence[j, label] = evidence[j, label] + w
+                                weight_sum[j] = weight_sum[j] + w
+                                hits[j] = hits[j] + f64(1.0)
+        total = _ZERO
+        for j in range(n3):
+            slot = table_find(table_keys, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
+            if slot < 0:
+                failed[t] = 1
+            else:
+                for c in range(num_classes):
+                    voxel_data[slot, c] = voxel_data[slot, c] + evidence[j, c]
+                voxel_data[slot, num_classes + COL_WEIGHT] = voxel_data[slot, num_classes + COL_WEIGHT] + weight_sum[j]
+                voxel_data[slot, num_classes + COL_HITS] = voxel_data[slot, num_classes + COL_HITS] + hits[j]
+                total += hits[j]
+        wp.atomic_add(update_count, 0, wp.int64(total))
+
+    return gather_sbki_blocks
+
+
+# Kernels made by factories, by name (tests/test_twins.py looks their twins up by these names).
+KERNEL_FACTORIES = {"gather_sbki_blocks": gather_sbki_kernel}
