@@ -2,9 +2,10 @@
 
 S-BKI predicts, for every test block T (a block holding points or a face neighbour of one), from the
 points of the blocks of T's extended block (T and its 6 face neighbours). Here one thread per test
-block reads those points once and weighs each against all of T's cells, with the same float64 reach
-test and float32 kernel as the scatter form (``kernels.scatter`` MODE_SBKI_BLOCKS): one find per
-cell instead of one per update, no atomics, and a fixed order for every sum.
+block finds or inserts its cells once, reads those points once and weighs each against all of T's
+cells, with the same float64 reach test and float32 kernel as the scatter form (``kernels.scatter``
+MODE_SBKI_BLOCKS): one table probe per cell instead of two per update, no atomics, and a fixed order
+for every sum.
 
 The kernel is made per (class count, cells per block) (``gather_sbki_kernel``); its loops are not
 unrolled (a 4 s cold compile instead of 30 s, at the same speed).
@@ -16,8 +17,8 @@ import functools
 
 import warp as wp
 
-from .hash_table import pack_key, table_find
-from .scatter import _HALF, _ZERO, COL_HITS, COL_WEIGHT, SBKI_REACH_FACTOR, sbki_sparse_kernel, sbki_voxel_center
+from .hash_table import pack_key, table_find_or_insert
+from .scatter import _HALF, _ONE, _ZERO, COL_HITS, COL_TOUCHED, COL_WEIGHT, SBKI_REACH_FACTOR, sbki_sparse_kernel, sbki_voxel_center
 
 wp.set_module_options({"enable_backward": False})
 
@@ -30,10 +31,12 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int):
     n3 = n * n * n
     cell_sums = wp.types.matrix(shape=(n3, num_classes), dtype=wp.float64)
     cell_scalars = wp.types.vector(length=n3, dtype=wp.float64)
+    cell_slots = wp.types.vector(length=n3, dtype=int)
 
     @wp.kernel(module="unique", module_options={"max_unroll": 1})
     def gather_sbki_blocks(
         test_blocks: wp.array(dtype=wp.vec3i),
+        launch_ids: wp.array(dtype=int),
         block_ids: wp.array(dtype=int),
         sources: wp.array2d(dtype=int),
         point_start: wp.array(dtype=int),
@@ -44,16 +47,28 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int):
         resolution: wp.float64,
         grid_offset: wp.float64,
         table_keys: wp.array(dtype=wp.int64),
+        key_count: wp.array(dtype=int),
+        max_count: int,
         voxel_data: wp.array2d(dtype=wp.float64),
         failed: wp.array(dtype=int),
         update_count: wp.array(dtype=wp.int64),
     ):
-        """Test block test_blocks[block_ids[t]]: for each of its 7 source blocks sources[b, :] (-1: holds
-        no points; block s owns points point_start[s]:point_start[s + 1]), each point adds the S-BKI
+        """Test block test_blocks[block_ids[launch_ids[t]]]: its cells are found or inserted (none fits:
+        failed[t], nothing added) and marked touched; for each of its 7 source blocks sources[b, :] (-1:
+        holds no points; block s owns points point_start[s]:point_start[s + 1]), each point adds the S-BKI
         kernel (where positive) for its label to every cell whose centre lies within 1.05 * length."""
         t = wp.tid()
-        b = block_ids[t]
+        b = block_ids[launch_ids[t]]
         first = test_blocks[b] * n - wp.vec3i(n // 2, n // 2, n // 2)
+        # The block's cells are found or inserted first: a block that does not fit adds nothing and is
+        # relaunched after the table grew.
+        slots = cell_slots()
+        for j in range(n3):
+            slot = table_find_or_insert(table_keys, key_count, max_count, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
+            if slot < 0:
+                failed[t] = 1
+                return
+            slots[j] = slot
         reach = length * f64(SBKI_REACH_FACTOR)
         reach2 = reach * reach
         length32 = float(length)
@@ -85,15 +100,13 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int):
                                 hits[j] = hits[j] + f64(1.0)
         total = _ZERO
         for j in range(n3):
-            slot = table_find(table_keys, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
-            if slot < 0:
-                failed[t] = 1
-            else:
-                for c in range(num_classes):
-                    voxel_data[slot, c] = voxel_data[slot, c] + evidence[j, c]
-                voxel_data[slot, num_classes + COL_WEIGHT] = voxel_data[slot, num_classes + COL_WEIGHT] + weight_sum[j]
-                voxel_data[slot, num_classes + COL_HITS] = voxel_data[slot, num_classes + COL_HITS] + hits[j]
-                total += hits[j]
+            slot = slots[j]
+            voxel_data[slot, num_classes + COL_TOUCHED] = _ONE
+            for c in range(num_classes):
+                voxel_data[slot, c] = voxel_data[slot, c] + evidence[j, c]
+            voxel_data[slot, num_classes + COL_WEIGHT] = voxel_data[slot, num_classes + COL_WEIGHT] + weight_sum[j]
+            voxel_data[slot, num_classes + COL_HITS] = voxel_data[slot, num_classes + COL_HITS] + hits[j]
+            total += hits[j]
         wp.atomic_add(update_count, 0, wp.int64(total))
 
     return gather_sbki_blocks

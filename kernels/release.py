@@ -20,8 +20,8 @@ import functools
 
 import warp as wp
 
-from .hash_table import pack_key, table_find
-from .scatter import (_BELIEF_EPSILON, _ONE, _ZERO, COL_HITS, COL_WEIGHT, COL_WEIGHTED_UNCERTAINTY,
+from .hash_table import pack_key, table_find_or_insert
+from .scatter import (_BELIEF_EPSILON, _ONE, _ZERO, COL_HITS, COL_TOUCHED, COL_WEIGHT, COL_WEIGHTED_UNCERTAINTY,
                       FUSION_DEMPSTER, sbki_voxel_center)
 
 wp.set_module_options({"enable_backward": False})
@@ -93,11 +93,13 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
     vec_k = wp.types.vector(length=num_classes, dtype=wp.float64)
     cell_sums = wp.types.matrix(shape=(n3, num_classes), dtype=wp.float64)
     cell_scalars = wp.types.vector(length=n3, dtype=wp.float64)
+    cell_slots = wp.types.vector(length=n3, dtype=int)
     cell_centres = wp.types.matrix(shape=(n3, 3), dtype=wp.float32)
 
     @wp.kernel(module="unique", module_options={"max_unroll": 1})
     def gather_release_blocks(
         blocks: wp.array(dtype=wp.vec3i),
+        launch_ids: wp.array(dtype=int),
         block_ids: wp.array(dtype=int),
         source_blocks: wp.array2d(dtype=int),
         source_mult: wp.array2d(dtype=int),
@@ -110,19 +112,30 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
         resolution: float,
         fusion: int,
         table_keys: wp.array(dtype=wp.int64),
+        key_count: wp.array(dtype=int),
+        max_count: int,
         voxel_data: wp.array2d(dtype=wp.float64),
         failed: wp.array(dtype=int),
         update_count: wp.array(dtype=wp.int64),
     ):
-        """One thread per target block blocks[block_ids[t]], holding its n^3 cells' sums: the points of
+        """One thread per target block blocks[block_ids[launch_ids[t]]], holding its n^3 cells' sums: the points of
         its source blocks source_blocks[b, :] (indices into ``blocks``, -1 for none; block s owns points
         point_start[s]:point_start[s + 1], one row per (point, block holding it) pair), each counted
         source_mult[b, :] times, are read once and weighed against every cell (independent chains the
-        CPU overlaps). Adds k(d) * y (Bayes) or the log commonality ratios (Dempster) and the
-        bookkeeping columns into each cell's row, which must exist."""
+        CPU overlaps). Finds or inserts the cells first (none fits: failed[t], nothing added), then adds
+        k(d) * y (Bayes) or the log commonality ratios (Dempster) and the bookkeeping columns once per cell."""
         t = wp.tid()
-        b = block_ids[t]
+        b = block_ids[launch_ids[t]]
         first = blocks[b] * n - wp.vec3i(n // 2, n // 2, n // 2)
+        # The block's cells are found or inserted first: a block that does not fit adds nothing and is
+        # relaunched after the table grew.
+        slots = cell_slots()
+        for j in range(n3):
+            slot = table_find_or_insert(table_keys, key_count, max_count, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
+            if slot < 0:
+                failed[t] = 1
+                return
+            slots[j] = slot
         centres = cell_centres()
         for j in range(n3):
             centre = sbki_voxel_center(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n, resolution, 0.0)
@@ -186,18 +199,16 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
         k = num_classes
         total_hits = _ZERO
         for j in range(n3):
-            slot = table_find(table_keys, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
-            if slot < 0:
-                failed[t] = 1
-            else:
-                for c in range(num_classes):
-                    if fusion == FUSION_DEMPSTER:
-                        evidence[j, c] = evidence[j, c] + wp.log(commonality[j, c])
-                    voxel_data[slot, c] = voxel_data[slot, c] + evidence[j, c]
-                voxel_data[slot, k + COL_WEIGHT] = voxel_data[slot, k + COL_WEIGHT] + weight_sum[j]
-                voxel_data[slot, k + COL_WEIGHTED_UNCERTAINTY] = voxel_data[slot, k + COL_WEIGHTED_UNCERTAINTY] + weighted_u[j]
-                voxel_data[slot, k + COL_HITS] = voxel_data[slot, k + COL_HITS] + hits[j]
-                total_hits += hits[j]
+            slot = slots[j]
+            voxel_data[slot, num_classes + COL_TOUCHED] = _ONE
+            for c in range(num_classes):
+                if fusion == FUSION_DEMPSTER:
+                    evidence[j, c] = evidence[j, c] + wp.log(commonality[j, c])
+                voxel_data[slot, c] = voxel_data[slot, c] + evidence[j, c]
+            voxel_data[slot, k + COL_WEIGHT] = voxel_data[slot, k + COL_WEIGHT] + weight_sum[j]
+            voxel_data[slot, k + COL_WEIGHTED_UNCERTAINTY] = voxel_data[slot, k + COL_WEIGHTED_UNCERTAINTY] + weighted_u[j]
+            voxel_data[slot, k + COL_HITS] = voxel_data[slot, k + COL_HITS] + hits[j]
+            total_hits += hits[j]
         wp.atomic_add(update_count, 0, wp.int64(total_hits))
 
     return gather_release_blocks

@@ -8,9 +8,11 @@
 * ``SbkiCompatIntegrator``: the original S-BKI / S-CSM C++ (docs/compatibility.md §1).
 * ``ReleaseCompatIntegrator``: the released EvSemMap C++ for ebs and dempster (docs/compatibility.md §4).
 
-Both receive the map as a list of shards. Warp runs a CPU launch on one core, so on the CPU each
+All receive the map as a list of shards. Warp runs a CPU launch on one core, so on the CPU each
 worker thread scatters a contiguous part of the scan into its own shard (never a shared one: CPU
-"atomics" are plain read-modify-writes); readers add the shards up (``sum_voxel_arrays``).
+"atomics" are plain read-modify-writes); readers add the shards up (``sum_voxel_arrays``). The block
+gathers (the S-BKI and release modes) split by target block instead, each block always in the shard
+its index picks (``block_shard``), so their maps do not depend on the number of workers.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import numpy as np
 import warp as wp
 
 from ..config import Fusion, Kernel, MappingConfig, Media
-from ..kernels import release
+from ..kernels import block_gather, release
 from ..kernels import scatter as sc
 from ..methods import convbki, evsemmap_release, sbki_compat, see_csom
 from .voxel_map import VoxelMap, block_model_tables
@@ -57,6 +59,13 @@ def uncertainty_quantile_mask(uncertainty: np.ndarray, keep_quantile: float) -> 
     k = min(int(np.floor(n * keep_quantile)), n - 1)
     threshold = float(np.partition(uncertainty, k)[k])
     return uncertainty <= threshold, threshold
+
+
+def for_each_shard(shards: list[VoxelMap], executor: Executor | None, job) -> list:
+    """Run job(shard, shard index) for every shard, in parallel when there is an executor."""
+    if executor is None or len(shards) == 1:
+        return [job(shard, i) for i, shard in enumerate(shards)]
+    return list(executor.map(job, shards, range(len(shards))))
 
 
 def split_over_shards(shards: list[VoxelMap], executor: Executor | None, n: int, job) -> list:
@@ -231,19 +240,19 @@ class SbkiCompatIntegrator:
         owner = block_shard(tables.test_blocks, len(shards))
         shards[0].load_gather_kernels(self.cells_per_block)
 
-        def job(shard: VoxelMap, index: int) -> int:
-            mine = np.flatnonzero(owner == index)
-            shard.insert_blocks(tables.test_blocks[mine], self.cells_per_block, mark_touched=True)
-            return shard.gather_sbki_blocks(gather_inputs, mine, cells_per_block=self.cells_per_block)
+        kernel = block_gather.gather_sbki_kernel(shards[0].num_classes, self.cells_per_block)
 
-        if executor is None or len(shards) == 1:
-            return sum(job(shard, i) for i, shard in enumerate(shards))
-        return sum(executor.map(job, shards, range(len(shards))))
+        def job(shard: VoxelMap, index: int) -> int:
+            return shard.gather_blocks(kernel, gather_inputs, np.flatnonzero(owner == index), cells_per_block=self.cells_per_block,
+                                       kind="sbki_gather")
+
+        return sum(for_each_shard(shards, executor, job))
 
 
 class ReleaseCompatIntegrator:
     """The released EvSemMap (``mapping.compat: evsemmap``): per-scan uncertainty cut, the per-block
-    cap, then the block models as one scatter (``methods.evsemmap_release``). Takes alpha payloads."""
+    cap (``methods.evsemmap_release``), then the block models as one gather kernel (``kernels.release``).
+    Takes alpha payloads."""
 
     def __init__(self, config: MappingConfig):
         self.config = config
@@ -300,15 +309,13 @@ class ReleaseCompatIntegrator:
         owner = block_shard(models.blocks, len(shards))
         shards[0].load_gather_kernels(self.cells_per_block)
 
-        def job(shard: VoxelMap, index: int) -> int:
-            mine = np.flatnonzero(owner == index)
-            shard.insert_blocks(models.blocks[mine], self.cells_per_block, mark_touched=True)
-            return shard.gather_release_blocks(gather_inputs, mine, cells_per_block=self.cells_per_block)
+        kernel = release.gather_release_kernel(shards[0].num_classes, self.cells_per_block)
 
-        if executor is None or len(shards) == 1:
-            stats.voxel_updates = sum(job(shard, i) for i, shard in enumerate(shards))
-        else:
-            stats.voxel_updates = sum(executor.map(job, shards, range(len(shards))))
+        def job(shard: VoxelMap, index: int) -> int:
+            return shard.gather_blocks(kernel, gather_inputs, np.flatnonzero(owner == index), cells_per_block=self.cells_per_block,
+                                       kind="release_gather")
+
+        stats.voxel_updates = sum(for_each_shard(shards, executor, job))
         return stats
 
 

@@ -345,23 +345,6 @@ class VoxelMap:
         self._launch_until_done(n, launch, may_insert=True, kind="block_targets", most_new=n * 7 * cells_per_block**3)
         return int(update_count.numpy()[0])
 
-    def gather_release_blocks(self, gather_inputs: list, block_ids: np.ndarray, *, cells_per_block: int) -> int:
-        """The released EvSemMap's block models in gather form (``kernels.release``) for the cells of the
-        target blocks ``block_ids``; ``gather_inputs`` are that kernel's arguments from ``blocks`` to
-        ``fusion`` (device arrays shared by the shards). The cells must be inserted."""
-        if len(block_ids) == 0:
-            return 0
-        d = self.device
-        ids = wp.array(np.ascontiguousarray(block_ids, dtype=np.int32), dtype=int, device=d)
-        failed = wp.zeros(len(block_ids), dtype=int, device=d)
-        update_count = wp.zeros(1, dtype=wp.int64, device=d)
-        blocks, *rest = gather_inputs
-        kernel = release.gather_release_kernel(self.num_classes, cells_per_block)
-        wp.launch(kernel, dim=len(block_ids), device=d, inputs=[blocks, ids, *rest, self.keys, self.data, failed, update_count])
-        if failed.numpy().any():
-            raise RuntimeError("a release-mode cell was never inserted (a bug)")
-        return int(update_count.numpy()[0])
-
     def load_gather_kernels(self, cells_per_block: int) -> None:
         """Compile/load the block-gather kernels for this class count and block size before worker
         threads launch them (a module load must not race between threads)."""
@@ -371,22 +354,24 @@ class VoxelMap:
             block_gather.gather_sbki_kernel(self.num_classes, cells_per_block).module.load(self.device)
             _loaded_devices.add(key)
 
-    def gather_sbki_blocks(self, gather_inputs: list, block_ids: np.ndarray, *, cells_per_block: int) -> int:
-        """S-BKI's block update in gather form (``kernels.block_gather``) for the test blocks ``block_ids``;
-        ``gather_inputs`` are that kernel's arguments from ``test_blocks`` to ``grid_offset`` (device arrays
-        shared by the shards). The cells must be inserted. Returns updates."""
+    def gather_blocks(self, kernel, gather_inputs: list, block_ids: np.ndarray, *, cells_per_block: int, kind: str) -> int:
+        """A block-gather kernel (``kernels.block_gather`` or ``kernels.release``, made for this class
+        count and block size) over the target blocks ``block_ids``: each block finds or inserts its cells
+        and adds its sums once; blocks that did not fit are relaunched after the table grew.
+        ``gather_inputs``: the kernel's arguments from its block array to the last before ``table_keys``
+        (device arrays shared by the shards). Returns updates."""
         if len(block_ids) == 0:
             return 0
         d = self.device
-        failed = wp.zeros(len(block_ids), dtype=int, device=d)
+        blocks, *rest = gather_inputs
+        ids = wp.array(np.ascontiguousarray(block_ids, dtype=np.int32), dtype=int, device=d)
         update_count = wp.zeros(1, dtype=wp.int64, device=d)
-        tests, *rest = gather_inputs
-        kernel = block_gather.gather_sbki_kernel(self.num_classes, cells_per_block)
-        wp.launch(kernel, dim=len(block_ids), device=d, inputs=[
-            tests, wp.array(np.ascontiguousarray(block_ids, dtype=np.int32), dtype=int, device=d), *rest,
-            self.keys, self.data, failed, update_count])
-        if failed.numpy().any():
-            raise RuntimeError("an S-BKI test-block cell was never inserted (a bug)")
+
+        def launch(pending, failed):
+            wp.launch(kernel, dim=len(pending), device=d, inputs=[
+                blocks, pending, ids, *rest, self.keys, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
+
+        self._launch_until_done(len(block_ids), launch, may_insert=True, kind=kind, most_new=len(block_ids) * cells_per_block**3)
         return int(update_count.numpy()[0])
 
     def insert_blocks(self, blocks: np.ndarray, cells_per_block: int, *, mark_touched: bool) -> None:
