@@ -313,9 +313,9 @@ def plot(out_dir: Path, strategy_rows, hash_rows, scaling_rows, device):
 # Bytes one voxel update moves, by strategy (modelled; K classes): the atomic scatter probes the table
 # twice (insert pass, find pass: one 8-byte key each at low load) and read-modify-writes K + 3 float64
 # columns; the sorted strategy writes and sorts a 16-byte (key, id) pair and a 12-byte (point, weight)
-# record, reads them back, and touches the row once per voxel (amortised over its ~4 pairs); the gathers
-# read a point (24 B position + 8 B length or the release's 12 B + 72 B class row) per update and write
-# the row once per voxel.
+# record, reads them back, and touches the row once per voxel (amortised over its ~4 pairs); the
+# hash-grid gather reads a point (24 B position + 8 B length + K weights) per update and writes the row
+# once per voxel.
 def bytes_per_update(strategy: str, k: int) -> float:
     if strategy == "atomic":
         return 2 * 8 + 2 * 8 * (k + 3)
@@ -323,7 +323,9 @@ def bytes_per_update(strategy: str, k: int) -> float:
         return 16 * 2 * 2 + 12 * 2 + 8 * (k + 3) / 4
     if strategy == "gather":
         return 32 + 8 * k + 8 * (k + 3) / 4
-    return 12 + 8 * k + 8 * (k + 3) / 20  # release block gather
+    # release block gather: a point (12 B position + K float64 weights) is read once per target block and
+    # serves its 8 cells; the row is written once per cell (~20 updates each)
+    return (12 + 8 * k) / 8 + 8 * (k + 3) / 20
 
 
 def determinism_cost(strategy_rows) -> dict[str, float]:
