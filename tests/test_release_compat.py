@@ -180,10 +180,16 @@ def test_block_tables_are_the_same_from_the_dense_grid_and_the_binary_search(mon
     members = np.concatenate([rng.integers(-6, 6, (400, 3)), [[500_000, -400_000, 3]]])  # one far block: a huge box
     far = er.release_blocks(members)
     near = er.release_blocks(members[:-1])
-    monkeypatch.setattr(er, "MAX_DENSE_LOOKUP_CELLS", 0)
+    from evsemmap_warp.methods import sbki_compat
+
+    sbki_tables = sbki_compat.gather_tables(members[:-1])
+    monkeypatch.setattr(sbki_compat, "MAX_DENSE_LOOKUP_CELLS", 0)
     for got, want in ((er.release_blocks(members), far), (er.release_blocks(members[:-1]), near)):
         for field in ("blocks", "pair_order", "point_start", "source_blocks", "source_mult"):
             np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
+    searched = sbki_compat.gather_tables(members[:-1])  # the S-BKI tables use the same lookup
+    np.testing.assert_array_equal(searched.sources, sbki_tables.sources)
+    np.testing.assert_array_equal(searched.test_blocks, sbki_tables.test_blocks)
     assert far.source_blocks[-1].max() == len(far.blocks) - 1 and (far.source_blocks[-1] >= 0).sum() == 1  # alone: only itself
 
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..voxel_keys import pack_voxel_keys
+from .sbki_compat import block_index, dense_block_grid, group_by_block
 
 # Offsets of the target blocks a point can reach through one model: L1 distance <= 2 (1 + 6 + 12 + 6).
 TARGET_BLOCK_OFFSETS = np.array(
@@ -128,61 +128,18 @@ class ReleaseBlocks:
     source_mult: np.ndarray
 
 
-# Above this many cells the block lookup falls back from a dense grid over the scan's blocks to a
-# binary search (the grid is int32: 64 MB at this size).
-MAX_DENSE_LOOKUP_CELLS = 1 << 24
-
-
 def release_blocks(member_blocks: np.ndarray, block_models=None) -> ReleaseBlocks:
     """The gather kernel's tables for one scan's (point, block) memberships [P, 3]. ``block_models``
     (blocks, grid, lo) -> (source, mult) computes the per-block tables from the dense grid when the
     scan's blocks fit one (the engine passes ``kernels.release.block_models``); else, and as that
     kernel's twin, numpy does."""
-    member_blocks = np.asarray(member_blocks, dtype=np.int64).reshape(-1, 3)
-    keys, inverse = np.unique(pack_voxel_keys(member_blocks), return_inverse=True)
-    inverse = inverse.reshape(-1)
-    order = np.argsort(inverse, kind="stable")
-    point_start = np.r_[0, np.cumsum(np.bincount(inverse, minlength=len(keys)))]
-    blocks = np.empty((len(keys), 3), np.int64)
-    blocks[inverse] = member_blocks
-    grid, lo = _dense_grid(blocks)
+    blocks, keys, order, point_start = group_by_block(member_blocks)
+    grid, lo = dense_block_grid(blocks)
     if block_models is not None and grid is not None:
         source, mult = block_models(blocks, grid, lo)
     else:
         source, mult = _block_models_numpy(blocks, keys, grid, lo)
     return ReleaseBlocks(blocks, order, point_start, source, mult)
-
-
-def _dense_grid(blocks: np.ndarray):
-    """A dense int32 map of the blocks' positions over their bounding box widened by 3 (-1: none),
-    or None when it would exceed MAX_DENSE_LOOKUP_CELLS."""
-    if len(blocks) == 0:
-        return None, None
-    lo = blocks.min(axis=0) - 3
-    shape = blocks.max(axis=0) + 4 - lo
-    if int(np.prod(shape)) > MAX_DENSE_LOOKUP_CELLS:
-        return None, lo
-    grid = np.full(tuple(shape), -1, np.int32)
-    grid[tuple((blocks - lo).T)] = np.arange(len(blocks), dtype=np.int32)
-    return grid, lo
-
-
-def block_index(blocks: np.ndarray, keys: np.ndarray, grid=None, lo=None):
-    """index_of(int3 [M, 3]) -> position in ``blocks`` (packed ``keys``, ascending) or -1, for indices
-    within 3 of the blocks' bounding box: a dense grid when small enough, else a binary search."""
-    if grid is None and lo is None and len(blocks):
-        grid, lo = _dense_grid(blocks)
-    if grid is not None:
-        return lambda index: grid[tuple((index - lo).T)].astype(np.int64)
-
-    def search(index):
-        if len(keys) == 0:
-            return np.full(len(index), -1, np.int64)
-        packed = pack_voxel_keys(index)
-        pos = np.minimum(np.searchsorted(keys, packed), len(keys) - 1)
-        return np.where(keys[pos] == packed, pos, -1)
-
-    return search
 
 
 def _block_models_numpy(blocks, keys, grid, lo):

@@ -195,16 +195,59 @@ class GatherTables:
 
 
 def gather_tables(owner_blocks: np.ndarray) -> GatherTables:
-    from .evsemmap_release import block_index
-
-    owner_blocks = np.asarray(owner_blocks, dtype=np.int64).reshape(-1, 3)
-    keys, inverse = np.unique(pack_voxel_keys(owner_blocks), return_inverse=True)
-    inverse = inverse.reshape(-1)
-    order = np.argsort(inverse, kind="stable")
-    point_start = np.r_[0, np.cumsum(np.bincount(inverse, minlength=len(keys)))]
-    blocks = np.empty((len(keys), 3), np.int64)
-    blocks[inverse] = owner_blocks
+    blocks, keys, order, point_start = group_by_block(owner_blocks)
     tests = unique_rows((blocks[:, None, :] + EXTENDED_BLOCK_OFFSETS[None]).reshape(-1, 3))
     index_of = block_index(blocks, keys)
     sources = np.stack([index_of(tests + f) for f in EXTENDED_BLOCK_OFFSETS], axis=1) if len(tests) else np.zeros((0, 7), np.int64)
     return GatherTables(blocks, order, point_start, tests, sources.astype(np.int32))
+
+
+def group_by_block(member_blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The distinct blocks of (point, block) memberships [P, 3], in packed-key order, their keys, the
+    pair order that groups the pairs by block (stable: input order within a block) and the CSR starts
+    (block s owns sorted pairs point_start[s]:point_start[s + 1])."""
+    member_blocks = np.asarray(member_blocks, dtype=np.int64).reshape(-1, 3)
+    keys, inverse = np.unique(pack_voxel_keys(member_blocks), return_inverse=True)
+    inverse = inverse.reshape(-1)
+    order = np.argsort(inverse, kind="stable")
+    point_start = np.r_[0, np.cumsum(np.bincount(inverse, minlength=len(keys)))]
+    blocks = np.empty((len(keys), 3), np.int64)
+    blocks[inverse] = member_blocks
+    return blocks, keys, order, point_start
+
+
+# Above this many cells the block lookup falls back from a dense grid over the scan's blocks to a
+# binary search (the grid is int32: 64 MB at this size).
+MAX_DENSE_LOOKUP_CELLS = 1 << 24
+
+
+def dense_block_grid(blocks: np.ndarray):
+    """A dense int32 map of the blocks' positions over their bounding box widened by 3 (-1: none),
+    and its lowest corner; the grid is None when it would exceed MAX_DENSE_LOOKUP_CELLS."""
+    if len(blocks) == 0:
+        return None, None
+    lo = blocks.min(axis=0) - 3
+    shape = blocks.max(axis=0) + 4 - lo
+    if int(np.prod(shape)) > MAX_DENSE_LOOKUP_CELLS:
+        return None, lo
+    grid = np.full(tuple(shape), -1, np.int32)
+    grid[tuple((blocks - lo).T)] = np.arange(len(blocks), dtype=np.int32)
+    return grid, lo
+
+
+def block_index(blocks: np.ndarray, keys: np.ndarray, grid=None, lo=None):
+    """index_of(int3 [M, 3]) -> position in ``blocks`` (packed ``keys``, ascending) or -1, for indices
+    within 3 of the blocks' bounding box: a dense grid when small enough, else a binary search."""
+    if grid is None and lo is None and len(blocks):
+        grid, lo = dense_block_grid(blocks)
+    if grid is not None:
+        return lambda index: grid[tuple((index - lo).T)].astype(np.int64)
+
+    def search(index):
+        if len(keys) == 0:
+            return np.full(len(index), -1, np.int64)
+        packed = pack_voxel_keys(index)
+        pos = np.minimum(np.searchsorted(keys, packed), len(keys) - 1)
+        return np.where(keys[pos] == packed, pos, -1)
+
+    return search
