@@ -3,18 +3,21 @@
 In the release every block holding points trains a model on the points of its extended block (itself
 and its 6 face neighbours) and predicts for the blocks of that extended block that hold points. So a
 point of block M reaches a target block T through every occupied model block N with N in M's
-extended block and T in N's; targets lie within L1 distance 2 of M. Here each cell of a target block
-is one thread that walks the points of its up to 25 source blocks once, each weighted by how many
-models carry it (``methods.evsemmap_release.release_blocks`` computes both tables): no model is ever
-built, no atomics, and the order of every sum is fixed, so the map does not depend on threads.
+extended block and T in N's; targets lie within L1 distance 2 of M. Here each target block is one
+thread: it finds or inserts its cells once, then walks the points of its up to 25 source blocks once,
+each weighted by how many models carry it (``block_models`` computes both tables), against all of its
+cells (independent chains the CPU overlaps). No model is ever built, no atomics are used, and the
+order of every sum is fixed, so the map does not depend on threads. Dempster fusion multiplies
+commonality ratios and takes their logarithm every 40 factors instead of once per contribution.
 
-The kernel is made per class count K (``gather_release_kernel(K)``): a cell's K evidence sums live
-in a register vector and are written once, which measured 2x faster than adding into the table row
-per contribution.
+On the shared bench this form took about half the time of one thread per cell adding into the table
+row per contribution (measured while building it; tools/bench_integrate.py has the current figures).
+The gather kernel is made per (class count, cells per block) (``gather_release_kernel``); its loops
+are not unrolled (a 4 s cold compile instead of 30 s, at the same speed).
 
-numpy twin: ``evsemmap_warp/reference/release.py`` (a literal block-by-block model loop).
+numpy twins: ``evsemmap_warp/reference/release.py`` (a literal block-by-block model loop, and the
+tables).
 """
-
 
 import functools
 
@@ -33,8 +36,8 @@ _MAX_FACTORS = wp.constant(wp.float64(40.0))  # 1e6^(40 + 7) = 1e282 < float64's
 def _sparse_kernel_polynomial(degree: int = 14):
     """Power-series coefficients in s = 2x - 1 of the sparse kernel's shape on x = d / l in [0, 1],
     k(x) = (2 + cos 2 pi x)(1 - x) / 3 + sin(2 pi x) / (2 pi), from a Chebyshev fit: max error 2.5e-9,
-    below float32's resolution of the release's own float32 arithmetic. Two float32 trig calls per
-    candidate cost 45 ns here; the polynomial is a few FMAs."""
+    below float32's resolution of the release's own float32 arithmetic; a few FMAs where the C++ calls
+    float32 cos and sin (the largest single cost per candidate when this was built)."""
     import numpy as np
     from numpy.polynomial import chebyshev
 
