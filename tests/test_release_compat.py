@@ -149,7 +149,11 @@ def test_refusals_name_the_key():
         _config("ebs", ds_multiplier=-2)
     mapper = Mapper(_config("ebs"), 3)
     with pytest.raises(ValueError, match="evidential alpha"):
-        mapper.integrate(np.zeros((4, 3)), np.ones(4, int), payload_type="label")
+        mapper.integrate(np.full((4, 3), 5000.0), np.ones(4, int), payload_type="label")
+    assert mapper.origin_index is None and mapper.scans_integrated == 0  # the refused scan left no trace
+    ranged = Mapper(_config("ebs", max_range_m=30.0), 3)
+    with pytest.raises(ValueError, match="range filter"):
+        ranged.integrate(np.zeros((4, 3)), np.full((4, 3), 2.0), payload_type="alpha")
 
 
 def test_block_cap_follows_the_fusion_unless_set():

@@ -261,17 +261,19 @@ class Mapper:
         probabilities, or [N] integer labels, as ``payload_type`` says. An empty scan is a no-op.
         ``sensor_origin`` [3] is needed by the sbki mode (free-space rays)."""
         scan = prepare_payload(points, payload, payload_type, self.num_classes)
+        if isinstance(self.integrator, ReleaseCompatIntegrator) and PayloadType(payload_type) is not PayloadType.ALPHA:
+            raise ValueError(f"payload_type {PayloadType(payload_type).value}: the evsemmap compatibility mode reproduces the release, "
+                             "which reads evidential alpha (its uncertainty cut is K / sum(alpha))")
         if len(scan.points) == 0:
             return IntegrationStats()
         if self.origin_index is None:
             self.origin_index = self._snap_origin((scan.points.min(axis=0) + scan.points.max(axis=0)) / 2)
         scan.points = self._local(scan.points)
-        if isinstance(self.integrator, ReleaseCompatIntegrator) and PayloadType(payload_type) is not PayloadType.ALPHA:
-            raise ValueError(f"payload_type {PayloadType(payload_type).value}: the evsemmap compatibility mode reproduces the release, "
-                             "which reads evidential alpha (its uncertainty cut is K / sum(alpha))")
         if isinstance(self.integrator, (SbkiCompatIntegrator, SeeCsomIntegrator, ReleaseCompatIntegrator)):
             if sensor_origin is None and isinstance(self.integrator, ReleaseCompatIntegrator) and self.config.max_range_m <= 0:
                 sensor_origin = self.origin  # unused: the release reads the sensor origin only for its range filter
+            if sensor_origin is None and isinstance(self.integrator, ReleaseCompatIntegrator):
+                raise ValueError("sensor_origin: the evsemmap mode's range filter (mapping.max_range_m) measures from the sensor origin; pass it")
             if sensor_origin is None:
                 raise ValueError(f"sensor_origin: {self.config.method} adds the sensor origin (and free-space rays) as free samples; pass it")
             origin = _validate_point(sensor_origin, "sensor_origin")
