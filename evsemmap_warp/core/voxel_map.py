@@ -151,6 +151,11 @@ class VoxelMap:
         """Refuse a launch whose points would reach voxels outside the key range (before any write)."""
         check_index_range(np.array([np.min(lo_index), np.max(hi_index)]), "the points' kernels", self.resolution_m)
 
+    def _check_reach(self, points: np.ndarray, reach: float) -> None:
+        """Refuse points whose kernels, reaching ``reach`` metres, would touch voxels outside the key range."""
+        self._check_index_range(np.floor((points.min(axis=0) - reach - self.grid_offset_m) / self.resolution_m),
+                                np.floor((points.max(axis=0) + reach - self.grid_offset_m) / self.resolution_m))
+
     def _launch_until_done(self, n: int, launch, *, may_insert: bool, kind: str, most_new: int) -> None:
         """launch(ids, failed) over range(n), relaunching the failed ids after the table grew.
 
@@ -202,8 +207,7 @@ class VoxelMap:
             reach = float(np.max(lengths)) * (sc.SBKI_REACH_FACTOR if mode == sc.MODE_SBKI_BLOCKS else 1.0)
             if mode == sc.MODE_STENCIL:
                 reach = (stencil_half + 1) * self.resolution_m
-            self._check_index_range(np.floor((points.min(axis=0) - reach - self.grid_offset_m) / self.resolution_m),
-                                    np.floor((points.max(axis=0) + reach - self.grid_offset_m) / self.resolution_m))
+            self._check_reach(points, reach)
         d = self.device
         use_labels = labels is not None
         empty_weights = np.zeros((0, self.num_classes), np.float64)
@@ -236,9 +240,7 @@ class VoxelMap:
         n = len(points)
         if n == 0:
             return 0
-        reach = float(np.max(lengths))
-        self._check_index_range(np.floor((points.min(axis=0) - reach - self.grid_offset_m) / self.resolution_m),
-                                np.floor((points.max(axis=0) + reach - self.grid_offset_m) / self.resolution_m))
+        self._check_reach(points, float(np.max(lengths)))
         d = self.device
         points_wp, lengths_wp = _points_array(points, d), _float_array(lengths, d)
         res, offset = wp.float64(self.resolution_m), wp.float64(self.grid_offset_m)
@@ -285,8 +287,7 @@ class VoxelMap:
         if n == 0:
             return 0
         longest = float(np.max(lengths))
-        self._check_index_range(np.floor((points.min(axis=0) - longest - self.grid_offset_m) / self.resolution_m),
-                                np.floor((points.max(axis=0) + longest - self.grid_offset_m) / self.resolution_m))
+        self._check_reach(points, longest)
         d = self.device
         points_wp, lengths_wp = _points_array(points, d), _float_array(lengths, d)
         res, offset = wp.float64(self.resolution_m), wp.float64(self.grid_offset_m)

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..voxel_keys import pack_voxel_keys
 from .sbki_compat import block_index, dense_block_grid, group_by_block
 
 # Offsets of the target blocks a point can reach through one model: L1 distance <= 2 (1 + 6 + 12 + 6).
@@ -104,7 +105,7 @@ def first_per_block(block_keys: np.ndarray, cap: int) -> np.ndarray:
     n = len(block_keys)
     if n == 0:
         return np.zeros(0, bool)
-    packed = ((block_keys[:, 0] + (1 << 20)) << 42) | ((block_keys[:, 1] + (1 << 20)) << 21) | (block_keys[:, 2] + (1 << 20))
+    packed = pack_voxel_keys(block_keys)
     order = np.argsort(packed, kind="stable")
     sorted_keys = packed[order]
     starts = np.r_[0, np.flatnonzero(sorted_keys[1:] != sorted_keys[:-1]) + 1]
