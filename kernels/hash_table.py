@@ -2,7 +2,7 @@
 
 Keys are int3 voxel indices relative to the map origin, packed into one int64 (21 bits per axis,
 offset 2**20; ``evsemmap_warp/voxel_keys.py`` packs the same way on the host), slots are found
-by a splitmix64 hash and linear probing, insertion claims a slot with ``atomic_cas``. The table
+by a splitmix64 hash of their 2x2x2 brick and linear probing, insertion claims a slot with ``atomic_cas``. The table
 holds keys only: callers keep per-voxel values in their own ``[capacity, ...]`` arrays indexed by
 slot. An insertion fails (returns -1) instead of overfilling the table once ``max_count`` keys are
 in; the host then grows the table and re-runs the failed work, so nothing is ever dropped.
@@ -23,6 +23,12 @@ INDEX_LIMIT = KEY_OFFSET
 _KEY_OFFSET = wp.constant(KEY_OFFSET)
 _FIELD_MASK = wp.constant(wp.int64((1 << KEY_BITS) - 1))
 _EMPTY = wp.constant(wp.int64(EMPTY_KEY))
+# Adding 1 to every 21-bit field puts a brick's cells {2b - 1, 2b} at fields {2c, 2c + 1}: shifted
+# right by one the fields give the brick, their low bits the cell in it. (The largest index's field
+# carries into its neighbour: that changes its hash only.)
+_BRICK_ROUND = wp.constant(wp.int64((1 << 42) | (1 << 21) | 1))
+_BRICK_LOW_BITS = wp.constant(wp.int64((1 << 42) | (1 << 21) | 1))
+_BRICK_MASK = wp.constant(wp.int64((((1 << 20) - 1) << 42) | (((1 << 20) - 1) << 21) | ((1 << 20) - 1)))
 
 
 @wp.func
@@ -45,12 +51,19 @@ def unpack_key(key: wp.int64) -> wp.vec3i:
 
 @wp.func
 def hash_slot(key: wp.int64, mask: int) -> int:
-    # splitmix64 finaliser: neighbouring voxels land far apart, so probe runs stay short.
-    h = wp.uint64(key)
+    # The 2x2x2 brick of cells {2b - 1, 2b} per axis (an S-BKI / release block, at block depth 2)
+    # hashes to 8 neighbouring home slots: a block's cells share cache lines and pages of the table
+    # and its value rows. The brick's key goes through the splitmix64 finaliser, so neighbouring
+    # bricks land far apart and probe runs stay short.
+    rounded = key + _BRICK_ROUND
+    brick = (rounded >> wp.int64(1)) & _BRICK_MASK
+    cell = rounded & _BRICK_LOW_BITS
+    h = wp.uint64(brick)
     h = (h ^ (h >> wp.uint64(30))) * wp.uint64(0xBF58476D1CE4E5B9)
     h = (h ^ (h >> wp.uint64(27))) * wp.uint64(0x94D049BB133111EB)
     h = h ^ (h >> wp.uint64(31))
-    return int(wp.uint32(h & wp.uint64(0x7FFFFFFF))) & mask
+    local = wp.uint64(((cell >> wp.int64(40)) & wp.int64(4)) | ((cell >> wp.int64(20)) & wp.int64(2)) | (cell & wp.int64(1)))
+    return int(((h << wp.uint64(3)) | local) & wp.uint64(mask))
 
 
 @wp.func

@@ -149,3 +149,26 @@ def test_rows_at_returns_zero_rows_for_missing_slots(device):
     rows = vm.rows_at(np.array([slots[1], -1, slots[0]]))
     np.testing.assert_array_equal(rows[:, 0], [7.0, 0.0, 5.0])
     assert vm.rows_at(np.zeros(0, np.int64)).shape == (0, 3 + sc.EXTRA_COLUMNS)
+
+
+def test_a_blocks_cells_share_home_slots():
+    # The 2x2x2 brick {2b - 1, 2b}^3 (an S-BKI / release block at depth 2) hashes to 8 neighbouring
+    # home slots, so its cells share cache lines and pages; different bricks land apart.
+    rng = np.random.default_rng(3)
+    mask = (1 << 22) - 1
+    for b in rng.integers(-1000, 1000, (50, 3)):
+        cells = np.array([[2 * b[0] - 1 + i, 2 * b[1] - 1 + j, 2 * b[2] - 1 + k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        homes = [ref.hash_slot(key, mask) for key in ref.pack_key(cells)]
+        assert sorted(homes) == list(range(min(homes), min(homes) + 8)) and min(homes) % 8 == 0
+    bricks = rng.integers(-1000, 1000, (2000, 3))
+    homes = {ref.hash_slot(key, mask) // 8 for key in ref.pack_key(2 * bricks)}
+    assert len(homes) > 0.99 * len(np.unique(bricks, axis=0))
+
+
+def test_edge_of_the_key_range_hashes_like_the_twin():
+    index = np.array([[ht.INDEX_LIMIT - 1] * 3, [-ht.INDEX_LIMIT] * 3, [ht.INDEX_LIMIT - 1, -ht.INDEX_LIMIT, 0]])
+    keys = ref.pack_key(index)
+    table, count, slots = _insert(keys, 64, 64, "cpu")
+    ref_table = np.full(64, ref.EMPTY_KEY, dtype=np.int64)
+    np.testing.assert_array_equal(slots, ref.insert_keys(keys, ref_table, [0], 64))
+    np.testing.assert_array_equal(table, ref_table)

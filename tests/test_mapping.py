@@ -224,3 +224,64 @@ def test_two_workers_give_the_single_worker_map(method):
 def test_a_bad_map_origin_is_named(origin, pattern):
     with pytest.raises(ValueError, match=f"origin: .*{pattern}"):
         Mapper(_config("ebs"), K, origin=origin)
+
+
+def _scan_items(scans, payload_type="alpha", origin=(0.0, 0.0, 0.5)):
+    from types import SimpleNamespace
+
+    return [SimpleNamespace(name=f"scan{i}", points=pts, payload=payload, payload_type=payload_type, sensor_origin=np.array(origin))
+            for i, (pts, payload) in enumerate(scans)]
+
+
+@pytest.mark.parametrize("mode", ["clean ebs", "sbki", "release ebs", "release dempster"])
+def test_integrate_many_equals_integrate_scan_by_scan(mode):
+    # The pipelined form (next scan's host work on its own thread) must give the same map bit for bit.
+    rng = np.random.default_rng(17)
+    scans = [_alpha_scan(rng, n, spread=5.0) for n in (9000, 0, 7000, 1, 8000)]
+    if mode == "sbki":
+        cfg = MappingConfig(method="s-bki", kernel=Kernel.SPARSE, media=Media.ONEHOT, adaptive_length=False, uncertainty_threshold=False,
+                            compat=Compat.SBKI, free_resolution_m=2.0)
+        scans, payload_type = [(p, np.argmax(a, 1)) for p, a in scans], "label"
+    elif mode.startswith("release"):
+        cfg = load_config([REPO / "configs/presets/evsemmap-release.yaml"], method=mode.split()[1]).mapping
+        payload_type = "alpha"
+    else:
+        cfg, payload_type = _config("ebs"), "alpha"
+    one_by_one = Mapper(cfg, K, workers=2)
+    expected = [one_by_one.integrate(p, a, payload_type=payload_type, sensor_origin=np.array([0.0, 0.0, 0.5])) for p, a in scans]
+    seen = []
+    many = Mapper(cfg, K, workers=2)
+    got = many.integrate_many(_scan_items(scans, payload_type), progress=lambda scan, stats: seen.append((scan.name, stats.voxel_updates)))
+    assert [s.voxel_updates for s in got] == [s.voxel_updates for s in expected]
+    assert [s.kept_points for s in got] == [s.kept_points for s in expected]
+    assert seen == [(f"scan{i}", s.voxel_updates) for i, s in enumerate(expected)]
+    (a, _), (b, _) = one_by_one.voxels(), many.voxels()
+    np.testing.assert_array_equal(a.index, b.index)
+    np.testing.assert_array_equal(a.rows(), b.rows())
+    assert many.scans_integrated == one_by_one.scans_integrated == 4
+    np.testing.assert_array_equal(many.origin_index, one_by_one.origin_index)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_integrate_many_names_the_bad_scan_and_keeps_what_came_before(workers):
+    rng = np.random.default_rng(18)
+    scans = [_alpha_scan(rng, 500), _alpha_scan(rng, 500), _alpha_scan(rng, 500)]
+    scans[1][1][3, 2] = np.nan
+    mapper = Mapper(_config("ebs"), K, workers=workers)
+    with pytest.raises(ValueError, match=r"^scan1: .*NaN"):
+        mapper.integrate_many(_scan_items(scans))
+    reference = Mapper(_config("ebs"), K, workers=1)
+    reference.integrate(*scans[0], payload_type="alpha")
+    assert mapper.scans_integrated == 1
+    np.testing.assert_array_equal(mapper.voxels()[0].index, reference.voxels()[0].index)
+
+
+def test_integrate_many_passes_reading_errors_through():
+    def scans():
+        yield from _scan_items([_alpha_scan(np.random.default_rng(19), 300)])
+        raise ValueError("frame 000001.bin: truncated")
+
+    mapper = Mapper(_config("ebs"), K, workers=2)
+    with pytest.raises(ValueError, match="truncated"):
+        mapper.integrate_many(scans())
+    assert mapper.scans_integrated == 1

@@ -12,6 +12,7 @@ from evsemmap_warp.data.datasets import open_dataset
 from evsemmap_warp.core.mapper import Mapper, VoxelState
 from evsemmap_warp.data.pcd import read_pcd
 from evsemmap_warp.reference.sbki import sbki_insert
+from evsemmap_warp.voxel_keys import pack_voxel_keys, unpack_voxel_keys
 
 from conftest import REPO, TOY_DIR, shared_path
 
@@ -23,6 +24,18 @@ def test_voxel_grid_majority_label_ties_and_centroid():
     out, out_labels = sb.voxel_grid_downsample(pts, labels, 0.1)
     np.testing.assert_allclose(out, [[0.03, 0.08 / 3, 0.11 / 3], [0.13, 0, 0]], rtol=1e-6)
     assert out_labels.tolist() == [2, 1]  # majority 2; tie 3 vs 1 -> smallest label
+
+
+def test_voxel_grid_with_one_label_equals_the_majority_path():
+    rng = np.random.default_rng(8)
+    pts = rng.uniform(-3, 3, (20000, 3)).astype(np.float32)
+    one, one_labels = sb.voxel_grid_downsample(pts, np.full(len(pts), 4), 0.1)
+    mixed_labels = np.full(len(pts), 4)
+    mixed_labels[0] = 5  # forces the general path; leaf 0's majority is still 4 unless it holds one point
+    mixed, general_labels = sb.voxel_grid_downsample(pts, mixed_labels, 0.1)
+    np.testing.assert_array_equal(one, mixed)
+    assert (one_labels == 4).all() and one_labels.dtype == general_labels.dtype
+    assert (general_labels == 4).sum() >= len(general_labels) - 1
 
 
 def test_voxel_grid_orders_leaves_x_fastest():
@@ -218,3 +231,63 @@ def test_sbki_maps_are_bit_identical_for_one_and_two_workers():
         rows.append(m.voxels()[0])
     np.testing.assert_array_equal(rows[0].index, rows[1].index)
     np.testing.assert_array_equal(rows[0].rows(), rows[1].rows())
+
+
+@pytest.mark.parametrize("n, limit", [(0, 10), (1, 10), (5000, 7), (5000, 1 << 40), (3000, 1 << 62)])
+def test_stable_sort_is_a_stable_argsort(n, limit):
+    # Packed sort for narrow keys, numpy's stable argsort where key and position bits do not fit.
+    rng = np.random.default_rng(n)
+    keys = rng.integers(0, limit, n, dtype=np.int64)
+    got_keys, got_order = sb.stable_sort(keys, limit)
+    want = np.argsort(keys, kind="stable")
+    np.testing.assert_array_equal(got_order, want)
+    np.testing.assert_array_equal(got_keys, keys[want])
+
+
+def test_group_by_block_matches_the_unique_form_near_and_across_the_key_range():
+    rng = np.random.default_rng(4)
+    near = rng.integers(-5, 5, (3000, 3))
+    spread = np.concatenate([near, [[2**20 - 1, -2**20, 7], [-2**20, 2**20 - 1, -7]]])  # a box of ~2^63 cells
+    for members in (near, spread, near[:1], np.zeros((0, 3), np.int64)):
+        blocks, keys, order, start = sb.group_by_block(members)
+        want_keys, inverse = np.unique(pack_voxel_keys(members), return_inverse=True)
+        np.testing.assert_array_equal(keys, want_keys)
+        np.testing.assert_array_equal(blocks, unpack_voxel_keys(want_keys).reshape(-1, 3))
+        np.testing.assert_array_equal(order, np.argsort(inverse.reshape(-1), kind="stable"))
+        np.testing.assert_array_equal(start, np.r_[0, np.cumsum(np.bincount(inverse.reshape(-1), minlength=len(want_keys)))])
+
+
+def test_gather_tables_from_the_dense_grid_and_without_it(monkeypatch):
+    rng = np.random.default_rng(5)
+    members = rng.integers(-9, 9, (2000, 3))
+    dense = sb.gather_tables(members)
+    np.testing.assert_array_equal(dense.test_blocks, sb.test_blocks(members))
+    monkeypatch.setattr(sb, "MAX_DENSE_LOOKUP_CELLS", 0)
+    searched = sb.gather_tables(members)
+    for field in ("blocks", "pair_order", "point_start", "test_blocks", "sources"):
+        np.testing.assert_array_equal(getattr(dense, field), getattr(searched, field))
+
+
+def test_block_memberships_match_the_27_box_tests():
+    # Points on faces, edges and corners (and rounding near them) take the slow path; the order of
+    # the pairs (shift by shift, points ascending) decides the kernel's summation order.
+    rng = np.random.default_rng(6)
+    size = sb.block_size_m(0.2, 2)
+    on_grid = ((rng.integers(-20, 20, (400, 3)) + np.float32(0.5)) * size).astype(np.float32)  # block faces
+    nudged = np.nextafter(on_grid, np.float32(np.inf))
+    mixed = np.where(rng.random((400, 3)) < 0.5, on_grid, rng.uniform(-8, 8, (400, 3))).astype(np.float32)
+    points = np.concatenate([rng.uniform(-8, 8, (3000, 3)).astype(np.float32), on_grid, nudged, mixed])
+    rng.shuffle(points)
+    ids, blocks = sb.block_memberships(points, size)
+    half = np.float32(size / np.float32(2.0))
+    nearest = np.floor(points.astype(np.float64) / np.float64(size) + 0.5).astype(np.int64)
+    want_ids, want_blocks = [], []
+    for shift in [(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)]:
+        k = nearest + np.array(shift)
+        centre = (k.astype(np.float32) * size).astype(np.float32)
+        inside = ((centre - half <= points) & (points <= centre + half)).all(axis=1)
+        want_ids.append(np.flatnonzero(inside))
+        want_blocks.append(k[inside])
+    np.testing.assert_array_equal(ids, np.concatenate(want_ids))
+    np.testing.assert_array_equal(blocks, np.concatenate(want_blocks))
+    assert len(ids) > len(points) + 400  # the face points were counted in several blocks

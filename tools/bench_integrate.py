@@ -15,9 +15,11 @@ process, and next to the original C++ figures stored with the workload (its .jso
 
 The like-for-like rows run at 1 and 2 worker threads (``@1t``, ``@2t``): ``@1t`` is compared with the
 C++ on 1 thread, ``@2t`` with the C++ at its best thread count (1 or 2; its 2-thread runs are often
-slower). Throughput = input points / summed wall time of the integrate calls (loading excluded),
-median of --repeats fresh maps after one warm-up (kernel compile); the numpy twin likewise, at one
-thread (numpy's scatter does not thread). The C++ figures are the workload's own (its .json). The last
+slower). ``@1t`` rows call ``Mapper.integrate`` scan by scan, throughput = input points / summed wall
+time of those calls; ``@2t`` rows and the clean rows (2 workers) map through ``Mapper.integrate_many``
+(the next scan's host work overlaps this scan's kernels), throughput = input points / its wall time.
+Scans are in memory (loading excluded); median of --repeats fresh maps after one warm-up (kernel
+compile); the numpy twin likewise, at one thread (numpy's scatter does not thread). The C++ figures are the workload's own (its .json). The last
 line printed is one JSON object: row name -> input points per second.
 
     python tools/bench_integrate.py [--repeats 3] [--device cpu] [--plot bench.png]
@@ -31,6 +33,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 from tqdm import tqdm
@@ -80,21 +83,25 @@ def release_counts(config: MappingConfig, scans) -> int:
     return sum(integrator.training_points(prepare_payload(s.points, s.payload, "alpha", 9), s.sensor_origin)[1]["after_cut"] for s in scans)
 
 
-def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, repeats, progress, workers=None):
+def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, repeats, progress, workers=None, pipelined=False):
     warm = Mapper(config, 9, device=device, workers=workers)
     warm.integrate(scans[0].points[:1000], payloads[0][:1000], payload_type=payload_type, sensor_origin=scans[0].sensor_origin)
     runs = []
     for _ in range(repeats):
         mapper = Mapper(config, 9, device=device, workers=workers)
-        elapsed, updates, kept = 0.0, 0, 0
-        for scan, payload in zip(scans, payloads):
+        if pipelined:
+            items = [SimpleNamespace(points=s.points, payload=p, payload_type=payload_type, sensor_origin=s.sensor_origin) for s, p in zip(scans, payloads)]
             start = time.perf_counter()
-            stats = mapper.integrate(scan.points, payload, payload_type=payload_type, sensor_origin=scan.sensor_origin)
-            elapsed += time.perf_counter() - start
-            updates += stats.voxel_updates
-            kept += stats.kept_points
-            progress.update(len(scan.points))
-        runs.append((elapsed, updates, kept, mapper))
+            all_stats = mapper.integrate_many(items, progress=lambda scan, _: progress.update(len(scan.points)))
+            elapsed = time.perf_counter() - start
+        else:
+            elapsed, all_stats = 0.0, []
+            for scan, payload in zip(scans, payloads):
+                start = time.perf_counter()
+                all_stats.append(mapper.integrate(scan.points, payload, payload_type=payload_type, sensor_origin=scan.sensor_origin))
+                elapsed += time.perf_counter() - start
+                progress.update(len(scan.points))
+        runs.append((elapsed, sum(s.voxel_updates for s in all_stats), sum(s.kept_points for s in all_stats), mapper))
     elapsed = statistics.median(r[0] for r in runs)
     _, updates, kept, mapper = runs[0]
     counts = mapper.state_counts()
@@ -158,17 +165,18 @@ def main() -> int:
     with tqdm(total=runs * n_points, unit="pt", unit_scale=True, desc="integrating", file=sys.stderr) as progress:
         for method in METHODS:
             cfg = load_config([PRESET], method=method).mapping
-            rows[method] = time_mapper(cfg, scans, alphas, "alpha", args.device, args.repeats, progress)
+            rows[method] = time_mapper(cfg, scans, alphas, "alpha", args.device, args.repeats, progress, pipelined=True)
             if not args.skip_numpy and method in ("ebs", "s-bki"):  # the numpy twin times the radius rules
                 rows[f"numpy:{method}"] = time_numpy(cfg, scans, alphas, args.repeats)
                 progress.update(n_points * args.repeats)
         for threads in thread_counts:
             for fr in args.free_resolutions:
                 rows[f"s-bki-compat@fr{fr}@{threads}t"] = time_mapper(compat_config(float(fr)), scans, labels, "label", args.device,
-                                                                      args.repeats, progress, workers=threads)
+                                                                      args.repeats, progress, workers=threads, pipelined=threads > 1)
             for method in RELEASE_METHODS:
                 cfg = load_config([RELEASE_PRESET], method=method).mapping
-                rows[f"{method}-release@{threads}t"] = time_mapper(cfg, scans, alphas, "alpha", args.device, args.repeats, progress, workers=threads)
+                rows[f"{method}-release@{threads}t"] = time_mapper(cfg, scans, alphas, "alpha", args.device, args.repeats, progress, workers=threads,
+                                                                   pipelined=threads > 1)
         release_after_cut = {m: release_counts(load_config([RELEASE_PRESET], method=m).mapping, scans) for m in RELEASE_METHODS}
 
     # The C++ on one thread and at its best thread count (1 or 2), as measured with the workload.

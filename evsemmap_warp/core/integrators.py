@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from concurrent.futures import Executor
 from dataclasses import dataclass
+from typing import Callable, Optional
 
 import numpy as np
 import warp as wp
@@ -61,6 +62,21 @@ def uncertainty_quantile_mask(uncertainty: np.ndarray, keep_quantile: float) -> 
     return uncertainty <= threshold, threshold
 
 
+# What an integrator's ``prepare`` returns: the map update itself, launch(shards, executor) -> stats.
+Launch = Callable[[list[VoxelMap], Optional[Executor]], IntegrationStats]
+
+
+def launch_step(stats: IntegrationStats, run=None) -> Launch:
+    """The launch that runs ``run(shards, executor) -> voxel updates`` (nothing when None) into ``stats``."""
+
+    def launch(shards: list[VoxelMap], executor: Executor | None = None) -> IntegrationStats:
+        if run is not None:
+            stats.voxel_updates = run(shards, executor)
+        return stats
+
+    return launch
+
+
 def for_each_shard(shards: list[VoxelMap], executor: Executor | None, job) -> list:
     """Run job(shard, shard index) for every shard, in parallel when there is an executor."""
     if executor is None or len(shards) == 1:
@@ -85,6 +101,10 @@ class KernelIntegrator:
         if c.adaptive_length:
             return c.length_m * c.beta * np.exp(1.0 - c.gamma * uncertainty)
         return np.full(len(uncertainty), c.length_m)
+
+    def prepare(self, scan: ScanPayload, device: str) -> Launch:
+        """Nothing worth doing ahead: the launch runs ``integrate``."""
+        return lambda shards, executor=None: self.integrate(shards, scan, executor)
 
     def integrate(self, shards: list[VoxelMap], scan: ScanPayload, executor: Executor | None = None) -> IntegrationStats:
         c = self.config
@@ -129,6 +149,10 @@ class ConvBkiIntegrator:
             self.lengths = convbki.default_lengths(num_classes)
         self.weights = convbki.stencil_weights(self.lengths, config.resolution_m, config.convbki_stencil_half)
 
+    def prepare(self, scan: ScanPayload, device: str) -> Launch:
+        """Nothing worth doing ahead: the launch runs ``integrate``."""
+        return lambda shards, executor=None: self.integrate(shards, scan, executor)
+
     def integrate(self, shards: list[VoxelMap], scan: ScanPayload, executor: Executor | None = None) -> IntegrationStats:
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points), kept_points=len(scan.points))
@@ -157,6 +181,10 @@ class SeeCsomIntegrator:
         self.num_classes = num_classes
 
     def integrate(self, shards: list[VoxelMap], scan: ScanPayload, sensor_origin: np.ndarray, executor: Executor | None = None) -> IntegrationStats:
+        return self.prepare(scan, sensor_origin, shards[0].device)(shards, executor)
+
+    def prepare(self, scan: ScanPayload, sensor_origin: np.ndarray, device: str) -> Launch:
+        """Training data and block statistics (host work, no map access); the launch scatters."""
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points))
         points, labels, _ = sbki_compat.training_data(scan.points, scan.labels, sensor_origin, ds_resolution_m=c.ds_resolution_m,
@@ -164,15 +192,14 @@ class SeeCsomIntegrator:
         points = points.astype(np.float64)
         stats.kept_points = len(points)
         if len(points) == 0:
-            return stats
+            return launch_step(stats)
         owners, lengths = see_csom.block_targets(points, labels, self.num_classes, c.resolution_m)
         unc = np.zeros(len(points))
 
         def job(shard: VoxelMap, part: np.ndarray) -> int:
             return shard.scatter_block_targets(points[part], labels[part], unc[part], owners[part], lengths[part], see_csom.CELLS_PER_BLOCK)
 
-        stats.voxel_updates = sum(split_over_shards(shards, executor, len(points), job))
-        return stats
+        return launch_step(stats, lambda shards, executor: sum(split_over_shards(shards, executor, len(points), job)))
 
 
 class SbkiCompatIntegrator:
@@ -190,6 +217,11 @@ class SbkiCompatIntegrator:
         return -0.5 * config.resolution_m if config.kernel is Kernel.COUNT else 0.0
 
     def integrate(self, shards: list[VoxelMap], scan: ScanPayload, sensor_origin: np.ndarray, executor: Executor | None = None) -> IntegrationStats:
+        return self.prepare(scan, sensor_origin, shards[0].device)(shards, executor)
+
+    def prepare(self, scan: ScanPayload, sensor_origin: np.ndarray, device: str) -> Launch:
+        """Training data, block memberships and the gather tables (host work, no map access); the
+        launch runs the kernels."""
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points))
         points, labels, _ = sbki_compat.training_data(
@@ -198,13 +230,11 @@ class SbkiCompatIntegrator:
         )
         stats.kept_points = len(points)
         if len(points) == 0:
-            return stats
+            return launch_step(stats)
         point_ids, owners = sbki_compat.block_memberships(points, self.block_size)
         if c.kernel is Kernel.COUNT:
-            stats.voxel_updates = self._scatter_counts(shards, points, labels, point_ids, owners, executor)
-        else:
-            stats.voxel_updates = self._gather_sparse(shards, points, labels, point_ids, owners, executor)
-        return stats
+            return launch_step(stats, lambda shards, executor: self._scatter_counts(shards, points, labels, point_ids, owners, executor))
+        return launch_step(stats, self._gather_sparse(points, labels, point_ids, owners, device))
 
     def _scatter_counts(self, shards, points, labels, point_ids, owners, executor) -> int:
         """S-CSM: each (point, block) pair adds 1 to its block's single cell."""
@@ -220,14 +250,13 @@ class SbkiCompatIntegrator:
 
         return sum(split_over_shards(shards, executor, len(point_ids), job))
 
-    def _gather_sparse(self, shards, points, labels, point_ids, owners, executor) -> int:
-        """S-BKI: every test block gathers from its extended block's points (``kernels.block_gather``)."""
+    def _gather_sparse(self, points, labels, point_ids, owners, d: str):
+        """S-BKI: every test block gathers from its extended block's points (``kernels.block_gather``).
+        Builds the kernel's inputs; returns run(shards, executor) -> updates."""
         c = self.config
         tables = sbki_compat.gather_tables(owners)
         first = tables.test_blocks * self.cells_per_block - self.cells_per_block // 2
-        shards[0]._check_index_range(first.min(axis=0), first.max(axis=0) + self.cells_per_block - 1)
         sorted_points = point_ids[tables.pair_order]
-        d = shards[0].device
         gather_inputs = [
             wp.array(tables.test_blocks.astype(np.int32), dtype=wp.vec3i, device=d),
             wp.array(tables.sources, dtype=int, device=d),
@@ -236,17 +265,21 @@ class SbkiCompatIntegrator:
             wp.array(np.ascontiguousarray(labels[sorted_points], dtype=np.int32), dtype=int, device=d),
             wp.float64(c.length_m), wp.float64(c.sigma0), wp.float64(c.resolution_m), wp.float64(self.grid_offset_m(c)),
         ]
-        # Each test block belongs to one shard, chosen by its index: the map is the same for any worker count.
-        owner = block_shard(tables.test_blocks, len(shards))
-        shards[0].load_gather_kernels(self.cells_per_block)
 
-        kernel = block_gather.gather_sbki_kernel(shards[0].num_classes, self.cells_per_block)
+        def run(shards: list[VoxelMap], executor: Executor | None) -> int:
+            shards[0]._check_index_range(first.min(axis=0), first.max(axis=0) + self.cells_per_block - 1)
+            # Each test block belongs to one shard, chosen by its index: the map is the same for any worker count.
+            owner = block_shard(tables.test_blocks, len(shards))
+            shards[0].load_gather_kernels(self.cells_per_block)
+            kernel = block_gather.gather_sbki_kernel(shards[0].num_classes, self.cells_per_block)
 
-        def job(shard: VoxelMap, index: int) -> int:
-            return shard.gather_blocks(kernel, gather_inputs, np.flatnonzero(owner == index), cells_per_block=self.cells_per_block,
-                                       kind="sbki_gather")
+            def job(shard: VoxelMap, index: int) -> int:
+                return shard.gather_blocks(kernel, gather_inputs, np.flatnonzero(owner == index), cells_per_block=self.cells_per_block,
+                                           kind="sbki_gather")
 
-        return sum(for_each_shard(shards, executor, job))
+            return sum(for_each_shard(shards, executor, job))
+
+        return run
 
 
 class ReleaseCompatIntegrator:
@@ -276,25 +309,28 @@ class ReleaseCompatIntegrator:
         return keep, counts
 
     def integrate(self, shards: list[VoxelMap], scan: ScanPayload, sensor_origin: np.ndarray, executor: Executor | None = None) -> IntegrationStats:
+        return self.prepare(scan, sensor_origin, shards[0].device)(shards, executor)
+
+    def prepare(self, scan: ScanPayload, sensor_origin: np.ndarray, device: str) -> Launch:
+        """The cut, the cap, memberships and the block models' tables (no map access); the launch runs
+        the gather kernel."""
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points))
         keep, _ = self.training_points(scan, sensor_origin)
         stats.kept_points = len(keep)
         if len(keep) == 0:
-            return stats
+            return launch_step(stats)
         points = scan.points[keep].astype(np.float32)
         pair_points, member_blocks = sbki_compat.block_memberships(points, self.block_size)
-        device = shards[0].device
         models = evsemmap_release.release_blocks(member_blocks, lambda b, g, lo: block_model_tables(b, g, lo, device))
         first = models.blocks * self.cells_per_block - self.cells_per_block // 2
-        shards[0]._check_index_range(first.min(axis=0), first.max(axis=0) + self.cells_per_block - 1)
         fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
         sorted_points = pair_points[models.pair_order]
         weights = scan.probabilities[keep][sorted_points]
         unc = scan.uncertainty[keep][sorted_points]
         if fusion == sc.FUSION_DEMPSTER:
             weights = np.clip(weights - unc[:, None] / weights.shape[1], 0.0, 1.0)  # b_k = (alpha_k - 1) / S
-        d = shards[0].device
+        d = device
         gather_inputs = [
             wp.array(models.blocks.astype(np.int32), dtype=wp.vec3i, device=d),
             wp.array(models.source_blocks, dtype=int, device=d), wp.array(models.source_mult, dtype=int, device=d),
@@ -304,19 +340,22 @@ class ReleaseCompatIntegrator:
             wp.array(np.ascontiguousarray(unc, dtype=np.float64), dtype=wp.float64, device=d),
             wp.float64(self.length), float(c.sigma0), float(c.resolution_m), int(fusion),
         ]
-        # Each target block belongs to one shard, chosen by its index alone: a cell is always summed in
-        # the same shard in the same order, so the map is bit for bit the same for any number of workers.
-        owner = block_shard(models.blocks, len(shards))
-        shards[0].load_gather_kernels(self.cells_per_block)
 
-        kernel = release.gather_release_kernel(shards[0].num_classes, self.cells_per_block)
+        def run(shards: list[VoxelMap], executor: Executor | None) -> int:
+            shards[0]._check_index_range(first.min(axis=0), first.max(axis=0) + self.cells_per_block - 1)
+            # Each target block belongs to one shard, chosen by its index alone: a cell is always summed in
+            # the same shard in the same order, so the map is bit for bit the same for any number of workers.
+            owner = block_shard(models.blocks, len(shards))
+            shards[0].load_gather_kernels(self.cells_per_block)
+            kernel = release.gather_release_kernel(shards[0].num_classes, self.cells_per_block)
 
-        def job(shard: VoxelMap, index: int) -> int:
-            return shard.gather_blocks(kernel, gather_inputs, np.flatnonzero(owner == index), cells_per_block=self.cells_per_block,
-                                       kind="release_gather")
+            def job(shard: VoxelMap, index: int) -> int:
+                return shard.gather_blocks(kernel, gather_inputs, np.flatnonzero(owner == index), cells_per_block=self.cells_per_block,
+                                           kind="release_gather")
 
-        stats.voxel_updates = sum(for_each_shard(shards, executor, job))
-        return stats
+            return sum(for_each_shard(shards, executor, job))
+
+        return launch_step(stats, run)
 
 
 def block_shard(blocks: np.ndarray, shards: int) -> np.ndarray:

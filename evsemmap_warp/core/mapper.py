@@ -2,6 +2,7 @@
 
     mapper = Mapper(load_config([...], method="ebs").mapping, num_classes=9)
     mapper.integrate(points_world, alpha, payload_type="alpha")      # one scan or bin
+    mapper.integrate_many(dataset)                                   # scans in order, the next prepared meanwhile
     result = mapper.query(query_points)                              # label, probs, variance, state
     mapper.save("map.npz")
 
@@ -19,6 +20,7 @@ from __future__ import annotations
 import enum
 import os
 from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,8 +30,8 @@ from .. import __version__
 from ..config import Compat, Fusion, Kernel, MappingConfig, PayloadType
 from ..voxel_keys import check_index_range
 from . import map_file
-from .integrators import (ConvBkiIntegrator, IntegrationStats, KernelIntegrator, ReleaseCompatIntegrator, SbkiCompatIntegrator, ScanPayload,
-                          SeeCsomIntegrator)
+from .integrators import (ConvBkiIntegrator, IntegrationStats, KernelIntegrator, Launch, ReleaseCompatIntegrator, SbkiCompatIntegrator,
+                          ScanPayload, SeeCsomIntegrator)
 from .voxel_map import EXTRA_COLUMNS, VoxelArrays, VoxelMap, add_duplicate_voxels, sum_voxel_arrays
 
 
@@ -260,28 +262,87 @@ class Mapper:
         """Add one scan or bin. points [N, 3] world frame (m); payload [N, K] alpha or
         probabilities, or [N] integer labels, as ``payload_type`` says. An empty scan is a no-op.
         ``sensor_origin`` [3] is needed by the sbki mode (free-space rays)."""
+        return self._launch(self._prepare(points, payload, payload_type, sensor_origin))
+
+    def integrate_many(self, scans: Iterable, progress=None) -> list[IntegrationStats]:
+        """Add scans in order, each an object with ``points``, ``payload``, ``payload_type`` and
+        ``sensor_origin`` (the datasets' ``Scan``; a ``name``, when it has one, prefixes errors).
+
+        The map is the one ``integrate`` gives scan by scan. With more than one worker, reading the
+        next scan from ``scans`` and its host work (validation and, in the S-BKI and release modes,
+        training data and block tables) run on their own thread while this scan's kernels run, one
+        scan ahead at most. ``progress(scan, stats)`` is called after each scan."""
+        results = []
+
+        def add(scan, prepared):
+            results.append(self._named(scan, lambda: self._launch(prepared)))
+            if progress:
+                progress(scan, results[-1])
+
+        if self._executor is None:
+            for scan in scans:
+                add(scan, self._named(scan, lambda scan=scan: self._prepare_scan(scan)))
+            return results
+        iterator = iter(scans)
+
+        def read_and_prepare():
+            scan = next(iterator, None)
+            return (None, None) if scan is None else (scan, self._named(scan, lambda: self._prepare_scan(scan)))
+
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="evsemmap-prepare") as ahead:
+            future = ahead.submit(read_and_prepare)
+            while True:
+                scan, prepared = future.result()
+                if scan is None:
+                    break
+                future = ahead.submit(read_and_prepare)  # the next scan, while this one's kernels run
+                add(scan, prepared)
+        return results
+
+    @staticmethod
+    def _named(scan, step):
+        try:
+            return step()
+        except ValueError as exc:  # the Mapper names the problem, this the scan it is in
+            name = getattr(scan, "name", None)
+            if name is None:
+                raise
+            raise ValueError(f"{name}: {exc}") from None
+
+    def _prepare_scan(self, scan):
+        return self._prepare(scan.points, scan.payload, scan.payload_type, scan.sensor_origin)
+
+    def _prepare(self, points, payload, payload_type, sensor_origin) -> Launch | None:
+        """Validation and the integrator's host work for one scan (the map is not touched, except
+        that the first non-empty scan sets the origin); returns its launch, None for an empty scan."""
         scan = prepare_payload(points, payload, payload_type, self.num_classes)
         if isinstance(self.integrator, ReleaseCompatIntegrator) and PayloadType(payload_type) is not PayloadType.ALPHA:
             raise ValueError(f"payload_type {PayloadType(payload_type).value}: the evsemmap compatibility mode reproduces the release, "
                              "which reads evidential alpha (its uncertainty cut is K / sum(alpha))")
         if len(scan.points) == 0:
-            return IntegrationStats()
+            return None
+        takes_sensor_origin = isinstance(self.integrator, (SbkiCompatIntegrator, SeeCsomIntegrator, ReleaseCompatIntegrator))
+        # The release reads the sensor origin only for its range filter.
+        sensor_origin_unused = isinstance(self.integrator, ReleaseCompatIntegrator) and self.config.max_range_m <= 0
+        if takes_sensor_origin and sensor_origin is None and not sensor_origin_unused:
+            if isinstance(self.integrator, ReleaseCompatIntegrator):
+                raise ValueError("sensor_origin: the evsemmap mode's range filter (mapping.max_range_m) measures from the sensor origin; pass it")
+            raise ValueError(f"sensor_origin: {self.config.method} adds the sensor origin (and free-space rays) as free samples; pass it")
+        if takes_sensor_origin and sensor_origin is not None:
+            sensor_origin = _validate_point(sensor_origin, "sensor_origin")
         if self.origin_index is None:
             self.origin_index = self._snap_origin((scan.points.min(axis=0) + scan.points.max(axis=0)) / 2)
         scan.points = self._local(scan.points)
-        if isinstance(self.integrator, (SbkiCompatIntegrator, SeeCsomIntegrator, ReleaseCompatIntegrator)):
-            if sensor_origin is None and isinstance(self.integrator, ReleaseCompatIntegrator) and self.config.max_range_m <= 0:
-                sensor_origin = self.origin  # unused: the release reads the sensor origin only for its range filter
-            if sensor_origin is None and isinstance(self.integrator, ReleaseCompatIntegrator):
-                raise ValueError("sensor_origin: the evsemmap mode's range filter (mapping.max_range_m) measures from the sensor origin; pass it")
-            if sensor_origin is None:
-                raise ValueError(f"sensor_origin: {self.config.method} adds the sensor origin (and free-space rays) as free samples; pass it")
-            origin = _validate_point(sensor_origin, "sensor_origin")
-            stats = self.integrator.integrate(self.shards, scan, self._local(origin), self._executor)
-        else:
-            stats = self.integrator.integrate(self.shards, scan, self._executor)
+        if not takes_sensor_origin:
+            return self.integrator.prepare(scan, self.device)
+        return self.integrator.prepare(scan, self._local(self.origin if sensor_origin is None else sensor_origin), self.device)
+
+    def _launch(self, launch: Launch | None) -> IntegrationStats:
+        if launch is None:
+            return IntegrationStats()
+        stats = launch(self.shards, self._executor)
         self.scans_integrated += 1
-        self.points_integrated += len(scan.points)
+        self.points_integrated += stats.input_points
         self._summary_cache = None
         return stats
 

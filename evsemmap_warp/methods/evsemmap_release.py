@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..voxel_keys import pack_voxel_keys
+from ..voxel_keys import column_bounds, pack_voxel_keys
 from .sbki_compat import block_index, dense_block_grid, group_by_block
 
 # Offsets of the target blocks a point can reach through one model: L1 distance <= 2 (1 + 6 + 12 + 6).
@@ -90,7 +90,7 @@ def _snap_axis(p: np.ndarray, lo: np.float32, hi: np.float32, ds: np.float32) ->
 def snapped_block_keys(points: np.ndarray, ds_resolution_m: float, block_size: np.float32) -> np.ndarray:
     """The block each point is counted in by the "ds" step: [N, 3] int64 (C++ key fields, offset removed)."""
     points = np.asarray(points, dtype=np.float32)
-    lo, hi = points.min(axis=0), points.max(axis=0)
+    lo, hi = column_bounds(points)
     ds = np.float32(ds_resolution_m)
     size = np.float64(np.float32(block_size))
     keys = np.empty((len(points), 3), np.int64)

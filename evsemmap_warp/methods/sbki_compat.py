@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..voxel_keys import pack_voxel_keys
+from ..voxel_keys import column_bounds, pack_voxel_keys
 
 FREE_LABEL = 0
 # A block and its 6 face neighbours: S-BKI's "extended block" (the 27-block variant is compiled out).
@@ -37,22 +37,24 @@ def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float)
     if len(points) == 0:
         return points.reshape(0, 3), labels
     inverse_leaf = np.float32(1.0) / np.float32(leaf_m)
-    lo, hi = points.min(axis=0), points.max(axis=0)
+    lo, hi = column_bounds(points)
     extent = ((hi - lo) * inverse_leaf).astype(np.int64) + 1
     if int(np.prod(extent)) > _INT32_MAX:
         # PCL refuses such grids and returns the cloud unchanged; so do we, loudly.
         warnings.warn(f"VoxelGrid leaf {leaf_m} m is too small for a {hi - lo} m cloud; returning it unchanged, as PCL does")
         return points, labels
-    ijk = np.floor(points * inverse_leaf).astype(np.int64)
-    rel = ijk - ijk.min(axis=0)
-    dims = rel.max(axis=0) + 1
+    # floor(p / leaf) is monotonic in p, so its extremes are those of the extreme coordinates.
+    ijk_lo = np.floor(lo * inverse_leaf).astype(np.int64)
+    dims = np.floor(hi * inverse_leaf).astype(np.int64) - ijk_lo + 1
+    rel = np.floor(points * inverse_leaf).astype(np.int64) - ijk_lo
     leaf_index = rel[:, 0] + rel[:, 1] * dims[0] + rel[:, 2] * dims[0] * dims[1]
-    order = np.argsort(leaf_index, kind="stable")
-    sorted_index = leaf_index[order]
+    sorted_index, order = stable_sort(leaf_index, int(np.prod(dims)))
     starts = np.flatnonzero(np.r_[True, sorted_index[1:] != sorted_index[:-1]])
     counts = np.diff(np.r_[starts, len(order)])
     sums = np.add.reduceat(points[order], starts, axis=0, dtype=np.float32)
     centroids = (sums / counts[:, None].astype(np.float32)).astype(np.float32)
+    if labels.min() == labels.max():  # one label (the free samples): it is every leaf's majority
+        return centroids, np.full(len(starts), labels[0], np.int64)
 
     cell_of_point = np.repeat(np.arange(len(starts)), counts)
     sorted_labels = labels[order]
@@ -61,6 +63,21 @@ def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float)
     best = np.lexsort((pair_label, -pair_count, pair_cell))
     first_of_cell = best[np.r_[True, pair_cell[best][1:] != pair_cell[best][:-1]]]
     return centroids, pair_label[first_of_cell]
+
+
+def stable_sort(keys: np.ndarray, key_limit: int) -> tuple[np.ndarray, np.ndarray]:
+    """(sorted keys, the stable order) of non-negative int64 keys below ``key_limit``.
+
+    Each key is packed with its position into one int64 and the packed values sorted (unique, so any
+    sort is stable): 3x faster than numpy's stable argsort of 10M keys here. Keys too wide to pack
+    take the stable argsort."""
+    n = len(keys)
+    position_bits = max(1, int(n - 1).bit_length())
+    if int(key_limit - 1).bit_length() + position_bits > 62:
+        order = np.argsort(keys, kind="stable")
+        return keys[order], order
+    packed = np.sort((keys.astype(np.int64) << position_bits) | np.arange(n, dtype=np.int64))
+    return packed >> position_bits, packed & ((1 << position_bits) - 1)
 
 
 def _count_pairs(cells: np.ndarray, labels: np.ndarray):
@@ -149,12 +166,23 @@ def block_memberships(points: np.ndarray, block_size: np.float32) -> tuple[np.nd
         k = nearest + shift
         center = (k.astype(np.float32) * size).astype(np.float32)
         member[shift] = ((center - half) <= points) & (points <= (center + half))
+    # Nearly every point lies inside its nearest block only; the other 26 shifts are tested on the
+    # few that touch a face (or miss the nearest block by rounding).
+    in_nearest = member[0][:, 0] & member[0][:, 1] & member[0][:, 2]
+    elsewhere = np.zeros(len(points), bool)
+    for shift in (-1, 1):
+        for axis in range(3):
+            elsewhere |= member[shift][:, axis]
+    candidates = np.flatnonzero(elsewhere | ~in_nearest)
+    near = {shift: member[shift][candidates] for shift in (-1, 0, 1)}
     point_ids, blocks = [], []
     for sx in (-1, 0, 1):
         for sy in (-1, 0, 1):
             for sz in (-1, 0, 1):
-                inside = member[sx][:, 0] & member[sy][:, 1] & member[sz][:, 2]
-                ids = np.flatnonzero(inside)
+                if (sx, sy, sz) == (0, 0, 0):
+                    ids = np.flatnonzero(in_nearest)
+                else:
+                    ids = candidates[near[sx][:, 0] & near[sy][:, 1] & near[sz][:, 2]]
                 point_ids.append(ids)
                 blocks.append(nearest[ids] + np.array([sx, sy, sz]))
     return np.concatenate(point_ids), np.concatenate(blocks).reshape(-1, 3)
@@ -165,8 +193,8 @@ def unique_rows(index: np.ndarray) -> np.ndarray:
     if len(index) == 0:
         return np.zeros((0, 3), np.int64)
     index = np.asarray(index, dtype=np.int64)
-    lo = index.min(axis=0)
-    span = index.max(axis=0) - lo + 1
+    lo, hi = column_bounds(index)
+    span = hi - lo + 1
     packed = np.unique(((index[:, 0] - lo[0]) * span[1] + (index[:, 1] - lo[1])) * span[2] + (index[:, 2] - lo[2]))
     z = packed % span[2]
     y = (packed // span[2]) % span[1]
@@ -196,8 +224,16 @@ class GatherTables:
 
 def gather_tables(owner_blocks: np.ndarray) -> GatherTables:
     blocks, keys, order, point_start = group_by_block(owner_blocks)
-    tests = unique_rows((blocks[:, None, :] + EXTENDED_BLOCK_OFFSETS[None]).reshape(-1, 3))
-    index_of = block_index(blocks, keys)
+    grid, lo = dense_block_grid(blocks)
+    if grid is not None:
+        # Marking the extended blocks on the dense grid: argwhere lists them in key order, as unique does.
+        marked = np.zeros(grid.shape, bool)
+        for offset in EXTENDED_BLOCK_OFFSETS:
+            marked[tuple((blocks + offset - lo).T)] = True
+        tests = np.argwhere(marked) + lo
+    else:
+        tests = unique_rows((blocks[:, None, :] + EXTENDED_BLOCK_OFFSETS[None]).reshape(-1, 3))
+    index_of = block_index(blocks, keys, grid, lo)
     sources = np.stack([index_of(tests + f) for f in EXTENDED_BLOCK_OFFSETS], axis=1) if len(tests) else np.zeros((0, 7), np.int64)
     return GatherTables(blocks, order, point_start, tests, sources.astype(np.int32))
 
@@ -207,13 +243,21 @@ def group_by_block(member_blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     pair order that groups the pairs by block (stable: input order within a block) and the CSR starts
     (block s owns sorted pairs point_start[s]:point_start[s + 1])."""
     member_blocks = np.asarray(member_blocks, dtype=np.int64).reshape(-1, 3)
-    keys, inverse = np.unique(pack_voxel_keys(member_blocks), return_inverse=True)
-    inverse = inverse.reshape(-1)
-    order = np.argsort(inverse, kind="stable")
-    point_start = np.r_[0, np.cumsum(np.bincount(inverse, minlength=len(keys)))]
-    blocks = np.empty((len(keys), 3), np.int64)
-    blocks[inverse] = member_blocks
-    return blocks, keys, order, point_start
+    if len(member_blocks) == 0:
+        return np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(1, np.int64)
+    # Row-major positions in the blocks' bounding box sort as the packed keys do (x, then y, then z).
+    lo, hi = column_bounds(member_blocks)
+    span = [int(x) for x in hi - lo + 1]
+    box_cells = span[0] * span[1] * span[2]
+    if box_cells < 1 << 62:
+        relative = member_blocks - lo
+        position = (relative[:, 0] * span[1] + relative[:, 1]) * span[2] + relative[:, 2]
+    else:  # blocks spread over the whole key range: their packed keys (63 bits) sort alike
+        position, box_cells = pack_voxel_keys(member_blocks), 1 << 63
+    sorted_position, order = stable_sort(position, box_cells)
+    starts = np.flatnonzero(np.r_[True, sorted_position[1:] != sorted_position[:-1]])
+    blocks = member_blocks[order[starts]]
+    return blocks, pack_voxel_keys(blocks), order, np.r_[starts, len(order)]
 
 
 # Above this many cells the block lookup falls back from a dense grid over the scan's blocks to a
@@ -226,8 +270,9 @@ def dense_block_grid(blocks: np.ndarray):
     and its lowest corner; the grid is None when it would exceed MAX_DENSE_LOOKUP_CELLS."""
     if len(blocks) == 0:
         return None, None
-    lo = blocks.min(axis=0) - 3
-    shape = blocks.max(axis=0) + 4 - lo
+    lo, hi = column_bounds(blocks)
+    lo = lo - 3
+    shape = hi + 4 - lo
     if int(np.prod(shape)) > MAX_DENSE_LOOKUP_CELLS:
         return None, lo
     grid = np.full(tuple(shape), -1, np.int32)

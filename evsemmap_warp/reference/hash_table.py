@@ -24,11 +24,14 @@ def unpack_key(keys: np.ndarray) -> np.ndarray:
 
 
 def hash_slot(key: int, mask: int) -> int:
-    h = int(key) & _M64
+    rounded = int(key) + ((1 << 42) | (1 << 21) | 1)
+    brick = (rounded >> 1) & ((((1 << 20) - 1) << 42) | (((1 << 20) - 1) << 21) | ((1 << 20) - 1))
+    local = ((rounded >> 40) & 4) | ((rounded >> 20) & 2) | (rounded & 1)
+    h = brick & _M64
     h = ((h ^ (h >> 30)) * 0xBF58476D1CE4E5B9) & _M64
     h = ((h ^ (h >> 27)) * 0x94D049BB133111EB) & _M64
     h ^= h >> 31
-    return (h & 0x7FFFFFFF) & mask
+    return (((h & 0x7FFFFFFF) << 3) | local) & mask
 
 
 def table_find(table_keys: np.ndarray, key: int) -> int:
