@@ -255,7 +255,6 @@ class SbkiCompatIntegrator:
         Builds the kernel's inputs; returns run(shards, executor) -> updates."""
         c = self.config
         tables = sbki_compat.gather_tables(owners)
-        first = tables.test_blocks * self.cells_per_block - self.cells_per_block // 2
         sorted_points = point_ids[tables.pair_order]
         gather_inputs = [
             wp.array(tables.test_blocks.astype(np.int32), dtype=wp.vec3i, device=d),
@@ -266,20 +265,7 @@ class SbkiCompatIntegrator:
             wp.float64(c.length_m), wp.float64(c.sigma0), wp.float64(c.resolution_m), wp.float64(self.grid_offset_m(c)),
         ]
 
-        def run(shards: list[VoxelMap], executor: Executor | None) -> int:
-            shards[0]._check_index_range(first.min(axis=0), first.max(axis=0) + self.cells_per_block - 1)
-            # Each test block belongs to one shard, chosen by its index: the map is the same for any worker count.
-            owner = block_shard(tables.test_blocks, len(shards))
-            shards[0].load_gather_kernels(self.cells_per_block)
-            kernel = block_gather.gather_sbki_kernel(shards[0].num_classes, self.cells_per_block)
-
-            def job(shard: VoxelMap, index: int) -> int:
-                return shard.gather_blocks(kernel, gather_inputs, np.flatnonzero(owner == index), cells_per_block=self.cells_per_block,
-                                           kind="sbki_gather")
-
-            return sum(for_each_shard(shards, executor, job))
-
-        return run
+        return block_gather_run(tables.test_blocks, self.cells_per_block, block_gather.gather_sbki_kernel, gather_inputs, "sbki_gather")
 
 
 class ReleaseCompatIntegrator:
@@ -323,7 +309,6 @@ class ReleaseCompatIntegrator:
         points = scan.points[keep].astype(np.float32)
         pair_points, member_blocks = sbki_compat.block_memberships(points, self.block_size)
         models = evsemmap_release.release_blocks(member_blocks, lambda b, g, lo: block_model_tables(b, g, lo, device))
-        first = models.blocks * self.cells_per_block - self.cells_per_block // 2
         fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
         sorted_points = pair_points[models.pair_order]
         weights = scan.probabilities[keep][sorted_points]
@@ -341,21 +326,29 @@ class ReleaseCompatIntegrator:
             wp.float64(self.length), float(c.sigma0), float(c.resolution_m), int(fusion),
         ]
 
-        def run(shards: list[VoxelMap], executor: Executor | None) -> int:
-            shards[0]._check_index_range(first.min(axis=0), first.max(axis=0) + self.cells_per_block - 1)
-            # Each target block belongs to one shard, chosen by its index alone: a cell is always summed in
-            # the same shard in the same order, so the map is bit for bit the same for any number of workers.
-            owner = block_shard(models.blocks, len(shards))
-            shards[0].load_gather_kernels(self.cells_per_block)
-            kernel = release.gather_release_kernel(shards[0].num_classes, self.cells_per_block)
+        return launch_step(stats, block_gather_run(models.blocks, self.cells_per_block, release.gather_release_kernel, gather_inputs, "release_gather"))
 
-            def job(shard: VoxelMap, index: int) -> int:
-                return shard.gather_blocks(kernel, gather_inputs, np.flatnonzero(owner == index), cells_per_block=self.cells_per_block,
-                                           kind="release_gather")
 
-            return sum(for_each_shard(shards, executor, job))
+def block_gather_run(blocks: np.ndarray, cells_per_block: int, kernel_factory, gather_inputs: list, kind: str):
+    """run(shards, executor) -> updates for a block-gather kernel (``kernel_factory(K, cells per block)``)
+    over target ``blocks`` [B, 3], whose arguments start with ``gather_inputs``: the key range is checked
+    before any launch, and each block is gathered in the shard its index picks, so a cell is always
+    summed in the same shard in the same order and the map is bit for bit the same for any number of
+    workers."""
+    first = blocks * cells_per_block - cells_per_block // 2
 
-        return launch_step(stats, run)
+    def run(shards: list[VoxelMap], executor: Executor | None) -> int:
+        shards[0]._check_index_range(first.min(axis=0), first.max(axis=0) + cells_per_block - 1)
+        owner = block_shard(blocks, len(shards))
+        shards[0].load_gather_kernels(cells_per_block)
+        kernel = kernel_factory(shards[0].num_classes, cells_per_block)
+
+        def job(shard: VoxelMap, index: int) -> int:
+            return shard.gather_blocks(kernel, gather_inputs, np.flatnonzero(owner == index), cells_per_block=cells_per_block, kind=kind)
+
+        return sum(for_each_shard(shards, executor, job))
+
+    return run
 
 
 def block_shard(blocks: np.ndarray, shards: int) -> np.ndarray:
