@@ -285,3 +285,28 @@ def test_integrate_many_passes_reading_errors_through():
     with pytest.raises(ValueError, match="truncated"):
         mapper.integrate_many(scans())
     assert mapper.scans_integrated == 1
+
+
+def test_integrate_many_reads_in_order_and_sets_the_origin_from_the_first_non_empty_scan():
+    # Reading takes varying time and the first scans are empty: the scans still map in order, and
+    # the origin is the one integrate gives (scan by scan), not whichever scan a thread reached first.
+    import time
+
+    rng = np.random.default_rng(20)
+    scans = [_alpha_scan(rng, 0), _alpha_scan(rng, 0)] + [(_alpha_scan(rng, 3000)[0] + 5000.0 * i, _alpha_scan(rng, 3000)[1]) for i in range(1, 7)]
+    delays = rng.uniform(0, 0.02, len(scans))
+
+    def slowly():
+        for item, delay in zip(_scan_items(scans), delays):
+            time.sleep(delay)
+            yield item
+
+    seen = []
+    many = Mapper(_config("ebs"), K, workers=2)
+    many.integrate_many(slowly(), progress=lambda scan, _: seen.append(scan.name))
+    one_by_one = Mapper(_config("ebs"), K, workers=2)
+    for pts, alpha in scans:
+        one_by_one.integrate(pts, alpha, payload_type="alpha")
+    assert seen == [f"scan{i}" for i in range(len(scans))]
+    np.testing.assert_array_equal(many.origin_index, one_by_one.origin_index)
+    np.testing.assert_array_equal(many.voxels()[0].rows(), one_by_one.voxels()[0].rows())

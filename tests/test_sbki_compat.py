@@ -291,3 +291,17 @@ def test_block_memberships_match_the_27_box_tests():
     np.testing.assert_array_equal(ids, np.concatenate(want_ids))
     np.testing.assert_array_equal(blocks, np.concatenate(want_blocks))
     assert len(ids) > len(points) + 400  # the face points were counted in several blocks
+
+
+def test_majority_labels_dense_table_and_sorted_pairs_agree(monkeypatch):
+    rng = np.random.default_rng(9)
+    cells = np.sort(rng.integers(0, 400, 5000))
+    labels = rng.integers(3, 9, 5000)
+    labels[cells == 7] = 5  # a cell with one label only
+    dense = sb._majority_labels(cells, labels, 400)
+    monkeypatch.setattr(sb, "MAX_DENSE_LABEL_COUNTS", 0)
+    pairs = sb._majority_labels(cells, labels, 400)
+    np.testing.assert_array_equal(dense, pairs)
+    for c in rng.choice(np.unique(cells), 50):
+        values, counts = np.unique(labels[cells == c], return_counts=True)
+        assert dense[c] == values[np.argmax(counts)]  # most frequent, smallest on ties

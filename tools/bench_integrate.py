@@ -17,7 +17,7 @@ The like-for-like rows run at 1 and 2 worker threads (``@1t``, ``@2t``): ``@1t``
 C++ on 1 thread, ``@2t`` with the C++ at its best thread count (1 or 2; its 2-thread runs are often
 slower). ``@1t`` rows call ``Mapper.integrate`` scan by scan, throughput = input points / summed wall
 time of those calls; ``@2t`` rows and the clean rows (2 workers) map through ``Mapper.integrate_many``
-(the next scan's host work overlaps this scan's kernels), throughput = input points / its wall time.
+(the next scans' host work overlaps this scan's kernels), throughput = input points / its wall time.
 Scans are in memory (loading excluded); median of --repeats fresh maps after one warm-up (kernel
 compile); the numpy twin likewise, at one thread (numpy's scatter does not thread). The C++ figures are the workload's own (its .json). The last
 line printed is one JSON object: row name -> input points per second.

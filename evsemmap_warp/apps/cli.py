@@ -33,7 +33,7 @@ def _cmd_map(args) -> int:
               f"{len(mapper.shards)} worker(s)", file=sys.stderr)
     start = time.perf_counter()
     with tqdm(total=len(dataset), unit="scan", disable=args.quiet, dynamic_ncols=True) as bar:
-        # Reading and host work of the next scan overlap this one's kernels; errors name their scan.
+        # Reading and host work of the next scans overlap this one's kernels; errors name their scan.
         stats = mapper.integrate_many(dataset, progress=lambda scan, _: bar.update(1))
     elapsed = time.perf_counter() - start
     points = sum(s.input_points for s in stats)

@@ -2,7 +2,7 @@
 
     mapper = Mapper(load_config([...], method="ebs").mapping, num_classes=9)
     mapper.integrate(points_world, alpha, payload_type="alpha")      # one scan or bin
-    mapper.integrate_many(dataset)                                   # scans in order, the next prepared meanwhile
+    mapper.integrate_many(dataset)                                   # scans in order, the next ones prepared meanwhile
     result = mapper.query(query_points)                              # label, probs, variance, state
     mapper.save("map.npz")
 
@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import enum
 import os
+import threading
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -117,6 +119,8 @@ def _validate_points(points, what: str = "points") -> np.ndarray:
         raise ValueError(f"{what}: cannot be read as a float array ({exc})") from None
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"{what}: expected shape [N, 3], got {list(points.shape)}")
+    if np.isfinite(points).all():  # the common case, without numpy's slow row-wise reduction
+        return points
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any():
         first = int(np.flatnonzero(bad)[0])
@@ -268,10 +272,11 @@ class Mapper:
         """Add scans in order, each an object with ``points``, ``payload``, ``payload_type`` and
         ``sensor_origin`` (the datasets' ``Scan``; a ``name``, when it has one, prefixes errors).
 
-        The map is the one ``integrate`` gives scan by scan. With more than one worker, reading the
-        next scan from ``scans`` and its host work (validation and, in the S-BKI and release modes,
-        training data and block tables) run on their own thread while this scan's kernels run, one
-        scan ahead at most. ``progress(scan, stats)`` is called after each scan."""
+        The map is the one ``integrate`` gives scan by scan. With more than one worker, the next scans
+        are read from ``scans`` (in order, one at a time) and get their host work (validation and, in
+        the S-BKI and release modes, training data and block tables) on as many threads as there are
+        workers while this scan's kernels run; until the first non-empty scan has set the map origin,
+        one scan ahead at most. ``progress(scan, stats)`` is called after each scan."""
         results = []
 
         def add(scan, prepared):
@@ -284,18 +289,32 @@ class Mapper:
                 add(scan, self._named(scan, lambda scan=scan: self._prepare_scan(scan)))
             return results
         iterator = iter(scans)
+        turn = threading.Condition()
+        next_to_read = 0
 
-        def read_and_prepare():
-            scan = next(iterator, None)
+        def read_and_prepare(position: int):
+            nonlocal next_to_read
+            with turn:  # scans are read in order whichever thread gets there first
+                turn.wait_for(lambda: next_to_read == position)
+                try:
+                    scan = next(iterator, None)
+                finally:
+                    next_to_read += 1
+                    turn.notify_all()
             return (None, None) if scan is None else (scan, self._named(scan, lambda: self._prepare_scan(scan)))
 
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="evsemmap-prepare") as ahead:
-            future = ahead.submit(read_and_prepare)
-            while True:
-                scan, prepared = future.result()
+        depth = len(self.shards)
+        with ThreadPoolExecutor(max_workers=depth, thread_name_prefix="evsemmap-prepare") as ahead:
+            pending = deque([ahead.submit(read_and_prepare, 0)])
+            submitted = 1
+            while pending:
+                scan, prepared = pending.popleft().result()
                 if scan is None:
                     break
-                future = ahead.submit(read_and_prepare)  # the next scan, while this one's kernels run
+                # The next scans, while this one's kernels run (one at a time until the origin is set).
+                while len(pending) < (depth if self.origin_index is not None else 1):
+                    pending.append(ahead.submit(read_and_prepare, submitted))
+                    submitted += 1
                 add(scan, prepared)
         return results
 

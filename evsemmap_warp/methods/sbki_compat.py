@@ -57,12 +57,26 @@ def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float)
         return centroids, np.full(len(starts), labels[0], np.int64)
 
     cell_of_point = np.repeat(np.arange(len(starts)), counts)
-    sorted_labels = labels[order]
-    pair_cell, pair_label, pair_count = _count_pairs(cell_of_point, sorted_labels)
-    # Majority label per cell, smallest label on ties: sort by cell, count descending, label ascending.
+    return centroids, _majority_labels(cell_of_point, labels[order], len(starts))
+
+
+# Label counts per leaf as one dense [leaves, labels] table up to this many entries (int64: 256 MB).
+MAX_DENSE_LABEL_COUNTS = 1 << 25
+
+
+def _majority_labels(cells: np.ndarray, labels: np.ndarray, n_cells: int) -> np.ndarray:
+    """Per cell 0..n_cells-1 the most frequent of its labels, the smallest on ties."""
+    label_min = int(labels.min())
+    span = int(labels.max()) - label_min + 1
+    if n_cells * span <= MAX_DENSE_LABEL_COUNTS:
+        # argmax returns the first maximum: the smallest label.
+        table = np.bincount(cells * span + (labels - label_min), minlength=n_cells * span).reshape(n_cells, span)
+        return np.argmax(table, axis=1).astype(np.int64) + label_min
+    pair_cell, pair_label, pair_count = _count_pairs(cells, labels)
+    # Sort by cell, count descending, label ascending: each cell's first pair is its majority.
     best = np.lexsort((pair_label, -pair_count, pair_cell))
     first_of_cell = best[np.r_[True, pair_cell[best][1:] != pair_cell[best][:-1]]]
-    return centroids, pair_label[first_of_cell]
+    return pair_label[first_of_cell]
 
 
 def stable_sort(keys: np.ndarray, key_limit: int) -> tuple[np.ndarray, np.ndarray]:
