@@ -38,6 +38,30 @@ def test_voxel_grid_with_one_label_equals_the_majority_path():
     assert (general_labels == 4).sum() >= len(general_labels) - 1
 
 
+@pytest.mark.parametrize("offset", [0.0, -3.3, 1.5e5])
+def test_leaf_index_kernel_matches_its_twin(offset):
+    # Random points, points on leaf faces (multiples of the leaf) and their float32 neighbours, far
+    # from zero; one point, and none.
+    import warp as wp
+
+    from evsemmap_warp.kernels import voxel_grid
+    from evsemmap_warp.reference.voxel_grid import leaf_indices
+
+    rng = np.random.default_rng(int(abs(offset)) + 1)
+    inverse_leaf = np.float32(1.0) / np.float32(0.1)
+    faces = (rng.integers(-50, 50, (300, 3)) * np.float32(0.1) + np.float32(offset)).astype(np.float32)
+    points = np.concatenate([(rng.uniform(-5, 5, (2000, 3)) + offset).astype(np.float32), faces, np.nextafter(faces, np.float32(-np.inf))])
+    for cloud in (points, points[:1], points[:0]):
+        lowest = np.floor(cloud.min(axis=0) * inverse_leaf).astype(np.int64) if len(cloud) else np.zeros(3, np.int64)
+        leaves = np.floor(cloud.max(axis=0) * inverse_leaf).astype(np.int64) - lowest + 1 if len(cloud) else np.ones(3, np.int64)
+        out = wp.empty(len(cloud), dtype=wp.int64, device="cpu")
+        wp.launch(voxel_grid.leaf_indices, dim=len(cloud), device="cpu", inputs=[
+            wp.array(cloud, dtype=wp.vec3, device="cpu"), float(inverse_leaf), *[int(x) for x in lowest], int(leaves[0]), int(leaves[1]), out])
+        want = leaf_indices(cloud, inverse_leaf, lowest, int(leaves[0]), int(leaves[1]))
+        np.testing.assert_array_equal(out.numpy(), want)
+        assert len(cloud) == 0 or (want.min() >= 0 and want.max() < np.prod(leaves))
+
+
 def test_voxel_grid_orders_leaves_x_fastest():
     pts = np.array([[0.0, 0.15, 0.0], [0.15, 0.0, 0.0], [0.0, 0.0, 0.15], [0.0, 0.0, 0.0]], dtype=np.float32)
     out, _ = sb.voxel_grid_downsample(pts, np.zeros(4, int), 0.1)
@@ -56,6 +80,53 @@ def test_free_space_samples_follow_beam_sample():
                 origin,                         # l = 0.3 < f: the origin only
                 origin, y(0.5), y(0.5)]         # d = 1.0 is not < l = 1.0; l - f = 0.5 once more
     np.testing.assert_allclose(frees, expected, atol=1e-6)
+
+
+def _free_space_samples_numpy(hits, origin, f):
+    """The vectorised numpy form the ray kernel replaced (repeat and fancy-index passes)."""
+    hits, origin, f = np.asarray(hits, np.float32), np.asarray(origin, np.float32), np.float32(f)
+    diff = hits - origin
+    ray_length = np.sqrt(np.sum(diff * diff, axis=1, dtype=np.float32), dtype=np.float32)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        direction = diff / ray_length[:, None]
+    steps = [f]
+    while steps[-1] < ray_length.max():
+        steps.append(np.float32(steps[-1] + f))
+    steps = np.array(steps, dtype=np.float32)
+    per_hit = np.searchsorted(steps, ray_length, side="left")
+    extra = ray_length > f
+    starts = np.r_[0, np.cumsum(1 + per_hit + extra)[:-1]]
+    out = np.empty((int((1 + per_hit + extra).sum()), 3), dtype=np.float32)
+    out[starts] = origin
+    hit_of_sample = np.repeat(np.arange(len(hits)), per_hit)
+    step_of_sample = np.arange(len(hit_of_sample)) - np.repeat(np.r_[0, np.cumsum(per_hit)[:-1]], per_hit)
+    out[starts[hit_of_sample] + 1 + step_of_sample] = origin + direction[hit_of_sample] * steps[step_of_sample][:, None]
+    extra_hits = np.flatnonzero(extra)
+    out[starts[extra_hits] + 1 + per_hit[extra_hits]] = origin + direction[extra_hits] * (ray_length[extra_hits] - f)[:, None]
+    return out, (direction, ray_length, steps, per_hit, starts)
+
+
+@pytest.mark.parametrize("f", [0.5, 4.0, 0.37])
+def test_free_space_ray_kernel_matches_numpy_bit_for_bit(f):
+    # Hits at the origin, closer than f, at exact multiples of f and just past them, far away.
+    from evsemmap_warp.reference.free_space import ray_samples
+
+    rng = np.random.default_rng(int(f * 100))
+    origin = np.array([3.25, -1.5, 1.2], np.float32)
+    hits = (origin + rng.normal(size=(3000, 3)) * rng.uniform(0, 25, (3000, 1))).astype(np.float32)
+    hits[0] = origin
+    hits[1] = origin + np.float32(f / 3)
+    hits[2:5] = origin + np.float32(f) * np.array([[1, 0, 0], [0, 2, 0], [0, 0, 3]], np.float32)
+    hits[5] = np.nextafter(hits[2], np.float32(np.inf))
+    got = sb.free_space_samples(hits, origin, f)
+    want, (direction, ray_length, steps, per_hit, starts) = _free_space_samples_numpy(hits, origin, f)
+    np.testing.assert_array_equal(got, want)
+    few = slice(0, 40)
+    rows = int(starts[40]) if len(starts) > 40 else len(want)
+    twin = ray_samples(direction[few], ray_length[few], origin, f, steps, per_hit[few], starts[few], rows)
+    np.testing.assert_array_equal(twin, want[:rows])
+    assert sb.free_space_samples(hits[:0], origin, f).shape == (0, 3)
+    np.testing.assert_array_equal(sb.free_space_samples(hits[:1], origin, f), [origin])
 
 
 def test_training_data_range_filter_and_free_label():

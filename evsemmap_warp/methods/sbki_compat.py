@@ -13,7 +13,9 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+import warp as wp
 
+from ..kernels import free_space, voxel_grid
 from ..voxel_keys import column_bounds, pack_voxel_keys
 
 FREE_LABEL = 0
@@ -46,9 +48,12 @@ def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float)
     # floor(p / leaf) is monotonic in p, so its extremes are those of the extreme coordinates.
     ijk_lo = np.floor(lo * inverse_leaf).astype(np.int64)
     dims = np.floor(hi * inverse_leaf).astype(np.int64) - ijk_lo + 1
-    rel = np.floor(points * inverse_leaf).astype(np.int64) - ijk_lo
-    leaf_index = rel[:, 0] + rel[:, 1] * dims[0] + rel[:, 2] * dims[0] * dims[1]
-    sorted_index, order = stable_sort(leaf_index, int(np.prod(dims)))
+    # The leaf indices come from a kernel (``kernels.voxel_grid``): numpy's floor passes took a third
+    # of this function (0.34 of 0.97 s over 4 M free samples).
+    leaf_index = wp.empty(len(points), dtype=wp.int64, device="cpu")
+    wp.launch(voxel_grid.leaf_indices, dim=len(points), device="cpu", inputs=[
+        wp.array(points, dtype=wp.vec3, device="cpu"), float(inverse_leaf), *[int(x) for x in ijk_lo], int(dims[0]), int(dims[1]), leaf_index])
+    sorted_index, order = stable_sort(leaf_index.numpy(), int(np.prod(dims)))
     starts = np.flatnonzero(np.r_[True, sorted_index[1:] != sorted_index[:-1]])
     counts = np.diff(np.r_[starts, len(order)])
     sums = np.add.reduceat(points[order], starts, axis=0, dtype=np.float32)
@@ -128,18 +133,16 @@ def free_space_samples(hits: np.ndarray, origin: np.ndarray, free_resolution_m: 
         steps.append(np.float32(steps[-1] + f))
     steps = np.array(steps, dtype=np.float32)
     per_hit = np.searchsorted(steps, ray_length, side="left")  # how many d_k < l
-    extra = ray_length > f
-    per_hit_total = 1 + per_hit + extra  # origin + samples + the one at l - f
-    starts = np.r_[0, np.cumsum(per_hit_total)[:-1]]
-    out = np.empty((int(per_hit_total.sum()), 3), dtype=np.float32)
-    out[starts] = origin
-    hit_of_sample = np.repeat(np.arange(len(hits)), per_hit)
-    step_of_sample = np.arange(len(hit_of_sample)) - np.repeat(np.r_[0, np.cumsum(per_hit)[:-1]], per_hit)
-    rows = starts[hit_of_sample] + 1 + step_of_sample
-    out[rows] = origin + direction[hit_of_sample] * steps[step_of_sample][:, None]
-    extra_hits = np.flatnonzero(extra)
-    out[starts[extra_hits] + 1 + per_hit[extra_hits]] = origin + direction[extra_hits] * (ray_length[extra_hits] - f)[:, None]
-    return out
+    rows_per_hit = 1 + per_hit + (ray_length > f)  # origin + samples + the one at l - f
+    first_row = np.r_[0, np.cumsum(rows_per_hit)[:-1]]
+    # One thread per hit writes its rows (``kernels.free_space``): 7x faster than numpy's repeat and
+    # fancy-index passes (6 bench scans at free_resolution 0.5, 4 M samples: 0.27 -> 0.04 s).
+    out = wp.empty(int(rows_per_hit.sum()), dtype=wp.vec3, device="cpu")
+    wp.launch(free_space.ray_samples, dim=len(hits), device="cpu", inputs=[
+        wp.array(np.ascontiguousarray(direction), dtype=wp.vec3, device="cpu"), wp.array(ray_length, dtype=wp.float32, device="cpu"),
+        wp.vec3(*origin.tolist()), float(f), wp.array(steps, dtype=wp.float32, device="cpu"),
+        wp.array(per_hit.astype(np.int32), dtype=int, device="cpu"), wp.array(first_row.astype(np.int32), dtype=int, device="cpu"), out])
+    return out.numpy()
 
 
 def training_data(

@@ -1,0 +1,10 @@
+"""numpy twin of ``evsemmap_warp.kernels.voxel_grid``."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def leaf_indices(points, inverse_leaf, lowest, leaves_x, leaves_y) -> np.ndarray:
+    rel = np.floor(np.asarray(points, np.float32) * np.float32(inverse_leaf)).astype(np.int64) - np.asarray(lowest, np.int64)
+    return rel[:, 0] + rel[:, 1] * leaves_x + rel[:, 2] * (leaves_x * leaves_y)
