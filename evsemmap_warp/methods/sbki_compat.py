@@ -1,10 +1,12 @@
-"""Per-scan preprocessing of the original S-BKI / S-CSM, reproduced in numpy float32.
+"""Per-scan preprocessing of the original S-BKI / S-CSM, reproduced in float32: numpy, and two host
+kernels for the per-point passes (``kernels.free_space`` rays, ``kernels.voxel_grid`` leaf indices).
 
 What the C++ does before its kernel loops (docs/compatibility.md §1, BKISemanticMapping@66e3258):
 PCL VoxelGrid downsampling of the hits (centroid, majority label, smallest label on ties), the
 range filter, free samples along each ray plus the sensor origin once per hit, a second VoxelGrid
 over the free samples, and block membership by inclusive float32 box tests (a point exactly on a
-block face belongs to both blocks). The mapping itself then runs on the Warp scatter kernel.
+block face belongs to both blocks). The mapping itself then runs on the Warp gather (S-BKI) or
+scatter (S-CSM) kernel.
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float)
     # of this function (0.34 of 0.97 s over 4 M free samples).
     leaf_index = wp.empty(len(points), dtype=wp.int64, device="cpu")
     wp.launch(voxel_grid.leaf_indices, dim=len(points), device="cpu", inputs=[
-        wp.array(points, dtype=wp.vec3, device="cpu"), float(inverse_leaf), *[int(x) for x in ijk_lo], int(dims[0]), int(dims[1]), leaf_index])
+        wp.array(np.ascontiguousarray(points), dtype=wp.vec3, device="cpu"), float(inverse_leaf), *[int(x) for x in ijk_lo], int(dims[0]), int(dims[1]), leaf_index])
     sorted_index, order = stable_sort(leaf_index.numpy(), int(np.prod(dims)))
     starts = np.flatnonzero(np.r_[True, sorted_index[1:] != sorted_index[:-1]])
     counts = np.diff(np.r_[starts, len(order)])
