@@ -1,4 +1,5 @@
-"""Integrators: one job each, the map handed in. They turn a validated scan into kernel launches.
+"""Integrators: one job each, the map handed in. ``prepare`` turns a validated scan into its launch
+(host work only, no map access); the launch runs the kernels on the shards.
 
 * ``KernelIntegrator``: the paper's clean algorithm (docs/algorithm.md §3) for S-CSM, S-BKI, EBS and the
   ablations: optional per-insertion uncertainty threshold, optional adaptive length, one scatter.
@@ -180,9 +181,6 @@ class SeeCsomIntegrator:
         self.config = config
         self.num_classes = num_classes
 
-    def integrate(self, shards: list[VoxelMap], scan: ScanPayload, sensor_origin: np.ndarray, executor: Executor | None = None) -> IntegrationStats:
-        return self.prepare(scan, sensor_origin, shards[0].device)(shards, executor)
-
     def prepare(self, scan: ScanPayload, sensor_origin: np.ndarray, device: str) -> Launch:
         """Training data and block statistics (host work, no map access); the launch scatters."""
         c = self.config
@@ -215,9 +213,6 @@ class SbkiCompatIntegrator:
     def grid_offset_m(config: MappingConfig) -> float:
         # S-CSM cells are centred on multiples of r (blocks of one cell), half a cell off the BKI grid.
         return -0.5 * config.resolution_m if config.kernel is Kernel.COUNT else 0.0
-
-    def integrate(self, shards: list[VoxelMap], scan: ScanPayload, sensor_origin: np.ndarray, executor: Executor | None = None) -> IntegrationStats:
-        return self.prepare(scan, sensor_origin, shards[0].device)(shards, executor)
 
     def prepare(self, scan: ScanPayload, sensor_origin: np.ndarray, device: str) -> Launch:
         """Training data, block memberships and the gather tables (host work, no map access); the
@@ -294,9 +289,6 @@ class ReleaseCompatIntegrator:
         counts["after_ds"] = len(keep)
         return keep, counts
 
-    def integrate(self, shards: list[VoxelMap], scan: ScanPayload, sensor_origin: np.ndarray, executor: Executor | None = None) -> IntegrationStats:
-        return self.prepare(scan, sensor_origin, shards[0].device)(shards, executor)
-
     def prepare(self, scan: ScanPayload, sensor_origin: np.ndarray, device: str) -> Launch:
         """The cut, the cap, memberships and the block models' tables (no map access); the launch runs
         the gather kernel."""
@@ -335,10 +327,9 @@ def block_gather_run(blocks: np.ndarray, cells_per_block: int, kernel_factory, g
     before any launch, and each block is gathered in the shard its index picks, so a cell is always
     summed in the same shard in the same order and the map is bit for bit the same for any number of
     workers."""
-    first = blocks * cells_per_block - cells_per_block // 2
 
     def run(shards: list[VoxelMap], executor: Executor | None) -> int:
-        shards[0]._check_index_range(first.min(axis=0), first.max(axis=0) + cells_per_block - 1)
+        shards[0].check_block_range(blocks, cells_per_block)
         owner = block_shard(blocks, len(shards))
         shards[0].load_gather_kernels(cells_per_block)
         kernel = kernel_factory(shards[0].num_classes, cells_per_block)

@@ -171,6 +171,11 @@ class VoxelMap:
         """Refuse a launch whose points would reach voxels outside the key range (before any write)."""
         check_index_range(np.array([np.min(lo_index), np.max(hi_index)]), "the points' kernels", self.resolution_m)
 
+    def check_block_range(self, blocks: np.ndarray, cells_per_block: int) -> None:
+        """Refuse blocks [B, 3] (block b holds voxels b n - n/2 ... b n + n/2 - 1) whose cells lie outside the key range."""
+        first = np.asarray(blocks, dtype=np.int64) * cells_per_block - cells_per_block // 2
+        self._check_index_range(first.min(axis=0), first.max(axis=0) + cells_per_block - 1)
+
     def _check_reach(self, points: np.ndarray, reach: float) -> None:
         """Refuse points whose kernels, reaching ``reach`` metres, would touch voxels outside the key range."""
         lo, hi = column_bounds(points)
@@ -401,8 +406,7 @@ class VoxelMap:
         if len(blocks) == 0:
             return
         blocks = np.ascontiguousarray(blocks, dtype=np.int32)
-        first = blocks.astype(np.int64) * cells_per_block - cells_per_block // 2
-        self._check_index_range(first.min(axis=0), first.max(axis=0) + cells_per_block - 1)
+        self.check_block_range(blocks, cells_per_block)
         d = self.device
         blocks_wp = wp.array(blocks, dtype=wp.vec3i, device=d)
 
