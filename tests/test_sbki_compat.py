@@ -304,15 +304,45 @@ def test_sbki_maps_are_bit_identical_for_one_and_two_workers():
     np.testing.assert_array_equal(rows[0].rows(), rows[1].rows())
 
 
-@pytest.mark.parametrize("n, limit", [(0, 10), (1, 10), (5000, 7), (5000, 1 << 40), (3000, 1 << 62)])
+@pytest.mark.parametrize("n, limit", [(0, 10), (1, 10), (5000, 7), (5000, 1 << 40), (3000, 1 << 62),
+                                      (sb.MIN_RADIX_SORT_KEYS, 1), (sb.MIN_RADIX_SORT_KEYS, 2), (50_000, 1000), (50_000, 1 << 26), (70_000, 1 << 45)])
 def test_stable_sort_is_a_stable_argsort(n, limit):
-    # Packed sort for narrow keys, numpy's stable argsort where key and position bits do not fit.
-    rng = np.random.default_rng(n)
+    # numpy's sort for few keys, the radix kernels from MIN_RADIX_SORT_KEYS on (one to five passes, a
+    # single key value, digits that skip passes), numpy's stable argsort where keys and positions do not fit.
+    rng = np.random.default_rng(n + limit)
     keys = rng.integers(0, limit, n, dtype=np.int64)
+    if n:
+        keys[:: 7] = limit - 1  # the widest key, many ties
     got_keys, got_order = sb.stable_sort(keys, limit)
     want = np.argsort(keys, kind="stable")
     np.testing.assert_array_equal(got_order, want)
     np.testing.assert_array_equal(got_keys, keys[want])
+
+
+@pytest.mark.parametrize("n, digit_bits", [(0, 4), (1, 4), (1000, 1), (3000, 7), (3000, 10)])
+def test_radix_kernels_match_their_twins(n, digit_bits):
+    import warp as wp
+
+    from evsemmap_warp.kernels import radix_sort as kernels
+    from evsemmap_warp.reference import radix_sort as twin
+
+    rng = np.random.default_rng(n + digit_bits)
+    lowest_bit, passes = 12, 3
+    values = (rng.integers(0, 1 << (digit_bits * passes), n, dtype=np.int64) << lowest_bit) | rng.integers(0, 1 << lowest_bit, n)
+    if n > 2:
+        values[:2] = [0, ((1 << (digit_bits * passes)) - 1) << lowest_bit]  # the lowest and highest digits
+    counts = wp.zeros((passes, 1 << digit_bits), dtype=int, device="cpu")
+    wp.launch(kernels.digit_histograms, dim=1, device="cpu", inputs=[wp.array(values, dtype=wp.int64, device="cpu"), lowest_bit, digit_bits, counts])
+    np.testing.assert_array_equal(counts.numpy(), twin.digit_histograms(values, lowest_bit, digit_bits, passes))
+    shift = lowest_bit + digit_bits
+    next_slot = np.r_[0, np.cumsum(counts.numpy()[1][:-1])].astype(np.int32)
+    out = wp.empty(n, dtype=wp.int64, device="cpu")
+    wp.launch(kernels.radix_scatter, dim=1, device="cpu", inputs=[
+        wp.array(values, dtype=wp.int64, device="cpu"), shift, digit_bits, wp.array(next_slot, dtype=int, device="cpu"), out])
+    np.testing.assert_array_equal(out.numpy(), twin.radix_scatter(values, shift, digit_bits, next_slot))
+    # The twin's sort is numpy's stable sort by the same bits.
+    by_bits = (values >> lowest_bit) & ((1 << (digit_bits * passes)) - 1)
+    np.testing.assert_array_equal(twin.radix_sort(values, lowest_bit, digit_bits, passes), values[np.argsort(by_bits, kind="stable")])
 
 
 def test_group_by_block_matches_the_unique_form_near_and_across_the_key_range():

@@ -187,6 +187,31 @@ def test_sbki_modes_match_reference_on_random_owners(device):
     assert abs(updates - expected.update_count) <= 0.001 * expected.update_count
 
 
+def test_sincos_float32_is_the_correctly_rounded_sine_and_cosine(device):
+    import warp as wp
+
+    @wp.kernel
+    def evaluate(a: wp.array(dtype=float), out: wp.array(dtype=wp.vec2)):
+        t = wp.tid()
+        out[t] = sc.sincos_float32(a[t])
+
+    rng = np.random.default_rng(5)
+    # The S-BKI range (2 pi d for d up to the 1.05 reach), wider arguments, negatives, and the
+    # float32 neighbours of multiples of pi / 2 (where the reduction cancels most).
+    multiples = np.float32(np.arange(-8, 200) * np.pi / 2)
+    a = np.concatenate([rng.uniform(0, 7, 400_000), rng.uniform(-300, 300, 100_000), [0.0, -0.0, 1e-30, 1e-7],
+                        multiples, np.nextafter(multiples, np.float32(np.inf)), np.nextafter(multiples, np.float32(-np.inf))]).astype(np.float32)
+    out = wp.empty(len(a), dtype=wp.vec2, device=device)
+    wp.launch(evaluate, dim=len(a), inputs=[wp.array(a, dtype=float, device=device), out], device=device)
+    got = out.numpy()
+    want_sin, want_cos = ref.sincos_float32(a)
+    exact = np.stack([np.sin(a.astype(np.float64)), np.cos(a.astype(np.float64))], 1)
+    error_ulps = np.abs(got - exact) / np.spacing(np.abs(exact).astype(np.float32))
+    assert error_ulps.max() < 0.5 + 1e-3  # at worst a near-halfway case rounded the other way
+    assert (got[:, 0] == want_sin).mean() > 0.99999 and (got[:, 1] == want_cos).mean() > 0.99999
+    np.testing.assert_array_equal(got[500_000:500_004], np.float32([[0, 1], [-0.0, 1], [1e-30, 1], [1e-7, 1]]))
+
+
 def test_sparse_kernel_is_accurate_near_the_support_edge():
     # Evaluate the Warp kernel through a one-point scatter at controlled distances and compare it
     # with float64 (where the closed form is accurate to ~1e-16): no float32 cancellation noise.

@@ -30,6 +30,7 @@ wp = init_warp()
 from ..kernels import block_gather  # noqa: E402
 from ..kernels import free_space  # noqa: E402
 from ..kernels import voxel_grid  # noqa: E402
+from ..kernels import radix_sort  # noqa: E402
 from ..kernels import hash_table as ht  # noqa: E402
 from ..kernels import hashgrid_gather as hg  # noqa: E402
 from ..kernels import release  # noqa: E402
@@ -511,6 +512,7 @@ def _load_kernels(device: str) -> None:
         wp.load_module(release, device=device)
         wp.load_module(free_space, device="cpu")  # host preprocessing (sbki_compat), on prepare threads
         wp.load_module(voxel_grid, device="cpu")
+        wp.load_module(radix_sort, device="cpu")
         _loaded_devices.add(device)
 
 

@@ -57,14 +57,22 @@ def sparse_kernel(d: np.ndarray, length: np.ndarray, sigma0: float) -> np.ndarra
     return sigma0 * out
 
 
+def sincos_float32(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Correctly rounded float32 sine and cosine of float32 arguments (what the kernel's
+    ``sincos_float32`` computes): the float64 values rounded once."""
+    a64 = np.asarray(a, dtype=np.float32).astype(np.float64)
+    return np.sin(a64).astype(np.float32), np.cos(a64).astype(np.float32)
+
+
 def sbki_sparse_kernel(cells: np.ndarray, points: np.ndarray, ell: np.ndarray, sf2: float) -> np.ndarray:
-    """S-BKI's covSparse in float32, as the C++ evaluates it."""
+    """S-BKI's covSparse in float32, as the C++ evaluates it (with correctly rounded sine and cosine)."""
     ell32 = np.asarray(ell, dtype=np.float32)[..., None]
     diff = cells.astype(np.float32) / ell32 - points.astype(np.float32) / ell32
     d = np.sqrt(np.sum(diff * diff, axis=-1, dtype=np.float32), dtype=np.float32)
     pi = np.float32(3.1415926)
     a = d * np.float32(2.0) * pi
-    k = ((np.float32(2.0) + np.cos(a)) * (np.float32(1.0) - d) / np.float32(3.0) + np.sin(a) / (np.float32(2.0) * pi)) * np.float32(sf2)
+    sin_a, cos_a = sincos_float32(a)
+    k = ((np.float32(2.0) + cos_a) * (np.float32(1.0) - d) / np.float32(3.0) + sin_a / (np.float32(2.0) * pi)) * np.float32(sf2)
     return np.maximum(k, np.float32(0.0)).astype(np.float64)
 
 
