@@ -305,7 +305,8 @@ def test_sbki_maps_are_bit_identical_for_one_and_two_workers():
 
 
 @pytest.mark.parametrize("n, limit", [(0, 10), (1, 10), (5000, 7), (5000, 1 << 40), (3000, 1 << 62),
-                                      (sb.MIN_RADIX_SORT_KEYS, 1), (sb.MIN_RADIX_SORT_KEYS, 2), (50_000, 1000), (50_000, 1 << 26), (70_000, 1 << 45)])
+                                      (sb.MIN_RADIX_SORT_KEYS, 1), (sb.MIN_RADIX_SORT_KEYS, 2), (sb.MIN_RADIX_SORT_KEYS, 1000),
+                                      (sb.MIN_RADIX_SORT_KEYS + 1, 1 << 26), (70_000, 1 << 45)])
 def test_stable_sort_is_a_stable_argsort(n, limit):
     # numpy's sort for few keys, the radix kernels from MIN_RADIX_SORT_KEYS on (one to five passes, a
     # single key value, digits that skip passes), numpy's stable argsort where keys and positions do not fit.
