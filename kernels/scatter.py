@@ -131,7 +131,7 @@ def sincos_float32(a: float) -> wp.vec2:
     The argument is reduced to |r| <= pi/4 around the nearest multiple of pi/2, where Taylor series to
     r^11 and r^12 are accurate to 1e-11, far below float32's resolution: the result is the correctly
     rounded float32 except where the exact value lies within ~1e-11 ulp of a rounding boundary
-    (tests/test_kernels.py). libm's sinf and cosf are calls the compiler cannot inline or vectorise and
+    (tests/test_scatter.py). libm's sinf and cosf are calls the compiler cannot inline or vectorise and
     took about a third of the S-BKI gather kernel; this form is inline FMAs, identical on every device,
     and closer to the exact value (glibc's float32 results are off the correctly rounded ones for
     ~1.3 % of arguments here, numpy's for ~15 %)."""

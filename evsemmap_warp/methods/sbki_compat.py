@@ -100,7 +100,7 @@ def stable_sort(keys: np.ndarray, key_limit: int) -> tuple[np.ndarray, np.ndarra
     Each key is packed with its position into one int64 (the packed values are unique, so any sort
     of them is stable) and the packed values are sorted by the key bits alone: by the LSD radix sort
     of ``kernels.radix_sort`` for large inputs (free_res 0.5 scans sort 0.5-0.8 M leaf indices of ~26
-    bits in 3 passes: ~25 instead of ~55-80 ns per key), by numpy's sort for small ones. Keys too
+    bits in 3 passes: ~25-45 instead of ~50-80 ns per key), by numpy's sort for small ones. Keys too
     wide to pack take numpy's stable argsort."""
     keys = np.asarray(keys, dtype=np.int64)
     n = len(keys)
