@@ -66,6 +66,36 @@ def hash_slot(key: wp.int64, mask: int) -> int:
     return int(((h << wp.uint64(3)) | local) & wp.uint64(mask))
 
 
+# Cells of a brick: a block at block depth 2 (``hash_slot``).
+BRICK_CELLS = 8
+# How many threads ahead a brick is prefetched (``prefetch_brick``; 4 to 64 measured alike on CPU).
+PREFETCH_AHEAD = wp.constant(16)
+
+
+@wp.func_native("""
+#if !defined(__CUDA_ARCH__)
+__builtin_prefetch(&keys.data[slot]);
+const char* row = (const char*)data.data + (size_t)slot * data.strides[0];
+const int bytes = rows * data.strides[0];
+for (int offset = 0; offset < bytes; offset += 64) __builtin_prefetch(row + offset, 1);
+#endif
+""")
+def _prefetch_slots(keys: wp.array(dtype=wp.int64), data: wp.array2d(dtype=wp.float64), slot: int, rows: int): ...
+
+
+@wp.func
+def prefetch_brick(keys: wp.array(dtype=wp.int64), data: wp.array2d(dtype=wp.float64), first_cell: wp.vec3i):
+    """Ask the CPU to start loading the table line and the value rows of the brick whose first cell
+    (lowest index per axis) is ``first_cell``, at its home slots. A hint only, compiled out on CUDA.
+
+    A serial CPU launch walks its threads in order, and a thread that waits for its brick's cache lines
+    waits alone: the core's reorder window holds about one block's work. Kernels that visit one brick
+    per thread call this for the brick a few threads ahead, so that its lines arrive while the current
+    one computes (the S-BKI gather kernel at free_resolution 0.5: 1.01 -> 0.71 s on 6 bench scans;
+    finding 8 stored cells: 285 -> ~100 ns per brick)."""
+    _prefetch_slots(keys, data, hash_slot(pack_key(first_cell[0], first_cell[1], first_cell[2]), keys.shape[0] - 1), BRICK_CELLS)
+
+
 @wp.func
 def table_find(keys: wp.array(dtype=wp.int64), key: wp.int64) -> int:
     """Slot holding ``key``, or -1 when it is absent (the empty sentinel is never a stored key)."""

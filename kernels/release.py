@@ -23,7 +23,7 @@ import functools
 
 import warp as wp
 
-from .hash_table import pack_key, table_find_or_insert
+from .hash_table import PREFETCH_AHEAD, pack_key, prefetch_brick, table_find_or_insert
 from .scatter import (_BELIEF_EPSILON, _ONE, _ZERO, COL_HITS, COL_TOUCHED, COL_WEIGHT, COL_WEIGHTED_UNCERTAINTY,
                       FUSION_DEMPSTER, sbki_voxel_center)
 
@@ -59,8 +59,6 @@ def release_sparse_kernel(d2: float, inverse_length: wp.float64, sf2: float) -> 
     Estrin's scheme: four dependent steps instead of fourteen), times sf2, rounded to float32; 0 from
     d = l on."""
     x = f64(wp.sqrt(d2)) * inverse_length
-    if x >= _ONE:
-        return 0.0
     s = f64(2.0) * x - _ONE
     s2 = s * s
     s4 = s2 * s2
@@ -70,7 +68,8 @@ def release_sparse_kernel(d2: float, inverse_length: wp.float64, sf2: float) -> 
     q2 = (c[8] + c[9] * s) + (c[10] + c[11] * s) * s2
     q3 = (c[12] + c[13] * s) + c[14] * s2
     k = (q0 + q1 * s4) + (q2 + q3 * s4) * (s4 * s4)
-    return float(wp.max(k, _ZERO)) * sf2
+    # A select, not an early return, so that loops over cells vectorise.
+    return wp.where(x >= _ONE, 0.0, float(wp.max(k, _ZERO)) * sf2)
 
 
 @wp.func
@@ -95,6 +94,8 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
     n3 = n * n * n
     vec_k = wp.types.vector(length=num_classes, dtype=wp.float64)
     cell_sums = wp.types.matrix(shape=(n3, num_classes), dtype=wp.float64)
+    # Sums per class and cell, cells along the rows: a point's class row adds to all cells as vectors.
+    class_cell_sums = wp.types.matrix(shape=(num_classes, n3), dtype=wp.float64)
     cell_scalars = wp.types.vector(length=n3, dtype=wp.float64)
     cell_slots = wp.types.vector(length=n3, dtype=int)
     cell_centres = wp.types.matrix(shape=(n3, 3), dtype=wp.float32)
@@ -128,8 +129,11 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
         CPU overlaps). Finds or inserts the cells first (none fits: failed[t], nothing added), then adds
         k(d) * y (Bayes) or the log commonality ratios (Dempster) and the bookkeeping columns once per cell."""
         t = wp.tid()
+        half = wp.vec3i(n // 2, n // 2, n // 2)
+        if t + PREFETCH_AHEAD < launch_ids.shape[0]:
+            prefetch_brick(table_keys, voxel_data, blocks[block_ids[launch_ids[t + PREFETCH_AHEAD]]] * n - half)
         b = block_ids[launch_ids[t]]
-        first = blocks[b] * n - wp.vec3i(n // 2, n // 2, n // 2)
+        first = blocks[b] * n - half
         # The block's cells are found or inserted first: a block that does not fit adds nothing and is
         # relaunched after the table grew.
         slots = cell_slots()
@@ -148,7 +152,7 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
         reach = float(length)
         reach2 = reach * reach
         inverse_length = _ONE / length
-        evidence = cell_sums()
+        evidence = class_cell_sums()
         # Dempster: products of commonality ratios (each at most 1 / BELIEF_EPSILON = 1e6), folded into the
         # log sums after at most _MAX_FACTORS ratios: about 1 log per cell and class per 40 points instead of 1 per point.
         commonality = cell_sums()
@@ -168,37 +172,44 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
                     p = points[q]
                     y = class_weights[q]
                     u = point_uncertainty[q]
+                    # Kernel values for all cells without branches (0 beyond reach), which vectorise;
+                    # adding 0 leaves a sum as it was.
+                    weights = cell_scalars()
                     for j in range(n3):
                         dx = centres[j, 0] - p[0]
                         dy = centres[j, 1] - p[1]
                         dz = centres[j, 2] - p[2]
                         d2 = dx * dx + dy * dy + dz * dz
-                        if d2 < reach2:
-                            w = f64(release_sparse_kernel(d2, inverse_length, sigma0))
+                        weights[j] = wp.where(d2 < reach2, f64(release_sparse_kernel(d2, inverse_length, sigma0)), _ZERO)
+                    if fusion == FUSION_DEMPSTER:
+                        # Cell by cell, only where the kernel is positive: as vectors over all cells
+                        # (ratios of exactly 1 out of reach) this loop measured 1.7x slower.
+                        for j in range(n3):
+                            w = weights[j]
                             if w > _ZERO:
-                                if fusion == FUSION_DEMPSTER:
-                                    wb = wp.min(w, _ONE)
-                                    committed = _ZERO
+                                wb = wp.min(w, _ONE)
+                                committed = _ZERO
+                                for c in range(num_classes):
+                                    committed += wp.clamp(y[c] * wb, _ZERO, _ONE - _BELIEF_EPSILON)
+                                inverse_uncommitted = _ONE / wp.max(_ONE - committed, _BELIEF_EPSILON)
+                                for c in range(num_classes):
+                                    ratio = _ONE + wp.clamp(y[c] * wb, _ZERO, _ONE - _BELIEF_EPSILON) * inverse_uncommitted
+                                    commonality[j, c] = commonality[j, c] * integer_power(ratio, source_mult[b, o])
+                                # each point multiplies in at most 1e6^7 = 1e42; fold before 1e250 could overflow
+                                factors[j] = factors[j] + mult
+                                if factors[j] > _MAX_FACTORS:
                                     for c in range(num_classes):
-                                        committed += wp.clamp(y[c] * wb, _ZERO, _ONE - _BELIEF_EPSILON)
-                                    inverse_uncommitted = _ONE / wp.max(_ONE - committed, _BELIEF_EPSILON)
-                                    for c in range(num_classes):
-                                        ratio = _ONE + wp.clamp(y[c] * wb, _ZERO, _ONE - _BELIEF_EPSILON) * inverse_uncommitted
-                                        commonality[j, c] = commonality[j, c] * integer_power(ratio, source_mult[b, o])
-                                    # each point multiplies in at most 1e6^7 = 1e42; fold before 1e250 could overflow
-                                    factors[j] = factors[j] + mult
-                                    if factors[j] > _MAX_FACTORS:
-                                        for c in range(num_classes):
-                                            evidence[j, c] = evidence[j, c] + wp.log(commonality[j, c])
-                                            commonality[j, c] = _ONE
-                                        factors[j] = _ZERO
-                                else:
-                                    mw = mult * w
-                                    for c in range(num_classes):
-                                        evidence[j, c] = evidence[j, c] + mw * y[c]
-                                weight_sum[j] = weight_sum[j] + mult * w
-                                weighted_u[j] = weighted_u[j] + mult * w * u
-                                hits[j] = hits[j] + mult
+                                        evidence[c, j] = evidence[c, j] + wp.log(commonality[j, c])
+                                        commonality[j, c] = _ONE
+                                    factors[j] = _ZERO
+                    else:
+                        for c in range(num_classes):
+                            for j in range(n3):
+                                evidence[c, j] = evidence[c, j] + mult * weights[j] * y[c]
+                    for j in range(n3):
+                        weight_sum[j] = weight_sum[j] + mult * weights[j]
+                        weighted_u[j] = weighted_u[j] + mult * weights[j] * u
+                        hits[j] = hits[j] + wp.where(weights[j] > _ZERO, mult, _ZERO)
         k = num_classes
         total_hits = _ZERO
         for j in range(n3):
@@ -206,8 +217,8 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
             voxel_data[slot, num_classes + COL_TOUCHED] = _ONE
             for c in range(num_classes):
                 if fusion == FUSION_DEMPSTER:
-                    evidence[j, c] = evidence[j, c] + wp.log(commonality[j, c])
-                voxel_data[slot, c] = voxel_data[slot, c] + evidence[j, c]
+                    evidence[c, j] = evidence[c, j] + wp.log(commonality[j, c])
+                voxel_data[slot, c] = voxel_data[slot, c] + evidence[c, j]
             voxel_data[slot, k + COL_WEIGHT] = voxel_data[slot, k + COL_WEIGHT] + weight_sum[j]
             voxel_data[slot, k + COL_WEIGHTED_UNCERTAINTY] = voxel_data[slot, k + COL_WEIGHTED_UNCERTAINTY] + weighted_u[j]
             voxel_data[slot, k + COL_HITS] = voxel_data[slot, k + COL_HITS] + hits[j]

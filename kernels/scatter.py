@@ -136,36 +136,39 @@ def sincos_float32(a: float) -> wp.vec2:
     and closer to the exact value (glibc's float32 results are off the correctly rounded ones for
     ~1.3 % of arguments here, numpy's for ~15 %)."""
     x = f64(a)
-    q = wp.round(x * _TWO_OVER_PI)
+    q = wp.rint(x * _TWO_OVER_PI)
     r = (x - q * _PIO2_HI) - q * _PIO2_LO
     r2 = r * r
     s = r + r * r2 * (_SIN3 + r2 * (_SIN5 + r2 * (_SIN7 + r2 * (_SIN9 + r2 * _SIN11))))
     c = _ONE + r2 * (_COS2 + r2 * (_COS4 + r2 * (_COS6 + r2 * (_COS8 + r2 * (_COS10 + r2 * _COS12)))))
-    quadrant = int(q) & 3  # sin and cos of r + q pi / 2
-    sin_a = s
-    cos_a = c
-    if quadrant == 1:
-        sin_a = c
-        cos_a = -s
-    elif quadrant == 2:
-        sin_a = -s
-        cos_a = -c
-    elif quadrant == 3:
-        sin_a = -c
-        cos_a = s
+    # sin and cos of r + q pi / 2, by selects rather than branches so that loops over cells vectorise
+    # (rint rather than round for the same reason: either nearest integer reduces to |r| <= pi / 4).
+    quadrant = int(q) & 3
+    odd = (quadrant & 1) == 1
+    sin_a = wp.where(odd, c, s)
+    cos_a = wp.where(odd, s, c)
+    sin_a = wp.where(quadrant >= 2, -sin_a, sin_a)
+    cos_a = wp.where(quadrant == 1 or quadrant == 2, -cos_a, cos_a)
     return wp.vec2(float(sin_a), float(cos_a))
 
 
 @wp.func
-def sbki_sparse_kernel(cell: wp.vec3, point: wp.vec3, ell: float, sf2: float) -> float:
-    """The sparse kernel as S-BKI's covSparse computes it: float32 arithmetic, negatives -> 0, with the
-    correctly rounded float32 sine and cosine (``sincos_float32``; the C++ takes Eigen's vectorised
-    approximations, within an ulp or two of them)."""
-    d = wp.length(cell / ell - point / ell)
+def sbki_sparse_kernel_scaled(cell: wp.vec3, point: wp.vec3, sf2: float) -> float:
+    """The sparse kernel as S-BKI's covSparse computes it, from coordinates already divided by ell:
+    float32 arithmetic, negatives -> 0, with the correctly rounded float32 sine and cosine
+    (``sincos_float32``; the C++ takes Eigen's vectorised approximations, within an ulp or two of them)."""
+    offset = cell - point
+    d = wp.sqrt(offset[0] * offset[0] + offset[1] * offset[1] + offset[2] * offset[2])
     a = d * 2.0 * _SBKI_PI
     sin_cos = sincos_float32(a)
     k = ((2.0 + sin_cos[1]) * (1.0 - d) / 3.0 + sin_cos[0] / (2.0 * _SBKI_PI)) * sf2
     return wp.max(k, 0.0)
+
+
+@wp.func
+def sbki_sparse_kernel(cell: wp.vec3, point: wp.vec3, ell: float, sf2: float) -> float:
+    """``sbki_sparse_kernel_scaled`` of the cell centre and the point, each divided by ell as the C++ does."""
+    return sbki_sparse_kernel_scaled(cell / ell, point / ell, sf2)
 
 
 @wp.func
