@@ -62,6 +62,43 @@ def test_leaf_index_kernel_matches_its_twin(offset):
         assert len(cloud) == 0 or (want.min() >= 0 and want.max() < np.prod(leaves))
 
 
+@pytest.mark.parametrize("offset", [0.0, 1.5e5])
+def test_leaf_centroid_kernel_sums_in_numpys_reduceat_order(offset):
+    # Bit for bit against numpy's add.reduceat on leaves of every length up to 300 (runs summed in
+    # order, in 8 partial sums, and split in two past 128), long leaves split several times (the
+    # sensor origin's leaf gathers one sample per hit), zeros of both signs, far coordinates; one
+    # leaf of one point, and no leaves. A sequential sum differs from numpy's on most of them.
+    import warp as wp
+
+    from evsemmap_warp.kernels import voxel_grid
+    from evsemmap_warp.reference.voxel_grid import leaf_centroids
+
+    rng = np.random.default_rng(7)
+    lengths = np.r_[np.arange(1, 301), [129, 136, 137, 1025, 1031, 4097, 28_000], rng.integers(1, 20, 3000)]
+    rng.shuffle(lengths)
+    n = int(lengths.sum())
+    points = (rng.standard_normal((n, 3)) * 30 + offset).astype(np.float32)
+    points[rng.random((n, 3)) < 0.02] = 0.0
+    points[rng.random((n, 3)) < 0.02] = -0.0
+    order = rng.permutation(n).astype(np.int64)
+    starts = np.r_[0, np.cumsum(lengths)[:-1]].astype(np.int64)
+    for case in ((points, order, starts, lengths), (points[:1], order[:1] * 0, starts[:1], lengths[:1] * 0 + 1),
+                 (points[:0], order[:0], starts[:0], lengths[:0])):
+        cloud, leaf_order, leaf_starts, leaf_counts = case
+        out = wp.empty(len(leaf_starts), dtype=wp.vec3, device="cpu")
+        wp.launch(voxel_grid.leaf_centroids, dim=1, device="cpu", inputs=[
+            wp.array(cloud, dtype=wp.vec3, device="cpu"), wp.array(leaf_order, dtype=wp.int64, device="cpu"),
+            wp.array(leaf_starts, dtype=wp.int64, device="cpu"), wp.array(leaf_counts.astype(np.int64), dtype=wp.int64, device="cpu"), out])
+        want = leaf_centroids(cloud, leaf_order, leaf_starts, leaf_counts)
+        np.testing.assert_array_equal(out.numpy().view(np.int32), want.view(np.int32))
+    # The test tells the orders apart: in-order float32 sums differ from numpy's on many long leaves.
+    full = leaf_centroids(points, order, starts, lengths)
+    long_leaves = np.flatnonzero(lengths > 8)
+    in_order = np.array([np.add.accumulate(points[order[starts[i]:starts[i] + lengths[i]]], axis=0, dtype=np.float32)[-1] / np.float32(lengths[i])
+                         for i in long_leaves], dtype=np.float32)
+    assert (in_order != full[long_leaves]).any(axis=1).sum() > len(long_leaves) // 4
+
+
 def test_voxel_grid_orders_leaves_x_fastest():
     pts = np.array([[0.0, 0.15, 0.0], [0.15, 0.0, 0.0], [0.0, 0.0, 0.15], [0.0, 0.0, 0.0]], dtype=np.float32)
     out, _ = sb.voxel_grid_downsample(pts, np.zeros(4, int), 0.1)

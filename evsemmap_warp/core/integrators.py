@@ -29,6 +29,7 @@ from ..config import Fusion, Kernel, MappingConfig, Media
 from ..kernels import block_gather, release
 from ..kernels import scatter as sc
 from ..methods import convbki, evsemmap_release, sbki_compat, see_csom
+from ..voxel_keys import take_rows
 from .voxel_map import VoxelMap, block_model_tables
 
 # Below this many points per shard, splitting a launch costs more than it saves.
@@ -255,7 +256,7 @@ class SbkiCompatIntegrator:
             wp.array(tables.test_blocks.astype(np.int32), dtype=wp.vec3i, device=d),
             wp.array(tables.sources, dtype=int, device=d),
             wp.array(tables.point_start.astype(np.int32), dtype=int, device=d),
-            wp.array(np.ascontiguousarray(points[sorted_points], dtype=np.float64), dtype=wp.vec3d, device=d),
+            wp.array(take_rows(points, sorted_points).astype(np.float64), dtype=wp.vec3d, device=d),
             wp.array(np.ascontiguousarray(labels[sorted_points], dtype=np.int32), dtype=int, device=d),
             wp.float64(c.length_m), wp.float64(c.sigma0), wp.float64(c.resolution_m), wp.float64(self.grid_offset_m(c)),
         ]
@@ -303,7 +304,7 @@ class ReleaseCompatIntegrator:
         models = evsemmap_release.release_blocks(member_blocks, lambda b, g, lo: block_model_tables(b, g, lo, device))
         fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
         sorted_points = pair_points[models.pair_order]
-        weights = scan.probabilities[keep][sorted_points]
+        weights = take_rows(scan.probabilities[keep], sorted_points)
         unc = scan.uncertainty[keep][sorted_points]
         if fusion == sc.FUSION_DEMPSTER:
             weights = np.clip(weights - unc[:, None] / weights.shape[1], 0.0, 1.0)  # b_k = (alpha_k - 1) / S
@@ -312,7 +313,7 @@ class ReleaseCompatIntegrator:
             wp.array(models.blocks.astype(np.int32), dtype=wp.vec3i, device=d),
             wp.array(models.source_blocks, dtype=int, device=d), wp.array(models.source_mult, dtype=int, device=d),
             wp.array(models.point_start.astype(np.int32), dtype=int, device=d),
-            wp.array(np.ascontiguousarray(points[sorted_points]), dtype=wp.vec3, device=d),
+            wp.array(take_rows(points, sorted_points), dtype=wp.vec3, device=d),
             wp.array(np.ascontiguousarray(weights, dtype=np.float64), dtype=release.vector_type(weights.shape[1]), device=d),
             wp.array(np.ascontiguousarray(unc, dtype=np.float64), dtype=wp.float64, device=d),
             wp.float64(self.length), float(c.sigma0), float(c.resolution_m), int(fusion),

@@ -19,7 +19,7 @@ import numpy as np
 import warp as wp
 
 from ..kernels import free_space, radix_sort, voxel_grid
-from ..voxel_keys import column_bounds, pack_voxel_keys
+from ..voxel_keys import column_bounds, pack_voxel_keys, take_rows
 
 FREE_LABEL = 0
 # A block and its 6 face neighbours: S-BKI's "extended block" (the 27-block variant is compiled out).
@@ -35,8 +35,9 @@ def block_size_m(resolution_m: float, block_depth: int) -> np.float32:
 
 
 def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """pcl::VoxelGrid with downsample_all_data: one point per occupied leaf at the float32 centroid,
-    labelled by majority (smallest label on ties), in ascending leaf index order (x fastest)."""
+    """pcl::VoxelGrid with downsample_all_data: one point per occupied leaf at the float32 centroid
+    (``kernels.voxel_grid.leaf_centroids``, numpy's reduceat order), labelled by majority (smallest label
+    on ties), in ascending leaf index order (x fastest)."""
     points = np.asarray(points, dtype=np.float32)
     labels = np.asarray(labels, dtype=np.int64)
     if len(points) == 0:
@@ -54,13 +55,17 @@ def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float)
     # The leaf indices come from a kernel (``kernels.voxel_grid``): numpy's floor passes took a third
     # of this function (0.34 of 0.97 s over 4 M free samples).
     leaf_index = wp.empty(len(points), dtype=wp.int64, device="cpu")
+    points_wp = wp.array(np.ascontiguousarray(points), dtype=wp.vec3, device="cpu")
     wp.launch(voxel_grid.leaf_indices, dim=len(points), device="cpu", inputs=[
-        wp.array(np.ascontiguousarray(points), dtype=wp.vec3, device="cpu"), float(inverse_leaf), *[int(x) for x in ijk_lo], int(dims[0]), int(dims[1]), leaf_index])
+        points_wp, float(inverse_leaf), *[int(x) for x in ijk_lo], int(dims[0]), int(dims[1]), leaf_index])
     sorted_index, order = stable_sort(leaf_index.numpy(), int(np.prod(dims)))
     starts = np.flatnonzero(np.r_[True, sorted_index[1:] != sorted_index[:-1]])
     counts = np.diff(np.r_[starts, len(order)])
-    sums = np.add.reduceat(points[order], starts, axis=0, dtype=np.float32)
-    centroids = (sums / counts[:, None].astype(np.float32)).astype(np.float32)
+    centroids = wp.empty(len(starts), dtype=wp.vec3, device="cpu")
+    wp.launch(voxel_grid.leaf_centroids, dim=1, device="cpu", inputs=[
+        points_wp, wp.array(order, dtype=wp.int64, device="cpu"), wp.array(starts, dtype=wp.int64, device="cpu"),
+        wp.array(counts, dtype=wp.int64, device="cpu"), centroids])
+    centroids = centroids.numpy()
     if labels.min() == labels.max():  # one label (the free samples): it is every leaf's majority
         return centroids, np.full(len(starts), labels[0], np.int64)
 
@@ -237,7 +242,7 @@ def block_memberships(points: np.ndarray, block_size: np.float32) -> tuple[np.nd
                 else:
                     ids = candidates[near[sx][:, 0] & near[sy][:, 1] & near[sz][:, 2]]
                 point_ids.append(ids)
-                blocks.append(nearest[ids] + np.array([sx, sy, sz]))
+                blocks.append(take_rows(nearest, ids) + np.array([sx, sy, sz]))
     return np.concatenate(point_ids), np.concatenate(blocks).reshape(-1, 3)
 
 
@@ -309,7 +314,7 @@ def group_by_block(member_blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
         position, box_cells = pack_voxel_keys(member_blocks), 1 << 63
     sorted_position, order = stable_sort(position, box_cells)
     starts = np.flatnonzero(np.r_[True, sorted_position[1:] != sorted_position[:-1]])
-    blocks = member_blocks[order[starts]]
+    blocks = take_rows(member_blocks, order[starts])
     return blocks, pack_voxel_keys(blocks), order, np.r_[starts, len(order)]
 
 
