@@ -407,6 +407,32 @@ def test_gather_tables_from_the_dense_grid_and_without_it(monkeypatch):
         np.testing.assert_array_equal(getattr(dense, field), getattr(searched, field))
 
 
+@pytest.mark.parametrize("offset", [0.0, -7.3, 2.5e4])
+def test_block_membership_kernel_matches_its_twin(offset):
+    # Random points, points on block faces, edges and corners and their float32 neighbours on both
+    # sides, far from zero; one point, and none.
+    import warp as wp
+
+    from evsemmap_warp.kernels import block_membership
+    from evsemmap_warp.reference.block_membership import block_membership_masks
+
+    rng = np.random.default_rng(int(abs(offset)) + 3)
+    size = sb.block_size_m(0.2, 2)
+    faces = ((rng.integers(-30, 30, (500, 3)) + round(offset / size) + np.float32(0.5)) * size).astype(np.float32)
+    points = np.concatenate([(rng.uniform(-6, 6, (3000, 3)) + offset).astype(np.float32), faces,
+                             np.nextafter(faces, np.float32(np.inf)), np.nextafter(faces, np.float32(-np.inf))])
+    for cloud in (points, points[:1], points[:0]):
+        nearest = wp.empty((len(cloud), 3), dtype=wp.int64, device="cpu")
+        masks = wp.empty(len(cloud), dtype=int, device="cpu")
+        wp.launch(block_membership.block_membership_masks, dim=1, device="cpu", inputs=[
+            wp.array(cloud, dtype=wp.vec3, device="cpu"), float(size), nearest, masks])
+        want_nearest, want_masks = block_membership_masks(cloud, size)
+        np.testing.assert_array_equal(nearest.numpy(), want_nearest)
+        np.testing.assert_array_equal(masks.numpy(), want_masks)
+    _, all_masks = block_membership_masks(points, size)
+    assert (all_masks != 1 << block_membership.NEAREST_BIT).sum() >= 200  # many face points lie in several blocks
+
+
 def test_block_memberships_match_the_27_box_tests():
     # Points on faces, edges and corners (and rounding near them) take the slow path; the order of
     # the pairs (shift by shift, points ascending) decides the kernel's summation order.

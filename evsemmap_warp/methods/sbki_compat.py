@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..kernels import free_space, radix_sort, voxel_grid
+from ..kernels import block_membership, free_space, radix_sort, voxel_grid
 from ..voxel_keys import column_bounds, pack_voxel_keys, take_rows
 
 FREE_LABEL = 0
@@ -214,35 +214,28 @@ def block_memberships(points: np.ndarray, block_size: np.float32) -> tuple[np.nd
 
     Block k spans [k B - B/2, k B + B/2] per axis (centre k B, as S-BKI's hash_key_to_block); the
     R-tree query of the C++ is inclusive, so a point on a shared face belongs to both blocks.
-    Returns point ids [M] and block indices [M, 3]."""
-    points = np.asarray(points, dtype=np.float32)
-    size = np.float32(block_size)
-    half = np.float32(size / np.float32(2.0))
-    nearest = np.floor(points.astype(np.float64) / np.float64(size) + 0.5).astype(np.int64)
-    member = {}
-    for shift in (-1, 0, 1):
-        k = nearest + shift
-        center = (k.astype(np.float32) * size).astype(np.float32)
-        member[shift] = ((center - half) <= points) & (points <= (center + half))
-    # Nearly every point lies inside its nearest block only; the other 26 shifts are tested on the
+    Returns point ids [M] and block indices [M, 3], block shift by block shift around each point's
+    nearest block, points ascending within a shift (``kernels.block_membership`` tests the boxes)."""
+    points = np.ascontiguousarray(points, dtype=np.float32)
+    nearest = wp.empty((len(points), 3), dtype=wp.int64, device="cpu")
+    masks = wp.empty(len(points), dtype=int, device="cpu")
+    if len(points):
+        wp.launch(block_membership.block_membership_masks, dim=1, device="cpu", inputs=[
+            wp.array(points, dtype=wp.vec3, device="cpu"), float(np.float32(block_size)), nearest, masks])
+    nearest, masks = nearest.numpy(), masks.numpy()
+    # Nearly every point lies inside its nearest block only; the other 26 shifts are looked up on the
     # few that touch a face (or miss the nearest block by rounding).
-    in_nearest = member[0][:, 0] & member[0][:, 1] & member[0][:, 2]
-    elsewhere = np.zeros(len(points), bool)
-    for shift in (-1, 1):
-        for axis in range(3):
-            elsewhere |= member[shift][:, axis]
-    candidates = np.flatnonzero(elsewhere | ~in_nearest)
-    near = {shift: member[shift][candidates] for shift in (-1, 0, 1)}
+    in_nearest = (masks >> block_membership.NEAREST_BIT) & 1 == 1
+    candidates = np.flatnonzero(masks != 1 << block_membership.NEAREST_BIT)
+    candidate_masks = masks[candidates]
     point_ids, blocks = [], []
-    for sx in (-1, 0, 1):
-        for sy in (-1, 0, 1):
-            for sz in (-1, 0, 1):
-                if (sx, sy, sz) == (0, 0, 0):
-                    ids = np.flatnonzero(in_nearest)
-                else:
-                    ids = candidates[near[sx][:, 0] & near[sy][:, 1] & near[sz][:, 2]]
-                point_ids.append(ids)
-                blocks.append(take_rows(nearest, ids) + np.array([sx, sy, sz]))
+    for bit, shift in enumerate((sx, sy, sz) for sx in (-1, 0, 1) for sy in (-1, 0, 1) for sz in (-1, 0, 1)):
+        if bit == block_membership.NEAREST_BIT:
+            ids = np.flatnonzero(in_nearest)
+        else:
+            ids = candidates[(candidate_masks >> bit) & 1 == 1]
+        point_ids.append(ids)
+        blocks.append(take_rows(nearest, ids) + np.array(shift))
     return np.concatenate(point_ids), np.concatenate(blocks).reshape(-1, 3)
 
 
