@@ -433,6 +433,35 @@ def test_block_membership_kernel_matches_its_twin(offset):
     assert (all_masks != 1 << block_membership.NEAREST_BIT).sum() >= 200  # many face points lie in several blocks
 
 
+@pytest.mark.parametrize("count", [0, 1, 2, 500])
+def test_extended_block_table_kernel_matches_its_twin(count):
+    # Random blocks in a grid two cells wider than them (as wide as the sources' lookups reach; test
+    # blocks on its inner border), neighbours that share test blocks, one block, and none.
+    import warp as wp
+
+    from evsemmap_warp.kernels import block_gather
+    from evsemmap_warp.reference.block_gather import extended_block_tables
+
+    rng = np.random.default_rng(count)
+    shape = (14, 12, 16)
+    cells = rng.choice(np.prod(np.subtract(shape, 4)), size=count, replace=False)
+    blocks = np.stack(np.unravel_index(cells, np.subtract(shape, 4)), axis=1) + 2
+    grid = np.full(shape, -1, np.int32)
+    grid[tuple(blocks.T)] = np.arange(count)
+    offsets = sb.EXTENDED_BLOCK_OFFSETS
+    tests = wp.empty(max(1, count * len(offsets)), dtype=wp.vec3i, device="cpu")
+    sources = wp.empty((max(1, count * len(offsets)), len(offsets)), dtype=int, device="cpu")
+    n = wp.zeros(1, dtype=int, device="cpu")
+    wp.launch(block_gather.extended_block_tables, dim=1, device="cpu", inputs=[
+        wp.array(blocks.astype(np.int32).reshape(-1, 3), dtype=wp.vec3i, device="cpu"), wp.array(grid, dtype=int, device="cpu"),
+        wp.array(offsets.astype(np.int32), dtype=wp.vec3i, device="cpu"), wp.zeros(shape, dtype=wp.uint8, device="cpu"), tests, sources, n])
+    want_tests, want_sources = extended_block_tables(blocks, grid, offsets)
+    got = int(n.numpy()[0])
+    np.testing.assert_array_equal(tests.numpy()[:got], want_tests)
+    np.testing.assert_array_equal(sources.numpy()[:got], want_sources)
+    assert got == len(want_tests) and (count == 0 or got > count)
+
+
 def test_block_memberships_match_the_27_box_tests():
     # Points on faces, edges and corners (and rounding near them) take the slow path; the order of
     # the pairs (shift by shift, points ascending) decides the kernel's summation order.

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..kernels import block_membership, free_space, radix_sort, voxel_grid
+from ..kernels import block_gather, block_membership, free_space, radix_sort, voxel_grid
 from ..voxel_keys import column_bounds, pack_voxel_keys, take_rows
 
 FREE_LABEL = 0
@@ -277,16 +277,28 @@ def gather_tables(owner_blocks: np.ndarray) -> GatherTables:
     blocks, keys, order, point_start = group_by_block(owner_blocks)
     grid, lo = dense_block_grid(blocks)
     if grid is not None:
-        # Marking the extended blocks on the dense grid: argwhere lists them in key order, as unique does.
-        marked = np.zeros(grid.shape, bool)
-        for offset in EXTENDED_BLOCK_OFFSETS:
-            marked[tuple((blocks + offset - lo).T)] = True
-        tests = np.argwhere(marked) + lo
+        tests, sources = _extended_block_tables(blocks - lo, grid)
+        tests = tests + lo
     else:
         tests = unique_rows((blocks[:, None, :] + EXTENDED_BLOCK_OFFSETS[None]).reshape(-1, 3))
-    index_of = block_index(blocks, keys, grid, lo)
-    sources = np.stack([index_of(tests + f) for f in EXTENDED_BLOCK_OFFSETS], axis=1) if len(tests) else np.zeros((0, 7), np.int64)
+        index_of = block_index(blocks, keys, grid, lo)
+        sources = np.stack([index_of(tests + f) for f in EXTENDED_BLOCK_OFFSETS], axis=1) if len(tests) else np.zeros((0, 7), np.int64)
     return GatherTables(blocks, order, point_start, tests, sources.astype(np.int32))
+
+
+def _extended_block_tables(grid_blocks: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``kernels.block_gather.extended_block_tables`` on the host: test blocks [T, 3] (grid coordinates,
+    key order) and their sources [T, 7]."""
+    most = len(grid_blocks) * len(EXTENDED_BLOCK_OFFSETS)
+    tests = wp.empty(most, dtype=wp.vec3i, device="cpu")
+    sources = wp.empty((most, len(EXTENDED_BLOCK_OFFSETS)), dtype=int, device="cpu")
+    count = wp.zeros(1, dtype=int, device="cpu")
+    wp.launch(block_gather.extended_block_tables, dim=1, device="cpu", inputs=[
+        wp.array(np.ascontiguousarray(grid_blocks, dtype=np.int32), dtype=wp.vec3i, device="cpu"), wp.array(grid, dtype=int, device="cpu"),
+        wp.array(EXTENDED_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device="cpu"),
+        wp.zeros(grid.shape, dtype=wp.uint8, device="cpu"), tests, sources, count])
+    n = int(count.numpy()[0])
+    return tests.numpy()[:n].astype(np.int64), sources.numpy()[:n]
 
 
 def group_by_block(member_blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

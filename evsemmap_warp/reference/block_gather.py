@@ -30,3 +30,14 @@ def gather_sbki_blocks(test_blocks, sources, point_start, points, labels, *, len
                 rows[hit, num_classes + 1] += 1
         out.update({tuple(i): r for i, r in zip(index, rows)})
     return out
+
+
+def extended_block_tables(blocks: np.ndarray, grid: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(test blocks [T, 3] in grid order, sources [T, F]) for grid coordinates ``blocks`` (see the kernel)."""
+    blocks = np.asarray(blocks, np.int64).reshape(-1, 3)
+    marked = np.zeros(grid.shape, bool)
+    for offset in offsets:
+        marked[tuple((blocks + offset).T)] = True
+    tests = np.argwhere(marked)
+    sources = np.stack([grid[tuple((tests + offset).T)] for offset in offsets], axis=1) if len(tests) else np.zeros((0, len(offsets)), np.int64)
+    return tests, sources
