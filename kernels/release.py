@@ -238,23 +238,44 @@ def _grid_index(grid: wp.array3d(dtype=int), lo: wp.vec3i, b: wp.vec3i) -> int:
 def block_models(blocks: wp.array(dtype=wp.vec3i), grid: wp.array3d(dtype=int), lo: wp.vec3i,
                  target_offsets: wp.array(dtype=wp.vec3i), face_offsets: wp.array(dtype=wp.vec3i),
                  source_blocks: wp.array2d(dtype=int), source_mult: wp.array2d(dtype=int)):
-    """For block b and target offset o: the block at blocks[b] + o (its index from ``grid``, a dense
-    map of the scan's blocks over their bounding box widened by 3; -1 none) and the number of its
-    models that predict for blocks[b]: occupied blocks source + f, f a face offset or 0, with
-    |o + f|_1 <= 1."""
-    b, o = wp.tid()
-    offset = target_offsets[o]
-    source = blocks[b] + offset
-    index = _grid_index(grid, lo, source)
-    mult = int(0)
-    if index >= 0:
-        for f in range(face_offsets.shape[0]):
-            step = offset + face_offsets[f]
-            if wp.abs(step[0]) + wp.abs(step[1]) + wp.abs(step[2]) <= 1:
-                if _grid_index(grid, lo, source + face_offsets[f]) >= 0:
-                    mult += 1
-    source_blocks[b, o] = index
-    source_mult[b, o] = mult
+    """For block b and every target offset o: the block at blocks[b] + o (its index from ``grid``, a
+    dense map of the scan's blocks over their bounding box widened by 3; -1 none) and the number of
+    its models that predict for blocks[b]: occupied blocks source + f, f a face offset or 0, with
+    |o + f|_1 <= 1. One thread per block (one per block and offset measured ~5x slower on the CPU,
+    where each thread has a fixed cost)."""
+    b = wp.tid()
+    for o in range(target_offsets.shape[0]):
+        offset = target_offsets[o]
+        source = blocks[b] + offset
+        index = _grid_index(grid, lo, source)
+        mult = int(0)
+        if index >= 0:
+            for f in range(face_offsets.shape[0]):
+                step = offset + face_offsets[f]
+                if wp.abs(step[0]) + wp.abs(step[1]) + wp.abs(step[2]) <= 1:
+                    if _grid_index(grid, lo, source + face_offsets[f]) >= 0:
+                        mult += 1
+        source_blocks[b, o] = index
+        source_mult[b, o] = mult
+
+
+@wp.kernel
+def snap_to_lines(coords: wp.array(dtype=float), lo: float, hi: float, ds: float, snapped: wp.array(dtype=float)):
+    """The release's coord_to_voxel_center_coord on one axis, in float32 as its loop runs: from
+    i = trunc((p - lo) / ds) - 1 up to trunc((hi - lo) / ds), the first line lo + i ds with
+    p - line < next line - p; none: hi. One thread walks all points (launch with dim=1)."""
+    last = wp.int64((hi - lo) / ds)
+    for n in range(coords.shape[0]):
+        p = coords[n]
+        i = wp.int64((p - lo) / ds) - wp.int64(1)
+        out = hi
+        while i <= last:
+            line = lo + float(i) * ds
+            if p - line < (lo + float(i + wp.int64(1)) * ds) - p:
+                out = line
+                break
+            i += wp.int64(1)
+        snapped[n] = out
 
 
 # Kernels made by factories, by name (tests/test_twins.py looks their twins up by these names).

@@ -20,27 +20,19 @@ def _config(method: str, **overrides):
     return dataclasses.replace(cfg, **overrides)
 
 
-def _snap_literal(p: np.float32, lo: np.float32, hi: np.float32, ds: np.float32) -> np.float32:
-    """coord_to_voxel_center_coord on one axis, one point, as the C++ loop is written."""
-    stride = np.float32((hi - lo) / ds)
-    i = int(np.float32((p - lo) / ds)) - 1
-    while i <= int(stride):
-        cur = np.float32(lo + np.float32(i) * ds)
-        nxt = np.float32(lo + np.float32(i + 1) * ds)
-        if np.float32(p - cur) < np.float32(nxt - p):
-            return cur
-        i += 1
-    return hi
+@pytest.mark.parametrize("offset", [0.0, 2.5e4])
+def test_snapping_kernel_follows_the_cpp_loop_ties_and_the_last_line(offset):
+    # Against the literal loop (the kernel's twin): random points, exact half-way ties, the box
+    # minimum and maximum, far from zero; one point, and none.
+    from evsemmap_warp.reference.release import snap_to_lines
 
-
-def test_snapping_follows_the_cpp_loop_ties_and_the_last_line():
     rng = np.random.default_rng(0)
-    p = rng.uniform(-3, 5, 2000).astype(np.float32)
-    p[:20] = (np.float32(-3) + np.arange(20, dtype=np.float32) * np.float32(0.005)).astype(np.float32)  # exact half-way ties
+    p = (rng.uniform(-3, 5, 2000) + offset).astype(np.float32)
     lo, hi, ds = p.min(), p.max(), np.float32(0.01)
-    want = np.array([_snap_literal(v, lo, hi, ds) for v in p], np.float32)
-    np.testing.assert_array_equal(er._snap_axis(p, lo, hi, ds), want)
-    assert er._snap_axis(np.array([hi], np.float32), lo, hi, ds)[0] == _snap_literal(hi, lo, hi, ds)
+    p[:20] = (lo + np.arange(20, dtype=np.float32) * np.float32(0.005)).astype(np.float32)  # half-way ties
+    p[20], p[21] = lo, hi
+    for cloud in (p, p[21:22], p[:0]):
+        np.testing.assert_array_equal(er._snap_axis(cloud, lo, hi, ds), snap_to_lines(cloud, lo, hi, ds))
 
 
 def test_block_cap_keeps_the_first_points_in_input_order():

@@ -487,14 +487,14 @@ class VoxelMap:
 
 
 def block_model_tables(blocks: np.ndarray, grid: np.ndarray, lo: np.ndarray, device: str):
-    """``kernels.release.block_models`` over every (block, target offset): the release mode's source
-    blocks and model counts [B, 25] from a dense grid of the scan's blocks."""
+    """``kernels.release.block_models`` over every block: the release mode's source blocks and model
+    counts [B, 25] from a dense grid of the scan's blocks."""
     from ..methods.evsemmap_release import FACE_OFFSETS, TARGET_BLOCK_OFFSETS
 
     n, m = len(blocks), len(TARGET_BLOCK_OFFSETS)
     source = wp.empty((n, m), dtype=int, device=device)
     mult = wp.empty((n, m), dtype=int, device=device)
-    wp.launch(release.block_models, dim=(n, m), device=device, inputs=[
+    wp.launch(release.block_models, dim=n, device=device, inputs=[
         wp.array(blocks.astype(np.int32), dtype=wp.vec3i, device=device), wp.array(grid, dtype=int, device=device),
         wp.vec3i(*[int(v) for v in lo]), wp.array(TARGET_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device),
         wp.array(FACE_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device), source, mult])

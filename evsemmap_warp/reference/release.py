@@ -116,3 +116,21 @@ def block_models(blocks: np.ndarray, target_offsets: np.ndarray) -> tuple[np.nda
                 if model in where and np.abs(np.subtract(block, model)).sum() <= 1:
                     mult[b, o] += 1
     return source, mult
+
+
+def snap_to_lines(coords: np.ndarray, lo: np.float32, hi: np.float32, ds: np.float32) -> np.ndarray:
+    """coord_to_voxel_center_coord on one axis, point by point, as the C++ loop is written."""
+    lo, hi, ds = np.float32(lo), np.float32(hi), np.float32(ds)
+    stride = np.float32((hi - lo) / ds)
+    out = np.empty(len(coords), np.float32)
+    for n, p in enumerate(np.asarray(coords, np.float32)):
+        out[n] = hi
+        i = int(np.float32((p - lo) / ds)) - 1
+        while i <= int(stride):
+            cur = np.float32(lo + np.float32(i) * ds)
+            nxt = np.float32(lo + np.float32(i + 1) * ds)
+            if np.float32(p - cur) < np.float32(nxt - p):
+                out[n] = cur
+                break
+            i += 1
+    return out
