@@ -259,23 +259,26 @@ def block_models(blocks: wp.array(dtype=wp.vec3i), grid: wp.array3d(dtype=int), 
         source_mult[b, o] = mult
 
 
+@wp.func
+def _snap(p: float, lo: float, hi: float, ds: float) -> float:
+    last = wp.int64((hi - lo) / ds)
+    i = wp.int64((p - lo) / ds) - wp.int64(1)
+    while i <= last:
+        line = lo + float(i) * ds
+        if p - line < (lo + float(i + wp.int64(1)) * ds) - p:
+            return line
+        i += wp.int64(1)
+    return hi
+
+
 @wp.kernel
-def snap_to_lines(coords: wp.array(dtype=float), lo: float, hi: float, ds: float, snapped: wp.array(dtype=float)):
-    """The release's coord_to_voxel_center_coord on one axis, in float32 as its loop runs: from
+def snap_to_lines(points: wp.array(dtype=wp.vec3), lo: wp.vec3, hi: wp.vec3, ds: float, snapped: wp.array(dtype=wp.vec3)):
+    """The release's coord_to_voxel_center_coord per axis, in float32 as its loop runs: from
     i = trunc((p - lo) / ds) - 1 up to trunc((hi - lo) / ds), the first line lo + i ds with
     p - line < next line - p; none: hi. One thread walks all points (launch with dim=1)."""
-    last = wp.int64((hi - lo) / ds)
-    for n in range(coords.shape[0]):
-        p = coords[n]
-        i = wp.int64((p - lo) / ds) - wp.int64(1)
-        out = hi
-        while i <= last:
-            line = lo + float(i) * ds
-            if p - line < (lo + float(i + wp.int64(1)) * ds) - p:
-                out = line
-                break
-            i += wp.int64(1)
-        snapped[n] = out
+    for n in range(points.shape[0]):
+        p = points[n]
+        snapped[n] = wp.vec3(_snap(p[0], lo[0], hi[0], ds), _snap(p[1], lo[1], hi[1], ds), _snap(p[2], lo[2], hi[2], ds))
 
 
 # Kernels made by factories, by name (tests/test_twins.py looks their twins up by these names).

@@ -23,16 +23,16 @@ def _config(method: str, **overrides):
 @pytest.mark.parametrize("offset", [0.0, 2.5e4])
 def test_snapping_kernel_follows_the_cpp_loop_ties_and_the_last_line(offset):
     # Against the literal loop (the kernel's twin): random points, exact half-way ties, the box
-    # minimum and maximum, far from zero; one point, and none.
+    # minimum and maximum on every axis, far from zero; one point, and none.
     from evsemmap_warp.reference.release import snap_to_lines
 
     rng = np.random.default_rng(0)
-    p = (rng.uniform(-3, 5, 2000) + offset).astype(np.float32)
-    lo, hi, ds = p.min(), p.max(), np.float32(0.01)
-    p[:20] = (lo + np.arange(20, dtype=np.float32) * np.float32(0.005)).astype(np.float32)  # half-way ties
+    p = (rng.uniform(-3, 5, (2000, 3)) + offset).astype(np.float32)
+    lo, hi, ds = p.min(axis=0), p.max(axis=0), np.float32(0.01)
+    p[:20] = (lo + np.arange(20, dtype=np.float32)[:, None] * np.float32(0.005)).astype(np.float32)  # half-way ties
     p[20], p[21] = lo, hi
     for cloud in (p, p[21:22], p[:0]):
-        np.testing.assert_array_equal(er._snap_axis(cloud, lo, hi, ds), snap_to_lines(cloud, lo, hi, ds))
+        np.testing.assert_array_equal(er.snapped_points(cloud, lo, hi, ds), snap_to_lines(cloud, lo, hi, ds))
 
 
 def test_block_cap_keeps_the_first_points_in_input_order():

@@ -118,19 +118,22 @@ def block_models(blocks: np.ndarray, target_offsets: np.ndarray) -> tuple[np.nda
     return source, mult
 
 
-def snap_to_lines(coords: np.ndarray, lo: np.float32, hi: np.float32, ds: np.float32) -> np.ndarray:
-    """coord_to_voxel_center_coord on one axis, point by point, as the C++ loop is written."""
-    lo, hi, ds = np.float32(lo), np.float32(hi), np.float32(ds)
-    stride = np.float32((hi - lo) / ds)
-    out = np.empty(len(coords), np.float32)
-    for n, p in enumerate(np.asarray(coords, np.float32)):
-        out[n] = hi
-        i = int(np.float32((p - lo) / ds)) - 1
-        while i <= int(stride):
-            cur = np.float32(lo + np.float32(i) * ds)
-            nxt = np.float32(lo + np.float32(i + 1) * ds)
-            if np.float32(p - cur) < np.float32(nxt - p):
-                out[n] = cur
-                break
-            i += 1
+def snap_to_lines(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, ds: np.float32) -> np.ndarray:
+    """coord_to_voxel_center_coord per axis and point, as the C++ loop is written."""
+    points = np.asarray(points, np.float32).reshape(-1, 3)
+    ds = np.float32(ds)
+    out = np.empty_like(points)
+    for axis in range(3):
+        lo_a, hi_a = np.float32(lo[axis]), np.float32(hi[axis])
+        stride = np.float32((hi_a - lo_a) / ds)
+        for n, p in enumerate(points[:, axis]):
+            out[n, axis] = hi_a
+            i = int(np.float32((p - lo_a) / ds)) - 1
+            while i <= int(stride):
+                cur = np.float32(lo_a + np.float32(i) * ds)
+                nxt = np.float32(lo_a + np.float32(i + 1) * ds)
+                if np.float32(p - cur) < np.float32(nxt - p):
+                    out[n, axis] = cur
+                    break
+                i += 1
     return out
