@@ -43,7 +43,11 @@ def box_distance2(lo: wp.vec3d, hi: wp.vec3d, p: wp.vec3d):
 
 
 @functools.cache
-def gather_sbki_kernel(num_classes: int, cells_per_block: int):
+def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: bool = True, prefetch: bool = True):
+    """The gather kernel for K = num_classes and blocks of cells_per_block^3 cells (one Warp module per
+    form, compiled on first use). ``branch_free`` and ``prefetch`` off give the forms the study
+    (tools/kernel_study.py) compares: per-cell branches instead of vector code, no prefetch; every form
+    gives the same map bit for bit."""
     n = cells_per_block
     n3 = n * n * n
     # Sums per class and cell, cells along the rows: a point's kernel values for all cells add into one
@@ -79,8 +83,9 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int):
         kernel (where positive) for its label to every cell whose centre lies within 1.05 * length."""
         t = wp.tid()
         half = wp.vec3i(n // 2, n // 2, n // 2)
-        if t + PREFETCH_AHEAD < launch_ids.shape[0]:
-            prefetch_brick(table_keys, voxel_data, test_blocks[block_ids[launch_ids[t + PREFETCH_AHEAD]]] * n - half)
+        if wp.static(prefetch):
+            if t + PREFETCH_AHEAD < launch_ids.shape[0]:
+                prefetch_brick(table_keys, voxel_data, test_blocks[block_ids[launch_ids[t + PREFETCH_AHEAD]]] * n - half)
         b = block_ids[launch_ids[t]]
         first = test_blocks[b] * n - half
         # The block's cells are found or inserted first: a block that does not fit adds nothing and is
@@ -134,20 +139,32 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int):
                     if box_distance2(box_lo, box_hi, p) > skip2:
                         continue
                     scaled_point = wp.vec3(float(p[0]), float(p[1]), float(p[2])) / length32
-                    # Kernel values for all cells without branches (0 beyond reach; the C++ adds only
-                    # positive ones), then added in: adding 0 leaves a sum as it was.
-                    weights = cell_scalars()
-                    for j in range(n3):
-                        dx = centre_x[j] - p[0]
-                        dy = centre_y[j] - p[1]
-                        dz = centre_z[j] - p[2]
-                        k = f64(sbki_sparse_kernel_scaled(wp.vec3(scaled_x[j], scaled_y[j], scaled_z[j]), scaled_point, sigma32))
-                        weights[j] = wp.where(dx * dx + dy * dy + dz * dz < reach2, k, _ZERO)
                     label = labels[q]
-                    for j in range(n3):
-                        evidence[label, j] = evidence[label, j] + weights[j]
-                        weight_sum[j] = weight_sum[j] + weights[j]
-                        hits[j] = hits[j] + wp.where(weights[j] > _ZERO, _ONE, _ZERO)
+                    if wp.static(branch_free):
+                        # Kernel values for all cells without branches (0 beyond reach; the C++ adds only
+                        # positive ones), then added in: adding 0 leaves a sum as it was.
+                        weights = cell_scalars()
+                        for j in range(n3):
+                            dx = centre_x[j] - p[0]
+                            dy = centre_y[j] - p[1]
+                            dz = centre_z[j] - p[2]
+                            k = f64(sbki_sparse_kernel_scaled(wp.vec3(scaled_x[j], scaled_y[j], scaled_z[j]), scaled_point, sigma32))
+                            weights[j] = wp.where(dx * dx + dy * dy + dz * dz < reach2, k, _ZERO)
+                        for j in range(n3):
+                            evidence[label, j] = evidence[label, j] + weights[j]
+                            weight_sum[j] = weight_sum[j] + weights[j]
+                            hits[j] = hits[j] + wp.where(weights[j] > _ZERO, _ONE, _ZERO)
+                    else:
+                        for j in range(n3):
+                            dx = centre_x[j] - p[0]
+                            dy = centre_y[j] - p[1]
+                            dz = centre_z[j] - p[2]
+                            if dx * dx + dy * dy + dz * dz < reach2:
+                                w = f64(sbki_sparse_kernel_scaled(wp.vec3(scaled_x[j], scaled_y[j], scaled_z[j]), scaled_point, sigma32))
+                                if w > _ZERO:
+                                    evidence[label, j] = evidence[label, j] + w
+                                    weight_sum[j] = weight_sum[j] + w
+                                    hits[j] = hits[j] + _ONE
         total = _ZERO
         for j in range(n3):
             slot = slots[j]

@@ -87,9 +87,9 @@ def integer_power(x: wp.float64, m: int) -> wp.float64:
 
 
 @functools.cache
-def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
+def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, prefetch: bool = True):
     """The gather kernel for K = num_classes and blocks of cells_per_block^3 cells (one Warp module per
-    pair, compiled on first use)."""
+    form, compiled on first use); ``prefetch`` off: the form without it, for the study."""
     n = cells_per_block
     n3 = n * n * n
     vec_k = wp.types.vector(length=num_classes, dtype=wp.float64)
@@ -130,8 +130,9 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2):
         k(d) * y (Bayes) or the log commonality ratios (Dempster) and the bookkeeping columns once per cell."""
         t = wp.tid()
         half = wp.vec3i(n // 2, n // 2, n // 2)
-        if t + PREFETCH_AHEAD < launch_ids.shape[0]:
-            prefetch_brick(table_keys, voxel_data, blocks[block_ids[launch_ids[t + PREFETCH_AHEAD]]] * n - half)
+        if wp.static(prefetch):
+            if t + PREFETCH_AHEAD < launch_ids.shape[0]:
+                prefetch_brick(table_keys, voxel_data, blocks[block_ids[launch_ids[t + PREFETCH_AHEAD]]] * n - half)
         b = block_ids[launch_ids[t]]
         first = blocks[b] * n - half
         # The block's cells are found or inserted first: a block that does not fit adds nothing and is

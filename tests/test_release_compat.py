@@ -117,6 +117,25 @@ def test_a_point_weighs_7x_in_its_own_block_2x_in_face_and_edge_neighbours_0x_in
     np.testing.assert_allclose(together[(0, 0, 0)][1], 7 * alone[(0, 0, 0)][1], rtol=1e-12)
 
 
+@pytest.mark.parametrize("method", ["ebs", "dempster"])
+def test_the_gather_kernel_without_prefetch_gives_the_same_map(method):
+    import functools
+
+    from evsemmap_warp.kernels import release
+
+    rng = np.random.default_rng(6)
+    pts, alpha = _scan(rng, 30000, spread=10.0)
+    maps = []
+    for prefetch in (True, False):
+        mapper = Mapper(_config(method), 5, workers=1)
+        mapper.integrator.gather_kernel = functools.partial(release.gather_release_kernel, prefetch=prefetch)
+        mapper.integrate(pts, alpha, payload_type="alpha")
+        maps.append(mapper.voxels()[0])
+    assert maps[0].hits.sum() > 0
+    np.testing.assert_array_equal(maps[0].index, maps[1].index)
+    np.testing.assert_array_equal(maps[0].rows(), maps[1].rows())
+
+
 def test_two_workers_give_the_one_worker_map_bit_for_bit():
     rng = np.random.default_rng(5)
     pts, alpha = _scan(rng, 40000, spread=12.0)

@@ -11,10 +11,11 @@ else LiDAR-like synthetic scans (rings of points on a ground plane with a few wa
    (``mapping.scatter_strategy``), and for the release mode its block gather; baselines in the same
    run: the numpy twin and torch's ``index_add_`` reduction of the same expanded (voxel,
    contribution) pairs (both one thread).
-2. Microbenchmarks: hash insert and find at load factors 0.25-0.95 with uniform and LiDAR-like keys;
+2. The compatibility modes' gather kernels form by form (branch-free vector code, prefetch: on and off).
+3. Microbenchmarks: hash insert and find at load factors 0.25-0.95 with uniform and LiDAR-like keys;
    keyed row adds in float32 vs float64; a streaming copy (the bandwidth roof).
-3. Scaling: points per scan, classes K, kernel length / resolution, worker threads.
-4. A roofline estimate per strategy: modelled bytes per voxel update x achieved update rate against
+4. Scaling: points per scan, classes K, kernel length / resolution, worker threads.
+5. A roofline estimate per strategy: modelled bytes per voxel update x achieved update rate against
    the streaming bandwidth.
 ``--quick`` uses small sizes and one repeat (under a minute; the test suite runs it).
 """
@@ -132,6 +133,54 @@ def strategies(scans, device, repeats, workers_list):
             mapper, updates = holder["result"]
             rows.append({"method": f"{method} (release mode)", "strategy": "block gather", "workers": workers, "seconds": seconds,
                          "points_per_s": n_points / seconds, "updates": updates, "updates_per_s": updates / seconds, "voxels": mapper.voxel_count})
+    return rows, problems
+
+
+# The compatibility modes' gather kernels in each form: (kernel, form, factory options); the first form
+# of each kernel is the engine's.
+GATHER_FORMS = (
+    ("S-BKI gather (sbki mode, free_res 0.5)", "branch-free (vector code) + prefetch", {"branch_free": True, "prefetch": True}),
+    ("S-BKI gather (sbki mode, free_res 0.5)", "branch-free (vector code)", {"branch_free": True, "prefetch": False}),
+    ("S-BKI gather (sbki mode, free_res 0.5)", "per-cell branches + prefetch", {"branch_free": False, "prefetch": True}),
+    ("S-BKI gather (sbki mode, free_res 0.5)", "per-cell branches", {"branch_free": False, "prefetch": False}),
+    ("release gather (ebs, release mode)", "branch-free (vector code) + prefetch", {"prefetch": True}),
+    ("release gather (ebs, release mode)", "branch-free (vector code)", {"prefetch": False}),
+)
+
+
+def gather_forms(scans, device, repeats):
+    """The launches of the compatibility modes (the gather kernel, its table growth) for each kernel form,
+    one thread, from the same prepared scans; every form must give the same map bit for bit."""
+    import functools
+
+    from bench_integrate import compat_config
+
+    from evsemmap_warp.kernels import block_gather, release
+
+    rows, problems, reference = [], [], {}
+    for kernel_name, form, options in GATHER_FORMS:
+        sbki = kernel_name.startswith("S-BKI")
+        config = compat_config(0.5) if sbki else load_config([RELEASE], method="ebs").mapping
+        preparing = Mapper(config, 9, device=device, workers=1)
+        preparing.integrator.gather_kernel = functools.partial(block_gather.gather_sbki_kernel if sbki else release.gather_release_kernel, **options)
+        launches = [preparing._prepare(pts, np.argmax(alpha, axis=1) if sbki else alpha, "label" if sbki else "alpha", origin)
+                    for pts, alpha, origin in scans]
+        holder = {}
+
+        def run():
+            mapper = Mapper(config, 9, device=device, workers=1, origin=preparing.origin)
+            holder["updates"] = sum(mapper._launch(launch).voxel_updates for launch in launches)
+            holder["mapper"] = mapper
+
+        seconds = timed(run, repeats)
+        arrays = holder["mapper"].voxels()[0]
+        if kernel_name not in reference:
+            reference[kernel_name] = (arrays, seconds)
+        first, first_seconds = reference[kernel_name]
+        if not (np.array_equal(arrays.index, first.index) and np.array_equal(arrays.rows(), first.rows())):
+            problems.append(f"{kernel_name}, {form}: map differs from the engine's form")
+        rows.append({"kernel": kernel_name, "form": form, "seconds": seconds, "updates_per_s": holder["updates"] / seconds,
+                     "relative": seconds / first_seconds})
     return rows, problems
 
 
@@ -333,7 +382,7 @@ def determinism_cost(strategy_rows) -> dict[str, float]:
     return {name: one[name] / one["atomic"] for name in STRATEGIES if name != "atomic" and name in one}
 
 
-def write_report(out: Path, device, workload, strategy_rows, problems, hash_rows, prec, scaling_rows, seconds):
+def write_report(out: Path, device, workload, strategy_rows, problems, gather_rows, hash_rows, prec, scaling_rows, seconds):
     lines = [
         "# Kernel study", "",
         f"Written by `python tools/kernel_study.py --device {device}` in {seconds:.0f} s ({workload}). Medians after a warm-up; "
@@ -373,7 +422,14 @@ def write_report(out: Path, device, workload, strategy_rows, problems, hash_rows
               "thread count; the sorted and gather strategies also fix each voxel's summation order, which a GPU's atomics do "
               "not. Their cost, one thread, s-bki: " + ", ".join(
                   f"{name} x{cost:.2f}" for name, cost in determinism_cost(strategy_rows).items()) + " the atomic scatter's time.", "",
-              "## Hash table", "", "| keys | load | keys | insert/s | find/s |", "|---|---|---|---|---|"]
+              "## The compatibility modes' gather kernels, form by form", "",
+              "One thread; the launches only (each block's cells found or inserted, the points weighed against its cells, the "
+              "sums added, table growth included), from scans prepared once; the same map bit for bit from every form (checked). "
+              "Branch-free: a point's kernel values for all of a block's cells without branches, which the compiler turns into "
+              "vector code; prefetch: each thread asks for the table lines of the block 16 threads ahead (`prefetch_brick`).", "",
+              "| kernel | form | s | voxel updates/s | time vs the engine's form |", "|---|---|---|---|---|"]
+    lines += [f"| {r['kernel']} | {r['form']} | {r['seconds']:.3f} | {r['updates_per_s']:,.0f} | x{r['relative']:.2f} |" for r in gather_rows]
+    lines += ["", "## Hash table", "", "| keys | load | keys | insert/s | find/s |", "|---|---|---|---|---|"]
     lines += [f"| {r['keys']} | {r['load']:.2f} | {r['n']:,} | {r['insert_per_s']:,.0f} | {r['find_per_s']:,.0f} |" for r in hash_rows]
     lines += ["", "![hash](kernel_study/hash_load.png)", "", "## Scaling (one scan, one thread)", "",
               "| axis | x | strategy | input pts/s |", "|---|---|---|---|"]
@@ -401,12 +457,15 @@ def main() -> int:
     print(f"study on {device}: {workload}", file=sys.stderr)
     strategy_rows, problems = strategies(scans, device, repeats, workers_list)
     print("strategies done", file=sys.stderr)
+    gather_rows, gather_problems = gather_forms(scans, device, repeats)
+    problems += gather_problems
     hash_rows = hash_microbench(device, args.quick, repeats)
     prec = precision_and_stream(device, args.quick, repeats)
     scaling_rows = scaling(scans, device, args.quick, repeats)
     (args.out / "kernel_study").mkdir(parents=True, exist_ok=True)
     plot(args.out / "kernel_study", strategy_rows, hash_rows, scaling_rows, device)
-    write_report(args.out / "kernel_study.md", device, workload, strategy_rows, problems, hash_rows, prec, scaling_rows, time.perf_counter() - start)
+    write_report(args.out / "kernel_study.md", device, workload, strategy_rows, problems, gather_rows, hash_rows, prec, scaling_rows,
+                 time.perf_counter() - start)
     print(f"wrote {args.out / 'kernel_study.md'} in {time.perf_counter() - start:.0f} s", file=sys.stderr)
     if problems:
         print("MISMATCH: " + "; ".join(problems), file=sys.stderr)

@@ -209,6 +209,8 @@ class SbkiCompatIntegrator:
         self.block_depth = 1 if config.kernel is Kernel.COUNT else config.block_depth
         self.cells_per_block = 2 ** (self.block_depth - 1)
         self.block_size = sbki_compat.block_size_m(config.resolution_m, self.block_depth)
+        # kernel factory (class count, cells per block) -> the S-BKI gather kernel; the study swaps in other forms
+        self.gather_kernel = block_gather.gather_sbki_kernel
 
     @staticmethod
     def grid_offset_m(config: MappingConfig) -> float:
@@ -261,7 +263,7 @@ class SbkiCompatIntegrator:
             wp.float64(c.length_m), wp.float64(c.sigma0), wp.float64(c.resolution_m), wp.float64(self.grid_offset_m(c)),
         ]
 
-        return block_gather_run(tables.test_blocks, self.cells_per_block, block_gather.gather_sbki_kernel, gather_inputs, "sbki_gather")
+        return block_gather_run(tables.test_blocks, self.cells_per_block, self.gather_kernel, gather_inputs, "sbki_gather")
 
 
 class ReleaseCompatIntegrator:
@@ -274,6 +276,8 @@ class ReleaseCompatIntegrator:
         self.cells_per_block = 2 ** (config.block_depth - 1)
         self.block_size = sbki_compat.block_size_m(config.resolution_m, config.block_depth)
         self.length = evsemmap_release.kernel_length(config.length_m)
+        # kernel factory (class count, cells per block) -> the gather kernel; the study swaps in other forms
+        self.gather_kernel = release.gather_release_kernel
 
     def training_points(self, scan: ScanPayload, sensor_origin: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
         """Indices of the scan's points the models train on, and how many each step kept."""
@@ -319,7 +323,7 @@ class ReleaseCompatIntegrator:
             wp.float64(self.length), float(c.sigma0), float(c.resolution_m), int(fusion),
         ]
 
-        return launch_step(stats, block_gather_run(models.blocks, self.cells_per_block, release.gather_release_kernel, gather_inputs, "release_gather"))
+        return launch_step(stats, block_gather_run(models.blocks, self.cells_per_block, self.gather_kernel, gather_inputs, "release_gather"))
 
 
 def block_gather_run(blocks: np.ndarray, cells_per_block: int, kernel_factory, gather_inputs: list, kind: str):
@@ -332,8 +336,8 @@ def block_gather_run(blocks: np.ndarray, cells_per_block: int, kernel_factory, g
     def run(shards: list[VoxelMap], executor: Executor | None) -> int:
         shards[0].check_block_range(blocks, cells_per_block)
         owner = block_shard(blocks, len(shards))
-        shards[0].load_gather_kernels(cells_per_block)
         kernel = kernel_factory(shards[0].num_classes, cells_per_block)
+        shards[0].load_kernel(kernel)
 
         def job(shard: VoxelMap, index: int) -> int:
             return shard.gather_blocks(kernel, gather_inputs, np.flatnonzero(owner == index), cells_per_block=cells_per_block, kind=kind)

@@ -384,13 +384,12 @@ class VoxelMap:
         self._launch_until_done(n, launch, may_insert=True, kind="block_targets", most_new=n * 7 * cells_per_block**3)
         return int(update_count.numpy()[0])
 
-    def load_gather_kernels(self, cells_per_block: int) -> None:
-        """Compile/load the block-gather kernels for this class count and block size before worker
-        threads launch them (a module load must not race between threads)."""
-        key = (self.device, self.num_classes, cells_per_block)
+    def load_kernel(self, kernel) -> None:
+        """Compile/load a kernel made on demand (a block-gather kernel for this class count and block
+        size) before worker threads launch it: a module load must not race between threads."""
+        key = (self.device, id(kernel.module))  # the factories cache their kernels: the modules live on
         if key not in _loaded_devices:
-            release.gather_release_kernel(self.num_classes, cells_per_block).module.load(self.device)
-            block_gather.gather_sbki_kernel(self.num_classes, cells_per_block).module.load(self.device)
+            kernel.module.load(self.device)
             _loaded_devices.add(key)
 
     def gather_blocks(self, kernel, gather_inputs: list, block_ids: np.ndarray, *, cells_per_block: int, kind: str) -> int:
@@ -509,7 +508,7 @@ def _float_array(values: np.ndarray, device: str):
     return wp.array(np.ascontiguousarray(values, dtype=np.float64), dtype=wp.float64, device=device)
 
 
-_loaded_devices: set = set()  # devices, and keys of the per-(K, block size) kernels
+_loaded_devices: set = set()  # devices, and (device, module) of kernels made on demand
 
 
 def _load_kernels(device: str) -> None:
