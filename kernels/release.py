@@ -282,6 +282,18 @@ def snap_to_lines(points: wp.array(dtype=wp.vec3), lo: wp.vec3, hi: wp.vec3, ds:
         snapped[n] = wp.vec3(_snap(p[0], lo[0], hi[0], ds), _snap(p[1], lo[1], hi[1], ds), _snap(p[2], lo[2], hi[2], ds))
 
 
+@wp.kernel
+def keep_first_per_block(cells: wp.array(dtype=int), cap: int, counts: wp.array(dtype=int), keep: wp.array(dtype=wp.uint8)):
+    """keep[i] = 1 for the first ``cap`` points (input order) of each cell of a dense grid of blocks;
+    ``counts`` zeroed, one entry per cell. One thread walks all points (launch with dim=1): one pass
+    where the numpy form sorted the keys."""
+    for i in range(cells.shape[0]):
+        c = cells[i]
+        seen = counts[c]
+        keep[i] = wp.uint8(wp.where(seen < cap, 1, 0))
+        counts[c] = seen + 1
+
+
 # Kernels made by factories, by name (tests/test_twins.py looks their twins up by these names).
 KERNEL_FACTORIES = {"gather_release_blocks": gather_release_kernel}
 

@@ -11,6 +11,7 @@ from evsemmap_warp.core.integrators import ReleaseCompatIntegrator
 from evsemmap_warp.core.mapper import Mapper, prepare_payload
 from evsemmap_warp.methods import evsemmap_release as er
 from evsemmap_warp.reference.release import release_insert
+from evsemmap_warp.voxel_keys import pack_voxel_keys
 
 PRESET = REPO / "configs/presets/evsemmap-release.yaml"
 
@@ -39,6 +40,21 @@ def test_block_cap_keeps_the_first_points_in_input_order():
     keys = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 0], [0, 0, 0], [1, 0, 0], [0, 0, 0]])
     np.testing.assert_array_equal(er.first_per_block(keys, 2), [True, True, True, False, True, False])
     np.testing.assert_array_equal(er.first_per_block(keys[:0], 2), np.zeros(0, bool))
+
+
+@pytest.mark.parametrize("spread", [3, 40, 1 << 18])
+def test_block_cap_kernel_matches_its_twin(spread, monkeypatch):
+    # Many points per block (dense counts), one point, none, and keys spread too wide for the dense
+    # grid (the sorting twin's path); the cap of the release's EBS and Dempster configs, and 1.
+    from evsemmap_warp.reference.release import keep_first_per_block
+
+    rng = np.random.default_rng(spread)
+    keys = rng.integers(-spread, spread, (20000, 3)) + np.array([5, -7, 1 << 19])
+    for cap in (1, 6, 11):
+        for part in (keys, keys[:1], keys[:0]):
+            np.testing.assert_array_equal(er.first_per_block(part, cap), keep_first_per_block(pack_voxel_keys(part), cap))
+    if spread == 3:
+        assert not er.first_per_block(keys, 11).all()  # the cap drops points
 
 
 def test_uncertainty_cut_keeps_ties_at_the_float32_threshold():

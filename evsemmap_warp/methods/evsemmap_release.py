@@ -73,19 +73,31 @@ def snapped_block_keys(points: np.ndarray, ds_resolution_m: float, block_size: n
     return (snapped.astype(np.float64) / size + _BLOCK_KEY_SHIFT).astype(np.int64) - int(_BLOCK_KEY_SHIFT)
 
 
+# Above this many cells the blocks' bounding box is too large for a dense count: the keys are ranked by
+# a sort instead (int32 counts: 64 MB at this size).
+MAX_DENSE_BLOCK_COUNTS = 1 << 24
+
+
 def first_per_block(block_keys: np.ndarray, cap: int) -> np.ndarray:
-    """Mask keeping the first ``cap`` points (input order) of each block key."""
+    """Mask keeping the first ``cap`` points (input order) of each block key [N, 3]: counted on a dense
+    grid over the keys' bounding box (``kernels.release.keep_first_per_block``), ranked by a stable sort
+    when that box is too large (the kernel's twin)."""
+    block_keys = np.asarray(block_keys, dtype=np.int64).reshape(-1, 3)
     n = len(block_keys)
     if n == 0:
         return np.zeros(0, bool)
-    packed = pack_voxel_keys(block_keys)
-    order = np.argsort(packed, kind="stable")
-    sorted_keys = packed[order]
-    starts = np.r_[0, np.flatnonzero(sorted_keys[1:] != sorted_keys[:-1]) + 1]
-    rank = np.arange(n) - np.repeat(starts, np.diff(np.r_[starts, n]))
-    keep = np.zeros(n, bool)
-    keep[order[rank < cap]] = True
-    return keep
+    lo, hi = column_bounds(block_keys)
+    span = hi - lo + 1
+    if float(np.prod(span.astype(np.float64))) > MAX_DENSE_BLOCK_COUNTS:
+        from ..reference.release import keep_first_per_block
+
+        return keep_first_per_block(pack_voxel_keys(block_keys), cap)
+    relative = block_keys - lo
+    cells = (relative[:, 0] * span[1] + relative[:, 1]) * span[2] + relative[:, 2]
+    keep = wp.empty(n, dtype=wp.uint8, device="cpu")
+    wp.launch(release.keep_first_per_block, dim=1, device="cpu", inputs=[
+        wp.array(cells.astype(np.int32), dtype=int, device="cpu"), int(cap), wp.zeros(int(np.prod(span)), dtype=int, device="cpu"), keep])
+    return keep.numpy().astype(bool)
 
 
 @dataclass

@@ -137,3 +137,18 @@ def snap_to_lines(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, ds: np.flo
                     break
                 i += 1
     return out
+
+
+def keep_first_per_block(cells: np.ndarray, cap: int) -> np.ndarray:
+    """Mask keeping the first ``cap`` points (input order) of each cell index."""
+    cells = np.asarray(cells, np.int64)
+    n = len(cells)
+    if n == 0:
+        return np.zeros(0, bool)
+    order = np.argsort(cells, kind="stable")
+    sorted_cells = cells[order]
+    starts = np.r_[0, np.flatnonzero(sorted_cells[1:] != sorted_cells[:-1]) + 1]
+    rank = np.arange(n) - np.repeat(starts, np.diff(np.r_[starts, n]))
+    keep = np.zeros(n, bool)
+    keep[order[rank < cap]] = True
+    return keep
