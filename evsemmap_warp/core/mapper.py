@@ -275,8 +275,9 @@ class Mapper:
         The map is the one ``integrate`` gives scan by scan. With more than one worker, the next scans
         are read from ``scans`` (in order, one at a time) and get their host work (validation and, in
         the S-BKI and release modes, training data and block tables) on as many threads as there are
-        workers while this scan's kernels run; until the first non-empty scan has set the map origin,
-        one scan ahead at most. ``progress(scan, stats)`` is called after each scan."""
+        workers, up to twice as many scans ahead, while this scan's kernels run; until the first
+        non-empty scan has set the map origin, one scan ahead at most. ``progress(scan, stats)`` is
+        called after each scan."""
         results = []
 
         def add(scan, prepared):
@@ -303,8 +304,11 @@ class Mapper:
                     turn.notify_all()
             return (None, None) if scan is None else (scan, self._named(scan, lambda: self._prepare_scan(scan)))
 
-        depth = len(self.shards)
-        with ThreadPoolExecutor(max_workers=depth, thread_name_prefix="evsemmap-prepare") as ahead:
+        # Twice as many scans in the queue as threads, so that a thread that finishes its scan finds the next
+        # one while the main thread waits on an earlier scan (it kept CPUs idle otherwise: the release mode's
+        # utilisation went from 1.67 to 1.78 of 2 cores).
+        depth = 2 * len(self.shards)
+        with ThreadPoolExecutor(max_workers=len(self.shards), thread_name_prefix="evsemmap-prepare") as ahead:
             pending = deque([ahead.submit(read_and_prepare, 0)])
             submitted = 1
             while pending:
