@@ -5,10 +5,12 @@ points of the blocks of T's extended block (T and its 6 face neighbours). Here o
 block finds or inserts its cells once, reads those points once and weighs each against all of T's
 cells, with the same float64 reach test and float32 kernel as the scatter form (``kernels.scatter``
 MODE_SBKI_BLOCKS): one table probe per cell instead of two per update, no atomics, and a fixed order
-for every sum. A point beyond reach of the block's cell-centre box is skipped with one test. A point's
-kernel values for all of a block's cells are computed without branches, which the compiler turns into
-vector code (8 cells in one AVX-512 register: the kernel took 0.88 instead of 1.01 s on 6 bench scans
-at free_resolution 0.5), and each thread prefetches the cells of the block a few threads ahead.
+for every sum. A point beyond reach of the block's cell-centre box is skipped with one test. The
+cells' centres (in float64, and in float32 over ell as the C++ scales them) are computed once per
+block, and each thread prefetches the cells of the block a few threads ahead. The kernel values are
+computed cell by cell, only within reach: a branch-free form that the compiler turns into vector code
+(8 cells in one AVX-512 register) was measured slower, as most of a block's cells lie beyond a
+point's reach (tools/kernel_study.py keeps both forms and times them).
 
 The kernel is made per (class count, cells per block) (``gather_sbki_kernel``); its loops are not
 unrolled (a 4 s cold compile instead of 30 s, at the same speed).
@@ -43,11 +45,11 @@ def box_distance2(lo: wp.vec3d, hi: wp.vec3d, p: wp.vec3d):
 
 
 @functools.cache
-def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: bool = True, prefetch: bool = True):
+def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: bool = False, prefetch: bool = True):
     """The gather kernel for K = num_classes and blocks of cells_per_block^3 cells (one Warp module per
-    form, compiled on first use). ``branch_free`` and ``prefetch`` off give the forms the study
-    (tools/kernel_study.py) compares: per-cell branches instead of vector code, no prefetch; every form
-    gives the same map bit for bit."""
+    form, compiled on first use). The other forms are for the study (tools/kernel_study.py):
+    ``branch_free`` (vector code over the cells instead of per-cell branches), ``prefetch`` off. Every
+    form gives the same map bit for bit."""
     n = cells_per_block
     n3 = n * n * n
     # Sums per class and cell, cells along the rows: a point's kernel values for all cells add into one

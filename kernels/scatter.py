@@ -141,8 +141,9 @@ def sincos_float32(a: float) -> wp.vec2:
     r2 = r * r
     s = r + r * r2 * (_SIN3 + r2 * (_SIN5 + r2 * (_SIN7 + r2 * (_SIN9 + r2 * _SIN11))))
     c = _ONE + r2 * (_COS2 + r2 * (_COS4 + r2 * (_COS6 + r2 * (_COS8 + r2 * (_COS10 + r2 * _COS12)))))
-    # sin and cos of r + q pi / 2, by selects rather than branches so that loops over cells vectorise
-    # (rint rather than round for the same reason: either nearest integer reduces to |r| <= pi / 4).
+    # sin and cos of r + q pi / 2, by selects rather than branches: the quadrant changes from cell to cell,
+    # and a loop over cells can vectorise (rint rather than round for the same reason: either nearest
+    # integer reduces to |r| <= pi / 4).
     quadrant = int(q) & 3
     odd = (quadrant & 1) == 1
     sin_a = wp.where(odd, c, s)
