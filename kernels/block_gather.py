@@ -52,8 +52,8 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
     form gives the same map bit for bit."""
     n = cells_per_block
     n3 = n * n * n
-    # Sums per class and cell, cells along the rows: a point's kernel values for all cells add into one
-    # row (its label's) as one vector.
+    # Sums per class and cell, cells along the rows: in the branch-free form a point's kernel values for
+    # all cells add into one row (its label's) as one vector.
     class_cell_sums = wp.types.matrix(shape=(num_classes, n3), dtype=wp.float64)
     cell_scalars = wp.types.vector(length=n3, dtype=wp.float64)
     cell_floats = wp.types.vector(length=n3, dtype=wp.float32)
@@ -105,8 +105,9 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
         sigma32 = float(sigma0)
         resolution32 = float(resolution)
         offset32 = float(grid_offset)
-        # Per cell: its centre in float64 (the reach test) and in float32 divided by ell (the kernel, as
-        # the C++ scales both coordinates), one coordinate per vector so that the cell loop vectorises.
+        # Per cell, once per block: its centre in float64 (the reach test) and in float32 divided by ell
+        # (the kernel, as the C++ scales both coordinates), one coordinate per vector (the branch-free
+        # form's cell loop then vectorises).
         centre_x = cell_scalars()
         centre_y = cell_scalars()
         centre_z = cell_scalars()

@@ -91,8 +91,8 @@ def prefetch_brick(keys: wp.array(dtype=wp.int64), data: wp.array2d(dtype=wp.flo
     A serial CPU launch walks its threads in order, and a thread that waits for its brick's cache lines
     waits alone: the core's reorder window holds about one block's work. Kernels that visit one brick
     per thread call this for the brick a few threads ahead, so that its lines arrive while the current
-    one computes (the S-BKI gather kernel at free_resolution 0.5: 1.01 -> 0.71 s on 6 bench scans;
-    finding 8 stored cells: 285 -> ~100 ns per brick)."""
+    one computes (finding a brick's 8 stored cells: ~285 -> ~100 ns; tools/kernel_study.py times the
+    gather kernels with and without it)."""
     _prefetch_slots(keys, data, hash_slot(pack_key(first_cell[0], first_cell[1], first_cell[2]), keys.shape[0] - 1), BRICK_CELLS)
 
 

@@ -11,7 +11,8 @@ else LiDAR-like synthetic scans (rings of points on a ground plane with a few wa
    (``mapping.scatter_strategy``), and for the release mode its block gather; baselines in the same
    run: the numpy twin and torch's ``index_add_`` reduction of the same expanded (voxel,
    contribution) pairs (both one thread).
-2. The compatibility modes' gather kernels form by form (branch-free vector code, prefetch: on and off).
+2. The compatibility modes' gather kernels form by form (branch-free vector code or per-cell branches,
+   prefetch on or off).
 3. Microbenchmarks: hash insert and find at load factors 0.25-0.95 with uniform and LiDAR-like keys;
    keyed row adds in float32 vs float64; a streaming copy (the bandwidth roof).
 4. Scaling: points per scan, classes K, kernel length / resolution, worker threads.
