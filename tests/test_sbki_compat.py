@@ -326,12 +326,17 @@ def test_sbki_gather_kernel_matches_its_table_twin(device, n):
     np.testing.assert_array_equal(arrays.hits, want[:, 5])
 
 
-def test_sbki_maps_are_bit_identical_for_one_and_two_workers():
-    rng = np.random.default_rng(21)
+def _random_sbki_scan(seed: int, n: int, extent: float, free_resolution_m: float):
+    """A bench-like S-BKI config (0.2 m cells, 0.4 m blocks) and n random labelled points in an extent^3 cube."""
+    rng = np.random.default_rng(seed)
     cfg = _compat_config(False, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
-                         ds_resolution_m=0.05, free_resolution_m=4.0)
-    pts = rng.uniform(0, 8, (30000, 3)).astype(np.float32)
-    labels = rng.integers(1, 6, len(pts))
+                         ds_resolution_m=0.05, free_resolution_m=free_resolution_m)
+    pts = rng.uniform(0, extent, (n, 3)).astype(np.float32)
+    return cfg, pts, rng.integers(1, 6, n)
+
+
+def test_sbki_maps_are_bit_identical_for_one_and_two_workers():
+    cfg, pts, labels = _random_sbki_scan(21, 30000, 8.0, free_resolution_m=4.0)
     rows = []
     for workers in (1, 2):
         m = Mapper(cfg, 6, workers=workers)
@@ -347,11 +352,7 @@ def test_every_form_of_the_sbki_gather_kernel_gives_the_same_map_bit_for_bit():
 
     from evsemmap_warp.kernels import block_gather
 
-    rng = np.random.default_rng(22)
-    cfg = _compat_config(False, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
-                         ds_resolution_m=0.05, free_resolution_m=2.0)
-    pts = rng.uniform(0, 6, (20000, 3)).astype(np.float32)
-    labels = rng.integers(1, 6, len(pts))
+    cfg, pts, labels = _random_sbki_scan(22, 20000, 6.0, free_resolution_m=2.0)
     maps = []
     for branch_free in (True, False):
         for prefetch in (True, False):
