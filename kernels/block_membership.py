@@ -3,8 +3,8 @@
 Block k spans [k B - B/2, k B + B/2] per axis in float32 (docs/compatibility.md §1): a point on a
 shared face belongs to both blocks. ``block_membership_masks`` finds each point's nearest block (float64
 rounding of p / B) and tests it and its 26 neighbours; one thread walks all points (launch with dim=1),
-as the per-scan preprocessing runs one scan per worker. The numpy form of the same tests took ~30 ns
-per point (free_resolution 0.5 scans carry ~330 k training points).
+as the per-scan preprocessing runs one scan per worker. With the numpy form of the same tests the
+memberships of 10 bench scans at free_resolution 0.5 (3.3 M points) took 0.22 s, with this 0.11 s.
 
 numpy twin: ``evsemmap_warp/reference/block_membership.py``.
 """
