@@ -22,7 +22,7 @@ import functools
 
 import warp as wp
 
-from .hash_table import PREFETCH_AHEAD, pack_key, prefetch_brick, table_find_or_insert
+from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, pack_key, prefetch_brick, table_find_or_insert
 from .scatter import _ONE, _ZERO, COL_HITS, COL_TOUCHED, COL_WEIGHT, SBKI_REACH_FACTOR, sbki_sparse_kernel_scaled, sbki_voxel_center, voxel_center
 
 wp.set_module_options({"enable_backward": False})
@@ -57,7 +57,7 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
     class_cell_sums = wp.types.matrix(shape=(num_classes, n3), dtype=wp.float64)
     cell_scalars = wp.types.vector(length=n3, dtype=wp.float64)
     cell_floats = wp.types.vector(length=n3, dtype=wp.float32)
-    cell_slots = wp.types.vector(length=n3, dtype=int)
+    cell_rows = wp.types.vector(length=n3, dtype=int)
 
     @wp.kernel(module="unique", module_options={"max_unroll": 1})
     def gather_sbki_blocks(
@@ -73,6 +73,7 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
         resolution: wp.float64,
         grid_offset: wp.float64,
         table_keys: wp.array(dtype=wp.int64),
+        slot_rows: wp.array(dtype=int),
         key_count: wp.array(dtype=int),
         max_count: int,
         voxel_data: wp.array2d(dtype=wp.float64),
@@ -86,19 +87,20 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
         t = wp.tid()
         half = wp.vec3i(n // 2, n // 2, n // 2)
         if wp.static(prefetch):
-            if t + PREFETCH_AHEAD < launch_ids.shape[0]:
-                prefetch_brick(table_keys, voxel_data, test_blocks[block_ids[launch_ids[t + PREFETCH_AHEAD]]] * n - half)
+            last = launch_ids.shape[0] - 1
+            prefetch_brick(table_keys, slot_rows, voxel_data, test_blocks[block_ids[launch_ids[wp.min(t + PREFETCH_AHEAD, last)]]] * n - half,
+                           test_blocks[block_ids[launch_ids[wp.min(t + PREFETCH_NEARER, last)]]] * n - half)
         b = block_ids[launch_ids[t]]
         first = test_blocks[b] * n - half
         # The block's cells are found or inserted first: a block that does not fit adds nothing and is
         # relaunched after the table grew.
-        slots = cell_slots()
+        rows = cell_rows()
         for j in range(n3):
-            slot = table_find_or_insert(table_keys, key_count, max_count, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
-            if slot < 0:
+            row = table_find_or_insert(table_keys, slot_rows, key_count, max_count, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
+            if row < 0:
                 failed[t] = 1
                 return
-            slots[j] = slot
+            rows[j] = row
         reach = length * f64(SBKI_REACH_FACTOR)
         reach2 = reach * reach
         length32 = float(length)
@@ -170,12 +172,12 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
                                     hits[j] = hits[j] + _ONE
         total = _ZERO
         for j in range(n3):
-            slot = slots[j]
-            voxel_data[slot, num_classes + COL_TOUCHED] = _ONE
+            row = rows[j]
+            voxel_data[row, num_classes + COL_TOUCHED] = _ONE
             for c in range(num_classes):
-                voxel_data[slot, c] = voxel_data[slot, c] + evidence[c, j]
-            voxel_data[slot, num_classes + COL_WEIGHT] = voxel_data[slot, num_classes + COL_WEIGHT] + weight_sum[j]
-            voxel_data[slot, num_classes + COL_HITS] = voxel_data[slot, num_classes + COL_HITS] + hits[j]
+                voxel_data[row, c] = voxel_data[row, c] + evidence[c, j]
+            voxel_data[row, num_classes + COL_WEIGHT] = voxel_data[row, num_classes + COL_WEIGHT] + weight_sum[j]
+            voxel_data[row, num_classes + COL_HITS] = voxel_data[row, num_classes + COL_HITS] + hits[j]
             total += hits[j]
         wp.atomic_add(update_count, 0, wp.int64(total))
 

@@ -1,11 +1,15 @@
-"""Keys-only open-addressing hash table of voxel indices (Warp).
+"""Open-addressing hash table of voxel indices, with each voxel's value row in insertion order (Warp).
 
 Keys are int3 voxel indices relative to the map origin, packed into one int64 (21 bits per axis,
 offset 2**20; ``evsemmap_warp/voxel_keys.py`` packs the same way on the host), slots are found
-by a splitmix64 hash of their 2x2x2 brick and linear probing, insertion claims a slot with ``atomic_cas``. The table
-holds keys only: callers keep per-voxel values in their own ``[capacity, ...]`` arrays indexed by
-slot. An insertion fails (returns -1) instead of overfilling the table once ``max_count`` keys are
-in; the host then grows the table and re-runs the failed work, so nothing is ever dropped.
+by a splitmix64 hash of their 2x2x2 brick and linear probing, insertion claims a slot with ``atomic_cas``.
+Beside each slot the table keeps its voxel's row (``slot_rows``, row + 1; 0 while the slot is empty):
+rows are handed out densely in insertion order (row = the key count before the insertion), so callers
+keep per-voxel values in ``[rows, ...]`` arrays that grow by copying their used rows, and a grown table
+rehashes keys and rows only. (Values indexed by slot had to be moved row by row at every growth and
+took twice the table's memory; populating it was a quarter of the S-BKI mode's time.) An insertion
+fails (returns -1) instead of overfilling the table once ``max_count`` keys are in; the host then grows
+the table and re-runs the failed work, so nothing is ever dropped.
 
 numpy twin: ``evsemmap_warp/reference/hash_table.py``.
 """
@@ -70,34 +74,65 @@ def hash_slot(key: wp.int64, mask: int) -> int:
 BRICK_CELLS = 8
 # How many threads ahead a brick is prefetched (``prefetch_brick``; 4 to 64 measured alike on CPU).
 PREFETCH_AHEAD = wp.constant(16)
+# ... and how many threads ahead its rows are, once its table line has arrived.
+PREFETCH_NEARER = wp.constant(8)
 
 
 @wp.func_native("""
 #if !defined(__CUDA_ARCH__)
 __builtin_prefetch(&keys.data[slot]);
-const char* row = (const char*)data.data + (size_t)slot * data.strides[0];
-const int bytes = rows * data.strides[0];
-for (int offset = 0; offset < bytes; offset += 64) __builtin_prefetch(row + offset, 1);
+__builtin_prefetch(&slot_rows.data[slot]);
 #endif
 """)
-def _prefetch_slots(keys: wp.array(dtype=wp.int64), data: wp.array2d(dtype=wp.float64), slot: int, rows: int): ...
+def _prefetch_slot(keys: wp.array(dtype=wp.int64), slot_rows: wp.array(dtype=int), slot: int): ...
+
+
+@wp.func_native("""
+#if !defined(__CUDA_ARCH__)
+// The row stored at the home slot, if any; the brick's cells were inserted together, so their rows
+// usually follow it. A prefetch of a wrong or past-the-end address is harmless (it never faults).
+const int stored = slot_rows.data[slot];
+if (stored > 0) {
+    const char* row = (const char*)data.data + (size_t)(stored - 1) * data.strides[0];
+    const int bytes = rows * data.strides[0];
+    for (int offset = 0; offset < bytes; offset += 64) __builtin_prefetch(row + offset, 1);
+}
+#endif
+""")
+def _prefetch_rows(slot_rows: wp.array(dtype=int), data: wp.array2d(dtype=wp.float64), slot: int, rows: int): ...
 
 
 @wp.func
-def prefetch_brick(keys: wp.array(dtype=wp.int64), data: wp.array2d(dtype=wp.float64), first_cell: wp.vec3i):
-    """Ask the CPU to start loading the table line and the value rows of the brick whose first cell
-    (lowest index per axis) is ``first_cell``, at its home slots. A hint only, compiled out on CUDA.
+def prefetch_brick(keys: wp.array(dtype=wp.int64), slot_rows: wp.array(dtype=int), data: wp.array2d(dtype=wp.float64),
+                   first_cell_ahead: wp.vec3i, first_cell_nearer: wp.vec3i):
+    """Ask the CPU to start loading a brick's table lines, and the value rows of a nearer brick whose
+    table lines were asked for earlier (bricks given by their first cell, lowest index per axis, at
+    their home slots). A hint only, compiled out on CUDA.
 
     A serial CPU launch walks its threads in order, and a thread that waits for its brick's cache lines
     waits alone: the core's reorder window holds about one block's work. Kernels that visit one brick
-    per thread call this for the brick a few threads ahead, so that its lines arrive while the current
-    one computes (finding a brick's 8 stored cells: ~285 -> ~100 ns; tools/kernel_study.py times the
-    gather kernels with and without it)."""
-    _prefetch_slots(keys, data, hash_slot(pack_key(first_cell[0], first_cell[1], first_cell[2]), keys.shape[0] - 1), BRICK_CELLS)
+    per thread call this with the bricks PREFETCH_AHEAD and PREFETCH_NEARER threads ahead: the
+    rows' place is read from a table line that has arrived by then (finding a brick's 8 stored cells:
+    ~285 -> ~100 ns; tools/kernel_study.py times the gather kernels with and without it)."""
+    mask = keys.shape[0] - 1
+    _prefetch_slot(keys, slot_rows, hash_slot(pack_key(first_cell_ahead[0], first_cell_ahead[1], first_cell_ahead[2]), mask))
+    _prefetch_rows(slot_rows, data, hash_slot(pack_key(first_cell_nearer[0], first_cell_nearer[1], first_cell_nearer[2]), mask), BRICK_CELLS)
 
 
 @wp.func
-def table_find(keys: wp.array(dtype=wp.int64), key: wp.int64) -> int:
+def slot_row(slot_rows: wp.array(dtype=int), slot: int) -> int:
+    """The row of an occupied slot (-1 for slot -1). On a GPU a key can be seen before its inserter has
+    published the row: that reader waits for it (an atomic read, so the load is not hoisted)."""
+    if slot < 0:
+        return -1
+    stored = slot_rows[slot]
+    while stored == 0:
+        stored = wp.atomic_add(slot_rows, slot, 0)
+    return stored - 1
+
+
+@wp.func
+def table_find_slot(keys: wp.array(dtype=wp.int64), key: wp.int64) -> int:
     """Slot holding ``key``, or -1 when it is absent (the empty sentinel is never a stored key)."""
     if key == _EMPTY:
         return -1
@@ -114,11 +149,17 @@ def table_find(keys: wp.array(dtype=wp.int64), key: wp.int64) -> int:
 
 
 @wp.func
+def table_find(keys: wp.array(dtype=wp.int64), slot_rows: wp.array(dtype=int), key: wp.int64) -> int:
+    """Row of ``key``, or -1 when it is absent."""
+    return slot_row(slot_rows, table_find_slot(keys, key))
+
+
+@wp.func
 def table_find_or_insert(
-    keys: wp.array(dtype=wp.int64), key_count: wp.array(dtype=int), max_count: int, key: wp.int64
+    keys: wp.array(dtype=wp.int64), slot_rows: wp.array(dtype=int), key_count: wp.array(dtype=int), max_count: int, key: wp.int64
 ) -> int:
-    """Slot of ``key``, inserting it if absent; -1 when the table is at ``max_count`` keys (or for
-    the empty sentinel, which no in-range index packs to)."""
+    """Row of ``key``, inserting it if absent (its row: the key count before it); -1 when the table is
+    at ``max_count`` keys (or for the empty sentinel, which no in-range index packs to)."""
     if key == _EMPTY:
         return -1
     mask = keys.shape[0] - 1
@@ -126,16 +167,19 @@ def table_find_or_insert(
     for _probe in range(keys.shape[0]):
         k = keys[slot]
         if k == key:
-            return slot
+            return slot_row(slot_rows, slot)
         if k == _EMPTY:
             if key_count[0] >= max_count:
                 return -1
             old = wp.atomic_cas(keys, slot, _EMPTY, key)
             if old == _EMPTY:
-                wp.atomic_add(key_count, 0, 1)
-                return slot
+                # Every key holds a slot, so rows never pass the capacity, even when concurrent GPU
+                # inserters overshoot max_count.
+                row = wp.atomic_add(key_count, 0, 1)
+                slot_rows[slot] = row + 1
+                return row
             if old == key:
-                return slot
+                return slot_row(slot_rows, slot)
         slot = (slot + 1) & mask
     return -1
 
@@ -144,22 +188,24 @@ def table_find_or_insert(
 def insert_keys(
     keys_in: wp.array(dtype=wp.int64),
     table_keys: wp.array(dtype=wp.int64),
+    slot_rows: wp.array(dtype=int),
     key_count: wp.array(dtype=int),
     max_count: int,
-    slots_out: wp.array(dtype=int),
+    rows_out: wp.array(dtype=int),
 ):
     i = wp.tid()
-    slots_out[i] = table_find_or_insert(table_keys, key_count, max_count, keys_in[i])
+    rows_out[i] = table_find_or_insert(table_keys, slot_rows, key_count, max_count, keys_in[i])
 
 
 @wp.kernel
 def lookup_keys(
     keys_in: wp.array(dtype=wp.int64),
     table_keys: wp.array(dtype=wp.int64),
-    slots_out: wp.array(dtype=int),
+    slot_rows: wp.array(dtype=int),
+    rows_out: wp.array(dtype=int),
 ):
     i = wp.tid()
-    slots_out[i] = table_find(table_keys, keys_in[i])
+    rows_out[i] = table_find(table_keys, slot_rows, keys_in[i])
 
 
 @wp.func
@@ -178,9 +224,10 @@ def lookup_points(
     resolution: wp.float64,
     grid_offset: wp.float64,
     table_keys: wp.array(dtype=wp.int64),
-    slots_out: wp.array(dtype=int),
+    slot_rows: wp.array(dtype=int),
+    rows_out: wp.array(dtype=int),
 ):
-    """Slot of the voxel containing each point (voxel i spans [i r + o, (i + 1) r + o), coordinates
+    """Row of the voxel containing each point (voxel i spans [i r + o, (i + 1) r + o), coordinates
     relative to the map origin); -1 for points outside the key range or in voxels not stored."""
     i = wp.tid()
     p = points[i]
@@ -188,36 +235,29 @@ def lookup_points(
     iy = voxel_index_of(p[1] - grid_offset, resolution)
     iz = voxel_index_of(p[2] - grid_offset, resolution)
     if ix == _KEY_OFFSET or iy == _KEY_OFFSET or iz == _KEY_OFFSET:
-        slots_out[i] = -1
+        rows_out[i] = -1
     else:
-        slots_out[i] = table_find(table_keys, pack_key(ix, iy, iz))
+        rows_out[i] = table_find(table_keys, slot_rows, pack_key(ix, iy, iz))
 
 
 @wp.kernel
 def rehash(
     old_keys: wp.array(dtype=wp.int64),
+    old_slot_rows: wp.array(dtype=int),
     new_keys: wp.array(dtype=wp.int64),
-    new_count: wp.array(dtype=int),
-    new_slot_of_old: wp.array(dtype=int),
+    new_slot_rows: wp.array(dtype=int),
 ):
-    """Insert every key of the old table into the new one; -1 marks empty old slots."""
+    """Insert every key of the old table into the new one, with its row (rows stay where they are)."""
     i = wp.tid()
     key = old_keys[i]
-    if key == _EMPTY:
-        new_slot_of_old[i] = -1
-    else:
-        new_slot_of_old[i] = table_find_or_insert(new_keys, new_count, new_keys.shape[0], key)
-
-
-@wp.kernel
-def move_rows(src: wp.array2d(dtype=wp.float64), dst: wp.array2d(dtype=wp.float64), dst_rows: wp.array(dtype=int)):
-    """dst[dst_rows[i], :] = src[i, :] for every i with dst_rows[i] >= 0 (values follow a rehash).
-    Not generic: a generic kernel would be instantiated lazily on first use, inside a worker thread."""
-    i = wp.tid()
-    row = dst_rows[i]
-    if row >= 0:
-        for c in range(src.shape[1]):
-            dst[row, c] = src[i, c]
+    if key != _EMPTY:
+        mask = new_keys.shape[0] - 1
+        slot = hash_slot(key, mask)
+        for _probe in range(new_keys.shape[0]):
+            if wp.atomic_cas(new_keys, slot, _EMPTY, key) == _EMPTY:
+                new_slot_rows[slot] = old_slot_rows[i]
+                return
+            slot = (slot + 1) & mask
 
 
 @wp.kernel

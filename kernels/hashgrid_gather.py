@@ -24,8 +24,8 @@ f64 = wp.float64
 
 @wp.kernel
 def mark_reached(points: wp.array(dtype=wp.vec3d), lengths: wp.array(dtype=wp.float64), resolution: wp.float64,
-                 grid_offset: wp.float64, scan_keys: wp.array(dtype=wp.int64), scan_count: wp.array(dtype=int),
-                 max_count: int, failed: wp.array(dtype=int)):
+                 grid_offset: wp.float64, scan_keys: wp.array(dtype=wp.int64), scan_rows: wp.array(dtype=int),
+                 scan_count: wp.array(dtype=int), max_count: int, failed: wp.array(dtype=int)):
     i = wp.tid()
     p = points[i]
     reach = lengths[i]
@@ -37,7 +37,7 @@ def mark_reached(points: wp.array(dtype=wp.vec3d), lengths: wp.array(dtype=wp.fl
             for iz in range(voxel_of(p[2] - reach, resolution, grid_offset), voxel_of(p[2] + reach, resolution, grid_offset) + 1):
                 dz = (f64(iz) + _HALF) * resolution + grid_offset - p[2]
                 if dx * dx + dy * dy + dz * dz < reach2:
-                    if table_find_or_insert(scan_keys, scan_count, max_count, pack_key(ix, iy, iz)) < 0:
+                    if table_find_or_insert(scan_keys, scan_rows, scan_count, max_count, pack_key(ix, iy, iz)) < 0:
                         failed[0] = 1
 
 
@@ -46,14 +46,14 @@ def gather_voxels(scan_keys: wp.array(dtype=wp.int64), grid: wp.uint64, points: 
                   lengths: wp.array(dtype=wp.float64), longest: wp.float64, labels: wp.array(dtype=int),
                   class_weights: wp.array2d(dtype=wp.float64), use_labels: int, point_uncertainty: wp.array(dtype=wp.float64),
                   resolution: wp.float64, grid_offset: wp.float64, sigma0: wp.float64, table_keys: wp.array(dtype=wp.int64),
-                  key_count: wp.array(dtype=int), max_count: int, voxel_data: wp.array2d(dtype=wp.float64),
+                  slot_rows: wp.array(dtype=int), key_count: wp.array(dtype=int), max_count: int, voxel_data: wp.array2d(dtype=wp.float64),
                   failed: wp.array(dtype=int), update_count: wp.array(dtype=wp.int64)):
     s = wp.tid()
     key = scan_keys[s]
     if key == wp.int64(-1):
         return
-    slot = table_find_or_insert(table_keys, key_count, max_count, key)
-    if slot < 0:
+    row = table_find_or_insert(table_keys, slot_rows, key_count, max_count, key)
+    if row < 0:
         failed[s] = 1
         return
     v = unpack_key(key)
@@ -76,15 +76,15 @@ def gather_voxels(scan_keys: wp.array(dtype=wp.int64), grid: wp.uint64, points: 
         if d2 < length * length:
             w = sparse_kernel(wp.sqrt(d2), length, sigma0)
             if use_labels == 1:
-                voxel_data[slot, labels[i]] = voxel_data[slot, labels[i]] + w
+                voxel_data[row, labels[i]] = voxel_data[row, labels[i]] + w
             else:
                 for c in range(num_classes):
-                    voxel_data[slot, c] = voxel_data[slot, c] + w * class_weights[i, c]
+                    voxel_data[row, c] = voxel_data[row, c] + w * class_weights[i, c]
             weight_sum += w
             weighted_u += w * point_uncertainty[i]
             hits += 1
-    voxel_data[slot, num_classes + COL_WEIGHT] = voxel_data[slot, num_classes + COL_WEIGHT] + weight_sum
-    voxel_data[slot, num_classes + COL_WEIGHTED_UNCERTAINTY] = voxel_data[slot, num_classes + COL_WEIGHTED_UNCERTAINTY] + weighted_u
-    voxel_data[slot, num_classes + COL_HITS] = voxel_data[slot, num_classes + COL_HITS] + f64(hits)
-    voxel_data[slot, num_classes + COL_TOUCHED] = _ONE
+    voxel_data[row, num_classes + COL_WEIGHT] = voxel_data[row, num_classes + COL_WEIGHT] + weight_sum
+    voxel_data[row, num_classes + COL_WEIGHTED_UNCERTAINTY] = voxel_data[row, num_classes + COL_WEIGHTED_UNCERTAINTY] + weighted_u
+    voxel_data[row, num_classes + COL_HITS] = voxel_data[row, num_classes + COL_HITS] + f64(hits)
+    voxel_data[row, num_classes + COL_TOUCHED] = _ONE
     wp.atomic_add(update_count, 0, wp.int64(hits))

@@ -24,7 +24,7 @@ import functools
 
 import warp as wp
 
-from .hash_table import PREFETCH_AHEAD, pack_key, prefetch_brick, table_find_or_insert
+from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, pack_key, prefetch_brick, table_find_or_insert
 from .scatter import (_BELIEF_EPSILON, _ONE, _ZERO, COL_HITS, COL_TOUCHED, COL_WEIGHT, COL_WEIGHTED_UNCERTAINTY,
                       FUSION_DEMPSTER, sbki_voxel_center)
 
@@ -98,7 +98,7 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, prefetc
     # Sums per class and cell, cells along the rows: a point's class row adds to all cells as vectors.
     class_cell_sums = wp.types.matrix(shape=(num_classes, n3), dtype=wp.float64)
     cell_scalars = wp.types.vector(length=n3, dtype=wp.float64)
-    cell_slots = wp.types.vector(length=n3, dtype=int)
+    cell_rows = wp.types.vector(length=n3, dtype=int)
     cell_centres = wp.types.matrix(shape=(n3, 3), dtype=wp.float32)
 
     @wp.kernel(module="unique", module_options={"max_unroll": 1})
@@ -117,6 +117,7 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, prefetc
         resolution: float,
         fusion: int,
         table_keys: wp.array(dtype=wp.int64),
+        slot_rows: wp.array(dtype=int),
         key_count: wp.array(dtype=int),
         max_count: int,
         voxel_data: wp.array2d(dtype=wp.float64),
@@ -132,19 +133,20 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, prefetc
         t = wp.tid()
         half = wp.vec3i(n // 2, n // 2, n // 2)
         if wp.static(prefetch):
-            if t + PREFETCH_AHEAD < launch_ids.shape[0]:
-                prefetch_brick(table_keys, voxel_data, blocks[block_ids[launch_ids[t + PREFETCH_AHEAD]]] * n - half)
+            last = launch_ids.shape[0] - 1
+            prefetch_brick(table_keys, slot_rows, voxel_data, blocks[block_ids[launch_ids[wp.min(t + PREFETCH_AHEAD, last)]]] * n - half,
+                           blocks[block_ids[launch_ids[wp.min(t + PREFETCH_NEARER, last)]]] * n - half)
         b = block_ids[launch_ids[t]]
         first = blocks[b] * n - half
         # The block's cells are found or inserted first: a block that does not fit adds nothing and is
         # relaunched after the table grew.
-        slots = cell_slots()
+        rows = cell_rows()
         for j in range(n3):
-            slot = table_find_or_insert(table_keys, key_count, max_count, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
-            if slot < 0:
+            row = table_find_or_insert(table_keys, slot_rows, key_count, max_count, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
+            if row < 0:
                 failed[t] = 1
                 return
-            slots[j] = slot
+            rows[j] = row
         centres = cell_centres()
         for j in range(n3):
             centre = sbki_voxel_center(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n, resolution, 0.0)
@@ -215,15 +217,15 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, prefetc
         k = num_classes
         total_hits = _ZERO
         for j in range(n3):
-            slot = slots[j]
-            voxel_data[slot, num_classes + COL_TOUCHED] = _ONE
+            row = rows[j]
+            voxel_data[row, num_classes + COL_TOUCHED] = _ONE
             for c in range(num_classes):
                 if fusion == FUSION_DEMPSTER:
                     evidence[c, j] = evidence[c, j] + wp.log(commonality[j, c])
-                voxel_data[slot, c] = voxel_data[slot, c] + evidence[c, j]
-            voxel_data[slot, k + COL_WEIGHT] = voxel_data[slot, k + COL_WEIGHT] + weight_sum[j]
-            voxel_data[slot, k + COL_WEIGHTED_UNCERTAINTY] = voxel_data[slot, k + COL_WEIGHTED_UNCERTAINTY] + weighted_u[j]
-            voxel_data[slot, k + COL_HITS] = voxel_data[slot, k + COL_HITS] + hits[j]
+                voxel_data[row, c] = voxel_data[row, c] + evidence[c, j]
+            voxel_data[row, k + COL_WEIGHT] = voxel_data[row, k + COL_WEIGHT] + weight_sum[j]
+            voxel_data[row, k + COL_WEIGHTED_UNCERTAINTY] = voxel_data[row, k + COL_WEIGHTED_UNCERTAINTY] + weighted_u[j]
+            voxel_data[row, k + COL_HITS] = voxel_data[row, k + COL_HITS] + hits[j]
             total_hits += hits[j]
         wp.atomic_add(update_count, 0, wp.int64(total_hits))
 

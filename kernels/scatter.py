@@ -237,12 +237,12 @@ def range_end(mode: int, p: wp.vec3d, reach: wp.float64, owner: wp.vec3i, resolu
 
 
 @wp.func
-def record_contribution(voxel_data: wp.array2d(dtype=wp.float64), slot: int, num_classes: int, w: wp.float64, u: wp.float64):
+def record_contribution(voxel_data: wp.array2d(dtype=wp.float64), voxel_row: int, num_classes: int, w: wp.float64, u: wp.float64):
     """The per-voxel bookkeeping of one contribution: weight and weight * uncertainty sums, count, touched."""
-    wp.atomic_add(voxel_data, slot, num_classes + COL_WEIGHT, w)
-    wp.atomic_add(voxel_data, slot, num_classes + COL_WEIGHTED_UNCERTAINTY, w * u)
-    wp.atomic_add(voxel_data, slot, num_classes + COL_HITS, _ONE)
-    voxel_data[slot, num_classes + COL_TOUCHED] = _ONE
+    wp.atomic_add(voxel_data, voxel_row, num_classes + COL_WEIGHT, w)
+    wp.atomic_add(voxel_data, voxel_row, num_classes + COL_WEIGHTED_UNCERTAINTY, w * u)
+    wp.atomic_add(voxel_data, voxel_row, num_classes + COL_HITS, _ONE)
+    voxel_data[voxel_row, num_classes + COL_TOUCHED] = _ONE
 
 
 @wp.func
@@ -272,6 +272,7 @@ def scatter_points(
     stencil_weights: wp.array2d(dtype=wp.float64),
     stencil_half: int,
     table_keys: wp.array(dtype=wp.int64),
+    slot_rows: wp.array(dtype=int),
     key_count: wp.array(dtype=int),
     max_count: int,
     voxel_data: wp.array2d(dtype=wp.float64),
@@ -338,7 +339,7 @@ def scatter_points(
                             if (not by_distance or d2 < reach2) and bxyz <= 1 and stencil_mass > _ZERO:
                                 key = pack_key(ix, iy, iz)
                                 if pass_index == 0:
-                                    if table_find_or_insert(table_keys, key_count, max_count, key) < 0:
+                                    if table_find_or_insert(table_keys, slot_rows, key_count, max_count, key) < 0:
                                         failed[t] = 1
                                         return
                                     continue
@@ -351,16 +352,16 @@ def scatter_points(
                                 elif mode == MODE_SBKI_BLOCKS:
                                     w = f64(sbki_sparse_kernel(sbki_voxel_center(ix, iy, iz, resolution32, offset32), p32, length32, sigma32))
                                 if mode != MODE_SBKI_BLOCKS or w > _ZERO:  # the C++ adds only positive kernel values
-                                    slot = table_find(table_keys, key)
-                                    if slot < 0:
+                                    voxel_row = table_find(table_keys, slot_rows, key)
+                                    if voxel_row < 0:
                                         # Only reachable in the compat modes, if a target cell was not pre-inserted.
                                         failed[t] = 1
                                         return
                                     if use_labels == 1:
-                                        wp.atomic_add(voxel_data, slot, labels[i], w)
+                                        wp.atomic_add(voxel_data, voxel_row, labels[i], w)
                                     elif mode == MODE_STENCIL:
                                         for c in range(num_classes):
-                                            wp.atomic_add(voxel_data, slot, c, stencil_weights[row, c] * class_weights[i, c])
+                                            wp.atomic_add(voxel_data, voxel_row, c, stencil_weights[row, c] * class_weights[i, c])
                                     elif fusion == FUSION_DEMPSTER:
                                         w = wp.min(w, _ONE)
                                         committed = _ZERO
@@ -369,11 +370,11 @@ def scatter_points(
                                         uncommitted = wp.max(_ONE - committed, _BELIEF_EPSILON)
                                         for c in range(num_classes):
                                             b = wp.clamp(class_weights[i, c] * w, _ZERO, _ONE - _BELIEF_EPSILON)
-                                            wp.atomic_add(voxel_data, slot, c, wp.log(_ONE + b / uncommitted))
+                                            wp.atomic_add(voxel_data, voxel_row, c, wp.log(_ONE + b / uncommitted))
                                     else:
                                         for c in range(num_classes):
-                                            wp.atomic_add(voxel_data, slot, c, w * class_weights[i, c])
-                                    record_contribution(voxel_data, slot, num_classes, w, u)
+                                            wp.atomic_add(voxel_data, voxel_row, c, w * class_weights[i, c])
+                                    record_contribution(voxel_data, voxel_row, num_classes, w, u)
                                     n_updates += wp.int64(1)
     wp.atomic_add(update_count, 0, n_updates)
 
@@ -402,6 +403,7 @@ def scatter_block_targets(
     grid_offset: wp.float64,
     cells_per_block: int,
     table_keys: wp.array(dtype=wp.int64),
+    slot_rows: wp.array(dtype=int),
     key_count: wp.array(dtype=int),
     max_count: int,
     voxel_data: wp.array2d(dtype=wp.float64),
@@ -432,14 +434,14 @@ def scatter_block_targets(
                             iz = first[2] + jz
                             key = pack_key(ix, iy, iz)
                             if pass_index == 0:
-                                if table_find_or_insert(table_keys, key_count, max_count, key) < 0:
+                                if table_find_or_insert(table_keys, slot_rows, key_count, max_count, key) < 0:
                                     failed[t] = 1
                                     return
                             else:
-                                slot = table_find(table_keys, key)
+                                voxel_row = table_find(table_keys, slot_rows, key)
                                 w = wp.max(_ONE - wp.length(voxel_center(ix, iy, iz, resolution, grid_offset) - p) / ell, _ZERO)
-                                wp.atomic_add(voxel_data, slot, labels[i], w)
-                                record_contribution(voxel_data, slot, num_classes, w, u)
+                                wp.atomic_add(voxel_data, voxel_row, labels[i], w)
+                                record_contribution(voxel_data, voxel_row, num_classes, w, u)
                                 n_updates += wp.int64(1)
     wp.atomic_add(update_count, 0, n_updates)
 
@@ -451,6 +453,7 @@ def insert_block_cells(
     cells_per_block: int,
     mark_touched: int,
     table_keys: wp.array(dtype=wp.int64),
+    slot_rows: wp.array(dtype=int),
     key_count: wp.array(dtype=int),
     max_count: int,
     voxel_data: wp.array2d(dtype=wp.float64),
@@ -466,11 +469,11 @@ def insert_block_cells(
     for jx in range(n):
         for jy in range(n):
             for jz in range(n):
-                slot = table_find_or_insert(table_keys, key_count, max_count, pack_key(first[0] + jx, first[1] + jy, first[2] + jz))
-                if slot < 0:
+                voxel_row = table_find_or_insert(table_keys, slot_rows, key_count, max_count, pack_key(first[0] + jx, first[1] + jy, first[2] + jz))
+                if voxel_row < 0:
                     ok = 0
                 elif mark_touched == 1:
-                    voxel_data[slot, touched_column] = _ONE
+                    voxel_data[voxel_row, touched_column] = _ONE
     if ok == 0:
         failed[t] = 1
 

@@ -100,7 +100,7 @@ def reduce_voxels(starts: wp.array(dtype=int), pair_count: int, sorted_keys: wp.
                   sorted_ids: wp.array(dtype=int), pair_point: wp.array(dtype=int), pair_weight: wp.array(dtype=wp.float64),
                   labels: wp.array(dtype=int), class_weights: wp.array2d(dtype=wp.float64), use_labels: int,
                   point_uncertainty: wp.array(dtype=wp.float64), table_keys: wp.array(dtype=wp.int64),
-                  key_count: wp.array(dtype=int), max_count: int, voxel_data: wp.array2d(dtype=wp.float64),
+                  slot_rows: wp.array(dtype=int), key_count: wp.array(dtype=int), max_count: int, voxel_data: wp.array2d(dtype=wp.float64),
                   failed: wp.array(dtype=int)):
     """Distinct voxel v: its pairs are sorted pairs starts[v] .. starts[v + 1] - 1 (the last runs to
     pair_count). One find-or-insert, then its row gets the sums of its pairs, in pair order."""
@@ -109,8 +109,8 @@ def reduce_voxels(starts: wp.array(dtype=int), pair_count: int, sorted_keys: wp.
     last = pair_count
     if v + 1 < starts.shape[0]:
         last = starts[v + 1]
-    slot = table_find_or_insert(table_keys, key_count, max_count, sorted_keys[first])
-    if slot < 0:
+    row = table_find_or_insert(table_keys, slot_rows, key_count, max_count, sorted_keys[first])
+    if row < 0:
         failed[v] = 1
         return
     num_classes = voxel_data.shape[1] - 4
@@ -121,13 +121,13 @@ def reduce_voxels(starts: wp.array(dtype=int), pair_count: int, sorted_keys: wp.
         i = pair_point[pair]
         w = pair_weight[pair]
         if use_labels == 1:
-            voxel_data[slot, labels[i]] = voxel_data[slot, labels[i]] + w
+            voxel_data[row, labels[i]] = voxel_data[row, labels[i]] + w
         else:
             for c in range(num_classes):
-                voxel_data[slot, c] = voxel_data[slot, c] + w * class_weights[i, c]
+                voxel_data[row, c] = voxel_data[row, c] + w * class_weights[i, c]
         weight_sum += w
         weighted_u += w * point_uncertainty[i]
-    voxel_data[slot, num_classes + COL_WEIGHT] = voxel_data[slot, num_classes + COL_WEIGHT] + weight_sum
-    voxel_data[slot, num_classes + COL_WEIGHTED_UNCERTAINTY] = voxel_data[slot, num_classes + COL_WEIGHTED_UNCERTAINTY] + weighted_u
-    voxel_data[slot, num_classes + COL_HITS] = voxel_data[slot, num_classes + COL_HITS] + f64(last - first)
-    voxel_data[slot, num_classes + COL_TOUCHED] = _ONE
+    voxel_data[row, num_classes + COL_WEIGHT] = voxel_data[row, num_classes + COL_WEIGHT] + weight_sum
+    voxel_data[row, num_classes + COL_WEIGHTED_UNCERTAINTY] = voxel_data[row, num_classes + COL_WEIGHTED_UNCERTAINTY] + weighted_u
+    voxel_data[row, num_classes + COL_HITS] = voxel_data[row, num_classes + COL_HITS] + f64(last - first)
+    voxel_data[row, num_classes + COL_TOUCHED] = _ONE

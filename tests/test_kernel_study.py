@@ -130,11 +130,13 @@ def test_hashgrid_stages_match_their_twins():
     keys = wp.full(4096, -1, dtype=wp.int64, device="cpu")
     count, failed = wp.zeros(1, dtype=int, device="cpu"), wp.zeros(1, dtype=int, device="cpu")
     wp.launch(hg.mark_reached, dim=150, inputs=[wp.array(pts, dtype=wp.vec3d, device="cpu"), wp.array(lengths, dtype=wp.float64, device="cpu"),
-                                                wp.float64(0.2), wp.float64(0.0), keys, count, 4096, failed], device="cpu")
+                                                wp.float64(0.2), wp.float64(0.0), keys, wp.zeros(4096, dtype=int, device="cpu"), count, 4096, failed],
+              device="cpu")
     got = np.sort(keys.numpy()[keys.numpy() != -1])
     np.testing.assert_array_equal(got, hg_ref.mark_reached(pts, lengths, 0.2, 0.0))
     assert int(count.numpy()[0]) == len(got) and not failed.numpy()[0]
     tiny = wp.full(8, -1, dtype=wp.int64, device="cpu")  # a full key set reports instead of dropping
     wp.launch(hg.mark_reached, dim=150, inputs=[wp.array(pts, dtype=wp.vec3d, device="cpu"), wp.array(lengths, dtype=wp.float64, device="cpu"),
-                                                wp.float64(0.2), wp.float64(0.0), tiny, wp.zeros(1, dtype=int, device="cpu"), 4, failed], device="cpu")
+                                                wp.float64(0.2), wp.float64(0.0), tiny, wp.zeros(8, dtype=int, device="cpu"), wp.zeros(1, dtype=int, device="cpu"), 4,
+                                                failed], device="cpu")
     assert failed.numpy()[0] == 1

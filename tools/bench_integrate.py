@@ -28,6 +28,7 @@ line printed is one JSON object: row name -> input points per second.
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import statistics
 import sys
@@ -86,7 +87,7 @@ def release_counts(config: MappingConfig, scans) -> int:
 def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, repeats, progress, workers=None, pipelined=False):
     warm = Mapper(config, 9, device=device, workers=workers)
     warm.integrate(scans[0].points[:1000], payloads[0][:1000], payload_type=payload_type, sensor_origin=scans[0].sensor_origin)
-    runs = []
+    runs, first = [], None
     for _ in range(repeats):
         mapper = Mapper(config, 9, device=device, workers=workers)
         if pipelined:
@@ -101,15 +102,20 @@ def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, re
                 all_stats.append(mapper.integrate(scan.points, payload, payload_type=payload_type, sensor_origin=scan.sensor_origin))
                 elapsed += time.perf_counter() - start
                 progress.update(len(scan.points))
-        runs.append((elapsed, sum(s.voxel_updates for s in all_stats), sum(s.kept_points for s in all_stats), mapper))
-    elapsed = statistics.median(r[0] for r in runs)
-    _, updates, kept, mapper = runs[0]
-    counts = mapper.state_counts()
-    return {
-        "seconds": elapsed, "voxel_updates": updates, "kept_or_training_points": kept,
-        "voxels": mapper.voxel_count, "free": counts["FREE"], "occupied": counts["OCCUPIED"],
-        "bytes_per_voxel": round(mapper.device_bytes / max(mapper.voxel_count, 1), 1), "workers": len(mapper.shards), "all_seconds": [round(r[0], 3) for r in runs],
-    }
+        runs.append(elapsed)
+        if first is None:
+            counts = mapper.state_counts()
+            first = {
+                "voxel_updates": sum(s.voxel_updates for s in all_stats), "kept_or_training_points": sum(s.kept_points for s in all_stats),
+                "voxels": mapper.voxel_count, "free": counts["FREE"], "occupied": counts["OCCUPIED"],
+                "bytes_per_voxel": round(mapper.device_bytes / max(mapper.voxel_count, 1), 1), "workers": len(mapper.shards),
+            }
+        # Each map is released before the next repeat: on this project's VMs memory the process has not
+        # touched before faults in ~1.5x slower (fr4, 1 thread: 1.9 s with the earlier maps released,
+        # 3.0 s with them kept), which made every repeat after the first slower than the first.
+        del mapper, all_stats
+        gc.collect()
+    return first | {"seconds": statistics.median(runs), "all_seconds": [round(r, 3) for r in runs]}
 
 
 def time_numpy(config: MappingConfig, scans, payloads, repeats: int):

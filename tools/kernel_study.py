@@ -243,20 +243,21 @@ def hash_microbench(device, quick, repeats):
                 index = np.column_stack([gx.ravel(), gy.ravel(), (np.sin(gx.ravel() / 7.0) * 3).astype(int)])[:n]
             keys = wp.array(np.unique(pack_voxel_keys(index)), dtype=wp.int64, device=device)
             m = keys.shape[0]
-            slots = wp.empty(m, dtype=int, device=device)
+            rows = wp.empty(m, dtype=int, device=device)
 
             def insert():
                 table = wp.full(capacity, ht.EMPTY_KEY, dtype=wp.int64, device=device)
+                slot_rows = wp.zeros(capacity, dtype=int, device=device)
                 count = wp.zeros(1, dtype=int, device=device)
-                wp.launch(ht.insert_keys, dim=m, inputs=[keys, table, count, capacity, slots], device=device)
+                wp.launch(ht.insert_keys, dim=m, inputs=[keys, table, slot_rows, count, capacity, rows], device=device)
                 wp.synchronize_device(device)
-                return table
+                return table, slot_rows
 
-            table = insert()
+            table, slot_rows = insert()
             insert_s = timed(insert, repeats)
 
             def find():
-                wp.launch(ht.lookup_keys, dim=m, inputs=[keys, table, slots], device=device)
+                wp.launch(ht.lookup_keys, dim=m, inputs=[keys, table, slot_rows, rows], device=device)
                 wp.synchronize_device(device)
 
             find_s = timed(find, repeats)

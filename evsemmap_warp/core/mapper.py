@@ -409,9 +409,9 @@ class Mapper:
         if self.origin_index is not None and m:
             local = self._local(points)
             for shard in self.shards:
-                slots = shard.lookup_points(local)
-                rows += shard.rows_at(slots)
-                found |= slots >= 0
+                voxel_rows = shard.lookup_points(local)
+                rows += shard.rows_at(voxel_rows)
+                found |= voxel_rows >= 0
         arrays = VoxelArrays.from_rows(np.zeros((m, 3), np.int64), rows)
         summary = self.summarize(arrays.evidence, arrays.touched)
         label = np.where(found, summary.label, UNKNOWN_LABEL).astype(np.int32)

@@ -2,7 +2,8 @@
 
 Voxel i spans [i r + o, (i + 1) r + o) on every axis in coordinates relative to the map origin
 (r = resolution, o = grid offset, 0 except for the S-CSM compatibility grid), so its centre is
-(i + 0.5) r + o. Per slot the map keeps one float64 row ``data`` [capacity, K + 4]:
+(i + 0.5) r + o. Per voxel the map keeps one float64 row of ``data`` [capacity, K + 4], rows in the
+order the voxels were inserted (the table's ``slot_rows`` says which row a slot's voxel has):
 
 * K columns of kernel-weighted evidence added so far; the Dirichlet concentrations are prior +
   evidence (stored without the prior so that fresh slots are zero pages and maps merge by addition);
@@ -10,7 +11,8 @@ Voxel i spans [i r + o, (i + 1) r + o) on every axis in coordinates relative to 
 * the number of contributions and the touched flag (1 once any update landed).
 
 float64, because evidence on a ground voxel of a long drive passes float32's 2^24 integer limit.
-The table grows (2x, rehash) before it passes ``max_load`` and whenever a launch runs out of room;
+The table grows (2x: keys and slot rows rehashed, used rows copied) before it passes ``max_load`` and
+whenever a launch runs out of room;
 the points or blocks that could not be inserted are relaunched, so a voxel is never dropped or
 overwritten. This class only launches kernels; methods, payloads and files live elsewhere.
 """
@@ -82,7 +84,9 @@ def _lazily_zeroed(shape, dtype, populate: bool = False) -> np.ndarray:
     ``populate``: map the pages at once (Linux's MAP_POPULATE, where the platform has it), for memory
     that will nearly all be written soon, such as a table grown at a quarter of its slots or more:
     one populating call costs about half of the faults it replaces (400 MB: 0.21 s against 0.39 s
-    of first writes in random order)."""
+    of first writes in random order). Memory written in order, as a grown row array's used rows are
+    copied to its front, is not populated: faulting it in as it is written cost the same as
+    MADV_POPULATE_WRITE on that part (0.13 s against 0.12 + 0.03 s at free_resolution 4)."""
     dtype = np.dtype(dtype)
     count = int(np.prod(shape, dtype=np.int64))
     if count == 0:
@@ -138,11 +142,12 @@ class VoxelMap:
             return wp.array(host, dtype=dtype, device="cpu", copy=False)
         return wp.full(shape, value, dtype=dtype, device=self.device)
 
-    def _allocate(self, capacity: int, *, populate: bool = False) -> None:
+    def _allocate(self, capacity: int) -> None:
         self.capacity = capacity
         self.keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
+        self.slot_rows = self._filled(capacity, 0, wp.int32)
         self.key_count = wp.zeros(1, dtype=int, device=self.device)
-        self.data = self._filled((capacity, self.num_classes + EXTRA_COLUMNS), 0.0, wp.float64, populate=populate)
+        self.data = self._filled((capacity, self.num_classes + EXTRA_COLUMNS), 0.0, wp.float64)
 
     @property
     def voxel_count(self) -> int:
@@ -150,8 +155,11 @@ class VoxelMap:
 
     @property
     def table_bytes(self) -> int:
-        """Device bytes of the table and its per-slot data (key, K + 4 float64 columns)."""
-        return (8 + 8 * (self.num_classes + EXTRA_COLUMNS)) * self.capacity
+        """Bytes the table holds: per slot its key and row (int64, int32), per row K + 4 float64 columns.
+        The row array has a row for every slot (each voxel holds a slot), but on the CPU its pages are
+        mapped only as rows are used, so there the rows of the stored voxels count; a GPU allocates all."""
+        rows = self.voxel_count if self.device == "cpu" else self.capacity
+        return 12 * self.capacity + 8 * (self.num_classes + EXTRA_COLUMNS) * rows
 
     def _launch_fill_limit(self) -> int:
         return max(1, int(self.capacity * LAUNCH_FILL_LIMIT))
@@ -166,16 +174,22 @@ class VoxelMap:
             self.grow(capacity)
 
     def grow(self, new_capacity: int) -> None:
-        """Rehash into a table of ``new_capacity`` slots (a power of two); values follow their keys."""
+        """Rehash into a table of ``new_capacity`` slots (a power of two); voxels keep their rows."""
         new_capacity = _next_pow2(new_capacity)
-        if new_capacity < self.voxel_count / LAUNCH_FILL_LIMIT:
-            raise ValueError(f"cannot shrink the table to {new_capacity} slots: it holds {self.voxel_count} voxels")
-        old_keys, old_data, old_capacity = self.keys, self.data, self.capacity
-        # A grown table is at least a quarter full once the voxels it was grown for are in.
-        self._allocate(new_capacity, populate=True)
-        new_slot = wp.empty(old_capacity, dtype=int, device=self.device)
-        wp.launch(ht.rehash, dim=old_capacity, inputs=[old_keys, self.keys, self.key_count, new_slot], device=self.device)
-        wp.launch(ht.move_rows, dim=old_capacity, inputs=[old_data, self.data, new_slot], device=self.device)
+        count = self.voxel_count
+        if new_capacity < count / LAUNCH_FILL_LIMIT:
+            raise ValueError(f"cannot shrink the table to {new_capacity} slots: it holds {count} voxels")
+        old_keys, old_slot_rows, old_data = self.keys, self.slot_rows, self.data
+        self.capacity = new_capacity
+        self.keys = self._filled(new_capacity, ht.EMPTY_KEY, wp.int64)
+        # A grown table is at least a quarter full once the voxels it was grown for are in: its slot rows
+        # are written all over, so they are mapped at once (see _lazily_zeroed).
+        self.slot_rows = self._filled(new_capacity, 0, wp.int32, populate=True)
+        wp.launch(ht.rehash, dim=len(old_keys), inputs=[old_keys, old_slot_rows, self.keys, self.slot_rows], device=self.device)
+        # The used rows are one block at the front: one copy, and the rest is mapped as it is used.
+        self.data = self._filled((new_capacity, old_data.shape[1]), 0.0, wp.float64)
+        if count:
+            wp.copy(self.data, old_data, count=count * old_data.shape[1])
         self.grow_count += 1
 
     # ------------------------------------------------------------------ launches
@@ -266,7 +280,7 @@ class VoxelMap:
 
         def launch(ids, failed):
             wp.launch(sc.scatter_points, dim=len(ids), device=d, inputs=[
-                ids, *inputs, self.keys, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
+                ids, *inputs, self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
 
         self._launch_until_done(n, launch, may_insert=mode in (sc.MODE_RADIUS, sc.MODE_OWN_VOXEL, sc.MODE_STENCIL), kind=f"scatter{mode}", most_new=n)
         return int(update_count.numpy()[0])
@@ -310,7 +324,7 @@ class VoxelMap:
         self.reserve(distinct)  # every distinct voxel fits: the reduction never fails for room
         failed = wp.zeros(distinct, dtype=int, device=d)
         wp.launch(ss.reduce_voxels, dim=distinct, device=d, inputs=[starts, pairs, keys, ids, pair_point, pair_weight, *inputs,
-                                                                    self.keys, self.key_count, self._launch_fill_limit(), self.data, failed])
+                                                                    self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), self.data, failed])
         if failed.numpy().any():
             raise RuntimeError("the sorted reduction ran out of table room after reserving it (a bug)")
         self.reserve(0)
@@ -333,9 +347,10 @@ class VoxelMap:
         capacity = _next_pow2(4 * n + 16)
         while True:
             scan_keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
+            scan_rows = self._filled(capacity, 0, wp.int32)
             scan_count = wp.zeros(1, dtype=int, device=d)
             failed = wp.zeros(1, dtype=int, device=d)
-            wp.launch(hg.mark_reached, dim=n, device=d, inputs=[points_wp, lengths_wp, res, offset, scan_keys, scan_count,
+            wp.launch(hg.mark_reached, dim=n, device=d, inputs=[points_wp, lengths_wp, res, offset, scan_keys, scan_rows, scan_count,
                                                                int(capacity * LAUNCH_FILL_LIMIT), failed])
             if not failed.numpy()[0]:
                 break
@@ -352,7 +367,7 @@ class VoxelMap:
             wp.array(np.ascontiguousarray(labels if use_labels else [], dtype=np.int32), dtype=int, device=d),
             _float_array(np.zeros((0, self.num_classes)) if use_labels else class_weights, d), int(use_labels),
             _float_array(point_uncertainty, d), res, offset, wp.float64(sigma0),
-            self.keys, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
+            self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
         if failed.numpy().any():
             raise RuntimeError("the hash-grid gather ran out of table room after reserving it (a bug)")
         self.reserve(0)
@@ -379,7 +394,7 @@ class VoxelMap:
 
         def launch(ids, failed):
             wp.launch(sc.scatter_block_targets, dim=len(ids), device=d, inputs=[
-                ids, *inputs, self.keys, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
+                ids, *inputs, self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
 
         self._launch_until_done(n, launch, may_insert=True, kind="block_targets", most_new=n * 7 * cells_per_block**3)
         return int(update_count.numpy()[0])
@@ -407,7 +422,7 @@ class VoxelMap:
 
         def launch(pending, failed):
             wp.launch(kernel, dim=len(pending), device=d, inputs=[
-                blocks, pending, ids, *rest, self.keys, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
+                blocks, pending, ids, *rest, self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
 
         self._launch_until_done(len(block_ids), launch, may_insert=True, kind=kind, most_new=len(block_ids) * cells_per_block**3)
         return int(update_count.numpy()[0])
@@ -424,64 +439,67 @@ class VoxelMap:
         def launch(ids, failed):
             wp.launch(sc.insert_block_cells, dim=len(ids), device=d, inputs=[
                 ids, blocks_wp, int(cells_per_block), int(mark_touched),
-                self.keys, self.key_count, self._launch_fill_limit(), self.data, failed])
+                self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), self.data, failed])
 
         self._launch_until_done(len(blocks), launch, may_insert=True, kind="block_cells", most_new=len(blocks) * cells_per_block**3)
 
     def insert_voxels(self, voxel_index: np.ndarray) -> np.ndarray:
-        """Insert voxel indices [V, 3]; returns their slots (growing as needed)."""
+        """Insert voxel indices [V, 3]; returns their rows (growing as needed)."""
         keys = wp.array(pack_voxel_keys(voxel_index), dtype=wp.int64, device=self.device)
         self.reserve(len(voxel_index))
         while True:
-            slots = wp.empty(len(voxel_index), dtype=int, device=self.device)
-            wp.launch(ht.insert_keys, dim=len(voxel_index), inputs=[keys, self.keys, self.key_count, self._launch_fill_limit(), slots], device=self.device)
-            slots_np = slots.numpy()
-            if (slots_np >= 0).all():
-                return slots_np
+            rows = wp.empty(len(voxel_index), dtype=int, device=self.device)
+            wp.launch(ht.insert_keys, dim=len(voxel_index), inputs=[keys, self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), rows],
+                      device=self.device)
+            rows_np = rows.numpy()
+            if (rows_np >= 0).all():
+                return rows_np
             self.grow(self.capacity * 2)
 
     def lookup_points(self, points: np.ndarray) -> np.ndarray:
-        """Slot of the voxel containing each point [M, 3], -1 where that voxel is not stored."""
+        """Row of the voxel containing each point [M, 3], -1 where that voxel is not stored."""
         if len(points) == 0:
             return np.zeros(0, dtype=np.int64)
-        slots = wp.empty(len(points), dtype=int, device=self.device)
+        rows = wp.empty(len(points), dtype=int, device=self.device)
         wp.launch(ht.lookup_points, dim=len(points), device=self.device,
-                  inputs=[_points_array(points, self.device), wp.float64(self.resolution_m), wp.float64(self.grid_offset_m), self.keys, slots])
-        return slots.numpy().astype(np.int64)
+                  inputs=[_points_array(points, self.device), wp.float64(self.resolution_m), wp.float64(self.grid_offset_m),
+                          self.keys, self.slot_rows, rows])
+        return rows.numpy().astype(np.int64)
 
     # ------------------------------------------------------------------ host views
-    def occupied_slots(self) -> np.ndarray:
-        """Slots that hold a key, in ascending key order."""
+    def stored_keys_and_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """The stored keys in ascending order and their rows."""
         keys = self.keys.numpy()
         slots = np.flatnonzero(keys != ht.EMPTY_KEY)
-        return slots[np.argsort(keys[slots], kind="stable")]
+        slots = slots[np.argsort(keys[slots], kind="stable")]
+        return keys[slots], self.slot_rows.numpy()[slots].astype(np.int64) - 1
 
     def arrays(self) -> VoxelArrays:
-        slots = self.occupied_slots()
-        return VoxelArrays.from_rows(unpack_voxel_keys(self.keys.numpy()[slots]), self.data.numpy()[slots])
+        keys, rows = self.stored_keys_and_rows()
+        return VoxelArrays.from_rows(unpack_voxel_keys(keys), self.data.numpy()[rows])
 
-    def rows_at(self, slots: np.ndarray) -> np.ndarray:
-        """The [len(slots), K + 4] data rows of the given slots (zeros for slot -1); copies only those
+    def rows_at(self, rows: np.ndarray) -> np.ndarray:
+        """The [len(rows), K + 4] data rows at the given row indices (zeros for -1); copies only those
         rows to the host."""
-        slots = np.asarray(slots, dtype=np.int64)
-        out = np.zeros((len(slots), self.num_classes + EXTRA_COLUMNS))
-        hit = np.flatnonzero(slots >= 0)
+        rows = np.asarray(rows, dtype=np.int64)
+        out = np.zeros((len(rows), self.num_classes + EXTRA_COLUMNS))
+        hit = np.flatnonzero(rows >= 0)
         if len(hit):
             if self.device == "cpu":
-                out[hit] = self.data.numpy()[slots[hit]]
+                out[hit] = self.data.numpy()[rows[hit]]
             else:
                 picked = wp.empty((len(hit), out.shape[1]), dtype=wp.float64, device=self.device)
                 wp.launch(ht.gather_rows, dim=len(hit), device=self.device,
-                          inputs=[self.data, wp.array(slots[hit].astype(np.int32), dtype=int, device=self.device), picked])
+                          inputs=[self.data, wp.array(rows[hit].astype(np.int32), dtype=int, device=self.device), picked])
                 out[hit] = picked.numpy()
         return out
 
     def load_arrays(self, voxels: VoxelArrays) -> None:
         """Replace the contents with ``voxels`` (exactly: the values are copied, not re-added)."""
         self._allocate(max(MIN_CAPACITY, _next_pow2(int(len(voxels.index) / self.max_load) + 1)))
-        slots = self.insert_voxels(voxels.index) if len(voxels.index) else np.zeros(0, np.int64)
+        rows = self.insert_voxels(voxels.index) if len(voxels.index) else np.zeros(0, np.int64)
         data = np.zeros((self.capacity, self.num_classes + EXTRA_COLUMNS))
-        data[slots] = voxels.rows()
+        data[rows] = voxels.rows()
         self.data = wp.array(data, dtype=wp.float64, device=self.device)
 
 

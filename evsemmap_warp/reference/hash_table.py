@@ -1,5 +1,6 @@
 """numpy twin of ``evsemmap_warp.kernels.hash_table``: the same packing, hash and linear probing,
-run serially in Python so that the CPU kernel's slot assignment can be checked exactly."""
+run serially in Python so that the CPU kernel's slot and row assignment can be checked exactly. A table
+is its keys and ``slot_rows`` (row + 1 per slot, 0 while empty); rows are handed out in insertion order."""
 
 from __future__ import annotations
 
@@ -34,7 +35,7 @@ def hash_slot(key: int, mask: int) -> int:
     return (((h & 0x7FFFFFFF) << 3) | local) & mask
 
 
-def table_find(table_keys: np.ndarray, key: int) -> int:
+def table_find_slot(table_keys: np.ndarray, key: int) -> int:
     if key == EMPTY_KEY:
         return -1
     mask = len(table_keys) - 1
@@ -48,57 +49,62 @@ def table_find(table_keys: np.ndarray, key: int) -> int:
     return -1
 
 
-def table_find_or_insert(table_keys: np.ndarray, key_count: list[int], max_count: int, key: int) -> int:
+def table_find(table_keys: np.ndarray, slot_rows: np.ndarray, key: int) -> int:
+    """Row of ``key``, -1 when absent."""
+    slot = table_find_slot(table_keys, key)
+    return -1 if slot < 0 else int(slot_rows[slot]) - 1
+
+
+def table_find_or_insert(table_keys: np.ndarray, slot_rows: np.ndarray, key_count: list[int], max_count: int, key: int) -> int:
+    """Row of ``key``, inserting it (next row) if absent; -1 when the table holds max_count keys."""
     if key == EMPTY_KEY:
         return -1
     mask = len(table_keys) - 1
     slot = hash_slot(key, mask)
     for _ in range(len(table_keys)):
         if table_keys[slot] == key:
-            return slot
+            return int(slot_rows[slot]) - 1
         if table_keys[slot] == EMPTY_KEY:
             if key_count[0] >= max_count:
                 return -1
             table_keys[slot] = key
+            slot_rows[slot] = key_count[0] + 1
             key_count[0] += 1
-            return slot
+            return key_count[0] - 1
         slot = (slot + 1) & mask
     return -1
 
 
-def insert_keys(keys_in: np.ndarray, table_keys: np.ndarray, key_count: list[int], max_count: int) -> np.ndarray:
-    """Serial insertion in input order; mutates ``table_keys`` and ``key_count``, returns slots."""
-    return np.array([table_find_or_insert(table_keys, key_count, max_count, int(k)) for k in keys_in], dtype=np.int64)
+def insert_keys(keys_in: np.ndarray, table_keys: np.ndarray, slot_rows: np.ndarray, key_count: list[int], max_count: int) -> np.ndarray:
+    """Serial insertion in input order; mutates the table and ``key_count``, returns rows."""
+    return np.array([table_find_or_insert(table_keys, slot_rows, key_count, max_count, int(k)) for k in keys_in], dtype=np.int64)
 
 
-def lookup_keys(keys_in: np.ndarray, table_keys: np.ndarray) -> np.ndarray:
-    return np.array([table_find(table_keys, int(k)) for k in keys_in], dtype=np.int64)
+def lookup_keys(keys_in: np.ndarray, table_keys: np.ndarray, slot_rows: np.ndarray) -> np.ndarray:
+    return np.array([table_find(table_keys, slot_rows, int(k)) for k in keys_in], dtype=np.int64)
 
 
-def lookup_points(points: np.ndarray, resolution: float, grid_offset: float, table_keys: np.ndarray) -> np.ndarray:
-    """Slot of each point's voxel; -1 outside the key range or where the voxel is not stored."""
+def lookup_points(points: np.ndarray, resolution: float, grid_offset: float, table_keys: np.ndarray, slot_rows: np.ndarray) -> np.ndarray:
+    """Row of each point's voxel; -1 outside the key range or where the voxel is not stored."""
     index = np.floor((np.asarray(points, dtype=np.float64) - grid_offset) / resolution)
     inside = np.all((index >= -KEY_OFFSET) & (index < KEY_OFFSET), axis=-1)
-    slots = np.full(len(index), -1, dtype=np.int64)
-    slots[inside] = lookup_keys(pack_key(index[inside].astype(np.int64)), table_keys)
-    return slots
+    rows = np.full(len(index), -1, dtype=np.int64)
+    rows[inside] = lookup_keys(pack_key(index[inside].astype(np.int64)), table_keys, slot_rows)
+    return rows
 
 
-def rehash(old_keys: np.ndarray, new_capacity: int) -> tuple[np.ndarray, np.ndarray]:
-    """New key array and, per old slot, its new slot (-1 for empty old slots)."""
+def rehash(old_keys: np.ndarray, old_slot_rows: np.ndarray, new_capacity: int) -> tuple[np.ndarray, np.ndarray]:
+    """The grown table's keys and slot rows: every key moves to its slot in the new table with its row."""
     new_keys = np.full(new_capacity, EMPTY_KEY, dtype=np.int64)
-    count = [0]
-    new_slot = np.full(len(old_keys), -1, dtype=np.int64)
+    new_slot_rows = np.zeros(new_capacity, dtype=np.int64)
+    mask = new_capacity - 1
     for i, key in enumerate(old_keys):
         if key != EMPTY_KEY:
-            new_slot[i] = table_find_or_insert(new_keys, count, new_capacity, int(key))
-    return new_keys, new_slot
-
-
-def move_rows(src: np.ndarray, dst: np.ndarray, dst_rows: np.ndarray) -> None:
-    """dst[dst_rows[i]] = src[i] wherever dst_rows[i] >= 0 (in place)."""
-    keep = dst_rows >= 0
-    dst[dst_rows[keep]] = src[keep]
+            slot = hash_slot(int(key), mask)
+            while new_keys[slot] != EMPTY_KEY:
+                slot = (slot + 1) & mask
+            new_keys[slot], new_slot_rows[slot] = key, old_slot_rows[i]
+    return new_keys, new_slot_rows
 
 
 def gather_rows(src: np.ndarray, rows: np.ndarray) -> np.ndarray:
