@@ -198,3 +198,20 @@ def test_edge_of_the_key_range_hashes_like_the_twin():
     np.testing.assert_array_equal(rows, ref.insert_keys(keys, ref_table, ref_slot_rows, [0], 64))
     np.testing.assert_array_equal(table, ref_table)
     np.testing.assert_array_equal(slot_rows, ref_slot_rows)
+
+
+@pytest.mark.parametrize("reserved", [True, False])
+def test_cpu_rows_stay_in_place_when_reserved_and_are_copied_otherwise(reserved, monkeypatch):
+    from evsemmap_warp.core import voxel_map
+
+    if not reserved:  # a platform or overcommit policy that refuses the reservation
+        monkeypatch.setattr(voxel_map, "_reserved_zeros", lambda rows, columns: None)
+    vm = VoxelMap(3, 0.5, initial_capacity=16)
+    rng = np.random.default_rng(4)
+    index = np.unique(rng.integers(-20, 20, size=(300, 3)), axis=0)
+    rows = vm.insert_voxels(index)
+    vm.data.numpy()[rows, 0] = np.arange(len(index), dtype=np.float64)
+    before = vm.data.ptr
+    vm.grow(vm.capacity * 8)
+    assert (vm.data.ptr == before) == reserved
+    np.testing.assert_array_equal(vm.data.numpy()[vm.lookup_points((index + 0.5) * 0.5), 0], np.arange(len(index)))
