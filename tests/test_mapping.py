@@ -276,6 +276,29 @@ def test_integrate_many_names_the_bad_scan_and_keeps_what_came_before(workers):
     np.testing.assert_array_equal(mapper.voxels()[0].index, reference.voxels()[0].index)
 
 
+def test_integrate_many_names_a_scan_its_shards_refuse_and_stops_before_returning():
+    # A scan whose kernels reach past the key range fails inside a shard's job, while the other shard
+    # may already be on the next scan: the error still names it, the scans before it are in the map,
+    # and no shard job changes the map after integrate_many has raised.
+    import time
+
+    from evsemmap_warp.kernels import hash_table as ht
+
+    rng = np.random.default_rng(21)
+    scans = [_alpha_scan(rng, 9000) for _ in range(4)]
+    scans[1][0][-1] = [2.5 * ht.INDEX_LIMIT * 0.2, 0.0, 0.0]  # in the second shard's part
+    mapper = Mapper(_config("ebs"), K, workers=2)
+    with pytest.raises(ValueError, match=r"^scan1: .*key range"):
+        mapper.integrate_many(_scan_items(scans))
+    before = mapper.voxels()[0].rows().copy()
+    time.sleep(0.2)
+    mapper._summary_cache = None
+    np.testing.assert_array_equal(mapper.voxels()[0].rows(), before)
+    reference = Mapper(_config("ebs"), K, workers=1)
+    reference.integrate(*scans[0], payload_type="alpha")
+    assert set(map(tuple, reference.voxels()[0].index)) <= set(map(tuple, mapper.voxels()[0].index))
+
+
 def test_integrate_many_passes_reading_errors_through():
     def scans():
         yield from _scan_items([_alpha_scan(np.random.default_rng(19), 300)])

@@ -21,7 +21,7 @@ import enum
 import os
 import threading
 from collections import deque
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,8 +32,8 @@ from .. import __version__
 from ..config import Compat, Fusion, Kernel, MappingConfig, PayloadType
 from ..voxel_keys import check_index_range
 from . import map_file
-from .integrators import (ConvBkiIntegrator, IntegrationStats, KernelIntegrator, Launch, ReleaseCompatIntegrator, SbkiCompatIntegrator,
-                          ScanPayload, SeeCsomIntegrator)
+from .integrators import (ConvBkiIntegrator, IntegrationStats, KernelIntegrator, Launch, PendingUpdates, ReleaseCompatIntegrator,
+                          SbkiCompatIntegrator, ScanPayload, SeeCsomIntegrator, ShardLanes)
 from .voxel_map import EXTRA_COLUMNS, VoxelArrays, VoxelMap, add_duplicate_voxels, sum_voxel_arrays
 
 
@@ -49,6 +49,8 @@ FREE_CLASS = 0  # label 0 (void) means free space
 # of (0, 0, 0) keep the origin at zero, and it is a multiple of every block size (S-BKI's 2^(depth-1)
 # cells, SEE-CSOM's 2), so blocks line up between maps of one area.
 ORIGIN_STEP_VOXELS = 8192
+# integrate_many: how many launched scans the shards may still be working on (``ShardLanes``).
+LAUNCHES_IN_FLIGHT = 2
 
 
 @dataclass
@@ -226,7 +228,7 @@ class Mapper:
         if workers < 1 or (workers > 1 and self.device != "cpu"):
             raise ValueError(f"workers must be >= 1, and 1 on a CUDA device; got {workers} on {self.device}")
         self.shards = [first] + [self._new_shard(self.device) for _ in range(workers - 1)]
-        self._executor = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="evsemmap") if workers > 1 else None
+        self._lanes = ShardLanes(workers) if workers > 1 else None
         self.origin_index: np.ndarray | None = None  # [3] int64, global index of the origin voxel corner
         if origin is not None:
             self.origin_index = self._snap_origin(_validate_point(origin, "origin"))
@@ -276,19 +278,30 @@ class Mapper:
         are read from ``scans`` (in order, one at a time) and get their host work (validation and, in
         the S-BKI and release modes, training data and block tables) on as many threads as there are
         workers, up to twice as many scans ahead, while this scan's kernels run; until the first
-        non-empty scan has set the map origin, one scan ahead at most. ``progress(scan, stats)`` is
-        called after each scan."""
-        results = []
+        non-empty scan has set the map origin, one scan ahead at most. Each shard works through the
+        scans on its own thread (``ShardLanes``), up to LAUNCHES_IN_FLIGHT scans apart from the others.
+        ``progress(scan, stats)`` is called after each scan, in order, once all its shards are done.
 
-        def add(scan, prepared):
-            results.append(self._named(scan, lambda: self._launch(prepared)))
+        A scan that fails is named in the error; the map then holds the scans before it, and may hold
+        the next scan and part of the failing one (a shard can be a scan ahead). No shard job is left
+        running when the error is raised."""
+        results = []
+        if self._lanes is None:
+            for scan in scans:
+                results.append(self._named(scan, lambda scan=scan: self._launch(self._prepare_scan(scan))))
+                if progress:
+                    progress(scan, results[-1])
+            return results
+        # Launched scans whose shard jobs may still run: a shard moves on to the next scan while another
+        # finishes this one, at most LAUNCHES_IN_FLIGHT scans behind the launches.
+        in_flight = deque()
+
+        def finish_oldest():
+            scan, stats = in_flight.popleft()
+            results.append(self._named(scan, lambda: self._finish(stats)))
             if progress:
                 progress(scan, results[-1])
 
-        if self._executor is None:
-            for scan in scans:
-                add(scan, self._named(scan, lambda scan=scan: self._prepare_scan(scan)))
-            return results
         iterator = iter(scans)
         turn = threading.Condition()
         next_to_read = 0
@@ -308,18 +321,29 @@ class Mapper:
         # one while the main thread waits on an earlier scan (it kept CPUs idle otherwise: the release mode's
         # utilisation went from 1.67 to 1.78 of 2 cores).
         depth = 2 * len(self.shards)
-        with ThreadPoolExecutor(max_workers=len(self.shards), thread_name_prefix="evsemmap-prepare") as ahead:
-            pending = deque([ahead.submit(read_and_prepare, 0)])
-            submitted = 1
-            while pending:
-                scan, prepared = pending.popleft().result()
-                if scan is None:
-                    break
-                # The next scans, while this one's kernels run (one at a time until the origin is set).
-                while len(pending) < (depth if self.origin_index is not None else 1):
-                    pending.append(ahead.submit(read_and_prepare, submitted))
-                    submitted += 1
-                add(scan, prepared)
+        try:
+            with ThreadPoolExecutor(max_workers=len(self.shards), thread_name_prefix="evsemmap-prepare") as ahead:
+                pending = deque([ahead.submit(read_and_prepare, 0)])
+                submitted = 1
+                while pending:
+                    scan, prepared = pending.popleft().result()
+                    if scan is None:
+                        break
+                    # The next scans, while this one's kernels run (one at a time until the origin is set).
+                    while len(pending) < (depth if self.origin_index is not None else 1):
+                        pending.append(ahead.submit(read_and_prepare, submitted))
+                        submitted += 1
+                    while len(in_flight) >= LAUNCHES_IN_FLIGHT:
+                        finish_oldest()
+                    in_flight.append((scan, self._named(scan, lambda: self._launch(prepared, wait=False))))
+                while in_flight:
+                    finish_oldest()
+        finally:  # on an error, no shard job may still change the map after this returns
+            for _, stats in in_flight:
+                if isinstance(stats.voxel_updates, PendingUpdates):
+                    for part in stats.voxel_updates.parts:
+                        if isinstance(part, Future):
+                            part.exception()
         return results
 
     @staticmethod
@@ -360,13 +384,21 @@ class Mapper:
             return self.integrator.prepare(scan, self.device)
         return self.integrator.prepare(scan, self._local(self.origin if sensor_origin is None else sensor_origin), self.device)
 
-    def _launch(self, launch: Launch | None) -> IntegrationStats:
+    def _launch(self, launch: Launch | None, *, wait: bool = True) -> IntegrationStats:
+        """Run a prepared launch; ``wait=False`` may return while its shard jobs still run (``_finish``
+        waits for them)."""
         if launch is None:
             return IntegrationStats()
-        stats = launch(self.shards, self._executor)
+        stats = launch(self.shards, self._lanes)
         self.scans_integrated += 1
         self.points_integrated += stats.input_points
         self._summary_cache = None
+        return self._finish(stats) if wait else stats
+
+    @staticmethod
+    def _finish(stats: IntegrationStats) -> IntegrationStats:
+        if isinstance(stats.voxel_updates, PendingUpdates):
+            stats.voxel_updates = stats.voxel_updates.result()
         return stats
 
     # ------------------------------------------------------------------ reading
