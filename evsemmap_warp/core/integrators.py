@@ -293,11 +293,11 @@ class SbkiCompatIntegrator:
         tables = sbki_compat.gather_tables(owners)
         sorted_points = point_ids[tables.pair_order]
         gather_inputs = [
-            wp.array(tables.test_blocks.astype(np.int32), dtype=wp.vec3i, device=d),
-            wp.array(tables.sources, dtype=int, device=d),
-            wp.array(tables.point_start.astype(np.int32), dtype=int, device=d),
-            wp.array(take_rows(points, sorted_points).astype(np.float64), dtype=wp.vec3d, device=d),
-            wp.array(np.ascontiguousarray(labels[sorted_points], dtype=np.int32), dtype=int, device=d),
+            wp.array(tables.test_blocks.astype(np.int32), dtype=wp.vec3i, device=d, copy=False),
+            wp.array(tables.sources, dtype=int, device=d, copy=False),
+            wp.array(tables.point_start.astype(np.int32), dtype=int, device=d, copy=False),
+            wp.array(take_rows(points, sorted_points).astype(np.float64), dtype=wp.vec3d, device=d, copy=False),
+            wp.array(np.ascontiguousarray(labels[sorted_points], dtype=np.int32), dtype=int, device=d, copy=False),
             wp.float64(c.length_m), wp.float64(c.sigma0), wp.float64(c.resolution_m), wp.float64(self.grid_offset_m(c)),
         ]
 
@@ -352,12 +352,12 @@ class ReleaseCompatIntegrator:
             weights = np.clip(weights - unc[:, None] / weights.shape[1], 0.0, 1.0)  # b_k = (alpha_k - 1) / S
         d = device
         gather_inputs = [
-            wp.array(models.blocks.astype(np.int32), dtype=wp.vec3i, device=d),
-            wp.array(models.source_blocks, dtype=int, device=d), wp.array(models.source_mult, dtype=int, device=d),
-            wp.array(models.point_start.astype(np.int32), dtype=int, device=d),
-            wp.array(take_rows(points, sorted_points), dtype=wp.vec3, device=d),
-            wp.array(np.ascontiguousarray(weights, dtype=np.float64), dtype=release.vector_type(weights.shape[1]), device=d),
-            wp.array(np.ascontiguousarray(unc, dtype=np.float64), dtype=wp.float64, device=d),
+            wp.array(models.blocks.astype(np.int32), dtype=wp.vec3i, device=d, copy=False),
+            wp.array(models.source_blocks, dtype=int, device=d, copy=False), wp.array(models.source_mult, dtype=int, device=d, copy=False),
+            wp.array(models.point_start.astype(np.int32), dtype=int, device=d, copy=False),
+            wp.array(take_rows(points, sorted_points), dtype=wp.vec3, device=d, copy=False),
+            wp.array(np.ascontiguousarray(weights, dtype=np.float64), dtype=release.vector_type(weights.shape[1]), device=d, copy=False),
+            wp.array(np.ascontiguousarray(unc, dtype=np.float64), dtype=wp.float64, device=d, copy=False),
             wp.float64(self.length), float(c.sigma0), float(c.resolution_m), int(fusion),
         ]
 

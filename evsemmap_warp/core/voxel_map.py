@@ -254,7 +254,7 @@ class VoxelMap:
         pending = np.arange(n, dtype=np.int32)
         while len(pending):
             failed = wp.zeros(len(pending), dtype=int, device=self.device)
-            launch(wp.array(pending, dtype=int, device=self.device), failed)
+            launch(wp.array(pending, dtype=int, device=self.device, copy=False), failed)
             pending = pending[failed.numpy().astype(bool)]
             if len(pending):
                 if not may_insert:
@@ -302,11 +302,12 @@ class VoxelMap:
         empty_owners = np.zeros((0, 3), np.int32)
         inputs = [
             _points_array(points, d),
-            wp.array(np.ascontiguousarray(labels if use_labels else [], dtype=np.int32), dtype=int, device=d),
+            wp.array(np.ascontiguousarray(labels if use_labels else [], dtype=np.int32), dtype=int, device=d, copy=False),
             _float_array(empty_weights if use_labels else class_weights, d),
             _float_array(lengths, d),
             _float_array(point_uncertainty, d),
-            wp.array(empty_owners if owner_blocks is None else np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d),
+            wp.array(empty_owners if owner_blocks is None else np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d,
+                     copy=False),
             int(mode), int(use_labels), wp.float64(self.resolution_m), wp.float64(self.grid_offset_m), wp.float64(sigma0),
             int(cells_per_block), int(fusion),
             _float_array(empty_weights if stencil_weights is None else stencil_weights, d),
@@ -354,7 +355,7 @@ class VoxelMap:
         starts = wp.empty(distinct, dtype=int, device=d)
         wp.launch(ss.segment_starts, dim=pairs, device=d, inputs=[heads, rank, starts])
         use_labels = labels is not None
-        inputs = [wp.array(np.ascontiguousarray(labels if use_labels else [], dtype=np.int32), dtype=int, device=d),
+        inputs = [wp.array(np.ascontiguousarray(labels if use_labels else [], dtype=np.int32), dtype=int, device=d, copy=False),
                   _float_array(np.zeros((0, self.num_classes)) if use_labels else class_weights, d), int(use_labels),
                   _float_array(point_uncertainty, d)]
         self.reserve(distinct)  # every distinct voxel fits: the reduction never fails for room
@@ -400,7 +401,7 @@ class VoxelMap:
         update_count = wp.zeros(1, dtype=wp.int64, device=d)
         wp.launch(hg.gather_voxels, dim=capacity, device=d, inputs=[
             scan_keys, grid.id, points_wp, lengths_wp, wp.float64(longest),
-            wp.array(np.ascontiguousarray(labels if use_labels else [], dtype=np.int32), dtype=int, device=d),
+            wp.array(np.ascontiguousarray(labels if use_labels else [], dtype=np.int32), dtype=int, device=d, copy=False),
             _float_array(np.zeros((0, self.num_classes)) if use_labels else class_weights, d), int(use_labels),
             _float_array(point_uncertainty, d), res, offset, wp.float64(sigma0),
             self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
@@ -420,9 +421,9 @@ class VoxelMap:
         d = self.device
         inputs = [
             _points_array(points, d),
-            wp.array(np.ascontiguousarray(labels, dtype=np.int32), dtype=int, device=d),
+            wp.array(np.ascontiguousarray(labels, dtype=np.int32), dtype=int, device=d, copy=False),
             _float_array(point_uncertainty, d),
-            wp.array(np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d),
+            wp.array(np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d, copy=False),
             _float_array(target_lengths, d),
             wp.float64(self.resolution_m), wp.float64(self.grid_offset_m), int(cells_per_block),
         ]
@@ -453,7 +454,7 @@ class VoxelMap:
             return 0
         d = self.device
         blocks, *rest = gather_inputs
-        ids = wp.array(np.ascontiguousarray(block_ids, dtype=np.int32), dtype=int, device=d)
+        ids = wp.array(np.ascontiguousarray(block_ids, dtype=np.int32), dtype=int, device=d, copy=False)
         update_count = wp.zeros(1, dtype=wp.int64, device=d)
 
         def launch(pending, failed):
@@ -470,7 +471,7 @@ class VoxelMap:
         blocks = np.ascontiguousarray(blocks, dtype=np.int32)
         self.check_block_range(blocks, cells_per_block)
         d = self.device
-        blocks_wp = wp.array(blocks, dtype=wp.vec3i, device=d)
+        blocks_wp = wp.array(blocks, dtype=wp.vec3i, device=d, copy=False)
 
         def launch(ids, failed):
             wp.launch(sc.insert_block_cells, dim=len(ids), device=d, inputs=[
@@ -481,7 +482,7 @@ class VoxelMap:
 
     def insert_voxels(self, voxel_index: np.ndarray) -> np.ndarray:
         """Insert voxel indices [V, 3]; returns their rows (growing as needed)."""
-        keys = wp.array(pack_voxel_keys(voxel_index), dtype=wp.int64, device=self.device)
+        keys = wp.array(pack_voxel_keys(voxel_index), dtype=wp.int64, device=self.device, copy=False)
         self.reserve(len(voxel_index))
         while True:
             rows = wp.empty(len(voxel_index), dtype=int, device=self.device)
@@ -526,7 +527,7 @@ class VoxelMap:
             else:
                 picked = wp.empty((len(hit), out.shape[1]), dtype=wp.float64, device=self.device)
                 wp.launch(ht.gather_rows, dim=len(hit), device=self.device,
-                          inputs=[self.data, wp.array(rows[hit].astype(np.int32), dtype=int, device=self.device), picked])
+                          inputs=[self.data, wp.array(rows[hit].astype(np.int32), dtype=int, device=self.device, copy=False), picked])
                 out[hit] = picked.numpy()
         return out
 
@@ -539,7 +540,7 @@ class VoxelMap:
         else:
             data = np.zeros((self.capacity, self.num_classes + EXTRA_COLUMNS))
             data[rows] = voxels.rows()
-            self.data = wp.array(data, dtype=wp.float64, device=self.device)
+            self.data = wp.array(data, dtype=wp.float64, device=self.device, copy=False)
 
 
 def block_model_tables(blocks: np.ndarray, grid: np.ndarray, lo: np.ndarray, device: str):
@@ -551,18 +552,18 @@ def block_model_tables(blocks: np.ndarray, grid: np.ndarray, lo: np.ndarray, dev
     source = wp.empty((n, m), dtype=int, device=device)
     mult = wp.empty((n, m), dtype=int, device=device)
     wp.launch(release.block_models, dim=n, device=device, inputs=[
-        wp.array(blocks.astype(np.int32), dtype=wp.vec3i, device=device), wp.array(grid, dtype=int, device=device),
-        wp.vec3i(*[int(v) for v in lo]), wp.array(TARGET_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device),
-        wp.array(FACE_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device), source, mult])
+        wp.array(blocks.astype(np.int32), dtype=wp.vec3i, device=device, copy=False), wp.array(grid, dtype=int, device=device, copy=False),
+        wp.vec3i(*[int(v) for v in lo]), wp.array(TARGET_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device, copy=False),
+        wp.array(FACE_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device, copy=False), source, mult])
     return source.numpy(), mult.numpy()
 
 
 def _points_array(points: np.ndarray, device: str):
-    return wp.array(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3), dtype=wp.vec3d, device=device)
+    return wp.array(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3), dtype=wp.vec3d, device=device, copy=False)
 
 
 def _float_array(values: np.ndarray, device: str):
-    return wp.array(np.ascontiguousarray(values, dtype=np.float64), dtype=wp.float64, device=device)
+    return wp.array(np.ascontiguousarray(values, dtype=np.float64), dtype=wp.float64, device=device, copy=False)
 
 
 _loaded_devices: set = set()  # devices, and (device, module) of kernels made on demand

@@ -59,7 +59,7 @@ def snapped_points(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, ds: np.fl
     snapped = wp.empty(len(points), dtype=wp.vec3, device="cpu")
     if len(points):
         wp.launch(release.snap_to_lines, dim=1, device="cpu", inputs=[
-            wp.array(np.ascontiguousarray(points, dtype=np.float32), dtype=wp.vec3, device="cpu"), wp.vec3(*[float(v) for v in lo]),
+            wp.array(np.ascontiguousarray(points, dtype=np.float32), dtype=wp.vec3, device="cpu", copy=False), wp.vec3(*[float(v) for v in lo]),
             wp.vec3(*[float(v) for v in hi]), float(ds), snapped])
     return snapped.numpy().reshape(-1, 3)
 
@@ -96,7 +96,7 @@ def first_per_block(block_keys: np.ndarray, cap: int) -> np.ndarray:
     cells = (relative[:, 0] * span[1] + relative[:, 1]) * span[2] + relative[:, 2]
     keep = wp.empty(n, dtype=wp.uint8, device="cpu")
     wp.launch(release.keep_first_per_block, dim=1, device="cpu", inputs=[
-        wp.array(cells.astype(np.int32), dtype=int, device="cpu"), int(cap), wp.zeros(int(np.prod(span)), dtype=int, device="cpu"), keep])
+        wp.array(cells.astype(np.int32), dtype=int, device="cpu", copy=False), int(cap), wp.zeros(int(np.prod(span)), dtype=int, device="cpu"), keep])
     return keep.numpy().astype(bool)
 
 

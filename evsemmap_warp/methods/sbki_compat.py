@@ -55,7 +55,7 @@ def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float)
     # The leaf indices come from a kernel (``kernels.voxel_grid``): numpy's floor passes took a third
     # of this function (0.34 of 0.97 s over 4 M free samples).
     leaf_index = wp.empty(len(points), dtype=wp.int64, device="cpu")
-    points_wp = wp.array(np.ascontiguousarray(points), dtype=wp.vec3, device="cpu")
+    points_wp = wp.array(np.ascontiguousarray(points), dtype=wp.vec3, device="cpu", copy=False)
     wp.launch(voxel_grid.leaf_indices, dim=len(points), device="cpu", inputs=[
         points_wp, float(inverse_leaf), *[int(x) for x in ijk_lo], int(dims[0]), int(dims[1]), leaf_index])
     sorted_index, order = stable_sort(leaf_index.numpy(), int(np.prod(dims)))
@@ -63,8 +63,8 @@ def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float)
     counts = np.diff(np.r_[starts, len(order)])
     centroids = wp.empty(len(starts), dtype=wp.vec3, device="cpu")
     wp.launch(voxel_grid.leaf_centroids, dim=1, device="cpu", inputs=[
-        points_wp, wp.array(order, dtype=wp.int64, device="cpu"), wp.array(starts, dtype=wp.int64, device="cpu"),
-        wp.array(counts, dtype=wp.int64, device="cpu"), centroids])
+        points_wp, wp.array(order, dtype=wp.int64, device="cpu", copy=False), wp.array(starts, dtype=wp.int64, device="cpu", copy=False),
+        wp.array(counts, dtype=wp.int64, device="cpu", copy=False), centroids])
     centroids = centroids.numpy()
     if labels.min() == labels.max():  # one label (the free samples): it is every leaf's majority
         return centroids, np.full(len(starts), labels[0], np.int64)
@@ -134,7 +134,7 @@ def _radix_sort(values: np.ndarray, lowest_bit: int, key_bits: int) -> np.ndarra
     for p, digit_counts in enumerate(counts.numpy()):
         if digit_counts.max() == n:  # one digit for every value: this pass would keep the order
             continue
-        next_slot = wp.array(np.r_[0, np.cumsum(digit_counts[:-1])].astype(np.int32), dtype=int, device="cpu")
+        next_slot = wp.array(np.r_[0, np.cumsum(digit_counts[:-1])].astype(np.int32), dtype=int, device="cpu", copy=False)
         wp.launch(radix_sort.radix_scatter, dim=1, device="cpu", inputs=[source, lowest_bit + p * digit_bits, digit_bits, next_slot, target])
         source, target = target, source
     return source.numpy()
@@ -180,9 +180,11 @@ def free_space_samples(hits: np.ndarray, origin: np.ndarray, free_resolution_m: 
     # fancy-index passes (6 bench scans at free_resolution 0.5, 4 M samples: 0.27 -> 0.04 s).
     out = wp.empty(int(rows_per_hit.sum()), dtype=wp.vec3, device="cpu")
     wp.launch(free_space.ray_samples, dim=len(hits), device="cpu", inputs=[
-        wp.array(np.ascontiguousarray(direction), dtype=wp.vec3, device="cpu"), wp.array(ray_length, dtype=wp.float32, device="cpu"),
-        wp.vec3(*origin.tolist()), float(f), wp.array(steps, dtype=wp.float32, device="cpu"),
-        wp.array(per_hit.astype(np.int32), dtype=int, device="cpu"), wp.array(first_row.astype(np.int32), dtype=int, device="cpu"), out])
+        wp.array(np.ascontiguousarray(direction), dtype=wp.vec3, device="cpu", copy=False),
+        wp.array(ray_length, dtype=wp.float32, device="cpu", copy=False),
+        wp.vec3(*origin.tolist()), float(f), wp.array(steps, dtype=wp.float32, device="cpu", copy=False),
+        wp.array(per_hit.astype(np.int32), dtype=int, device="cpu", copy=False),
+        wp.array(first_row.astype(np.int32), dtype=int, device="cpu", copy=False), out])
     return out.numpy()
 
 
@@ -221,7 +223,7 @@ def block_memberships(points: np.ndarray, block_size: np.float32) -> tuple[np.nd
     masks = wp.empty(len(points), dtype=int, device="cpu")
     if len(points):
         wp.launch(block_membership.block_membership_masks, dim=1, device="cpu", inputs=[
-            wp.array(points, dtype=wp.vec3, device="cpu"), float(np.float32(block_size)), nearest, masks])
+            wp.array(points, dtype=wp.vec3, device="cpu", copy=False), float(np.float32(block_size)), nearest, masks])
     nearest, masks = nearest.numpy(), masks.numpy()
     # Nearly every point lies inside its nearest block only; the other 26 shifts are looked up on the
     # few that touch a face (or miss the nearest block by rounding).
@@ -294,8 +296,9 @@ def _extended_block_tables(grid_blocks: np.ndarray, grid: np.ndarray) -> tuple[n
     sources = wp.empty((most, len(EXTENDED_BLOCK_OFFSETS)), dtype=int, device="cpu")
     count = wp.zeros(1, dtype=int, device="cpu")
     wp.launch(block_gather.extended_block_tables, dim=1, device="cpu", inputs=[
-        wp.array(np.ascontiguousarray(grid_blocks, dtype=np.int32), dtype=wp.vec3i, device="cpu"), wp.array(grid, dtype=int, device="cpu"),
-        wp.array(EXTENDED_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device="cpu"),
+        wp.array(np.ascontiguousarray(grid_blocks, dtype=np.int32), dtype=wp.vec3i, device="cpu", copy=False),
+        wp.array(grid, dtype=int, device="cpu", copy=False),
+        wp.array(EXTENDED_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device="cpu", copy=False),
         wp.zeros(grid.shape, dtype=wp.uint8, device="cpu"), tests, sources, count])
     n = int(count.numpy()[0])
     return tests.numpy()[:n].astype(np.int64), sources.numpy()[:n]
