@@ -3,7 +3,7 @@
 The callers pack a key above each value's position (``methods.sbki_compat.stable_sort``) and sort by
 the key bits only. Each kernel runs as one thread (launch with dim=1 on the CPU): the per-scan
 preprocessing already runs one scan per worker thread, and a sequential pass streams through memory
-in order. The digit histograms of all passes come from one read (``digit_histograms``); each pass then
+in order. The digit histograms come from one read per three passes (``digit_histograms``); each pass then
 moves the values into their digit's range (``radix_scatter``) in input order, which is what makes the
 sort stable. Measured here: ~5 ns per value and pass at up to 10-bit digits (~9 at 11 bits, where the
 write streams outgrow the TLB), against 50-85 ns per value for numpy's sort, which is scalar here.
@@ -16,15 +16,31 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
+# Passes one ``digit_histograms`` launch counts.
+HISTOGRAM_PASSES = 3
+
+
 @wp.kernel
-def digit_histograms(values: wp.array(dtype=wp.int64), lowest_bit: int, digit_bits: int, counts: wp.array2d(dtype=int)):
-    """counts[p, d] = how many values have digit d in pass p (bits lowest_bit + p * digit_bits and up)."""
+def digit_histograms(values: wp.array(dtype=wp.int64), lowest_bit: int, digit_bits: int, passes: int,
+                     first: wp.array(dtype=int), second: wp.array(dtype=int), third: wp.array(dtype=int)):
+    """Counts of the digits of up to three passes (bits lowest_bit + p * digit_bits and up, p < passes):
+    pass 0 in ``first``, 1 in ``second``, 2 in ``third`` (arrays of the passes not counted are not
+    touched). Three flat arrays rather than one [passes, digits] array with a loop over passes: 3.9
+    against 7.1 ns per value at three passes."""
     mask = (wp.int64(1) << wp.int64(digit_bits)) - wp.int64(1)
+    shift0 = wp.int64(lowest_bit)
+    shift1 = wp.int64(lowest_bit + digit_bits)
+    shift2 = wp.int64(lowest_bit + 2 * digit_bits)
     for i in range(values.shape[0]):
         value = values[i]
-        for p in range(counts.shape[0]):
-            digit = int((value >> wp.int64(lowest_bit + p * digit_bits)) & mask)
-            counts[p, digit] = counts[p, digit] + 1
+        d0 = int((value >> shift0) & mask)
+        first[d0] = first[d0] + 1
+        if passes > 1:
+            d1 = int((value >> shift1) & mask)
+            second[d1] = second[d1] + 1
+        if passes > 2:
+            d2 = int((value >> shift2) & mask)
+            third[d2] = third[d2] + 1
 
 
 @wp.kernel

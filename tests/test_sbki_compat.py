@@ -396,8 +396,15 @@ def test_radix_kernels_match_their_twins(n, digit_bits):
     if n > 2:
         values[:2] = [0, ((1 << (digit_bits * passes)) - 1) << lowest_bit]  # the lowest and highest digits
     counts = wp.zeros((passes, 1 << digit_bits), dtype=int, device="cpu")
-    wp.launch(kernels.digit_histograms, dim=1, device="cpu", inputs=[wp.array(values, dtype=wp.int64, device="cpu"), lowest_bit, digit_bits, counts])
+    wp.launch(kernels.digit_histograms, dim=1, device="cpu", inputs=[wp.array(values, dtype=wp.int64, device="cpu"), lowest_bit, digit_bits, passes,
+                                                                     counts[0], counts[1], counts[2]])
     np.testing.assert_array_equal(counts.numpy(), twin.digit_histograms(values, lowest_bit, digit_bits, passes))
+    for fewer in (1, 2):  # the arrays of passes not counted stay as they were
+        partial = wp.zeros((3, 1 << digit_bits), dtype=int, device="cpu")
+        wp.launch(kernels.digit_histograms, dim=1, device="cpu", inputs=[wp.array(values, dtype=wp.int64, device="cpu"), lowest_bit, digit_bits, fewer,
+                                                                         partial[0], partial[1], partial[2]])
+        np.testing.assert_array_equal(partial.numpy()[:fewer], twin.digit_histograms(values, lowest_bit, digit_bits, fewer))
+        assert not partial.numpy()[fewer:].any()
     shift = lowest_bit + digit_bits
     next_slot = np.r_[0, np.cumsum(counts.numpy()[1][:-1])].astype(np.int32)
     out = wp.empty(n, dtype=wp.int64, device="cpu")

@@ -129,7 +129,10 @@ def _radix_sort(values: np.ndarray, lowest_bit: int, key_bits: int) -> np.ndarra
     n = len(values)
     source = wp.array(values, dtype=wp.int64, device="cpu", copy=False)
     counts = wp.zeros((passes, 1 << digit_bits), dtype=int, device="cpu")
-    wp.launch(radix_sort.digit_histograms, dim=1, device="cpu", inputs=[source, lowest_bit, digit_bits, counts])
+    for first in range(0, passes, radix_sort.HISTOGRAM_PASSES):
+        rows = [counts[min(p, passes - 1)] for p in range(first, first + radix_sort.HISTOGRAM_PASSES)]
+        wp.launch(radix_sort.digit_histograms, dim=1, device="cpu", inputs=[
+            source, lowest_bit + first * digit_bits, digit_bits, min(passes - first, radix_sort.HISTOGRAM_PASSES), *rows])
     target = wp.empty(n, dtype=wp.int64, device="cpu")  # the passes alternate between it and values
     for p, digit_counts in enumerate(counts.numpy()):
         if digit_counts.max() == n:  # one digit for every value: this pass would keep the order
