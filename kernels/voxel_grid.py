@@ -123,14 +123,32 @@ def pairwise_sum(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int64
     return wp.vec3(0.0, 0.0, 0.0)
 
 
+# leaf_centroids asks for the point this many places ahead in sorted order (16 to 128 measured alike;
+# free_res 0.5, 30 bench scans: 0.34 -> 0.23 s).
+POINTS_AHEAD = wp.constant(32)
+
+
+@wp.func_native("""
+#if !defined(__CUDA_ARCH__)
+__builtin_prefetch(&points.data[index]);
+#endif
+""")
+def _prefetch_point(points: wp.array(dtype=wp.vec3), index: int): ...
+
+
 @wp.kernel
 def leaf_centroids(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int64), starts: wp.array(dtype=wp.int64),
                    counts: wp.array(dtype=wp.int64), centroids: wp.array(dtype=wp.vec3)):
     """centroids[l] = the float32 mean of points[order[starts[l]:starts[l] + counts[l]]]: the first
     point plus the pairwise sum of the rest (numpy's add.reduceat order), over the count."""
+    last = order.shape[0] - 1
     for leaf in range(starts.shape[0]):
         start = int(starts[leaf])
         n = int(counts[leaf])
+        # The points are read in sorted order, from all over the cloud: ask for the ones this many
+        # positions ahead while this leaf sums (a hint, compiled out on CUDA).
+        for k in range(n):
+            _prefetch_point(points, int(order[wp.min(start + k + POINTS_AHEAD, last)]))
         total = points[int(order[start])]
         if n > PAIRWISE_BLOCK + 1:
             total = total + pairwise_sum(points, order, start + 1, n - 1)
