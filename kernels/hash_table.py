@@ -5,9 +5,9 @@ offset 2**20; ``evsemmap_warp/voxel_keys.py`` packs the same way on the host), s
 by a splitmix64 hash of their 2x2x2 brick and linear probing, insertion claims a slot with ``atomic_cas``.
 Beside each slot the table keeps its voxel's row (``slot_rows``, row + 1; 0 while the slot is empty):
 rows are handed out densely in insertion order (row = the key count before the insertion), so callers
-keep per-voxel values in ``[rows, ...]`` arrays that grow by copying their used rows, and a grown table
-rehashes keys and rows only. (Values indexed by slot had to be moved row by row at every growth and
-took twice the table's memory; populating it was a quarter of the S-BKI mode's time.) An insertion
+keep per-voxel values in ``[rows, ...]`` arrays that keep their rows when the table grows, and a grown
+table rehashes keys and row numbers only. (Values indexed by slot had to be moved row by row at every
+growth and took twice the memory; growing was a quarter of the S-BKI mode's time at free_res 4.) An insertion
 fails (returns -1) instead of overfilling the table once ``max_count`` keys are in; the host then grows
 the table and re-runs the failed work, so nothing is ever dropped.
 

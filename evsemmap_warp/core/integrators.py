@@ -87,11 +87,15 @@ class PendingUpdates:
 
     parts: list
 
-    def result(self) -> int:
-        """Waits for every part (all of them, even after one failed), then adds them up or raises."""
+    def wait(self) -> None:
+        """Returns once every part has finished, failed or not."""
         for part in self.parts:
             if isinstance(part, Future):
                 part.exception()
+
+    def result(self) -> int:
+        """Waits for every part (all of them, even after one failed), then adds them up or raises."""
+        self.wait()
         return sum(part.result() if isinstance(part, Future) else part for part in self.parts)
 
 

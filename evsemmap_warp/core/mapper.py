@@ -21,7 +21,7 @@ import enum
 import os
 import threading
 from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -341,9 +341,7 @@ class Mapper:
         finally:  # on an error, no shard job may still change the map after this returns
             for _, stats in in_flight:
                 if isinstance(stats.voxel_updates, PendingUpdates):
-                    for part in stats.voxel_updates.parts:
-                        if isinstance(part, Future):
-                            part.exception()
+                    stats.voxel_updates.wait()
         return results
 
     @staticmethod
