@@ -6,7 +6,7 @@ Voxel i spans [i r + o, (i + 1) r + o) on every axis in coordinates relative to 
 order the voxels were inserted (the table's ``slot_rows`` says which row a slot's voxel has):
 
 * K columns of kernel-weighted evidence added so far; the Dirichlet concentrations are prior +
-  evidence (stored without the prior so that fresh slots are zero pages and maps merge by addition);
+  evidence (stored without the prior so that fresh rows are zero pages and maps merge by addition);
 * the sum of kernel weights and of weight * input uncertainty;
 * the number of contributions and the touched flag (1 once any update landed).
 
