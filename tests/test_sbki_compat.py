@@ -347,7 +347,7 @@ def test_sbki_maps_are_bit_identical_for_one_and_two_workers():
 
 
 def test_every_form_of_the_sbki_gather_kernel_gives_the_same_map_bit_for_bit():
-    # Branch-free (vector) or per-cell branches, with or without the prefetch: the forms the study times.
+    # Branch-free or per-cell branches, with or without the prefetch: the forms the study times.
     import functools
 
     from evsemmap_warp.kernels import block_gather
