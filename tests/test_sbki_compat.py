@@ -466,6 +466,42 @@ def test_block_membership_kernel_matches_its_twin(offset):
     assert (all_masks != 1 << block_membership.NEAREST_BIT).sum() >= 200  # many face points lie in several blocks
 
 
+@pytest.mark.parametrize("offset", [0.0, 2.5e4])
+def test_membership_pair_kernels_match_their_twin(offset):
+    # The pairs of every mask, in the twin's order (shift by shift, points ascending): mostly single
+    # memberships, with face, edge and corner points in 2, 4 and 8 blocks; one point, and none.
+    import warp as wp
+
+    from evsemmap_warp.kernels import block_membership
+    from evsemmap_warp.reference.block_membership import block_membership_masks, membership_counts, membership_pairs
+
+    rng = np.random.default_rng(int(offset) + 5)
+    size = sb.block_size_m(0.2, 2)
+    corners = ((rng.integers(-30, 30, (200, 3)) + round(offset / size) + np.float32(0.5)) * size).astype(np.float32)
+    edges, faces = corners.copy(), corners.copy()
+    edges[:, 2] += np.float32(0.05)
+    faces[:, 1:] += np.float32(0.05)
+    points = np.concatenate([(rng.uniform(-6, 6, (3000, 3)) + offset).astype(np.float32), corners, edges, faces])
+    points = points[rng.permutation(len(points))]
+    for cloud in (points, points[:1], points[:0]):
+        nearest, masks = block_membership_masks(cloud, size)
+        counts = wp.zeros(27, dtype=int, device="cpu")
+        masks_wp = wp.array(masks.astype(np.int32), dtype=int, device="cpu")
+        wp.launch(block_membership.membership_counts, dim=1, device="cpu", inputs=[masks_wp, counts])
+        counts = counts.numpy()
+        np.testing.assert_array_equal(counts, membership_counts(masks))
+        ids = wp.empty(int(counts.sum()), dtype=wp.int64, device="cpu")
+        blocks = wp.empty((int(counts.sum()), 3), dtype=wp.int64, device="cpu")
+        wp.launch(block_membership.membership_pairs, dim=1, device="cpu", inputs=[
+            masks_wp, wp.array(nearest, dtype=wp.int64, device="cpu"), wp.array(np.r_[0, np.cumsum(counts[:-1])].astype(np.int32), dtype=int, device="cpu"),
+            ids, blocks])
+        want_ids, want_blocks = membership_pairs(nearest, masks)
+        np.testing.assert_array_equal(ids.numpy(), want_ids)
+        np.testing.assert_array_equal(blocks.numpy(), want_blocks)
+    memberships = np.bincount(np.bitwise_count(block_membership_masks(points, size)[1]))
+    assert memberships[2] and memberships[4] and memberships[8]  # faces, edges and corners all occur
+
+
 @pytest.mark.parametrize("count", [0, 1, 2, 500])
 def test_extended_block_table_kernel_matches_its_twin(count):
     # Random blocks in a grid two cells wider than them (as wide as the sources' lookups reach; test

@@ -220,28 +220,22 @@ def block_memberships(points: np.ndarray, block_size: np.float32) -> tuple[np.nd
     Block k spans [k B - B/2, k B + B/2] per axis (centre k B, as S-BKI's hash_key_to_block); the
     R-tree query of the C++ is inclusive, so a point on a shared face belongs to both blocks.
     Returns point ids [M] and block indices [M, 3], block shift by block shift around each point's
-    nearest block, points ascending within a shift (``kernels.block_membership`` tests the boxes)."""
+    nearest block, points ascending within a shift (``kernels.block_membership`` tests the boxes and
+    lists the pairs)."""
     points = np.ascontiguousarray(points, dtype=np.float32)
     nearest = wp.empty((len(points), 3), dtype=wp.int64, device="cpu")
     masks = wp.empty(len(points), dtype=int, device="cpu")
     if len(points):
         wp.launch(block_membership.block_membership_masks, dim=1, device="cpu", inputs=[
             wp.array(points, dtype=wp.vec3, device="cpu", copy=False), float(np.float32(block_size)), nearest, masks])
-    nearest, masks = nearest.numpy(), masks.numpy()
-    # Nearly every point lies inside its nearest block only; the other 26 shifts are looked up on the
-    # few that touch a face (or miss the nearest block by rounding).
-    in_nearest = (masks >> block_membership.NEAREST_BIT) & 1 == 1
-    candidates = np.flatnonzero(masks != 1 << block_membership.NEAREST_BIT)
-    candidate_masks = masks[candidates]
-    point_ids, blocks = [], []
-    for bit, shift in enumerate((sx, sy, sz) for sx in (-1, 0, 1) for sy in (-1, 0, 1) for sz in (-1, 0, 1)):
-        if bit == block_membership.NEAREST_BIT:
-            ids = np.flatnonzero(in_nearest)
-        else:
-            ids = candidates[(candidate_masks >> bit) & 1 == 1]
-        point_ids.append(ids)
-        blocks.append(take_rows(nearest, ids) + np.array(shift))
-    return np.concatenate(point_ids), np.concatenate(blocks).reshape(-1, 3)
+    counts = wp.zeros(27, dtype=int, device="cpu")
+    wp.launch(block_membership.membership_counts, dim=1, device="cpu", inputs=[masks, counts])
+    counts = counts.numpy()
+    point_ids = wp.empty(int(counts.sum()), dtype=wp.int64, device="cpu")
+    blocks = wp.empty((int(counts.sum()), 3), dtype=wp.int64, device="cpu")
+    wp.launch(block_membership.membership_pairs, dim=1, device="cpu", inputs=[
+        masks, nearest, wp.array(np.r_[0, np.cumsum(counts[:-1])].astype(np.int32), dtype=int, device="cpu", copy=False), point_ids, blocks])
+    return point_ids.numpy(), blocks.numpy()
 
 
 def unique_rows(index: np.ndarray) -> np.ndarray:

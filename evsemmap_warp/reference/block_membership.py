@@ -16,3 +16,21 @@ def block_membership_masks(points: np.ndarray, size: np.float32) -> tuple[np.nda
         inside = ((centre - half <= points) & (points <= centre + half)).all(axis=1)
         masks[inside] |= 1 << bit
     return nearest, masks
+
+
+def membership_counts(masks: np.ndarray) -> np.ndarray:
+    """[27] how many masks have each bit set."""
+    masks = np.asarray(masks, np.int64)
+    return np.array([((masks >> bit) & 1).sum() for bit in range(27)], np.int64)
+
+
+def membership_pairs(nearest: np.ndarray, masks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(point ids [M], blocks [M, 3]) of every set bit of the masks: shift by shift in bit order,
+    points ascending within a shift (``membership_counts`` and ``membership_pairs`` together)."""
+    nearest, masks = np.asarray(nearest, np.int64).reshape(-1, 3), np.asarray(masks, np.int64)
+    point_ids, blocks = [], []
+    for bit, shift in enumerate((x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)):
+        ids = np.flatnonzero((masks >> bit) & 1)
+        point_ids.append(ids)
+        blocks.append(nearest[ids] + np.array(shift))
+    return np.concatenate(point_ids), np.concatenate(blocks).reshape(-1, 3)
