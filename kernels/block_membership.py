@@ -83,6 +83,8 @@ def membership_pairs(masks: wp.array(dtype=int), nearest: wp.array2d(dtype=wp.in
     ``membership_counts``) is point i and block nearest[i] + the bit's shift. One thread."""
     for i in range(masks.shape[0]):
         mask = masks[i]
+        # Nearly every point lies inside its nearest block only: its pair written directly (the bit loop
+        # below gives the same pair; running it for these points doubled this kernel's time).
         if mask == 1 << NEAREST_BIT:
             pair = next_pair[NEAREST_BIT]
             next_pair[NEAREST_BIT] = pair + 1
