@@ -3,17 +3,22 @@
 S-BKI predicts, for every test block T (a block holding points or a face neighbour of one), from the
 points of the blocks of T's extended block (T and its 6 face neighbours). Here one thread per test
 block finds or inserts its cells once, reads those points once and weighs each against all of T's
-cells, with the same float64 reach test and float32 kernel as the scatter form (``kernels.scatter``
-MODE_SBKI_BLOCKS): one table probe per cell instead of two per update, no atomics, and a fixed order
-for every sum. A point beyond reach of the block's cell-centre box is skipped with one test. The
-cells' centres (in float64, and in float32 over ell as the C++ scales them) are computed once per
-block, and each thread prefetches the cells of the block a few threads ahead. The cell loop is
-written cell by cell, with the reach test as a branch: the compiler turns it into AVX-512 code over
-a block's 8 cells (a masked compare, then the kernel in 8 lanes). A form without the branches, which
-computes every cell's value and selects, compiles to vector code too and measured slower
+cells with the float32 kernel of the scatter form (``kernels.scatter`` MODE_SBKI_BLOCKS): one table
+probe per cell instead of two per update, no atomics, and a fixed order for every sum. The points
+arrive divided by ell in float32, as the C++ scales them (``scale_points``), and the cells' centres
+are scaled once per block. That float32 kernel is zero from d = 0.984 ell on (every float32 distance
+from 0.95 to 8 ell checked, tests/test_sbki_compat.py), so no reach test is needed beyond the kernel's
+own sign, and a point at 0.99 ell or more from the box of the block's cell centres is skipped with one
+test. Each thread prefetches the cells of the block a few threads ahead. The cell loop is written
+cell by cell, with a branch on the kernel's sign: the compiler turns it into AVX-512 code over a
+block's 8 cells (the kernel in 8 lanes, then masked adds). A form without the branch, which adds
+every cell's value and counts the positive ones, compiles to vector code too and measured slower
 (tools/kernel_study.py keeps both forms and times them). Forms the compiler does not vectorise (the
 offsets squared once per axis, nested per-axis loops, a walk over the set bits of a reach mask)
-measured 1.3-2.4x slower.
+measured 1.3-2.4x slower. Reading float32 scaled points instead of float64 ones, without the float64
+reach and box tests, and skipping from 0.99 instead of 1.05 ell, cut the kernel's time by 8-10 %
+(the same map bit for bit; the kernel alone over the last 6 bench scans, alternating with the former
+form in one process: free_res 4 x0.92, free_res 0.5 x0.90).
 
 The kernel is made per (class count, cells per block) (``gather_sbki_kernel``); its loops are not
 unrolled (a 4 s cold compile instead of 30 s, at the same speed).
@@ -26,33 +31,45 @@ import functools
 import warp as wp
 
 from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, pack_key, prefetch_brick, table_find_or_insert
-from .scatter import _ONE, _ZERO, COL_HITS, COL_TOUCHED, COL_WEIGHT, SBKI_REACH_FACTOR, sbki_sparse_kernel_scaled, sbki_voxel_center, voxel_center
+from .scatter import _ONE, _ZERO, COL_HITS, COL_TOUCHED, COL_WEIGHT, sbki_sparse_kernel_scaled, sbki_voxel_center
 
 wp.set_module_options({"enable_backward": False})
 
 f64 = wp.float64
 
 
-# A point is skipped when its squared distance to the block's cell-centre box exceeds the squared reach
-# by this factor: the reach test is a filter (the kernel is zero from length on, the reach is 1.05 length).
-BOX_SKIP_MARGIN = 1.0 + 1e-9
+# The float32 S-BKI kernel is zero (not positive) at this distance over ell and beyond (its last
+# positive value is at 0.983759; tests/test_sbki_compat.py checks every float32 distance up to 8).
+SBKI_ZERO_BEYOND = 0.99
+# A point is skipped when its squared distance (over ell) to the box of the block's scaled cell centres is
+# at least this: the box distance comes from the same float32 differences as the cells' distances, so no
+# cell is nearer than the box by more than rounding, far inside the margin from 0.984 to 0.99.
+BOX_SKIP_DISTANCE2 = SBKI_ZERO_BEYOND * SBKI_ZERO_BEYOND
 
 
 @wp.func
-def box_distance2(lo: wp.vec3d, hi: wp.vec3d, p: wp.vec3d):
+def box_distance2(lo: wp.vec3, hi: wp.vec3, p: wp.vec3):
     """Squared distance from p to the box [lo, hi] (0 inside)."""
-    dx = wp.max(wp.max(lo[0] - p[0], p[0] - hi[0]), _ZERO)
-    dy = wp.max(wp.max(lo[1] - p[1], p[1] - hi[1]), _ZERO)
-    dz = wp.max(wp.max(lo[2] - p[2], p[2] - hi[2]), _ZERO)
+    dx = wp.max(wp.max(lo[0] - p[0], p[0] - hi[0]), 0.0)
+    dy = wp.max(wp.max(lo[1] - p[1], p[1] - hi[1]), 0.0)
+    dz = wp.max(wp.max(lo[2] - p[2], p[2] - hi[2]), 0.0)
     return dx * dx + dy * dy + dz * dz
+
+
+def scale_points(points, length_m: float):
+    """The points [P, 3] as the kernel reads them: float32 coordinates divided by float32 ell, as the
+    C++ covSparse scales both sides."""
+    import numpy as np
+
+    return np.asarray(points, dtype=np.float32) / np.float32(length_m)
 
 
 @functools.cache
 def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: bool = False, prefetch: bool = True):
     """The gather kernel for K = num_classes and blocks of cells_per_block^3 cells (one Warp module per
     form, compiled on first use). The other forms are for the study (tools/kernel_study.py):
-    ``branch_free`` (every cell's kernel value computed and selected, instead of the reach branch; both
-    compile to vector code over the cells), ``prefetch`` off. Every form gives the same map bit for bit."""
+    ``branch_free`` (every cell's kernel value added, zeros included, instead of the branch on its sign;
+    both compile to vector code over the cells), ``prefetch`` off. Every form gives the same map bit for bit."""
     n = cells_per_block
     n3 = n * n * n
     # Sums per class and cell, cells along the rows: in the branch-free form a point's kernel values for
@@ -69,7 +86,7 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
         block_ids: wp.array(dtype=int),
         sources: wp.array2d(dtype=int),
         point_start: wp.array(dtype=int),
-        points: wp.array(dtype=wp.vec3d),
+        scaled_points: wp.array(dtype=wp.vec3),
         labels: wp.array(dtype=int),
         length: wp.float64,
         sigma0: wp.float64,
@@ -85,8 +102,8 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
     ):
         """Test block test_blocks[block_ids[launch_ids[t]]]: its cells are found or inserted (none fits:
         failed[t], nothing added) and marked touched; for each of its 7 source blocks sources[b, :] (-1:
-        holds no points; block s owns points point_start[s]:point_start[s + 1]), each point adds the S-BKI
-        kernel (where positive) for its label to every cell whose centre lies within 1.05 * length."""
+        holds no points; block s owns points point_start[s]:point_start[s + 1], given as ``scale_points``
+        makes them), each point adds the S-BKI kernel, where positive, for its label to every cell."""
         t = wp.tid()
         half = wp.vec3i(n // 2, n // 2, n // 2)
         if wp.static(prefetch):
@@ -104,75 +121,53 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
                 failed[t] = 1
                 return
             rows[j] = row
-        reach = length * f64(SBKI_REACH_FACTOR)
-        reach2 = reach * reach
         length32 = float(length)
         sigma32 = float(sigma0)
         resolution32 = float(resolution)
         offset32 = float(grid_offset)
-        # Per cell, once per block: its centre in float64 (the reach test) and in float32 divided by ell
-        # (the kernel, as the C++ scales both coordinates), one coordinate per vector (the branch-free
-        # form's cell loop then vectorises).
-        centre_x = cell_scalars()
-        centre_y = cell_scalars()
-        centre_z = cell_scalars()
+        # Per cell, once per block: its centre in float32 divided by ell (as the C++ scales both sides),
+        # one coordinate per vector (the cell loops then vectorise).
         scaled_x = cell_floats()
         scaled_y = cell_floats()
         scaled_z = cell_floats()
         for j in range(n3):
-            ix = first[0] + j // (n * n)
-            iy = first[1] + (j // n) % n
-            iz = first[2] + j % n
-            centre = voxel_center(ix, iy, iz, resolution, grid_offset)
-            centre_x[j] = centre[0]
-            centre_y[j] = centre[1]
-            centre_z[j] = centre[2]
-            scaled = sbki_voxel_center(ix, iy, iz, resolution32, offset32) / length32
+            scaled = sbki_voxel_center(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n, resolution32, offset32) / length32
             scaled_x[j] = scaled[0]
             scaled_y[j] = scaled[1]
             scaled_z[j] = scaled[2]
         evidence = class_cell_sums()
         weight_sum = cell_scalars()
         hits = cell_scalars()
-        # The cell centres' box: a point beyond reach of it is beyond reach of every cell centre, so it
-        # is skipped with one test (the margin covers rounding differences between the two forms).
-        box_lo = wp.vec3d(centre_x[0], centre_y[0], centre_z[0])
-        box_hi = wp.vec3d(centre_x[n3 - 1], centre_y[n3 - 1], centre_z[n3 - 1])
-        skip2 = reach2 * f64(BOX_SKIP_MARGIN)
+        # The scaled cell centres' box (the centres grow with the cell index): a point beyond reach of it
+        # is beyond reach of every cell centre, so it is skipped with one test.
+        box_lo = wp.vec3(scaled_x[0], scaled_y[0], scaled_z[0])
+        box_hi = wp.vec3(scaled_x[n3 - 1], scaled_y[n3 - 1], scaled_z[n3 - 1])
         for f in range(sources.shape[1]):
             s = sources[b, f]
             if s >= 0:
                 for q in range(point_start[s], point_start[s + 1]):
-                    p = points[q]
-                    if box_distance2(box_lo, box_hi, p) > skip2:
+                    scaled_point = scaled_points[q]
+                    if box_distance2(box_lo, box_hi, scaled_point) >= wp.static(BOX_SKIP_DISTANCE2):
                         continue
-                    scaled_point = wp.vec3(float(p[0]), float(p[1]), float(p[2])) / length32
                     label = labels[q]
                     if wp.static(branch_free):
-                        # Kernel values for all cells without branches (0 beyond reach; the C++ adds only
-                        # positive ones), then added in: adding 0 leaves a sum as it was.
+                        # Kernel values for all cells without branches (zeros where the kernel is not
+                        # positive; the C++ adds only positive ones), then added in: adding 0 leaves a sum
+                        # as it was.
                         weights = cell_scalars()
                         for j in range(n3):
-                            dx = centre_x[j] - p[0]
-                            dy = centre_y[j] - p[1]
-                            dz = centre_z[j] - p[2]
-                            k = f64(sbki_sparse_kernel_scaled(wp.vec3(scaled_x[j], scaled_y[j], scaled_z[j]), scaled_point, sigma32))
-                            weights[j] = wp.where(dx * dx + dy * dy + dz * dz < reach2, k, _ZERO)
+                            weights[j] = f64(sbki_sparse_kernel_scaled(wp.vec3(scaled_x[j], scaled_y[j], scaled_z[j]), scaled_point, sigma32))
                         for j in range(n3):
                             evidence[label, j] = evidence[label, j] + weights[j]
                             weight_sum[j] = weight_sum[j] + weights[j]
                             hits[j] = hits[j] + wp.where(weights[j] > _ZERO, _ONE, _ZERO)
                     else:
                         for j in range(n3):
-                            dx = centre_x[j] - p[0]
-                            dy = centre_y[j] - p[1]
-                            dz = centre_z[j] - p[2]
-                            if dx * dx + dy * dy + dz * dz < reach2:
-                                w = f64(sbki_sparse_kernel_scaled(wp.vec3(scaled_x[j], scaled_y[j], scaled_z[j]), scaled_point, sigma32))
-                                if w > _ZERO:
-                                    evidence[label, j] = evidence[label, j] + w
-                                    weight_sum[j] = weight_sum[j] + w
-                                    hits[j] = hits[j] + _ONE
+                            w = f64(sbki_sparse_kernel_scaled(wp.vec3(scaled_x[j], scaled_y[j], scaled_z[j]), scaled_point, sigma32))
+                            if w > _ZERO:
+                                evidence[label, j] = evidence[label, j] + w
+                                weight_sum[j] = weight_sum[j] + w
+                                hits[j] = hits[j] + _ONE
         total = _ZERO
         for j in range(n3):
             row = rows[j]

@@ -53,8 +53,8 @@ BELIEF_EPSILON = 1e-6
 EXTRA_COLUMNS = 4
 COL_WEIGHT, COL_WEIGHTED_UNCERTAINTY, COL_HITS, COL_TOUCHED = range(4)  # offsets from K
 
-# The C++ S-BKI writes pi as 3.1415926f; float32 rounding noise makes its kernel slightly positive
-# a little beyond d = ell, so the compat search reaches this far past the length.
+# How far past the length the compat scatter searches, a margin: the float32 kernel (pi written as the
+# C++'s 3.1415926f) is zero from 0.984 ell on (``kernels.block_gather.SBKI_ZERO_BEYOND``).
 SBKI_REACH_FACTOR = 1.05
 
 f64 = wp.float64

@@ -326,6 +326,33 @@ def test_sbki_gather_kernel_matches_its_table_twin(device, n):
     np.testing.assert_array_equal(arrays.hits, want[:, 5])
 
 
+def test_the_float32_sbki_kernel_is_zero_where_the_gather_skips_points():
+    # The gather kernel has no reach test of its own: it adds where the kernel is positive and skips
+    # points at SBKI_ZERO_BEYOND ell or more from a block's cells. So the float32 kernel must not be
+    # positive there: every float32 distance from 0.95 to 8 ell (beyond, (d - 1) / 3 alone outweighs
+    # sin / (2 pi)). Its last positive value lies just below.
+    import warp as wp
+
+    from evsemmap_warp.kernels.block_gather import SBKI_ZERO_BEYOND
+    from evsemmap_warp.kernels.scatter import sbki_sparse_kernel_scaled
+
+    @wp.kernel
+    def kernel_at(distance: wp.array(dtype=float), value: wp.array(dtype=float)):
+        i = wp.tid()
+        value[i] = sbki_sparse_kernel_scaled(wp.vec3(distance[i], 0.0, 0.0), wp.vec3(0.0, 0.0, 0.0), 10.0)
+
+    bits = np.arange(np.float32(0.95).view(np.int32), np.float32(8.0).view(np.int32), dtype=np.int32)
+    last_positive = 0.0
+    for chunk in np.array_split(bits, 8):
+        distance = chunk.view(np.float32)
+        value = wp.empty(len(distance), dtype=float, device="cpu")
+        wp.launch(kernel_at, dim=len(distance), inputs=[wp.array(distance, dtype=float, device="cpu"), value], device="cpu")
+        positive = distance[value.numpy() > 0]
+        if len(positive):
+            last_positive = max(last_positive, float(positive.max()))
+    assert 0.98 < last_positive < SBKI_ZERO_BEYOND
+
+
 def _random_sbki_scan(seed: int, n: int, extent: float, free_resolution_m: float):
     """A bench-like S-BKI config (0.2 m cells, 0.4 m blocks) and n random labelled points in an extent^3 cube."""
     rng = np.random.default_rng(seed)

@@ -300,7 +300,7 @@ class SbkiCompatIntegrator:
             wp.array(tables.test_blocks.astype(np.int32), dtype=wp.vec3i, device=d, copy=False),
             wp.array(tables.sources, dtype=int, device=d, copy=False),
             wp.array(tables.point_start.astype(np.int32), dtype=int, device=d, copy=False),
-            wp.array(take_rows(points, sorted_points).astype(np.float64), dtype=wp.vec3d, device=d, copy=False),
+            wp.array(block_gather.scale_points(take_rows(points, sorted_points), c.length_m), dtype=wp.vec3, device=d, copy=False),
             wp.array(np.ascontiguousarray(labels[sorted_points], dtype=np.int32), dtype=int, device=d, copy=False),
             wp.float64(c.length_m), wp.float64(c.sigma0), wp.float64(c.resolution_m), wp.float64(self.grid_offset_m(c)),
         ]
