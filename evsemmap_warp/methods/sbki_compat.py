@@ -36,8 +36,8 @@ def block_size_m(resolution_m: float, block_depth: int) -> np.float32:
 
 def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float) -> tuple[np.ndarray, np.ndarray]:
     """pcl::VoxelGrid with downsample_all_data: one point per occupied leaf at the float32 centroid
-    (``kernels.voxel_grid.leaf_centroids``, numpy's reduceat order), labelled by majority (smallest label
-    on ties), in ascending leaf index order (x fastest)."""
+    (``kernels.voxel_grid.leaf_centroids``: summed point by point from zero, as PCL's CentroidPoint),
+    labelled by majority (smallest label on ties), in ascending leaf index order (x fastest)."""
     points = np.asarray(points, dtype=np.float32)
     labels = np.asarray(labels, dtype=np.int64)
     if len(points) == 0:

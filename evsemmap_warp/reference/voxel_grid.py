@@ -11,9 +11,10 @@ def leaf_indices(points, inverse_leaf, lowest, leaves_x, leaves_y) -> np.ndarray
 
 
 def leaf_centroids(points, order, starts, counts) -> np.ndarray:
-    """Each leaf's float32 centroid from numpy's add.reduceat over the points in leaf order."""
-    points = np.asarray(points, np.float32)
-    if len(starts) == 0:
-        return np.zeros((0, 3), np.float32)
-    sums = np.add.reduceat(points[order], starts, axis=0, dtype=np.float32)
+    """Each leaf's float32 centroid: its points in leaf order added one by one in float32 (from zero, as
+    PCL's CentroidPoint does; np.add.accumulate is sequential, np.add.reduce pairwise), over the count."""
+    points = np.asarray(points, np.float32)[np.asarray(order, np.int64)]
+    sums = np.zeros((len(starts), 3), np.float32)
+    for leaf, (start, count) in enumerate(zip(np.asarray(starts, np.int64), np.asarray(counts, np.int64))):
+        sums[leaf] = np.add.accumulate(np.vstack([np.zeros((1, 3), np.float32), points[start:start + count]]), axis=0, dtype=np.float32)[-1]
     return (sums / np.asarray(counts)[:, None].astype(np.float32)).astype(np.float32)
