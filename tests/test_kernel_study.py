@@ -171,3 +171,47 @@ def test_the_integration_bench_releases_each_repeats_map_before_the_next(monkeyp
     assert len(row["all_seconds"]) == 3 and row["voxels"] > 0
     # the warm-up map stays (it is small); no repeat's map is alive when the next one is made
     assert alive_at_start[2:] == [1, 1]
+
+
+def _cpp_figures(totals=(2.0, 1.0, 3.0)):
+    row = {"totals": list(totals), "cells": 10, "free": 4, "occupied": 6, "after_unc": 5, "after_ds": 3}
+    return {"measured": {"summary": "timed here"},
+            "sbki_original": {"results": {f"{k}_t{t}": dict(row) for k in ("fr0.5", "fr4.0", "fr100") for t in (1, 2)}},
+            "evsemmap": {"results": {f"{m}_t{t}": dict(row) for m in ("ebs", "dempster") for t in (1, 2)}}}
+
+
+def test_the_integration_bench_reads_the_cpp_figures_it_is_given(tmp_path):
+    import json
+
+    sys.path.insert(0, str(REPO / "tools"))
+    import bench_integrate
+
+    path = tmp_path / "side_by_side.json"
+    path.write_text(json.dumps(_cpp_figures()))
+    sbki, evsemmap, source = bench_integrate.read_cpp_figures(path)
+    assert source == "timed here" and sbki["fr4.0_t2"]["totals"] == [2.0, 1.0, 3.0] and evsemmap["dempster_t1"]["cells"] == 10
+    # a missing row, a release row without its counts, a zero time, a file that is no JSON: one message naming the file
+    broken = _cpp_figures()
+    del broken["evsemmap"]["results"]["ebs_t2"]
+    uncounted = _cpp_figures()
+    del uncounted["evsemmap"]["results"]["dempster_t1"]["after_ds"]
+    zero = _cpp_figures(totals=(0.0, 1.0))
+    for name, text in (("missing.json", json.dumps(broken)), ("uncounted.json", json.dumps(uncounted)), ("zero.json", json.dumps(zero)),
+                       ("text.json", "not json")):
+        (tmp_path / name).write_text(text)
+        with pytest.raises(ValueError, match=name):
+            bench_integrate.read_cpp_figures(tmp_path / name)
+    with pytest.raises(ValueError, match="absent.json"):
+        bench_integrate.read_cpp_figures(tmp_path / "absent.json")
+
+
+def test_the_integration_bench_feeds_sbki_the_workloads_labels():
+    # The C++ S-BKI runs read the workload's label array; the argmax of its alphas differs for ~2 % of
+    # the points (there the second class carries more evidence), which would change the map.
+    sys.path.insert(0, str(REPO / "tools"))
+    import bench_integrate
+
+    label = np.array([3, 1, 4, 1, 5, 9, 2], np.uint8)
+    dataset = type("Workload", (), {"offsets": np.array([0, 4, 7]), "data": {"label": label}, "__len__": lambda self: 2})()
+    got = bench_integrate.sbki_labels(dataset)
+    assert [g.tolist() for g in got] == [[3, 1, 4, 1], [5, 9, 2]] and got[0].dtype == np.int64

@@ -607,3 +607,36 @@ def test_majority_labels_dense_table_and_sorted_pairs_agree(monkeypatch):
     for c in rng.choice(np.unique(cells), 50):
         values, counts = np.unique(labels[cells == c], return_counts=True)
         assert dense[c] == values[np.argmax(counts)]  # most frequent, smallest on ties
+
+
+def test_the_benchmark_workload_maps_as_the_original_cpp_does():
+    # The bench's like-for-like claim on the real workload: the sbki mode at free_res 100, fed the
+    # workload's S-BKI labels, makes the C++ S-BKI's cells, and its states differ from the C++ map's in a
+    # few dozen of 608 k cells: prior-level near-ties, where float32 noise in tiny kernel values at the
+    # edge of the support decides the argmax (Eigen's vectorised sin/cos in the C++, correctly rounded
+    # ones here). The release mode makes the released EvSemMap's counts exactly.
+    import json
+    import sys
+
+    shared_path("data", "bench", "rellis_like_30scans.npz")
+    sys.path.insert(0, str(REPO / "tools"))
+    import bench_integrate
+
+    cpp = json.loads((REPO / "docs" / "cpp_side_by_side.json").read_text())
+    dataset, scans = bench_integrate.load_scans()
+    labels = bench_integrate.sbki_labels(dataset)
+    mapper = Mapper(bench_integrate.compat_config(100.0), 9, workers=1)
+    for scan, label in zip(scans, labels):
+        mapper.integrate(scan.points, label, payload_type="label", sensor_origin=scan.sensor_origin)
+    want = cpp["sbki_original"]["results"]["fr100_t1"]
+    states = mapper.state_counts()
+    assert mapper.voxel_count == want["cells"] == 608_176
+    assert abs(states["FREE"] - want["free"]) <= 60 and abs(states["OCCUPIED"] - want["occupied"]) <= 60 and states["UNKNOWN"] == 0
+
+    release = load_config([REPO / "configs/presets/evsemmap-release.yaml"], method="ebs").mapping
+    mapper = Mapper(release, 9, workers=1)
+    kept = 0
+    for scan in scans:
+        kept += mapper.integrate(scan.points, scan.payload, payload_type="alpha", sensor_origin=scan.sensor_origin).kept_points
+    want = cpp["evsemmap"]["results"]["ebs_t1"]
+    assert (kept, mapper.voxel_count, mapper.state_counts()["OCCUPIED"]) == (want["after_ds"], want["cells"], want["occupied"])

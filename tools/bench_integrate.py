@@ -2,14 +2,16 @@
 
 Times Mapper.integrate over all 30 scans (1.8M points) for each method, next to the vectorised numpy
 implementation (evsemmap_warp/reference/scatter.py driven by the same per-scan rules) run in the same
-process, and next to the original C++ figures stored with the workload (its .json):
+process, and next to the original C++ figures: those stored with the workload (its .json), or, with
+--cpp-timings, the originals timed on this machine beside this tool (docs/cpp_side_by_side.json):
 
 * ``ebs``, ``s-bki``: the clean algorithm with the RELLIS-3D preset (paper Table I);
 * ``convbki``, ``see-csom``, ``dempster``: the comparison methods in the same engine, same preset
   (ConvBKI with its initial 0.5 m lengths on the 5x5x5 stencil);
 * ``s-bki-compat@frF``: the sbki compatibility mode with the C++ S-BKI benchmark parameters
-  (r 0.2, block depth 2, ell 0.3, sf2 10, prior 0.001, VoxelGrid 0.1, free_resolution F): the same map
-  semantics as the C++ rows, so the ratio against them is like for like;
+  (r 0.2, block depth 2, ell 0.3, sf2 10, prior 0.001, VoxelGrid 0.1, free_resolution F) and the
+  workload's S-BKI input labels (its ``label`` array, which the C++ runs read): the same map semantics
+  as the C++ rows, so the ratio against them is like for like;
 * ``ebs-release``, ``dempster-release``: the release-compatibility mode (configs/presets/evsemmap-release.yaml)
   against the released EvSemMap C++ (its counts after the cut, after "ds" and its cells are checked).
 
@@ -19,10 +21,12 @@ slower). ``@1t`` rows call ``Mapper.integrate`` scan by scan, throughput = input
 time of those calls; ``@2t`` rows and the clean rows (2 workers) map through ``Mapper.integrate_many``
 (the next scans' host work overlaps this scan's kernels), throughput = input points / its wall time.
 Scans are in memory (loading excluded); median of --repeats fresh maps after one warm-up (kernel
-compile); the numpy twin likewise, at one thread (numpy's scatter does not thread). The C++ figures are the workload's own (its .json). The last
-line printed is one JSON object: row name -> input points per second.
+compile); the numpy twin likewise, at one thread (numpy's scatter does not thread). A C++ rate is
+input points / the median of its runs' summed insert times. The cell counts, and the release's counts
+after the cut and after "ds", must equal the C++'s, or the tool exits 1.
+The last line printed is one JSON object: row name -> input points per second.
 
-    python tools/bench_integrate.py [--repeats 3] [--device cpu] [--plot bench.png]
+    python tools/bench_integrate.py [--repeats 3] [--device cpu] [--plot bench.png] [--cpp-timings docs/cpp_side_by_side.json]
 """
 
 from __future__ import annotations
@@ -59,6 +63,33 @@ def load_scans():
     dataset = open_dataset(run.dataset)
     scans = list(dataset)
     return dataset, scans
+
+
+def sbki_labels(dataset) -> list[np.ndarray]:
+    """The workload's S-BKI input labels per scan: its ``label`` array, the classes the C++ S-BKI runs
+    were given. (The argmax of the evidential alphas differs from it for 1.8 % of the points, where the
+    second class's evidence is the larger.)"""
+    offsets = dataset.offsets
+    return [dataset.data["label"][offsets[i]:offsets[i + 1]].astype(np.int64) for i in range(len(dataset))]
+
+
+def read_cpp_figures(path: Path) -> tuple[dict, dict, str]:
+    """(S-BKI results, EvSemMap results, where they come from) from the workload's .json or a file in its
+    layout; a missing or malformed file gives one line naming it and exit code 2."""
+    try:
+        cpp = json.loads(path.read_text())
+        sbki, evsemmap = cpp["sbki_original"]["results"], cpp["evsemmap"]["results"]
+        for results, keys in ((sbki, [f"{k}_t{t}" for k in CPP_SBKI.values() for t in (1, 2)]),
+                              (evsemmap, [f"{m}_t{t}" for m in RELEASE_METHODS for t in (1, 2)])):
+            for key in keys:
+                if not results[key]["totals"] or min(results[key]["totals"]) <= 0 or results[key]["cells"] <= 0:
+                    raise ValueError(f"{key}: totals and cells must be positive")
+        for method in RELEASE_METHODS:
+            evsemmap[f"{method}_t1"]["after_unc"], evsemmap[f"{method}_t1"]["after_ds"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: not the originals' timings in the workload .json's layout ({type(exc).__name__}: {exc})") from None
+    source = cpp.get("measured", {}).get("summary", f"the figures stored with the workload ({path.name})")
+    return sbki, evsemmap, source
 
 
 def compat_config(free_resolution: float) -> MappingConfig:
@@ -153,6 +184,9 @@ def main() -> int:
     parser.add_argument("--free-resolutions", nargs="*", default=["100", "4", "0.5"], help="S-BKI compat free_resolution values (C++ has 0.5, 4, 100)")
     parser.add_argument("--skip-numpy", action="store_true")
     parser.add_argument("--plot", type=Path, default=None, help="write a bar chart of the throughputs (needs matplotlib)")
+    parser.add_argument("--cpp-timings", type=Path, default=None,
+                        help="the originals' timings measured on this machine, in the layout of the workload's .json "
+                             "(e.g. docs/cpp_side_by_side.json), instead of the workload's stored figures")
     args = parser.parse_args()
 
     if not DATASET.exists() or not (REPO.parent / "shared/data/bench/rellis_like_30scans.npz").exists():
@@ -160,9 +194,13 @@ def main() -> int:
         return 1
     dataset, scans = load_scans()
     n_points = sum(len(s.points) for s in scans)
-    cpp = json.loads((dataset.path.with_suffix(".json")).read_text())
+    try:
+        sbki, evsemmap, cpp_source = read_cpp_figures(args.cpp_timings or dataset.path.with_suffix(".json"))
+    except ValueError as exc:
+        print(exc, file=sys.stderr)
+        return 2
     alphas = [s.payload for s in scans]
-    labels = [np.argmax(a, axis=1) for a in alphas]
+    labels = sbki_labels(dataset)
 
     rows = {}
     thread_counts = (1, 2) if args.device == "cpu" else (1,)
@@ -185,20 +223,16 @@ def main() -> int:
                                                                    pipelined=threads > 1)
         release_after_cut = {m: release_counts(load_config([RELEASE_PRESET], method=m).mapping, scans) for m in RELEASE_METHODS}
 
-    # The C++ on one thread and at its best thread count (1 or 2), as measured with the workload.
-    evsemmap, sbki = cpp["evsemmap"]["results"], cpp["sbki_original"]["results"]
-    cpp_rate, cpp_cells = {}, {}
-    for method in RELEASE_METHODS:
+    # The C++ on one thread and at its best thread count (1 or 2): input points / median summed insert time.
+    cpp_rate, cpp_row = {}, {}
+    for name, results, key in [(f"{m}-release", evsemmap, m) for m in RELEASE_METHODS] + [(f"s-bki-compat@fr{fr}", sbki, k) for fr, k in CPP_SBKI.items()]:
         for t in (1, 2):
-            cpp_rate[(f"{method}-release", t)] = evsemmap[f"{method}_t{t}"]["pts_per_s"]
-        cpp_cells[f"{method}-release"] = evsemmap[f"{method}_t1"]["cells"]
-    for fr, key in CPP_SBKI.items():
-        for t in (1, 2):
-            cpp_rate[(f"s-bki-compat@fr{fr}", t)] = sbki[f"{key}_t{t}"]["input_pts_per_s"]
-        cpp_cells[f"s-bki-compat@fr{fr}"] = sbki[f"{key}_t1"]["cells"]
+            cpp_rate[(name, t)] = n_points / statistics.median(results[f"{key}_t{t}"]["totals"])
+        cpp_row[name] = results[f"{key}_t1"]
     cpp_rate[("ebs", 2)] = max(cpp_rate[("ebs-release", 1)], cpp_rate[("ebs-release", 2)])  # other map semantics
 
     print(f"{n_points:,} input points in {len(scans)} scans, device {args.device}, median of {args.repeats}")
+    print(f"C++ figures: {cpp_source}")
     print(f"{'row':28s} {'s':>7s} {'input pts/s':>12s} {'voxel upd/s':>12s} {'voxels':>9s} {'B/voxel':>8s}  vs numpy  "
           f"vs C++ (@1t: C++ 1 thread; @2t and others: C++ at its best of 1/2 threads)")
     throughput, references = {}, {}
@@ -224,16 +258,18 @@ def main() -> int:
     problems = []
     for name in like_for_like:
         row = rows[f"{name}@{thread_counts[-1]}t"]
-        line = f"{name}: {row['voxels']:,} cells (C++ {cpp_cells[name]:,}), FREE {row['free']:,}, OCCUPIED {row['occupied']:,}"
+        want_row = cpp_row[name]
+        line = f"{name}: {row['voxels']:,} cells (C++ {want_row['cells']:,}), FREE {row['free']:,}, OCCUPIED {row['occupied']:,}"
+        if "free" in want_row:
+            line += f" (C++ {want_row['free']:,} and {want_row['occupied']:,})"
         if name.endswith("-release"):
-            method = name.removesuffix("-release")
-            want = (evsemmap[f"{method}_t1"]["after_unc"], evsemmap[f"{method}_t1"]["after_ds"])
-            got = (release_after_cut[method], row["kept_or_training_points"])
+            want = (want_row["after_unc"], want_row["after_ds"])
+            got = (release_after_cut[name.removesuffix("-release")], row["kept_or_training_points"])
             line += f"; after the cut {got[0]:,} (C++ {want[0]:,}), after ds {got[1]:,} (C++ {want[1]:,})"
             if got != want:
                 problems.append(f"{name}: counts {got} differ from the C++'s {want}")
-        if row["voxels"] != cpp_cells[name] and name.endswith("-release"):
-            problems.append(f"{name}: {row['voxels']:,} cells, the C++ has {cpp_cells[name]:,}")
+        if row["voxels"] != want_row["cells"]:
+            problems.append(f"{name}: {row['voxels']:,} cells, the C++ has {want_row['cells']:,}")
         print(line)
     print("details: " + json.dumps(rows, default=lambda o: None))
     if args.plot:
