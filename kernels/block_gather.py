@@ -138,8 +138,8 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
         evidence = class_cell_sums()
         weight_sum = cell_scalars()
         hits = cell_scalars()
-        # The scaled cell centres' box (the centres grow with the cell index): a point beyond reach of it
-        # is beyond reach of every cell centre, so it is skipped with one test.
+        # The scaled cell centres' box (the centres grow with the cell index): a point SBKI_ZERO_BEYOND or
+        # more from it is as far from every cell centre, where the kernel is zero, so one test skips it.
         box_lo = wp.vec3(scaled_x[0], scaled_y[0], scaled_z[0])
         box_hi = wp.vec3(scaled_x[n3 - 1], scaled_y[n3 - 1], scaled_z[n3 - 1])
         for f in range(sources.shape[1]):
