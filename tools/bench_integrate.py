@@ -84,8 +84,9 @@ def read_cpp_figures(path: Path) -> tuple[dict, dict, str]:
             for key in keys:
                 if not results[key]["totals"] or min(results[key]["totals"]) <= 0 or results[key]["cells"] <= 0:
                     raise ValueError(f"{key}: totals and cells must be positive")
-        for method in RELEASE_METHODS:
-            evsemmap[f"{method}_t1"]["after_unc"], evsemmap[f"{method}_t1"]["after_ds"]
+        for method in RELEASE_METHODS:  # the release rows' counts, which the run is checked against
+            if min(evsemmap[f"{method}_t1"]["after_unc"], evsemmap[f"{method}_t1"]["after_ds"]) <= 0:
+                raise ValueError(f"{method}_t1: after_unc and after_ds must be positive")
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"{path}: not the originals' timings in the workload .json's layout ({type(exc).__name__}: {exc})") from None
     source = cpp.get("measured", {}).get("summary", f"the figures stored with the workload ({path.name})")
