@@ -241,38 +241,55 @@ def _grid_index(grid: wp.array3d(dtype=int), lo: wp.vec3i, b: wp.vec3i) -> int:
 @wp.kernel
 def block_models(blocks: wp.array(dtype=wp.vec3i), grid: wp.array3d(dtype=int), lo: wp.vec3i,
                  target_offsets: wp.array(dtype=wp.vec3i), face_offsets: wp.array(dtype=wp.vec3i),
-                 source_blocks: wp.array2d(dtype=int), source_mult: wp.array2d(dtype=int)):
+                 models_by_mask: wp.array2d(dtype=int), source_blocks: wp.array2d(dtype=int), source_mult: wp.array2d(dtype=int)):
     """For block b and every target offset o: the block at blocks[b] + o (its index from ``grid``, a
     dense map of the scan's blocks over their bounding box widened by 3; -1 none) and the number of
-    its models that predict for blocks[b]: occupied blocks source + f, f a face offset or 0, with
-    |o + f|_1 <= 1. One thread per block (one per block and offset took ~1.5x as long on the CPU,
-    where each thread has a fixed cost)."""
+    its models that predict for blocks[b]. Those models are the occupied blocks blocks[b] + f (f a face
+    offset or 0) that also lie in the source's extended block, so the count is
+    models_by_mask[o, mask of the occupied f]: 7 lookups per block where testing every (o, f) took 25 x 7.
+    One thread per block (one per block and offset took ~1.5x as long on the CPU, where each thread
+    has a fixed cost)."""
     b = wp.tid()
+    occupied = int(0)
+    for f in range(face_offsets.shape[0]):
+        if _grid_index(grid, lo, blocks[b] + face_offsets[f]) >= 0:
+            occupied = occupied | (1 << f)
     for o in range(target_offsets.shape[0]):
-        offset = target_offsets[o]
-        source = blocks[b] + offset
-        index = _grid_index(grid, lo, source)
-        mult = int(0)
-        if index >= 0:
-            for f in range(face_offsets.shape[0]):
-                step = offset + face_offsets[f]
-                if wp.abs(step[0]) + wp.abs(step[1]) + wp.abs(step[2]) <= 1:
-                    if _grid_index(grid, lo, source + face_offsets[f]) >= 0:
-                        mult += 1
+        index = _grid_index(grid, lo, blocks[b] + target_offsets[o])
         source_blocks[b, o] = index
-        source_mult[b, o] = mult
+        source_mult[b, o] = wp.where(index >= 0, models_by_mask[o, occupied], 0)
 
 
 @wp.func
-def _snap(p: float, lo: float, hi: float, ds: float) -> float:
-    last = wp.int64((hi - lo) / ds)
-    i = wp.int64((p - lo) / ds) - wp.int64(1)
+def _line_is_nearer(p: float, lo: float, ds: float, i: wp.int64, last: wp.int64) -> int:
+    """1 where the C++ loop stops at line i (i <= last and p - line < next line - p, in float32), else 0."""
+    nearer = wp.where(p - (lo + float(i) * ds) < (lo + float(i + wp.int64(1)) * ds) - p, 1, 0)
+    return nearer & wp.where(i <= last, 1, 0)
+
+
+@wp.func
+def _snap_from(p: float, lo: float, hi: float, ds: float, i: wp.int64, last: wp.int64) -> float:
+    """The C++ loop from line i on."""
     while i <= last:
-        line = lo + float(i) * ds
-        if p - line < (lo + float(i + wp.int64(1)) * ds) - p:
-            return line
+        if _line_is_nearer(p, lo, ds, i, last) != 0:
+            return lo + float(i) * ds
         i += wp.int64(1)
     return hi
+
+
+@wp.func
+def _snap(p: float, lo: float, hi: float, ds: float, last: wp.int64) -> float:
+    i = wp.int64((p - lo) / ds) - wp.int64(1)
+    # The loop ends at its second or third line for every point inside [lo, hi]: those three tests are
+    # made as integer selects, without branches or an early return (as the loop, this took 5x the time),
+    # and the loop goes on from the fourth line only where none holds.
+    at0 = _line_is_nearer(p, lo, ds, i, last)
+    at1 = _line_is_nearer(p, lo, ds, i + wp.int64(1), last)
+    at2 = _line_is_nearer(p, lo, ds, i + wp.int64(2), last)
+    line = lo + float(i + wp.int64(wp.where(at0 != 0, 0, wp.where(at1 != 0, 1, 2)))) * ds
+    if (at0 | at1 | at2) == 0:
+        line = _snap_from(p, lo, hi, ds, i + wp.int64(3), last)
+    return line
 
 
 @wp.kernel
@@ -280,9 +297,10 @@ def snap_to_lines(points: wp.array(dtype=wp.vec3), lo: wp.vec3, hi: wp.vec3, ds:
     """The release's coord_to_voxel_center_coord per axis, in float32 as its loop runs: from
     i = trunc((p - lo) / ds) - 1 up to trunc((hi - lo) / ds), the first line lo + i ds with
     p - line < next line - p; none: hi. One thread walks all points (launch with dim=1)."""
+    last = wp.vec3l(wp.int64((hi[0] - lo[0]) / ds), wp.int64((hi[1] - lo[1]) / ds), wp.int64((hi[2] - lo[2]) / ds))
     for n in range(points.shape[0]):
         p = points[n]
-        snapped[n] = wp.vec3(_snap(p[0], lo[0], hi[0], ds), _snap(p[1], lo[1], hi[1], ds), _snap(p[2], lo[2], hi[2], ds))
+        snapped[n] = wp.vec3(_snap(p[0], lo[0], hi[0], ds, last[0]), _snap(p[1], lo[1], hi[1], ds, last[1]), _snap(p[2], lo[2], hi[2], ds, last[2]))
 
 
 @wp.kernel

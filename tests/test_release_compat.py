@@ -34,6 +34,13 @@ def test_snapping_kernel_follows_the_cpp_loop_ties_and_the_last_line(offset):
     p[20], p[21] = lo, hi
     for cloud in (p, p[21:22], p[:0]):
         np.testing.assert_array_equal(er.snapped_points(cloud, lo, hi, ds), snap_to_lines(cloud, lo, hi, ds))
+    # Past the last line the loop ends without a stop and gives the maximum: a box whose extent ends
+    # 0.75 ds past a line (the kernel's fallback after its three branch-free tests), and points above it.
+    lo, hi = np.float32([offset] * 3), np.float32([offset + 0.0075, offset + 0.0475, offset + 0.0275])
+    cloud = np.vstack([hi, hi - np.float32(0.001), hi + np.float32(0.02), lo]).astype(np.float32)
+    want = snap_to_lines(cloud, lo, hi, ds)
+    assert (want[:3] == hi).any(axis=1).all()
+    np.testing.assert_array_equal(er.snapped_points(cloud, lo, hi, ds), want)
 
 
 def test_block_cap_keeps_the_first_points_in_input_order():

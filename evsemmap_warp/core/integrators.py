@@ -21,6 +21,7 @@ next scan while another is still on this one, and a launch's voxel updates may s
 
 from __future__ import annotations
 
+import functools
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable, Optional
@@ -43,12 +44,21 @@ MIN_POINTS_PER_SHARD = 4096
 class ScanPayload:
     """A validated scan: points [N, 3] float64 (m, relative to the map origin when an integrator gets
     them), class probabilities [N, K], input uncertainty [N] (K / S for alpha, 1 - max p for
-    probabilities, 0 for labels), labels [N]."""
+    probabilities, 0 for labels), and ``labels`` [N]: ``label_scores`` itself when it is [N], else its
+    row argmax, computed when first asked for (the release mode never asks; 5 % of its time)."""
 
     points: np.ndarray
     probabilities: np.ndarray
     uncertainty: np.ndarray
-    labels: np.ndarray
+    label_scores: np.ndarray
+
+    @functools.cached_property
+    def labels(self) -> np.ndarray:
+        if self.label_scores.ndim == 1:
+            return self.label_scores
+        if len(self.label_scores) == 0:
+            return np.zeros(0, np.int64)
+        return np.argmax(self.label_scores, axis=1)
 
 
 @dataclass

@@ -161,7 +161,7 @@ def prepare_payload(points, payload, payload_type: PayloadType | str, num_classe
         raise ValueError(f"payload: {payload_type.value} must have shape [{n}, {k}], got {list(payload.shape)}")
     if payload.shape[1] != k:
         raise ValueError(f"payload: {payload.shape[1]} class columns, but the map has {k} classes")
-    payload = payload.astype(np.float64)
+    payload = np.asarray(payload, dtype=np.float64)  # read only: no copy of a float64 payload
     if not np.isfinite(payload).all():
         raise ValueError(f"payload: {int((~np.isfinite(payload)).sum())} NaN/inf values in the {payload_type.value} array")
     if payload_type is PayloadType.ALPHA:
@@ -180,7 +180,7 @@ def prepare_payload(points, payload, payload_type: PayloadType | str, num_classe
             raise ValueError(f"payload: probability rows must sum to 1, row {row} sums to {sums[row]}")
         probabilities = payload / sums[:, None] if n else payload
         uncertainty = 1.0 - probabilities.max(axis=1) if n else np.zeros(0)
-    return ScanPayload(points, probabilities, uncertainty, np.argmax(payload, axis=1) if n else np.zeros(0, np.int64))
+    return ScanPayload(points, probabilities, uncertainty, payload)
 
 
 class Mapper:

@@ -547,7 +547,7 @@ class VoxelMap:
 def block_model_tables(blocks: np.ndarray, grid: np.ndarray, lo: np.ndarray, device: str):
     """``kernels.release.block_models`` over every block: the release mode's source blocks and model
     counts [B, 25] from a dense grid of the scan's blocks."""
-    from ..methods.evsemmap_release import FACE_OFFSETS, TARGET_BLOCK_OFFSETS
+    from ..methods.evsemmap_release import FACE_OFFSETS, MODELS_BY_MASK, TARGET_BLOCK_OFFSETS
 
     n, m = len(blocks), len(TARGET_BLOCK_OFFSETS)
     source = wp.empty((n, m), dtype=int, device=device)
@@ -555,7 +555,8 @@ def block_model_tables(blocks: np.ndarray, grid: np.ndarray, lo: np.ndarray, dev
     wp.launch(release.block_models, dim=n, device=device, inputs=[
         wp.array(blocks.astype(np.int32), dtype=wp.vec3i, device=device, copy=False), wp.array(grid, dtype=int, device=device, copy=False),
         wp.vec3i(*[int(v) for v in lo]), wp.array(TARGET_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device, copy=False),
-        wp.array(FACE_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device, copy=False), source, mult])
+        wp.array(FACE_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device, copy=False),
+        wp.array(MODELS_BY_MASK, dtype=int, device=device, copy=False), source, mult])
     return source.numpy(), mult.numpy()
 
 

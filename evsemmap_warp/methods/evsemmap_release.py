@@ -32,6 +32,19 @@ from .sbki_compat import block_index, dense_block_grid, group_by_block
 TARGET_BLOCK_OFFSETS = np.array(
     [o for o in np.ndindex(5, 5, 5) if sum(abs(c - 2) for c in o) <= 2], dtype=np.int64) - 2
 FACE_OFFSETS = np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.int64)
+
+
+def _models_by_mask() -> np.ndarray:
+    """[25, 2^7]: for target offset o and a mask of which of a block's FACE_OFFSETS neighbours (and
+    itself) hold points, how many of those models carry the points of block + o into the block: the
+    models m with |m - o|_1 <= 1, i.e. block + o lies in m's extended block."""
+    carries = np.abs(TARGET_BLOCK_OFFSETS[:, None, :] - FACE_OFFSETS[None, :, :]).sum(axis=2) <= 1  # [25, 7]
+    bits = (np.arange(1 << len(FACE_OFFSETS))[:, None] >> np.arange(len(FACE_OFFSETS))) & 1  # [128, 7]
+    return (carries.astype(np.int32) @ bits.T.astype(np.int32)).astype(np.int32)
+
+
+MODELS_BY_MASK = _models_by_mask()
+
 # The C++ hashes blocks as int64(x / (double) size + 524288.5): the nearest block centre for |x| < 2^19 blocks.
 _BLOCK_KEY_SHIFT = 524288.5
 
