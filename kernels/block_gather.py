@@ -2,9 +2,10 @@
 
 S-BKI predicts, for every test block T (a block holding points or a face neighbour of one), from the
 points of the blocks of T's extended block (T and its 6 face neighbours). Here one thread per test
-block finds or inserts its cells once, reads those points once and weighs each against all of T's
-cells with the float32 kernel of the scatter form (``kernels.scatter`` MODE_SBKI_BLOCKS): one table
-probe per cell instead of two per update, no atomics, and a fixed order for every sum. The points
+block finds or inserts its cells once (one probe of the map's brick cache for a block whose rows are
+consecutive, else one table probe per cell; ``VoxelMap._allocate_brick_cache``), reads those points
+once and weighs each against all of T's cells with the float32 kernel of the scatter form
+(``kernels.scatter`` MODE_SBKI_BLOCKS): no atomics, and a fixed order for every sum. The points
 arrive divided by ell in float32, as the C++ scales them (``scale_points``), and the cells' centres
 are scaled once per block. That float32 kernel is zero from d = 0.984 ell on (every float32 distance
 from 0.95 to 8 ell checked, tests/test_sbki_compat.py), so no reach test is needed beyond the kernel's
@@ -30,7 +31,7 @@ import functools
 
 import warp as wp
 
-from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, pack_key, prefetch_brick, table_find_or_insert
+from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, pack_key, prefetch_brick, table_find, table_find_or_insert, table_insert_row
 from .scatter import _ONE, _ZERO, COL_HITS, COL_TOUCHED, COL_WEIGHT, sbki_sparse_kernel_scaled, sbki_voxel_center
 
 wp.set_module_options({"enable_backward": False})
@@ -96,31 +97,46 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
         slot_rows: wp.array(dtype=int),
         key_count: wp.array(dtype=int),
         max_count: int,
+        brick_keys: wp.array(dtype=wp.int64),
+        brick_rows: wp.array(dtype=int),
+        brick_count: wp.array(dtype=int),
+        brick_max_count: int,
         voxel_data: wp.array2d(dtype=wp.float64),
         failed: wp.array(dtype=int),
         update_count: wp.array(dtype=wp.int64),
     ):
-        """Test block test_blocks[block_ids[launch_ids[t]]]: its cells are found or inserted (none fits:
-        failed[t], nothing added) and marked touched; for each of its 7 source blocks sources[b, :] (-1:
+        """Test block test_blocks[block_ids[launch_ids[t]]]: its cells are found (in the brick cache
+        ``brick_keys``/``brick_rows`` when it is there) or inserted (none fits: failed[t], nothing added;
+        consecutive rows: cached, unless the cache holds ``brick_max_count`` blocks) and marked touched; for each of its 7 source blocks sources[b, :] (-1:
         holds no points; block s owns points point_start[s]:point_start[s + 1], given as ``scale_points``
         makes them), each point adds the S-BKI kernel, where positive, for its label to every cell."""
         t = wp.tid()
         half = wp.vec3i(n // 2, n // 2, n // 2)
         if wp.static(prefetch):
             last = launch_ids.shape[0] - 1
-            prefetch_brick(table_keys, slot_rows, voxel_data, test_blocks[block_ids[launch_ids[wp.min(t + PREFETCH_AHEAD, last)]]] * n - half,
-                           test_blocks[block_ids[launch_ids[wp.min(t + PREFETCH_NEARER, last)]]] * n - half)
+            prefetch_brick(table_keys, slot_rows, brick_keys, brick_rows, voxel_data, test_blocks[block_ids[launch_ids[wp.min(t + PREFETCH_AHEAD, last)]]] * n - half,
+                           test_blocks[block_ids[launch_ids[wp.min(t + PREFETCH_NEARER, last)]]] * n - half, n3)
         b = block_ids[launch_ids[t]]
         first = test_blocks[b] * n - half
         # The block's cells are found or inserted first: a block that does not fit adds nothing and is
-        # relaunched after the table grew.
+        # relaunched after the table grew. A block in the brick cache has consecutive rows from its first.
         rows = cell_rows()
-        for j in range(n3):
-            row = table_find_or_insert(table_keys, slot_rows, key_count, max_count, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
-            if row < 0:
-                failed[t] = 1
-                return
-            rows[j] = row
+        brick_key = pack_key(first[0], first[1], first[2])
+        first_row = table_find(brick_keys, brick_rows, brick_key)
+        if first_row >= 0:
+            for j in range(n3):
+                rows[j] = first_row + j
+        else:
+            consecutive = int(1)
+            for j in range(n3):
+                row = table_find_or_insert(table_keys, slot_rows, key_count, max_count, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
+                if row < 0:
+                    failed[t] = 1
+                    return
+                rows[j] = row
+                consecutive = consecutive & wp.where(row == rows[0] + j, 1, 0)
+            if consecutive != 0:
+                table_insert_row(brick_keys, brick_rows, brick_count, brick_max_count, brick_key, rows[0])
         length32 = float(length)
         sigma32 = float(sigma0)
         resolution32 = float(resolution)

@@ -9,7 +9,9 @@ keep per-voxel values in ``[rows, ...]`` arrays that keep their rows when the ta
 table rehashes keys and row numbers only. (Values indexed by slot had to be moved row by row at every
 growth and took twice the memory; growing was a quarter of the S-BKI mode's time at free_res 4.) An insertion
 fails (returns -1) instead of overfilling the table once ``max_count`` keys are in; the host then grows
-the table and re-runs the failed work, so nothing is ever dropped.
+the table and re-runs the failed work, so nothing is ever dropped. The block-gather kernels keep a
+second table of the same layout, the brick cache (a block's first cell -> its first row,
+``table_insert_row``; ``VoxelMap._allocate_brick_cache`` says why).
 
 numpy twin: ``evsemmap_warp/reference/hash_table.py``.
 """
@@ -89,34 +91,46 @@ def _prefetch_slot(keys: wp.array(dtype=wp.int64), slot_rows: wp.array(dtype=int
 
 @wp.func_native("""
 #if !defined(__CUDA_ARCH__)
-// The row stored at the home slot, if any; the brick's cells were inserted together, so their rows
-// usually follow it. A prefetch of a wrong or past-the-end address is harmless (it never faults).
-const int stored = slot_rows.data[slot];
-if (stored > 0) {
-    const char* row = (const char*)data.data + (size_t)(stored - 1) * data.strides[0];
-    const int bytes = rows * data.strides[0];
-    for (int offset = 0; offset < bytes; offset += 64) __builtin_prefetch(row + offset, 1);
+// The first row of the brick whose first cell's key is ``key``, from the brick cache's line at its home
+// slot (the entry, if cached, is almost always in that line). A prefetch of a wrong or past-the-end
+// address is harmless (it never faults).
+const int64_t mask = brick_keys.shape[0] - 1;
+for (int64_t probe = 0; probe < 8; ++probe) {
+    const int64_t at = (slot + probe) & mask;
+    if (brick_keys.data[at] != key) continue;
+    const int stored = brick_rows.data[at];
+    if (stored > 0) {
+        const char* row = (const char*)data.data + (size_t)(stored - 1) * data.strides[0];
+        const int bytes = rows * data.strides[0];
+        for (int offset = 0; offset < bytes; offset += 64) __builtin_prefetch(row + offset, 1);
+    }
+    break;
 }
 #endif
 """)
-def _prefetch_rows(slot_rows: wp.array(dtype=int), data: wp.array2d(dtype=wp.float64), slot: int, rows: int): ...
+def _prefetch_brick_rows(brick_keys: wp.array(dtype=wp.int64), brick_rows: wp.array(dtype=int), data: wp.array2d(dtype=wp.float64),
+                         slot: int, key: wp.int64, rows: int): ...
 
 
 @wp.func
-def prefetch_brick(keys: wp.array(dtype=wp.int64), slot_rows: wp.array(dtype=int), data: wp.array2d(dtype=wp.float64),
-                   first_cell_ahead: wp.vec3i, first_cell_nearer: wp.vec3i):
-    """Ask the CPU to start loading a brick's table lines, and the value rows of a nearer brick whose
-    table lines were asked for earlier (bricks given by their first cell, lowest index per axis, at
-    their home slots). A hint only, compiled out on CUDA.
+def prefetch_brick(keys: wp.array(dtype=wp.int64), slot_rows: wp.array(dtype=int), brick_keys: wp.array(dtype=wp.int64),
+                   brick_rows: wp.array(dtype=int), data: wp.array2d(dtype=wp.float64), first_cell_ahead: wp.vec3i,
+                   first_cell_nearer: wp.vec3i, cells: int):
+    """Ask the CPU to start loading a brick's lines of the brick cache and of the table (its cells'
+    slots, for a brick not cached yet), and the value rows of a nearer brick whose cache line was asked
+    for earlier (bricks given by their first cell, lowest index per axis, at their home slots). A hint
+    only, compiled out on CUDA.
 
     A serial CPU launch walks its threads in order, and a thread that waits for its brick's cache lines
     waits alone: the core's reorder window holds about one block's work. Kernels that visit one brick
     per thread call this with the bricks PREFETCH_AHEAD and PREFETCH_NEARER threads ahead: the
-    rows' place is read from a table line that has arrived by then (finding a brick's 8 stored cells:
+    rows' place is read from a cache line that has arrived by then (finding a brick's 8 stored cells:
     ~285 -> ~100 ns; tools/kernel_study.py times the gather kernels with and without it)."""
-    mask = keys.shape[0] - 1
-    _prefetch_slot(keys, slot_rows, hash_slot(pack_key(first_cell_ahead[0], first_cell_ahead[1], first_cell_ahead[2]), mask))
-    _prefetch_rows(slot_rows, data, hash_slot(pack_key(first_cell_nearer[0], first_cell_nearer[1], first_cell_nearer[2]), mask), BRICK_CELLS)
+    ahead = pack_key(first_cell_ahead[0], first_cell_ahead[1], first_cell_ahead[2])
+    _prefetch_slot(brick_keys, brick_rows, hash_slot(ahead, brick_keys.shape[0] - 1))
+    _prefetch_slot(keys, slot_rows, hash_slot(ahead, keys.shape[0] - 1))
+    nearer = pack_key(first_cell_nearer[0], first_cell_nearer[1], first_cell_nearer[2])
+    _prefetch_brick_rows(brick_keys, brick_rows, data, hash_slot(nearer, brick_keys.shape[0] - 1), nearer, cells)
 
 
 @wp.func
@@ -182,6 +196,31 @@ def table_find_or_insert(
                 return slot_row(slot_rows, slot)
         slot = (slot + 1) & mask
     return -1
+
+
+@wp.func
+def table_insert_row(
+    keys: wp.array(dtype=wp.int64), slot_rows: wp.array(dtype=int), key_count: wp.array(dtype=int), max_count: int, key: wp.int64, row: int
+):
+    """Store ``key`` with a row it was given (the brick cache: a brick's first row, found in the voxel
+    table); nothing when the key is there already or the table holds ``max_count`` keys."""
+    mask = keys.shape[0] - 1
+    slot = hash_slot(key, mask)
+    for _probe in range(keys.shape[0]):
+        k = keys[slot]
+        if k == key:
+            return
+        if k == _EMPTY:
+            if key_count[0] >= max_count:
+                return
+            old = wp.atomic_cas(keys, slot, _EMPTY, key)
+            if old == _EMPTY:
+                wp.atomic_add(key_count, 0, 1)
+                slot_rows[slot] = row + 1
+                return
+            if old == key:
+                return
+        slot = (slot + 1) & mask
 
 
 @wp.kernel

@@ -4,7 +4,8 @@ In the release every block holding points trains a model on the points of its ex
 and its 6 face neighbours) and predicts for the blocks of that extended block that hold points. So a
 point of block M reaches a target block T through every occupied model block N with N in M's
 extended block and T in N's; targets lie within L1 distance 2 of M. Here each target block is one
-thread: it finds or inserts its cells once, then walks the points of its up to 25 source blocks once,
+thread: it finds or inserts its cells once (through the map's brick cache, as ``kernels.block_gather``
+does), then walks the points of its up to 25 source blocks once,
 each weighted by how many models carry it (``block_models`` computes both tables), against all of its
 cells: a point's kernel values for all cells without branches, which the compiler turns into vector
 code (8 cells per AVX-512 register), and the Bayes sums as vectors over the cells. No model is ever
@@ -24,7 +25,7 @@ import functools
 
 import warp as wp
 
-from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, pack_key, prefetch_brick, table_find_or_insert
+from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, pack_key, prefetch_brick, table_find, table_find_or_insert, table_insert_row
 from .scatter import (_BELIEF_EPSILON, _ONE, _ZERO, COL_HITS, COL_TOUCHED, COL_WEIGHT, COL_WEIGHTED_UNCERTAINTY,
                       FUSION_DEMPSTER, sbki_voxel_center)
 
@@ -120,6 +121,10 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, prefetc
         slot_rows: wp.array(dtype=int),
         key_count: wp.array(dtype=int),
         max_count: int,
+        brick_keys: wp.array(dtype=wp.int64),
+        brick_rows: wp.array(dtype=int),
+        brick_count: wp.array(dtype=int),
+        brick_max_count: int,
         voxel_data: wp.array2d(dtype=wp.float64),
         failed: wp.array(dtype=int),
         update_count: wp.array(dtype=wp.int64),
@@ -134,19 +139,29 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, prefetc
         half = wp.vec3i(n // 2, n // 2, n // 2)
         if wp.static(prefetch):
             last = launch_ids.shape[0] - 1
-            prefetch_brick(table_keys, slot_rows, voxel_data, blocks[block_ids[launch_ids[wp.min(t + PREFETCH_AHEAD, last)]]] * n - half,
-                           blocks[block_ids[launch_ids[wp.min(t + PREFETCH_NEARER, last)]]] * n - half)
+            prefetch_brick(table_keys, slot_rows, brick_keys, brick_rows, voxel_data, blocks[block_ids[launch_ids[wp.min(t + PREFETCH_AHEAD, last)]]] * n - half,
+                           blocks[block_ids[launch_ids[wp.min(t + PREFETCH_NEARER, last)]]] * n - half, n3)
         b = block_ids[launch_ids[t]]
         first = blocks[b] * n - half
         # The block's cells are found or inserted first: a block that does not fit adds nothing and is
-        # relaunched after the table grew.
+        # relaunched after the table grew. A block in the brick cache has consecutive rows from its first.
         rows = cell_rows()
-        for j in range(n3):
-            row = table_find_or_insert(table_keys, slot_rows, key_count, max_count, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
-            if row < 0:
-                failed[t] = 1
-                return
-            rows[j] = row
+        brick_key = pack_key(first[0], first[1], first[2])
+        first_row = table_find(brick_keys, brick_rows, brick_key)
+        if first_row >= 0:
+            for j in range(n3):
+                rows[j] = first_row + j
+        else:
+            consecutive = int(1)
+            for j in range(n3):
+                row = table_find_or_insert(table_keys, slot_rows, key_count, max_count, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
+                if row < 0:
+                    failed[t] = 1
+                    return
+                rows[j] = row
+                consecutive = consecutive & wp.where(row == rows[0] + j, 1, 0)
+            if consecutive != 0:
+                table_insert_row(brick_keys, brick_rows, brick_count, brick_max_count, brick_key, rows[0])
         centres = cell_centres()
         for j in range(n3):
             centre = sbki_voxel_center(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n, resolution, 0.0)

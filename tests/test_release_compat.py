@@ -11,7 +11,7 @@ from evsemmap_warp.core.integrators import ReleaseCompatIntegrator
 from evsemmap_warp.core.mapper import Mapper, prepare_payload
 from evsemmap_warp.methods import evsemmap_release as er
 from evsemmap_warp.reference.release import release_insert
-from evsemmap_warp.voxel_keys import pack_voxel_keys
+from evsemmap_warp.voxel_keys import pack_voxel_keys, unpack_voxel_keys
 
 PRESET = REPO / "configs/presets/evsemmap-release.yaml"
 
@@ -111,6 +111,36 @@ def test_gather_kernel_matches_the_literal_block_models(device, method, n):
     # engine's polynomial exactly positive below it; the weights above agree, so the extra ones weigh ~0.
     assert (arrays.hits >= want[:, 7]).all() and (arrays.hits - want[:, 7]).sum() <= 0.05 * want[:, 7].sum()
     assert (summary.state == 2).all()  # no free-space samples: every cell is OCCUPIED
+
+
+def test_blocks_out_of_the_brick_cache_are_found_cell_by_cell(device):
+    # As in the S-BKI mode (tests/test_sbki_compat.py): blocks whose cells were inserted before, out of
+    # cell order, are never cached; two scans give twice the twin's sums.
+    rng = np.random.default_rng(8)
+    pts, alpha = _scan(rng, 2000, spread=3.2)
+    cfg = _config("ebs", ds_resolution_m=0.01)
+    mapper = Mapper(cfg, 5, device=device, origin=np.zeros(3), workers=1)
+    payload = prepare_payload(pts, alpha, "alpha", 5)
+    keep, _ = ReleaseCompatIntegrator(cfg).training_points(payload, np.zeros(3))
+    expected = release_insert(pts[keep], payload.probabilities[keep], payload.uncertainty[keep], resolution_m=0.2, block_depth=2,
+                              length=er.kernel_length(0.3), sf2=1.0, dempster=False)
+    cells = np.array(sorted(expected))
+    first_cells = np.unique(cells - (cells % 2 == 0), axis=0)  # block b holds cells 2b - 1 and 2b per axis
+    cell_offsets = np.array([[j // 4, (j // 2) % 2, j % 2] for j in range(8)])
+    scrambled = first_cells[::5]
+    for first in scrambled:
+        mapper.shards[0].insert_voxels(first + cell_offsets[::-1])
+    for _ in range(2):
+        mapper.integrate(pts, alpha, payload_type="alpha")
+    arrays, _ = mapper.voxels()
+    assert {tuple(v) for v in arrays.index} == set(expected)
+    want = np.array([expected[tuple(v)] for v in arrays.index])
+    np.testing.assert_allclose(arrays.evidence, 2 * want[:, :5], rtol=2e-6, atol=1e-6)
+    cached = mapper.shards[0].brick_keys.numpy()
+    cached_first = {tuple(c) for c in unpack_voxel_keys(cached[cached != -1])}
+    assert cached_first and not cached_first & {tuple(c) for c in scrambled}
+    if device == "cpu":
+        assert len(cached_first) == len(first_cells) - len(scrambled)
 
 
 def test_a_point_weighs_7x_in_its_own_block_2x_in_face_and_edge_neighbours_0x_in_corners():

@@ -338,6 +338,53 @@ def test_sbki_gather_kernel_matches_its_table_twin(device, n):
     np.testing.assert_array_equal(arrays.hits, want[:, 5])
 
 
+def test_the_brick_cache_holds_blocks_with_consecutive_rows_only(device):
+    # The gather kernels find a block through the brick cache when its cells' rows are consecutive in
+    # cell order. Cells inserted before, one by one and out of order (as a loaded map's are), must be
+    # found cell by cell instead: a cached first row would send their sums to other voxels. Two scans
+    # of the same points (the second one finds every block it can in the cache) give twice the twin's
+    # sums, and every cached block's cells have the rows the cache claims.
+    from evsemmap_warp.reference.block_gather import gather_sbki_blocks
+
+    rng = np.random.default_rng(31)
+    pts = rng.uniform(0, 3.2, (3000, 3)).astype(np.float32)  # ~1500 test blocks: the cache grows from 16 slots
+    labels = rng.integers(0, 4, len(pts))
+    cfg = _compat_config(False, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
+                         ds_resolution_m=0.1, free_resolution_m=100.0)
+    mapper = Mapper(cfg, 4, device=device, origin=np.zeros(3), workers=1)
+    origin = np.array([1.6, 1.6, 3.5])
+    train, train_labels, _ = sb.training_data(pts, labels, origin, ds_resolution_m=0.1, free_resolution_m=100.0, max_range_m=-1)
+    ids, owners = sb.block_memberships(train, sb.block_size_m(0.2, 2))
+    tables = sb.gather_tables(owners)
+    cell_offsets = np.array([[j // 4, (j // 2) % 2, j % 2] for j in range(8)])
+    scrambled = tables.test_blocks[::7]
+    shard = mapper.shards[0]
+    for block in scrambled:  # each block's cells in reverse order: consecutive rows, but not in cell order
+        shard.insert_voxels(block * 2 - 1 + cell_offsets[::-1])
+    for _ in range(2):
+        mapper.integrate(pts, labels, payload_type="label", sensor_origin=origin)
+
+    order = ids[tables.pair_order]
+    expected = gather_sbki_blocks(tables.test_blocks, tables.sources, tables.point_start, train[order].astype(np.float64), train_labels[order],
+                                  length=0.3, sigma0=10.0, resolution_m=0.2, cells_per_block=2, num_classes=4)
+    arrays, _ = mapper.voxels()
+    assert {tuple(v) for v in arrays.index} == set(expected)
+    want = np.array([expected[tuple(v)] for v in arrays.index])
+    np.testing.assert_allclose(arrays.evidence, 2 * want[:, :4], rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(arrays.hits, 2 * want[:, 5])
+
+    brick_keys = shard.brick_keys.numpy()
+    cached = np.flatnonzero(brick_keys != -1)
+    first_cells = unpack_voxel_keys(brick_keys[cached])
+    first_rows = shard.brick_rows.numpy()[cached].astype(np.int64) - 1
+    for j, offset in enumerate(cell_offsets):
+        np.testing.assert_array_equal(shard.insert_voxels(first_cells + offset), first_rows + j)
+    assert not {tuple(b) for b in scrambled * 2 - 1} & {tuple(c) for c in first_cells}
+    if device == "cpu":  # one thread inserts every other block's cells in order
+        assert len(cached) == len(tables.test_blocks) - len(scrambled)
+        assert shard.brick_capacity > 16
+
+
 def test_the_float32_sbki_kernel_is_zero_where_the_gather_skips_points():
     # The gather kernel has no reach test of its own: it adds where the kernel is positive and skips
     # points at SBKI_ZERO_BEYOND ell or more from a block's cells. So the float32 kernel must not be

@@ -14,7 +14,9 @@ float64, because evidence on a ground voxel of a long drive passes float32's 2^2
 The table grows (2x: keys and row numbers rehashed; on the CPU the rows stay where they are, elsewhere
 the used ones are copied once) before it passes ``max_load`` and whenever a launch runs out of room;
 the points or blocks that could not be inserted are relaunched, so a voxel is never dropped or
-overwritten. This class only launches kernels; methods, payloads and files live elsewhere.
+overwritten. The block-gather kernels also keep a brick cache (a block's first row, by its first
+cell; ``_allocate_brick_cache``). This class only launches kernels; methods, payloads and files live
+elsewhere.
 """
 
 from __future__ import annotations
@@ -169,6 +171,37 @@ class VoxelMap:
         self.key_count = wp.zeros(1, dtype=int, device=self.device)
         self._row_store = None
         self.data = self._row_array(capacity, 0, None)
+        self._allocate_brick_cache(MIN_CAPACITY)
+
+    def _allocate_brick_cache(self, capacity: int) -> None:
+        """The brick cache of the block-gather kernels: a table like the voxel table, keyed by a
+        block's first cell, holding its first row, for blocks whose cells have consecutive rows. Blocks
+        of the gather kernels are inserted whole, so on the CPU nearly all are cached: a block is then
+        found with one probe in a table about cells-per-block times smaller (fits the CPU's caches
+        where the voxel table does not) instead of one probe per cell (the S-BKI kernel alone on a built
+        free_res 4 map: 0.66x the time). Rows never move while the map lives, so an entry stays true;
+        the cache is dropped with the rows (``_allocate``). On a GPU concurrent inserters interleave
+        rows, so few blocks are cached there and most are found cell by cell."""
+        self.brick_capacity = capacity
+        self.brick_keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
+        self.brick_rows = self._filled(capacity, 0, wp.int32)
+        self.brick_count = wp.zeros(1, dtype=int, device=self.device)
+
+    def _grow_brick_cache(self, new_blocks: int = 0) -> None:
+        """Rehash the brick cache into a larger table: before a launch, until ``new_blocks`` more fit
+        under LAUNCH_FILL_LIMIT (where the kernels stop caching; a block not cached is found by its
+        cells), after one until it is at or below max_load."""
+        count = int(self.brick_count.numpy()[0])
+        capacity = self.brick_capacity
+        while count + new_blocks > (LAUNCH_FILL_LIMIT if new_blocks else self.max_load) * capacity:
+            capacity *= 2
+        if capacity == self.brick_capacity:
+            return
+        old_keys, old_rows = self.brick_keys, self.brick_rows
+        self.brick_capacity = capacity
+        self.brick_keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
+        self.brick_rows = self._filled(capacity, 0, wp.int32, populate=True)
+        wp.launch(ht.rehash, dim=len(old_keys), inputs=[old_keys, old_rows, self.brick_keys, self.brick_rows], device=self.device)
 
     def _row_array(self, capacity: int, used_rows: int, old):
         """A zeroed [capacity, K + 4] row array holding the first ``used_rows`` rows of ``old``: on the CPU
@@ -195,11 +228,11 @@ class VoxelMap:
 
     @property
     def table_bytes(self) -> int:
-        """Bytes the table holds: per slot its key and row (int64, int32), per row K + 4 float64 columns.
+        """Bytes the table holds: per slot of the voxel table and of the brick cache its key and row (int64, int32), per row K + 4 float64 columns.
         The row array has a row for every slot (each voxel holds a slot), but on the CPU its pages are
         mapped only as rows are used, so there the rows of the stored voxels count; a GPU allocates all."""
         rows = self.voxel_count if self.device == "cpu" else self.capacity
-        return 12 * self.capacity + 8 * (self.num_classes + EXTRA_COLUMNS) * rows
+        return 12 * (self.capacity + self.brick_capacity) + 8 * (self.num_classes + EXTRA_COLUMNS) * rows
 
     def _launch_fill_limit(self) -> int:
         return max(1, int(self.capacity * LAUNCH_FILL_LIMIT))
@@ -236,8 +269,11 @@ class VoxelMap:
 
     def check_block_range(self, blocks: np.ndarray, cells_per_block: int) -> None:
         """Refuse blocks [B, 3] (block b holds voxels b n - n/2 ... b n + n/2 - 1) whose cells lie outside the key range."""
-        first = np.asarray(blocks, dtype=np.int64) * cells_per_block - cells_per_block // 2
-        self._check_index_range(first.min(axis=0), first.max(axis=0) + cells_per_block - 1)
+        if len(blocks) == 0:
+            return
+        lo, hi = column_bounds(blocks)
+        first_lo, first_hi = (np.asarray(b, dtype=np.int64) * cells_per_block - cells_per_block // 2 for b in (lo, hi))
+        self._check_index_range(first_lo, first_hi + cells_per_block - 1)
 
     def _check_reach(self, points: np.ndarray, reach: float) -> None:
         """Refuse points whose kernels, reaching ``reach`` metres, would touch voxels outside the key range."""
@@ -460,9 +496,13 @@ class VoxelMap:
 
         def launch(pending, failed):
             wp.launch(kernel, dim=len(pending), device=d, inputs=[
-                blocks, pending, ids, *rest, self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
+                blocks, pending, ids, *rest, self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(),
+                self.brick_keys, self.brick_rows, self.brick_count, max(1, int(self.brick_capacity * LAUNCH_FILL_LIMIT)),
+                self.data, failed, update_count])
 
+        self._grow_brick_cache(len(block_ids))
         self._launch_until_done(len(block_ids), launch, may_insert=True, kind=kind, most_new=len(block_ids) * cells_per_block**3)
+        self._grow_brick_cache()
         return int(update_count.numpy()[0])
 
     def insert_blocks(self, blocks: np.ndarray, cells_per_block: int, *, mark_touched: bool) -> None:
