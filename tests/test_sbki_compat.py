@@ -385,6 +385,31 @@ def test_the_brick_cache_holds_blocks_with_consecutive_rows_only(device):
         assert shard.brick_capacity > 16
 
 
+def test_a_maps_first_gather_is_sized_for_its_blocks_and_launched_once(monkeypatch):
+    # Every cell is new in a map's first scan: the table is grown for all of its blocks' cells before
+    # the launch, instead of relaunching the blocks that did not fit after each doubling.
+    from evsemmap_warp.core.voxel_map import VoxelMap
+
+    launches = []
+    original = VoxelMap._launch_until_done
+
+    def counted(self, n, launch, **kw):
+        def counting(ids, failed):
+            launches.append((kw["kind"], len(ids)))
+            launch(ids, failed)
+        original(self, n, counting, **kw)
+
+    monkeypatch.setattr(VoxelMap, "_launch_until_done", counted)
+    rng = np.random.default_rng(33)
+    pts = rng.uniform(0, 12.0, (20000, 3)).astype(np.float32)  # ~20 k test blocks, 160 k cells: 2^16 slots would not do
+    cfg = _compat_config(False, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
+                         ds_resolution_m=0.1, free_resolution_m=100.0)
+    mapper = Mapper(cfg, 4, origin=np.zeros(3), workers=1)
+    mapper.integrate(pts, rng.integers(0, 4, len(pts)), payload_type="label", sensor_origin=np.array([6.0, 6.0, 13.0]))
+    gathers = [n for kind, n in launches if kind == "sbki_gather"]
+    assert len(gathers) == 1 and mapper.voxel_count == 8 * gathers[0] > 65536 * 0.75
+
+
 def test_the_float32_sbki_kernel_is_zero_where_the_gather_skips_points():
     # The gather kernel has no reach test of its own: it adds where the kernel is positive and skips
     # points at SBKI_ZERO_BEYOND ell or more from a block's cells. So the float32 kernel must not be
@@ -609,7 +634,8 @@ def test_extended_block_table_kernel_matches_its_twin(count):
     n = wp.zeros(1, dtype=int, device="cpu")
     wp.launch(block_gather.extended_block_tables, dim=1, device="cpu", inputs=[
         wp.array(blocks.astype(np.int32).reshape(-1, 3), dtype=wp.vec3i, device="cpu"), wp.array(grid, dtype=int, device="cpu"),
-        wp.array(offsets.astype(np.int32), dtype=wp.vec3i, device="cpu"), wp.zeros(shape, dtype=wp.uint8, device="cpu"), tests, sources, n])
+        wp.array(offsets.astype(np.int32), dtype=wp.vec3i, device="cpu"), wp.zeros(shape, dtype=wp.uint8, device="cpu"),
+        wp.zeros(shape[:2], dtype=wp.uint8, device="cpu"), tests, sources, n])
     want_tests, want_sources = extended_block_tables(blocks, grid, offsets)
     got = int(n.numpy()[0])
     np.testing.assert_array_equal(tests.numpy()[:got], want_tests)

@@ -281,12 +281,15 @@ class VoxelMap:
         self._check_index_range(np.floor((lo - reach - self.grid_offset_m) / self.resolution_m),
                                 np.floor((hi + reach - self.grid_offset_m) / self.resolution_m))
 
-    def _launch_until_done(self, n: int, launch, *, may_insert: bool, kind: str, most_new: int) -> None:
+    def _launch_until_done(self, n: int, launch, *, may_insert: bool, kind: str, most_new: int, exact_most: bool = False) -> None:
         """launch(ids, failed) over range(n), relaunching the failed ids after the table grew.
 
         The table is first grown for as many new voxels as the previous launch of this kind made, at
-        most ``most_new``: a wrong guess costs a relaunch of the items that did not fit, never a voxel."""
-        self.reserve(min(most_new, self._last_new_voxels.get(kind, 0)) if may_insert else 0)
+        most ``most_new``; for the first launch of a kind, for none, or for ``most_new`` when that is
+        the launch's own bound (``exact_most``: whole blocks, every cell new in a map's first scan,
+        where growing step by step relaunched most blocks three times). A wrong guess costs a relaunch
+        of the items that did not fit, never a voxel."""
+        self.reserve(min(most_new, self._last_new_voxels.get(kind, most_new if exact_most else 0)) if may_insert else 0)
         before = self.voxel_count
         pending = np.arange(n, dtype=np.int32)
         while len(pending):
@@ -501,7 +504,7 @@ class VoxelMap:
                 self.data, failed, update_count])
 
         self._grow_brick_cache(len(block_ids))
-        self._launch_until_done(len(block_ids), launch, may_insert=True, kind=kind, most_new=len(block_ids) * cells_per_block**3)
+        self._launch_until_done(len(block_ids), launch, may_insert=True, kind=kind, most_new=len(block_ids) * cells_per_block**3, exact_most=True)
         self._grow_brick_cache()
         return int(update_count.numpy()[0])
 
@@ -519,7 +522,7 @@ class VoxelMap:
                 ids, blocks_wp, int(cells_per_block), int(mark_touched),
                 self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), self.data, failed])
 
-        self._launch_until_done(len(blocks), launch, may_insert=True, kind="block_cells", most_new=len(blocks) * cells_per_block**3)
+        self._launch_until_done(len(blocks), launch, may_insert=True, kind="block_cells", most_new=len(blocks) * cells_per_block**3, exact_most=True)
 
     def insert_voxels(self, voxel_index: np.ndarray) -> np.ndarray:
         """Insert voxel indices [V, 3]; returns their rows (growing as needed)."""

@@ -296,7 +296,7 @@ def _extended_block_tables(grid_blocks: np.ndarray, grid: np.ndarray) -> tuple[n
         wp.array(np.ascontiguousarray(grid_blocks, dtype=np.int32), dtype=wp.vec3i, device="cpu", copy=False),
         wp.array(grid, dtype=int, device="cpu", copy=False),
         wp.array(EXTENDED_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device="cpu", copy=False),
-        wp.zeros(grid.shape, dtype=wp.uint8, device="cpu"), tests, sources, count])
+        wp.zeros(grid.shape, dtype=wp.uint8, device="cpu"), wp.zeros(grid.shape[:2], dtype=wp.uint8, device="cpu"), tests, sources, count])
     n = int(count.numpy()[0])
     return tests.numpy()[:n].astype(np.int64), sources.numpy()[:n]
 
