@@ -31,7 +31,7 @@ import functools
 
 import warp as wp
 
-from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, pack_key, prefetch_brick, table_find, table_find_or_insert, table_insert_row
+from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, find_block_rows, pack_key, prefetch_brick
 from .scatter import _ONE, _ZERO, COL_HITS, COL_TOUCHED, COL_WEIGHT, sbki_sparse_kernel_scaled, sbki_voxel_center
 
 wp.set_module_options({"enable_backward": False})
@@ -105,9 +105,8 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
         failed: wp.array(dtype=int),
         update_count: wp.array(dtype=wp.int64),
     ):
-        """Test block test_blocks[block_ids[launch_ids[t]]]: its cells are found (in the brick cache
-        ``brick_keys``/``brick_rows`` when it is there) or inserted (none fits: failed[t], nothing added;
-        consecutive rows: cached, unless the cache holds ``brick_max_count`` blocks) and marked touched; for each of its 7 source blocks sources[b, :] (-1:
+        """Test block test_blocks[block_ids[launch_ids[t]]]: its cells are found or inserted
+        (``find_block_rows``; none fits: failed[t], nothing added) and marked touched; for each of its 7 source blocks sources[b, :] (-1:
         holds no points; block s owns points point_start[s]:point_start[s + 1], given as ``scale_points``
         makes them), each point adds the S-BKI kernel, where positive, for its label to every cell."""
         t = wp.tid()
@@ -119,24 +118,11 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
         b = block_ids[launch_ids[t]]
         first = test_blocks[b] * n - half
         # The block's cells are found or inserted first: a block that does not fit adds nothing and is
-        # relaunched after the table grew. A block in the brick cache has consecutive rows from its first.
-        rows = cell_rows()
-        brick_key = pack_key(first[0], first[1], first[2])
-        first_row = table_find(brick_keys, brick_rows, brick_key)
-        if first_row >= 0:
-            for j in range(n3):
-                rows[j] = first_row + j
-        else:
-            consecutive = int(1)
-            for j in range(n3):
-                row = table_find_or_insert(table_keys, slot_rows, key_count, max_count, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
-                if row < 0:
-                    failed[t] = 1
-                    return
-                rows[j] = row
-                consecutive = consecutive & wp.where(row == rows[0] + j, 1, 0)
-            if consecutive != 0:
-                table_insert_row(brick_keys, brick_rows, brick_count, brick_max_count, brick_key, rows[0])
+        # relaunched after the table grew.
+        rows = find_block_rows(cell_rows(), table_keys, slot_rows, key_count, max_count, brick_keys, brick_rows, brick_count, brick_max_count, first, n)
+        if rows[0] < 0:
+            failed[t] = 1
+            return
         length32 = float(length)
         sigma32 = float(sigma0)
         resolution32 = float(resolution)

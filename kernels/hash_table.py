@@ -16,6 +16,8 @@ second table of the same layout, the brick cache (a block's first cell -> its fi
 numpy twin: ``evsemmap_warp/reference/hash_table.py``.
 """
 
+from typing import Any
+
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
@@ -72,11 +74,9 @@ def hash_slot(key: wp.int64, mask: int) -> int:
     return int(((h << wp.uint64(3)) | local) & wp.uint64(mask))
 
 
-# Cells of a brick: a block at block depth 2 (``hash_slot``).
-BRICK_CELLS = 8
 # How many threads ahead a brick is prefetched (``prefetch_brick``; 4 to 64 measured alike on CPU).
 PREFETCH_AHEAD = wp.constant(16)
-# ... and how many threads ahead its rows are, once its table line has arrived.
+# ... and how many threads ahead its rows are, once its brick-cache line has arrived.
 PREFETCH_NEARER = wp.constant(8)
 
 
@@ -221,6 +221,36 @@ def table_insert_row(
             if old == key:
                 return
         slot = (slot + 1) & mask
+
+
+@wp.func
+def find_block_rows(
+    rows: Any, keys: wp.array(dtype=wp.int64), slot_rows: wp.array(dtype=int), key_count: wp.array(dtype=int), max_count: int,
+    brick_keys: wp.array(dtype=wp.int64), brick_rows: wp.array(dtype=int), brick_count: wp.array(dtype=int), brick_max_count: int,
+    first: wp.vec3i, n: int,
+):
+    """The rows of a block's n^3 cells (``rows``, a vector of as many ints; cells in x, then y, then z
+    order from its first cell ``first``), found or inserted; rows[0] = -1 when a cell did not fit. A
+    block in the brick cache (``brick_keys``/``brick_rows``: first cell -> first row) has consecutive
+    rows from its first; a block whose found or inserted rows are consecutive is cached, unless the
+    cache holds ``brick_max_count`` blocks (``VoxelMap._allocate_brick_cache`` says why)."""
+    brick_key = pack_key(first[0], first[1], first[2])
+    first_row = table_find(brick_keys, brick_rows, brick_key)
+    if first_row >= 0:
+        for j in range(len(rows)):
+            rows[j] = first_row + j
+        return rows
+    consecutive = int(1)
+    for j in range(len(rows)):
+        row = table_find_or_insert(keys, slot_rows, key_count, max_count, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
+        if row < 0:
+            rows[0] = -1
+            return rows
+        rows[j] = row
+        consecutive = consecutive & wp.where(row == rows[0] + j, 1, 0)
+    if consecutive != 0:
+        table_insert_row(brick_keys, brick_rows, brick_count, brick_max_count, brick_key, rows[0])
+    return rows
 
 
 @wp.kernel

@@ -25,7 +25,7 @@ import functools
 
 import warp as wp
 
-from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, pack_key, prefetch_brick, table_find, table_find_or_insert, table_insert_row
+from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, find_block_rows, pack_key, prefetch_brick
 from .scatter import (_BELIEF_EPSILON, _ONE, _ZERO, COL_HITS, COL_TOUCHED, COL_WEIGHT, COL_WEIGHTED_UNCERTAINTY,
                       FUSION_DEMPSTER, sbki_voxel_center)
 
@@ -144,24 +144,11 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, prefetc
         b = block_ids[launch_ids[t]]
         first = blocks[b] * n - half
         # The block's cells are found or inserted first: a block that does not fit adds nothing and is
-        # relaunched after the table grew. A block in the brick cache has consecutive rows from its first.
-        rows = cell_rows()
-        brick_key = pack_key(first[0], first[1], first[2])
-        first_row = table_find(brick_keys, brick_rows, brick_key)
-        if first_row >= 0:
-            for j in range(n3):
-                rows[j] = first_row + j
-        else:
-            consecutive = int(1)
-            for j in range(n3):
-                row = table_find_or_insert(table_keys, slot_rows, key_count, max_count, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
-                if row < 0:
-                    failed[t] = 1
-                    return
-                rows[j] = row
-                consecutive = consecutive & wp.where(row == rows[0] + j, 1, 0)
-            if consecutive != 0:
-                table_insert_row(brick_keys, brick_rows, brick_count, brick_max_count, brick_key, rows[0])
+        # relaunched after the table grew.
+        rows = find_block_rows(cell_rows(), table_keys, slot_rows, key_count, max_count, brick_keys, brick_rows, brick_count, brick_max_count, first, n)
+        if rows[0] < 0:
+            failed[t] = 1
+            return
         centres = cell_centres()
         for j in range(n3):
             centre = sbki_voxel_center(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n, resolution, 0.0)

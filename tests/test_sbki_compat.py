@@ -314,8 +314,6 @@ def test_compat_two_workers_give_the_single_worker_map(counting):
 
 @pytest.mark.parametrize("n", [1, 3, 400])
 def test_sbki_gather_kernel_matches_its_table_twin(device, n):
-    from evsemmap_warp.reference.block_gather import gather_sbki_blocks
-
     rng = np.random.default_rng(20 + n)
     pts = rng.uniform(0, 1.6, (n, 3)).astype(np.float32)
     pts[: max(1, n // 8), 0] = np.float32(0.2)  # on a block face: in two blocks
@@ -325,17 +323,29 @@ def test_sbki_gather_kernel_matches_its_table_twin(device, n):
     mapper = Mapper(cfg, 4, device=device, origin=np.zeros(3))
     origin = np.array([0.8, 0.8, 1.5])
     mapper.integrate(pts, labels, payload_type="label", sensor_origin=origin)
-    train, train_labels, _ = sb.training_data(pts, labels, origin - mapper.origin, ds_resolution_m=0.1, free_resolution_m=100.0, max_range_m=-1)
+    _assert_map_is_the_twins(mapper, _sbki_gather_twin(pts, labels, origin - mapper.origin)[1])
+
+
+def _sbki_gather_twin(pts, labels, origin):
+    """The gather tables of one scan (resolution 0.2, block depth 2, ell 0.3, sigma0 10, free_res 100)
+    and the S-BKI gather twin's cells: index -> [K evidence, weight sum, hits]."""
+    from evsemmap_warp.reference.block_gather import gather_sbki_blocks
+
+    train, train_labels, _ = sb.training_data(pts, labels, origin, ds_resolution_m=0.1, free_resolution_m=100.0, max_range_m=-1)
     ids, owners = sb.block_memberships(train, sb.block_size_m(0.2, 2))
     tables = sb.gather_tables(owners)
     order = ids[tables.pair_order]
-    expected = gather_sbki_blocks(tables.test_blocks, tables.sources, tables.point_start, train[order].astype(np.float64), train_labels[order],
-                                  length=0.3, sigma0=10.0, resolution_m=0.2, cells_per_block=2, num_classes=4)
+    return tables, gather_sbki_blocks(tables.test_blocks, tables.sources, tables.point_start, train[order].astype(np.float64), train_labels[order],
+                                      length=0.3, sigma0=10.0, resolution_m=0.2, cells_per_block=2, num_classes=4)
+
+
+def _assert_map_is_the_twins(mapper, expected, scans: int = 1):
+    """The mapper holds the twin's cells with ``scans`` times its sums (4 classes)."""
     arrays, _ = mapper.voxels()
     assert {tuple(v) for v in arrays.index} == set(expected)
     want = np.array([expected[tuple(v)] for v in arrays.index])
-    np.testing.assert_allclose(arrays.evidence, want[:, :4], rtol=1e-6, atol=1e-6)  # float32 trig: numpy vs C
-    np.testing.assert_array_equal(arrays.hits, want[:, 5])
+    np.testing.assert_allclose(arrays.evidence, scans * want[:, :4], rtol=1e-6, atol=1e-6)  # float32 trig: numpy vs C
+    np.testing.assert_array_equal(arrays.hits, scans * want[:, 5])
 
 
 def test_the_brick_cache_holds_blocks_with_consecutive_rows_only(device):
@@ -344,8 +354,6 @@ def test_the_brick_cache_holds_blocks_with_consecutive_rows_only(device):
     # found cell by cell instead: a cached first row would send their sums to other voxels. Two scans
     # of the same points (the second one finds every block it can in the cache) give twice the twin's
     # sums, and every cached block's cells have the rows the cache claims.
-    from evsemmap_warp.reference.block_gather import gather_sbki_blocks
-
     rng = np.random.default_rng(31)
     pts = rng.uniform(0, 3.2, (3000, 3)).astype(np.float32)  # ~1500 test blocks: the cache grows from 16 slots
     labels = rng.integers(0, 4, len(pts))
@@ -353,9 +361,7 @@ def test_the_brick_cache_holds_blocks_with_consecutive_rows_only(device):
                          ds_resolution_m=0.1, free_resolution_m=100.0)
     mapper = Mapper(cfg, 4, device=device, origin=np.zeros(3), workers=1)
     origin = np.array([1.6, 1.6, 3.5])
-    train, train_labels, _ = sb.training_data(pts, labels, origin, ds_resolution_m=0.1, free_resolution_m=100.0, max_range_m=-1)
-    ids, owners = sb.block_memberships(train, sb.block_size_m(0.2, 2))
-    tables = sb.gather_tables(owners)
+    tables, expected = _sbki_gather_twin(pts, labels, origin)
     cell_offsets = np.array([[j // 4, (j // 2) % 2, j % 2] for j in range(8)])
     scrambled = tables.test_blocks[::7]
     shard = mapper.shards[0]
@@ -363,15 +369,7 @@ def test_the_brick_cache_holds_blocks_with_consecutive_rows_only(device):
         shard.insert_voxels(block * 2 - 1 + cell_offsets[::-1])
     for _ in range(2):
         mapper.integrate(pts, labels, payload_type="label", sensor_origin=origin)
-
-    order = ids[tables.pair_order]
-    expected = gather_sbki_blocks(tables.test_blocks, tables.sources, tables.point_start, train[order].astype(np.float64), train_labels[order],
-                                  length=0.3, sigma0=10.0, resolution_m=0.2, cells_per_block=2, num_classes=4)
-    arrays, _ = mapper.voxels()
-    assert {tuple(v) for v in arrays.index} == set(expected)
-    want = np.array([expected[tuple(v)] for v in arrays.index])
-    np.testing.assert_allclose(arrays.evidence, 2 * want[:, :4], rtol=1e-6, atol=1e-6)
-    np.testing.assert_array_equal(arrays.hits, 2 * want[:, 5])
+    _assert_map_is_the_twins(mapper, expected, scans=2)
 
     brick_keys = shard.brick_keys.numpy()
     cached = np.flatnonzero(brick_keys != -1)
