@@ -425,12 +425,13 @@ def write_report(out: Path, device, workload, strategy_rows, problems, gather_ro
               "not. Their cost, one thread, s-bki: " + ", ".join(
                   f"{name} x{cost:.2f}" for name, cost in determinism_cost(strategy_rows).items()) + " the atomic scatter's time.", "",
               "## The compatibility modes' gather kernels, form by form", "",
-              "One thread; the launches only (each block's cells found or inserted, the points weighed against its cells, the "
-              "sums added, table growth included), from scans prepared once; the same map bit for bit from every form (checked). "
+              "One thread; the launches only (each block's cells found, through the map's brick cache when it holds the block, "
+              "or inserted, the points weighed against its cells, the sums added, table growth included), from scans prepared "
+              "once; the same map bit for bit from every form (checked). "
               "Branch-free: a point's kernel values for all of a block's cells added, zeros included (S-BKI), or selected "
               "within reach (release); per-cell branches (S-BKI): a branch on each cell's kernel value being positive. The "
               "compiler turns both into vector code over a block's 8 cells (AVX-512 on this project's VMs; the branches become "
-              "masked adds). Prefetch: each thread asks for the table "
+              "masked adds). Prefetch: each thread asks for the brick-cache and table "
               "lines of the block 16 threads ahead and the value rows of the block 8 ahead (`prefetch_brick`). The first form of "
               "each kernel is the engine's.", "",
               "| kernel | form | s | voxel updates/s | time vs the engine's form |", "|---|---|---|---|---|"]
