@@ -197,11 +197,17 @@ class VoxelMap:
             capacity *= 2
         if capacity == self.brick_capacity:
             return
-        old_keys, old_rows = self.brick_keys, self.brick_rows
         self.brick_capacity = capacity
-        self.brick_keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
-        self.brick_rows = self._filled(capacity, 0, wp.int32, populate=True)
-        wp.launch(ht.rehash, dim=len(old_keys), inputs=[old_keys, old_rows, self.brick_keys, self.brick_rows], device=self.device)
+        self.brick_keys, self.brick_rows = self._rehashed(self.brick_keys, self.brick_rows, capacity)
+
+    def _rehashed(self, old_keys, old_slot_rows, capacity: int):
+        """(keys, slot rows) of a table of ``capacity`` slots holding the old table's keys and rows."""
+        keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
+        # A grown table is at least a quarter full once what it was grown for is in: its slot rows are
+        # written all over, so they are mapped at once (see _lazily_zeroed).
+        slot_rows = self._filled(capacity, 0, wp.int32, populate=True)
+        wp.launch(ht.rehash, dim=len(old_keys), inputs=[old_keys, old_slot_rows, keys, slot_rows], device=self.device)
+        return keys, slot_rows
 
     def _row_array(self, capacity: int, used_rows: int, old):
         """A zeroed [capacity, K + 4] row array holding the first ``used_rows`` rows of ``old``: on the CPU
@@ -234,8 +240,9 @@ class VoxelMap:
         rows = self.voxel_count if self.device == "cpu" else self.capacity
         return 12 * (self.capacity + self.brick_capacity) + 8 * (self.num_classes + EXTRA_COLUMNS) * rows
 
-    def _launch_fill_limit(self) -> int:
-        return max(1, int(self.capacity * LAUNCH_FILL_LIMIT))
+    def _launch_fill_limit(self, capacity: int | None = None) -> int:
+        """Keys a launch may fill the voxel table (or a table of ``capacity`` slots) up to."""
+        return max(1, int((self.capacity if capacity is None else capacity) * LAUNCH_FILL_LIMIT))
 
     def reserve(self, new_voxels: int) -> None:
         """Grow until ``new_voxels`` more keys fit under max_load."""
@@ -252,13 +259,9 @@ class VoxelMap:
         count = self.voxel_count
         if new_capacity < count / LAUNCH_FILL_LIMIT:
             raise ValueError(f"cannot shrink the table to {new_capacity} slots: it holds {count} voxels")
-        old_keys, old_slot_rows, old_data = self.keys, self.slot_rows, self.data
+        old_data = self.data
         self.capacity = new_capacity
-        self.keys = self._filled(new_capacity, ht.EMPTY_KEY, wp.int64)
-        # A grown table is at least a quarter full once the voxels it was grown for are in: its slot rows
-        # are written all over, so they are mapped at once (see _lazily_zeroed).
-        self.slot_rows = self._filled(new_capacity, 0, wp.int32, populate=True)
-        wp.launch(ht.rehash, dim=len(old_keys), inputs=[old_keys, old_slot_rows, self.keys, self.slot_rows], device=self.device)
+        self.keys, self.slot_rows = self._rehashed(self.keys, self.slot_rows, new_capacity)
         self.data = self._row_array(new_capacity, count, old_data)
         self.grow_count += 1
 
@@ -500,7 +503,7 @@ class VoxelMap:
         def launch(pending, failed):
             wp.launch(kernel, dim=len(pending), device=d, inputs=[
                 blocks, pending, ids, *rest, self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(),
-                self.brick_keys, self.brick_rows, self.brick_count, max(1, int(self.brick_capacity * LAUNCH_FILL_LIMIT)),
+                self.brick_keys, self.brick_rows, self.brick_count, self._launch_fill_limit(self.brick_capacity),
                 self.data, failed, update_count])
 
         self._grow_brick_cache(len(block_ids))
