@@ -236,7 +236,29 @@ class DatasetConfig:
     payload: PayloadType = PayloadType.LABEL
     num_classes: int = 0
     class_names: tuple[str, ...] = ()
+    # The world frame the map lives in (docs/algorithm.md §6.6). "": the data's own frame (a log's fixed
+    # frame; a folder's poses.txt frame, named by its frame.yaml or after the folder; a point file's
+    # frame); a name: the name of a folder's or point files' frame (a log's must equal its fixed frame);
+    # "first-scan": the paper's convention, coordinates relative to the first scan's LiDAR pose.
+    frame: str = ""
+    crs: str = ""  # EPSG code of georeferenced coordinates (e.g. EPSG:32617, UTM zone 17N); "": none or the folder's frame.yaml
     config_dir: str = "."  # folder of the file that named the paths (they are relative to it)
+
+    def __post_init__(self) -> None:
+        from .frames import FIRST_SCAN, FrameError, check_crs
+
+        try:
+            object.__setattr__(self, "crs", check_crs(self.crs, "dataset.crs") or "")
+        except FrameError as exc:
+            raise ConfigError(str(exc)) from None
+        if self.frame.strip() != self.frame:
+            raise ConfigError(f"dataset.frame = {self.frame!r}: a frame name has no leading or trailing spaces")
+        if self.kind == "bag" and self.frame not in ("", FIRST_SCAN):
+            # a log's world frame is its fixed frame: naming the frame chooses it
+            if self.bag.fixed_frame and self.bag.fixed_frame != self.frame:
+                raise ConfigError(f"dataset.frame = {self.frame!r} but dataset.bag.fixed_frame = {self.bag.fixed_frame!r}: a log is mapped "
+                                  f"in its fixed frame; give one of them")
+            object.__setattr__(self, "bag", dataclasses.replace(self.bag, fixed_frame=self.frame))
 
     def resolve_path(self) -> Path:
         tried = []
@@ -384,10 +406,11 @@ def is_robot_log(path) -> bool:
     return (path.is_file() and path.suffix in LOG_SUFFIXES) or (path.is_dir() and (path / "metadata.yaml").is_file())
 
 
-def load_config(config_paths: list[str | Path], method: str | None = None) -> RunConfig:
+def load_config(config_paths: list[str | Path], method: str | None = None, *, frame: str | None = None, crs: str | None = None) -> RunConfig:
     """Merge the method file (if any) and the given files, later ones winning; validate. A folder
     among the paths is a sequence to map (``dataset_for_folder``), robot logs are a ``bag`` dataset
-    (read in the order given), a bare name a built-in preset."""
+    (read in the order given), a bare name a built-in preset. ``frame`` and ``crs`` (the --frame and
+    --crs flags) override the files' dataset.frame and dataset.crs."""
     mapping: dict[str, Any] = {}
     dataset: dict[str, Any] = {}
     bag: dict[str, Any] = {}
@@ -460,7 +483,15 @@ def load_config(config_paths: list[str | Path], method: str | None = None) -> Ru
         raise ConfigError(f"{' + '.join(sources)}: {exc}") from None
     if bag:
         dataset["bag"] = dataclass_from_dict(BagConfig, bag, " + ".join(sources) + ": dataset.bag")
-    dataset_cfg = DatasetConfig(**dataset) if dataset else None
+    if (frame is not None or crs is not None) and not dataset:
+        raise ConfigError(f"{' + '.join(sources) or 'no config'}: --frame / --crs place a dataset's scans, and none is named")
+    if dataset:
+        # --frame / --crs win over the files' dataset.frame / dataset.crs
+        dataset.update({k: v for k, v in (("frame", frame), ("crs", crs)) if v is not None})
+    try:
+        dataset_cfg = DatasetConfig(**dataset) if dataset else None
+    except ConfigError as exc:
+        raise ConfigError(f"{' + '.join(sources) or '--frame/--crs'}: {exc}") from None
     return RunConfig(mapping=mapping_cfg, dataset=dataset_cfg, sources=tuple(sources), bin_frames=bin_frames)
 
 

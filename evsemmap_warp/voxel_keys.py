@@ -33,6 +33,19 @@ def check_index_range(index: np.ndarray, what: str = "voxel indices", resolution
                          f"[{-INDEX_LIMIT}, {INDEX_LIMIT}) voxels around the map origin{span}")
 
 
+def voxel_index_of(points: np.ndarray, resolution_m: float, grid_offset_m: float, origin_index) -> np.ndarray:
+    """[M, 3] int64 global voxel index of each world point [M, 3]: floor((p - origin - offset) / r) +
+    origin_index with origin = origin_index * r, the arithmetic of the kernels (which see points
+    relative to the map origin, in float64). Everything that asks "which voxel holds this point"
+    (queries of maps and stores, tile routing) asks here, so that a point on a voxel or tile face far
+    from (0, 0, 0) gets the voxel the mapper wrote. NaN/inf give 0 (callers reject them first)."""
+    origin_index = np.asarray(origin_index, np.int64).reshape(3)
+    origin = origin_index.astype(np.float64) * resolution_m
+    with np.errstate(invalid="ignore", over="ignore"):
+        local = np.floor((np.asarray(points, np.float64).reshape(-1, 3) - origin - grid_offset_m) / resolution_m)
+    return np.nan_to_num(local, posinf=0, neginf=0).clip(-2**62, 2**62).astype(np.int64) + origin_index
+
+
 def pack_voxel_keys(index: np.ndarray) -> np.ndarray:
     """[V, 3] voxel indices -> the table's int64 keys; their order is x, then y, then z index."""
     check_index_range(index)

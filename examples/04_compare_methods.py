@@ -39,9 +39,9 @@ def stand_in_alpha(frame):
     return alpha
 
 
-first_pose = seq.pose(seq.frames[0])
-scans = list(project_frames(seq, seq.frames, stand_in_alpha, ProjectionConfig(), reference_pose=first_pose))
-truth = list(project_frames(seq, seq.frames, label_map_for(seq), ProjectionConfig(), reference_pose=first_pose))
+# Poses as given: the map and the ground truth sit in the sequence's own (world) frame.
+scans = list(project_frames(seq, seq.frames, stand_in_alpha, ProjectionConfig()))
+truth = list(project_frames(seq, seq.frames, label_map_for(seq), ProjectionConfig()))
 gt_points, gt_labels = np.concatenate([t.points for t in truth]), np.concatenate([t.values for t in truth])
 
 rows = {}

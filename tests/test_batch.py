@@ -46,9 +46,9 @@ def _map(sources, method) -> Mapper:
     return mapper
 
 
-def _batch(sources, out, method="ebs", **options) -> dict:
+def _batch(sources, out, method="ebs", _fault=None, **options) -> dict:
     options.setdefault("progress", False)
-    return run_batch([str(s) for s in sources], BatchOptions(method=method, out=out, **options), log=lambda m: None)
+    return run_batch([str(s) for s in sources], BatchOptions(method=method, out=out, **options), log=lambda m: None, _fault=_fault)
 
 
 def _assert_same_map(a: Mapper, b: Mapper, rtol=1e-12):
@@ -110,15 +110,62 @@ def test_the_ray_executor_on_a_local_instance_it_starts_and_stops(drive, tmp_pat
 
 
 @pytest.mark.parametrize("executor", ["local", "ray"])
-def test_a_worker_killed_in_the_middle_of_a_chunk_changes_nothing(drive, tmp_path, monkeypatch, executor):
+def test_a_worker_killed_in_the_middle_of_a_chunk_changes_nothing(drive, tmp_path, executor):
     if executor == "ray":
         pytest.importorskip("ray")
     _batch([drive], tmp_path / "clean", executor="inline", chunk_frames=2)
-    monkeypatch.setenv(batch.FAULT_VARIABLE, "kill-chunk:1")
-    _batch([drive], tmp_path / "killed", executor=executor, workers=2, chunk_frames=2)
+    # the fault plan travels in the workers' Context (no environment variable): the pool's and Ray's workers
+    _batch([drive], tmp_path / "killed", executor=executor, workers=2, chunk_frames=2, _fault=batch._FaultPlan(kill_chunk=1))
     assert (tmp_path / "killed" / "work" / ".fault-1").exists()  # the worker did die once
     assert not list((tmp_path / "killed" / "work").glob(".chunk_*"))  # and left nothing behind
     _assert_same_bytes(tmp_path / "clean", tmp_path / "killed")
+
+
+def test_the_fault_plan_is_a_test_seam_not_an_environment_variable():
+    source = Path(batch.__file__).read_text()
+    assert "EVSEMMAP_BATCH_FAULT" not in source and not hasattr(batch, "FAULT_VARIABLE")
+    import pickle
+
+    plan = batch._FaultPlan(kill_chunk=3)
+    assert pickle.loads(pickle.dumps(plan)) == plan  # it reaches the pool's and Ray's workers in the Context
+
+
+def test_the_automatic_chunk_size_depends_on_the_frames_only():
+    assert BatchOptions(method="ebs", out=Path("x")).chunk_frames is None
+    chosen, rule = batch.choose_chunk_frames(None, 89)  # the README's synth example
+    assert chosen == 6 and rule.startswith("automatic: ceil(89 frames / 16)")
+    assert -(-89 // chosen) >= 2 * 7  # two chunks per worker up to 7 workers
+    assert batch.choose_chunk_frames(None, 5000)[0] == 100  # long drives: the former default
+    assert batch.choose_chunk_frames(None, 3)[0] == 1
+    assert batch.choose_chunk_frames(7, 89) == (7, "given: --chunk-frames")
+    with pytest.raises(ConfigError, match="--chunk-frames 0"):
+        batch.choose_chunk_frames(0, 89)
+
+
+def test_short_inputs_give_every_worker_several_chunks_by_default(drive, tmp_path):
+    auto = _batch([drive], tmp_path / "auto", executor="local", workers=2)
+    frames = auto["frames"]
+    assert auto["chunk_frames"] == -(-frames // 16) and auto["chunk_frames_rule"].startswith(f"automatic: ceil({frames} frames / 16)")
+    assert auto["chunks"] >= 2 * auto["workers"]  # short inputs no longer run as one chunk on one worker
+    assert json.loads((tmp_path / "auto" / "work" / "plan.json").read_text())["chunk_frames"] == auto["chunk_frames"]
+    inline = _batch([drive], tmp_path / "inline", executor="inline")
+    assert inline["chunk_frames"] == auto["chunk_frames"]  # not chosen from the worker count: the same store
+    _assert_same_bytes(tmp_path / "auto", tmp_path / "inline")
+    # the run's identity holds the number used: giving it explicitly resumes the same run
+    again = _batch([drive], tmp_path / "auto", executor="inline", chunk_frames=auto["chunk_frames"])
+    assert again["chunks_resumed"] == auto["chunks"] and again["chunk_frames_rule"] == "given: --chunk-frames"
+
+
+def test_the_memory_check_suggests_a_chunk_size_that_fits(monkeypatch, tmp_path):
+    per_voxel = batch.bytes_per_voxel(9)
+    monkeypatch.setattr(batch, "available_memory", lambda: batch.DRIVER_OVERHEAD_BYTES + 2 * (batch.WORKER_OVERHEAD_BYTES + 3000 * per_voxel))
+    options = BatchOptions(method="ebs", out=tmp_path, chunk_frames=10)
+    # 1000 voxels for the first scan, 500 new ones per scan after it: 5 scans fit in 3000 voxels a worker
+    with pytest.raises(ConfigError, match=r"batch: --chunk-frames 10 with 2 workers needs .* use --chunk-frames 5 or fewer --workers"):
+        batch.check_memory(options, 2, 10, 1000, 1500, 9)
+    with pytest.raises(ConfigError, match=r"--chunk-frames 10 \(chosen automatically\) with 2 workers .* use --chunk-frames 5 or"):
+        batch.check_memory(options, 2, 10, 1000, 1500, 9, automatic=True)
+    assert batch.check_memory(options, 2, 5, 1000, 1500, 9)["chunk_voxels_estimate"] == 3000
 
 
 def test_a_killed_driver_resumes_without_redoing_or_counting_twice(tmp_path):
@@ -218,7 +265,8 @@ def test_export_bounds_info_merge_and_view_of_stores(tmp_path, capsys):
 
 def test_configurations_that_cannot_work_stop_before_any_work(drive, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(batch, "available_memory", lambda: 1 << 30)
-    with pytest.raises(ConfigError, match=r"--chunk-frames 100 with 4 workers needs about .* GB .* use --chunk-frames \d+ or fewer --workers"):
+    # the automatic chunk size is named as such; not even one-scan chunks fit 4 workers in 1 GB, so only fewer workers help
+    with pytest.raises(ConfigError, match=r"--chunk-frames 1 \(chosen automatically\) with 4 workers needs about .* GB .* use fewer --workers"):
         _batch([drive], tmp_path / "small", workers=4)
     assert not (tmp_path / "small").exists()
     calls = []  # room to map, none to reduce: the reducer's check names its own flag

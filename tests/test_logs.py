@@ -137,10 +137,14 @@ def _yaw(degrees):
 BASE_TO_LIDAR = rigid(quaternion_to_matrix(_yaw(90)), [0.5, 0, 1]) @ rigid(quaternion_to_matrix(_yaw(180)), [0, 0, 0.1])
 
 
-def _hand_made_log(path: Path, fmt="rosbag1", *, lidar_frame="lidar", static=True):
+def _hand_made_log(path: Path, fmt="rosbag1", *, lidar_frame="lidar", static=True, relocalised=False):
     log = _LogOut(path, fmt)
     s = 1_000_000_000
     t0 = 100 * s
+    if relocalised:  # odometry over the whole drive, and a localiser's map -> odom from the second cloud on only
+        log.write("/tf", log.tf([log.transform("odom", "base", rigid(quaternion_to_matrix(_yaw(60)), [3.0, 0, 0]), t0 + 2 * s)]), t0 + 2 * s)
+        for k in (1, 2):
+            log.write("/tf", log.tf([log.transform("map", "odom", rigid(np.eye(3), [10.0 * k, 0, 0]), t0 + k * s)]), t0 + k * s)
     if static:
         chain = [log.transform("base", "mast", rigid(quaternion_to_matrix(_yaw(90)), [0.5, 0, 1]), t0),
                  log.transform("mast", "lidar", rigid(quaternion_to_matrix(_yaw(180)), [0, 0, 0.1]), t0)]
@@ -198,7 +202,24 @@ def test_check_data_explains_a_log_that_cannot_be_mapped(tmp_path, capsys):
     assert main(["check-data", str(path)]) == 1
     late = _hand_made_log(tmp_path / "late.bag")
     report = check_log([late])
-    assert any("1 of 2 clouds have no pose" in p and "odom -> base" in p for p in report.problems), report.problems
+    assert any("1 of 2 clouds have no pose" in p and "'odom' -> 'base'" in p and "changes mid-drive" in p for p in report.problems), report.problems
+
+
+def test_a_tf_root_that_changes_mid_drive_and_a_missing_fixed_frame_are_refused_before_mapping(tmp_path, capsys):
+    """A localiser's map -> odom that starts with the second cloud moves the TF root from odom to map
+    mid-drive: map names the transform and its time range, the frame to use instead, and writes nothing."""
+    path = _hand_made_log(tmp_path / "plain.bag")
+    relocalised = _hand_made_log(tmp_path / "relocalised.bag", relocalised=True)
+    override = tmp_path / "labels.yaml"
+    override.write_text("dataset:\n  num_classes: 20\n  bag:\n    label_ontology: none\nmapping:\n  resolution_m: 0.5\n")
+    out = tmp_path / "map.npz"
+    assert main(["map", str(relocalised), override.as_posix(), "--method", "s-csm", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "changes mid-drive" in err and "'map' -> 'odom'" in err and "fixed_frame: odom" in err, err
+    assert not out.exists()
+    assert main(["map", str(path), override.as_posix(), "--method", "s-csm", "--frame", "world", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "dataset.bag.fixed_frame 'world' is not a frame of the log's TF tree" in err and "odom" in err, err
 
 
 def test_check_data_on_the_synthetic_logs_is_clean(drive, capsys):

@@ -1,5 +1,7 @@
 """The map viewer in-process: filters, colourings, several maps, picking, exports, the CLI."""
 
+import html
+
 import numpy as np
 import pytest
 import trimesh
@@ -8,14 +10,16 @@ from evsemmap_warp.apps.cli import main
 from evsemmap_warp.config import load_config
 from evsemmap_warp.core.mapper import Mapper
 from evsemmap_warp.apps.viewer import CLASS_COLORS, MapViewer, colormap, free_port, load_points, load_trajectory
+from evsemmap_warp.frames import WorldFrame
 
 from conftest import REPO
 
 CLASSES = ["void", "sky", "water", "object", "paved", "unpaved", "dirt", "grass", "vegetation"]
 
 
-def make_map(path, seed=0, offset=(0.0, 0.0, 0.0)):
-    """Grass ground, an object box, and a patch of void (free) evidence, 100 m from the origin."""
+def make_map(path, seed=0, offset=(0.0, 0.0, 0.0), frame=None):
+    """Grass ground, an object box, and a patch of void (free) evidence, 100 m from the origin (plus
+    ``offset``), recorded in world frame ``frame`` (None: as a file written before frames were recorded)."""
     rng = np.random.default_rng(seed)
     cfg = load_config([REPO / "configs/presets/rellis3d.yaml"], method="s-bki").mapping
     mapper = Mapper(cfg, 9, class_names=CLASSES)
@@ -27,6 +31,7 @@ def make_map(path, seed=0, offset=(0.0, 0.0, 0.0)):
     alpha = 1.0 + rng.uniform(0, 0.5, (len(labels), 9))
     alpha[np.arange(len(labels)), labels] += rng.uniform(1, 60, len(labels))
     mapper.integrate(points, alpha, payload_type="alpha")
+    mapper.frame = frame
     mapper.save(path)
     return mapper
 
@@ -156,3 +161,127 @@ def test_view_command_exports_without_serving(maps, tmp_path, capsys):
     assert (tmp_path / "v.html").exists() and (tmp_path / "v.ply").exists()
     assert main(["view", str(tmp_path / "missing.npz"), "--no-serve"]) == 2
     assert "no such map file" in capsys.readouterr().err
+
+
+# --- maps anchored in a world frame (UTM, far from the origin) ----------------------------------
+UTM = WorldFrame("map", "EPSG:32617")
+FAR = (500_000.0 - 100.0, 4_000_000.0 - 100.0, 100.0)  # make_map's points sit near (500 km, 4000 km, 100 m)
+
+
+def read_ply(path):
+    """(header lines, structured vertex array) of a binary little-endian PLY, read with numpy alone."""
+    data = path.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    header = data[:end].decode().splitlines()
+    types = {"double": "<f8", "float": "<f4", "uchar": "u1", "int": "<i4"}
+    dtype = [(line.split()[2], types[line.split()[1]]) for line in header if line.startswith("property ")]
+    count = next(int(line.split()[2]) for line in header if line.startswith("element vertex"))
+    assert "format binary_little_endian 1.0" in header
+    return header, np.frombuffer(data[end:], dtype=dtype, count=count)
+
+
+@pytest.fixture
+def far_viewer(tmp_path):
+    make_map(tmp_path / "utm.npz", offset=FAR, frame=UTM)
+    v = MapViewer([tmp_path / "utm.npz"], port=free_port(), max_voxels=100_000)
+    yield v
+    v.server.stop()
+
+
+def test_far_map_shows_its_frame_and_the_local_origin_in_world_coordinates(far_viewer):
+    v = far_viewer
+    assert v.frame == UTM and v.layers[0].frame == UTM
+    assert v.layers[0].centers.dtype == np.float64 and v.layers[0].centers[:, 0].min() > 499_990
+    assert "frame: **map (EPSG:32617)**" in v.gui_frame.content
+    x, y, z = v.origin
+    assert 500_000 < x < 500_010 and 4_000_000 < y < 4_000_010
+    label = f"map: x={x:.3f}, y={y:.3f}, z={z:.3f} m"
+    assert label in v.gui_frame.content and v.origin_label.text == label
+    points = v.voxel_handles[0].points  # still float32, small, relative to the local origin
+    assert points.dtype == np.float32 and np.abs(points).max() < 10
+
+
+def test_clicked_voxel_is_described_in_world_coordinates_of_its_frame(far_viewer):
+    v = far_viewer
+    layer = v.layers[0]
+    rows = v.visible_rows[0]
+    top = rows[np.argmax(layer.centers[rows, 2])]
+    start = layer.centers[top] - v.origin + np.array([0.0, 0.0, 10.0])
+    assert v.pick(start, (0.0, 0.0, -1.0)) == (0, top)
+
+    class Click:
+        ray_origin, ray_direction = tuple(start), (0.0, 0.0, -1.0)
+
+    v._on_click(Click)
+    cx, cy, cz = layer.centers[top]
+    assert cx > 500_000 and cy > 4_000_000
+    assert f"centre in frame 'map' (EPSG:32617): x={cx:.3f}, y={cy:.3f}, z={cz:.3f} m" in v.gui_selection.content
+
+
+def test_ply_export_holds_float64_world_coordinates_and_names_the_frame(far_viewer, tmp_path):
+    v = far_viewer
+    rows = v.visible_rows[0]
+    header, vertex = read_ply(v.export_ply(tmp_path / "far.ply"))
+    assert "comment frame map" in header and "comment crs EPSG:32617" in header
+    assert {"property double x", "property double y", "property double z"} <= set(header)
+    assert vertex["x"].dtype == np.float64 and len(vertex) == len(rows)
+    np.testing.assert_array_equal(np.c_[vertex["x"], vertex["y"], vertex["z"]], v.layers[0].centers[rows])
+    np.testing.assert_array_equal(vertex["label"], v.layers[0].label[rows])
+    np.testing.assert_array_equal(vertex["observations"], v.layers[0].hits[rows])
+    assert (vertex["state"] == 2).all() and vertex["variance"].dtype == np.float32
+    cloud = trimesh.load(tmp_path / "far.ply")  # an ordinary reader gets the same world coordinates
+    np.testing.assert_allclose(cloud.vertices, v.layers[0].centers[rows], rtol=0, atol=1e-6)
+    assert "label" in cloud.metadata["_ply_raw"]["vertex"]["data"].dtype.names
+
+
+def test_html_export_states_the_frame_and_the_local_origin(far_viewer, tmp_path):
+    v = far_viewer
+    page = v.export_html(tmp_path / "far.html").read_text(encoding="utf-8")
+    x, y, z = v.origin
+    assert '<meta name="evsemmap-frame" content="map" />' in page
+    assert '<meta name="evsemmap-crs" content="EPSG:32617" />' in page
+    assert f'<meta name="evsemmap-local-origin" content="{x:.3f} {y:.3f} {z:.3f}" />' in page
+    note = f"positions are relative to the local origin at x={x:.3f} y={y:.3f} z={z:.3f} m in frame 'map' (EPSG:32617)"
+    assert f"<!-- evsemmap_warp map viewer export: {note}" in page
+    assert f'<div id="evsemmap-frame-note"' in page and page.index("evsemmap-frame-note") < page.rindex("</body>")
+    assert html.unescape(page).count(note) >= 3  # the meta element, the comment, the visible note
+    assert page.startswith("<!") and len(page) > 100_000
+
+
+def test_maps_of_different_frames_are_refused_naming_both(tmp_path, capsys):
+    make_map(tmp_path / "utm.npz", offset=FAR, frame=UTM)
+    make_map(tmp_path / "odom.npz", frame=WorldFrame("odom"))
+    make_map(tmp_path / "old.npz")
+    make_map(tmp_path / "old2.npz", seed=1)
+    with pytest.raises(ValueError) as refused:
+        MapViewer([tmp_path / "utm.npz", tmp_path / "odom.npz"], port=free_port())
+    text = str(refused.value)
+    assert "utm.npz" in text and "odom.npz" in text and "frame 'map' (EPSG:32617)" in text and "frame 'odom'" in text
+    with pytest.raises(ValueError, match="old.npz.*no recorded frame"):  # an old file and a framed one: refused too
+        MapViewer([tmp_path / "utm.npz", tmp_path / "old.npz"], port=free_port())
+    assert main(["view", str(tmp_path / "odom.npz"), str(tmp_path / "utm.npz"), "--no-serve", "--port", str(free_port())]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "odom.npz" in err and "utm.npz" in err and "'odom'" in err and "EPSG:32617" in err
+    v = MapViewer([tmp_path / "old.npz", tmp_path / "old2.npz"], port=free_port())  # two old files: still together
+    try:
+        assert v.frame is None and "frame: **not recorded** (all 2 maps)" in v.gui_frame.content
+        header, _ = read_ply(v.export_ply(tmp_path / "old.ply"))
+        assert "comment frame none" in header and "comment crs none" in header
+    finally:
+        v.server.stop()
+
+
+def test_a_store_shows_its_frame_and_is_refused_beside_another(tmp_path):
+    make_map(tmp_path / "a.npz", offset=FAR, frame=UTM)
+    make_map(tmp_path / "b.npz", seed=1, offset=FAR, frame=UTM)
+    make_map(tmp_path / "odom.npz", frame=WorldFrame("odom"))
+    assert main(["merge", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--out", str(tmp_path / "store"), "--tile-voxels", "16"]) == 0
+    v = MapViewer([tmp_path / "store", tmp_path / "a.npz"], port=free_port())  # a store and a map of its frame
+    try:
+        assert v.layers[0].frame == UTM and "frame: **map (EPSG:32617)** (all 2 maps)" in v.gui_frame.content
+        v.gui_side_by_side.value = True
+        assert "side by side" in v.gui_frame.content and "shifted" in v.offset_note()
+    finally:
+        v.server.stop()
+    with pytest.raises(ValueError, match="store is in frame 'map' \\(EPSG:32617\\) but .*odom.npz in frame 'odom'"):
+        MapViewer([tmp_path / "store", tmp_path / "odom.npz"], port=free_port())

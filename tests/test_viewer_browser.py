@@ -67,3 +67,27 @@ def test_scene_renders_and_controls_change_it(tmp_path):
             browser.close()
     finally:
         viewer.server.stop()
+
+
+def test_far_map_shows_its_frame_origin_and_world_coordinates_of_a_click(tmp_path):
+    from test_viewer import FAR, UTM
+
+    make_map(tmp_path / "utm.npz", offset=FAR, frame=UTM)
+    viewer = MapViewer([tmp_path / "utm.npz"], port=free_port())
+    try:
+        with sync_api.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            page.goto(viewer.url)
+            page.get_by_text("Colour by").first.wait_for(timeout=30_000)
+            # 500 km / 4000 km from 0, the voxels still render (float32 positions about the local origin)
+            assert _wait(lambda: _pixels_near(page.screenshot(), CLASS_COLORS["grass"]) >= 2000), "grass voxels never appeared"
+            page.get_by_text("map (EPSG:32617)").first.wait_for(timeout=10_000)  # the GUI names the frame
+            page.get_by_text(viewer.origin_text()).first.wait_for(timeout=10_000)  # the axes' label, and the GUI line
+            # a click on the map reports the voxel's centre in world coordinates of the frame
+            page.mouse.click(450, 450)
+            assert _wait(lambda: "centre in frame 'map' (EPSG:32617): x=500" in viewer.gui_selection.content), viewer.gui_selection.content
+            assert "y=4000" in viewer.gui_selection.content
+            browser.close()
+    finally:
+        viewer.server.stop()

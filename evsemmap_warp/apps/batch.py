@@ -4,8 +4,9 @@ store (core/map_store.py).
 BKI maps are sums, so partial maps of disjoint scan sets add up exactly. A run:
 
 1. plans: the inputs' insertions (scans, or bins of camera-labelled frames) are cut into chunks of
-   consecutive insertions (``--chunk-frames`` frames, rounded to whole bins, so per-insertion rules see
-   what ``evsemmap map`` shows them); the map origin is that ``evsemmap map`` picks (the first scan's);
+   consecutive insertions (``--chunk-frames`` frames, by default chosen from the inputs' total frames
+   alone, see choose_chunk_frames; rounded to whole bins, so per-insertion rules see what
+   ``evsemmap map`` shows them); the map origin is that ``evsemmap map`` picks (the first scan's);
 2. maps each chunk in a worker into a partial map, written per spatial tile under ``STORE/work``
    (a chunk is done when its folder is renamed into place, so a killed worker leaves nothing that
    counts);
@@ -38,13 +39,24 @@ from ..config import ConfigError, MappingConfig, is_robot_log, load_config
 from ..core import map_store
 from ..core.mapper import Mapper, VoxelState
 from ..core.voxel_map import EXTRA_COLUMNS, VoxelArrays
-from .scan_sources import open_scan_source
+from ..frames import WorldFrame, check_same_frame
+from .scan_sources import map_scans, mapper_for, open_scan_source
 
-# Fault injection for the tests (never set in use): "kill-chunk:N" makes the worker that maps chunk N
-# die halfway through its first attempt, as a killed process would.
-FAULT_VARIABLE = "EVSEMMAP_BATCH_FAULT"
 WORKER_OVERHEAD_BYTES = 450 * 2**20  # a worker process with numpy, Warp and its kernels loaded (measured: ~0.4 GB)
 DRIVER_OVERHEAD_BYTES = 450 * 2**20
+# The automatic chunk size (--chunk-frames not given): the inputs' frames cut into at least AUTO_CHUNKS
+# chunks (two per worker up to 8 workers, so short inputs use every core), at most MAX_AUTO_CHUNK_FRAMES
+# frames each. It depends on the inputs only, never on the worker count: stores stay byte-identical.
+AUTO_CHUNKS = 16
+MAX_AUTO_CHUNK_FRAMES = 100
+
+
+@dataclass(frozen=True)
+class _FaultPlan:
+    """Fault injection, a seam for the tests only (run_batch's private ``_fault``): the worker that maps
+    chunk ``kill_chunk`` dies halfway through its first attempt, as a killed process would."""
+
+    kill_chunk: int
 
 
 @dataclass(frozen=True)
@@ -53,12 +65,14 @@ class BatchOptions:
     out: Path
     executor: str = "local"  # local | ray (| inline: in this process, for tests and debugging)
     workers: int | None = None  # default: one per core (local), the cluster's CPUs (ray)
-    chunk_frames: int = 100
+    chunk_frames: int | None = None  # None: automatic (choose_chunk_frames), from the inputs' frames
     ray_address: str | None = None
     checkpoint: Path | None = None
     alpha: Path | None = None
     bin_frames: int | None = None
     batch_size: int = 4
+    frame: str | None = None  # --frame: overrides the inputs' dataset.frame (a name, or first-scan)
+    crs: str | None = None  # --crs
     tile_voxels: int = map_store.DEFAULT_TILE_VOXELS
     discard_partials: bool = False
     progress: bool = True
@@ -84,9 +98,11 @@ class Context:
     class_names: tuple[str, ...]
     origin_index: np.ndarray
     tile_voxels: int
+    frame: WorldFrame | None = None  # the world frame every input is mapped in
+    fault: _FaultPlan | None = None  # tests only (run_batch's _fault); None in use
 
     def template(self) -> Mapper:
-        return map_store.template_mapper(self.config, self.class_names, self.origin_index)
+        return map_store.template_mapper(self.config, self.class_names, self.origin_index, self.frame)
 
 
 # Planning ------------------------------------------------------------------------------------------
@@ -127,12 +143,26 @@ def _input_identity(paths: list[str]) -> list:
     return out
 
 
+def choose_chunk_frames(requested: int | None, total_frames: int) -> tuple[int, str]:
+    """Frames per chunk, and the rule that gave them: ``requested`` (--chunk-frames) when given, else
+    ceil(total_frames / AUTO_CHUNKS), at most MAX_AUTO_CHUNK_FRAMES and at least 1 (plan_batch then
+    rounds to whole bins, at least one). The inputs' frames alone decide, never the worker count."""
+    if requested is not None:
+        if requested < 1:
+            raise ConfigError(f"--chunk-frames {requested}: must be >= 1")
+        return int(requested), "given: --chunk-frames"
+    chosen = max(1, min(MAX_AUTO_CHUNK_FRAMES, -(-total_frames // AUTO_CHUNKS)))
+    return chosen, (f"automatic: ceil({total_frames} frames / {AUTO_CHUNKS}) capped at {MAX_AUTO_CHUNK_FRAMES}, from the inputs' frames "
+                    f"only (at least {AUTO_CHUNKS} chunks, two per worker up to {AUTO_CHUNKS // 2} workers, when the frames allow; "
+                    f"the same store for any worker count)")
+
+
 def plan_batch(paths: list[str], options: BatchOptions):
     """The sources, the mapping config, the chunks and the identity of the run (for resuming)."""
     inputs, shared = split_inputs(paths)
     sources, runs = [], []
     for text in inputs:
-        run = load_config([text] + shared, method=options.method)
+        run = load_config([text] + shared, method=options.method, frame=options.frame, crs=options.crs)
         if run.dataset is None:
             raise ConfigError(f"{text}: no dataset section")
         runs.append(run)
@@ -146,10 +176,12 @@ def plan_batch(paths: list[str], options: BatchOptions):
                               + ", ".join(f"{k} {mine[k]!r} vs {theirs[k]!r}" for k in mine if mine[k] != theirs[k]))
         if source.num_classes != sources[0].num_classes:
             raise ConfigError(f"{text}: {source.num_classes} classes, {inputs[0]} has {sources[0].num_classes}")
+        check_same_frame("batch", (inputs[0], sources[0].frame), (text, source.frame))  # inputs combine only in one frame
+    chunk_frames, _ = choose_chunk_frames(options.chunk_frames, sum(source.frames_in(0, len(source)) for source in sources))
     chunks = []
     for s, source in enumerate(sources):
         per_bin = max(1, getattr(source, "bin_frames", 1))
-        insertions = max(1, options.chunk_frames // per_bin)  # whole bins: a chunk never splits one
+        insertions = max(1, chunk_frames // per_bin)  # whole bins: a chunk never splits one
         for start in range(0, len(source), insertions):
             stop = min(start + insertions, len(source))
             chunks.append(Chunk(len(chunks), s, start, stop, source.frames_in(start, stop)))
@@ -157,7 +189,8 @@ def plan_batch(paths: list[str], options: BatchOptions):
         raise ConfigError(f"batch: the inputs {inputs} hold no scans")
     identity = {
         "inputs": [_input_identity([text] + shared) for text in inputs], "method": options.method, "mapping": config.as_dict(),
-        "chunk_frames": options.chunk_frames, "tile_voxels": options.tile_voxels,
+        "chunk_frames": chunk_frames, "tile_voxels": options.tile_voxels,  # the number used, chosen or given
+        "frame": sources[0].frame.as_dict(),
         "payload": {"checkpoint": _input_identity([str(options.checkpoint)]) if options.checkpoint else None,
                     "alpha": _input_identity([str(options.alpha)]) if options.alpha else None, "bin_frames": options.bin_frames},
     }
@@ -169,7 +202,7 @@ def probe(sources, config: MappingConfig) -> tuple[np.ndarray, tuple[str, ...], 
     non-empty scan), and the voxels of the first insertion and of the first two (for the memory
     estimate)."""
     source = sources[0]
-    mapper = Mapper(config, source.num_classes, class_names=source.class_names or None, workers=1)
+    mapper = mapper_for(source, config, workers=1)
     counts = []
     for i in range(len(source)):
         for scan in source.scans(i, i + 1):
@@ -200,8 +233,10 @@ def bytes_per_voxel(num_classes: int) -> int:
     return 3 * (row + 16) + 3 * row
 
 
-def check_memory(options: BatchOptions, workers: int, chunk_insertions: int, first: int, first_two: int, num_classes: int) -> dict:
-    """Refuse, before any work, a configuration whose workers cannot fit in this machine's memory."""
+def check_memory(options: BatchOptions, workers: int, chunk_insertions: int, first: int, first_two: int, num_classes: int,
+                 *, automatic: bool = False) -> dict:
+    """Refuse, before any work, a configuration whose workers cannot fit in this machine's memory.
+    ``options.chunk_frames`` is the number in use; ``automatic``: it was chosen, not given."""
     new_per_insertion = max(first_two - first, first // 4)
     chunk_voxels = first + (chunk_insertions - 1) * new_per_insertion
     per_worker = WORKER_OVERHEAD_BYTES + chunk_voxels * bytes_per_voxel(num_classes)
@@ -211,10 +246,17 @@ def check_memory(options: BatchOptions, workers: int, chunk_insertions: int, fir
               "available_mb": round(have / 2**20)}
     if (options.executor == "local" or (options.executor == "ray" and not options.ray_address)) and need > have:
         room = (have - DRIVER_OVERHEAD_BYTES) / workers - WORKER_OVERHEAD_BYTES
-        fitting = max(0, int((room / bytes_per_voxel(num_classes) - first) / max(new_per_insertion, 1)) + 1)
-        raise ConfigError(f"batch: --chunk-frames {options.chunk_frames} with {workers} workers needs about {need / 2**30:.1f} GB "
+        fitting = max(0, int(np.floor((room / bytes_per_voxel(num_classes) - first) / max(new_per_insertion, 1))) + 1)
+        if fitting >= 1:
+            advice = f"use --chunk-frames {fitting} or fewer --workers"
+        elif workers > 1:
+            advice = "use fewer --workers (not even chunks of one scan or bin fit this many)"
+        else:
+            advice = "this machine lacks the memory for one worker"
+        given = f"--chunk-frames {options.chunk_frames}" + (" (chosen automatically)" if automatic else "")
+        raise ConfigError(f"batch: {given} with {workers} workers needs about {need / 2**30:.1f} GB "
                           f"({per_worker / 2**30:.2f} GB per worker for ~{chunk_voxels:,} voxels a chunk), but {have / 2**30:.1f} GB "
-                          f"are available; use --chunk-frames {max(fitting, 1)} or fewer --workers")
+                          f"are available; {advice}")
     return budget
 
 
@@ -242,8 +284,7 @@ def _chunk_dir(store: Path, number: int) -> Path:
 
 
 def _inject_fault(context: Context, chunk: Chunk, partial_dir: Path) -> None:
-    fault = os.environ.get(FAULT_VARIABLE, "")
-    if fault == f"kill-chunk:{chunk.number}":
+    if context.fault is not None and context.fault.kill_chunk == chunk.number:
         marker = context.store / "work" / f".fault-{chunk.number}"
         if not marker.exists():
             marker.write_text("killed once\n")
@@ -263,16 +304,9 @@ def map_chunk(chunk: Chunk, context: Context | None = None) -> dict:
     shutil.rmtree(partial, ignore_errors=True)
     _inject_fault(context, chunk, partial)
     source = context.sources[chunk.sequence]
-    mapper = Mapper(context.config, context.num_classes, class_names=context.class_names, workers=1,
-                    origin=context.origin_index * context.config.resolution_m)
-    points = scans = 0
-    for scan in source.scans(chunk.start, chunk.stop):
-        try:
-            mapper.integrate(scan.points, scan.payload, payload_type=scan.payload_type, sensor_origin=scan.sensor_origin)
-        except ValueError as exc:
-            raise ValueError(f"{scan.name}: {exc}") from None
-        points += len(scan.points)
-        scans += 1
+    mapper = mapper_for(source, context.config, workers=1, origin=context.origin_index * context.config.resolution_m)
+    stats = map_scans(mapper, source.scans(chunk.start, chunk.stop))
+    points, scans = sum(s.input_points for s in stats), len(stats)
     voxels, _ = mapper.voxels()
     parts = map_store.split_by_tile(voxels.index, voxels.rows(), context.tile_voxels)
     partial.mkdir(parents=True, exist_ok=True)
@@ -316,7 +350,8 @@ def _store_index(template: Mapper, tile_voxels: int, entries: dict, inputs: list
     return {
         "format": map_store.STORE_FORMAT, "format_version": map_store.STORE_VERSION, "resolution_m": config.resolution_m,
         "origin_index": [int(v) for v in template.origin_index], "origin_m": template.origin.tolist(),
-        "grid_offset_m": template.grid_offset_m, "classes": list(template.class_names), "method": config.method,
+        "grid_offset_m": template.grid_offset_m, "frame": None if template.frame is None else template.frame.as_dict(),
+        "classes": list(template.class_names), "method": config.method,
         "mapping": config.as_dict(), "tile_voxels": tile_voxels,
         "tiles": {name: {k: e[k] for k in ("voxels", "bounds_m", "states")} for name, e in sorted(entries.items())},
         "inputs": inputs, "chunks": chunks, "scans": int(totals["scans"]), "points": int(totals["points"]),
@@ -330,7 +365,7 @@ def write_store_from_mapper(mapper: Mapper, out, tile_voxels: int, sources: list
         raise ConfigError(f"{out}: exists and is not empty; a store is written to a new folder")
     voxels, _ = mapper.voxels()
     template = map_store.template_mapper(mapper.config, mapper.class_names,
-                                         mapper.origin_index if mapper.origin_index is not None else np.zeros(3, np.int64))
+                                         mapper.origin_index if mapper.origin_index is not None else np.zeros(3, np.int64), mapper.frame)
     totals = {"scans": mapper.scans_integrated, "points": mapper.points_integrated}
     entries = {name: _write_tile(out, name, template, VoxelArrays.from_rows(index, rows), totals)
                for name, (index, rows) in map_store.split_by_tile(voxels.index, voxels.rows(), tile_voxels).items()}
@@ -442,7 +477,7 @@ class RayExecutor:
         self.ray, self.log = ray, log or (lambda m: None)
         self.started = not ray.is_initialized()
         if self.started:
-            env = {k: v for k, v in os.environ.items() if k in ("WARP_CACHE_PATH", FAULT_VARIABLE, "XDG_CACHE_HOME")}
+            env = {k: v for k, v in os.environ.items() if k in ("WARP_CACHE_PATH", "XDG_CACHE_HOME")}
             kwargs = {"address": address} if address else {"num_cpus": workers or os.cpu_count()}
             ray.init(**kwargs, include_dashboard=False, logging_level="ERROR", log_to_driver=False,
                      runtime_env={"env_vars": env} if env else None)
@@ -489,8 +524,9 @@ def _remove_unfinished_chunks(out: Path) -> None:
         shutil.rmtree(stale, ignore_errors=True)
 
 
-def run_batch(paths: list[str], options: BatchOptions, log=None) -> dict:
-    """Plan, map chunks, reduce tiles and write the store; returns the summary."""
+def run_batch(paths: list[str], options: BatchOptions, log=None, *, _fault: _FaultPlan | None = None) -> dict:
+    """Plan, map chunks, reduce tiles and write the store; returns the summary. ``_fault``: the
+    tests' fault injection (a _FaultPlan the workers receive in their Context), never used otherwise."""
     log = log or (lambda m: print(m, file=sys.stderr))
     times = {}
     started = time.perf_counter()
@@ -502,12 +538,16 @@ def run_batch(paths: list[str], options: BatchOptions, log=None) -> dict:
     origin_index, class_names, first, first_two = probe(sources, config)
     workers = options.workers or (os.cpu_count() or 1)
     insertions = max(c.stop - c.start for c in chunks)
-    budget = check_memory(options, workers, insertions, first, first_two, sources[0].num_classes)
+    chunk_frames = identity["chunk_frames"]
+    chunk_rule = choose_chunk_frames(options.chunk_frames, sum(c.frames for c in chunks))[1]
+    budget = check_memory(dataclasses.replace(options, chunk_frames=chunk_frames), workers, insertions, first, first_two,
+                          sources[0].num_classes, automatic=options.chunk_frames is None)
     times["plan"] = time.perf_counter() - started
     (out / "work").mkdir(parents=True, exist_ok=True)
     map_store.write_json(out / "work" / "plan.json", identity)
     _remove_unfinished_chunks(out)
-    context = Context(out, sources, config, sources[0].num_classes, class_names, origin_index, options.tile_voxels)
+    context = Context(out, sources, config, sources[0].num_classes, class_names, origin_index, options.tile_voxels, frame=sources[0].frame,
+                      fault=_fault)
     finished = [c for c in chunks if (_chunk_dir(out, c.number) / "done.json").is_file()]
     todo = [c for c in chunks if c not in finished]
     total_frames = sum(c.frames for c in chunks)
@@ -571,7 +611,8 @@ def run_batch(paths: list[str], options: BatchOptions, log=None) -> dict:
     chunk_seconds = [r["seconds"] for r in costs]
     return {
         "store": str(out), "executor": executor.name, "workers": executor.workers, "inputs": len(inputs), "frames": total_frames,
-        "chunks": len(chunks), "chunks_resumed": len(finished), "input_points": totals["points"],
+        "chunks": len(chunks), "chunks_resumed": len(finished), "chunk_frames": chunk_frames, "chunk_frames_rule": chunk_rule,
+        "input_points": totals["points"],
         "voxels": sum(e["voxels"] for e in entries.values()), "tiles": len(entries),
         "seconds": {k: round(v, 3) for k, v in times.items()},
         "frames_per_second": round(sum(c.frames for c in todo) / times["map"], 2) if todo and times["map"] > 0 else None,

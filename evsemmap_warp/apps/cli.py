@@ -19,22 +19,22 @@ from ..config import ConfigError, available_methods, load_config
 def _cmd_map(args) -> int:
     from tqdm import tqdm
 
-    from ..core.mapper import Mapper, VoxelState, save_map
-    from .scan_sources import open_scan_source
+    from ..core.mapper import VoxelState, save_map
+    from .scan_sources import map_scans, mapper_for, open_scan_source
 
-    run = load_config(args.configs, method=args.method)
+    run = load_config(args.configs, method=args.method, frame=args.frame, crs=args.crs)
     if run.dataset is None:
         raise ConfigError(f"none of {list(args.configs)} has a 'dataset' section: name a dataset config, e.g. configs/datasets/sbki_toy.yaml")
     dataset = open_scan_source(run, checkpoint=args.checkpoint, alpha_dir=args.alpha, bin_frames=args.bin_frames, batch_size=args.batch_size)
-    mapper = Mapper(run.mapping, dataset.num_classes, class_names=dataset.class_names or None, device=args.device, workers=args.workers)
+    mapper = mapper_for(dataset, run.mapping, device=args.device, workers=args.workers)
     if not args.quiet:
         what = f"{len(dataset)} bins of camera-labelled frames" if args.checkpoint or args.alpha else f"{len(dataset)} scans"
         print(f"mapping {what} with {run.mapping.method} ({run.mapping.compat.value} mode) on {mapper.device}, "
-              f"{len(mapper.shards)} worker(s)", file=sys.stderr)
+              f"{len(mapper.shards)} worker(s), in {dataset.frame.describe()}", file=sys.stderr)
     start = time.perf_counter()
     with tqdm(total=len(dataset), unit="scan", disable=args.quiet, dynamic_ncols=True) as bar:
         # Reading and host work of the next scans overlap this one's kernels; errors name their scan.
-        stats = mapper.integrate_many(dataset, progress=lambda scan, _: bar.update(1))
+        stats = map_scans(mapper, dataset, progress=lambda scan, _: bar.update(1))
     elapsed = time.perf_counter() - start
     points = sum(s.input_points for s in stats)
     save_map(args.out, mapper)
@@ -44,6 +44,7 @@ def _cmd_map(args) -> int:
     per_class = np.bincount(summary.label[occupied], minlength=mapper.num_classes)
     report = {
         "method": run.mapping.method,
+        "frame": dataset.frame.as_dict(),
         "scans": len(dataset),
         "input_points": points,
         "voxels": mapper.voxel_count,
@@ -63,7 +64,7 @@ def _cmd_batch(args) -> int:
     options = BatchOptions(method=args.method, out=args.out, executor=args.executor, workers=args.workers, chunk_frames=args.chunk_frames,
                            ray_address=args.ray_address, checkpoint=args.checkpoint, alpha=args.alpha, bin_frames=args.bin_frames,
                            batch_size=args.batch_size, tile_voxels=args.tile_voxels, discard_partials=args.discard_partials,
-                           progress=not args.quiet)
+                           progress=not args.quiet, frame=args.frame, crs=args.crs)
     if args.ray_address and args.executor != "ray":
         raise ConfigError("--ray-address needs --executor ray")
     summary = run_batch(list(args.configs), options, log=(lambda m: None) if args.quiet else (lambda m: print(m, file=sys.stderr)))
@@ -101,9 +102,13 @@ def _cmd_merge(args) -> int:
 
     if len(args.inputs) < 2:
         raise ValueError(f"merge: give at least two maps or stores, got {len(args.inputs)}")
+    from ..frames import check_same_frame
+
     merged = None
     for path in args.inputs:
         part = _load_map_or_store(path)
+        if merged is not None:  # refused before anything is added, naming both inputs and both frames
+            check_same_frame("merge", (str(args.inputs[0]), merged.frame), (str(path), part.frame))
         try:
             merged = part if merged is None else merged.merge(part)
         except ValueError as exc:
@@ -135,6 +140,7 @@ def _cmd_info(args) -> int:
         "format_version": meta["format_version"],
         "resolution_m": float(arrays["resolution"]),
         "origin_m": arrays["origin"].tolist(),
+        "frame": meta.get("frame"),  # None: written before maps recorded their world frame
         "voxels": int(len(state)),
         "states": {"UNKNOWN": int((state == 0).sum()), "FREE": int((state == 1).sum()), "OCCUPIED": int((state == 2).sum())},
         "scans_integrated": meta.get("scans_integrated"),
@@ -144,6 +150,7 @@ def _cmd_info(args) -> int:
 
 
 def _cmd_view(args) -> int:
+    from ..frames import describe_frame
     from .viewer import MapViewer
 
     viewer = MapViewer(args.maps, host=args.host, port=args.port, style=args.style, max_voxels=args.max_voxels,
@@ -154,7 +161,8 @@ def _cmd_view(args) -> int:
     if args.no_serve:
         viewer.server.stop()
         return 0
-    print(f"evsemmap viewer: open {viewer.url} in a browser (Ctrl-C to stop)", file=sys.stderr)
+    print(f"evsemmap viewer: open {viewer.url} in a browser (Ctrl-C to stop); maps in {describe_frame(viewer.frame)}, "
+          f"local origin at {viewer.origin_text()}", file=sys.stderr)
     viewer.serve_forever()
     return 0
 
@@ -199,6 +207,7 @@ def _cmd_infer(args) -> int:
     from PIL import Image
     from tqdm import tqdm
 
+    from ..files import save_npy_atomically
     from ..segmentation.train import infer_alpha, load_checkpoint
 
     model, config, meta, _ = load_checkpoint(args.checkpoint)
@@ -216,7 +225,7 @@ def _cmd_infer(args) -> int:
 
     outputs = infer_alpha(model, config, meta, images(), batch_size=args.batch_size)
     for path, (alpha, _) in tqdm(zip(paths, outputs), total=len(paths), unit="img", disable=args.quiet):
-        np.save(args.out / f"{path.stem}.npy", alpha)
+        save_npy_atomically(args.out / f"{path.stem}.npy", alpha)
     print(f"wrote {len(paths)} {'alpha' if config.head == 'evidential' else 'probability'} maps "
           f"[{config.model.num_classes}, {config.input_size[0]}, {config.input_size[1]}] float16 to {args.out}", file=sys.stderr)
     return 0
@@ -279,8 +288,9 @@ def _cmd_project(args) -> int:
     from ..geometry.projection import ProjectionConfig, depth_colours, label_map_for, project_frames, save_overlay
     from ..data.datasets import open_sequence
     from ..data.sequences import remap_point_labels
+    from ..files import savez_atomically
 
-    seq = open_sequence(args.sequence)
+    seq = open_sequence(args.sequence, frame=args.frame, crs=args.crs)
     config = ProjectionConfig(zbuffer=args.zbuffer)
     frames = [f for f in seq.frames if f.label_image is not None][: args.max_frames]
     if not frames:
@@ -290,7 +300,7 @@ def _cmd_project(args) -> int:
     colours = class_set("remap_v3").colors
     by_index = {f.index: f for f in frames}
     points, labels, agree, compared = [], [], 0, 0
-    for n, item in enumerate(project_frames(seq, frames, label_map_for(seq), config)):
+    for n, item in enumerate(project_frames(seq, frames, label_map_for(seq), config, seq.world)):
         points.append(item.points)
         labels.append(item.values)
         frame = by_index[item.frame_index]
@@ -302,8 +312,9 @@ def _cmd_project(args) -> int:
             depth = np.linalg.norm(item.points - item.sensor_origin, axis=1)
             shown = depth_colours(depth) if args.colour_by == "depth" else colours[item.values]
             save_overlay(args.out / f"overlay_{frame.index:06d}.png", seq.read_image(frame), item.pixel, shown)
-    np.savez_compressed(args.out / "ground_truth.npz", points=np.concatenate(points), labels=np.concatenate(labels))
-    report = {"frames": len(frames), "points": int(sum(len(p) for p in points)), "out": str(args.out)}
+    savez_atomically(args.out / "ground_truth.npz", compressed=True, points=np.concatenate(points), labels=np.concatenate(labels),
+                     frame=np.array(json.dumps(seq.world.frame.as_dict())))  # the world frame the points are in
+    report = {"frames": len(frames), "points": int(sum(len(p) for p in points)), "frame": seq.world.frame.as_dict(), "out": str(args.out)}
     if compared:
         report["agreement_with_point_labels_v3"] = round(agree / compared, 4)
     print(json.dumps(report, indent=1))
@@ -415,6 +426,13 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _add_frame_args(p) -> None:
+    p.add_argument("--frame", default=None, help="the world frame to map in (dataset.frame): by default the data's own (a log's fixed "
+                                                 "frame, a folder's poses.txt frame, point files' frame); a NAME names a folder's poses "
+                                                 "frame (a log's must be its fixed frame); first-scan: relative to the first scan's pose")
+    p.add_argument("--crs", default=None, help="EPSG code of georeferenced coordinates, e.g. EPSG:32617 (dataset.crs); exports carry it")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from ..segmentation.config import ModelConfig
 
@@ -434,6 +452,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bin-frames", type=_positive, default=None, help="with --checkpoint or --alpha: frames integrated together "
                                                                     "(default: the preset's pipeline.bin_frames, else 1)")
     p.add_argument("--batch-size", type=_positive, default=4, help="with --checkpoint: images per inference batch")
+    _add_frame_args(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar or start-up line")
     p.set_defaults(func=_cmd_map)
 
@@ -444,7 +463,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path, help="the map store (a folder) to write, or to finish when a run was interrupted")
     p.add_argument("--executor", choices=("local", "ray"), default="local", help="local: a process pool (default); ray: Ray tasks")
     p.add_argument("--workers", type=_positive, default=None, help="worker processes (default: one per core; with ray: the cluster's CPUs)")
-    p.add_argument("--chunk-frames", type=_positive, default=100, help="frames per task, rounded to whole bins (default 100)")
+    p.add_argument("--chunk-frames", type=_positive, default=None,
+                   help="frames per task, rounded to whole bins (default: automatic, from the inputs' total frames only: "
+                        "ceil(frames / 16), at most 100: at least 16 chunks when the frames allow, two per worker up to 8 workers; "
+                        "never from the worker count, so stores are the same for any; the JSON summary gives the value and rule)")
     p.add_argument("--ray-address", default=None, help="an existing Ray cluster: auto, or ray://host:port (default: a local Ray instance)")
     p.add_argument("--checkpoint", type=Path, help="label the scans from the camera with this segmentation checkpoint (inference in each task)")
     p.add_argument("--alpha", type=Path, help="label the scans from the camera with the alpha files of `evsemmap infer` in this folder")
@@ -452,7 +474,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch-size", type=_positive, default=4, help="with --checkpoint: images per inference batch")
     p.add_argument("--tile-voxels", type=_positive, default=256, help="tile edge in voxels (default 256: 51.2 m at 0.2 m)")
     p.add_argument("--discard-partials", action="store_true", help="delete the per-chunk partial maps at the end (a rerun then starts over)")
-    p.add_argument("--quiet", action="store_true")
+    _add_frame_args(p)
+    p.add_argument("--quiet", action="store_true", help="no progress bar or progress messages (errors are still reported); the JSON summary still goes to stdout")
     p.set_defaults(func=_cmd_batch)
 
     p = sub.add_parser("export", help="a map store (or the part of it inside --bounds) as one map file")
@@ -469,15 +492,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("view", help="inspect map files and map stores in a browser (viser)")
     p.add_argument("maps", nargs="+", type=Path, help="map files or stores (a store: a decimated overview, any tile in full); several "
-                                                      "are switchable or side by side")
+                                                      "are switchable or side by side, only when their world frames agree")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=_port, default=8080)
     p.add_argument("--style", choices=("points", "boxes"), default="points", help="voxels as point sprites or instanced boxes")
     p.add_argument("--max-voxels", type=_positive, default=500_000, help="decimate beyond this many visible voxels (the GUI can show all)")
-    p.add_argument("--trajectory", type=Path, help="poses.txt (3x4 per line) or N x 3 positions (.txt/.npy)")
-    p.add_argument("--scan", type=Path, help="current scan's points (.pcd, .npy or KITTI .bin)")
-    p.add_argument("--export-html", type=Path, help="write a standalone HTML of the scene")
-    p.add_argument("--export-ply", type=Path, help="write the visible voxels as a PLY point cloud")
+    p.add_argument("--trajectory", type=Path, help="poses.txt (3x4 per line) or N x 3 positions (.txt/.npy), read as world "
+                                                   "coordinates of the maps' frame")
+    p.add_argument("--scan", type=Path, help="current scan's points (.pcd, .npy or KITTI .bin), read as world coordinates of "
+                                             "the maps' frame (not the sensor frame)")
+    p.add_argument("--export-html", type=Path, help="write a standalone HTML of the scene: positions relative to the local "
+                                                    "origin, whose world coordinates and frame the page states")
+    p.add_argument("--export-ply", type=Path, help="write the visible voxels as a PLY point cloud: float64 world coordinates "
+                                                   "of the maps' frame, named in the header")
     p.add_argument("--export-dir", type=Path, help="folder for the GUI's export buttons (default: beside the first map)")
     p.add_argument("--no-serve", action="store_true", help="export and exit instead of serving")
     p.set_defaults(func=_cmd_view)
@@ -553,6 +580,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overlays", type=_non_negative, default=3, help="overlay images to write")
     p.add_argument("--colour-by", choices=("label", "depth"), default="label", help="overlay points in their label's colour or by range")
     p.add_argument("--max-frames", type=_positive, default=None)
+    _add_frame_args(p)
     p.set_defaults(func=_cmd_project)
 
     p = sub.add_parser("train-convbki", help="learn ConvBKI's per-class length scales from a projected, labelled sequence")

@@ -27,6 +27,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import hashlib
+import io
 import json
 import platform
 import shutil
@@ -40,11 +41,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from .. import __version__
+from .. import __version__, files
 from ..config import ConfigError, Kernel, PayloadType, dataclass_from_dict, is_robot_log, load_config, preset_path, read_yaml_file
 from .evaluation import PAPER_SCORED_CLASSES, MapScores, evaluate_map, markdown_table, pool_scores
-from ..geometry.camera import relative_pose
+from ..classes import class_set
+from ..data.datasets import Scan
 from ..geometry.projection import ProjectionConfig, bin_frames, label_map_for, project_frames
+from .scan_sources import ScanList, map_scans, mapper_for
 
 
 @dataclass(frozen=True)
@@ -287,8 +290,8 @@ class Experiment:
         self.log(f"[alpha] {network} on {len(frames)} frames of {sequence}")
         outputs = infer_alpha(model, config, meta, (seq.read_image(f) for f in frames), batch_size=8)
         for frame, (alpha, _) in tqdm(zip(frames, outputs), total=len(frames), unit="img", disable=not self.progress, desc="infer"):
-            np.save(folder / f"{frame.index:06d}.npy", alpha)
-        (folder / "done").write_text("")
+            files.save_npy_atomically(folder / f"{frame.index:06d}.npy", alpha)
+        files.write_bytes_atomically(folder / "done", b"")
         self.timings[f"infer {network} on {sequence}"] = time.perf_counter() - started
         return folder
 
@@ -315,24 +318,27 @@ class Experiment:
         started = time.perf_counter()
         lengths, history = convbki.train_lengths(windows, len(class_set().names), resolution_m, epochs=training.epochs, progress=self.progress)
         folder.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(lengths.as_dict() | {"loss_history": history}, indent=1))
+        files.write_json_atomically(path, lengths.as_dict() | {"loss_history": history}, indent=1)
         self.timings[f"convbki lengths {network}"] = time.perf_counter() - started
         return path
 
     def ground_truth(self, sequence: str) -> tuple[np.ndarray, np.ndarray]:
-        path = self.cache / "ground_truth" / f"{sequence}-{_digest(self._source_key(sequence), dataclasses.asdict(self.config.projection))}.npz"
+        seq = self.sequence(sequence)
+        # the frame is part of the key: ground truth projected into another frame is another file
+        key = _digest(self._source_key(sequence), dataclasses.asdict(self.config.projection), seq.world.frame.as_dict())
+        path = self.cache / "ground_truth" / f"{sequence}-{key}.npz"
         if not path.exists():
-            seq = self.sequence(sequence)
             frames = [f for f in seq.frames if f.label_image is not None]
             if not frames:
                 raise ConfigError(f"sequences.{sequence}: no frame has a 2D label image, so there is no 3D ground truth")
-            projected = list(project_frames(seq, frames, label_map_for(seq), self.config.projection, reference_pose=seq.pose(seq.frames[0])))
+            projected = list(project_frames(seq, frames, label_map_for(seq), self.config.projection, seq.world))
             path.parent.mkdir(parents=True, exist_ok=True)
-            np.savez_compressed(path, points=np.concatenate([p.points for p in projected]), labels=np.concatenate([p.values for p in projected]))
+            files.savez_atomically(path, compressed=True, points=np.concatenate([p.points for p in projected]), labels=np.concatenate([p.values for p in projected]))
         data = np.load(path)
         return data["points"], data["labels"]
 
-    def bins(self, condition: str) -> list:
+    def bins(self, condition: str) -> ScanList:
+        """The condition's camera-labelled scans, projected and binned, in the sequence's world frame."""
         cond = self.config.conditions[condition]
         alpha = self.alpha_dir(condition)
         seq = self.sequence(cond.sequence)
@@ -341,40 +347,40 @@ class Experiment:
         def values(frame):
             return np.load(alpha / f"{frame.index:06d}.npy").astype(np.float32)
 
-        reference = seq.pose(seq.frames[0])
         # The drive in the maps' frame, for `evsemmap view MAP --trajectory trajectory.txt`.
-        trajectory = np.array([relative_pose(reference, seq.pose(f))[:3, 3] for f in frames]).reshape(-1, 3)
+        trajectory = np.array([seq.world.to_world(seq.pose(f))[:3, 3] for f in frames]).reshape(-1, 3)
         (self.out / "maps" / condition).mkdir(parents=True, exist_ok=True)
-        np.savetxt(self.out / "maps" / condition / "trajectory.txt", trajectory, fmt="%.4f")
-        projected = project_frames(seq, frames, values, self.config.projection, reference_pose=reference)
-        return list(bin_frames(projected, self.config.projection.bin_frames))
+        files.write_text_atomically(self.out / "maps" / condition / "trajectory.txt",
+                                    "".join(f"{x:.4f} {y:.4f} {z:.4f}\n" for x, y, z in trajectory))
+        projected = project_frames(seq, frames, values, self.config.projection, seq.world)
+        scans = [Scan(f"{cond.sequence} frames {b.frames[0]}..{b.frames[-1]}", b.points, b.values, PayloadType.ALPHA, b.sensor_origin)
+                 for b in bin_frames(projected, self.config.projection.bin_frames)]
+        names = class_set().names
+        return ScanList(scans, len(names), names, seq.world.frame)
 
-    def map_and_score(self, condition: str, method: str, bins: list, gt) -> MapScores:
-        from ..classes import class_set
-        from ..core.mapper import Mapper, load_map, save_map
+    def map_and_score(self, condition: str, method: str, bins: ScanList, gt) -> MapScores:
+        from ..core.mapper import load_map, save_map
 
         run = load_config([preset_path(self.config.mapping_preset)], method=method)
         mapping = run.mapping
         if mapping.kernel is Kernel.CONVBKI and not mapping.convbki_lengths_file:
             lengths = self.convbki_lengths(self.config.conditions[condition].network, mapping.resolution_m)
             mapping = dataclasses.replace(mapping, convbki_lengths_file=str(lengths))
-        names = class_set().names
-        key = _digest(mapping.as_dict(), str(self.alpha_dir(condition)), dataclasses.asdict(self.config.projection), __version__)
+        key = _digest(mapping.as_dict(), str(self.alpha_dir(condition)), dataclasses.asdict(self.config.projection), bins.frame.as_dict(),
+                      __version__)
         map_path = self.out / "maps" / condition / f"{method}.npz"
         record_path = map_path.with_suffix(".json")
         if record_path.exists() and map_path.exists() and json.loads(record_path.read_text()).get("key") == key:
             mapper = load_map(map_path)
         else:
-            mapper = Mapper(mapping, len(names), class_names=names, device=self.device)
+            mapper = mapper_for(bins, mapping, device=self.device)
             started = time.perf_counter()
-            points = 0
-            for b in tqdm(bins, unit="bin", disable=not self.progress, desc=f"{condition}/{method}", leave=False):
-                mapper.integrate(b.points, b.values, payload_type=PayloadType.ALPHA, sensor_origin=b.sensor_origin)
-                points += len(b.points)
+            with tqdm(total=len(bins), unit="bin", disable=not self.progress, desc=f"{condition}/{method}", leave=False) as bar:
+                points = sum(s.input_points for s in map_scans(mapper, bins, progress=lambda scan, _: bar.update(1)))
             elapsed = time.perf_counter() - started
             map_path.parent.mkdir(parents=True, exist_ok=True)
             save_map(map_path, mapper)
-            record_path.write_text(json.dumps({"key": key, "seconds": elapsed, "points": points, "voxels": mapper.voxel_count}))
+            files.write_json_atomically(record_path, {"key": key, "seconds": elapsed, "points": points, "voxels": mapper.voxel_count})
         scores = evaluate_map(mapper, gt[0], gt[1], self.config.scored_classes)
         scores.extra["voxels"] = mapper.voxel_count
         return scores
@@ -439,8 +445,8 @@ class Experiment:
             sections.append(markdown_table(rows, ["mIoU", "Acc", "O.Acc", "BS", "BS (analytic)", "BS (per query)"]) + "\n")
         if self.notes:
             sections.insert(1, "**Warnings**\n\n" + "\n".join(f"- {n}" for n in self.notes) + "\n")
-        (self.out / "results.md").write_text("\n".join(sections))
-        with open(self.out / "scores.csv", "w", newline="") as f:
+        files.write_text_atomically(self.out / "results.md", "\n".join(sections))
+        with io.StringIO(newline="") as f:
             columns = ["condition", "method"] + class_names + ["mIoU", "Acc", "O.Acc", "BS", "BS (analytic)", "BS (per query)", "scored_queries", "occupied_queries"]
             writer = csv.DictWriter(f, columns)
             writer.writeheader()
@@ -449,7 +455,9 @@ class Experiment:
                     row = scores.row() | {"condition": condition, "method": method, "scored_queries": scores.scored_queries,
                                           "occupied_queries": scores.occupied_queries}
                     writer.writerow({k: ("" if row.get(k) is None else row.get(k)) for k in columns})
-        (self.out / "scores.json").write_text(json.dumps({c: {m: s.as_dict() for m, s in r.items()} for c, r in (results | pooled).items()}, indent=1))
+            files.write_text_atomically(self.out / "scores.csv", f.getvalue())
+        files.write_json_atomically(self.out / "scores.json", {c: {m: s.as_dict() for m, s in r.items()} for c, r in (results | pooled).items()},
+                                    indent=1)
         self._plots(results, pooled, class_names)
         for name in config.networks:
             folder = self.network(name).parent
@@ -459,7 +467,7 @@ class Experiment:
         record = {"experiment": dataclasses.asdict(config), "warnings": self.notes,
                   "timings_s": {k: round(v, 2) for k, v in self.timings.items()},
                   "versions": _versions(), "sequences": {k: str(v) for k, v in self._sequence_dirs.items()}}
-        (self.out / "record.json").write_text(json.dumps(record, indent=1, default=str))
+        files.write_json_atomically(self.out / "record.json", record, indent=1, default=str)
 
     def _plots(self, results, pooled, class_names) -> None:
         import matplotlib

@@ -8,12 +8,15 @@ is loaded in each worker, once)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
-from ..config import ConfigError, PayloadType, RunConfig
+from ..config import ConfigError, MappingConfig, PayloadType, RunConfig
+from ..core.mapper import Mapper
+from ..frames import WorldFrame
 from ..data.datasets import Scan, open_dataset, open_sequence
 from ..geometry.projection import ProjectionConfig, bin_frames, project_frames
 
@@ -27,7 +30,9 @@ class _CameraScans:
     payload_type = PayloadType.ALPHA
 
     def __init__(self, run: RunConfig, bin_frames_: int | None):
-        self.sequence = open_sequence(list(run.sources))
+        dataset = run.dataset
+        self.sequence = open_sequence(list(run.sources), frame=dataset.frame or None, crs=dataset.crs or None)
+        self.frame = self.sequence.world.frame
         self.frames = [f for f in self.sequence.frames if f.image is not None]
         if not self.frames:
             raise ConfigError(f"{' '.join(run.sources)}: no scan has a camera image to label it from")
@@ -48,8 +53,7 @@ class _CameraScans:
 
     def scans(self, start: int, stop: int) -> Iterator[Scan]:
         frames = self.frames[start * self.bin_frames: stop * self.bin_frames]
-        projected = project_frames(self.sequence, frames, self._values(frames), ProjectionConfig(),
-                                   reference_pose=self.sequence.pose(self.sequence.frames[0]))
+        projected = project_frames(self.sequence, frames, self._values(frames), ProjectionConfig(), self.sequence.world)
         for b in bin_frames(projected, self.bin_frames):
             yield Scan(f"frames {b.frames[0]}..{b.frames[-1]}", b.points, b.values, self.payload_type, b.sensor_origin)
 
@@ -139,3 +143,35 @@ def open_scan_source(run: RunConfig, *, checkpoint=None, alpha_dir=None, bin_fra
     if bin_frames is not None:
         raise ConfigError("--bin-frames applies to camera-labelled scans (--checkpoint or --alpha)")
     return open_dataset(run.dataset)
+
+
+@dataclass
+class ScanList:
+    """Scans already in memory (an experiment's projected bins) as a source: same interface."""
+
+    items: list[Scan]
+    num_classes: int
+    class_names: tuple[str, ...]
+    frame: WorldFrame
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __iter__(self) -> Iterator[Scan]:
+        return iter(self.items)
+
+    def scans(self, start: int, stop: int) -> Iterator[Scan]:
+        return iter(self.items[start:stop])
+
+
+def mapper_for(source, config: MappingConfig, *, device: str | None = "cpu", workers: int | None = None, origin=None) -> Mapper:
+    """The one way a source becomes a map (``map``, ``batch``, ``experiment``, the Python API): an
+    empty Mapper with the source's classes, in the source's world frame."""
+    return Mapper(config, source.num_classes, class_names=source.class_names or None, device=device, workers=workers, origin=origin,
+                  frame=source.frame)
+
+
+def map_scans(mapper: Mapper, scans, progress=None) -> list:
+    """Integrate ``scans`` in order into ``mapper`` (the next ones read and prepared meanwhile; an
+    error names its scan); returns the per-scan IntegrationStats."""
+    return mapper.integrate_many(scans, progress=progress)

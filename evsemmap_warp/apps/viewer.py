@@ -4,11 +4,21 @@ The viewer reads map files only (``map_file.read_map_arrays``); it launches no k
 point sprites or instanced boxes, in float32 positions relative to a local origin (viser's default
 float16 would quantise a map a few hundred metres from its origin). Everything a control changes
 goes through ``refresh()``, so the same code serves the browser and the tests.
+
+Coordinates: a map's voxel centres are float64 world coordinates of its world frame (``frames.WorldFrame``:
+a name and an optional EPSG CRS, e.g. UTM metres). The viewer shows that frame, reports a clicked voxel's
+centre in it (float64, mm digits), and draws a world-axes marker at the local origin labelled with the
+origin's world coordinates. Maps are shown together (switchable or side by side) only when their frames
+agree (two maps written before frames were recorded agree; an unrecorded and a recorded frame do not).
+``--trajectory`` and ``--scan`` files are read as world coordinates of the maps' frame. Exports: the PLY
+holds float64 world coordinates (header comments ``frame`` and ``crs``); the HTML holds viser's float32
+positions relative to the local origin, and states that origin and the frame in a ``<meta>`` element, a
+comment and a visible note.
 """
 
 from __future__ import annotations
 
-import io
+import html
 import socket
 import time
 from dataclasses import dataclass
@@ -19,6 +29,7 @@ import numpy as np
 from ..classes import named_colors
 from ..core.map_file import read_map_arrays
 from ..data.point_files import read_npy, read_point_file
+from ..frames import WorldFrame, check_same_frame, describe_frame
 
 STATE_NAMES = ("UNKNOWN", "FREE", "OCCUPIED")
 COLOR_MODES = ("semantic", "variance", "mean uncertainty", "observations")
@@ -47,9 +58,22 @@ def colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return out
 
 
+def frame_of(meta: dict, where) -> WorldFrame | None:
+    """The world frame a map file's meta records (None: written before maps recorded their frame)."""
+    frame = (meta or {}).get("frame")
+    return frame if isinstance(frame, WorldFrame) else WorldFrame.from_dict(frame, f"{where}: meta.frame")
+
+
+def frame_label(frame: WorldFrame | None) -> str:
+    """"map (EPSG:32617)", "map", or "not recorded": the frame as the GUI names it."""
+    if frame is None:
+        return "not recorded"
+    return frame.name + (f" ({frame.crs})" if frame.crs else "")
+
+
 @dataclass
 class MapLayer:
-    """One map file, as the viewer needs it (world frame, metres)."""
+    """One map file, as the viewer needs it: float64 centres in world coordinates of ``frame`` (metres)."""
 
     name: str
     path: Path
@@ -65,6 +89,7 @@ class MapLayer:
     hits: np.ndarray
     mean_uncertainty: np.ndarray
     method: str
+    frame: WorldFrame | None = None
 
     @classmethod
     def from_file(cls, path) -> "MapLayer":
@@ -76,8 +101,9 @@ class MapLayer:
         with np.errstate(invalid="ignore", divide="ignore"):
             mean_unc = np.where(arrays["weight_sum"] > 0, arrays["weighted_uncertainty_sum"] / arrays["weight_sum"], np.nan)
         return cls(name, path, list(meta["classes"]), float(arrays["resolution"]), float(meta.get("grid_offset_m", 0.0)),
-                   arrays["centers"], arrays["voxel_index"].astype(np.int64), arrays["alpha"], arrays["label"], arrays["state"],
-                   arrays["variance"], arrays["hits"], mean_unc, meta["method"])
+                   np.asarray(arrays["centers"], np.float64), arrays["voxel_index"].astype(np.int64), arrays["alpha"],
+                   arrays["label"], arrays["state"], arrays["variance"], arrays["hits"], mean_unc, meta["method"],
+                   frame_of(meta, path))
 
     def voxel_at(self, points_world: np.ndarray) -> np.ndarray:
         """Row of the voxel containing each point, -1 where none is stored (map files are sorted by key)."""
@@ -123,6 +149,8 @@ class StoreOverview:
             rows = np.linspace(0, n - 1, min(keep, n)).astype(np.int64) if n else np.zeros(0, np.int64)
             self.parts[name] = {k: arrays[k][rows] for k in _LAYER_ARRAYS} | {"resolution": arrays["resolution"]}
         self.detail = ""
+        # store.json's frame (MapStore.frame); a store from before stores recorded it: its tiles' meta
+        self.frame = self.store.frame if hasattr(self.store, "frame") else frame_of(self.meta, self.path)
 
     def layer(self, detail: str = "") -> MapLayer:
         """The overview, with tile ``detail`` (a tile name; "" for none) in full."""
@@ -137,7 +165,9 @@ class StoreOverview:
         joined["resolution"] = next(iter(parts.values()))["resolution"]
         order = np.lexsort(joined["voxel_index"].T[::-1])  # key order (x, then y, then z), as a map file's: voxel_at needs it
         joined.update({k: joined[k][order] for k in _LAYER_ARRAYS})
-        return MapLayer.from_arrays(self.path.name, self.path, joined, self.meta)
+        layer = MapLayer.from_arrays(self.path.name, self.path, joined, self.meta)
+        layer.frame = self.frame
+        return layer
 
 
 def load_trajectory(path) -> np.ndarray:
@@ -183,7 +213,11 @@ def free_port() -> int:
 class MapViewer:
     """A viser server showing one or more map files, with filters, colourings, picking and export.
 
-    Handles are attributes: ``server``, ``gui_*`` for the controls, ``voxel_handles`` per layer."""
+    All maps must be in one world frame (``frame``; a ``FrameError`` naming both files and both frames
+    otherwise). ``trajectory`` and ``scan`` are read as world coordinates of that frame. The scene is
+    drawn relative to ``origin`` (float64 world coordinates, marked by a world-axes frame and a label).
+    Handles are attributes: ``server``, ``gui_*`` for the controls, ``voxel_handles`` per layer,
+    ``origin_axes`` and ``origin_label``."""
 
     def __init__(self, map_paths, *, host: str = "127.0.0.1", port: int = 8080, style: str = "points",
                  max_voxels: int = 500_000, trajectory=None, scan=None, export_dir=None):
@@ -197,6 +231,9 @@ class MapViewer:
 
         self.stores = {i: StoreOverview(p, max_voxels) for i, p in enumerate(map_paths) if is_store(p)}
         self.layers = [self.stores[i].layer() if i in self.stores else MapLayer.from_file(p) for i, p in enumerate(map_paths)]
+        for layer in self.layers[1:]:  # switchable or side by side: only maps of one frame share the scene
+            check_same_frame("view together", (str(self.layers[0].path), self.layers[0].frame), (str(layer.path), layer.frame))
+        self.frame = self.layers[0].frame
         self.style = style
         self.max_voxels = int(max_voxels)
         self.export_dir = Path(export_dir) if export_dir else self.layers[0].path.parent
@@ -218,7 +255,9 @@ class MapViewer:
         self.server.initial_camera.position = (0.0, -0.9 * extent, 0.7 * extent)
         self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
         self._build_gui()
+        self._add_origin_marker(extent)
         self.voxel_handles: list = [None] * len(self.layers)
+        # trajectory and scan: world coordinates of the maps' frame, drawn relative to the local origin
         if trajectory is not None:
             positions = load_trajectory(trajectory) - self.origin
             if len(positions) >= 2:
@@ -255,6 +294,7 @@ class MapViewer:
                 self.gui_tile = gui.add_dropdown("Store tile in full", options=tiles, initial_value=tiles[0])
                 self.gui_tile.on_update(lambda _event: self.show_tile(self.gui_tile.value))
             self.gui_status = gui.add_markdown("")
+            self.gui_frame = gui.add_markdown(self._frame_text())
         with gui.add_folder("Classes"):
             self.gui_classes = {name: gui.add_checkbox(name, initial_value=True) for name in self.classes}
         with gui.add_folder("Legend"):
@@ -270,6 +310,31 @@ class MapViewer:
             handle.on_update(lambda _event: self.refresh())
         self.gui_export_html.on_click(lambda _event: self._export_from_gui("html"))
         self.gui_export_ply.on_click(lambda _event: self._export_from_gui("ply"))
+
+    # ------------------------------------------------------------------ world frame
+    def origin_text(self) -> str:
+        """The local origin in world coordinates of the frame, e.g. "map: x=500003.000, y=4000003.000, z=100.000 m"."""
+        name = self.frame.name if self.frame is not None else "world (frame not recorded)"
+        return f"{name}: " + ", ".join(f"{axis}={value:.3f}" for axis, value in zip("xyz", self.origin)) + " m"
+
+    def _frame_text(self) -> str:
+        count = len(self.layers)
+        lines = [f"frame: **{frame_label(self.frame)}**" + (f" (all {count} maps)" if count > 1 else ""),
+                 f"axes at the local origin, {self.origin_text()}"]
+        if count > 1 and self.gui_side_by_side.value:
+            lines.append(f"side by side: map *i* is drawn shifted by *i* x {self.side_by_side_step:.1f} m along x "
+                         "(display only; a clicked voxel reports world coordinates)")
+        return "\n\n".join(lines)
+
+    def _add_origin_marker(self, extent: float) -> None:
+        """World axes at the local origin (the scene's 0), labelled with its world coordinates in the frame."""
+        length = float(np.clip(0.1 * extent, 1.0, 50.0))
+        self.origin_axes = self.server.scene.add_frame("/world_origin", axes_length=length, axes_radius=length / 40)
+        self.origin_label = self.server.scene.add_label("/world_origin/label", self.origin_text(), anchor="top-right")
+        for k, axis in enumerate("xyz"):
+            tip = np.zeros(3)
+            tip[k] = 1.1 * length
+            self.server.scene.add_label(f"/world_origin/{axis}", f"+{axis}", position=tuple(tip), anchor="center-center")
 
     def show_tile(self, choice: str) -> None:
         """Show a store's tile ("i: X_Y_Z", or "(overview only)") in full detail over its overview."""
@@ -341,6 +406,7 @@ class MapViewer:
         self.gui_status.content = (f"{total_drawn:,} of {total_visible:,} visible voxels drawn"
                                    + ("" if total_drawn == total_visible else " (decimated; tick *Full map* for all)"))
         self.gui_legend.image = self._legend_image()
+        self.gui_frame.content = self._frame_text()
 
     def _draw_layer(self, i: int, rows: np.ndarray) -> None:
         layer = self.layers[i]
@@ -413,11 +479,13 @@ class MapViewer:
         return None if best is None else (best[1], best[2])
 
     def describe(self, i: int, row: int) -> str:
+        """Markdown for a voxel: its centre in world coordinates of the map's frame (float64, mm), label, evidence."""
         layer = self.layers[i]
         alpha = layer.alpha[row]
         probs = alpha / alpha.sum()
+        centre = np.asarray(layer.centers[row], np.float64)
         lines = [f"**{layer.name}** voxel {tuple(int(v) for v in layer.voxel_index[row])}",
-                 f"centre (m): {', '.join(f'{c:.3f}' for c in layer.centers[row])}",
+                 f"centre in {describe_frame(layer.frame)}: " + ", ".join(f"{a}={c:.3f}" for a, c in zip("xyz", centre)) + " m",
                  f"label: **{layer.classes[layer.label[row]]}** ({layer.label[row]}), state {STATE_NAMES[layer.state[row]]}",
                  f"variance: {layer.variance[row]:.3g}, observations: {int(layer.hits[row])}",
                  "", "| class | alpha | p |", "|---|---|---|"]
@@ -429,31 +497,76 @@ class MapViewer:
         self.gui_selection.content = "No visible voxel under the cursor." if hit is None else self.describe(*hit)
 
     # ------------------------------------------------------------------ export
+    def offset_note(self) -> str:
+        """What an HTML export's positions are: relative to the local origin, given in world coordinates."""
+        x, y, z = self.origin
+        note = (f"positions are relative to the local origin at x={x:.3f} y={y:.3f} z={z:.3f} m in "
+                f"{describe_frame(self.frame)}; add it for world coordinates")
+        if len(self._shown_layers()) > 1:
+            note += f"; side by side, map i is drawn shifted by a further i x {self.side_by_side_step:.3f} m along x"
+        return note
+
     def export_html(self, path) -> Path:
-        """A standalone HTML file of the current scene (viewable offline, without the GUI panel)."""
+        """A standalone HTML file of the current scene (viewable offline, without the GUI panel).
+
+        Its positions are viser's float32 scene positions, relative to the local origin (``origin``), not
+        world coordinates; the page states the offset: ``<meta name="evsemmap-frame">`` (the frame's name,
+        "none" where not recorded), ``evsemmap-crs`` (an EPSG code or "none"), ``evsemmap-local-origin``
+        ("x y z", metres in that frame), an HTML comment and a visible note saying the same, and the scene's
+        labelled world axes at the origin."""
+        x, y, z = self.origin
+        note = self.offset_note()
+        metas = {"evsemmap-frame": self.frame.name if self.frame is not None else "none",
+                 "evsemmap-crs": (self.frame.crs if self.frame is not None else None) or "none",
+                 "evsemmap-local-origin": f"{x:.3f} {y:.3f} {z:.3f}",
+                 "evsemmap-coordinates": note}
+        head = "".join(f'<meta name="{key}" content="{html.escape(value, quote=True)}" />' for key, value in metas.items())
+        head += "<!-- evsemmap_warp map viewer export: " + note.replace("--", "- -") + " -->"
+        visible = ('<div id="evsemmap-frame-note" style="position:fixed;left:8px;bottom:8px;z-index:1000;'
+                   'pointer-events:none;font:12px sans-serif;background:rgba(255,255,255,0.8);padding:2px 6px;'
+                   f'border-radius:4px">{html.escape(note, quote=False)}</div>')
+        page = self.server.get_scene_serializer().as_html()
+        at = page.find("<head>")
+        page = page[: at + 6] + head + page[at + 6:] if at >= 0 else head + page
+        at = page.rfind("</body>")
+        page = page[:at] + visible + page[at:] if at >= 0 else page + visible
         path = Path(path)
-        path.write_text(self.server.get_scene_serializer().as_html())
+        path.write_text(page, encoding="utf-8")
         return path
 
     def export_ply(self, path) -> Path:
-        """The visible voxels of the shown maps as a binary PLY point cloud in the world frame, with
-        label, state, variance and observation count as per-vertex properties."""
-        import trimesh
-
+        """The visible voxels of the shown maps as a binary PLY point cloud: vertex positions are float64
+        (``property double x/y/z``) world coordinates of the maps' frame, metres, not shifted side by side;
+        colour (RGBA) and label, state, variance and observation count as per-vertex properties. The
+        header names the frame: ``comment frame NAME`` and ``comment crs EPSG:NNNN`` ("none" where not
+        recorded)."""
         parts = [(i, self.visible_rows[i]) for i in self._shown_layers()]
-        centers = np.concatenate([self.layers[i].centers[r] for i, r in parts])
         colors = np.concatenate([self.colors(i, r) for i, r in parts])
-        cloud = trimesh.PointCloud(centers, colors=np.c_[colors, np.full(len(colors), 255, np.uint8)])
-        cloud.vertex_attributes = {
-            "label": np.concatenate([self.layers[i].label[r] for i, r in parts]).astype(np.float32),
-            "state": np.concatenate([self.layers[i].state[r] for i, r in parts]).astype(np.float32),
-            "variance": np.concatenate([self.layers[i].variance[r] for i, r in parts]).astype(np.float32),
-            "observations": np.concatenate([self.layers[i].hits[r] for i, r in parts]).astype(np.float32),
-        }
+        fields = {"label": "label", "state": "state", "variance": "variance", "observations": "hits"}
+        vertex = np.zeros(len(colors), [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"),
+                                        ("blue", "u1"), ("alpha", "u1")] + [(name, "<f4") for name in fields])
+        centers = np.concatenate([np.asarray(self.layers[i].centers[r], np.float64) for i, r in parts])
+        for k, axis in enumerate("xyz"):
+            vertex[axis] = centers[:, k]
+        for k, channel in enumerate(("red", "green", "blue")):
+            vertex[channel] = colors[:, k]
+        vertex["alpha"] = 255
+        for name, attribute in fields.items():
+            vertex[name] = np.concatenate([getattr(self.layers[i], attribute)[r] for i, r in parts])
+
+        def one_line(text: str) -> str:
+            return " ".join(str(text).splitlines())
+
+        types = {"<f8": "double", "|u1": "uchar", "<f4": "float"}
+        header = ["ply", "format binary_little_endian 1.0",
+                  "comment evsemmap_warp map viewer export: voxel centres, float64 world coordinates (m) of the frame below",
+                  f"comment frame {one_line(self.frame.name) if self.frame is not None else 'none'}",
+                  f"comment crs {(self.frame.crs if self.frame is not None else None) or 'none'}",
+                  f"element vertex {len(vertex)}"]
+        header += [f"property {types[vertex.dtype[name].str]} {name}" for name in vertex.dtype.names]
+        header.append("end_header")
         path = Path(path)
-        with io.BytesIO() as buffer:
-            cloud.export(buffer, file_type="ply")
-            path.write_bytes(buffer.getvalue())
+        path.write_bytes(("\n".join(header) + "\n").encode("utf-8") + vertex.tobytes())
         return path
 
     def _export_from_gui(self, kind: str) -> None:

@@ -9,7 +9,8 @@ Arrays (V voxels in ascending index order, K classes):
   hits [V] int64 number of contributions         touched [V] bool updated at least once
   resolution float64 (m)                         origin [3] float64 map origin (m), on the voxel lattice
   format_version int
-  meta: JSON string with the classes, the method and all its parameters, the grid offset, provenance.
+  meta: JSON string with the classes, the method and all its parameters, the grid offset, the world
+        frame ({"name", "crs"}: the frame centers and origin are in, docs/algorithm.md §6.6), provenance.
 Voxel i's centre is (i + 0.5) * resolution + grid offset. A round trip is exact.
 
 Reading validates the content, not only the shapes: every member's declared size against what the
@@ -21,14 +22,15 @@ present with the right types. Version 1 files (float32 values, no origin) are re
 from __future__ import annotations
 
 import json
-import os
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from .. import files
 from ..config import ConfigError, MappingConfig, dataclass_from_dict
+from ..frames import FrameError, WorldFrame
 from ..voxel_keys import check_index_range
 
 FORMAT_NAME = "evsemmap_warp.map"
@@ -66,39 +68,32 @@ class MapContents:
     resolution: float
     config: MappingConfig | None = None
     origin_index: np.ndarray | None = None
+    frame: WorldFrame | None = None
 
 
 def write_map_file(path, contents: MapContents) -> Path:
-    """Write atomically: a temporary name in the same folder, then a rename, so that a killed writer
-    never leaves a half-written file under the final name."""
+    """Write atomically (files.write_atomically: a temporary name in the same folder, then a rename), so
+    that a killed writer never leaves a half-written file under the final name."""
     path = Path(path)
     meta = contents.meta | {"format_version": FORMAT_VERSION}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(temporary, "wb") as f:
-            write_npz(
-                f,
-                centers=contents.centers,
-                voxel_index=contents.index.astype(np.int64),
-                alpha=contents.alpha.astype(np.float64),
-                evidence=contents.evidence.astype(np.float64),
-                label=contents.summary.label.astype(np.int32),
-                state=contents.summary.state.astype(np.int8),
-                variance=contents.summary.variance.astype(np.float64),
-                weight_sum=contents.weight_sum.astype(np.float64),
-                weighted_uncertainty_sum=contents.weighted_uncertainty_sum.astype(np.float64),
-                hits=contents.hits.astype(np.int64),
-                touched=contents.touched.astype(bool),
-                resolution=np.float64(contents.resolution),
-                origin=np.asarray(contents.origin, np.float64),
-                format_version=np.int64(FORMAT_VERSION),
-                meta=np.array(json.dumps(meta)),
-            )
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
-    return path
+    return files.write_atomically(path, lambda f: write_npz(
+        f,
+        centers=contents.centers,
+        voxel_index=contents.index.astype(np.int64),
+        alpha=contents.alpha.astype(np.float64),
+        evidence=contents.evidence.astype(np.float64),
+        label=contents.summary.label.astype(np.int32),
+        state=contents.summary.state.astype(np.int8),
+        variance=contents.summary.variance.astype(np.float64),
+        weight_sum=contents.weight_sum.astype(np.float64),
+        weighted_uncertainty_sum=contents.weighted_uncertainty_sum.astype(np.float64),
+        hits=contents.hits.astype(np.int64),
+        touched=contents.touched.astype(bool),
+        resolution=np.float64(contents.resolution),
+        origin=np.asarray(contents.origin, np.float64),
+        format_version=np.int64(FORMAT_VERSION),
+        meta=np.array(json.dumps(meta)),
+    ))
 
 
 def write_npz(file, **arrays: np.ndarray) -> None:
@@ -197,6 +192,10 @@ def _read_meta(path: Path, arrays: dict) -> dict:
                            f"(names must be strings, at least 2 classes)")
     if meta["scans_integrated"] < 0 or meta["points_integrated"] < 0:
         raise MapFileError(f"{path}: meta.scans_integrated / points_integrated must be >= 0")
+    try:  # optional: files written before maps recorded their world frame have none
+        WorldFrame.from_dict(meta.get("frame"), f"{path}: meta.frame")
+    except FrameError as exc:
+        raise MapFileError(str(exc)) from None
     return meta
 
 
@@ -261,5 +260,5 @@ def read_map_file(path) -> MapContents:
         alpha=arrays["alpha"], centers=arrays["centers"], summary=None, weight_sum=arrays["weight_sum"].astype(np.float64),
         weighted_uncertainty_sum=arrays["weighted_uncertainty_sum"].astype(np.float64), hits=arrays["hits"].astype(np.int64),
         touched=arrays["touched"].astype(bool), resolution=float(arrays["resolution"]), config=config,
-        origin_index=lattice_index(origin, float(arrays["resolution"])),
+        origin_index=lattice_index(origin, float(arrays["resolution"])), frame=WorldFrame.from_dict(meta.get("frame"), str(path)),
     )

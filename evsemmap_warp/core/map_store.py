@@ -2,7 +2,7 @@
 process's memory (written by ``evsemmap batch``, read here).
 
     STORE/store.json        the index: format and version, resolution, float64 origin, grid offset,
-                            classes, method and every mapping parameter, tile size, per-tile voxel
+                            the world frame (name, CRS), classes, method and every mapping parameter, tile size, per-tile voxel
                             counts and bounds, the inputs and the chunks the map holds
     STORE/tiles/X_Y_Z.npz   one tile's voxels in the map-file schema (core/map_file.py): tile (X, Y, Z)
                             holds the voxels whose global index // tile_voxels is (X, Y, Z)
@@ -17,13 +17,15 @@ the index only; a query loads the tiles its points fall in, nothing else.
 from __future__ import annotations
 
 import json
-import os
 from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
 
+from .. import files
 from ..config import MappingConfig, dataclass_from_dict
+from ..frames import FrameError, WorldFrame, describe_frame
+from ..voxel_keys import voxel_index_of
 from . import map_file
 from .mapper import Mapper, QueryResult, UNKNOWN_LABEL, VoxelState
 from .voxel_map import EXTRA_COLUMNS, VoxelArrays, add_duplicate_voxels
@@ -77,22 +79,13 @@ def split_by_tile(index: np.ndarray, rows: np.ndarray, tile_voxels: int) -> dict
     return dict(sorted(parts.items()))
 
 
-def write_atomically(path: Path, write) -> Path:
-    """``write(file)`` into a temporary name beside ``path``, then rename it into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(temporary, "wb") as f:
-            write(f)
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
-    return path
+# ``write(file)`` into a temporary name beside ``path``, then renamed into place (the package's one writer).
+write_atomically = files.write_atomically
 
 
 def write_json(path: Path, data) -> Path:
-    return write_atomically(path, lambda f: f.write((json.dumps(data, indent=1, sort_keys=True) + "\n").encode()))
+    """The store's JSON files (store.json, plan.json, done.json): indented, keys sorted, a final newline."""
+    return files.write_json_atomically(path, data, indent=1, sort_keys=True)
 
 
 def write_partial(path: Path, index: np.ndarray, rows: np.ndarray) -> Path:
@@ -121,10 +114,10 @@ def reduce_partials(template: Mapper, parts: list[tuple[np.ndarray, np.ndarray]]
     return summed
 
 
-def template_mapper(config: MappingConfig, class_names, origin_index) -> Mapper:
-    """An empty Mapper with a store's parameters and origin: the read-out (labels, states,
-    concentrations, centres) of tiles and partials, without a table of its own to speak of."""
-    mapper = Mapper(config, len(class_names), class_names=tuple(class_names), workers=1, initial_capacity=16)
+def template_mapper(config: MappingConfig, class_names, origin_index, frame: WorldFrame | None) -> Mapper:
+    """An empty Mapper with a store's parameters, origin and world frame: the read-out (labels,
+    states, concentrations, centres) of tiles and partials, without a table of its own to speak of."""
+    mapper = Mapper(config, len(class_names), class_names=tuple(class_names), workers=1, initial_capacity=16, frame=frame)
     mapper.origin_index = np.asarray(origin_index, np.int64).reshape(3)
     return mapper
 
@@ -162,7 +155,11 @@ class MapStore:
         self.num_classes = len(self.class_names)
         self.tile_voxels = int(self.index["tile_voxels"])
         self.tiles = {name: info for name, info in self.index["tiles"].items()}
-        self.template = template_mapper(self.config, self.class_names, self.index["origin_index"])
+        try:  # stores written before maps recorded their world frame have none
+            self.frame = WorldFrame.from_dict(self.index.get("frame"), f"{index_path}: frame")
+        except FrameError as exc:
+            raise StoreError(str(exc)) from None
+        self.template = template_mapper(self.config, self.class_names, self.index["origin_index"], self.frame)
         self._cache: OrderedDict[str, Mapper] = OrderedDict()
         self.cache_tiles = cache_tiles
         self.tiles_loaded = 0  # how many tile files were read (tests hold queries to the tiles they need)
@@ -204,6 +201,8 @@ class MapStore:
             mapper = Mapper.load(self.tile_path(name))
         except (map_file.MapFileError, OSError, ValueError) as exc:
             raise StoreError(f"{self.tile_path(name)}: {exc}") from None
+        if mapper.frame != self.frame:
+            raise StoreError(f"{self.tile_path(name)}: the tile is in {describe_frame(mapper.frame)}, its store in {describe_frame(self.frame)}")
         expected = self.tiles[name]["voxels"]
         if mapper.voxel_count != expected:
             raise StoreError(f"{self.tile_path(name)}: {mapper.voxel_count} voxels, the index says {expected}")
@@ -214,10 +213,8 @@ class MapStore:
         return mapper
 
     def voxel_index_of(self, points: np.ndarray) -> np.ndarray:
-        points = np.asarray(points, np.float64).reshape(-1, 3)
-        with np.errstate(invalid="ignore", over="ignore"):
-            index = np.floor((points - self.template.grid_offset_m) / self.config.resolution_m)
-        return np.nan_to_num(index, posinf=0, neginf=0).clip(-2**62, 2**62).astype(np.int64)
+        """The global voxel index of each point, as the mapper that wrote the store computed it."""
+        return voxel_index_of(points, self.config.resolution_m, self.template.grid_offset_m, self.template.origin_index)
 
     def query(self, points) -> QueryResult:
         """Label, probabilities, variance and state at each point [M, 3], as ``Mapper.query``;
@@ -259,7 +256,7 @@ class MapStore:
                 inside = np.all((centres >= bounds[0]) & (centres <= bounds[1]), axis=1)
                 voxels = VoxelArrays.from_rows(voxels.index[inside], voxels.rows()[inside])
             parts.append(voxels)
-        out = Mapper(self.config, self.num_classes, class_names=self.class_names, workers=1)
+        out = Mapper(self.config, self.num_classes, class_names=self.class_names, workers=1, frame=self.frame)
         out.origin_index = self.template.origin_index.copy()
         if parts:
             index = np.concatenate([p.index for p in parts])
@@ -279,6 +276,7 @@ class MapStore:
         return {
             "store": str(self.path), "format_version": index["format_version"], "method": index["mapping"].get("method"),
             "classes": list(self.class_names), "resolution_m": self.config.resolution_m, "origin_m": self.template.origin.tolist(),
+            "frame": None if self.frame is None else self.frame.as_dict(),
             "tile_voxels": self.tile_voxels, "tile_size_m": self.tile_voxels * self.config.resolution_m, "tiles": len(self.tiles),
             "voxels": self.voxel_count, "states": states, "scans_integrated": index["scans"], "points_integrated": index["points"],
             "inputs": index.get("inputs", []), "chunks": len(index.get("chunks", [])), "mapping": index["mapping"],

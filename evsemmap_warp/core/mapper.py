@@ -30,7 +30,8 @@ import numpy as np
 
 from .. import __version__
 from ..config import Compat, Fusion, Kernel, MappingConfig, PayloadType
-from ..voxel_keys import check_index_range
+from ..frames import WorldFrame, check_same_frame
+from ..voxel_keys import check_index_range, voxel_index_of
 from . import map_file
 from .integrators import (ConvBkiIntegrator, IntegrationStats, KernelIntegrator, Launch, PendingUpdates, ReleaseCompatIntegrator,
                           SbkiCompatIntegrator, ScanPayload, SeeCsomIntegrator, ShardLanes)
@@ -190,7 +191,9 @@ class Mapper:
     the CPU, where one Warp launch uses one core; always 1 on CUDA). Results do not depend on it
     beyond float64 summation order. ``origin`` [3] (m): where the map's key range is centred; by
     default the first scan's bounding-box centre. Either is snapped to a multiple of
-    ORIGIN_STEP_VOXELS voxels; the map spans +-2^20 voxels around it."""
+    ORIGIN_STEP_VOXELS voxels; the map spans +-2^20 voxels around it. ``frame``: the world frame the
+    points are in (recorded in the map file; maps of different frames do not merge); None when the
+    caller does not say."""
 
     def __init__(
         self,
@@ -202,8 +205,12 @@ class Mapper:
         initial_capacity: int = 1 << 16,
         workers: int | None = None,
         origin=None,
+        frame: WorldFrame | None = None,
     ):
         self.config = config
+        if frame is not None and not isinstance(frame, WorldFrame):
+            raise ValueError(f"frame must be a WorldFrame (evsemmap_warp.frames) or None, got {type(frame).__name__}")
+        self.frame = frame
         self.num_classes = int(num_classes)
         if class_names is not None and len(class_names) != self.num_classes:
             raise ValueError(f"class_names has {len(class_names)} names for {self.num_classes} classes")
@@ -445,11 +452,8 @@ class Mapper:
         arrays = VoxelArrays.from_rows(np.zeros((m, 3), np.int64), rows)
         summary = self.summarize(arrays.evidence, arrays.touched)
         label = np.where(found, summary.label, UNKNOWN_LABEL).astype(np.int32)
-        # the kernel's floor((p - origin - offset) / r), in the same float64 arithmetic
         origin_index = self.origin_index if self.origin_index is not None else np.zeros(3, np.int64)
-        with np.errstate(invalid="ignore", over="ignore"):
-            local_index = np.floor((self._local(points) - self.grid_offset_m) / self.config.resolution_m)
-        voxel_index = np.nan_to_num(local_index, posinf=0, neginf=0).clip(-2**62, 2**62).astype(np.int64) + origin_index
+        voxel_index = voxel_index_of(points, self.config.resolution_m, self.grid_offset_m, origin_index)
         return QueryResult(label, summary.probabilities, summary.variance, summary.state, voxel_index)
 
     def state_counts(self) -> dict[str, int]:
@@ -471,7 +475,7 @@ class Mapper:
         """A map file (validated on reading) as a Mapper that can be queried, extended and merged."""
         contents = map_file.read_map_file(path)
         meta = contents.meta
-        mapper = cls(contents.config, int(meta["num_classes"]), class_names=meta["classes"], device=device)
+        mapper = cls(contents.config, int(meta["num_classes"]), class_names=meta["classes"], device=device, frame=contents.frame)
         try:
             mapper.load_voxels(VoxelArrays(index=contents.index, evidence=contents.evidence, weight_sum=contents.weight_sum,
                                            weighted_uncertainty_sum=contents.weighted_uncertainty_sum, hits=contents.hits,
@@ -484,6 +488,7 @@ class Mapper:
 
     def check_mergeable(self, other: "Mapper") -> None:
         """Raise ValueError naming what differs when the two maps cannot be added up."""
+        check_same_frame("merge", ("the first map", self.frame), ("the second", other.frame))
         if self.class_names != other.class_names:
             raise ValueError(f"merge: the maps have different classes ({list(self.class_names)} vs {list(other.class_names)})")
         if self.config.resolution_m != other.config.resolution_m:
@@ -500,7 +505,8 @@ class Mapper:
         above the prior), weights and counts add, touched is or-ed; a map with another origin on the
         same lattice is re-indexed. Exact up to float64 summation order: BKI updates are sums."""
         self.check_mergeable(other)
-        out = Mapper(self.config, self.num_classes, class_names=self.class_names, device=self.device, workers=len(self.shards))
+        out = Mapper(self.config, self.num_classes, class_names=self.class_names, device=self.device, workers=len(self.shards),
+                     frame=self.frame)
         out.origin_index = self.origin_index if self.origin_index is not None else other.origin_index
         parts = [m.voxels()[0] for m in (self, other) if m.origin_index is not None]
         if parts:
@@ -538,6 +544,7 @@ class Mapper:
             "method": self.config.method,
             "mapping": self.config.as_dict(),
             "grid_offset_m": self.grid_offset_m,
+            "frame": None if self.frame is None else self.frame.as_dict(),
             "scans_integrated": self.scans_integrated,
             "points_integrated": self.points_integrated,
             "written_by": f"evsemmap_warp {__version__}",

@@ -14,7 +14,9 @@ from typing import Iterator, Protocol
 import numpy as np
 
 from ..config import ConfigError, DatasetConfig, PayloadType
+from ..frames import WorldFrame
 from .pcd import ExtraColumnsWarning, read_pcd
+from .world_frame import place_in_world
 
 
 @dataclass
@@ -29,10 +31,12 @@ class Scan:
 class Dataset(Protocol):
     """``len`` insertions (scans, or bins of frames); ``scans(start, stop)`` yields insertions
     start..stop-1 exactly as iterating the whole dataset yields them (same world frame), so that
-    batch workers map chunks of one sequence; datasets pickle, for those workers."""
+    batch workers map chunks of one sequence; datasets pickle, for those workers. ``frame``: the
+    world frame the scans' points are in (``data/world_frame.py`` decides it)."""
 
     num_classes: int
     class_names: tuple[str, ...]
+    frame: WorldFrame
 
     def __len__(self) -> int: ...
 
@@ -69,6 +73,7 @@ class PcdSequence(_Insertions):
             raise ConfigError(f"dataset: {len(missing)} scan file(s) missing, first {missing[0]}")
         self.num_classes = config.num_classes
         self.class_names = config.class_names
+        self.frame = place_in_world(config).frame
         self._extra_columns_reported = False
 
     def __len__(self) -> int:
@@ -104,6 +109,7 @@ class BenchNpz(_Insertions):
         self.num_classes = config.num_classes or 9
         self.class_names = config.class_names
         self.payload_type = config.payload
+        self.frame = place_in_world(config).frame
 
     @property
     def data(self):
@@ -148,7 +154,8 @@ class LabelledSequence(_Insertions):
     """A sequence mapped from its per-point labels: a RELLIS-3D-layout folder (``rellis3d``; real, or
     ``evsemmap synth`` output), a SemanticKITTI sequence (``semantickitti``) or a robot log whose clouds
     carry a label field (``bag``). RELLIS ids are remapped to the 9 v3 classes, SemanticKITTI ids to its
-    19 learning classes. World frame = the first scan's LiDAR frame. Zero returns are dropped."""
+    19 learning classes. Points are placed in the world frame with their float64 poses (``frame``,
+    ``data/world_frame.py``). Zero returns are dropped."""
 
     def __init__(self, config: DatasetConfig):
         if config.payload is not PayloadType.LABEL:
@@ -172,20 +179,19 @@ class LabelledSequence(_Insertions):
             raise ConfigError(f"{self.sequence.root}: no scan has a per-point label file")
         self.num_classes = config.num_classes or len(self.class_names)
         self.class_names = config.class_names or self.class_names
+        self.world = place_in_world(config, self.sequence)
+        self.frame = self.world.frame
 
     def __len__(self) -> int:
         return len(self.frames)
 
     def scans(self, start: int, stop: int) -> Iterator[Scan]:
-        from ..geometry.camera import relative_pose
         from .sequences import remap_point_labels
 
-        reference = self.sequence.pose(self.frames[0])
         for frame in self.frames[start:stop]:
             scan = self.sequence.read_scan(frame)
             labels = remap_point_labels(self.sequence.read_point_labels(frame), self.table, frame.point_labels)
-            pose = self.sequence.pose(frame)
-            to_world = relative_pose(reference, pose)
+            to_world = self.world.to_world(self.sequence.pose(frame))
             returned = np.any(scan[:, :3] != 0, axis=1)
             points = scan[returned, :3].astype(np.float64) @ to_world[:3, :3].T + to_world[:3, 3]
             yield Scan(str(frame.scan), points, labels[returned], PayloadType.LABEL, to_world[:3, 3].copy())
@@ -217,14 +223,16 @@ def open_dataset(config: DatasetConfig) -> Dataset:
     return DATASETS[config.kind](config)
 
 
-def open_sequence(sources) -> "Rellis3DSequence | LogSequence":
+def open_sequence(sources, *, frame: str | None = None, crs: str | None = None) -> "Rellis3DSequence | LogSequence":
     """A sequence with cameras (for projection, inference and experiments) from what a user names: a
-    RELLIS-3D-layout folder, or robot logs with the config files or presets that say their topics."""
+    RELLIS-3D-layout folder, or robot logs with the config files or presets that say their topics.
+    Its ``world`` (a ``Placement``) says the world frame its points are mapped in (``frame`` and
+    ``crs`` as the --frame and --crs flags)."""
     from ..config import load_config
     from .sequences import Rellis3DSequence
 
     sources = [str(s) for s in ([sources] if isinstance(sources, (str, Path)) else sources)]
-    run = load_config(sources)
+    run = load_config(sources, frame=frame, crs=crs)
     dataset = run.dataset
     if dataset is None or dataset.kind not in ("rellis3d", "bag"):
         what = "no dataset" if dataset is None else f"a {dataset.kind!r} dataset"
@@ -232,5 +240,8 @@ def open_sequence(sources) -> "Rellis3DSequence | LogSequence":
     if dataset.kind == "bag":
         from .logs import LogSequence
 
-        return LogSequence(dataset.resolve_logs(), dataset.bag)
-    return Rellis3DSequence(dataset.resolve_path())
+        sequence = LogSequence(dataset.resolve_logs(), dataset.bag)
+    else:
+        sequence = Rellis3DSequence(dataset.resolve_path())
+    sequence.world = place_in_world(dataset, sequence)
+    return sequence

@@ -21,7 +21,9 @@ from ..config import ConfigError
 from ..geometry.camera import matrix_to_quaternion, quaternion_to_matrix, rigid
 from ..geometry.transform_tree import slerp
 from .ros_messages import encode_cloud
-from .sequences import Rellis3DSequence
+from .sequences import Rellis3DSequence, read_frame_file
+
+LOG_ROOT_FRAME = "odom"  # the TF root of a log written from a folder whose frame.yaml names none
 
 LOG_FORMATS = ("rosbag1", "rosbag2", "mcap")
 FIRST_STAMP_NS = 1_600_000_000 * 1_000_000_000  # the synthetic frames' first stamp (synthetic.writer.frame_stem)
@@ -191,6 +193,8 @@ def write_log(folder, out, fmt: str, *, frames: slice = slice(None), progress: b
     lidar_to_base = np.linalg.inv(base_to_lidar)
     base_poses = [seq.pose(f) @ lidar_to_base for f in seq.frames]
     lidar_beams = _beams(folder)  # read once, not per frame
+    own = read_frame_file(folder)
+    root = own.name if own is not None else LOG_ROOT_FRAME  # the folder's poses frame is the log's fixed frame
     log = _LogOut(out, fmt)
     counts = {"clouds": 0, "images": 0, "transforms": 0}
     try:
@@ -201,11 +205,11 @@ def write_log(folder, out, fmt: str, *, frames: slice = slice(None), progress: b
         log.write(TOPICS["tf_static"], log.tf(static), first)
         for n, frame in enumerate(tqdm(seq.frames, desc=f"write {fmt}", unit="frame", disable=not progress)):
             stamp = FIRST_STAMP_NS + frame.index * FRAME_PERIOD_NS
-            log.write(TOPICS["tf"], log.tf([log.transform("odom", "base_link", base_poses[n], stamp)]), stamp + RECEIVE_DELAY_NS)
-            log.write(TOPICS["odometry"], log.odometry("odom", "base_link", base_poses[n], stamp, n), stamp + RECEIVE_DELAY_NS)
+            log.write(TOPICS["tf"], log.tf([log.transform(root, "base_link", base_poses[n], stamp)]), stamp + RECEIVE_DELAY_NS)
+            log.write(TOPICS["odometry"], log.odometry(root, "base_link", base_poses[n], stamp, n), stamp + RECEIVE_DELAY_NS)
             if n + 1 < len(seq.frames):
                 halfway = stamp + (seq.frames[n + 1].index - frame.index) * FRAME_PERIOD_NS // 2
-                log.write(TOPICS["tf"], log.tf([log.transform("odom", "base_link", _halfway(base_poses[n], base_poses[n + 1]), halfway)]),
+                log.write(TOPICS["tf"], log.tf([log.transform(root, "base_link", _halfway(base_poses[n], base_poses[n + 1]), halfway)]),
                           halfway + RECEIVE_DELAY_NS)
             counts["transforms"] += 2
             scan = seq.read_scan(frame)

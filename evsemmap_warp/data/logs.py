@@ -7,7 +7,7 @@ alike. Opening a log indexes it once: each cloud's and image's header stamp (rea
 bytes, nothing decoded), the transforms (``/tf``, ``/tf_static``, odometry) and the camera info. Scans
 and images are then decoded one at a time as they are asked for, by a cursor that moves forward
 through the log, so a log larger than memory streams and a sequential pass reads each message once.
-World frame = the first cloud's LiDAR frame, as for folders.
+Maps are made in the log's fixed frame (``data/world_frame.py``).
 """
 
 from __future__ import annotations
@@ -290,7 +290,12 @@ class LogSequence:
 
     @property
     def fixed_frame(self) -> str:
+        """The log's world frame: dataset.bag.fixed_frame, else the root of the LiDAR's TF tree."""
         if self.config.fixed_frame:
+            if self.config.fixed_frame not in self.tree.frames:
+                known = ", ".join(sorted(self.tree.frames)) or "none"
+                raise DataError(f"{self.describe()}: dataset.bag.fixed_frame {self.config.fixed_frame!r} is not a frame of the log's "
+                                f"TF tree (frames: {known})")
             return self.config.fixed_frame
         try:
             root = self.tree.root(self.lidar_frame)
@@ -301,6 +306,36 @@ class LogSequence:
             raise DataError(f"{self.describe()}: the LiDAR frame {self.lidar_frame!r} is in no TF tree (frames known: {known}); check "
                             f"dataset.bag.lidar_frame, give dataset.bag.lidar_extrinsic, or set fixed_frame to it for a sensor that never moves")
         return root
+
+    def check_pose_chain(self) -> None:
+        """Refuse, before any mapping, a drive that is not posed in the fixed frame throughout: the
+        LiDAR frame not connected to it, or a moving transform of the chain recorded for part of the
+        drive only (the TF root changing mid-drive, e.g. a localiser's map -> odom starting late)."""
+        fixed = self.fixed_frame
+        if not self.frames:
+            return
+        try:
+            up_lidar, up_fixed = self.tree.chain(fixed, self.lidar_frame)
+        except TransformError as exc:
+            raise DataError(f"{self.describe()}: no pose of the LiDAR in the fixed frame: {exc}") from None
+        first, last = self.frames[0].stamp_ns, self.frames[-1].stamp_ns
+        for child in up_lidar[:-1] + up_fixed[:-1]:
+            if not self.tree.is_timed(child):
+                continue
+            start, end = self.tree.time_range(child)
+            if start <= first and end >= last:
+                continue
+            unposed = sum(not start <= f.stamp_ns <= end for f in self.frames)
+            below = up_lidar[:up_lidar.index(child)] if child in up_lidar else []
+            moving_below = any(self.tree.is_timed(f) and self.tree.time_range(f)[0] <= first and self.tree.time_range(f)[1] >= last
+                               for f in below)
+            # a frame below the gap that still moves with the robot over the whole drive is a fixed frame for all of it
+            hint = (f"; set dataset.bag.fixed_frame: {child} to map the whole drive there, or cut the log to the part that is posed"
+                    if moving_below else "; cut the log to the part that is posed")
+            raise DataError(f"{self.describe()}: the LiDAR's chain to the fixed frame {fixed!r} changes mid-drive: the transform "
+                            f"{self.tree.parent(child)!r} -> {child!r} is recorded from {format_stamp(start)} to {format_stamp(end)}, "
+                            f"but the clouds run from {format_stamp(first)} to {format_stamp(last)} ({unposed} of {len(self.frames)} "
+                            f"clouds have no pose in {fixed!r}){hint}")
 
     @property
     def lidar_to_camera(self) -> np.ndarray:
@@ -452,6 +487,8 @@ def _check_sequence(seq: LogSequence, report: CheckReport) -> None:
     try:
         fixed = seq.fixed_frame
         report.details.append(f"poses: {c.pose_source}, LiDAR frame {seq.lidar_frame!r} in fixed frame {fixed!r}")
+        report.details.append(f"world frame: maps are made in {fixed!r}, the log's fixed frame")
+        seq.check_pose_chain()
     except DataError as exc:
         report.problems.append(str(exc))
         return

@@ -22,9 +22,12 @@ from PIL import Image
 
 from ..geometry.camera import RELLIS3D_DISTORTION, PinholeCamera, quaternion_to_matrix, rigid
 from ..classes import decode_color_labels, original_to_v3_table, palette
+from ..frames import FrameError, WorldFrame
 from .point_files import read_kitti_bin
 
 EXTRINSIC_KEY = "os1_cloud_node-pylon_camera_node"
+FRAME_FILE = "frame.yaml"  # a folder's poses frame: name (and crs), docs/algorithm.md §6.6
+RIGID_TOLERANCE = 1e-4  # largest |R R^T - I| entry of a pose read from text
 _FRAME_NUMBER = re.compile(r"^frame(\d{6})")
 
 
@@ -72,7 +75,32 @@ def read_poses(path: Path) -> np.ndarray:
         raise DataError(f"{path}: pose line {int(np.flatnonzero(~np.isfinite(data).all(1))[0]) + 1} has NaN or inf")
     poses = np.tile(np.eye(4), (len(data), 1, 1))
     poses[:, :3, :] = data.reshape(-1, 3, 4)
+    rotations = poses[:, :3, :3]
+    # A pose is a rotation and a translation: anything else (a scale, a shear, a mirror, a typo) would
+    # bend the map without a word. Text poses carry ~6-9 digits, hence the tolerance.
+    off = np.abs(rotations @ rotations.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+    bad = np.flatnonzero((off > RIGID_TOLERANCE) | (np.linalg.det(rotations) <= 0))
+    if len(bad):
+        line = int(bad[0])
+        what = "mirrors" if np.linalg.det(rotations[line]) <= 0 else f"is not orthonormal (|R R^T - I| = {off[line]:.3g})"
+        raise DataError(f"{path}: pose line {line + 1} is not a rigid transform: its rotation {what}"
+                        + (f" ({len(bad)} such lines)" if len(bad) > 1 else ""))
     return poses
+
+
+def read_frame_file(folder: Path) -> WorldFrame | None:
+    """A sequence folder's ``frame.yaml`` (the name and CRS of its poses' frame), None without one."""
+    path = Path(folder) / FRAME_FILE
+    if not path.is_file():
+        return None
+    try:
+        data = yaml.safe_load(read_text(path))
+    except yaml.YAMLError as exc:
+        raise DataError(f"{path}: not valid YAML ({exc})") from None
+    try:
+        return WorldFrame.from_dict(data, str(path))
+    except FrameError as exc:
+        raise DataError(str(exc)) from None
 
 
 def read_point_labels(path: Path, expected: int) -> np.ndarray:
@@ -335,6 +363,9 @@ def check_sequence(root, *, max_label_files: int = 50) -> CheckReport:
         except DataError as exc:
             report.problems.append(str(exc))
     try:
+        own = read_frame_file(seq.root)
+        name = own.describe() if own else f"frame 'poses:{seq.root.name}' (no {FRAME_FILE} names it)"
+        report.details.append(f"world frame: maps are made in {name}, poses.txt used as given")
         poses = seq.poses
         if poses is None:
             report.notes.append("no poses.txt: every scan is taken in its own LiDAR frame (fine for single frames only)")

@@ -20,7 +20,7 @@ from typing import Callable, Iterator
 import numpy as np
 from PIL import Image
 
-from .camera import PinholeCamera, relative_pose, transform_points
+from .camera import PinholeCamera, transform_points
 from ..config import ConfigError
 
 
@@ -150,22 +150,20 @@ class Bin:
 
 
 def project_frames(sequence, frames, values_for_frame: Callable, config: ProjectionConfig = ProjectionConfig(),
-                   reference_pose: np.ndarray | None = None) -> Iterator[ProjectedFrame]:
+                   world=None) -> Iterator[ProjectedFrame]:
     """Project each frame's scan with ``values_for_frame(frame)`` ([C, h, w] or [h, w], None to skip
-    the frame) into the world frame = LiDAR frame of the first frame given (or ``reference_pose``)."""
+    the frame) into the world frame: ``world.to_world(pose)`` places a LiDAR pose (a ``Placement`` of
+    ``data/world_frame.py``, or anything with that method); without one, poses are used as given."""
     camera, lidar_to_camera = sequence.camera, sequence.lidar_to_camera
-    reference = reference_pose
     for frame in frames:
         values = values_for_frame(frame)
         if values is None:
             continue
         pose = sequence.pose(frame)
-        if reference is None:
-            reference = pose
         scan = sequence.read_scan(frame)
         projected = project_scan(scan[:, :3], camera, lidar_to_camera, config)
         sampled = sample_map(np.asarray(values), projected.pixel, (camera.width, camera.height), config.lookup)
-        to_world = relative_pose(reference, pose)
+        to_world = pose if world is None else world.to_world(pose)
         yield ProjectedFrame(frame.index, transform_points(to_world, scan[projected.index, :3]), sampled, to_world[:3, 3], projected.index, projected.pixel)
 
 

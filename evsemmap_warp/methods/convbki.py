@@ -9,13 +9,13 @@ differentiably, which ``stencil_evidence_at`` computes in PyTorch on a sorted-ke
 
 from __future__ import annotations
 
-import json
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from .. import files
 from ..config import read_yaml_file
 
 INITIAL_LENGTH_M = 0.5  # the authors' initialisation ("max_dist")
@@ -70,7 +70,7 @@ def load_lengths(path, num_classes: int) -> ConvBkiLengths:
 
 
 def save_lengths(path, lengths: ConvBkiLengths) -> None:
-    Path(path).write_text(json.dumps(lengths.as_dict(), indent=1))
+    files.write_json_atomically(path, lengths.as_dict(), indent=1)
 
 
 def _factor(d, length):
@@ -205,13 +205,18 @@ def training_windows(sequence, alpha_for_frame, projection, *, window_scans: int
     points carry the network's normalised alpha (``alpha_for_frame(frame)`` -> [K, h, w], projected),
     and the last scan's points (up to ``queries_per_window``) their own per-point labels (v3)."""
     from ..classes import original_to_v3_table
+    from ..data.world_frame import Placement
+    from ..frames import WorldFrame
     from ..geometry.projection import project_frames
 
     table = original_to_v3_table()
     rng = np.random.default_rng(seed)
     frames = [f for f in sequence.frames if f.point_labels is not None and f.image is not None]
     by_index = {f.index: f for f in frames}
-    projected = list(project_frames(sequence, frames, alpha_for_frame, projection, reference_pose=sequence.pose(sequence.frames[0])))
+    # Relative to the first scan: windows are local (the kernel is translation-invariant), and learning
+    # in float32 stays exact however far the sequence's own frame puts them.
+    local = Placement(WorldFrame("first-scan"), sequence.pose(sequence.frames[0]))
+    projected = list(project_frames(sequence, frames, alpha_for_frame, projection, local))
     windows = []
     for start in range(0, len(projected) - window_scans + 1, window_scans):
         window = projected[start:start + window_scans]

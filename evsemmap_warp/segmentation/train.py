@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .. import __version__
+from .. import __version__, files
 from .data import CAFFE_MEAN, IMAGENET_MEAN, IMAGENET_STD, SegmentationTensors, resize_pair, to_tensor
 from .evidential import dirichlet_from_logits, edl_loss, kl_weight
 from .metrics import SegmentationMetrics
@@ -100,8 +100,8 @@ def save_checkpoint(path, model, optimizer, epoch: int, config: TrainConfig, cla
         "classes": list(class_names), "mean": list(config.mean_std[0]), "std": list(config.mean_std[1]),
         "train_config": json.dumps(asdict(config)), "epoch": epoch, "history": json.dumps(history),
     }
-    torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "meta": meta}, path)
-    return path
+    checkpoint = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "meta": meta}
+    return files.write_atomically(path, lambda f: torch.save(checkpoint, f))  # a killed run never leaves half a checkpoint
 
 
 def load_checkpoint(path, class_names=None):
@@ -212,8 +212,8 @@ def train(source, class_names, config: TrainConfig, out_dir, *, resume=None, pro
         warnings.warn(f"{out_dir}: training stopped by its time budget ({config.time_budget_s:g} s) after {epochs_run} of "
                       f"{config.epochs} epochs: the network is not trained to its config, and results depend on this "
                       f"machine's speed", TimeBudgetWarning, stacklevel=2)
-    (out_dir / "history.json").write_text(json.dumps(history, indent=1))
-    (out_dir / "metrics.json").write_text(json.dumps(summary, indent=1))
+    files.write_json_atomically(out_dir / "history.json", history, indent=1)
+    files.write_json_atomically(out_dir / "metrics.json", summary, indent=1)
     metrics.save_plots(out_dir)
     return summary
 
@@ -227,7 +227,7 @@ def evaluate_checkpoint(checkpoint, source, out_dir=None, *, batch_size: int = 8
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "metrics.json").write_text(json.dumps(summary, indent=1))
+        files.write_json_atomically(out_dir / "metrics.json", summary, indent=1)
         metrics.save_plots(out_dir)
     return summary
 

@@ -24,6 +24,8 @@ from tqdm import tqdm
 from .. import __version__
 from ..geometry.camera import matrix_to_quaternion
 from ..classes import palette
+from ..data.log_writer import LOG_ROOT_FRAME
+from ..data.sequences import FRAME_FILE
 from .preset import SynthPreset
 from .scene import concatenate_worlds, corridor_road, generate_world, poses_along_road, road_trajectory
 from .sensors import RayCaster, camera_model, camera_to_lidar, lidar_directions, render_camera, scan_lidar
@@ -56,6 +58,8 @@ def write_sequence_metadata(out: Path, preset: SynthPreset, poses: np.ndarray) -
     (out / "transforms.yaml").write_text(yaml.safe_dump(transforms, sort_keys=False))
     # every digit: a log written from this folder carries the poses as quaternions, and maps from both agree to rounding
     np.savetxt(out / "poses.txt", poses[:, :3, :].reshape(len(poses), 12), fmt="%.17g")
+    # the poses' frame, by the name the logs written from this folder give their TF root
+    (out / FRAME_FILE).write_text(yaml.safe_dump({"name": LOG_ROOT_FRAME}))
 
 
 class _CorridorWorld:
