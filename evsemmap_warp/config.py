@@ -281,6 +281,8 @@ class DatasetConfig:
             path = path if path.is_absolute() else (Path(self.config_dir) / path).resolve()
             if not path.exists():
                 raise ConfigError(f"dataset.logs: {path} does not exist")
+            if path.resolve() in [p.resolve() for p in resolved]:  # read twice, every cloud would be integrated twice
+                raise ConfigError(f"dataset.logs: {candidate} is given twice; name each log once")
             resolved.append(path)
         return resolved
 
@@ -306,9 +308,12 @@ def preset_path(name_or_path: str) -> Path:
     path = Path(name_or_path)
     if path.suffix in (".yaml", ".yml") and path.exists():
         return path
-    candidate = Path(str(resources.files("evsemmap_warp.configs") / "presets")) / f"{name_or_path}.yaml"
-    if not candidate.exists():
-        known = sorted(p.stem for p in candidate.parent.glob("*.yaml"))
+    presets = Path(str(resources.files("evsemmap_warp.configs") / "presets"))
+    candidate = presets / f"{name_or_path}.yaml"
+    if "/" in str(name_or_path) or "\\" in str(name_or_path) or not candidate.exists():
+        if "/" in str(name_or_path) or "\\" in str(name_or_path):  # a path, not a preset's name
+            raise ConfigError(f"{name_or_path}: no such file or folder")
+        known = sorted(p.stem for p in presets.glob("*.yaml"))
         raise ConfigError(f"unknown mapping preset {name_or_path!r}; available: {', '.join(known)} (or a .yaml path)")
     return candidate
 
@@ -380,6 +385,8 @@ def _convert(cls, name: str, value: Any, source: str) -> Any:
             items = tuple(value) if isinstance(value, (list, tuple)) else (value,)
             if any(isinstance(item, (dict, list, tuple)) for item in items):
                 raise TypeError
+            if str(ftype) == "tuple[str, ...]" and not all(isinstance(item, str) for item in items):  # paths, logs, names
+                raise TypeError
             return items
         if isinstance(default, str):
             if not isinstance(value, str):
@@ -394,6 +401,13 @@ def dataset_for_folder(folder: Path) -> dict[str, Any]:
     """The dataset section for a sequence folder named on the command line instead of a dataset
     config: SemanticKITTI when it has velodyne/, else the RELLIS-3D layout (also what synth writes)."""
     kind = "semantickitti" if (folder / "velodyne").is_dir() else "rellis3d"
+    if not ((folder / "velodyne").is_dir() or (folder / "os1_cloud_node_kitti_bin").is_dir() or any(folder.glob("[0-9]*.bin"))):
+        what = ("a map store: give it to export, merge, view or info" if (folder / "store.json").is_file()
+                else "a ROS 2 bag folder without metadata.yaml, still being recorded or cut short: name its .db3 or .mcap file"
+                if any(p.suffix in (".db3", ".mcap") for p in folder.glob("*"))
+                else "it holds map files: give them to merge, view or info" if any(folder.glob("*.npz"))
+                else "no os1_cloud_node_kitti_bin/, velodyne/ or NNNNNN.bin scans")
+        raise ConfigError(f"{folder}: not a sequence folder ({what})")
     return {"kind": kind, "paths": (str(folder.resolve()),), "config_dir": str(folder.resolve())}
 
 

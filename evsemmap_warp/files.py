@@ -68,3 +68,77 @@ def savez_atomically(path, *, compressed: bool = False, **arrays) -> Path:
     """``np.savez`` (or ``np.savez_compressed``) of ``arrays`` under exactly ``path``."""
     save = np.savez_compressed if compressed else np.savez
     return write_atomically(path, lambda f: save(f, **arrays))
+
+
+# Identity by content --------------------------------------------------------------------------------
+# What a resumable run (evsemmap batch) must find unchanged: the SHA-256 of every file it may read.
+# The trade-off, measured on the tiny synthetic drive (36 files, 0.57 MB as a folder; a 1.65 MB bag):
+# size + mtime + path per file costs 0.7 ms (folder) and 0.01 ms (bag), the content hashes 2.3 and
+# 2.4 ms (~700 MB/s), against ~1.5 s to map it: 0.2 %, and at the pipeline's reading rate (tens of MB/s
+# of scans) about 2 % of any drive's mapping time. Stat-only identity is O(files) instead of O(bytes),
+# but an edit that keeps a file's size and mtime (cp -p, rsync -t, tar x, a clock step back) would
+# resume a run over the old data, silently; a run that reads every byte anyway can afford to hash them.
+_HASH_BLOCK = 1 << 20
+
+
+def _files_under(path: Path) -> list[Path]:
+    """A file itself, or a folder's files (recursively, in name order), hidden ones (.name) left out:
+    no loader reads them, and writers keep their temporaries there."""
+    if not path.is_dir():
+        return [path]
+    found = []
+    for root, folders, names in os.walk(path):
+        folders[:] = sorted(f for f in folders if not f.startswith("."))
+        found += [Path(root) / n for n in sorted(names) if not n.startswith(".")]
+    return found
+
+
+def file_sha256(path) -> str:
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(_HASH_BLOCK):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def content_identity(path) -> dict:
+    """A file's or a folder's identity by content: its resolved path, file count, bytes and one
+    SHA-256 over every file's relative path and content (see the trade-off above). A path that does
+    not exist (a preset name) is identified by its text."""
+    import hashlib
+
+    path = Path(path)
+    if not path.exists():
+        return {"name": str(path)}
+    digest = hashlib.sha256()
+    files, size = 0, 0
+    for item in _files_under(path):
+        relative = item.relative_to(path).as_posix() if path.is_dir() else ""
+        digest.update(f"{relative}\0{file_sha256(item)}\n".encode())
+        files, size = files + 1, size + item.stat().st_size
+    return {"path": str(path.resolve()), "files": files, "bytes": size, "sha256": digest.hexdigest()}
+
+
+def check_not_inside(out, inputs, what: str) -> None:
+    """Refuse a write to ``out`` when it is one of ``inputs`` or lies inside one (a folder): ``what``
+    names the command and flag, e.g. "export --out"."""
+    target = Path(out).resolve()
+    for given in inputs:
+        source = Path(given)
+        if not source.exists():
+            continue
+        source = source.resolve()
+        if target == source or source in target.parents:
+            raise ValueError(f"{what} {out}: {'is' if target == source else 'lies inside'} the input {given}; "
+                             f"write to a path outside the inputs")
+
+
+def error_naming(exc: OSError, path, what: str) -> OSError:
+    """``exc`` (a failed write, e.g. a full disk) as an OSError naming ``path`` (what the user gave, not a
+    temporary or staging name) and ``what`` was being written; the same errno (numpy's short writes have none)."""
+    detail = exc.strerror or str(exc)
+    if exc.errno is None:
+        return OSError(f"{path}: {what} failed ({detail})")
+    return OSError(exc.errno, f"{detail} ({what})", str(path))

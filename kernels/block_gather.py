@@ -21,8 +21,9 @@ reach and box tests, and skipping from 0.99 instead of 1.05 ell, cut the kernel'
 (the same map bit for bit; the kernel alone over the last 6 bench scans, alternating with the former
 form in one process: free_res 4 x0.92, free_res 0.5 x0.90).
 
-The kernel is made per (class count, cells per block) (``gather_sbki_kernel``); its loops are not
-unrolled (a 4 s cold compile instead of 30 s, at the same speed).
+The kernel is made per (class count, cells per block) (``gather_sbki_kernel``) from the block gathers'
+one traversal (``block_gather_kernel``: a thread per target block, its cells found or inserted once,
+then the method's sums); its loops are not unrolled (a 4 s cold compile instead of 30 s, at the same speed).
 
 numpy twin: ``evsemmap_warp/reference/block_gather.py``.
 """
@@ -31,8 +32,8 @@ import functools
 
 import warp as wp
 
-from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, find_block_rows, pack_key, prefetch_brick
-from .scatter import _ONE, _ZERO, COL_HITS, COL_TOUCHED, COL_WEIGHT, sbki_sparse_kernel_scaled, sbki_voxel_center
+from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, HashTable, block_cell, block_first_cell, find_block_rows, prefetch_brick
+from .scatter import _ONE, _ZERO, sbki_sparse_kernel_scaled, sbki_voxel_center, tally_row
 
 wp.set_module_options({"enable_backward": False})
 
@@ -57,6 +58,34 @@ def box_distance2(lo: wp.vec3, hi: wp.vec3, p: wp.vec3):
     return dx * dx + dy * dy + dz * dz
 
 
+@wp.struct
+class SbkiBlocks:
+    """One scan's S-BKI gather inputs: the test ``blocks`` [T], their 7 ``sources`` [T, 7] (indices of
+    blocks holding points, -1 for none), the points of block s at ``point_start[s]:point_start[s + 1]``
+    (``scaled_points``: float32 and divided by ell, as ``scale_points`` makes them; ``labels``), and the
+    kernel's ``length`` ell (m), ``sigma0`` (sf2) and the lattice (``resolution``, ``grid_offset``, m)."""
+
+    blocks: wp.array(dtype=wp.vec3i)
+    sources: wp.array2d(dtype=int)
+    point_start: wp.array(dtype=int)
+    scaled_points: wp.array(dtype=wp.vec3)
+    labels: wp.array(dtype=int)
+    length: wp.float64
+    sigma0: wp.float64
+    resolution: wp.float64
+    grid_offset: wp.float64
+
+
+def sbki_blocks(*, blocks, sources, point_start, scaled_points, labels, length: float, sigma0: float, resolution: float,
+                grid_offset: float) -> SbkiBlocks:
+    """An ``SbkiBlocks`` over device arrays."""
+    inputs = SbkiBlocks()
+    inputs.blocks, inputs.sources, inputs.point_start, inputs.scaled_points, inputs.labels = blocks, sources, point_start, scaled_points, labels
+    inputs.length, inputs.sigma0 = wp.float64(length), wp.float64(sigma0)
+    inputs.resolution, inputs.grid_offset = wp.float64(resolution), wp.float64(grid_offset)
+    return inputs
+
+
 def scale_points(points, length_m: float):
     """The points [P, 3] as the kernel reads them: float32 coordinates divided by float32 ell, as the
     C++ covSparse scales both sides."""
@@ -66,11 +95,58 @@ def scale_points(points, length_m: float):
 
 
 @functools.cache
+def block_rows_type(cells: int):
+    """The vector of a block's ``cells`` rows (one type per size, shared by the skeleton and the methods)."""
+    return wp.types.vector(length=cells, dtype=int)
+
+
+def block_gather_kernel(Inputs, gather_block, *, cells_per_block: int, prefetch: bool):
+    """The block gathers' one traversal, a kernel (launch_ids, block_ids, scan: Inputs, table, bricks,
+    voxel_data, failed, update_count): thread t takes target block b = block_ids[launch_ids[t]] (its index
+    ``scan.blocks[b]``), asks for the blocks a few threads ahead (``prefetch_brick``, with ``prefetch``),
+    finds or inserts its n^3 cells once (``find_block_rows`` through the brick cache ``bricks``; a block
+    that does not fit adds nothing and is flagged in ``failed`` for a relaunch after the table grew) and
+    hands them to the method's ``gather_block(scan, b, first, rows, voxel_data) -> float64``, which sums
+    the block's source points into its cells' rows and returns how many contributions it added. One Warp
+    module per kernel, its loops not unrolled (a 4 s cold compile instead of 30 s, at the same speed)."""
+    n = cells_per_block
+    n3 = n * n * n
+    cell_rows = block_rows_type(n3)
+
+    @wp.kernel(module="unique", module_options={"max_unroll": 1})
+    def gather_blocks(
+        launch_ids: wp.array(dtype=int),
+        block_ids: wp.array(dtype=int),
+        scan: Inputs,
+        table: HashTable,
+        bricks: HashTable,
+        voxel_data: wp.array2d(dtype=wp.float64),
+        failed: wp.array(dtype=int),
+        update_count: wp.array(dtype=wp.int64),
+    ):
+        t = wp.tid()
+        if wp.static(prefetch):
+            last = launch_ids.shape[0] - 1
+            prefetch_brick(table, bricks, voxel_data, block_first_cell(scan.blocks[block_ids[launch_ids[wp.min(t + PREFETCH_AHEAD, last)]]], n),
+                           block_first_cell(scan.blocks[block_ids[launch_ids[wp.min(t + PREFETCH_NEARER, last)]]], n), n3)
+        b = block_ids[launch_ids[t]]
+        first = block_first_cell(scan.blocks[b], n)
+        rows = find_block_rows(cell_rows(), table, bricks, first, n)
+        if rows[0] < 0:
+            failed[t] = 1
+            return
+        wp.atomic_add(update_count, 0, wp.int64(wp.static(gather_block)(scan, b, first, rows, voxel_data)))
+
+    return gather_blocks
+
+
+@functools.cache
 def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: bool = False, prefetch: bool = True):
-    """The gather kernel for K = num_classes and blocks of cells_per_block^3 cells (one Warp module per
-    form, compiled on first use). The other forms are for the study (tools/kernel_study.py):
-    ``branch_free`` (every cell's kernel value added, zeros included, instead of the branch on its sign;
-    both compile to vector code over the cells), ``prefetch`` off. Every form gives the same map bit for bit."""
+    """The gather kernel (``block_gather_kernel`` over ``SbkiBlocks``) for K = num_classes and blocks of
+    cells_per_block^3 cells (one Warp module per form, compiled on first use). The other forms are for the
+    study (tools/kernel_study.py): ``branch_free`` (every cell's kernel value added, zeros included,
+    instead of the branch on its sign; both compile to vector code over the cells), ``prefetch`` off.
+    Every form gives the same map bit for bit."""
     n = cells_per_block
     n3 = n * n * n
     # Sums per class and cell, cells along the rows: in the branch-free form a point's kernel values for
@@ -78,62 +154,26 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
     class_cell_sums = wp.types.matrix(shape=(num_classes, n3), dtype=wp.float64)
     cell_scalars = wp.types.vector(length=n3, dtype=wp.float64)
     cell_floats = wp.types.vector(length=n3, dtype=wp.float32)
-    cell_rows = wp.types.vector(length=n3, dtype=int)
+    cell_rows = block_rows_type(n3)
 
-    @wp.kernel(module="unique", module_options={"max_unroll": 1})
-    def gather_sbki_blocks(
-        test_blocks: wp.array(dtype=wp.vec3i),
-        launch_ids: wp.array(dtype=int),
-        block_ids: wp.array(dtype=int),
-        sources: wp.array2d(dtype=int),
-        point_start: wp.array(dtype=int),
-        scaled_points: wp.array(dtype=wp.vec3),
-        labels: wp.array(dtype=int),
-        length: wp.float64,
-        sigma0: wp.float64,
-        resolution: wp.float64,
-        grid_offset: wp.float64,
-        table_keys: wp.array(dtype=wp.int64),
-        slot_rows: wp.array(dtype=int),
-        key_count: wp.array(dtype=int),
-        max_count: int,
-        brick_keys: wp.array(dtype=wp.int64),
-        brick_rows: wp.array(dtype=int),
-        brick_count: wp.array(dtype=int),
-        brick_max_count: int,
-        voxel_data: wp.array2d(dtype=wp.float64),
-        failed: wp.array(dtype=int),
-        update_count: wp.array(dtype=wp.int64),
-    ):
-        """Test block test_blocks[block_ids[launch_ids[t]]]: its cells are found or inserted
-        (``find_block_rows``; none fits: failed[t], nothing added) and marked touched; for each of its 7 source blocks sources[b, :] (-1:
-        holds no points; block s owns points point_start[s]:point_start[s + 1], given as ``scale_points``
-        makes them), each point adds the S-BKI kernel, where positive, for its label to every cell."""
-        t = wp.tid()
-        half = wp.vec3i(n // 2, n // 2, n // 2)
-        if wp.static(prefetch):
-            last = launch_ids.shape[0] - 1
-            prefetch_brick(table_keys, slot_rows, brick_keys, brick_rows, voxel_data, test_blocks[block_ids[launch_ids[wp.min(t + PREFETCH_AHEAD, last)]]] * n - half,
-                           test_blocks[block_ids[launch_ids[wp.min(t + PREFETCH_NEARER, last)]]] * n - half, n3)
-        b = block_ids[launch_ids[t]]
-        first = test_blocks[b] * n - half
-        # The block's cells are found or inserted first: a block that does not fit adds nothing and is
-        # relaunched after the table grew.
-        rows = find_block_rows(cell_rows(), table_keys, slot_rows, key_count, max_count, brick_keys, brick_rows, brick_count, brick_max_count, first, n)
-        if rows[0] < 0:
-            failed[t] = 1
-            return
-        length32 = float(length)
-        sigma32 = float(sigma0)
-        resolution32 = float(resolution)
-        offset32 = float(grid_offset)
+    @wp.func
+    def gather_sbki_block(scan: SbkiBlocks, b: int, first: wp.vec3i, rows: cell_rows, voxel_data: wp.array2d(dtype=wp.float64)) -> wp.float64:
+        """Test block b (first cell ``first``, its cells' ``rows``): for each of its 7 source blocks
+        scan.sources[b, :] (-1: holds no points; block s owns points point_start[s]:point_start[s + 1],
+        given as ``scale_points`` makes them), each point adds the S-BKI kernel, where positive, for its
+        label to every cell; every cell is marked touched. Returns the contributions."""
+        length32 = float(scan.length)
+        sigma32 = float(scan.sigma0)
+        resolution32 = float(scan.resolution)
+        offset32 = float(scan.grid_offset)
         # Per cell, once per block: its centre in float32 divided by ell (as the C++ scales both sides),
         # one coordinate per vector (the cell loops then vectorise).
         scaled_x = cell_floats()
         scaled_y = cell_floats()
         scaled_z = cell_floats()
         for j in range(n3):
-            scaled = sbki_voxel_center(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n, resolution32, offset32) / length32
+            cell = block_cell(first, j, n)
+            scaled = sbki_voxel_center(cell[0], cell[1], cell[2], resolution32, offset32) / length32
             scaled_x[j] = scaled[0]
             scaled_y[j] = scaled[1]
             scaled_z[j] = scaled[2]
@@ -144,14 +184,14 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
         # more from it is as far from every cell centre, where the kernel is zero, so one test skips it.
         box_lo = wp.vec3(scaled_x[0], scaled_y[0], scaled_z[0])
         box_hi = wp.vec3(scaled_x[n3 - 1], scaled_y[n3 - 1], scaled_z[n3 - 1])
-        for f in range(sources.shape[1]):
-            s = sources[b, f]
+        for f in range(scan.sources.shape[1]):
+            s = scan.sources[b, f]
             if s >= 0:
-                for q in range(point_start[s], point_start[s + 1]):
-                    scaled_point = scaled_points[q]
+                for q in range(scan.point_start[s], scan.point_start[s + 1]):
+                    scaled_point = scan.scaled_points[q]
                     if box_distance2(box_lo, box_hi, scaled_point) >= wp.static(BOX_SKIP_DISTANCE2):
                         continue
-                    label = labels[q]
+                    label = scan.labels[q]
                     if wp.static(branch_free):
                         # Kernel values for all cells without branches (zeros where the kernel is not
                         # positive; the C++ adds only positive ones), then added in: adding 0 leaves a sum
@@ -173,15 +213,13 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
         total = _ZERO
         for j in range(n3):
             row = rows[j]
-            voxel_data[row, num_classes + COL_TOUCHED] = _ONE
             for c in range(num_classes):
                 voxel_data[row, c] = voxel_data[row, c] + evidence[c, j]
-            voxel_data[row, num_classes + COL_WEIGHT] = voxel_data[row, num_classes + COL_WEIGHT] + weight_sum[j]
-            voxel_data[row, num_classes + COL_HITS] = voxel_data[row, num_classes + COL_HITS] + hits[j]
+            tally_row(voxel_data, row, num_classes, weight_sum[j], _ZERO, hits[j])  # S-BKI points carry no uncertainty
             total += hits[j]
-        wp.atomic_add(update_count, 0, wp.int64(total))
+        return total
 
-    return gather_sbki_blocks
+    return block_gather_kernel(SbkiBlocks, gather_sbki_block, cells_per_block=n, prefetch=prefetch)
 
 
 @wp.kernel

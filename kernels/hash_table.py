@@ -13,6 +13,10 @@ the table and re-runs the failed work, so nothing is ever dropped. The block-gat
 second table of the same layout, the brick cache (a block's first cell -> its first row,
 ``table_insert_row``; ``VoxelMap._allocate_brick_cache`` says why).
 
+Kernels see a table as one ``HashTable`` struct (keys, slot rows, key count and the fill limit of the
+launch); ``hash_table(...)`` makes one on the host. The voxel table, the brick cache and the scan-local
+key set of ``kernels.hashgrid_gather`` are all of this one type.
+
 numpy twin: ``evsemmap_warp/reference/hash_table.py``.
 """
 
@@ -37,6 +41,28 @@ _EMPTY = wp.constant(wp.int64(EMPTY_KEY))
 _BRICK_ROUND = wp.constant(wp.int64((1 << 42) | (1 << 21) | 1))
 _BRICK_LOW_BITS = wp.constant(wp.int64((1 << 42) | (1 << 21) | 1))
 _BRICK_MASK = wp.constant(wp.int64((((1 << 20) - 1) << 42) | (((1 << 20) - 1) << 21) | ((1 << 20) - 1)))
+
+
+@wp.struct
+class HashTable:
+    """A table as kernels see it: ``keys`` [capacity] (EMPTY_KEY where free), ``slot_rows`` [capacity]
+    (row + 1 of the slot's key, 0 while free), ``key_count`` [1] and ``max_count``, the keys an
+    insertion may fill the table up to in this launch."""
+
+    keys: wp.array(dtype=wp.int64)
+    slot_rows: wp.array(dtype=int)
+    key_count: wp.array(dtype=int)
+    max_count: int
+
+
+def hash_table(keys, slot_rows, key_count, max_count: int) -> HashTable:
+    """The ``HashTable`` struct over a table's device arrays (host side, no copy)."""
+    table = HashTable()
+    table.keys = keys
+    table.slot_rows = slot_rows
+    table.key_count = key_count
+    table.max_count = int(max_count)
+    return table
 
 
 @wp.func
@@ -113,8 +139,7 @@ def _prefetch_brick_rows(brick_keys: wp.array(dtype=wp.int64), brick_rows: wp.ar
 
 
 @wp.func
-def prefetch_brick(keys: wp.array(dtype=wp.int64), slot_rows: wp.array(dtype=int), brick_keys: wp.array(dtype=wp.int64),
-                   brick_rows: wp.array(dtype=int), data: wp.array2d(dtype=wp.float64), first_cell_ahead: wp.vec3i,
+def prefetch_brick(table: HashTable, bricks: HashTable, data: wp.array2d(dtype=wp.float64), first_cell_ahead: wp.vec3i,
                    first_cell_nearer: wp.vec3i, cells: int):
     """Ask the CPU to start loading a brick's lines of the brick cache and of the table (its cells'
     slots, for a brick not cached yet), and the value rows of a nearer brick whose cache line was asked
@@ -127,10 +152,10 @@ def prefetch_brick(keys: wp.array(dtype=wp.int64), slot_rows: wp.array(dtype=int
     rows' place is read from a cache line that has arrived by then (finding a brick's 8 stored cells:
     ~285 -> ~100 ns; tools/kernel_study.py times the gather kernels with and without it)."""
     ahead = pack_key(first_cell_ahead[0], first_cell_ahead[1], first_cell_ahead[2])
-    _prefetch_slot(brick_keys, brick_rows, hash_slot(ahead, brick_keys.shape[0] - 1))
-    _prefetch_slot(keys, slot_rows, hash_slot(ahead, keys.shape[0] - 1))
+    _prefetch_slot(bricks.keys, bricks.slot_rows, hash_slot(ahead, bricks.keys.shape[0] - 1))
+    _prefetch_slot(table.keys, table.slot_rows, hash_slot(ahead, table.keys.shape[0] - 1))
     nearer = pack_key(first_cell_nearer[0], first_cell_nearer[1], first_cell_nearer[2])
-    _prefetch_brick_rows(brick_keys, brick_rows, data, hash_slot(nearer, brick_keys.shape[0] - 1), nearer, cells)
+    _prefetch_brick_rows(bricks.keys, bricks.slot_rows, data, hash_slot(nearer, bricks.keys.shape[0] - 1), nearer, cells)
 
 
 @wp.func
@@ -163,118 +188,106 @@ def table_find_slot(keys: wp.array(dtype=wp.int64), key: wp.int64) -> int:
 
 
 @wp.func
-def table_find(keys: wp.array(dtype=wp.int64), slot_rows: wp.array(dtype=int), key: wp.int64) -> int:
+def table_find(table: HashTable, key: wp.int64) -> int:
     """Row of ``key``, or -1 when it is absent."""
-    return slot_row(slot_rows, table_find_slot(keys, key))
+    return slot_row(table.slot_rows, table_find_slot(table.keys, key))
 
 
 @wp.func
-def table_find_or_insert(
-    keys: wp.array(dtype=wp.int64), slot_rows: wp.array(dtype=int), key_count: wp.array(dtype=int), max_count: int, key: wp.int64
-) -> int:
-    """Row of ``key``, inserting it if absent (its row: the key count before it); -1 when the table is
-    at ``max_count`` keys (or for the empty sentinel, which no in-range index packs to)."""
-    if key == _EMPTY:
-        return -1
+def _find_or_insert(table: HashTable, key: wp.int64, given_row: int) -> int:
+    """Row of ``key``, inserting it if absent, with ``given_row`` or, for -1, the key count before it;
+    -1 when the table is at ``max_count`` keys."""
+    keys = table.keys
     mask = keys.shape[0] - 1
     slot = hash_slot(key, mask)
     for _probe in range(keys.shape[0]):
         k = keys[slot]
         if k == key:
-            return slot_row(slot_rows, slot)
+            return slot_row(table.slot_rows, slot)
         if k == _EMPTY:
-            if key_count[0] >= max_count:
+            if table.key_count[0] >= table.max_count:
                 return -1
             old = wp.atomic_cas(keys, slot, _EMPTY, key)
             if old == _EMPTY:
                 # Every key holds a slot, so rows never pass the capacity, even when concurrent GPU
                 # inserters overshoot max_count.
-                row = wp.atomic_add(key_count, 0, 1)
-                slot_rows[slot] = row + 1
+                row = wp.atomic_add(table.key_count, 0, 1)
+                if given_row >= 0:
+                    row = given_row
+                table.slot_rows[slot] = row + 1
                 return row
             if old == key:
-                return slot_row(slot_rows, slot)
+                return slot_row(table.slot_rows, slot)
         slot = (slot + 1) & mask
     return -1
 
 
 @wp.func
-def table_insert_row(
-    keys: wp.array(dtype=wp.int64), slot_rows: wp.array(dtype=int), key_count: wp.array(dtype=int), max_count: int, key: wp.int64, row: int
-):
-    """Store ``key`` with a row it was given (the brick cache: a brick's first row, found in the voxel
-    table); nothing when the key is there already or the table holds ``max_count`` keys."""
-    mask = keys.shape[0] - 1
-    slot = hash_slot(key, mask)
-    for _probe in range(keys.shape[0]):
-        k = keys[slot]
-        if k == key:
-            return
-        if k == _EMPTY:
-            if key_count[0] >= max_count:
-                return
-            old = wp.atomic_cas(keys, slot, _EMPTY, key)
-            if old == _EMPTY:
-                wp.atomic_add(key_count, 0, 1)
-                slot_rows[slot] = row + 1
-                return
-            if old == key:
-                return
-        slot = (slot + 1) & mask
+def table_find_or_insert(table: HashTable, key: wp.int64) -> int:
+    """Row of ``key``, inserting it if absent (its row: the key count before it); -1 when the table is
+    at ``max_count`` keys (or for the empty sentinel, which no in-range index packs to)."""
+    if key == _EMPTY:
+        return -1
+    return _find_or_insert(table, key, -1)
 
 
 @wp.func
-def find_block_rows(
-    rows: Any, keys: wp.array(dtype=wp.int64), slot_rows: wp.array(dtype=int), key_count: wp.array(dtype=int), max_count: int,
-    brick_keys: wp.array(dtype=wp.int64), brick_rows: wp.array(dtype=int), brick_count: wp.array(dtype=int), brick_max_count: int,
-    first: wp.vec3i, n: int,
-):
-    """The rows of a block's n^3 cells (``rows``, a vector of as many ints; cells in x, then y, then z
+def table_insert_row(table: HashTable, key: wp.int64, row: int):
+    """Store ``key`` with a row it was given (the brick cache: a brick's first row, found in the voxel
+    table); nothing when the key is there already or the table holds ``max_count`` keys."""
+    _find_or_insert(table, key, row)
+
+
+@wp.func
+def block_cell(first: wp.vec3i, j: int, n: int) -> wp.vec3i:
+    """Cell j of the block of n^3 cells whose first (lowest) cell is ``first``: x slowest, z fastest,
+    the order every block kernel visits, inserts and sums a block's cells in."""
+    return wp.vec3i(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n)
+
+
+@wp.func
+def block_first_cell(block: wp.vec3i, n: int) -> wp.vec3i:
+    """The first cell of block ``block`` (block b holds voxels b n - n/2 ... b n + n/2 - 1 per axis)."""
+    return block * n - wp.vec3i(n / 2, n / 2, n / 2)
+
+
+@wp.func
+def find_block_rows(rows: Any, table: HashTable, bricks: HashTable, first: wp.vec3i, n: int):
+    """The rows of a block's n^3 cells (``rows``, a vector of as many ints; cells in ``block_cell``
     order from its first cell ``first``), found or inserted; rows[0] = -1 when a cell did not fit. A
-    block in the brick cache (``brick_keys``/``brick_rows``: first cell -> first row) has consecutive
-    rows from its first; a block whose found or inserted rows are consecutive is cached, unless the
-    cache holds ``brick_max_count`` blocks (``VoxelMap._allocate_brick_cache`` says why)."""
+    block in the brick cache (``bricks``: first cell -> first row) has consecutive rows from its first;
+    a block whose found or inserted rows are consecutive is cached, unless the cache holds its
+    ``max_count`` blocks (``VoxelMap._allocate_brick_cache`` says why)."""
     brick_key = pack_key(first[0], first[1], first[2])
-    first_row = table_find(brick_keys, brick_rows, brick_key)
+    first_row = table_find(bricks, brick_key)
     if first_row >= 0:
         for j in range(len(rows)):
             rows[j] = first_row + j
         return rows
     consecutive = int(1)
     for j in range(len(rows)):
-        row = table_find_or_insert(keys, slot_rows, key_count, max_count, pack_key(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n))
+        cell = block_cell(first, j, n)
+        row = table_find_or_insert(table, pack_key(cell[0], cell[1], cell[2]))
         if row < 0:
             rows[0] = -1
             return rows
         rows[j] = row
         consecutive = consecutive & wp.where(row == rows[0] + j, 1, 0)
     if consecutive != 0:
-        table_insert_row(brick_keys, brick_rows, brick_count, brick_max_count, brick_key, rows[0])
+        table_insert_row(bricks, brick_key, rows[0])
     return rows
 
 
 @wp.kernel
-def insert_keys(
-    keys_in: wp.array(dtype=wp.int64),
-    table_keys: wp.array(dtype=wp.int64),
-    slot_rows: wp.array(dtype=int),
-    key_count: wp.array(dtype=int),
-    max_count: int,
-    rows_out: wp.array(dtype=int),
-):
+def insert_keys(keys_in: wp.array(dtype=wp.int64), table: HashTable, rows_out: wp.array(dtype=int)):
     i = wp.tid()
-    rows_out[i] = table_find_or_insert(table_keys, slot_rows, key_count, max_count, keys_in[i])
+    rows_out[i] = table_find_or_insert(table, keys_in[i])
 
 
 @wp.kernel
-def lookup_keys(
-    keys_in: wp.array(dtype=wp.int64),
-    table_keys: wp.array(dtype=wp.int64),
-    slot_rows: wp.array(dtype=int),
-    rows_out: wp.array(dtype=int),
-):
+def lookup_keys(keys_in: wp.array(dtype=wp.int64), table: HashTable, rows_out: wp.array(dtype=int)):
     i = wp.tid()
-    rows_out[i] = table_find(table_keys, slot_rows, keys_in[i])
+    rows_out[i] = table_find(table, keys_in[i])
 
 
 @wp.func
@@ -292,8 +305,7 @@ def lookup_points(
     points: wp.array(dtype=wp.vec3d),
     resolution: wp.float64,
     grid_offset: wp.float64,
-    table_keys: wp.array(dtype=wp.int64),
-    slot_rows: wp.array(dtype=int),
+    table: HashTable,
     rows_out: wp.array(dtype=int),
 ):
     """Row of the voxel containing each point (voxel i spans [i r + o, (i + 1) r + o), coordinates
@@ -306,7 +318,7 @@ def lookup_points(
     if ix == _KEY_OFFSET or iy == _KEY_OFFSET or iz == _KEY_OFFSET:
         rows_out[i] = -1
     else:
-        rows_out[i] = table_find(table_keys, slot_rows, pack_key(ix, iy, iz))
+        rows_out[i] = table_find(table, pack_key(ix, iy, iz))
 
 
 @wp.kernel

@@ -14,8 +14,9 @@ commonality ratios and takes their logarithm every 40 factors instead of once pe
 
 On the shared bench this form took about half the time of one thread per cell adding into the table
 row per contribution (measured while building it; tools/bench_integrate.py has the current figures).
-The gather kernel is made per (class count, cells per block) (``gather_release_kernel``); its loops
-are not unrolled (a 4 s cold compile instead of 30 s, at the same speed).
+The gather kernel is made per (class count, cells per block, fusion) (``gather_release_kernel``) from the
+block gathers' one traversal (``kernels.block_gather.block_gather_kernel``); its loops are not unrolled
+(a 4 s cold compile instead of 30 s, at the same speed).
 
 numpy twins: ``evsemmap_warp/reference/release.py`` (a literal block-by-block model loop, and the
 tables).
@@ -25,9 +26,9 @@ import functools
 
 import warp as wp
 
-from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, find_block_rows, pack_key, prefetch_brick
-from .scatter import (_BELIEF_EPSILON, _ONE, _ZERO, COL_HITS, COL_TOUCHED, COL_WEIGHT, COL_WEIGHTED_UNCERTAINTY,
-                      FUSION_DEMPSTER, sbki_voxel_center)
+from .block_gather import block_gather_kernel, block_rows_type
+from .hash_table import KEY_OFFSET, block_cell, pack_key
+from .scatter import _BELIEF_EPSILON, _ONE, _ZERO, FUSION_DEMPSTER, sbki_voxel_center, tally_row
 
 wp.set_module_options({"enable_backward": False})
 
@@ -89,95 +90,95 @@ def integer_power(x: wp.float64, m: int) -> wp.float64:
 
 
 @functools.cache
-def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, prefetch: bool = True):
-    """The gather kernel for K = num_classes and blocks of cells_per_block^3 cells (one Warp module per
-    form, compiled on first use); ``prefetch`` off: the form without it, for the study."""
+def release_blocks_struct(num_classes: int):
+    """The gather inputs' struct for K = num_classes: the target ``blocks`` [B], their source blocks
+    ``source_blocks`` [B, 25] (indices into ``blocks``, -1 for none) and model counts ``source_mult``, the
+    (point, block) rows of block s at ``point_start[s]:point_start[s + 1]`` (``points`` float32 m,
+    ``class_weights`` [P] K-vectors, ``uncertainty``), the kernel ``length`` (m, ell * e), ``sigma0`` and
+    ``resolution`` (m)."""
+    vec_k = vector_type(num_classes)
+
+    @wp.struct
+    class ReleaseBlocks:
+        blocks: wp.array(dtype=wp.vec3i)
+        source_blocks: wp.array2d(dtype=int)
+        source_mult: wp.array2d(dtype=int)
+        point_start: wp.array(dtype=int)
+        points: wp.array(dtype=wp.vec3)
+        class_weights: wp.array(dtype=vec_k)
+        uncertainty: wp.array(dtype=wp.float64)
+        length: wp.float64
+        sigma0: float
+        resolution: float
+
+    return ReleaseBlocks
+
+
+def release_blocks(*, blocks, source_blocks, source_mult, point_start, points, class_weights, uncertainty, length: float, sigma0: float,
+                   resolution: float):
+    """The ``release_blocks_struct`` of class_weights' K over device arrays."""
+    inputs = release_blocks_struct(class_weights.dtype._length_)()
+    inputs.blocks, inputs.source_blocks, inputs.source_mult, inputs.point_start = blocks, source_blocks, source_mult, point_start
+    inputs.points, inputs.class_weights, inputs.uncertainty = points, class_weights, uncertainty
+    inputs.length, inputs.sigma0, inputs.resolution = wp.float64(length), float(sigma0), float(resolution)
+    return inputs
+
+
+@functools.cache
+def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, fusion: int = 0, prefetch: bool = True):
+    """The gather kernel for K = num_classes, blocks of cells_per_block^3 cells and ``fusion`` (Bayes or
+    Dempster, FUSION_*; one Warp module per form, compiled on first use); ``prefetch`` off: the form
+    without it, for the study."""
     n = cells_per_block
     n3 = n * n * n
-    vec_k = wp.types.vector(length=num_classes, dtype=wp.float64)
+    dempster = fusion == FUSION_DEMPSTER
+    Inputs = release_blocks_struct(num_classes)
     cell_sums = wp.types.matrix(shape=(n3, num_classes), dtype=wp.float64)
     # Sums per class and cell, cells along the rows: a point's class row adds to all cells as vectors.
     class_cell_sums = wp.types.matrix(shape=(num_classes, n3), dtype=wp.float64)
     cell_scalars = wp.types.vector(length=n3, dtype=wp.float64)
-    cell_rows = wp.types.vector(length=n3, dtype=int)
+    cell_rows = block_rows_type(n3)
     cell_centres = wp.types.matrix(shape=(n3, 3), dtype=wp.float32)
 
-    @wp.kernel(module="unique", module_options={"max_unroll": 1})
-    def gather_release_blocks(
-        blocks: wp.array(dtype=wp.vec3i),
-        launch_ids: wp.array(dtype=int),
-        block_ids: wp.array(dtype=int),
-        source_blocks: wp.array2d(dtype=int),
-        source_mult: wp.array2d(dtype=int),
-        point_start: wp.array(dtype=int),
-        points: wp.array(dtype=wp.vec3),
-        class_weights: wp.array(dtype=vec_k),
-        point_uncertainty: wp.array(dtype=wp.float64),
-        length: wp.float64,
-        sigma0: float,
-        resolution: float,
-        fusion: int,
-        table_keys: wp.array(dtype=wp.int64),
-        slot_rows: wp.array(dtype=int),
-        key_count: wp.array(dtype=int),
-        max_count: int,
-        brick_keys: wp.array(dtype=wp.int64),
-        brick_rows: wp.array(dtype=int),
-        brick_count: wp.array(dtype=int),
-        brick_max_count: int,
-        voxel_data: wp.array2d(dtype=wp.float64),
-        failed: wp.array(dtype=int),
-        update_count: wp.array(dtype=wp.int64),
-    ):
-        """One thread per target block blocks[block_ids[launch_ids[t]]], holding its n^3 cells' sums: the points of
-        its source blocks source_blocks[b, :] (indices into ``blocks``, -1 for none; block s owns points
-        point_start[s]:point_start[s + 1], one row per (point, block holding it) pair), each counted
-        source_mult[b, :] times, are read once and weighed against every cell (independent chains the
-        CPU overlaps). Finds or inserts the cells first (none fits: failed[t], nothing added), then adds
-        k(d) * y (Bayes) or the log commonality ratios (Dempster) and the bookkeeping columns once per cell."""
-        t = wp.tid()
-        half = wp.vec3i(n // 2, n // 2, n // 2)
-        if wp.static(prefetch):
-            last = launch_ids.shape[0] - 1
-            prefetch_brick(table_keys, slot_rows, brick_keys, brick_rows, voxel_data, blocks[block_ids[launch_ids[wp.min(t + PREFETCH_AHEAD, last)]]] * n - half,
-                           blocks[block_ids[launch_ids[wp.min(t + PREFETCH_NEARER, last)]]] * n - half, n3)
-        b = block_ids[launch_ids[t]]
-        first = blocks[b] * n - half
-        # The block's cells are found or inserted first: a block that does not fit adds nothing and is
-        # relaunched after the table grew.
-        rows = find_block_rows(cell_rows(), table_keys, slot_rows, key_count, max_count, brick_keys, brick_rows, brick_count, brick_max_count, first, n)
-        if rows[0] < 0:
-            failed[t] = 1
-            return
+    @wp.func
+    def gather_release_block(scan: Inputs, b: int, first: wp.vec3i, rows: cell_rows, voxel_data: wp.array2d(dtype=wp.float64)) -> wp.float64:
+        """Target block b, holding its n^3 cells' sums: the points of its source blocks (one row per (point,
+        block holding it) pair), each counted source_mult[b, :] times, are read once and weighed against
+        every cell (independent chains the CPU overlaps); then k(d) * y (Bayes) or the log commonality
+        ratios (Dempster) and the bookkeeping columns go into each cell's row once. Returns the
+        contributions."""
         centres = cell_centres()
         for j in range(n3):
-            centre = sbki_voxel_center(first[0] + j // (n * n), first[1] + (j // n) % n, first[2] + j % n, resolution, 0.0)
+            cell = block_cell(first, j, n)
+            centre = sbki_voxel_center(cell[0], cell[1], cell[2], scan.resolution, 0.0)
             centres[j, 0] = centre[0]
             centres[j, 1] = centre[1]
             centres[j, 2] = centre[2]
-        reach = float(length)
+        sigma0 = scan.sigma0
+        reach = float(scan.length)
         reach2 = reach * reach
-        inverse_length = _ONE / length
+        inverse_length = _ONE / scan.length
         evidence = class_cell_sums()
         # Dempster: products of commonality ratios (each at most 1 / BELIEF_EPSILON = 1e6), folded into the
         # log sums after at most _MAX_FACTORS ratios: about 1 log per cell and class per 40 points instead of 1 per point.
         commonality = cell_sums()
         factors = cell_scalars()
-        if fusion == FUSION_DEMPSTER:
+        if wp.static(dempster):
             for j in range(n3):
                 for c in range(num_classes):
                     commonality[j, c] = _ONE
         weight_sum = cell_scalars()
         weighted_u = cell_scalars()
         hits = cell_scalars()
-        for o in range(source_blocks.shape[1]):
-            s = source_blocks[b, o]
+        for o in range(scan.source_blocks.shape[1]):
+            s = scan.source_blocks[b, o]
             if s >= 0:
-                mult = f64(source_mult[b, o])
-                for q in range(point_start[s], point_start[s + 1]):
-                    p = points[q]
-                    y = class_weights[q]
-                    u = point_uncertainty[q]
+                models = scan.source_mult[b, o]
+                mult = f64(models)
+                for q in range(scan.point_start[s], scan.point_start[s + 1]):
+                    p = scan.points[q]
+                    y = scan.class_weights[q]
+                    u = scan.uncertainty[q]
                     # Kernel values for all cells without branches (0 beyond reach), which vectorise;
                     # adding 0 leaves a sum as it was.
                     weights = cell_scalars()
@@ -187,7 +188,7 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, prefetc
                         dz = centres[j, 2] - p[2]
                         d2 = dx * dx + dy * dy + dz * dz
                         weights[j] = wp.where(d2 < reach2, f64(release_sparse_kernel(d2, inverse_length, sigma0)), _ZERO)
-                    if fusion == FUSION_DEMPSTER:
+                    if wp.static(dempster):
                         # Cell by cell, only where the kernel is positive: as vectors over all cells
                         # (ratios of exactly 1 out of reach) this loop measured 1.7x slower.
                         for j in range(n3):
@@ -200,7 +201,7 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, prefetc
                                 inverse_uncommitted = _ONE / wp.max(_ONE - committed, _BELIEF_EPSILON)
                                 for c in range(num_classes):
                                     ratio = _ONE + wp.clamp(y[c] * wb, _ZERO, _ONE - _BELIEF_EPSILON) * inverse_uncommitted
-                                    commonality[j, c] = commonality[j, c] * integer_power(ratio, source_mult[b, o])
+                                    commonality[j, c] = commonality[j, c] * integer_power(ratio, models)
                                 # each point multiplies in at most 1e6^7 = 1e42; fold before 1e250 could overflow
                                 factors[j] = factors[j] + mult
                                 if factors[j] > _MAX_FACTORS:
@@ -216,50 +217,99 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, prefetc
                         weight_sum[j] = weight_sum[j] + mult * weights[j]
                         weighted_u[j] = weighted_u[j] + mult * weights[j] * u
                         hits[j] = hits[j] + wp.where(weights[j] > _ZERO, mult, _ZERO)
-        k = num_classes
         total_hits = _ZERO
         for j in range(n3):
             row = rows[j]
-            voxel_data[row, num_classes + COL_TOUCHED] = _ONE
             for c in range(num_classes):
-                if fusion == FUSION_DEMPSTER:
+                if wp.static(dempster):
                     evidence[c, j] = evidence[c, j] + wp.log(commonality[j, c])
                 voxel_data[row, c] = voxel_data[row, c] + evidence[c, j]
-            voxel_data[row, k + COL_WEIGHT] = voxel_data[row, k + COL_WEIGHT] + weight_sum[j]
-            voxel_data[row, k + COL_WEIGHTED_UNCERTAINTY] = voxel_data[row, k + COL_WEIGHTED_UNCERTAINTY] + weighted_u[j]
-            voxel_data[row, k + COL_HITS] = voxel_data[row, k + COL_HITS] + hits[j]
+            tally_row(voxel_data, row, num_classes, weight_sum[j], weighted_u[j], hits[j])
             total_hits += hits[j]
-        wp.atomic_add(update_count, 0, wp.int64(total_hits))
+        return total_hits
 
-    return gather_release_blocks
+    return block_gather_kernel(Inputs, gather_release_block, cells_per_block=n, prefetch=prefetch)
+
+
+@wp.struct
+class BlockLookup:
+    """Where a scan's blocks are: a dense ``grid`` of their indices over their bounding box widened by 3,
+    from ``lo`` (-1 where none), or, for blocks spread too wide for one, their packed keys ``keys``
+    ascending (block s has keys[s])."""
+
+    grid: wp.array3d(dtype=int)
+    lo: wp.vec3i
+    keys: wp.array(dtype=wp.int64)
 
 
 @wp.func
-def _grid_index(grid: wp.array3d(dtype=int), lo: wp.vec3i, b: wp.vec3i) -> int:
-    g = b - lo
-    return grid[g[0], g[1], g[2]]
+def grid_block_index(lookup: BlockLookup, b: wp.vec3i) -> int:
+    g = b - lookup.lo
+    return lookup.grid[g[0], g[1], g[2]]
 
 
-@wp.kernel
-def block_models(blocks: wp.array(dtype=wp.vec3i), grid: wp.array3d(dtype=int), lo: wp.vec3i,
-                 target_offsets: wp.array(dtype=wp.vec3i), face_offsets: wp.array(dtype=wp.vec3i),
-                 models_by_mask: wp.array2d(dtype=int), source_blocks: wp.array2d(dtype=int), source_mult: wp.array2d(dtype=int)):
-    """For block b and every target offset o: the block at blocks[b] + o (its index from ``grid``, a
-    dense map of the scan's blocks over their bounding box widened by 3; -1 none) and the number of
-    its models that predict for blocks[b]. Those models are the occupied blocks blocks[b] + f (f a face
-    offset or 0) that also lie in the source's extended block, so the count is
-    models_by_mask[o, mask of the occupied f]: 7 lookups per block where testing every (o, f) took 25 x 7.
-    One thread per block (one per block and offset took ~1.5x as long on the CPU, where each thread
-    has a fixed cost)."""
-    b = wp.tid()
-    occupied = int(0)
-    for f in range(face_offsets.shape[0]):
-        if _grid_index(grid, lo, blocks[b] + face_offsets[f]) >= 0:
-            occupied = occupied | (1 << f)
-    for o in range(target_offsets.shape[0]):
-        index = _grid_index(grid, lo, blocks[b] + target_offsets[o])
-        source_blocks[b, o] = index
-        source_mult[b, o] = wp.where(index >= 0, models_by_mask[o, occupied], 0)
+@wp.func
+def searched_block_index(lookup: BlockLookup, b: wp.vec3i) -> int:
+    """Binary search of b's packed key (-1: absent, or outside the key range)."""
+    for axis in range(3):
+        if b[axis] < -KEY_OFFSET or b[axis] >= KEY_OFFSET:
+            return -1
+    key = pack_key(b[0], b[1], b[2])
+    lo = int(0)
+    hi = lookup.keys.shape[0]
+    while lo < hi:
+        mid = (lo + hi) / 2
+        if lookup.keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < lookup.keys.shape[0]:
+        if lookup.keys[lo] == key:
+            return lo
+    return -1
+
+
+def _block_models_kernel(block_index):
+    @wp.kernel(module=__name__)
+    def block_models(blocks: wp.array(dtype=wp.vec3i), lookup: BlockLookup, target_offsets: wp.array(dtype=wp.vec3i),
+                     face_offsets: wp.array(dtype=wp.vec3i), models_by_mask: wp.array2d(dtype=int), source_blocks: wp.array2d(dtype=int),
+                     source_mult: wp.array2d(dtype=int)):
+        """For block b and every target offset o: the block at blocks[b] + o (its index through ``lookup``;
+        -1 none) and the number of its models that predict for blocks[b]. Those models are the occupied
+        blocks blocks[b] + f (f a face offset or 0) that also lie in the source's extended block, so the
+        count is models_by_mask[o, mask of the occupied f]: 7 lookups per block where testing every (o, f)
+        took 25 x 7. One thread per block (one per block and offset took ~1.5x as long on the CPU, where
+        each thread has a fixed cost)."""
+        b = wp.tid()
+        occupied = int(0)
+        for f in range(face_offsets.shape[0]):
+            if wp.static(block_index)(lookup, blocks[b] + face_offsets[f]) >= 0:
+                occupied = occupied | (1 << f)
+        for o in range(target_offsets.shape[0]):
+            index = wp.static(block_index)(lookup, blocks[b] + target_offsets[o])
+            source_blocks[b, o] = index
+            source_mult[b, o] = wp.where(index >= 0, models_by_mask[o, occupied], 0)
+
+    return block_models
+
+
+_BLOCK_MODELS = {True: _block_models_kernel(grid_block_index), False: _block_models_kernel(searched_block_index)}
+
+
+def block_models_kernel(dense: bool):
+    """``block_models`` (blocks, lookup: BlockLookup, target_offsets, face_offsets, models_by_mask,
+    source_blocks, source_mult) through a dense grid or a binary search over the packed keys."""
+    return _BLOCK_MODELS[bool(dense)]
+
+
+def block_lookup(*, grid=None, lo=(0, 0, 0), keys=None) -> BlockLookup:
+    lookup = BlockLookup()
+    if grid is not None:
+        lookup.grid = grid
+    lookup.lo = wp.vec3i(*[int(v) for v in lo])
+    if keys is not None:
+        lookup.keys = keys
+    return lookup
 
 
 @wp.func
@@ -318,7 +368,7 @@ def keep_first_per_block(cells: wp.array(dtype=int), cap: int, counts: wp.array(
 
 
 # Kernels made by factories, by name (tests/test_twins.py looks their twins up by these names).
-KERNEL_FACTORIES = {"gather_release_blocks": gather_release_kernel}
+KERNEL_FACTORIES = {"gather_release_blocks": gather_release_kernel, "block_models": block_models_kernel}
 
 
 def vector_type(num_classes: int):

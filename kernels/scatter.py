@@ -1,8 +1,12 @@
 """Radius-search-and-scatter kernels: one launch integrates one scan into the voxel map (Warp).
 
 Each point visits the voxels its weight function can reach, finds or inserts them in the hash
-table and atomically adds weight * y into their Dirichlet concentrations. The traversal is
-written once; what changes between methods is the small weight rule chosen by ``mode``:
+table and atomically adds weight * y into their Dirichlet concentrations. The traversal is written
+once, in ``walk_kernel``: a kernel factory that loops over the voxels a point reaches and calls, per
+voxel, a *visit* (small ``@wp.func``s captured with ``wp.static``); the scatter, the pair listing of
+``kernels.sorted_scatter`` and the reached-voxel marking of ``kernels.hashgrid_gather`` are visits. The
+scatter's visit is built from a weight rule (one ``@wp.func`` per method) and an evidence rule (one per
+payload kind and fusion); ``mode`` picks where a point reaches and its weight rule:
 
 * ``MODE_RADIUS``: the paper's sparse kernel k'(d, l_i, sigma0) on every voxel whose centre lies
   strictly within the point's own length l_i (S-BKI, EBS and the ablations, "clean" mode).
@@ -20,6 +24,12 @@ commonality ratios log(1 + b'_c / u'), u' = 1 - sum b'. Dempster's rule multipli
 these sums fuse any number of points in any order; ``mapping.summarize_beliefs`` turns them back
 into masses. ``scatter_block_targets`` is SEE-CSOM's block-gated traversal.
 
+Every (mode, fusion, payload kind) is its own kernel, built when this module is imported
+(``scatter_kernel`` picks one): nothing in a kernel's per-point loop branches on a method. Kernels read
+a scan as one ``ScanPoints`` struct, the method's numbers as one ``ScatterParams`` and write through one
+``MapTarget`` (the table as a ``kernels.hash_table.HashTable``, the value rows, the failure flags and
+the update count); ``tally_row`` is the one place a row's bookkeeping columns are written.
+
 In the clean modes every point runs two passes over its voxels: the first finds or inserts all
 of them, the second adds. A point whose insertion fails (table full) adds nothing and is flagged
 in ``failed``; the host grows the table and relaunches only those points, so each point lands
@@ -34,9 +44,13 @@ uncertainty sum, the contribution count and the touched flag (counts in float64 
 numpy twin: ``evsemmap_warp/reference/scatter.py``.
 """
 
+import functools
+from dataclasses import dataclass
+from typing import Any
+
 import warp as wp
 
-from .hash_table import pack_key, table_find, table_find_or_insert
+from .hash_table import HashTable, block_cell, block_first_cell, pack_key, table_find, table_find_or_insert
 
 wp.set_module_options({"enable_backward": False})
 
@@ -172,6 +186,8 @@ def sbki_sparse_kernel(cell: wp.vec3, point: wp.vec3, ell: float, sf2: float) ->
     return sbki_sparse_kernel_scaled(cell / ell, point / ell, sf2)
 
 
+
+
 @wp.func
 def sbki_voxel_center(ix: int, iy: int, iz: int, resolution: float, grid_offset: float) -> wp.vec3:
     """A cell centre in float32, as the compat kernel evaluates it."""
@@ -207,176 +223,462 @@ def block_of_voxel(i: int, cells_per_block: int) -> int:
     return b
 
 
-@wp.func
-def reach_of(mode: int, length: wp.float64, resolution: wp.float64) -> wp.float64:
-    """How far from the point a target voxel centre may lie."""
-    if mode == MODE_SBKI_BLOCKS:
-        return length * _SBKI_REACH
-    if mode == MODE_RADIUS:
-        return length
-    return resolution  # own voxel / own block: the range below is a single voxel anyway
+# ---------------------------------------------------------------------------- what kernels read and write
+@wp.struct
+class ScanPoints:
+    """One scan's points as the kernels read them; a kernel reads only some, the others may stay unset.
+    ``point_ids`` [T]: the point each thread takes (a relaunch passes the ones that failed); ``points``
+    [N] (m, float64, relative to the map origin); ``lengths`` [N] kernel lengths (m); ``uncertainty`` [N];
+    the payload, ``labels`` [N] or ``class_weights`` [N, K]; ``owner_blocks`` [N]: the S-BKI modes' blocks."""
+
+    point_ids: wp.array(dtype=int)
+    points: wp.array(dtype=wp.vec3d)
+    lengths: wp.array(dtype=wp.float64)
+    uncertainty: wp.array(dtype=wp.float64)
+    labels: wp.array(dtype=int)
+    class_weights: wp.array2d(dtype=wp.float64)
+    owner_blocks: wp.array(dtype=wp.vec3i)
+
+
+@wp.struct
+class ScatterParams:
+    """The lattice (voxel i spans [i r + o, (i + 1) r + o) per axis, r = ``resolution``, o = ``grid_offset``,
+    m) and the weight rules' numbers: ``sigma0``, ``cells_per_block`` (S-BKI blocks per axis),
+    ``stencil_weights`` [(2h + 1)^3, K] and ``stencil_half`` h (ConvBKI)."""
+
+    resolution: wp.float64
+    grid_offset: wp.float64
+    sigma0: wp.float64
+    cells_per_block: int
+    stencil_weights: wp.array2d(dtype=wp.float64)
+    stencil_half: int
+
+
+@wp.struct
+class MapTarget:
+    """Where a launch writes: the voxel table, its value rows ``voxel_data`` [capacity, K + 4], ``failed``
+    [T] (1: the thread's work did not fit; relaunched after the table grew) and ``update_count`` [1]."""
+
+    table: HashTable
+    voxel_data: wp.array2d(dtype=wp.float64)
+    failed: wp.array(dtype=int)
+    update_count: wp.array(dtype=wp.int64)
+
+
+@wp.struct
+class Span:
+    """The voxels a point may reach: index ranges lo..hi per axis, its owner (S-BKI block, or ConvBKI's
+    voxel) and the squared reach (m^2) of the distance test."""
+
+    lo: wp.vec3i
+    hi: wp.vec3i
+    owner: wp.vec3i
+    reach2: wp.float64
 
 
 @wp.func
-def range_end(mode: int, p: wp.vec3d, reach: wp.float64, owner: wp.vec3i, resolution: wp.float64, grid_offset: wp.float64, side: int) -> wp.vec3i:
-    """First (side -1) or last (side +1) voxel index per axis that a point may reach."""
-    if mode == MODE_SBKI_OWN_BLOCK:
-        return owner
-    if mode == MODE_STENCIL:  # owner is the point's voxel, reach the stencil's half width in voxels
-        h = int(reach)
-        return owner + wp.vec3i(side * h, side * h, side * h)
-    r = reach
-    if mode == MODE_OWN_VOXEL:
-        r = _ZERO
-    s = f64(side)
-    return wp.vec3i(
-        voxel_of(p[0] + s * r, resolution, grid_offset),
-        voxel_of(p[1] + s * r, resolution, grid_offset),
-        voxel_of(p[2] + s * r, resolution, grid_offset),
-    )
+def tally_row(voxel_data: wp.array2d(dtype=wp.float64), row: int, num_classes: int, weight: wp.float64,
+              weighted_uncertainty: wp.float64, hits: wp.float64):
+    """A row's bookkeeping: weight sum += weight, weight * uncertainty sum += weighted_uncertainty,
+    contribution count += hits, touched = 1. Every kernel that writes a row goes through here: the
+    scatter once per contribution, the gathers once per voxel with their sums (atomic adds, which on the
+    CPU are the plain adds)."""
+    wp.atomic_add(voxel_data, row, num_classes + COL_WEIGHT, weight)
+    wp.atomic_add(voxel_data, row, num_classes + COL_WEIGHTED_UNCERTAINTY, weighted_uncertainty)
+    wp.atomic_add(voxel_data, row, num_classes + COL_HITS, hits)
+    voxel_data[row, num_classes + COL_TOUCHED] = _ONE
+
+
+# ---------------------------------------------------------------------------- evidence rules (payload kind, fusion)
+# (scan, params, voxel_data, row, i, w, stencil_row) -> the weight the row's bookkeeping records.
+@wp.func
+def add_label_evidence(scan: ScanPoints, params: ScatterParams, voxel_data: wp.array2d(dtype=wp.float64), row: int, i: int,
+                       w: wp.float64, stencil_row: int) -> wp.float64:
+    """One-hot payload: w into the point's label column."""
+    wp.atomic_add(voxel_data, row, scan.labels[i], w)
+    return w
 
 
 @wp.func
-def record_contribution(voxel_data: wp.array2d(dtype=wp.float64), voxel_row: int, num_classes: int, w: wp.float64, u: wp.float64):
-    """The per-voxel bookkeeping of one contribution: weight and weight * uncertainty sums, count, touched."""
-    wp.atomic_add(voxel_data, voxel_row, num_classes + COL_WEIGHT, w)
-    wp.atomic_add(voxel_data, voxel_row, num_classes + COL_WEIGHTED_UNCERTAINTY, w * u)
-    wp.atomic_add(voxel_data, voxel_row, num_classes + COL_HITS, _ONE)
-    voxel_data[voxel_row, num_classes + COL_TOUCHED] = _ONE
+def add_weighted_evidence(scan: ScanPoints, params: ScatterParams, voxel_data: wp.array2d(dtype=wp.float64), row: int, i: int,
+                          w: wp.float64, stencil_row: int) -> wp.float64:
+    """Class-weight payload, Bayes fusion: w * y_k into column k."""
+    for c in range(voxel_data.shape[1] - _EXTRA):
+        wp.atomic_add(voxel_data, row, c, w * scan.class_weights[i, c])
+    return w
 
 
 @wp.func
-def block_step(mode: int, i: int, owner_i: int, cells_per_block: int) -> int:
-    """|block of voxel i - owner block| on one axis (0 outside the block-restricted mode)."""
-    if mode == MODE_SBKI_BLOCKS:
-        return wp.abs(block_of_voxel(i, cells_per_block) - owner_i)
+def add_belief_evidence(scan: ScanPoints, params: ScatterParams, voxel_data: wp.array2d(dtype=wp.float64), row: int, i: int,
+                        w: wp.float64, stencil_row: int) -> wp.float64:
+    """Dempster fusion: the point's belief masses (``class_weights``) discounted by min(w, 1), added as
+    log commonality ratios log(1 + b'_k / u'); the bookkeeping records min(w, 1)."""
+    discount = wp.min(w, _ONE)
+    num_classes = voxel_data.shape[1] - _EXTRA
+    committed = _ZERO
+    for c in range(num_classes):
+        committed += wp.clamp(scan.class_weights[i, c] * discount, _ZERO, _ONE - _BELIEF_EPSILON)
+    uncommitted = wp.max(_ONE - committed, _BELIEF_EPSILON)
+    for c in range(num_classes):
+        b = wp.clamp(scan.class_weights[i, c] * discount, _ZERO, _ONE - _BELIEF_EPSILON)
+        wp.atomic_add(voxel_data, row, c, wp.log(_ONE + b / uncommitted))
+    return discount
+
+
+@wp.func
+def add_stencil_evidence(scan: ScanPoints, params: ScatterParams, voxel_data: wp.array2d(dtype=wp.float64), row: int, i: int,
+                         w: wp.float64, stencil_row: int) -> wp.float64:
+    """ConvBKI: per class, the stencil's weight for this offset times y_k."""
+    for c in range(voxel_data.shape[1] - _EXTRA):
+        wp.atomic_add(voxel_data, row, c, params.stencil_weights[stencil_row, c] * scan.class_weights[i, c])
+    return w
+
+
+# ---------------------------------------------------------------------------- weight rules, one per method
+@dataclass(frozen=True)
+class WeightRule:
+    """What a point gives a voxel it reaches. ``screen`` (scan, params, i, cell, span) -> float64: positive
+    where the voxel takes part at all (both passes: a voxel screened out is not even inserted);
+    ``weight`` (scan, params, i, p, cell, d2, span, screened) -> float64, in the adding pass, d2 the
+    squared distance (m^2) from the point to the voxel centre; ``positive_only``: nothing is added
+    where the weight is not positive (the C++ S-BKI adds only positive kernel values)."""
+
+    screen: Any
+    weight: Any
+    positive_only: bool = False
+
+
+@wp.func
+def stencil_row(cell: wp.vec3i, owner: wp.vec3i, half: int) -> int:
+    """Row of ``stencil_weights`` for the offset of ``cell`` from ``owner`` (both within ``half``)."""
+    side = 2 * half + 1
+    return ((cell[0] - owner[0] + half) * side + (cell[1] - owner[1] + half)) * side + (cell[2] - owner[2] + half)
+
+
+@wp.func
+def every_voxel(scan: ScanPoints, params: ScatterParams, i: int, cell: wp.vec3i, span: Span) -> wp.float64:
+    return _ONE
+
+
+@wp.func
+def convbki_mass(scan: ScanPoints, params: ScatterParams, i: int, cell: wp.vec3i, span: Span) -> wp.float64:
+    """ConvBKI's screen: the point's stencil mass at this offset, sum_k stencil[offset, k] y_k (offsets
+    that add nothing are skipped)."""
+    row = stencil_row(cell, span.owner, params.stencil_half)
+    mass = _ZERO
+    for c in range(params.stencil_weights.shape[1]):
+        mass += params.stencil_weights[row, c] * scan.class_weights[i, c]
+    return mass
+
+
+@wp.func
+def sparse_weight(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d, cell: wp.vec3i, d2: wp.float64, span: Span,
+                  screened: wp.float64) -> wp.float64:
+    """S-BKI, EBS, the ablations and Dempster (clean): k'(d, l_i, sigma0)."""
+    return sparse_kernel(wp.sqrt(d2), scan.lengths[i], params.sigma0)
+
+
+@wp.func
+def count_weight(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d, cell: wp.vec3i, d2: wp.float64, span: Span,
+                 screened: wp.float64) -> wp.float64:
+    """S-CSM: 1 (the walk reaches the one voxel or block cell the point counts in)."""
+    return _ONE
+
+
+@wp.func
+def sbki_compat_weight(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d, cell: wp.vec3i, d2: wp.float64, span: Span,
+                       screened: wp.float64) -> wp.float64:
+    """The original S-BKI: its float32 sparse kernel of the float32 point, cell centre, ell and sf2."""
+    centre = sbki_voxel_center(cell[0], cell[1], cell[2], float(params.resolution), float(params.grid_offset))
+    point = wp.vec3(float(p[0]), float(p[1]), float(p[2]))
+    return f64(sbki_sparse_kernel(centre, point, float(scan.lengths[i]), float(params.sigma0)))
+
+
+@wp.func
+def convbki_weight(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d, cell: wp.vec3i, d2: wp.float64, span: Span,
+                   screened: wp.float64) -> wp.float64:
+    """ConvBKI: the stencil mass the screen found (the evidence goes in per class)."""
+    return screened
+
+
+@wp.func
+def see_csom_weight(centre: wp.vec3d, p: wp.vec3d, length: wp.float64) -> wp.float64:
+    """SEE-CSOM's triangular kernel max(0, 1 - d / l)."""
+    return wp.max(_ONE - wp.length(centre - p) / length, _ZERO)
+
+
+SPARSE_RULE = WeightRule(every_voxel, sparse_weight)
+COUNT_RULE = WeightRule(every_voxel, count_weight)
+SBKI_COMPAT_RULE = WeightRule(every_voxel, sbki_compat_weight, positive_only=True)
+CONVBKI_RULE = WeightRule(convbki_mass, convbki_weight)
+
+
+# ---------------------------------------------------------------------------- where a point reaches
+@wp.func
+def _ball(p: wp.vec3d, reach: wp.float64, owner: wp.vec3i, params: ScatterParams) -> Span:
+    span = Span()
+    span.lo = wp.vec3i(voxel_of(p[0] - reach, params.resolution, params.grid_offset), voxel_of(p[1] - reach, params.resolution, params.grid_offset),
+                       voxel_of(p[2] - reach, params.resolution, params.grid_offset))
+    span.hi = wp.vec3i(voxel_of(p[0] + reach, params.resolution, params.grid_offset), voxel_of(p[1] + reach, params.resolution, params.grid_offset),
+                       voxel_of(p[2] + reach, params.resolution, params.grid_offset))
+    span.owner = owner
+    span.reach2 = reach * reach
+    return span
+
+
+@wp.func
+def _own_voxel(p: wp.vec3d, params: ScatterParams) -> wp.vec3i:
+    return wp.vec3i(voxel_of(p[0], params.resolution, params.grid_offset), voxel_of(p[1], params.resolution, params.grid_offset),
+                    voxel_of(p[2], params.resolution, params.grid_offset))
+
+
+@wp.func
+def ball_span(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d) -> Span:
+    """Voxels whose centre lies within the point's length."""
+    return _ball(p, scan.lengths[i], wp.vec3i(0, 0, 0), params)
+
+
+@wp.func
+def block_ball_span(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d) -> Span:
+    """Voxels within SBKI_REACH_FACTOR lengths, in the owner block or a face neighbour of it."""
+    return _ball(p, scan.lengths[i] * _SBKI_REACH, scan.owner_blocks[i], params)
+
+
+@wp.func
+def own_voxel_span(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d) -> Span:
+    """The voxel holding the point."""
+    span = Span()
+    span.lo = _own_voxel(p, params)
+    span.hi = span.lo
+    return span
+
+
+@wp.func
+def own_block_span(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d) -> Span:
+    """The owner block's one cell (S-CSM's blocks of one cell)."""
+    span = Span()
+    span.owner = scan.owner_blocks[i]
+    span.lo = span.owner
+    span.hi = span.owner
+    return span
+
+
+@wp.func
+def cube_span(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d) -> Span:
+    """The (2h + 1)^3 voxels around the point's voxel (ConvBKI's stencil)."""
+    span = Span()
+    span.owner = _own_voxel(p, params)
+    h = params.stencil_half
+    span.lo = span.owner - wp.vec3i(h, h, h)
+    span.hi = span.owner + wp.vec3i(h, h, h)
+    return span
+
+
+REACH_BALL, REACH_BLOCK_BALL, REACH_OWN_VOXEL, REACH_OWN_BLOCK, REACH_CUBE = range(5)
+_SPAN_OF = {REACH_BALL: ball_span, REACH_BLOCK_BALL: block_ball_span, REACH_OWN_VOXEL: own_voxel_span, REACH_OWN_BLOCK: own_block_span,
+            REACH_CUBE: cube_span}
+
+
+@wp.func
+def centre_offset(i: int, resolution: wp.float64, grid_offset: wp.float64, p: wp.float64) -> wp.float64:
+    """Voxel i's centre minus p on one axis (m)."""
+    return (f64(i) + _HALF) * resolution + grid_offset - p
+
+
+# ---------------------------------------------------------------------------- the traversal
+@dataclass(frozen=True)
+class Visit:
+    """What ``walk_kernel`` does per point and per voxel it reaches (``@wp.func``s; ``Out`` the wp.struct
+    the kernel writes through):
+
+    * ``begin(scan, out, t, i) -> int64``: the point's counter at the start;
+    * ``insert(scan, params, out, t, i, cell, span) -> int``: the first pass (None: no first pass),
+      negative when the point must stop (it flagged itself for a relaunch);
+    * ``step(scan, params, out, t, i, p, cell, d2, span, counter) -> int64``: the (second) pass,
+      negative when the point must stop;
+    * ``end(scan, out, t, i, counter)``: after a point's last voxel.
+
+    ``indexed``: thread t takes point scan.point_ids[t] (else point t)."""
+
+    Out: Any
+    begin: Any
+    step: Any
+    end: Any
+    insert: Any = None
+    indexed: bool = True
+
+
+@wp.func
+def _insert_nothing(scan: ScanPoints, params: ScatterParams, out: Any, t: int, i: int, cell: wp.vec3i, span: Span) -> int:
     return 0
 
 
-@wp.kernel
-def scatter_points(
-    point_ids: wp.array(dtype=int),
-    points: wp.array(dtype=wp.vec3d),
-    labels: wp.array(dtype=int),
-    class_weights: wp.array2d(dtype=wp.float64),
-    lengths: wp.array(dtype=wp.float64),
-    point_uncertainty: wp.array(dtype=wp.float64),
-    owner_blocks: wp.array(dtype=wp.vec3i),
-    mode: int,
-    use_labels: int,
-    resolution: wp.float64,
-    grid_offset: wp.float64,
-    sigma0: wp.float64,
-    cells_per_block: int,
-    fusion: int,
-    stencil_weights: wp.array2d(dtype=wp.float64),
-    stencil_half: int,
-    table_keys: wp.array(dtype=wp.int64),
-    slot_rows: wp.array(dtype=int),
-    key_count: wp.array(dtype=int),
-    max_count: int,
-    voxel_data: wp.array2d(dtype=wp.float64),
-    failed: wp.array(dtype=int),
-    update_count: wp.array(dtype=wp.int64),
-):
-    """Integrate points[point_ids[t]] into the map.
+@wp.func
+def count_from_zero(scan: ScanPoints, out: Any, t: int, i: int) -> wp.int64:
+    """A visit's ``begin`` whose counter starts at 0."""
+    return wp.int64(0)
 
-    voxel_data[:, k] += weight * y_k (y one-hot labels[i] or class_weights[i]), then per contribution
-    weight sum += weight, weight * uncertainty sum += weight * u, count += 1, touched = 1.
-    """
-    t = wp.tid()
-    i = point_ids[t]
-    p = points[i]
-    length = lengths[i]
-    owner = wp.vec3i(0, 0, 0)
-    if mode == MODE_SBKI_BLOCKS or mode == MODE_SBKI_OWN_BLOCK:
-        owner = owner_blocks[i]
-    reach = reach_of(mode, length, resolution)
-    if mode == MODE_STENCIL:
-        owner = wp.vec3i(voxel_of(p[0], resolution, grid_offset), voxel_of(p[1], resolution, grid_offset), voxel_of(p[2], resolution, grid_offset))
-        reach = f64(stencil_half)
-    reach2 = reach * reach
-    lo = range_end(mode, p, reach, owner, resolution, grid_offset, -1)
-    hi = range_end(mode, p, reach, owner, resolution, grid_offset, 1)
-    u = point_uncertainty[i]
-    # The compat kernel sees the point, the length and the grid in float32, as the C++ does.
-    p32 = wp.vec3(float(p[0]), float(p[1]), float(p[2]))
-    length32 = float(length)
-    sigma32 = float(sigma0)
-    resolution32 = float(resolution)
-    offset32 = float(grid_offset)
-    # Only the radius modes test distances; the own-voxel/own-block ranges hold exactly the target.
-    by_distance = mode == MODE_RADIUS or mode == MODE_SBKI_BLOCKS
-    # Pass 0 inserts (clean modes only: compat targets were inserted by insert_block_cells),
-    # pass 1 adds; a point whose insertion fails adds nothing and is retried after growth.
-    first_pass = 1
-    if mode == MODE_RADIUS or mode == MODE_OWN_VOXEL or mode == MODE_STENCIL:
-        first_pass = 0
-    side = 2 * stencil_half + 1
-    num_classes = voxel_data.shape[1] - _EXTRA
-    n_updates = wp.int64(0)
-    for pass_index in range(first_pass, 2):
-        for ix in range(lo[0], hi[0] + 1):
-            dx = (f64(ix) + _HALF) * resolution + grid_offset - p[0]
-            bx = block_step(mode, ix, owner[0], cells_per_block)
-            if (not by_distance or dx * dx < reach2) and bx <= 1:
-                for iy in range(lo[1], hi[1] + 1):
-                    dy = (f64(iy) + _HALF) * resolution + grid_offset - p[1]
-                    bxy = bx + block_step(mode, iy, owner[1], cells_per_block)
-                    if (not by_distance or dx * dx + dy * dy < reach2) and bxy <= 1:
-                        for iz in range(lo[2], hi[2] + 1):
-                            dz = (f64(iz) + _HALF) * resolution + grid_offset - p[2]
-                            d2 = dx * dx + dy * dy + dz * dz
-                            bxyz = bxy + block_step(mode, iz, owner[2], cells_per_block)
-                            # ConvBKI: the stencil row of this offset; offsets that add nothing are skipped.
-                            row = int(0)
-                            stencil_mass = _ONE
-                            if mode == MODE_STENCIL:
-                                row = ((ix - owner[0] + stencil_half) * side + (iy - owner[1] + stencil_half)) * side + (iz - owner[2] + stencil_half)
-                                stencil_mass = _ZERO
-                                for c in range(num_classes):
-                                    stencil_mass += stencil_weights[row, c] * class_weights[i, c]
-                            if (not by_distance or d2 < reach2) and bxyz <= 1 and stencil_mass > _ZERO:
-                                key = pack_key(ix, iy, iz)
-                                if pass_index == 0:
-                                    if table_find_or_insert(table_keys, slot_rows, key_count, max_count, key) < 0:
-                                        failed[t] = 1
-                                        return
-                                    continue
-                                # The weight is needed only here, in the adding pass.
-                                w = _ONE
-                                if mode == MODE_RADIUS:
-                                    w = sparse_kernel(wp.sqrt(d2), length, sigma0)
-                                elif mode == MODE_STENCIL:
-                                    w = stencil_mass
-                                elif mode == MODE_SBKI_BLOCKS:
-                                    w = f64(sbki_sparse_kernel(sbki_voxel_center(ix, iy, iz, resolution32, offset32), p32, length32, sigma32))
-                                if mode != MODE_SBKI_BLOCKS or w > _ZERO:  # the C++ adds only positive kernel values
-                                    voxel_row = table_find(table_keys, slot_rows, key)
-                                    if voxel_row < 0:
-                                        # Only reachable in the compat modes, if a target cell was not pre-inserted.
-                                        failed[t] = 1
-                                        return
-                                    if use_labels == 1:
-                                        wp.atomic_add(voxel_data, voxel_row, labels[i], w)
-                                    elif mode == MODE_STENCIL:
-                                        for c in range(num_classes):
-                                            wp.atomic_add(voxel_data, voxel_row, c, stencil_weights[row, c] * class_weights[i, c])
-                                    elif fusion == FUSION_DEMPSTER:
-                                        w = wp.min(w, _ONE)
-                                        committed = _ZERO
-                                        for c in range(num_classes):
-                                            committed += wp.clamp(class_weights[i, c] * w, _ZERO, _ONE - _BELIEF_EPSILON)
-                                        uncommitted = wp.max(_ONE - committed, _BELIEF_EPSILON)
-                                        for c in range(num_classes):
-                                            b = wp.clamp(class_weights[i, c] * w, _ZERO, _ONE - _BELIEF_EPSILON)
-                                            wp.atomic_add(voxel_data, voxel_row, c, wp.log(_ONE + b / uncommitted))
+
+@wp.func
+def end_nothing(scan: ScanPoints, out: Any, t: int, i: int, counter: wp.int64):
+    """A visit's ``end`` with nothing to write."""
+    pass
+
+
+def walk_kernel(reach: int, visit: Visit, *, module: str):
+    """The one traversal: a kernel over points (scan: ScanPoints, params: ScatterParams, out:
+    visit.Out) that calls ``visit`` for every voxel the point reaches (``reach``: REACH_*), x, then y,
+    then z ascending; a ball's rows and columns outside the reach are skipped whole. ``module``: the Warp
+    module the kernel belongs to (the module that builds it)."""
+    by_distance = reach in (REACH_BALL, REACH_BLOCK_BALL)
+    by_block = reach == REACH_BLOCK_BALL
+    span_of = _SPAN_OF[reach]
+    first_pass = 0 if visit.insert is not None else 1
+    insert = visit.insert if visit.insert is not None else _insert_nothing
+    Out = visit.Out
+
+    @wp.func
+    def block_steps(i: int, owner_i: int, params: ScatterParams) -> int:
+        """|block of voxel i - owner block| on one axis (0 but in the block-restricted reach)."""
+        steps = int(0)
+        if wp.static(by_block):
+            steps = wp.abs(block_of_voxel(i, params.cells_per_block) - owner_i)
+        return steps
+
+    @wp.func
+    def reached(partial_d2: wp.float64, steps: int, span: Span) -> bool:
+        """Whether the voxels past this axis may be reached: the squared distance so far (m^2) within the
+        reach and at most one block step so far."""
+        near = steps <= 1
+        if wp.static(by_distance):
+            near = partial_d2 < span.reach2 and steps <= 1
+        return near
+
+    @wp.kernel(module=module)
+    def walk(scan: ScanPoints, params: ScatterParams, out: Out):
+        t = wp.tid()
+        i = t
+        if wp.static(visit.indexed):
+            i = scan.point_ids[t]
+        p = scan.points[i]
+        span = wp.static(span_of)(scan, params, i, p)
+        counter = wp.static(visit.begin)(scan, out, t, i)
+        for pass_index in range(wp.static(first_pass), 2):
+            for ix in range(span.lo[0], span.hi[0] + 1):
+                dx = centre_offset(ix, params.resolution, params.grid_offset, p[0])
+                bx = block_steps(ix, span.owner[0], params)
+                if reached(dx * dx, bx, span):
+                    for iy in range(span.lo[1], span.hi[1] + 1):
+                        dy = centre_offset(iy, params.resolution, params.grid_offset, p[1])
+                        dxy2 = dx * dx + dy * dy
+                        bxy = bx + block_steps(iy, span.owner[1], params)
+                        if reached(dxy2, bxy, span):
+                            for iz in range(span.lo[2], span.hi[2] + 1):
+                                dz = centre_offset(iz, params.resolution, params.grid_offset, p[2])
+                                d2 = dxy2 + dz * dz
+                                if reached(d2, bxy + block_steps(iz, span.owner[2], params), span):
+                                    cell = wp.vec3i(ix, iy, iz)
+                                    if pass_index == 0:
+                                        if wp.static(insert)(scan, params, out, t, i, cell, span) < 0:
+                                            return
                                     else:
-                                        for c in range(num_classes):
-                                            wp.atomic_add(voxel_data, voxel_row, c, w * class_weights[i, c])
-                                    record_contribution(voxel_data, voxel_row, num_classes, w, u)
-                                    n_updates += wp.int64(1)
-    wp.atomic_add(update_count, 0, n_updates)
+                                        counter = wp.static(visit.step)(scan, params, out, t, i, p, cell, d2, span, counter)
+                                        if counter < wp.int64(0):
+                                            return
+        wp.static(visit.end)(scan, out, t, i, counter)
+
+    return walk
+
+
+# ---------------------------------------------------------------------------- the scatter
+@wp.func
+def _count_updates(scan: ScanPoints, out: MapTarget, t: int, i: int, counter: wp.int64):
+    wp.atomic_add(out.update_count, 0, counter)
+
+
+def scatter_visit(rule: WeightRule, evidence, *, inserts: bool) -> Visit:
+    """The scatter as a visit: (``inserts``) a first pass that finds or inserts every voxel the rule's
+    screen lets through, then the pass that adds the rule's weight through ``evidence`` (an evidence
+    rule) and tallies the row; the point's update count goes to ``update_count`` at its end."""
+
+    @wp.func
+    def insert_voxel(scan: ScanPoints, params: ScatterParams, out: MapTarget, t: int, i: int, cell: wp.vec3i, span: Span) -> int:
+        if wp.static(rule.screen)(scan, params, i, cell, span) > _ZERO:
+            if table_find_or_insert(out.table, pack_key(cell[0], cell[1], cell[2])) < 0:
+                out.failed[t] = 1
+                return -1
+        return 0
+
+    @wp.func
+    def add_to_voxel(scan: ScanPoints, params: ScatterParams, out: MapTarget, t: int, i: int, p: wp.vec3d, cell: wp.vec3i,
+                     d2: wp.float64, span: Span, counter: wp.int64) -> wp.int64:
+        screened = wp.static(rule.screen)(scan, params, i, cell, span)
+        if not (screened > _ZERO):
+            return counter
+        w = wp.static(rule.weight)(scan, params, i, p, cell, d2, span, screened)
+        if wp.static(rule.positive_only):
+            if not (w > _ZERO):
+                return counter
+        row = table_find(out.table, pack_key(cell[0], cell[1], cell[2]))
+        if row < 0:
+            # Only reachable in the compat modes, if a target cell was not inserted beforehand.
+            out.failed[t] = 1
+            return wp.int64(-1)
+        tallied = wp.static(evidence)(scan, params, out.voxel_data, row, i, w, stencil_row(cell, span.owner, params.stencil_half))
+        tally_row(out.voxel_data, row, out.voxel_data.shape[1] - _EXTRA, tallied, tallied * scan.uncertainty[i], _ONE)
+        return counter + wp.int64(1)
+
+    return Visit(MapTarget, count_from_zero, add_to_voxel, _count_updates, insert=insert_voxel if inserts else None)
+
+
+# mode -> (where a point reaches, its weight rule, whether the scatter inserts: the compat modes' targets
+# are inserted beforehand, by insert_block_cells)
+SCATTER_MODES = {
+    MODE_RADIUS: (REACH_BALL, SPARSE_RULE, True),
+    MODE_OWN_VOXEL: (REACH_OWN_VOXEL, COUNT_RULE, True),
+    MODE_SBKI_BLOCKS: (REACH_BLOCK_BALL, SBKI_COMPAT_RULE, False),
+    MODE_SBKI_OWN_BLOCK: (REACH_OWN_BLOCK, COUNT_RULE, False),
+    MODE_STENCIL: (REACH_CUBE, CONVBKI_RULE, True),
+}
+
+
+def _evidence_rule(mode: int, fusion: int, use_labels: bool):
+    """The evidence rule of a combination, None where the combination is not one: the stencil and
+    Dempster fusion read class weights, and Dempster discounts the sparse kernel (radius mode)."""
+    if mode == MODE_STENCIL:
+        return add_stencil_evidence if fusion == FUSION_BAYES and not use_labels else None
+    if fusion == FUSION_DEMPSTER:
+        return add_belief_evidence if mode == MODE_RADIUS and not use_labels else None
+    return add_label_evidence if use_labels else add_weighted_evidence
+
+
+def _scatter_kernels() -> dict:
+    kernels = {}
+    for mode, (reach, rule, inserts) in SCATTER_MODES.items():
+        for fusion in (FUSION_BAYES, FUSION_DEMPSTER):
+            for use_labels in (True, False):
+                evidence = _evidence_rule(mode, fusion, use_labels)
+                if evidence is not None:
+                    kernels[mode, fusion, use_labels] = walk_kernel(reach, scatter_visit(rule, evidence, inserts=inserts), module=__name__)
+    return kernels
+
+
+_SCATTER_KERNELS = _scatter_kernels()
+
+
+def scatter_kernel(mode: int, fusion: int, use_labels: bool):
+    """The scatter kernel (scan: ScanPoints, params: ScatterParams, target: MapTarget) of a mode, fusion
+    and payload kind (labels, else class weights); ValueError for a combination that is not one."""
+    try:
+        return _SCATTER_KERNELS[mode, fusion, bool(use_labels)]
+    except KeyError:
+        raise ValueError(f"no scatter for mode {mode}, fusion {fusion} with {'labels' if use_labels else 'class weights'}: the stencil "
+                         "and Dempster fusion read per-class weights, and Dempster fuses the sparse kernel (radius mode)") from None
+
+
+def scatter_inserts(mode: int) -> bool:
+    """Whether the mode's scatter inserts its voxels (else they must be in the table beforehand)."""
+    return SCATTER_MODES[mode][2]
 
 
 @wp.func
@@ -392,88 +694,121 @@ def face_offset(j: int) -> wp.vec3i:
 
 
 @wp.kernel
-def scatter_block_targets(
-    point_ids: wp.array(dtype=int),
-    points: wp.array(dtype=wp.vec3d),
-    labels: wp.array(dtype=int),
-    point_uncertainty: wp.array(dtype=wp.float64),
-    owner_blocks: wp.array(dtype=wp.vec3i),
-    target_lengths: wp.array2d(dtype=wp.float64),
-    resolution: wp.float64,
-    grid_offset: wp.float64,
-    cells_per_block: int,
-    table_keys: wp.array(dtype=wp.int64),
-    slot_rows: wp.array(dtype=int),
-    key_count: wp.array(dtype=int),
-    max_count: int,
-    voxel_data: wp.array2d(dtype=wp.float64),
-    failed: wp.array(dtype=int),
-    update_count: wp.array(dtype=wp.int64),
-):
+def scatter_block_targets(scan: ScanPoints, target_lengths: wp.array2d(dtype=wp.float64), params: ScatterParams, out: MapTarget):
     """SEE-CSOM (docs/compatibility.md §3.3): point i updates every cell of target block owner +
     face_offset(j) for each j with target_lengths[i, j] > 0 (the host decided which blocks may use this
-    point and with which length), with the triangular kernel max(0, 1 - d / l). Every cell of a target
-    block is touched, as the original updates all of a block's nodes. Two passes: insert, then add."""
+    point and with which length), with its triangular kernel (``see_csom_weight``). Every cell of a
+    target block is touched, as the original updates all of a block's nodes. Two passes: insert, then add."""
     t = wp.tid()
-    i = point_ids[t]
-    p = points[i]
-    u = point_uncertainty[i]
-    n = cells_per_block
-    num_classes = voxel_data.shape[1] - _EXTRA
+    i = scan.point_ids[t]
+    p = scan.points[i]
+    u = scan.uncertainty[i]
+    n = params.cells_per_block
+    num_classes = out.voxel_data.shape[1] - _EXTRA
     n_updates = wp.int64(0)
     for pass_index in range(2):
         for j in range(7):
             ell = target_lengths[i, j]
             if ell > _ZERO:
-                first = (owner_blocks[i] + face_offset(j)) * n - wp.vec3i(n / 2, n / 2, n / 2)
-                for jx in range(n):
-                    for jy in range(n):
-                        for jz in range(n):
-                            ix = first[0] + jx
-                            iy = first[1] + jy
-                            iz = first[2] + jz
-                            key = pack_key(ix, iy, iz)
-                            if pass_index == 0:
-                                if table_find_or_insert(table_keys, slot_rows, key_count, max_count, key) < 0:
-                                    failed[t] = 1
-                                    return
-                            else:
-                                voxel_row = table_find(table_keys, slot_rows, key)
-                                w = wp.max(_ONE - wp.length(voxel_center(ix, iy, iz, resolution, grid_offset) - p) / ell, _ZERO)
-                                wp.atomic_add(voxel_data, voxel_row, labels[i], w)
-                                record_contribution(voxel_data, voxel_row, num_classes, w, u)
-                                n_updates += wp.int64(1)
-    wp.atomic_add(update_count, 0, n_updates)
+                first = block_first_cell(scan.owner_blocks[i] + face_offset(j), n)
+                for c in range(n * n * n):
+                    cell = block_cell(first, c, n)
+                    key = pack_key(cell[0], cell[1], cell[2])
+                    if pass_index == 0:
+                        if table_find_or_insert(out.table, key) < 0:
+                            out.failed[t] = 1
+                            return
+                    else:
+                        row = table_find(out.table, key)
+                        w = see_csom_weight(voxel_center(cell[0], cell[1], cell[2], params.resolution, params.grid_offset), p, ell)
+                        tallied = add_label_evidence(scan, params, out.voxel_data, row, i, w, 0)
+                        tally_row(out.voxel_data, row, num_classes, tallied, tallied * u, _ONE)
+                        n_updates += wp.int64(1)
+    wp.atomic_add(out.update_count, 0, n_updates)
 
 
 @wp.kernel
-def insert_block_cells(
-    block_ids: wp.array(dtype=int),
-    blocks: wp.array(dtype=wp.vec3i),
-    cells_per_block: int,
-    mark_touched: int,
-    table_keys: wp.array(dtype=wp.int64),
-    slot_rows: wp.array(dtype=int),
-    key_count: wp.array(dtype=int),
-    max_count: int,
-    voxel_data: wp.array2d(dtype=wp.float64),
-    failed: wp.array(dtype=int),
-):
+def insert_block_cells(block_ids: wp.array(dtype=int), blocks: wp.array(dtype=wp.vec3i), cells_per_block: int, mark_touched: int,
+                       table: HashTable, voxel_data: wp.array2d(dtype=wp.float64), failed: wp.array(dtype=int)):
     """Insert every cell of blocks[block_ids[t]] (S-BKI/S-CSM test blocks); optionally mark touched."""
     t = wp.tid()
-    b = blocks[block_ids[t]]
     n = cells_per_block
     touched_column = voxel_data.shape[1] - _EXTRA + COL_TOUCHED
-    first = b * n - wp.vec3i(n / 2, n / 2, n / 2)
+    first = block_first_cell(blocks[block_ids[t]], n)
     ok = int(1)
-    for jx in range(n):
-        for jy in range(n):
-            for jz in range(n):
-                voxel_row = table_find_or_insert(table_keys, slot_rows, key_count, max_count, pack_key(first[0] + jx, first[1] + jy, first[2] + jz))
-                if voxel_row < 0:
-                    ok = 0
-                elif mark_touched == 1:
-                    voxel_data[voxel_row, touched_column] = _ONE
+    for j in range(n * n * n):
+        cell = block_cell(first, j, n)
+        voxel_row = table_find_or_insert(table, pack_key(cell[0], cell[1], cell[2]))
+        if voxel_row < 0:
+            ok = 0
+        elif mark_touched == 1:
+            voxel_data[voxel_row, touched_column] = _ONE
     if ok == 0:
         failed[t] = 1
 
+
+@functools.cache
+def weight_rule_kernel(mode: int):
+    """A kernel that evaluates ``mode``'s weight rule at given (point, voxel) pairs: out[k] = the weight
+    point pair_point[k] gives voxel pair_cell[k] (0 where the rule screens the voxel out), as the scatter
+    computes it (for the rules' twin test; its own module, so the scatter's module is never rebuilt)."""
+    reach, rule, _ = SCATTER_MODES[mode]
+    span_of = _SPAN_OF[reach]
+
+    @wp.kernel(module="unique")
+    def weight_rule_values(scan: ScanPoints, params: ScatterParams, pair_point: wp.array(dtype=int), pair_cell: wp.array(dtype=wp.vec3i),
+                           out: wp.array(dtype=wp.float64)):
+        k = wp.tid()
+        i = pair_point[k]
+        p = scan.points[i]
+        cell = pair_cell[k]
+        span = wp.static(span_of)(scan, params, i, p)
+        dx = centre_offset(cell[0], params.resolution, params.grid_offset, p[0])
+        dy = centre_offset(cell[1], params.resolution, params.grid_offset, p[1])
+        dz = centre_offset(cell[2], params.resolution, params.grid_offset, p[2])
+        d2 = dx * dx + dy * dy + dz * dz
+        screened = wp.static(rule.screen)(scan, params, i, cell, span)
+        w = _ZERO
+        if screened > _ZERO:
+            w = wp.static(rule.weight)(scan, params, i, p, cell, d2, span, screened)
+        out[k] = w
+
+    return weight_rule_values
+
+
+# Kernels made by factories, by name (tests/test_twins.py looks their twins up by these names).
+KERNEL_FACTORIES = {"scatter_points": scatter_kernel, "weight_rule_values": weight_rule_kernel}
+
+
+# ---------------------------------------------------------------------------- host side
+def scan_points(*, point_ids=None, points=None, lengths=None, uncertainty=None, labels=None, class_weights=None,
+                owner_blocks=None) -> ScanPoints:
+    """A ``ScanPoints`` over device arrays (those not given stay unset)."""
+    scan = ScanPoints()
+    for name, value in (("point_ids", point_ids), ("points", points), ("lengths", lengths), ("uncertainty", uncertainty),
+                        ("labels", labels), ("class_weights", class_weights), ("owner_blocks", owner_blocks)):
+        if value is not None:
+            setattr(scan, name, value)
+    return scan
+
+
+def scatter_params(*, resolution: float, grid_offset: float, sigma0: float = 1.0, cells_per_block: int = 1, stencil_weights=None,
+                   stencil_half: int = 0) -> ScatterParams:
+    params = ScatterParams()
+    params.resolution = wp.float64(resolution)
+    params.grid_offset = wp.float64(grid_offset)
+    params.sigma0 = wp.float64(sigma0)
+    params.cells_per_block = int(cells_per_block)
+    if stencil_weights is not None:
+        params.stencil_weights = stencil_weights
+    params.stencil_half = int(stencil_half)
+    return params
+
+
+def map_target(table: HashTable, voxel_data, failed, update_count) -> MapTarget:
+    target = MapTarget()
+    target.table = table
+    target.voxel_data = voxel_data
+    target.failed = failed
+    target.update_count = update_count
+    return target

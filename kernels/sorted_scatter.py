@@ -1,81 +1,77 @@
 """Sort-then-reduce integration of the radius kernel (Warp): the deterministic alternative to the
 atomic scatter of ``kernels.scatter`` (MODE_RADIUS, Bayes fusion).
 
-1. ``count_pairs``: how many voxels each point's kernel reaches (the same ranges and distance test as
-   the atomic scatter); an exclusive scan turns counts into offsets.
-2. ``expand_pairs``: one (voxel key, pair id) per reached voxel; the pairs are radix-sorted by key
-   (``wp.utils.radix_sort_pairs``, stable: a voxel's pairs stay in point order).
+1. ``count_pairs``: how many voxels each point's kernel reaches (the scatter's traversal,
+   ``kernels.scatter.walk_kernel``, with a counting visit); an exclusive scan turns counts into offsets.
+2. ``expand_pairs``: one (voxel key, pair id) per reached voxel (the same traversal); the pairs are
+   radix-sorted by key (``wp.utils.radix_sort_pairs``, stable: a voxel's pairs stay in point order).
 3. ``mark_heads`` + a scan number the distinct voxels; ``reduce_voxels``: one thread per distinct voxel
    finds or inserts it once and adds its pairs' sums into its row once. No atomics on the map, and
    every sum runs in a fixed order, so the map is the same bit for bit on any device and thread count.
 
-numpy twin: ``evsemmap_warp/reference/scatter.py`` (``scatter_points`` with MODE_RADIUS).
+numpy twin: ``evsemmap_warp/reference/sorted_scatter.py`` (and ``reference/scatter.py``'s ``scatter_points`` with MODE_RADIUS).
 """
 
 import warp as wp
 
 from .hash_table import pack_key, table_find_or_insert
-from .scatter import _HALF, _ONE, _ZERO, COL_HITS, COL_TOUCHED, COL_WEIGHT, COL_WEIGHTED_UNCERTAINTY, sparse_kernel, voxel_of
+from .scatter import (_EXTRA, _ZERO, REACH_BALL, MapTarget, ScanPoints, ScatterParams, Span, Visit, add_label_evidence,
+                      add_weighted_evidence, count_from_zero, end_nothing, sparse_weight, tally_row, walk_kernel)
 
 wp.set_module_options({"enable_backward": False})
 
 f64 = wp.float64
 
 
+@wp.struct
+class PairCounts:
+    """``counts`` [N]: how many voxels point i reaches."""
+
+    counts: wp.array(dtype=int)
+
+
+@wp.struct
+class PairList:
+    """Point i's pairs at ``offsets[i]``...: the voxel's key, the pair's own index (the sort's payload),
+    the point and its weight."""
+
+    offsets: wp.array(dtype=int)
+    keys: wp.array(dtype=wp.int64)
+    ids: wp.array(dtype=int)
+    point: wp.array(dtype=int)
+    weight: wp.array(dtype=wp.float64)
+
+
 @wp.func
-def _axis_range(p: wp.float64, reach: wp.float64, resolution: wp.float64, grid_offset: wp.float64) -> wp.vec2i:
-    return wp.vec2i(voxel_of(p - reach, resolution, grid_offset), voxel_of(p + reach, resolution, grid_offset))
+def _count_voxel(scan: ScanPoints, params: ScatterParams, out: PairCounts, t: int, i: int, p: wp.vec3d, cell: wp.vec3i, d2: wp.float64,
+                 span: Span, counter: wp.int64) -> wp.int64:
+    return counter + wp.int64(1)
 
 
-@wp.kernel
-def count_pairs(points: wp.array(dtype=wp.vec3d), lengths: wp.array(dtype=wp.float64), resolution: wp.float64,
-                grid_offset: wp.float64, counts: wp.array(dtype=int)):
-    i = wp.tid()
-    p = points[i]
-    reach = lengths[i]
-    reach2 = reach * reach
-    rx = _axis_range(p[0], reach, resolution, grid_offset)
-    ry = _axis_range(p[1], reach, resolution, grid_offset)
-    rz = _axis_range(p[2], reach, resolution, grid_offset)
-    n = int(0)
-    for ix in range(rx[0], rx[1] + 1):
-        dx = (f64(ix) + _HALF) * resolution + grid_offset - p[0]
-        for iy in range(ry[0], ry[1] + 1):
-            dy = (f64(iy) + _HALF) * resolution + grid_offset - p[1]
-            for iz in range(rz[0], rz[1] + 1):
-                dz = (f64(iz) + _HALF) * resolution + grid_offset - p[2]
-                if dx * dx + dy * dy + dz * dz < reach2:
-                    n += 1
-    counts[i] = n
+@wp.func
+def _store_count(scan: ScanPoints, out: PairCounts, t: int, i: int, counter: wp.int64):
+    out.counts[i] = int(counter)
 
 
-@wp.kernel
-def expand_pairs(points: wp.array(dtype=wp.vec3d), lengths: wp.array(dtype=wp.float64), resolution: wp.float64,
-                 grid_offset: wp.float64, sigma0: wp.float64, offsets: wp.array(dtype=int),
-                 pair_keys: wp.array(dtype=wp.int64), pair_ids: wp.array(dtype=int),
-                 pair_point: wp.array(dtype=int), pair_weight: wp.array(dtype=wp.float64)):
-    """Write point i's pairs at offsets[i]...: key, its own index (the sort's payload), point, weight."""
-    i = wp.tid()
-    p = points[i]
-    length = lengths[i]
-    reach2 = length * length
-    rx = _axis_range(p[0], length, resolution, grid_offset)
-    ry = _axis_range(p[1], length, resolution, grid_offset)
-    rz = _axis_range(p[2], length, resolution, grid_offset)
-    k = offsets[i]
-    for ix in range(rx[0], rx[1] + 1):
-        dx = (f64(ix) + _HALF) * resolution + grid_offset - p[0]
-        for iy in range(ry[0], ry[1] + 1):
-            dy = (f64(iy) + _HALF) * resolution + grid_offset - p[1]
-            for iz in range(rz[0], rz[1] + 1):
-                dz = (f64(iz) + _HALF) * resolution + grid_offset - p[2]
-                d2 = dx * dx + dy * dy + dz * dz
-                if d2 < reach2:
-                    pair_keys[k] = pack_key(ix, iy, iz)
-                    pair_ids[k] = k
-                    pair_point[k] = i
-                    pair_weight[k] = sparse_kernel(wp.sqrt(d2), length, sigma0)
-                    k += 1
+@wp.func
+def _from_offset(scan: ScanPoints, out: PairList, t: int, i: int) -> wp.int64:
+    return wp.int64(out.offsets[i])
+
+
+@wp.func
+def _write_pair(scan: ScanPoints, params: ScatterParams, out: PairList, t: int, i: int, p: wp.vec3d, cell: wp.vec3i, d2: wp.float64,
+                span: Span, counter: wp.int64) -> wp.int64:
+    k = int(counter)
+    out.keys[k] = pack_key(cell[0], cell[1], cell[2])
+    out.ids[k] = k
+    out.point[k] = i
+    out.weight[k] = sparse_weight(scan, params, i, p, cell, d2, span, _ZERO)
+    return counter + wp.int64(1)
+
+
+# (scan: ScanPoints with points and lengths, params: ScatterParams, out): thread i walks point i.
+count_pairs = walk_kernel(REACH_BALL, Visit(PairCounts, count_from_zero, _count_voxel, _store_count, indexed=False), module=__name__)
+expand_pairs = walk_kernel(REACH_BALL, Visit(PairList, _from_offset, _write_pair, end_nothing, indexed=False), module=__name__)
 
 
 @wp.kernel
@@ -95,39 +91,73 @@ def segment_starts(heads: wp.array(dtype=int), head_rank: wp.array(dtype=int), s
         starts[head_rank[i] - 1] = i
 
 
-@wp.kernel
-def reduce_voxels(starts: wp.array(dtype=int), pair_count: int, sorted_keys: wp.array(dtype=wp.int64),
-                  sorted_ids: wp.array(dtype=int), pair_point: wp.array(dtype=int), pair_weight: wp.array(dtype=wp.float64),
-                  labels: wp.array(dtype=int), class_weights: wp.array2d(dtype=wp.float64), use_labels: int,
-                  point_uncertainty: wp.array(dtype=wp.float64), table_keys: wp.array(dtype=wp.int64),
-                  slot_rows: wp.array(dtype=int), key_count: wp.array(dtype=int), max_count: int, voxel_data: wp.array2d(dtype=wp.float64),
-                  failed: wp.array(dtype=int)):
-    """Distinct voxel v: its pairs are sorted pairs starts[v] .. starts[v + 1] - 1 (the last runs to
-    pair_count). One find-or-insert, then its row gets the sums of its pairs, in pair order."""
-    v = wp.tid()
-    first = starts[v]
-    last = pair_count
-    if v + 1 < starts.shape[0]:
-        last = starts[v + 1]
-    row = table_find_or_insert(table_keys, slot_rows, key_count, max_count, sorted_keys[first])
-    if row < 0:
-        failed[v] = 1
-        return
-    num_classes = voxel_data.shape[1] - 4
-    weight_sum = _ZERO
-    weighted_u = _ZERO
-    for j in range(first, last):
-        pair = sorted_ids[j]
-        i = pair_point[pair]
-        w = pair_weight[pair]
-        if use_labels == 1:
-            voxel_data[row, labels[i]] = voxel_data[row, labels[i]] + w
-        else:
-            for c in range(num_classes):
-                voxel_data[row, c] = voxel_data[row, c] + w * class_weights[i, c]
-        weight_sum += w
-        weighted_u += w * point_uncertainty[i]
-    voxel_data[row, num_classes + COL_WEIGHT] = voxel_data[row, num_classes + COL_WEIGHT] + weight_sum
-    voxel_data[row, num_classes + COL_WEIGHTED_UNCERTAINTY] = voxel_data[row, num_classes + COL_WEIGHTED_UNCERTAINTY] + weighted_u
-    voxel_data[row, num_classes + COL_HITS] = voxel_data[row, num_classes + COL_HITS] + f64(last - first)
-    voxel_data[row, num_classes + COL_TOUCHED] = _ONE
+@wp.struct
+class SortedPairs:
+    """The pairs sorted by key: distinct voxel v owns sorted pairs ``starts[v]`` .. ``starts[v + 1] - 1``
+    (the last runs to ``count``); ``keys`` and ``ids`` sorted, ``point`` and ``weight`` by pair id."""
+
+    starts: wp.array(dtype=int)
+    count: int
+    keys: wp.array(dtype=wp.int64)
+    ids: wp.array(dtype=int)
+    point: wp.array(dtype=int)
+    weight: wp.array(dtype=wp.float64)
+
+
+def _reduce_kernel(evidence):
+    @wp.kernel(module=__name__)
+    def reduce_voxels(pairs: SortedPairs, scan: ScanPoints, params: ScatterParams, out: MapTarget):
+        """Distinct voxel v: one find-or-insert, then its row gets the sums of its pairs, in pair order
+        (the evidence through ``evidence``, the bookkeeping once)."""
+        v = wp.tid()
+        first = pairs.starts[v]
+        last = pairs.count
+        if v + 1 < pairs.starts.shape[0]:
+            last = pairs.starts[v + 1]
+        row = table_find_or_insert(out.table, pairs.keys[first])
+        if row < 0:
+            out.failed[v] = 1
+            return
+        weight_sum = _ZERO
+        weighted_u = _ZERO
+        for j in range(first, last):
+            pair = pairs.ids[j]
+            i = pairs.point[pair]
+            w = pairs.weight[pair]
+            wp.static(evidence)(scan, params, out.voxel_data, row, i, w, 0)
+            weight_sum += w
+            weighted_u += w * scan.uncertainty[i]
+        tally_row(out.voxel_data, row, out.voxel_data.shape[1] - _EXTRA, weight_sum, weighted_u, f64(last - first))
+
+    return reduce_voxels
+
+
+_REDUCE_KERNELS = {True: _reduce_kernel(add_label_evidence), False: _reduce_kernel(add_weighted_evidence)}
+
+
+def reduce_voxels_kernel(use_labels: bool):
+    """``reduce_voxels`` (pairs: SortedPairs, scan: ScanPoints, params: ScatterParams, out: MapTarget) for
+    labels or class weights."""
+    return _REDUCE_KERNELS[bool(use_labels)]
+
+
+# Kernels made by factories, by name (tests/test_twins.py looks their twins up by these names).
+KERNEL_FACTORIES = {"reduce_voxels": reduce_voxels_kernel}
+
+
+def sorted_pairs(*, starts, count: int, keys, ids, point, weight) -> SortedPairs:
+    pairs = SortedPairs()
+    pairs.starts, pairs.count, pairs.keys, pairs.ids, pairs.point, pairs.weight = starts, int(count), keys, ids, point, weight
+    return pairs
+
+
+def pair_counts(counts) -> PairCounts:
+    out = PairCounts()
+    out.counts = counts
+    return out
+
+
+def pair_list(*, offsets, keys, ids, point, weight) -> PairList:
+    out = PairList()
+    out.offsets, out.keys, out.ids, out.point, out.weight = offsets, keys, ids, point, weight
+    return out

@@ -374,3 +374,121 @@ def test_binary_junk_and_unusable_hosts_are_one_line(tmp_path, capsys, argv, pat
     junk.write_bytes(bytes(range(128, 256)) * 4)
     argv = [a.format(junk=junk, tmp=tmp_path, map=_small_map_file(tmp_path)) for a in argv]
     assert pattern in run_cli(capsys, *argv)
+
+
+# ------------------------------------------------------------------------------------- issue 31: the crash list
+def _payload_cases():
+    pts = np.random.default_rng(0).normal(size=(50, 3))
+    cases = {
+        "labels-as-strings": (pts, np.array(["a"] * 50), "label", "holds strings"),
+        "labels-as-objects": (pts, np.array([1] * 50, dtype=object), "label", "Python objects"),
+        "labels-ragged": (pts, [[1], [1, 2]] + [[1]] * 48, "label", "cannot be read as an array"),
+        "alpha-as-objects": (pts, np.full((50, 3), 2.0).astype(object), "alpha", "Python objects"),
+        "alpha-complex": (pts, np.full((50, 3), 2.0 + 1j), "alpha", "complex numbers"),
+        "points-complex": (pts + 0j, np.ones(50, np.int64), "label", "points: holds complex"),
+        "coordinate-1.7e308": (np.vstack([[1.7e308, 0, 0], pts[1:]]), np.ones(50, np.int64), "label", "farther than 1e\\+12 m"),
+    }
+    return cases
+
+
+@pytest.mark.parametrize("case", sorted(_payload_cases()))
+def test_api_payloads_that_crashed_are_a_value_error(case):
+    points, payload, payload_type, pattern = _payload_cases()[case]
+    mapper = Mapper(load_config([PRESET], method="ebs").mapping, 3, workers=1)
+    with pytest.raises(ValueError, match=pattern):
+        mapper.integrate(points, payload, payload_type=payload_type)
+    assert mapper.scans_integrated == 0 and mapper.voxel_count == 0 and mapper.origin_index is None
+
+
+def test_a_torch_tensor_that_requires_grad_is_read_as_its_values():
+    torch = pytest.importorskip("torch")
+    pts = np.random.default_rng(0).normal(size=(50, 3))
+    alpha = np.full((50, 3), 2.0)
+    a, b = (Mapper(load_config([PRESET], method="ebs").mapping, 3, workers=1) for _ in range(2))
+    a.integrate(pts, alpha, payload_type="alpha")
+    b.integrate(torch.tensor(pts, requires_grad=True), torch.tensor(alpha, requires_grad=True), payload_type="alpha")
+    np.testing.assert_array_equal(a.voxels()[0].evidence, b.voxels()[0].evidence)
+    np.testing.assert_array_equal(a.query(pts).label, b.query(torch.tensor(pts, requires_grad=True)).label)
+
+
+def test_free_space_rays_from_a_far_origin_with_few_points_are_refused_not_run_out_of_memory():
+    """Two points 90,000 km from the sensor origin pass the sample estimate (45 M); the float32 step
+    list along the ray then never ended (killed by the OOM killer at 23 GB)."""
+    import dataclasses
+
+    from evsemmap_warp.config import Compat
+
+    cfg = dataclasses.replace(load_config([PRESET], method="s-bki").mapping, compat=Compat.SBKI, max_range_m=-1.0)
+    mapper = Mapper(cfg, 3, workers=1)
+    with pytest.raises(ValueError, match=r"a ray of [0-9,]+ steps, at most 4,194,304 along one ray.*set mapping.max_range_m"):
+        mapper.integrate(np.zeros((2, 3)), np.zeros(2, np.int64), payload_type="label", sensor_origin=[9e7, 0, 0])
+    assert mapper.voxel_count == 0 and mapper.scans_integrated == 0
+
+
+def test_config_and_input_paths_that_crashed_are_one_line(tmp_path, capsys, tiny_sequence):
+    import shutil
+
+    bad = tmp_path / "p123.yaml"
+    bad.write_text("dataset:\n  kind: rellis3d\n  paths: [123]\n")
+    assert "paths = [123] is not a valid tuple[str, ...]" in run_cli(capsys, "map", bad, "--method", "ebs", "--out", tmp_path / "m.npz")
+    # a path that does not exist is no preset name: named as a path, never "available: " and nothing
+    line = run_cli(capsys, "map", tmp_path / "nope" / "seq", "--method", "ebs", "--out", tmp_path / "m.npz")
+    assert line.endswith("nope/seq: no such file or folder"), line
+    assert "available: evsemmap-release, offroad" in run_cli(capsys, "map", "nopreset", "--method", "ebs", "--out", tmp_path / "m.npz")
+    # check-data of a missing folder is a problem (exit 1), not silence and exit 0
+    assert main(["check-data", str(tmp_path / "nope" / "seq")]) == 1
+    assert "no such sequence folder" in capsys.readouterr().out
+    assert "is a sequence folder or a robot log" in run_cli(capsys, "check-data", "rellis3d")
+    # a folder of maps (or a store) is no sequence folder
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    shutil.copy(_small_map_file(tmp_path), maps / "a.npz")
+    assert "not a sequence folder (it holds map files" in run_cli(capsys, "dump-config", maps)
+    # a complex .npy keeps no silent imaginary part
+    np.save(tmp_path / "scan.npy", np.ones((10, 3), complex))
+    with pytest.raises(ValueError, match="holds complex128 values"):
+        read_point_file(tmp_path / "scan.npy")
+
+
+def test_a_bad_camera_info_is_listed_once_by_check_data(tmp_path, capsys, tiny_sequence):
+    import shutil
+
+    seq = tmp_path / "seq"
+    shutil.copytree(tiny_sequence, seq)
+    (seq / "camera_info.txt").write_text("nan 100 50 50\n")
+    assert main(["check-data", str(seq), str(tiny_sequence)]) == 1
+    out = capsys.readouterr().out
+    assert out.count("camera_info.txt: fx fy cx cy = ['nan', '100', '50', '50']: the focal lengths must be finite") == 1, out
+    assert f"{tiny_sequence}: 6 scans" in out  # the next folder is still checked
+
+
+def test_singular_poses_and_calibrations_are_named(tmp_path):
+    from evsemmap_warp.data.sequences import DataError, SemanticKittiSequence, read_poses
+    from evsemmap_warp.geometry.transform_tree import TransformError, TransformTree
+
+    poses = tmp_path / "poses.txt"
+    poses.write_text("0 0 0 0 0 0 0 0 0 0 0 0\n1 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(DataError, match="poses.txt: pose line 1 is not a rigid transform: its rotation is singular"):
+        read_poses(poses)
+    kitti = tmp_path / "kitti"
+    (kitti / "velodyne").mkdir(parents=True)
+    np.zeros((4, 4), np.float32).tofile(kitti / "velodyne" / "000000.bin")
+    (kitti / "calib.txt").write_text("Tr: " + " ".join(["0"] * 12) + "\n")
+    with pytest.raises(DataError, match="calib.txt: Tr is not a rigid transform"):
+        SemanticKittiSequence(kitti)
+    tree = TransformTree()
+    with pytest.raises(TransformError, match="'odom' -> 'base' at t = 5.000000000 s is no rigid transform|'odom' -> 'base' at t = 5"):
+        tree.add_timed("odom", "base", 5_000_000_000, [0, 0, 0], [0, 0, 0, 0])
+
+
+def test_the_worker_advice_fits(monkeypatch):
+    import re
+
+    from evsemmap_warp.apps import batch
+    from evsemmap_warp.apps.batch import BatchOptions, check_memory
+
+    monkeypatch.setattr(batch, "available_memory", lambda: 22 * 2**30)
+    with pytest.raises(ConfigError, match=r"use fewer --workers \(at most \d+ fit") as refused:
+        check_memory(BatchOptions(method="ebs", out="x", chunk_frames=1), 1000, 1, 13304, 20000, 9, automatic=True)
+    fitting = int(re.search(r"at most (\d+) fit", str(refused.value)).group(1))
+    check_memory(BatchOptions(method="ebs", out="x", chunk_frames=1), fitting, 1, 13304, 20000, 9)

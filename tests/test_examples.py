@@ -51,10 +51,16 @@ def test_robot_log(tmp_path):
     assert "the folder's map is the same: True" in out and "OK" in out and (tmp_path / "l" / "drive.bag").exists()
 
 
+def test_terrain_layers(tmp_path):
+    pytest.importorskip("rasterio")
+    out = _run(str(REPO / "examples/06_terrain_layers.py"), "--out", str(tmp_path / "t"), cwd=tmp_path)
+    assert "the same elevation: True" in out and "OK" in out and (tmp_path / "t" / "layers" / "layers.bag").exists()
+
+
 def test_examples_are_all_tested():
     names = sorted(p.name for p in (REPO / "examples").glob("*.py"))
     assert names == ["00_quickstart.py", "01_sbki_toy_conformance.py", "02_view_map.py", "03_synthetic_world.py", "04_compare_methods.py",
-                     "05_robot_log.py"], "add a test for each new example"
+                     "05_robot_log.py", "06_terrain_layers.py"], "add a test for each new example"
 
 
 def test_readme_python_snippet_makes_a_sensible_map(tmp_path, monkeypatch):

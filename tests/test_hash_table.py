@@ -18,8 +18,8 @@ def _insert(keys_np, capacity, max_count, device):
     count = wp.zeros(1, dtype=int, device=device)
     rows = wp.empty(len(keys_np), dtype=int, device=device)
     if len(keys_np):
-        wp.launch(ht.insert_keys, dim=len(keys_np), inputs=[wp.array(keys_np, dtype=wp.int64, device=device), table, slot_rows, count, max_count, rows],
-                  device=device)
+        wp.launch(ht.insert_keys, dim=len(keys_np), inputs=[wp.array(keys_np, dtype=wp.int64, device=device),
+                                                             ht.hash_table(table, slot_rows, count, max_count), rows], device=device)
     return table.numpy(), slot_rows.numpy(), int(count.numpy()[0]), rows.numpy()
 
 
@@ -76,8 +76,8 @@ def test_insert_and_lookup_on_device(device):
     absent = ref.pack_key(rng.integers(1000, 2000, size=(300, 3)))
     probe = np.concatenate([keys, absent])
     out = wp.empty(len(probe), dtype=int, device=device)
-    wp.launch(ht.lookup_keys, dim=len(probe), inputs=[wp.array(probe, dtype=wp.int64, device=device), wp.array(table, dtype=wp.int64, device=device),
-                                                      wp.array(slot_rows, dtype=int, device=device), out], device=device)
+    view = ht.hash_table(wp.array(table, dtype=wp.int64, device=device), wp.array(slot_rows, dtype=int, device=device), wp.zeros(1, dtype=int, device=device), 0)
+    wp.launch(ht.lookup_keys, dim=len(probe), inputs=[wp.array(probe, dtype=wp.int64, device=device), view, out], device=device)
     found = out.numpy()
     np.testing.assert_array_equal(found[: len(keys)], rows)
     assert (found[len(keys):] == -1).all()
@@ -204,12 +204,12 @@ def test_edge_of_the_key_range_hashes_like_the_twin():
 def test_cpu_rows_stay_in_place_when_reserved_and_are_copied_otherwise(reserved, monkeypatch):
     import sys
 
-    from evsemmap_warp.core import voxel_map
+    from evsemmap_warp.core import host_memory
 
     if reserved and not sys.platform.startswith("linux"):
         pytest.skip("the row reservation is made on Linux only")
     if not reserved:  # a platform or overcommit policy that refuses the reservation
-        monkeypatch.setattr(voxel_map, "_reserved_zeros", lambda rows, columns: None)
+        monkeypatch.setattr(host_memory, "reserved_zeros", lambda rows, columns: None)
     vm = VoxelMap(3, 0.5, initial_capacity=16)
     rng = np.random.default_rng(4)
     index = np.unique(rng.integers(-20, 20, size=(300, 3)), axis=0)

@@ -67,17 +67,19 @@ def test_sorted_stages_match_their_twins():
     lengths = rng.uniform(0.05, 0.5, 200)
     from evsemmap_warp.kernels import sorted_scatter as ss
 
-    p = wp.array(pts, dtype=wp.vec3d, device="cpu")
-    l = wp.array(lengths, dtype=wp.float64, device="cpu")
+    from evsemmap_warp.kernels import scatter as sc
+
+    scan = sc.scan_points(points=wp.array(pts, dtype=wp.vec3d, device="cpu"), lengths=wp.array(lengths, dtype=wp.float64, device="cpu"))
+    params = sc.scatter_params(resolution=0.2, grid_offset=0.0, sigma0=1.0)
     counts = wp.empty(200, dtype=int, device="cpu")
-    wp.launch(ss.count_pairs, dim=200, inputs=[p, l, wp.float64(0.2), wp.float64(0.0), counts], device="cpu")
+    wp.launch(ss.count_pairs, dim=200, inputs=[scan, params, ss.pair_counts(counts)], device="cpu")
     np.testing.assert_array_equal(counts.numpy(), ss_ref.count_pairs(pts, lengths, 0.2, 0.0))
     offsets = np.r_[0, np.cumsum(counts.numpy())[:-1]].astype(np.int32)
     total = int(counts.numpy().sum())
     keys, ids = wp.empty(2 * total, dtype=wp.int64, device="cpu"), wp.empty(2 * total, dtype=int, device="cpu")
     point, weight = wp.empty(total, dtype=int, device="cpu"), wp.empty(total, dtype=wp.float64, device="cpu")
-    wp.launch(ss.expand_pairs, dim=200, inputs=[p, l, wp.float64(0.2), wp.float64(0.0), wp.float64(1.0), wp.array(offsets, dtype=int, device="cpu"),
-                                                 keys, ids, point, weight], device="cpu")
+    wp.launch(ss.expand_pairs, dim=200, inputs=[scan, params, ss.pair_list(offsets=wp.array(offsets, dtype=int, device="cpu"), keys=keys, ids=ids,
+                                                                            point=point, weight=weight)], device="cpu")
     want_keys, want_point, want_weight = ss_ref.expand_pairs(pts, lengths, 0.2, 0.0, 1.0)
     got = sorted(zip(point.numpy(), keys.numpy()[:total], weight.numpy()))
     want = sorted(zip(want_point, want_keys, want_weight))
@@ -127,18 +129,21 @@ def test_hashgrid_stages_match_their_twins():
     rng = np.random.default_rng(6)
     pts, _ = _cloud(rng, 150)
     lengths = rng.uniform(0.05, 0.5, 150)
+    from evsemmap_warp.kernels import hash_table as ht
+    from evsemmap_warp.kernels import scatter as sc
+
+    scan = sc.scan_points(points=wp.array(pts, dtype=wp.vec3d, device="cpu"), lengths=wp.array(lengths, dtype=wp.float64, device="cpu"))
+    params = sc.scatter_params(resolution=0.2, grid_offset=0.0)
     keys = wp.full(4096, -1, dtype=wp.int64, device="cpu")
     count, failed = wp.zeros(1, dtype=int, device="cpu"), wp.zeros(1, dtype=int, device="cpu")
-    wp.launch(hg.mark_reached, dim=150, inputs=[wp.array(pts, dtype=wp.vec3d, device="cpu"), wp.array(lengths, dtype=wp.float64, device="cpu"),
-                                                wp.float64(0.2), wp.float64(0.0), keys, wp.zeros(4096, dtype=int, device="cpu"), count, 4096, failed],
-              device="cpu")
+    wp.launch(hg.mark_reached, dim=150, inputs=[scan, params, hg.reached_keys(ht.hash_table(keys, wp.zeros(4096, dtype=int, device="cpu"), count, 4096),
+                                                                                failed)], device="cpu")
     got = np.sort(keys.numpy()[keys.numpy() != -1])
     np.testing.assert_array_equal(got, hg_ref.mark_reached(pts, lengths, 0.2, 0.0))
     assert int(count.numpy()[0]) == len(got) and not failed.numpy()[0]
     tiny = wp.full(8, -1, dtype=wp.int64, device="cpu")  # a full key set reports instead of dropping
-    wp.launch(hg.mark_reached, dim=150, inputs=[wp.array(pts, dtype=wp.vec3d, device="cpu"), wp.array(lengths, dtype=wp.float64, device="cpu"),
-                                                wp.float64(0.2), wp.float64(0.0), tiny, wp.zeros(8, dtype=int, device="cpu"), wp.zeros(1, dtype=int, device="cpu"), 4,
-                                                failed], device="cpu")
+    wp.launch(hg.mark_reached, dim=150, inputs=[scan, params, hg.reached_keys(ht.hash_table(tiny, wp.zeros(8, dtype=int, device="cpu"),
+                                                                                             wp.zeros(1, dtype=int, device="cpu"), 4), failed)], device="cpu")
     assert failed.numpy()[0] == 1
 
 

@@ -17,7 +17,7 @@ LAYERS = {
     "data": 3,
     "methods": 4,
     "core": 5,
-    "synthetic": 6, "segmentation": 6,
+    "synthetic": 6, "segmentation": 6, "terrain": 6,
     "apps": 7,
     "__init__": 8,
 }

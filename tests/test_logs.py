@@ -4,6 +4,7 @@ an organised cloud and a TF tree at its own rate is read as ROS would; check-dat
 cannot be mapped; configs and missing packages fail with one line."""
 
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -376,3 +377,37 @@ def test_a_log_damaged_mid_read_is_one_line_naming_it(drive, tmp_path, monkeypat
     assert main(["map", str(logs["rosbag1"]), "rellis3d-bag", "--method", "ebs", "--out", str(tmp_path / "m.npz"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "the log is damaged" in err and "Traceback" not in err
+
+
+def test_a_pose_chain_without_a_moving_transform_is_refused_before_mapping(drive, tmp_path, monkeypatch, capsys):
+    """Issue 31: a log whose /tf_static lacks base_link -> os1_sensor (with TF or odometry poses), or whose
+    tf_topic is the cloud topic, used to be mapped in the broken subtree's root with one pose for every
+    scan (rc 0). map and batch refuse it, naming the missing link and the time; check-data says the same."""
+    folder, logs, _ = drive
+    original = _LogOut.tf
+    monkeypatch.setattr(_LogOut, "tf", lambda self, transforms: original(self, [t for t in transforms if t.child_frame_id != "os1_sensor"]))
+    broken = tmp_path / "broken.bag"
+    write_log(folder, broken, "rosbag1")
+    monkeypatch.setattr(_LogOut, "tf", original)
+    tf_on_clouds = tmp_path / "tf_on_clouds.yaml"
+    tf_on_clouds.write_text("dataset:\n  bag:\n    tf_topic: /os1_cloud_node/points\n")
+    no_tf = tmp_path / "no_tf.yaml"
+    no_tf.write_text("dataset:\n  bag:\n    tf_topic: /nope\n")
+    out = tmp_path / "map.npz"
+    cases = [([broken], r"link from one of the moving frames \['base_link', 'odom'\] to 'os1_sensor' is missing at t = 1600000000\.0+ s"),
+             ([broken, "rellis3d-bag"], "to 'os1_sensor' is missing"),  # pose_source: odometry
+             ([logs["rosbag1"], tf_on_clouds], r"'/os1_cloud_node/points' \(dataset.bag.tf_topic\) carries sensor_msgs/msg/PointCloud2"),
+             ([logs["rosbag1"], no_tf], r"no moving transform at all on '/nope'")]
+    for sources, pattern in cases:
+        batch = [["batch", "--out", tmp_path / "store", "--workers", "1"]] if not str(sources[-1]).endswith(".yaml") else []
+        for command in [["map", "--out", out]] + batch:  # (batch takes a config with a dataset section for an input)
+            assert main([command[0], *map(str, sources), "--method", "ebs", *map(str, command[1:]), "--quiet"]) == 2
+            err = capsys.readouterr().err.strip()
+            assert len(err.splitlines()) == 1 and re.search(pattern, err), err
+        assert not out.exists() and not (tmp_path / "store" / "store.json").exists()
+    report = check_log([broken])
+    assert any("to 'os1_sensor' is missing" in p for p in report.problems), report.problems
+    fixed = tmp_path / "fixed.yaml"  # a sensor that never moves: mapped when the fixed frame is said
+    fixed.write_text("dataset:\n  bag:\n    fixed_frame: os1_sensor\n")
+    seq = open_sequence([broken, str(fixed)])
+    np.testing.assert_array_equal(seq.pose(seq.frames[0]), seq.pose(seq.frames[-1]))

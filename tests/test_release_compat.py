@@ -52,7 +52,7 @@ def test_block_cap_keeps_the_first_points_in_input_order():
 @pytest.mark.parametrize("spread", [3, 40, 1 << 18])
 def test_block_cap_kernel_matches_its_twin(spread, monkeypatch):
     # Many points per block (dense counts), one point, none, and keys spread too wide for the dense
-    # grid (the sorting twin's path); the cap of the release's EBS and Dempster configs, and 1.
+    # grid (counted over the distinct keys); the cap of the release's EBS and Dempster configs, and 1.
     from evsemmap_warp.reference.release import keep_first_per_block
 
     rng = np.random.default_rng(spread)
@@ -259,23 +259,23 @@ def test_block_tables_are_the_same_from_the_dense_grid_and_the_binary_search(mon
     np.testing.assert_array_equal(searched.sources, sbki_tables.sources)
     np.testing.assert_array_equal(searched.test_blocks, sbki_tables.test_blocks)
     assert far.source_blocks[-1].max() == len(far.blocks) - 1 and (far.source_blocks[-1] >= 0).sum() == 1  # alone: only itself
+    from evsemmap_warp.reference.release import block_models
+
+    literal = block_models(far.blocks, er.TARGET_BLOCK_OFFSETS)  # the kernel's binary search against the literal twin
+    np.testing.assert_array_equal(far.source_blocks, literal[0])
+    np.testing.assert_array_equal(far.source_mult, literal[1])
 
 
 def test_block_models_kernel_matches_its_numpy_twin(device):
-    from evsemmap_warp.core.voxel_map import block_model_tables
+    from evsemmap_warp.reference.release import block_models
 
     rng = np.random.default_rng(10)
     members = rng.integers(-5, 5, (300, 3))
-    twin = er.release_blocks(members)
-    got = er.release_blocks(members, lambda b, g, lo: block_model_tables(b, g, lo, device))
-    np.testing.assert_array_equal(got.source_blocks, twin.source_blocks)
-    np.testing.assert_array_equal(got.source_mult, twin.source_mult)
-    from evsemmap_warp.reference.release import block_models
-
-    literal = block_models(twin.blocks, er.TARGET_BLOCK_OFFSETS)
-    np.testing.assert_array_equal(literal[0], twin.source_blocks)
-    np.testing.assert_array_equal(literal[1], twin.source_mult)
-    one = er.release_blocks(members[:1], lambda b, g, lo: block_model_tables(b, g, lo, device))
+    got = er.release_blocks(members, device=device)
+    literal = block_models(got.blocks, er.TARGET_BLOCK_OFFSETS)
+    np.testing.assert_array_equal(got.source_blocks, literal[0])
+    np.testing.assert_array_equal(got.source_mult, literal[1])
+    one = er.release_blocks(members[:1], device=device)
     assert one.source_mult[0].tolist() == [1 if tuple(o) == (0, 0, 0) else 0 for o in er.TARGET_BLOCK_OFFSETS]
 
 

@@ -107,9 +107,9 @@ def test_the_empty_sentinel_is_never_found_or_inserted(device):
 
     keys = wp.array(np.array([ht.EMPTY_KEY, ht.EMPTY_KEY], np.int64), dtype=wp.int64, device=device)
     found = wp.empty(2, dtype=int, device=device)
-    wp.launch(ht.lookup_keys, dim=2, inputs=[keys, vm.keys, vm.slot_rows, found], device=device)
+    wp.launch(ht.lookup_keys, dim=2, inputs=[keys, vm.table(), found], device=device)
     assert (found.numpy() == -1).all()
-    wp.launch(ht.insert_keys, dim=2, inputs=[keys, vm.keys, vm.slot_rows, vm.key_count, 1 << 20, found], device=device)
+    wp.launch(ht.insert_keys, dim=2, inputs=[keys, ht.hash_table(vm.keys, vm.slot_rows, vm.key_count, 1 << 20), found], device=device)
     assert (found.numpy() == -1).all() and vm.voxel_count == 1
 
 

@@ -17,9 +17,10 @@ from conftest import REPO
 CLASSES = ["void", "sky", "water", "object", "paved", "unpaved", "dirt", "grass", "vegetation"]
 
 
-def make_map(path, seed=0, offset=(0.0, 0.0, 0.0), frame=None):
+def make_map(path, seed=0, offset=(0.0, 0.0, 0.0), frame=None, dirt_below_x=None):
     """Grass ground, an object box, and a patch of void (free) evidence, 100 m from the origin (plus
-    ``offset``), recorded in world frame ``frame`` (None: as a file written before frames were recorded)."""
+    ``offset``), recorded in world frame ``frame`` (None: as a file written before frames were recorded).
+    ``dirt_below_x``: ground points less than this far along x (from the ground's edge) are dirt."""
     rng = np.random.default_rng(seed)
     cfg = load_config([REPO / "configs/presets/rellis3d.yaml"], method="s-bki").mapping
     mapper = Mapper(cfg, 9, class_names=CLASSES)
@@ -28,6 +29,8 @@ def make_map(path, seed=0, offset=(0.0, 0.0, 0.0), frame=None):
     air = np.c_[rng.uniform(4, 5, (500, 2)), rng.uniform(1.5, 2, 500)]
     points = np.concatenate([ground, box, air]) + np.array([100.0, 100.0, 0.0]) + offset
     labels = np.r_[np.full(6000, 7), np.full(2000, 3), np.zeros(500, int)]
+    if dirt_below_x is not None:
+        labels[:6000][ground[:, 0] < dirt_below_x] = 6
     alpha = 1.0 + rng.uniform(0, 0.5, (len(labels), 9))
     alpha[np.arange(len(labels)), labels] += rng.uniform(1, 60, len(labels))
     mapper.integrate(points, alpha, payload_type="alpha")
@@ -66,7 +69,8 @@ def test_class_toggle_and_variance_slider(viewer):
     assert 3 not in layer.label[viewer.visible_rows[0]] and 3 in layer.label[before]
     viewer.gui_classes["object"].value = True
     threshold = float(np.median(layer.variance[before]))
-    viewer.gui_max_variance.value = threshold
+    viewer.gui_max_variance.value = threshold / viewer.variance_unit  # the slider counts in units of 10^e
+    assert viewer.max_variance == pytest.approx(threshold)
     shown = viewer.visible_rows[0]
     assert 0 < len(shown) < len(before) and layer.variance[shown].max() <= threshold + 1e-9
 
@@ -285,3 +289,165 @@ def test_a_store_shows_its_frame_and_is_refused_beside_another(tmp_path):
         v.server.stop()
     with pytest.raises(ValueError, match="store is in frame 'map' \\(EPSG:32617\\) but .*odom.npz in frame 'odom'"):
         MapViewer([tmp_path / "store", tmp_path / "odom.npz"], port=free_port())
+
+
+# --- issue 30 (defects, orientation, diff) and issue 26 item 5 (terrain layers), in-process ------------------------
+from evsemmap_warp.apps import viewer_layers as vl
+
+
+def test_lit_mesh_colours_render_as_the_palette():
+    """The forward model (tone map of lit reflectance, fitted against Chromium: tests/test_viewer_browser.py) maps
+    the compensated colours back onto the palette, within what ACES can render (saturated yellow the furthest)."""
+    names = ["grass", "object", "dirt", "vegetation", "unpaved", "water", "sky", "paved"]
+    palette = np.array([CLASS_COLORS[n] for n in names], np.uint8)
+    shown = vl.rendered_top_color(vl.mesh_colors(palette)).astype(int)
+    error = np.abs(shown - palette).max(axis=1)
+    assert (error[:-1] <= 30).all() and error[-1] <= 60, dict(zip(names, error))
+    # viser's defaults (the instance colour itself, as the boxes were drawn) wash them out far more
+    assert (np.abs(vl.rendered_top_color(palette).astype(int) - palette).max(axis=1)[:5] > 60).all()
+    np.testing.assert_allclose(vl.aces(vl.aces_inverse(np.array([[0.2, 0.3, 0.1]]))), [[0.2, 0.3, 0.1]], atol=1e-6)
+
+
+def test_store_overview_counter_and_present_classes(tmp_path):
+    make_map(tmp_path / "a.npz")
+    make_map(tmp_path / "b.npz", seed=1, offset=(0.3, 0, 0))
+    assert main(["merge", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--out", str(tmp_path / "store"), "--tile-voxels", "16"]) == 0
+    v = MapViewer([tmp_path / "store"], port=free_port(), max_voxels=300)
+    try:
+        total = v.stores[0].total_voxels
+        assert total > len(v.layers[0].state)  # the overview is a share of the store
+        assert f"of its {total:,} voxels" in v.gui_status.content and "decimated" in v.gui_status.content
+        assert abs(v.layers[0].weight.sum() - total) < 1e-6 * total  # each overview row stands for its share of a tile
+        assert v.present_classes == ["void", "object", "grass"] and set(v.gui_classes) == {"void", "object", "grass"}
+    finally:
+        v.server.stop()
+    v = MapViewer([tmp_path / "store"], port=free_port(), max_voxels=10 * total)  # the whole store fits: nothing is left out
+    try:
+        assert "decimated" not in v.gui_status.content and len(v.layers[0].state) == total
+    finally:
+        v.server.stop()
+
+
+def test_variance_slider_counts_in_a_power_of_ten(viewer):
+    top = float(max(layer.variance.max() for layer in viewer.layers))
+    assert 1.0 <= top / viewer.variance_unit < 10.0
+    assert viewer.gui_max_variance.max * viewer.variance_unit >= top and len(f"{viewer.gui_max_variance.max:g}") <= 5
+    assert viewer.max_variance >= top  # everything is shown at first
+
+
+def test_terrain_surface_picking_and_cli(tmp_path, capsys):
+    make_map(tmp_path / "m.npz")
+    v = MapViewer([tmp_path / "m.npz"], port=free_port(), terrain=True)
+    try:
+        surface = v.terrain[0]
+        assert v.gui_terrain_band.options[0] == "traversability_cost" and "elevation" in v.gui_terrain_band.options
+        assert len(v.terrain_handles[0].batched_positions) == len(surface.rows) > 500
+        v.gui_terrain_mode.value = vl.TERRAIN_MODES[1]
+        assert all(len(rows) == 0 for rows in v.visible_rows) and "terrain surface is drawn instead" in v.gui_status.content
+        # a ray straight down onto a known cell hits that cell, at its height
+        row, col = surface.rows[len(surface.rows) // 2], surface.cols[len(surface.rows) // 2]
+        x, y = surface.grid.cell_centres()[0][col], surface.grid.cell_centres()[1][row]
+        hit = v.pick_point(np.array([x, y, 20.0]) - v.origin, (0, 0, -1))
+        assert hit["kind"] == "cell" and (hit["row"], hit["column"]) == (row, col)
+        assert abs(hit["point"][2] - surface.height[row, col]) < 0.06
+        text = surface.describe(row, col, v.layers[0].classes, "frame")
+        assert f"| elevation | {surface.layers.bands['elevation'][row, col]:.4g} | m |" in text
+        for band in ("surface_class", "lethal", "slope"):
+            v.gui_terrain_band.value = band
+            assert v.gui_terrain_legend.image.shape[1] == 220
+    finally:
+        v.server.stop()
+    assert main(["view", str(tmp_path / "m.npz"), "--layers", "--layers-resolution-m", "0.4", "--no-serve", "--port", str(free_port()),
+                 "--export-html", str(tmp_path / "t.html")]) == 0
+    assert "terrain surface: traversability_cost" in (tmp_path / "t.html").read_text()
+    assert main(["view", str(tmp_path / "m.npz"), "--layers", "--layers-resolution-m", "0.1", "--no-serve", "--port", str(free_port())]) == 2
+    assert "finer than the map's voxels" in capsys.readouterr().err
+
+
+def test_orientation_grid_and_measuring(viewer):
+    g = viewer.ground
+    assert g.section in (1.0, 2.0) and g.x0 <= 100.0 and g.x1 >= 106.0 and g.x0 % g.section == 0
+    assert "x 100 m" in [t for t, _ in g.labels] and "y 106 m" in [t for t, _ in g.labels]
+    assert vl.nice_length(7.3) == 5.0 and vl.nice_length(0.034) == 0.02 and vl.nice_length(1.0) == 1.0
+    html_text, metres, pixels = vl.scale_bar_html(0.05)
+    assert metres == 5.0 and pixels == 100.0 and 'data-metres="5"' in html_text
+
+    class Click:
+        def __init__(self, origin):
+            self.ray_origin, self.ray_direction = tuple(origin), (0.0, 0.0, -1.0)
+
+    layer = viewer.layers[0]
+    rows = viewer.visible_rows[0]
+    top = rows[np.argmax(layer.centers[rows, 2])]
+    near = rows[np.argmin(np.abs(layer.centers[rows, 0] - 105.5) + np.abs(layer.centers[rows, 1] - 105.5) + (layer.label[rows] != 7))]
+    column = rows[np.all(layer.voxel_index[rows, :2] == layer.voxel_index[near, :2], axis=1)]
+    ground = column[np.argmax(layer.centers[column, 2])]  # the highest voxel of that column: the one a ray from above meets
+    viewer.gui_measure.value = True
+    for row in (ground, top):
+        viewer._on_click(Click(layer.centers[row] - viewer.origin + [0, 0, 10]))
+    a, b = viewer.measure_points
+    np.testing.assert_allclose(a[:2], layer.centers[ground, :2])
+    assert abs(a[2] - (layer.centers[ground, 2] + layer.resolution / 2)) < 1e-6  # the top face the ray enters
+    assert abs((b[2] - a[2]) - (layer.centers[top, 2] - layer.centers[ground, 2])) < 1e-6
+    assert f"height difference **{b[2] - a[2]:+.3f} m**" in viewer.gui_measure_result.content
+    assert "clicked point in" in viewer.gui_selection.content
+    viewer.gui_measure.value = False
+    assert viewer.measure_points == [] and viewer.gui_measure_result.content == ""
+
+
+def _projection(path, dirt_below_x):
+    import json
+
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(0, 6, (6000, 2)), rng.normal(0, 0.02, 6000)]
+    labels = np.where(ground[:, 0] < dirt_below_x, 6, 7)
+    np.savez_compressed(path, points=ground + [100.0, 100.0, 0.0], labels=labels, frame=np.array(json.dumps({"name": "odom"})))
+    return path
+
+
+def test_diff_counts_against_a_projection_and_a_map(tmp_path, capsys):
+    make_map(tmp_path / "a.npz", frame=WorldFrame("odom"))
+    make_map(tmp_path / "b.npz", frame=WorldFrame("odom"), dirt_below_x=1.5)
+    truth = _projection(tmp_path / "ground_truth.npz", 0.75)
+    v = MapViewer([tmp_path / "a.npz", tmp_path / "b.npz"], port=free_port(), truth=truth)
+    try:
+        v.gui_diff.value = "labels differ"
+        diff = v.diff()
+        a, b = v.layers
+        x = a.centers[diff.a_rows, 0]
+        category = diff.category()
+        # the strip the second map calls dirt: left of 100.75 the truth agrees with it, right of it with the first
+        judged = diff.differ & (diff.truth >= 0)  # voxels the truth's points fall in
+        assert (category[judged & (x < 100.6)] == 1).mean() > 0.9 and (category[judged & (x > 100.9)] == 0).mean() > 0.9
+        assert (category[diff.differ & (diff.truth < 0)] == 3).all()
+        assert not diff.differ[x > 101.8].any()
+        shown = v.visible_rows[0]
+        assert set(np.unique(a.label[shown])) <= {6, 7} and len(shown) == diff.differ.sum() - (a.state[diff.a_rows[diff.differ]] != 2).sum()
+        counts = diff.counts()
+        assert counts["first map agrees with the truth"] + counts["second map agrees with the truth"] + counts["neither agrees with the truth"] \
+            + counts["labels differ (no truth here)"] == counts["differ"]
+        v.gui_diff.value = "variance difference"
+        assert "variance of the first minus the second" in v.gui_diff_status.content
+        np.testing.assert_allclose(diff.variance_difference, a.variance[diff.a_rows] - b.variance[diff.b_rows])
+        # a map as the truth: its labels where it is occupied
+        truth_map = vl.load_truth(tmp_path / "b.npz", a, WorldFrame("odom"))
+        occupied = b.state[diff.b_rows] == 2
+        np.testing.assert_array_equal(truth_map[diff.a_rows][occupied], b.label[diff.b_rows][occupied])
+    finally:
+        v.server.stop()
+    with pytest.raises(ValueError, match="compare with the truth.*'map'.*'odom'|'odom'.*'map'"):
+        vl.load_truth(_projection(tmp_path / "gt.npz", 0.75), a, WorldFrame("map"))
+    np.savez(tmp_path / "junk.npz", x=np.zeros(3))
+    with pytest.raises(ValueError, match="not a ground truth"):
+        vl.load_truth(tmp_path / "junk.npz", a, WorldFrame("odom"))
+    assert main(["view", str(tmp_path / "a.npz"), "--truth", str(tmp_path / "none.npz"), "--no-serve", "--port", str(free_port())]) == 2
+    assert "no such ground-truth file" in capsys.readouterr().err
+
+
+def test_html_export_holds_the_legend(viewer, tmp_path):
+    page = viewer.export_html(tmp_path / "scene.html").read_text()
+    legend = page[page.index('<div id="evsemmap-legend"'):]
+    assert "grass" in legend and "object" in legend and "sky" not in legend and "colour by semantic" in legend
+    viewer.gui_color_by.value = "variance"
+    page = viewer.export_html(tmp_path / "scene2.html").read_text()
+    assert 'alt="colour bar' in page and "data:image/png;base64," in page

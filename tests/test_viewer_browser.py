@@ -91,3 +91,417 @@ def test_far_map_shows_its_frame_origin_and_world_coordinates_of_a_click(tmp_pat
             browser.close()
     finally:
         viewer.server.stop()
+
+
+# --- issue 30 (defects, orientation, diff) and issue 26 item 5 (terrain layers in the browser) ------------------
+# One browser for the tests below; each opens its own page on its own server.
+import colorsys
+import re
+
+from evsemmap_warp.apps import viewer_layers as vl
+from conftest import REPO
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with sync_api.sync_playwright() as p:
+        chromium = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+        yield chromium
+        chromium.close()
+
+
+@pytest.fixture
+def open_page(browser):
+    """Open a viewer's page; closed after the test (open WebGL pages would share SwiftShader's CPU)."""
+    opened = []
+
+    def open_(viewer, width=1280, height=800):
+        page = browser.new_page(viewport={"width": width, "height": height})
+        opened.append(page)
+        page.goto(viewer.url)
+        page.get_by_text("Colour by").first.wait_for(timeout=30_000)
+        return page
+
+    yield open_
+    for page in opened:
+        page.close()
+
+
+def _image(png: bytes) -> np.ndarray:
+    from PIL import Image
+
+    return np.asarray(Image.open(BytesIO(png)).convert("RGB")).astype(int)
+
+
+def _near(img: np.ndarray, rgb, tol=40) -> np.ndarray:
+    return np.abs(img - np.array(rgb)).max(axis=2) < tol
+
+
+def _choose(page, label, option):
+    page.get_by_label(label, exact=True).click()
+    page.get_by_role("option", name=option, exact=True).click()
+
+
+def _panel_images(page) -> list[dict]:
+    """Bounding boxes of the GUI panel's images (the legends), top to bottom."""
+    return page.evaluate("""() => [...document.querySelectorAll('img')].filter(e => e.src.startsWith('blob:'))
+        .map(e => e.getBoundingClientRect().toJSON()).filter(r => r.width > 0)""")
+
+
+def _trajectory_files(tmp_path):
+    poses = np.zeros((20, 12))
+    poses[:, [0, 5, 10]] = 1
+    poses[:, 3], poses[:, 7], poses[:, 11] = np.linspace(100, 106, 20), 103.0, 0.3
+    np.savetxt(tmp_path / "poses.txt", poses)
+    scan = (np.random.default_rng(0).normal(size=(2000, 4)) * [2, 2, 0.3, 1] + [103, 103, 0.5, 0]).astype(np.float32)
+    scan.tofile(tmp_path / "scan.bin")
+    return tmp_path / "poses.txt", tmp_path / "scan.bin"
+
+
+def test_boxes_show_the_palette_colours(open_page, tmp_path):
+    """Issue 30: the boxes style was washed out (viser's lights and tone mapping): the boxes' tops now show
+    the class colours as the points do."""
+    make_map(tmp_path / "m.npz")
+    viewer = MapViewer([tmp_path / "m.npz"], port=free_port(), style="boxes")
+    try:
+        page = open_page(viewer)
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000), \
+            "grass boxes never showed the grass colour (washed out?)"
+        assert _near(_image(page.screenshot())[:, :900], CLASS_COLORS["object"]).sum() >= 300
+    finally:
+        viewer.server.stop()
+
+
+def test_boxes_with_trajectory_and_scan_keep_the_legend_in_view(open_page, tmp_path):
+    """Issue 30: with --style boxes --trajectory --scan the panel had a blank block at its top and the legend
+    out of view: the legend is in view and no blank block sits above it."""
+    make_map(tmp_path / "m.npz")
+    poses, scan = _trajectory_files(tmp_path)
+    viewer = MapViewer([tmp_path / "m.npz"], port=free_port(), style="boxes", trajectory=poses, scan=scan)
+    try:
+        page = open_page(viewer)
+        assert _wait(lambda: len(_panel_images(page)) > 0), "no legend image in the panel"
+        time.sleep(1.0)
+        legend = _panel_images(page)[0]
+        assert legend["top"] >= 0 and legend["bottom"] <= 800 and legend["height"] > 30, f"legend out of view: {legend}"
+        img = _image(page.screenshot())
+        # its swatches are drawn: the class colours inside the legend's box
+        box = img[int(legend["top"]):int(legend["bottom"]), int(legend["left"]):int(legend["right"])]
+        assert _near(box, CLASS_COLORS["grass"], 10).sum() > 50 and _near(box, CLASS_COLORS["object"], 10).sum() > 50
+        # no blank block: no run of white rows taller than 80 px from the panel's top to the legend's bottom
+        panel = img[60:int(legend["bottom"]), int(legend["left"]) + 5:int(legend["left"]) + 280]
+        blank = (panel >= 245).all(axis=(1, 2))
+        runs = np.diff(np.flatnonzero(np.r_[True, ~blank, True])) - 1
+        assert runs.max() < 80, f"a blank block of {runs.max()} px in the panel"
+    finally:
+        viewer.server.stop()
+
+
+def test_readme_names_the_drive_colour_the_browser_shows(open_page, tmp_path):
+    """Issue 30: the README's caption of docs/demo_map.png names the colour the trajectory is drawn in."""
+    make_map(tmp_path / "m.npz")
+    poses, _ = _trajectory_files(tmp_path)
+    viewer = MapViewer([tmp_path / "m.npz"], port=free_port(), trajectory=poses)
+    try:
+        page = open_page(viewer)
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000)
+        time.sleep(1.0)
+        with_drive = _image(page.screenshot())[:, :900]
+        for name in ("/trajectory", "/trajectory_poses"):
+            viewer.server.scene.remove_by_name(name)
+        assert _wait(lambda: np.abs(_image(page.screenshot())[:, :900] - with_drive).max(axis=2).sum() > 0)
+        time.sleep(1.0)
+        without = _image(page.screenshot())[:, :900]
+        changed = np.abs(with_drive - without).max(axis=2) > 60
+        assert changed.sum() > 100, "the trajectory was not drawn"
+        r, g, b = np.median(with_drive[changed], axis=0) / 255.0
+        hue = colorsys.rgb_to_hsv(r, g, b)[0] * 360
+        name = "red" if hue < 15 or hue >= 345 else "orange" if hue < 45 else "yellow" if hue < 70 else "other"
+    finally:
+        viewer.server.stop()
+    readme = (REPO / "README.md").read_text()
+    caption = readme[readme.index("(docs/demo_map.png)"):][:400]
+    assert f"the drive in {name}" in caption, f"the browser draws the drive {name} (hue {hue:.0f}); README: {caption!r}"
+
+
+def test_store_overview_counter_says_it_is_decimated(open_page, tmp_path):
+    """Issue 30: a store overview is a decimated share of the store; the counter says so, with the store's total."""
+    from evsemmap_warp.apps.cli import main
+    from evsemmap_warp.core.map_store import MapStore
+
+    make_map(tmp_path / "a.npz")
+    make_map(tmp_path / "b.npz", seed=1, offset=(0.3, 0, 0))
+    assert main(["merge", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--out", str(tmp_path / "store"), "--tile-voxels", "16"]) == 0
+    total = MapStore(tmp_path / "store").voxel_count
+    viewer = MapViewer([tmp_path / "store"], port=free_port(), max_voxels=400)
+    try:
+        page = open_page(viewer)
+        page.get_by_text("decimated", exact=False).first.wait_for(timeout=20_000)
+        text = page.inner_text("body")
+        assert f"of its {total:,} voxels" in text, text[:2000]
+        same = re.search(r"([\d,]+) of \1 visible voxels drawn", text)
+        assert same is None, f"the counter claims nothing is left out: {same.group(0)}"
+    finally:
+        viewer.server.stop()
+
+
+def test_max_variance_box_shows_its_whole_value(open_page, tmp_path):
+    """Issue 30: the max-variance number box was cut off ("0.01710"): every number box shows its whole value."""
+    make_map(tmp_path / "m.npz")
+    viewer = MapViewer([tmp_path / "m.npz"], port=free_port())
+    try:
+        page = open_page(viewer)
+        page.get_by_text("Max variance").first.wait_for(timeout=10_000)
+        boxes = page.evaluate("""() => [...document.querySelectorAll('input')]
+            .filter(e => e.type === 'text' && e.getBoundingClientRect().width > 0 && e.getBoundingClientRect().width < 80)
+            .map(e => ({value: e.value, scroll: e.scrollWidth, client: e.clientWidth}))""")
+        assert boxes, "no number box found"
+        for box in boxes:
+            assert box["scroll"] <= box["client"], f"number box cut off: {box}"
+        values = [float(b["value"]) for b in boxes]
+        top = float(viewer.layers[0].variance.max())
+        assert any(abs(v * viewer.variance_unit - top) <= viewer.gui_max_variance.step * viewer.variance_unit for v in values), (values, top)
+        page.get_by_text(f"×1e{round(np.log10(viewer.variance_unit))}").first.wait_for(timeout=5_000)  # the unit is in the label
+    finally:
+        viewer.server.stop()
+
+
+def test_html_export_shows_the_legend_and_the_frame_note(browser, tmp_path):
+    """Issue 30: the standalone HTML has a legend and the frame note, not only the scene."""
+    from test_viewer import FAR, UTM
+
+    make_map(tmp_path / "m.npz", offset=FAR, frame=UTM)
+    viewer = MapViewer([tmp_path / "m.npz"], port=free_port())
+    try:
+        path = viewer.export_html(tmp_path / "scene.html")
+    finally:
+        viewer.server.stop()
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    page.goto(path.as_uri())
+    legend = page.locator("#evsemmap-legend")
+    legend.wait_for(state="visible", timeout=30_000)
+    box = legend.bounding_box()
+    assert box["x"] >= 0 and box["y"] >= 0 and box["y"] + box["height"] <= 800
+    text = legend.inner_text()
+    assert "grass" in text and "object" in text and "sky" not in text and "map (EPSG:32617)" in text
+    note = page.locator("#evsemmap-frame-note")
+    assert note.is_visible() and "EPSG:32617" in note.inner_text()
+    img = _image(page.screenshot())
+    swatches = img[int(box["y"]):int(box["y"] + box["height"]), int(box["x"]):int(box["x"] + box["width"])]
+    assert _near(swatches, CLASS_COLORS["grass"], 10).sum() > 50 and _near(swatches, CLASS_COLORS["object"], 10).sum() > 50
+    assert _wait(lambda: _near(_image(page.screenshot()), CLASS_COLORS["grass"]).sum() > 2000), "the exported scene never rendered"
+    page.close()
+
+
+def test_only_classes_the_map_holds_are_offered(open_page, tmp_path):
+    """Issue 30: no toggles (or legend entries) for classes no voxel carries, e.g. sky."""
+    make_map(tmp_path / "m.npz")
+    viewer = MapViewer([tmp_path / "m.npz"], port=free_port())
+    try:
+        page = open_page(viewer)
+        page.get_by_label("grass", exact=True).wait_for(timeout=10_000)
+        assert page.get_by_label("object", exact=True).count() == 1
+        for absent in ("sky", "water", "paved", "vegetation"):
+            assert page.get_by_label(absent, exact=True).count() == 0, f"{absent} is offered but the map holds none"
+        legend = _panel_images(page)[0]
+        assert legend["height"] < 18 * 4 * 1.6  # three classes, not nine
+    finally:
+        viewer.server.stop()
+
+
+def _top_down(viewer, height_m: float, look_at):
+    """Look straight down (almost: orbit controls need a tilt) at ``look_at`` (display coordinates) from ``height_m``."""
+    look_at = np.asarray(look_at, np.float64)
+    for client in viewer.server.get_clients().values():
+        client.camera.position = tuple(look_at + np.array([0.0, -0.002 * height_m, height_m]))  # (position moves look_at along)
+        client.camera.look_at = tuple(look_at)
+
+
+def test_orientation_grid_scale_bar_world_coordinates_and_measuring(open_page, tmp_path):
+    """Issue 30 item 2: a ground grid labelled in metres, a scale bar that matches the screen, the world
+    coordinates of a clicked point, and a two-click measurement of distance and height difference."""
+    from test_viewer import FAR, UTM
+
+    make_map(tmp_path / "m.npz", offset=FAR, frame=UTM)
+    viewer = MapViewer([tmp_path / "m.npz"], port=free_port())
+    try:
+        page = open_page(viewer)
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000)
+        layer = viewer.layers[0]
+        ground = layer.centers[layer.label == 7]
+        centre = (ground.min(axis=0) + ground.max(axis=0)) / 2 - viewer.origin
+        centre[2] = np.median(ground[:, 2]) - viewer.origin[2]
+        _top_down(viewer, 9.0, centre)
+        client = next(iter(viewer.server.get_clients().values()))
+        assert _wait(lambda: abs(np.linalg.norm(client.camera.position - client.camera.look_at) - 9.0) < 0.05)
+        time.sleep(2.0)
+        assert viewer.scale_bar is not None
+        bar = page.locator("#evsemmap-scale-bar")
+        metres, pixels = float(bar.get_attribute("data-metres")), float(bar.get_attribute("data-pixels"))
+        assert f"{metres:g} m" in bar.inner_text()
+        m_per_px = metres / pixels
+        # the scale bar against the screen: the ground grid's lines lie on round world coordinates, one
+        # section apart; along a row between the grid's south edge and the map, their spacing in pixels
+        img = _image(page.screenshot())[:, :940]
+        grass = _near(img, CLASS_COLORS["grass"])
+        look = centre + viewer.origin
+        row = int(round(400 + (look[1] - (viewer.ground.y0 + 0.15 * viewer.ground.section)) / m_per_px))
+        dark = np.flatnonzero(img[row, 250:940].max(axis=1) < 190) + 250  # section lines (grey 150), not the cells' (215)
+        groups = [g for g in np.split(dark, np.flatnonzero(np.diff(dark) > 3) + 1) if len(g)]
+        assert len(groups) >= 4, f"no grid lines along row {row}"
+        spacing = float(np.median(np.diff([g.mean() for g in groups])))
+        assert abs(spacing * m_per_px - viewer.ground.section) < 0.05 * viewer.ground.section, \
+            f"the scale bar says {m_per_px:.4f} m/px; grid lines {viewer.ground.section} m apart are {spacing:.1f} px apart"
+        # the ground grid and its labels: toggled off in the page, their pixels go
+        with_grid = img
+        page.get_by_label("Ground grid", exact=True).click()
+        assert _wait(lambda: not viewer.gui_grid.value)
+        time.sleep(2.0)
+        without_grid = _image(page.screenshot())[:, :940]
+        outside = ~grass & ~_near(with_grid, CLASS_COLORS["object"])
+        lines = outside & (np.abs(with_grid - without_grid).max(axis=2) > 20) & (with_grid.std(axis=2) < 8)
+        assert lines.sum() > 500, "no grid lines drawn"
+        text = outside & (with_grid.max(axis=2) < 90) & (without_grid.min(axis=2) > 200)
+        assert text.sum() > 30, "no grid labels drawn"
+        labels = [t for t, _ in viewer.ground.labels]
+        assert any(t.startswith("x 500,") and t.endswith(" m") for t in labels) and any(t.startswith("y 4,000,") for t in labels)
+        page.get_by_label("Ground grid", exact=True).click()
+        # a click reports the world coordinates of the point it hits
+        cx, cy = 640, 500  # the orbit centre is the canvas' centre (640, 400); 100 px south of it lies grass
+        page.mouse.click(cx - 150, cy + 60)
+        assert _wait(lambda: "clicked point in frame 'map' (EPSG:32617): x=" in viewer.gui_selection.content)
+        # measuring: two clicks, the distance and the height difference, in the page
+        page.get_by_label("Measure (click 2 points)", exact=True).click()
+        assert _wait(lambda: viewer.gui_measure.value)
+        page.mouse.click(cx - 150, cy + 60)
+        assert _wait(lambda: len(viewer.measure_points) == 1)
+        page.mouse.click(cx + 150, cy + 60)
+        assert _wait(lambda: len(viewer.measure_points) == 2)
+        page.get_by_text("height difference").first.wait_for(timeout=10_000)
+        a, b = viewer.measure_points
+        assert a[0] > 500_000 and a[1] > 4_000_000  # world coordinates of the frame
+        horizontal = float(np.hypot(*(b - a)[:2]))
+        assert abs(horizontal - 300 * m_per_px) < 0.15 * 300 * m_per_px, (horizontal, 300 * m_per_px)
+        assert abs(b[2] - a[2]) < 0.5  # both on the flat ground
+        assert f"distance **{np.linalg.norm(b - a):.3f} m**" in viewer.gui_measure_result.content
+        page.get_by_text(f"{np.linalg.norm(b - a):.3f} m").first.wait_for(timeout=10_000)
+    finally:
+        viewer.server.stop()
+
+
+def test_terrain_layer_as_a_coloured_height_surface_with_picking(open_page, tmp_path):
+    """Issue 26 item 5: a terrain layer drawn as a height surface instead of the voxels, coloured by the
+    selected layer, with its colour bar, and a click that reports the cell's values."""
+    make_map(tmp_path / "m.npz")
+    viewer = MapViewer([tmp_path / "m.npz"], port=free_port(), terrain=True)
+    try:
+        page = open_page(viewer)
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000)
+        _choose(page, "Draw", "surface instead of the voxels")
+        assert _wait(lambda: viewer.gui_terrain_mode.value == vl.TERRAIN_MODES[1])
+        _choose(page, "Layer", "surface_class")
+        assert _wait(lambda: viewer.gui_terrain_band.value == "surface_class")
+        assert all(len(rows) == 0 for rows in viewer.visible_rows)  # no voxel is drawn: the colours come from the surface
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000), "no grass-coloured surface"
+        _choose(page, "Layer", "elevation")
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() < 300)
+        # the colour bar of the layer, in the legend at the panel's top (the voxels' legend is hidden with the voxels)
+        time.sleep(1.0)
+        page.evaluate("""() => [...document.querySelectorAll('img')].filter(e => e.src.startsWith('blob:') && e.getBoundingClientRect().width > 0)
+            .forEach(e => e.scrollIntoView({block: 'nearest'}))""")  # the dropdowns' clicks may have scrolled the panel
+        time.sleep(0.5)
+        legends = _panel_images(page)
+        assert len(legends) == 1, legends
+        bar = legends[0]
+        assert bar["top"] >= 0 and bar["bottom"] <= 800, bar
+        img = _image(page.screenshot())
+        box = img[int(bar["top"]):int(bar["bottom"]), int(bar["left"]):int(bar["right"])]
+        assert _near(box, (253, 231, 37), 30).sum() > 20 and _near(box, (68, 1, 84), 30).sum() > 20, "no colour bar"
+        # a click on the surface: that cell's values
+        surface = viewer.terrain[0]
+        for x, y in ((450, 470), (420, 500), (480, 520), (400, 450), (500, 430)):
+            page.mouse.click(x, y)
+            if _wait(lambda: "terrain cell" in viewer.gui_selection.content, timeout=5):
+                break
+        text = viewer.gui_selection.content
+        assert "terrain cell" in text, text
+        col, row = map(int, re.search(r"\(column (\d+), row (\d+)\)", text).groups())
+        elevation = float(surface.layers.bands["elevation"][row, col])
+        assert f"| elevation | {elevation:.4g} | m |" in text
+        page.get_by_text("traversability_cost").first.wait_for(timeout=5_000)
+        assert "terrain cell" in page.inner_text("body")
+    finally:
+        viewer.server.stop()
+
+
+def test_terrain_layers_of_a_store_computed_on_demand(open_page, tmp_path):
+    """Issue 26 item 5 for stores: the GUI's button computes the layers (the mosaic of the tiles) and draws them."""
+    from evsemmap_warp.apps.cli import main
+
+    make_map(tmp_path / "a.npz")
+    make_map(tmp_path / "b.npz", seed=1)
+    assert main(["merge", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--out", str(tmp_path / "store"), "--tile-voxels", "16"]) == 0
+    viewer = MapViewer([tmp_path / "store"], port=free_port())
+    try:
+        page = open_page(viewer)
+        assert not viewer.terrain
+        page.get_by_role("button", name="Compute terrain layers").click()
+        assert _wait(lambda: 0 in viewer.terrain, timeout=120)
+        assert len(viewer.stores[0].store.tiles) > 1 and viewer.terrain[0].grid.width * viewer.terrain[0].grid.cell_m > 5.5
+        _choose(page, "Draw", "surface instead of the voxels")
+        _choose(page, "Layer", "surface_class")
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000), \
+            f"no surface drawn ({viewer.gui_terrain_band.value}, {viewer.gui_terrain_mode.value})"
+        page.get_by_text("cells of 0.2 m").first.wait_for(timeout=5_000)
+    finally:
+        viewer.server.stop()
+
+
+def _truth_file(path, dirt_below_x: float):
+    """A projection as `evsemmap project` writes it: make_map's ground (seed 0) and box points, labelled
+    grass and object, dirt below ``dirt_below_x`` along the ground."""
+    import json
+
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(0, 6, (6000, 2)), rng.normal(0, 0.02, 6000)]
+    box = np.c_[rng.uniform(2, 3, (2000, 2)), rng.uniform(0.2, 1.2, 2000)]
+    labels = np.r_[np.where(ground[:, 0] < dirt_below_x, 6, 7), np.full(2000, 3)]
+    np.savez_compressed(path, points=np.concatenate([ground, box]) + [100.0, 100.0, 0.0], labels=labels,
+                        frame=np.array(json.dumps(None)))
+    return path
+
+
+def test_diff_of_two_maps_against_a_ground_truth(open_page, tmp_path):
+    """Issue 30 item 4: the voxels whose labels differ, coloured by which map agrees with the truth, with
+    counts; and the variance difference."""
+    make_map(tmp_path / "a.npz")
+    make_map(tmp_path / "b.npz", dirt_below_x=1.5)  # the same points; the second map calls a strip dirt
+    truth = _truth_file(tmp_path / "ground_truth.npz", dirt_below_x=0.75)  # the truth: half of that strip is dirt
+    viewer = MapViewer([tmp_path / "a.npz", tmp_path / "b.npz"], port=free_port(), truth=truth)
+    try:
+        page = open_page(viewer)
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000)
+        _choose(page, "Show", "labels differ")
+        assert _wait(lambda: viewer.gui_diff.value == "labels differ")
+        counts = viewer.diff().counts(viewer.visible_mask(0)[viewer.diff().a_rows])
+        first, second = counts["first map agrees with the truth"], counts["second map agrees with the truth"]
+        assert first > 20 and second > 20 and counts["differ"] >= first + second
+        colours = list(vl.DIFF_COLORS.values())
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], colours[0], 25).sum() > 300), "no 'first agrees' voxels"
+        img = _image(page.screenshot())[:, :900]
+        assert _near(img, colours[1], 25).sum() > 300, "no 'second agrees' voxels"
+        assert _near(img, CLASS_COLORS["grass"]).sum() < 100  # only the differing voxels are drawn
+        body = page.inner_text("body")
+        assert f"first map agrees with the truth {first:,}" in body and f"second map agrees with the truth {second:,}" in body, body[-1500:]
+        assert f"labels differ in {counts['differ']:,}" in body
+        _choose(page, "Show", "variance difference")
+        assert _wait(lambda: viewer.gui_diff.value == "variance difference")
+        page.get_by_text("variance of the first minus the second").first.wait_for(timeout=10_000)
+        diff = viewer.diff()
+        assert np.abs(diff.variance_difference).max() > 0
+        img = _image(page.screenshot())[:, :900]
+        colours = vl.diverging(diff.variance_difference, np.abs(diff.variance_difference).max())
+        shown = {tuple(c) for c in colours}
+        assert sum(_near(img, c, 6).sum() for c in list(shown)[:50]) > 500, "no variance-difference colours"
+    finally:
+        viewer.server.stop()

@@ -249,15 +249,15 @@ def hash_microbench(device, quick, repeats):
                 table = wp.full(capacity, ht.EMPTY_KEY, dtype=wp.int64, device=device)
                 slot_rows = wp.zeros(capacity, dtype=int, device=device)
                 count = wp.zeros(1, dtype=int, device=device)
-                wp.launch(ht.insert_keys, dim=m, inputs=[keys, table, slot_rows, count, capacity, rows], device=device)
+                wp.launch(ht.insert_keys, dim=m, inputs=[keys, ht.hash_table(table, slot_rows, count, capacity), rows], device=device)
                 wp.synchronize_device(device)
-                return table, slot_rows
+                return table, slot_rows, count
 
-            table, slot_rows = insert()
+            table, slot_rows, count = insert()
             insert_s = timed(insert, repeats)
 
             def find():
-                wp.launch(ht.lookup_keys, dim=m, inputs=[keys, table, slot_rows, rows], device=device)
+                wp.launch(ht.lookup_keys, dim=m, inputs=[keys, ht.hash_table(table, slot_rows, count, capacity), rows], device=device)
                 wp.synchronize_device(device)
 
             find_s = timed(find, repeats)

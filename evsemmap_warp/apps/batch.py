@@ -21,12 +21,14 @@ inputs give the same store, byte for byte, whatever the executor, worker count o
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
 import resource
 import shutil
 import sys
+import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -35,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import files
 from ..config import ConfigError, MappingConfig, is_robot_log, load_config
 from ..core import map_store
 from ..core.mapper import Mapper, VoxelState
@@ -130,16 +133,19 @@ def load_yaml_sections(path: Path) -> set:
     return set(data) if isinstance(data, dict) else set()
 
 
-def _input_identity(paths: list[str]) -> list:
-    """What a resumed run must find unchanged: each file's or folder's size and modification time."""
-    out = []
-    for text in paths:
-        path = Path(text)
-        if path.exists():
-            stat = path.stat()
-            out.append([str(path.resolve()), stat.st_size if path.is_file() else None, stat.st_mtime_ns])
-        else:
-            out.append([text, None, None])
+def _input_identity(paths: list, dataset=None) -> list:
+    """What a resumed run must find unchanged: the content of every file it reads (files.content_identity,
+    where the trade-off against size + mtime is measured): the given paths (a folder, a log, configs;
+    a preset by its name) and the data a dataset config points at (its folder, file or logs)."""
+    data = []
+    if dataset is not None:
+        data = list(dataset.resolve_logs()) if dataset.kind == "bag" else [dataset.resolve_path()]
+    seen, out = set(), []
+    for path in [Path(p) for p in paths] + data:
+        key = str(path.resolve()) if path.exists() else str(path)
+        if key not in seen:
+            seen.add(key)
+            out.append(files.content_identity(path))
     return out
 
 
@@ -188,12 +194,21 @@ def plan_batch(paths: list[str], options: BatchOptions):
     if not chunks:
         raise ConfigError(f"batch: the inputs {inputs} hold no scans")
     identity = {
-        "inputs": [_input_identity([text] + shared) for text in inputs], "method": options.method, "mapping": config.as_dict(),
+        "inputs": [_input_identity([text] + shared, run.dataset) for text, run in zip(inputs, runs)], "method": options.method,
+        "mapping": config.as_dict(),
         "chunk_frames": chunk_frames, "tile_voxels": options.tile_voxels,  # the number used, chosen or given
         "frame": sources[0].frame.as_dict(),
         "payload": {"checkpoint": _input_identity([str(options.checkpoint)]) if options.checkpoint else None,
                     "alpha": _input_identity([str(options.alpha)]) if options.alpha else None, "bin_frames": options.bin_frames},
     }
+    held = {}  # the same drive twice (one path given twice, or a copy) would count every scan twice
+    for text, run, entry in zip(inputs, runs, identity["inputs"]):
+        data = {str(p.resolve()) for p in (run.dataset.resolve_logs() if run.dataset.kind == "bag" else [run.dataset.resolve_path()])}
+        key = tuple(sorted(e["sha256"] for e in entry if e.get("path") in data))
+        if key in held:
+            raise ConfigError(f"batch: inputs {held[key]} and {text} hold the same data (the same files, by content): "
+                              f"each drive once, or its scans count twice")
+        held[key] = text
     return inputs, sources, config, chunks, identity
 
 
@@ -249,6 +264,8 @@ def check_memory(options: BatchOptions, workers: int, chunk_insertions: int, fir
         fitting = max(0, int(np.floor((room / bytes_per_voxel(num_classes) - first) / max(new_per_insertion, 1))) + 1)
         if fitting >= 1:
             advice = f"use --chunk-frames {fitting} or fewer --workers"
+        elif workers > 1 and (most := int((have - DRIVER_OVERHEAD_BYTES) // (WORKER_OVERHEAD_BYTES + first * bytes_per_voxel(num_classes)))) >= 1:
+            advice = f"use fewer --workers (at most {most} fit, with --chunk-frames 1; not even chunks of one scan or bin fit {workers})"
         elif workers > 1:
             advice = "use fewer --workers (not even chunks of one scan or bin fit this many)"
         else:
@@ -264,9 +281,34 @@ def check_memory(options: BatchOptions, workers: int, chunk_insertions: int, fir
 _CONTEXT: Context | None = None
 
 
+_IN_TASK = False  # a worker process is running a task (map_chunk, reduce_tile) now
+
+
+def _worker_interrupt(signum, frame) -> None:
+    """Ctrl-C reaches every process of the terminal's group: a worker in a task stops it as an
+    interruption (its writes clean up after themselves: no temporary file stays), an idle one leaves
+    without a traceback; the driver says "interrupted" once."""
+    if _IN_TASK:
+        raise KeyboardInterrupt
+    os._exit(130)
+
+
+def _as_task(fn, *args):
+    """``fn(*args)`` in a pool worker, marked as a task for _worker_interrupt."""
+    global _IN_TASK
+    _IN_TASK = True
+    try:
+        return fn(*args)
+    finally:
+        _IN_TASK = False
+
+
 def _init_worker(context: Context, threads: int) -> None:
     global _CONTEXT
     _CONTEXT = context
+    import signal
+
+    signal.signal(signal.SIGINT, _worker_interrupt)
     try:
         import torch
 
@@ -299,7 +341,7 @@ def map_chunk(chunk: Chunk, context: Context | None = None) -> dict:
     started = time.perf_counter()
     done = _chunk_dir(context.store, chunk.number)
     if (done / "done.json").is_file():  # a retried task whose first attempt finished after all
-        return json.loads((done / "done.json").read_text()) | {"seconds": 0.0, "peak_rss_mb": _peak_rss_mb()}
+        return _read_done(context.store, chunk) | {"seconds": 0.0, "peak_rss_mb": _peak_rss_mb()}
     partial = context.store / "work" / f".chunk_{chunk.number:06d}.{os.getpid()}.tmp"
     shutil.rmtree(partial, ignore_errors=True)
     _inject_fault(context, chunk, partial)
@@ -309,11 +351,16 @@ def map_chunk(chunk: Chunk, context: Context | None = None) -> dict:
     points, scans = sum(s.input_points for s in stats), len(stats)
     voxels, _ = mapper.voxels()
     parts = map_store.split_by_tile(voxels.index, voxels.rows(), context.tile_voxels)
-    partial.mkdir(parents=True, exist_ok=True)
-    for name, (index, rows) in parts.items():
-        map_store.write_partial(partial / f"{name}.npz", index, rows)
+    try:
+        partial.mkdir(parents=True, exist_ok=True)
+        for name, (index, rows) in parts.items():
+            map_store.write_partial(partial / f"{name}.npz", index, rows)
+    except OSError as exc:  # a full disk: nothing of the chunk stays, the error names the store, not the temporary folder
+        shutil.rmtree(partial, ignore_errors=True)
+        raise files.error_naming(exc, context.store, f"writing chunk {chunk.number}'s partial maps; the mapped chunks are kept, "
+                                                    f"rerun to resume") from None
     record = {"number": chunk.number, "frames": chunk.frames, "scans": scans, "points": points, "voxels": int(len(voxels.index)),
-              "tiles": list(parts)}
+              "tiles": list(parts), "scan_ids": sorted(mapper.scan_ids)}
     map_store.write_json(partial / "done.json", record)
     try:
         os.rename(partial, done)  # the chunk counts from here on, all of it or nothing
@@ -328,15 +375,15 @@ def reduce_tile(name: str, chunks: list[int], totals: dict, context: Context | N
     started = time.perf_counter()
     template = context.template()
     columns = context.num_classes + EXTRA_COLUMNS
-    parts = [map_store.read_partial(_chunk_dir(context.store, n) / f"{name}.npz", columns) for n in chunks]
+    parts = [map_store.read_partial(_chunk_dir(context.store, n) / f"{name}.npz", columns, context.tile_voxels) for n in chunks]
     voxels = map_store.reduce_partials(template, parts)
-    entry = _write_tile(context.store, name, template, voxels, totals)
+    entry = _write_tile(context.store, name, template, voxels, totals, context.tile_voxels)
     return entry | {"seconds": time.perf_counter() - started, "peak_rss_mb": _peak_rss_mb()}
 
 
-def _write_tile(store: Path, name: str, template: Mapper, voxels, totals: dict) -> dict:
+def _write_tile(store: Path, name: str, template: Mapper, voxels, totals: dict, tile_voxels: int) -> dict:
     """Write one tile; its entry in the store index (voxels, bounds, states)."""
-    map_store.write_tile(store / "tiles" / f"{name}.npz", template, voxels, totals)
+    map_store.write_tile(store / "tiles" / f"{name}.npz", template, voxels, totals, tile_voxels)
     summary = template.summarize(voxels.evidence, voxels.touched)
     centres = template.voxel_centers(voxels.index)
     half = template.config.resolution_m / 2
@@ -344,10 +391,13 @@ def _write_tile(store: Path, name: str, template: Mapper, voxels, totals: dict) 
             "states": {s.name: int((summary.state == s).sum()) for s in VoxelState}}
 
 
-def _store_index(template: Mapper, tile_voxels: int, entries: dict, inputs: list, chunks: list, totals: dict) -> dict:
-    """store.json: everything but the tiles' voxels; nothing that depends on how or when it ran."""
+def _store_index(template: Mapper, tile_voxels: int, entries: dict, inputs: list, chunks: list, totals: dict, scan_ids) -> dict:
+    """store.json: everything but the tiles' voxels; nothing that depends on how or when it ran.
+    ``identity``: what its tiles record (map_store.store_identity); ``scan_ids``: the scans it holds
+    (a merge refuses to count them twice), None when not known."""
     config = template.config
     return {
+        "identity": map_store.template_identity(template, tile_voxels), "scan_ids": None if scan_ids is None else sorted(scan_ids),
         "format": map_store.STORE_FORMAT, "format_version": map_store.STORE_VERSION, "resolution_m": config.resolution_m,
         "origin_index": [int(v) for v in template.origin_index], "origin_m": template.origin.tolist(),
         "grid_offset_m": template.grid_offset_m, "frame": None if template.frame is None else template.frame.as_dict(),
@@ -367,9 +417,10 @@ def write_store_from_mapper(mapper: Mapper, out, tile_voxels: int, sources: list
     template = map_store.template_mapper(mapper.config, mapper.class_names,
                                          mapper.origin_index if mapper.origin_index is not None else np.zeros(3, np.int64), mapper.frame)
     totals = {"scans": mapper.scans_integrated, "points": mapper.points_integrated}
-    entries = {name: _write_tile(out, name, template, VoxelArrays.from_rows(index, rows), totals)
+    entries = {name: _write_tile(out, name, template, VoxelArrays.from_rows(index, rows), totals, tile_voxels)
                for name, (index, rows) in map_store.split_by_tile(voxels.index, voxels.rows(), tile_voxels).items()}
-    map_store.write_json(out / map_store.INDEX_NAME, _store_index(template, tile_voxels, entries, [{"source": s} for s in sources], [], totals))
+    map_store.write_json(out / map_store.INDEX_NAME, _store_index(template, tile_voxels, entries, [{"source": s} for s in sources], [], totals,
+                                                                  mapper.scan_ids))
     return out
 
 
@@ -406,6 +457,19 @@ class LocalExecutor:
         self._threads = max(1, (os.cpu_count() or 1) // workers)
         self._pool = None
 
+    def _submit(self, fn, item):
+        """Submit a task; a worker process started by it starts with Ctrl-C ignored (the setting passes
+        through exec) until _init_worker installs its handler, so an interrupt while workers start up
+        leaves no traceback of theirs, only the driver's "interrupted"."""
+        import signal
+
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if threading.current_thread() is threading.main_thread() else None
+        try:
+            return self._pool.submit(_as_task, fn, *item)
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGINT, previous)
+
     def _new_pool(self):
         return ProcessPoolExecutor(self.workers, mp_context=self._mp, initializer=_init_worker, initargs=(self.context, self._threads))
 
@@ -423,7 +487,7 @@ class LocalExecutor:
                 while queue or flight:
                     while queue and len(flight) < 2 * self.workers:
                         item = queue.pop(0)
-                        flight[self._pool.submit(fn, *item)] = item
+                        flight[self._submit(fn, item)] = item
                     finished, _ = wait(flight, return_when=FIRST_COMPLETED)
                     for future in finished:
                         item = flight.pop(future)
@@ -431,6 +495,9 @@ class LocalExecutor:
                         pending.remove(item)
             except BrokenProcessPool:
                 broken = True
+            except KeyboardInterrupt:  # Ctrl-C: stop the workers' tasks too (a worker that was still starting missed it)
+                self._interrupt_workers()
+                raise
             if broken:
                 self._pool.shutdown(wait=False, cancel_futures=True)
                 self._pool = None
@@ -440,9 +507,32 @@ class LocalExecutor:
                         raise RuntimeError(f"batch: a worker died {self.retries + 1} times running {item[0]}; giving up")
                 self.log(f"a worker died; a new pool runs the {len(pending)} unfinished task(s) again")
 
+    def _interrupt_workers(self) -> None:
+        """Cancel what has not started and interrupt every worker: one in a task stops it (cleaning up
+        its temporary files), an idle one exits (_worker_interrupt)."""
+        import signal
+
+        if self._pool is None:
+            return
+        processes = list((getattr(self._pool, "_processes", None) or {}).values())
+        for process in processes:
+            try:
+                os.kill(process.pid, signal.SIGINT)
+            except (ProcessLookupError, TypeError):
+                pass
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        self._pool = None
+        # a worker that was still starting up (Ctrl-C ignored until _init_worker) would run a whole chunk:
+        # a few seconds' grace, then it is stopped (what it leaves is cleared by the next run, _remove_unfinished_chunks)
+        deadline = time.monotonic() + 3.0
+        for process in processes:
+            process.join(max(0.0, deadline - time.monotonic()))
+            if process.is_alive():
+                process.terminate()
+
     def close(self) -> None:
         if self._pool is not None:
-            self._pool.shutdown()
+            self._pool.shutdown(cancel_futures=True)
             self._pool = None
 
 
@@ -503,10 +593,51 @@ class RayExecutor:
 
 
 # The run ----------------------------------------------------------------------------------------------
+def _read_work_json(path: Path, what: str, remedy: str):
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise map_store.StoreError(f"{path}: not a readable {what} ({type(exc).__name__}: {exc}); {remedy}") from None
+
+
+def _read_done(store: Path, chunk: Chunk) -> dict:
+    """A finished chunk's record (done.json), validated against the chunk and the partials beside it."""
+    folder = _chunk_dir(store, chunk.number)
+    path = folder / "done.json"
+    record = _read_work_json(path, "chunk record", f"delete {folder} and rerun to map that chunk again")
+    counts = ("number", "frames", "scans", "points", "voxels")
+    problem = None
+    if not isinstance(record, dict) or not all(isinstance(record.get(k), int) and not isinstance(record[k], bool) and record[k] >= 0
+                                               for k in counts):
+        problem = f"needs whole counts >= 0 for {', '.join(counts)}"
+    elif (record["number"], record["frames"]) != (chunk.number, chunk.frames) or record["scans"] > chunk.frames:
+        problem = (f"says chunk {record['number']} of {record['frames']} frames with {record['scans']} scans, the plan has chunk "
+                   f"{chunk.number} of {chunk.frames} frames")
+    elif not isinstance(record.get("tiles"), list) or not all(isinstance(t, str) for t in record["tiles"]):
+        problem = "needs the list of its tiles"
+    elif not isinstance(record.get("scan_ids"), list) or not all(isinstance(i, str) for i in record["scan_ids"]):
+        problem = "needs the list of its scan ids (a chunk mapped by an older version: rerun it)"
+    else:
+        for name in record["tiles"]:
+            try:
+                map_store.parse_tile_name(name)
+            except map_store.StoreError as exc:
+                problem = str(exc)
+                break
+            if not (folder / f"{name}.npz").is_file():
+                problem = f"lists tile {name}, whose partial {folder / (name + '.npz')} is missing"
+                break
+    if problem:
+        raise map_store.StoreError(f"{path}: {problem}; delete {folder} and rerun to map that chunk again")
+    return record
+
+
 def _check_store(out: Path, identity: dict) -> None:
     plan_path = out / "work" / "plan.json"
     if plan_path.is_file():
-        earlier = json.loads(plan_path.read_text())
+        earlier = _read_work_json(plan_path, "batch plan", f"delete {out / 'work'} to start over")
+        if not isinstance(earlier, dict):
+            raise map_store.StoreError(f"{plan_path}: not a batch plan (a JSON object); delete {out / 'work'} to start over")
         if earlier != identity:
             differing = sorted(k for k in set(earlier) | set(identity) if earlier.get(k) != identity.get(k))
             raise ConfigError(f"{out}: holds a batch run of other inputs or settings (differing: {', '.join(differing)}); "
@@ -519,14 +650,44 @@ def _check_store(out: Path, identity: dict) -> None:
 
 
 def _remove_unfinished_chunks(out: Path) -> None:
-    """What workers killed halfway left (temporary chunk folders): never counted, removed."""
+    """What workers killed halfway left (temporary chunk folders, temporary tile files): never counted,
+    removed (the store lock says no other run is writing them)."""
     for stale in (out / "work").glob(".chunk_*"):
         shutil.rmtree(stale, ignore_errors=True)
+    for stale in (out / "tiles").glob(".*.tmp"):
+        stale.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def _store_lock(out: Path):
+    """One batch run at a time per store: an exclusive lock on the store folder (created here, and
+    removed again when the run leaves it empty). Two runs into one store used to interleave their chunks,
+    plans and tiles: a store of one drive's inputs holding another's voxels, both exiting 0."""
+    import fcntl
+
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    handle = os.open(out, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ConfigError(f"{out}: another batch run is writing this store now; wait for it to finish, or give another --out") from None
+        yield
+    finally:
+        os.close(handle)  # releases the lock
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
 
 
 def run_batch(paths: list[str], options: BatchOptions, log=None, *, _fault: _FaultPlan | None = None) -> dict:
     """Plan, map chunks, reduce tiles and write the store; returns the summary. ``_fault``: the
     tests' fault injection (a _FaultPlan the workers receive in their Context), never used otherwise."""
+    with _store_lock(Path(options.out)):
+        return _run_batch(paths, options, log, _fault=_fault)
+
+
+def _run_batch(paths: list[str], options: BatchOptions, log=None, *, _fault: _FaultPlan | None = None) -> dict:
     log = log or (lambda m: print(m, file=sys.stderr))
     times = {}
     started = time.perf_counter()
@@ -534,6 +695,7 @@ def run_batch(paths: list[str], options: BatchOptions, log=None, *, _fault: _Fau
     if options.executor not in ("local", "ray", "inline"):
         raise ConfigError(f"--executor {options.executor!r}: local or ray")
     inputs, sources, config, chunks, identity = plan_batch(paths, options)
+    files.check_not_inside(out, [e["path"] for entry in identity["inputs"] for e in entry if "path" in e], "batch --out")
     _check_store(out, identity)
     origin_index, class_names, first, first_two = probe(sources, config)
     workers = options.workers or (os.cpu_count() or 1)
@@ -577,7 +739,7 @@ def run_batch(paths: list[str], options: BatchOptions, log=None, *, _fault: _Fau
         _remove_unfinished_chunks(out)
         times["map"] = time.perf_counter() - stage
         for c in chunks:
-            records[c.number] = json.loads((_chunk_dir(out, c.number) / "done.json").read_text())
+            records[c.number] = _read_done(out, c)
         totals = {"scans": sum(r["scans"] for r in records.values()), "points": sum(r["points"] for r in records.values())}
         tiles: dict[str, list[int]] = {}
         for c in chunks:
@@ -602,7 +764,8 @@ def run_batch(paths: list[str], options: BatchOptions, log=None, *, _fault: _Fau
     inputs_entry = [{"source": str(Path(text).resolve()) if Path(text).exists() else text, "insertions": len(s), "frames": s.frames_in(0, len(s))}
                     for text, s in zip(inputs, sources)]
     chunks_entry = [dataclasses.asdict(c) | {k: records[c.number][k] for k in ("scans", "points", "voxels")} for c in chunks]
-    index = _store_index(context.template(), options.tile_voxels, entries, inputs_entry, chunks_entry, totals)
+    scan_ids = set().union(*(records[c.number]["scan_ids"] for c in chunks))
+    index = _store_index(context.template(), options.tile_voxels, entries, inputs_entry, chunks_entry, totals, scan_ids)
     map_store.write_json(out / map_store.INDEX_NAME, index)
     if options.discard_partials:
         shutil.rmtree(out / "work", ignore_errors=True)

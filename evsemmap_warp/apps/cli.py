@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import json
 import math
+import re
 import sys
 import time
 from pathlib import Path
@@ -25,6 +26,10 @@ def _cmd_map(args) -> int:
     run = load_config(args.configs, method=args.method, frame=args.frame, crs=args.crs)
     if run.dataset is None:
         raise ConfigError(f"none of {list(args.configs)} has a 'dataset' section: name a dataset config, e.g. configs/datasets/sbki_toy.yaml")
+    from ..files import check_not_inside
+
+    data = run.dataset.resolve_logs() if run.dataset.kind == "bag" else [run.dataset.resolve_path()]
+    check_not_inside(args.out, data, "map --out")  # never over a log, nor into a sequence folder
     dataset = open_scan_source(run, checkpoint=args.checkpoint, alpha_dir=args.alpha, bin_frames=args.bin_frames, batch_size=args.batch_size)
     mapper = mapper_for(dataset, run.mapping, device=args.device, workers=args.workers)
     if not args.quiet:
@@ -84,15 +89,29 @@ def _cmd_export(args) -> int:
     from ..core.map_store import MapStore
     from ..core.mapper import save_map
 
+    from ..core.map_store import check_bounds
+    from ..files import check_not_inside
+
+    check_not_inside(args.out, [args.store], "export --out")  # never over the store's own files
     store = MapStore(args.store)
     bounds = None
     if args.bounds is not None:
-        bounds = np.asarray(args.bounds, np.float64).reshape(2, 3)
-        if np.any(bounds[0] > bounds[1]):
-            raise ValueError(f"--bounds {args.bounds}: each minimum must be <= its maximum (x0 y0 z0 x1 y1 z1)")
+        bounds = np.stack(check_bounds(args.bounds, "--bounds"))
     mapper = store.to_mapper(bounds)
     save_map(args.out, mapper)
     print(json.dumps({"store": str(args.store), "out": str(args.out), "voxels": mapper.voxel_count, "tiles_read": store.tiles_loaded}, indent=1))
+    return 0
+
+
+def _cmd_layers(args) -> int:
+    """2.5-D terrain layers of a map file or store: GeoTIFF, npz, PNG previews, a ROS bag (docs/terrain.md)."""
+    from ..terrain.pipeline import write_layers
+
+    log = None if args.quiet else (lambda m: print(m, file=sys.stderr))
+    summary = write_layers(args.map, args.out, resolution_m=args.resolution_m, bounds=args.bounds, costs=args.costs, device=args.device,
+                           previews=not args.no_previews, bag=not args.no_bag, log=log)
+    summary.pop("files", None)
+    print(json.dumps(summary, indent=1))
     return 0
 
 
@@ -102,7 +121,14 @@ def _cmd_merge(args) -> int:
 
     if len(args.inputs) < 2:
         raise ValueError(f"merge: give at least two maps or stores, got {len(args.inputs)}")
+    from ..files import check_not_inside
     from ..frames import check_same_frame
+
+    resolved = [p.resolve() for p in args.inputs]
+    for i, path in enumerate(resolved):
+        if path in resolved[:i]:  # its evidence would count twice
+            raise ValueError(f"merge: {args.inputs[i]} is given twice; merge each map or store once")
+    check_not_inside(args.out, args.inputs, "merge --out")
 
     merged = None
     for path in args.inputs:
@@ -154,7 +180,8 @@ def _cmd_view(args) -> int:
     from .viewer import MapViewer
 
     viewer = MapViewer(args.maps, host=args.host, port=args.port, style=args.style, max_voxels=args.max_voxels,
-                       trajectory=args.trajectory, scan=args.scan, export_dir=args.export_dir)
+                       trajectory=args.trajectory, scan=args.scan, export_dir=args.export_dir, terrain=args.layers,
+                       terrain_resolution=args.layers_resolution_m, costs=args.costs, truth=args.truth)
     for path, export in ((args.export_html, viewer.export_html), (args.export_ply, viewer.export_ply)):
         if path is not None:
             print(f"wrote {export(path)}", file=sys.stderr)
@@ -235,13 +262,22 @@ def _cmd_synth(args) -> int:
     from ..synthetic.preset import load_preset
     from ..synthetic.writer import generate_sequence
 
-    preset = load_preset(args.preset, seed=args.seed, appearance__domain=args.domain, trajectory__frames=args.frames)
-    if args.format == "folder":
-        summary = generate_sequence(preset, args.out, device=args.device, progress=not args.quiet, camera=not args.no_camera)
-        print(json.dumps({"out": str(args.out), **summary}, indent=1))
-        return 0
     import shutil
     import tempfile
+
+    from ..files import error_naming
+
+    preset = load_preset(args.preset, seed=args.seed, appearance__domain=args.domain, trajectory__frames=args.frames)
+    if args.format == "folder":
+        created = not args.out.exists()
+        try:
+            summary = generate_sequence(preset, args.out, device=args.device, progress=not args.quiet, camera=not args.no_camera)
+        except OSError as exc:  # a full disk: numpy's short write names no file
+            if created:  # no half-written sequence left behind
+                shutil.rmtree(args.out, ignore_errors=True)
+            raise error_naming(exc, args.out, "writing the sequence") from None
+        print(json.dumps({"out": str(args.out), **summary}, indent=1))
+        return 0
 
     from ..data.log_writer import write_log
 
@@ -253,6 +289,8 @@ def _cmd_synth(args) -> int:
     try:
         summary = generate_sequence(preset, staging, device=args.device, progress=not args.quiet, camera=not args.no_camera)
         written = write_log(staging, args.out, args.format, progress=not args.quiet)
+    except OSError as exc:  # name the log asked for, not the staging folder (write_log removed what it wrote)
+        raise error_naming(exc, args.out, "writing the log") from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     print(json.dumps({"out": str(args.out), **summary, **written}, indent=1))
@@ -271,8 +309,13 @@ def _cmd_check_data(args) -> int:
     from ..data.sequences import check_sequence
 
     logs = [p for p in args.paths if is_robot_log(p)]
-    configs = [str(p) for p in args.paths if not is_robot_log(p) and (p.suffix in (".yaml", ".yml") or (not p.exists() and p.suffix == ""))]
+    # configs: YAML files and preset names (a bare word); a missing path is a folder to report, never a preset
+    configs = [str(p) for p in args.paths if not is_robot_log(p) and (p.suffix in (".yaml", ".yml") or
+                                                                     (not p.exists() and p.suffix == "" and len(p.parts) == 1))]
     folders = [p for p in args.paths if p not in logs and str(p) not in configs]
+    if not logs and not folders:
+        raise ValueError(f"check-data: none of {[str(p) for p in args.paths]} is a sequence folder or a robot log (configs and presets "
+                         f"only say how to read logs)")
     reports = [check_sequence(d) for d in folders]
     if logs:
         reports.append(check_log(logs, _bag_config(logs, configs)))
@@ -291,6 +334,9 @@ def _cmd_project(args) -> int:
     from ..files import savez_atomically
 
     seq = open_sequence(args.sequence, frame=args.frame, crs=args.crs)
+    from ..files import check_not_inside
+
+    check_not_inside(args.out, getattr(seq, "logs", None) or [seq.root], "project --out")  # never into the sequence it reads
     config = ProjectionConfig(zbuffer=args.zbuffer)
     frames = [f for f in seq.frames if f.label_image is not None][: args.max_frames]
     if not frames:
@@ -383,6 +429,11 @@ def _cmd_dump_config(args) -> int:
 
 class _Parser(argparse.ArgumentParser):
     """argparse with the CLI's error form: one line naming the flag and value, exit code 2."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        # argparse takes "-inf" or "-1e3" for a flag; these are numbers (no flag of ours looks like one)
+        self._negative_number_matcher = re.compile(r"^-(?:\d+\.?\d*(?:e[-+]?\d+)?|\.\d+(?:e[-+]?\d+)?|inf(?:inity)?|nan)$", re.IGNORECASE)
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
@@ -484,6 +535,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="map file to write (.npz)")
     p.set_defaults(func=_cmd_export)
 
+    p = sub.add_parser("layers", help="2.5-D terrain layers (elevation, slope, step, class, uncertainty, cost) of a map or store as a "
+                                      "GeoTIFF, an npz, PNG previews and a ROS bag (grid_map, OccupancyGrid)")
+    p.add_argument("map", type=Path, help="a map file (.npz) or a map store (a folder)")
+    p.add_argument("--out", type=Path, required=True, help="folder to write layers.tif, layers.npz (a store: tiles/X_Y.npz), "
+                                                           "layers.bag, previews/ and layers.json into")
+    p.add_argument("--resolution-m", "--resolution", dest="resolution_m", type=float, default=None,
+                   help="cell edge (m; default: the map's voxel size; a store's must divide its tiles)")
+    p.add_argument("--bounds", type=float, nargs="+", metavar="M", help="the region: X0 Y0 X1 Y1, or X0 Y0 Z0 X1 Y1 Z1 to count only "
+                                                                        "voxels whose centres lie between Z0 and Z1 (m, the map's world frame)")
+    p.add_argument("--costs", type=Path, default=None, help="surface classes and cost table YAML (default: configs/terrain/costs_v3.yaml, "
+                                                           "for the remap-v3 / RELLIS-3D classes)")
+    p.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N or auto")
+    p.add_argument("--no-previews", action="store_true", help="skip the PNG previews")
+    p.add_argument("--no-bag", action="store_true", help="skip the ROS bag")
+    p.add_argument("--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(func=_cmd_layers)
+
     p = sub.add_parser("merge", help="add up maps or stores of disjoint scan sets (several drives over one area) into one")
     p.add_argument("inputs", nargs="+", type=Path, help="map files (.npz) and map stores, at least two")
     p.add_argument("--out", type=Path, required=True, help="a map file (.npz) or a map store (a folder)")
@@ -506,6 +574,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--export-ply", type=Path, help="write the visible voxels as a PLY point cloud: float64 world coordinates "
                                                    "of the maps' frame, named in the header")
     p.add_argument("--export-dir", type=Path, help="folder for the GUI's export buttons (default: beside the first map)")
+    p.add_argument("--layers", action="store_true", help="compute each map's terrain layers at start and draw one as a coloured "
+                                                         "height surface (the GUI's button does it on demand otherwise; docs/terrain.md)")
+    p.add_argument("--layers-resolution-m", type=_positive_float, default=None, help="terrain cell edge (m; default: the voxel size)")
+    p.add_argument("--costs", type=Path, default=None, help="the terrain layers' cost table YAML (default: configs/terrain/costs_v3.yaml)")
+    p.add_argument("--truth", type=Path, default=None, help="ground truth for comparing two maps: `evsemmap project`'s ground_truth.npz "
+                                                            "(points, labels) or a map file; differing voxels are coloured by which map "
+                                                            "agrees with it")
     p.add_argument("--no-serve", action="store_true", help="export and exit instead of serving")
     p.set_defaults(func=_cmd_view)
 

@@ -122,7 +122,7 @@ class AlphaFileScans(_CameraScans):
             alpha = np.load(path, allow_pickle=False)
         except (OSError, ValueError) as exc:
             raise ConfigError(f"{path}: not a readable alpha file ({exc})") from None
-        if alpha.ndim != 3 or not np.isfinite(alpha).all():
+        if alpha.dtype.kind not in "biuf" or alpha.ndim != 3 or not np.isfinite(alpha).all():
             raise ConfigError(f"{path}: alpha must be a finite [K, H, W] array, got shape {list(alpha.shape)}")
         if hasattr(self, "num_classes") and alpha.shape[0] != self.num_classes:
             raise ConfigError(f"{path}: {alpha.shape[0]} classes, the first alpha file has {self.num_classes}")

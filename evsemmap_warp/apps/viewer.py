@@ -13,23 +13,35 @@ agree (two maps written before frames were recorded agree; an unrecorded and a r
 ``--trajectory`` and ``--scan`` files are read as world coordinates of the maps' frame. Exports: the PLY
 holds float64 world coordinates (header comments ``frame`` and ``crs``); the HTML holds viser's float32
 positions relative to the local origin, and states that origin and the frame in a ``<meta>`` element, a
-comment and a visible note.
+comment and a visible note, beside the legend and a summary of what is shown.
+
+Beside the voxels (``viewer_layers``): a terrain layer as a coloured height surface (``terrain=True`` or
+the GUI's button computes ``terrain.compute_layers`` of each map or store), two maps' differences
+(labels that differ, coloured by which map agrees with a ground truth when ``truth`` gives one, and the
+variance difference), a ground grid labelled in metres of the world frame, a scale bar that follows the
+camera, and a measuring tool. A click reports the world coordinates of the point it hits (a voxel, a
+terrain cell, or the ground grid's plane): viser 1.1 sends clicks, not pointer moves, to the server,
+so there are no coordinates on hover. Lit meshes (boxes, the surface) are drawn under the viewer's own
+lights with compensated colours so that they show the palette's colours.
 """
 
 from __future__ import annotations
 
 import html
+import math
 import socket
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..classes import named_colors
-from ..core.map_file import read_map_arrays
+from ..core.map_file import lattice_index, read_map_arrays
 from ..data.point_files import read_npy, read_point_file
 from ..frames import WorldFrame, check_same_frame, describe_frame
+from ..voxel_keys import voxel_index_of
+from . import viewer_layers as vl
 
 STATE_NAMES = ("UNKNOWN", "FREE", "OCCUPIED")
 COLOR_MODES = ("semantic", "variance", "mean uncertainty", "observations")
@@ -41,6 +53,7 @@ _FALLBACK = np.array([(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 4
 _VIRIDIS = np.array([(68, 1, 84), (71, 44, 122), (59, 81, 139), (44, 113, 142), (33, 144, 141),
                      (39, 173, 129), (92, 200, 99), (170, 220, 50), (253, 231, 37)], np.float64)
 _NO_DATA = np.array([128, 128, 128], np.uint8)
+TRAJECTORY_COLOR = (255, 140, 0)  # orange (README: "the drive in orange")
 
 
 def class_palette(classes: list[str]) -> np.ndarray:
@@ -90,6 +103,17 @@ class MapLayer:
     mean_uncertainty: np.ndarray
     method: str
     frame: WorldFrame | None = None
+    origin_index: np.ndarray = field(default_factory=lambda: np.zeros(3, np.int64))  # the map origin's voxel index
+    # a store overview's rows stand for several voxels each (its tiles are decimated): how many; None: one each
+    weight: np.ndarray | None = None
+    # class indices that label at least one voxel with evidence (not UNKNOWN); None: from the voxels held
+    present: np.ndarray | None = None
+
+    def present_labels(self) -> np.ndarray:
+        """Class indices that some voxel with evidence carries (the classes the map holds)."""
+        if self.present is not None:
+            return self.present
+        return np.unique(self.label[self.state != STATE_NAMES.index("UNKNOWN")]).astype(np.int64)
 
     @classmethod
     def from_file(cls, path) -> "MapLayer":
@@ -103,7 +127,7 @@ class MapLayer:
         return cls(name, path, list(meta["classes"]), float(arrays["resolution"]), float(meta.get("grid_offset_m", 0.0)),
                    np.asarray(arrays["centers"], np.float64), arrays["voxel_index"].astype(np.int64), arrays["alpha"],
                    arrays["label"], arrays["state"], arrays["variance"], arrays["hits"], mean_unc, meta["method"],
-                   frame_of(meta, path))
+                   frame_of(meta, path), lattice_index(np.asarray(arrays["origin"], np.float64), float(arrays["resolution"])))
 
     def voxel_at(self, points_world: np.ndarray) -> np.ndarray:
         """Row of the voxel containing each point, -1 where none is stored (map files are sorted by key)."""
@@ -111,7 +135,7 @@ class MapLayer:
             return np.full(len(points_world), -1)
         # Global indices can exceed the table's 21-bit key range (far maps), so pack relative to the
         # map's own bounding box; the order stays x, then y, then z, as the file is sorted.
-        index = np.floor((np.asarray(points_world, np.float64) - self.grid_offset) / self.resolution)
+        index = voxel_index_of(points_world, self.resolution, self.grid_offset, self.origin_index)
         lo, hi = self.voxel_index.min(axis=0), self.voxel_index.max(axis=0)
         inside = np.all((index >= lo) & (index <= hi), axis=1)
         span = hi - lo + 1
@@ -141,13 +165,19 @@ class StoreOverview:
         total = max(self.store.voxel_count, 1)
         self.parts: dict[str, dict] = {}
         self.meta = None
+        self.total_voxels = 0  # in the store's tiles (the overview holds a share of them)
+        present = set()
         for name in sorted(self.store.tiles):
             arrays, meta = read_map_arrays(self.store.tile_path(name))
             self.meta = self.meta or meta
             n = len(arrays["state"])
+            self.total_voxels += n
+            present.update(np.unique(arrays["label"][arrays["state"] != STATE_NAMES.index("UNKNOWN")]).tolist())
             keep = max(1, int(max_voxels * n / total)) if n else 0
             rows = np.linspace(0, n - 1, min(keep, n)).astype(np.int64) if n else np.zeros(0, np.int64)
-            self.parts[name] = {k: arrays[k][rows] for k in _LAYER_ARRAYS} | {"resolution": arrays["resolution"]}
+            self.parts[name] = {k: arrays[k][rows] for k in _LAYER_ARRAYS} | {"resolution": arrays["resolution"], "origin": arrays["origin"],
+                                                                             "weight": np.full(len(rows), n / max(len(rows), 1), np.float64)}
+        self.present = np.array(sorted(present), np.int64)
         self.detail = ""
         # store.json's frame (MapStore.frame); a store from before stores recorded it: its tiles' meta
         self.frame = self.store.frame if hasattr(self.store, "frame") else frame_of(self.meta, self.path)
@@ -157,16 +187,20 @@ class StoreOverview:
         parts = dict(self.parts)
         if detail:
             arrays, _ = read_map_arrays(self.store.tile_path(detail))
-            parts[detail] = {k: arrays[k] for k in _LAYER_ARRAYS} | {"resolution": arrays["resolution"]}
+            parts[detail] = {k: arrays[k] for k in _LAYER_ARRAYS} | {"resolution": arrays["resolution"], "origin": arrays["origin"],
+                                                                     "weight": np.ones(len(arrays["state"]))}
         self.detail = detail
-        joined = {k: np.concatenate([p[k] for p in parts.values()]) for k in _LAYER_ARRAYS} if parts else {}
         if not parts:
             raise ValueError(f"{self.path}: the store has no tiles")
+        joined = {k: np.concatenate([p[k] for p in parts.values()]) for k in _LAYER_ARRAYS + ("weight",)}
         joined["resolution"] = next(iter(parts.values()))["resolution"]
+        joined["origin"] = next(iter(parts.values()))["origin"]  # a store's tiles share its origin
         order = np.lexsort(joined["voxel_index"].T[::-1])  # key order (x, then y, then z), as a map file's: voxel_at needs it
-        joined.update({k: joined[k][order] for k in _LAYER_ARRAYS})
+        joined.update({k: joined[k][order] for k in _LAYER_ARRAYS + ("weight",)})
         layer = MapLayer.from_arrays(self.path.name, self.path, joined, self.meta)
         layer.frame = self.frame
+        layer.weight = joined["weight"]
+        layer.present = self.present
         return layer
 
 
@@ -216,11 +250,15 @@ class MapViewer:
     All maps must be in one world frame (``frame``; a ``FrameError`` naming both files and both frames
     otherwise). ``trajectory`` and ``scan`` are read as world coordinates of that frame. The scene is
     drawn relative to ``origin`` (float64 world coordinates, marked by a world-axes frame and a label).
-    Handles are attributes: ``server``, ``gui_*`` for the controls, ``voxel_handles`` per layer,
+    ``terrain``: compute each map's terrain layers at start (``terrain_resolution`` m cells, the cost
+    table ``costs``; the GUI's button does it on demand otherwise). ``truth``: a ground truth for the
+    comparison of two maps (``viewer_layers.load_truth``). Handles are attributes: ``server``, ``gui_*``
+    for the controls, ``voxel_handles`` per layer, ``terrain_handles``, ``grid_handle``,
     ``origin_axes`` and ``origin_label``."""
 
     def __init__(self, map_paths, *, host: str = "127.0.0.1", port: int = 8080, style: str = "points",
-                 max_voxels: int = 500_000, trajectory=None, scan=None, export_dir=None):
+                 max_voxels: int = 500_000, trajectory=None, scan=None, export_dir=None, terrain: bool = False,
+                 terrain_resolution=None, costs=None, truth=None):
         import viser
 
         if style not in ("points", "boxes"):
@@ -239,6 +277,19 @@ class MapViewer:
         self.export_dir = Path(export_dir) if export_dir else self.layers[0].path.parent
         self.classes = list(dict.fromkeys(c for layer in self.layers for c in layer.classes))
         self.palette = dict(zip(self.classes, class_palette(self.classes)))
+        # the classes some map holds (a voxel with evidence carries them): the only ones offered as toggles
+        present = {layer.classes[k] for layer in self.layers for k in layer.present_labels() if k < len(layer.classes)}
+        self.present_classes = [c for c in self.classes if c in present]
+        self.terrain_resolution, self.costs = terrain_resolution, costs
+        self.truth_path = Path(truth) if truth is not None else None
+        if self.truth_path is not None and not self.truth_path.is_file():
+            raise ValueError(f"{self.truth_path}: no such ground-truth file")
+        self.terrain: dict[int, vl.TerrainSurface] = {}
+        self._truth: dict[int, np.ndarray] = {}
+        self._diff_cache: dict = {}
+        self.measure_points: list[np.ndarray] = []
+        self.scale_bar: tuple[float, float, float] | None = None  # (metres, pixels, metres per pixel)
+        self.last_point: np.ndarray | None = None  # world coordinates of the last clicked point
         lo = np.min([layer.centers.min(axis=0) for layer in self.layers if len(layer.centers)] or [np.zeros(3)], axis=0)
         hi = np.max([layer.centers.max(axis=0) for layer in self.layers if len(layer.centers)] or [np.zeros(3)], axis=0)
         # A local origin keeps float32 positions fine-grained however far the map is from 0.
@@ -251,25 +302,39 @@ class MapViewer:
         check_address(host, port)
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.scene.set_up_direction("+z")
+        vl.configure_lighting(self.server.scene)
         extent = float(max(np.max(hi - lo), 1.0))
         self.server.initial_camera.position = (0.0, -0.9 * extent, 0.7 * extent)
         self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
         self._build_gui()
         self._add_origin_marker(extent)
+        self._add_ground_grid(lo, hi)
         self.voxel_handles: list = [None] * len(self.layers)
+        self.terrain_handles: dict[int, object] = {}
+        self._terrain_drawn: dict[int, tuple] = {}  # what each surface was last drawn as (layer, mode, shift)
+        self._measure_handles: list = []
         # trajectory and scan: world coordinates of the maps' frame, drawn relative to the local origin
+        self.trajectory_handles: list = []
         if trajectory is not None:
             positions = load_trajectory(trajectory) - self.origin
             if len(positions) >= 2:
-                self.server.scene.add_spline_catmull_rom("/trajectory", positions.astype(np.float32), color=(255, 80, 0), thickness=3.0, thickness_units="screen")
-            self.server.scene.add_point_cloud("/trajectory_poses", positions.astype(np.float32), colors=(255, 80, 0),
-                                              point_size=0.3, precision="float32")
+                self.trajectory_handles.append(self.server.scene.add_spline_catmull_rom(
+                    "/trajectory", positions.astype(np.float32), color=TRAJECTORY_COLOR, thickness=3.0, thickness_units="screen"))
+            self.trajectory_handles.append(self.server.scene.add_point_cloud(
+                "/trajectory_poses", positions.astype(np.float32), colors=TRAJECTORY_COLOR, point_size=0.3, precision="float32"))
         if scan is not None:
             points = load_points(scan) - self.origin
             self.server.scene.add_point_cloud("/scan", points.astype(np.float32), colors=(200, 200, 200),
                                               point_size=0.05, precision="float32")
         self.server.scene.on_click()(self._on_click)
-        self.refresh()
+        self.server.on_client_connect(self._on_connect)
+        try:
+            if terrain:
+                self.compute_terrain()
+            self.refresh()
+        except BaseException:
+            self.server.stop()
+            raise
 
     @property
     def url(self) -> str:
@@ -278,13 +343,30 @@ class MapViewer:
     # ------------------------------------------------------------------ GUI
     def _build_gui(self) -> None:
         gui = self.server.gui
+        # The panel's first screen holds what a user reads all the time: the map, its colouring, the
+        # counter, the legend and the scale; filters, classes and tools follow.
         with gui.add_folder("Map"):
             names = tuple(f"{i}: {layer.name} ({layer.method})" for i, layer in enumerate(self.layers))
             self.gui_map = gui.add_dropdown("Map", options=names, initial_value=names[0])
             self.gui_side_by_side = gui.add_checkbox("Side by side", initial_value=False, disabled=len(self.layers) == 1)
             self.gui_color_by = gui.add_dropdown("Colour by", options=COLOR_MODES, initial_value="semantic")
+            self.gui_status = gui.add_markdown("")
+        with gui.add_folder("Legend"):
+            self.gui_legend = gui.add_image(vl.swatch_image([("", (255, 255, 255))]), label=None)
+            # the terrain surface's colour bar or class legend, once layers are computed
+            self.gui_terrain_legend = gui.add_image(vl.swatch_image([("", (255, 255, 255))]), label=None, visible=False)
+            self.gui_scale_bar = gui.add_html('<div id="evsemmap-scale-bar" style="font:12px sans-serif">scale: waiting for the camera</div>')
+        with gui.add_folder("Selected"):
+            self.gui_selection = gui.add_markdown("Click a voxel, the terrain surface or the ground.")
+        with gui.add_folder("Filters"):
             max_var = max([float(layer.variance.max()) for layer in self.layers if len(layer.variance)] or [1.0])
-            self.gui_max_variance = gui.add_slider("Max variance", min=0.0, max=max_var, step=max_var / 200, initial_value=max_var)
+            # The slider counts in units of 10^e so that its number box shows the whole value ("1.71", not "0.01710").
+            self.variance_unit = 10.0 ** math.floor(math.log10(max_var)) if max_var > 0 else 1.0
+            step = 10.0 ** math.floor(math.log10(max(max_var / self.variance_unit, 1e-12) / 200))
+            top = math.ceil(max_var / self.variance_unit / step - 1e-9) * step if max_var > 0 else 1.0
+            exponent = int(round(math.log10(self.variance_unit)))
+            label = "Max variance" + (f" ×1e{exponent}" if exponent else "")
+            self.gui_max_variance = gui.add_slider(label, min=0.0, max=top, step=step, initial_value=top)
             self.gui_show_free = gui.add_checkbox("Show FREE", initial_value=False)
             self.gui_show_unknown = gui.add_checkbox("Show UNKNOWN", initial_value=False)
             self.gui_full_map = gui.add_checkbox("Full map (no decimation)", initial_value=False)
@@ -293,23 +375,47 @@ class MapViewer:
                 tiles = ("(overview only)",) + tuple(f"{i}: {t}" for i, o in self.stores.items() for t in sorted(o.store.tiles))
                 self.gui_tile = gui.add_dropdown("Store tile in full", options=tiles, initial_value=tiles[0])
                 self.gui_tile.on_update(lambda _event: self.show_tile(self.gui_tile.value))
-            self.gui_status = gui.add_markdown("")
-            self.gui_frame = gui.add_markdown(self._frame_text())
         with gui.add_folder("Classes"):
-            self.gui_classes = {name: gui.add_checkbox(name, initial_value=True) for name in self.classes}
-        with gui.add_folder("Legend"):
-            self.gui_legend = gui.add_image(self._legend_image(), label=None)
-        with gui.add_folder("Selected voxel"):
-            self.gui_selection = gui.add_markdown("Click a voxel.")
+            self.gui_classes = {name: gui.add_checkbox(name, initial_value=True) for name in self.present_classes}
+        with gui.add_folder("Orientation and measuring"):
+            self.gui_grid = gui.add_checkbox("Ground grid", initial_value=True)
+            self.gui_measure = gui.add_checkbox("Measure (click 2 points)", initial_value=False)
+            self.gui_measure_result = gui.add_markdown("")
+        with gui.add_folder("Terrain layers"):
+            self.gui_terrain_compute = gui.add_button("Compute terrain layers")
+            self.gui_terrain_show = gui.add_checkbox("Show surface", initial_value=True)
+            self.gui_terrain_band = gui.add_dropdown("Layer", options=("traversability_cost",), initial_value="traversability_cost")
+            self.gui_terrain_mode = gui.add_dropdown("Draw", options=vl.TERRAIN_MODES, initial_value=vl.TERRAIN_MODES[0])
+            self.gui_terrain_status = gui.add_markdown("Not computed: the button computes the layers of each map (docs/terrain.md).")
+        self.gui_diff = self.gui_diff_against = self.gui_diff_status = None
+        if len(self.layers) > 1:
+            with gui.add_folder("Compare maps"):
+                self.gui_diff = gui.add_dropdown("Show", options=vl.DIFF_MODES, initial_value="off")
+                self.gui_diff_against = gui.add_dropdown("Second map", options=names, initial_value=names[1])
+                truth = f"truth: `{self.truth_path.name}`" if self.truth_path else "no ground truth given (`--truth`)"
+                self.gui_diff_status = gui.add_markdown(f"The first map is the one chosen above; {truth}.")
+        with gui.add_folder("Frame"):
+            self.gui_frame = gui.add_markdown(self._frame_text())
         with gui.add_folder("Export"):
             self.gui_export_html = gui.add_button("Standalone HTML")
             self.gui_export_ply = gui.add_button("PLY point cloud")
             self.gui_export_status = gui.add_markdown("")
-        for handle in (self.gui_map, self.gui_side_by_side, self.gui_color_by, self.gui_max_variance,
-                       self.gui_show_free, self.gui_show_unknown, self.gui_full_map, *self.gui_classes.values()):
+        controls = [self.gui_map, self.gui_side_by_side, self.gui_color_by, self.gui_max_variance, self.gui_show_free, self.gui_show_unknown,
+                    self.gui_full_map, *self.gui_classes.values(), self.gui_terrain_show, self.gui_terrain_band, self.gui_terrain_mode]
+        if self.gui_diff is not None:
+            controls += [self.gui_diff, self.gui_diff_against]
+        for handle in controls:
             handle.on_update(lambda _event: self.refresh())
+        self.gui_grid.on_update(lambda _event: self._show_grid(self.gui_grid.value))
+        self.gui_measure.on_update(lambda _event: self._reset_measure())
+        self.gui_terrain_compute.on_click(lambda _event: self._compute_terrain_from_gui())
         self.gui_export_html.on_click(lambda _event: self._export_from_gui("html"))
         self.gui_export_ply.on_click(lambda _event: self._export_from_gui("ply"))
+
+    @property
+    def max_variance(self) -> float:
+        """The variance threshold the slider sets (the slider counts in ``variance_unit``)."""
+        return float(self.gui_max_variance.value) * self.variance_unit
 
     # ------------------------------------------------------------------ world frame
     def origin_text(self) -> str:
@@ -336,6 +442,51 @@ class MapViewer:
             tip[k] = 1.1 * length
             self.server.scene.add_label(f"/world_origin/{axis}", f"+{axis}", position=tuple(tip), anchor="center-center")
 
+    # ------------------------------------------------------------------ orientation
+    def _add_ground_grid(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        """A grid under the maps, its lines on round world coordinates, labelled in metres of the frame."""
+        occupied = [layer.centers[layer.state == STATE_NAMES.index("OCCUPIED"), 2] for layer in self.layers]
+        occupied = np.concatenate(occupied) if occupied else np.zeros(0)
+        resolution = min(layer.resolution for layer in self.layers)
+        ground = float(np.percentile(occupied, 1.0)) if len(occupied) else float(lo[2])
+        grid = vl.ground_grid(lo, hi, ground - 0.5 * resolution)
+        # the grid is drawn about its centre: keep an even number of sections so that its lines stay on the round coordinates
+        x1 = grid.x1 + grid.section * (round((grid.x1 - grid.x0) / grid.section) % 2)
+        y1 = grid.y1 + grid.section * (round((grid.y1 - grid.y0) / grid.section) % 2)
+        self.ground = vl.GroundGrid(grid.x0, grid.y0, x1, y1, grid.z, grid.section, grid.cell, grid.labels)
+        centre = np.array([(grid.x0 + x1) / 2, (grid.y0 + y1) / 2, grid.z]) - self.origin
+        size = max(x1 - grid.x0, y1 - grid.y0)
+        self.grid_handle = self.server.scene.add_grid(
+            "/ground_grid", width=x1 - grid.x0, height=y1 - grid.y0, plane="xy", cell_size=grid.cell, section_size=grid.section,
+            cell_color=(215, 215, 215), section_color=(150, 150, 150), section_thickness=1.5, fade_distance=4.0 * size,
+            shadow_opacity=0.0, position=tuple(centre))
+        self.grid_label_handles = [
+            self.server.scene.add_label(f"/ground_grid_labels/{k}", text, position=tuple(position - self.origin), anchor="center-center",
+                                        font_screen_scale=0.8)
+            for k, (text, position) in enumerate(grid.labels)]
+
+    def _show_grid(self, visible: bool) -> None:
+        for handle in [self.grid_handle, *self.grid_label_handles]:
+            handle.visible = bool(visible)
+
+    def _on_connect(self, client) -> None:
+        client.camera.on_update(lambda camera: self._update_scale_bar(camera))
+        self._update_scale_bar(client.camera)
+
+    def _update_scale_bar(self, camera) -> None:
+        """The scale bar for a browser's camera: a round length and its screen pixels at the orbit centre."""
+        try:
+            height = float(camera.image_height)
+            m_per_px = vl.metres_per_pixel(camera.position, camera.look_at, camera.fov, height)
+        except (AttributeError, TypeError, ValueError):
+            return
+        if not height > 0 or not np.isfinite(m_per_px) or m_per_px <= 0:
+            return
+        html_text, metres, pixels = vl.scale_bar_html(m_per_px)
+        self.scale_bar = (metres, pixels, m_per_px)
+        self.gui_scale_bar.content = html_text
+
+    # ------------------------------------------------------------------ layers shown
     def show_tile(self, choice: str) -> None:
         """Show a store's tile ("i: X_Y_Z", or "(overview only)") in full detail over its overview."""
         chosen = None if choice.startswith("(") else (int(choice.split(":")[0]), choice.split(": ")[1])
@@ -346,13 +497,27 @@ class MapViewer:
                 self._lod_order[i] = np.random.default_rng(0).permutation(len(self.layers[i].centers))
         self.refresh()
 
+    def _diff_pair(self) -> tuple[int, int] | None:
+        """(first, second) map indices while a comparison is shown."""
+        if self.gui_diff is None or self.gui_diff.value == "off":
+            return None
+        first, second = int(self.gui_map.value.split(":")[0]), int(self.gui_diff_against.value.split(":")[0])
+        return (first, second) if first != second else None
+
     def _shown_layers(self) -> list[int]:
+        if self._diff_pair() is not None:
+            return [self._diff_pair()[0]]
         if self.gui_side_by_side.value:
             return list(range(len(self.layers)))
         return [int(self.gui_map.value.split(":")[0])]
 
     def _shift(self, i: int) -> np.ndarray:
-        return np.array([self.side_by_side_step * i if self.gui_side_by_side.value else 0.0, 0.0, 0.0])
+        side_by_side = self.gui_side_by_side.value and self._diff_pair() is None
+        return np.array([self.side_by_side_step * i if side_by_side else 0.0, 0.0, 0.0])
+
+    def _voxels_hidden(self) -> bool:
+        """The terrain surface is drawn instead of the voxels."""
+        return bool(self.terrain) and self.gui_terrain_show.value and self.gui_terrain_mode.value == vl.TERRAIN_MODES[1]
 
     def visible_mask(self, i: int) -> np.ndarray:
         layer = self.layers[i]
@@ -361,14 +526,53 @@ class MapViewer:
             keep &= layer.state != STATE_NAMES.index("FREE")
         if not self.gui_show_unknown.value:
             keep &= layer.state != STATE_NAMES.index("UNKNOWN")
-        keep &= layer.variance <= self.gui_max_variance.value + 1e-12
-        hidden = [k for k, name in enumerate(layer.classes) if not self.gui_classes[name].value]
+        keep &= layer.variance <= self.max_variance + 1e-12
+        hidden = [k for k, name in enumerate(layer.classes) if name in self.gui_classes and not self.gui_classes[name].value]
         if hidden:
             keep &= ~np.isin(layer.label, hidden)
+        pair = self._diff_pair()
+        if pair is not None and i == pair[0]:
+            diff = self.diff()
+            compared = np.zeros(len(layer.state), bool)
+            rows = diff.a_rows[diff.differ] if self.gui_diff.value == "labels differ" else diff.a_rows
+            compared[rows] = True
+            keep &= compared
         return keep
+
+    # ------------------------------------------------------------------ comparing two maps
+    def truth_labels(self, i: int) -> np.ndarray | None:
+        """The ground truth's label of every voxel of map ``i`` (-1: none), None without ``truth``."""
+        if self.truth_path is None:
+            return None
+        key = (i, id(self.layers[i]))
+        if key not in self._truth:
+            self._truth = {key: vl.load_truth(self.truth_path, self.layers[i], self.frame)}
+        return self._truth[key]
+
+    def diff(self) -> vl.MapDiff:
+        """The comparison of the first and second maps chosen in the GUI (cached)."""
+        first, second = self._diff_pair()
+        key = (first, second, id(self.layers[first]), id(self.layers[second]))
+        if key not in self._diff_cache:
+            self._diff_cache = {key: vl.compare_maps(self.layers[first], self.layers[second], self.truth_labels(first))}
+        return self._diff_cache[key]
 
     def colors(self, i: int, rows: np.ndarray) -> np.ndarray:
         layer = self.layers[i]
+        pair = self._diff_pair()
+        if pair is not None and i == pair[0]:
+            diff = self.diff()
+            where = np.full(len(layer.state), -1, np.int64)
+            where[diff.a_rows] = np.arange(len(diff.a_rows))
+            at = where[rows]
+            if self.gui_diff.value == "labels differ":
+                table = np.array(list(vl.DIFF_COLORS.values()), np.uint8)
+                return table[np.clip(diff.category()[at], 0, len(table) - 1)]
+            values = diff.variance_difference[at]
+            limit = float(np.abs(values).max()) if len(values) else 0.0
+            limit = limit if limit > 0 else 1.0
+            self._color_range = (-limit, limit)
+            return vl.diverging(values, limit)
         mode = self.gui_color_by.value
         if mode == "semantic":
             table = np.array([self.palette[name] for name in layer.classes], np.uint8)
@@ -382,18 +586,29 @@ class MapViewer:
 
     def refresh(self) -> None:
         """Recompute what is shown from the controls and push it to every browser."""
+        try:
+            pair = self._diff_pair()
+            if pair is not None:
+                self.diff()
+        except ValueError as exc:  # maps that cannot be compared voxel by voxel: say why, show them as they are
+            self.gui_diff_status.content = f"**Cannot compare:** {exc}"
+            self.gui_diff.value = "off"
+            return  # setting the value refreshes
         shown = self._shown_layers()
+        hide_voxels = self._voxels_hidden()
         total_visible = total_drawn = 0
+        stands_for = 0.0  # voxels of the maps (a store's, not only its overview's) that the filters let through
         self._color_range = None
         with self.server.atomic():
             for i, layer in enumerate(self.layers):
-                if i not in shown:
+                if i not in shown or hide_voxels:
                     if self.voxel_handles[i] is not None:
                         self.voxel_handles[i].visible = False
                     self.visible_rows[i] = np.zeros(0, np.int64)
                     continue
                 keep = self.visible_mask(i)
                 total_visible += int(keep.sum())
+                stands_for += float(layer.weight[keep].sum()) if layer.weight is not None else float(keep.sum())
                 order = self._lod_order[i]
                 rows = order[keep[order]]
                 # a store's layer is decimated already (its overview), except the tile asked for in full
@@ -403,10 +618,33 @@ class MapViewer:
                 self.visible_rows[i] = rows
                 total_drawn += len(rows)
                 self._draw_layer(i, rows)
-        self.gui_status.content = (f"{total_drawn:,} of {total_visible:,} visible voxels drawn"
-                                   + ("" if total_drawn == total_visible else " (decimated; tick *Full map* for all)"))
+            self._draw_terrain(shown)
+        self.gui_status.content = self._status_text(shown, total_drawn, total_visible, stands_for, hide_voxels)
         self.gui_legend.image = self._legend_image()
+        self.gui_legend.visible = not hide_voxels
+        self.gui_terrain_legend.visible = bool(self.terrain) and self.gui_terrain_show.value
         self.gui_frame.content = self._frame_text()
+        pair = self._diff_pair()
+        if pair is not None:
+            keep = self.visible_mask(pair[0])[self.diff().a_rows] if self.gui_diff.value == "variance difference" else None
+            text = self.diff().describe(keep)
+            if self.gui_diff.value == "variance difference" and self._color_range:
+                text += (f"\n\ncolour: variance of the first minus the second, ±{self._color_range[1]:.3g} "
+                         "(blue: the first map is surer, red: the second)")
+            self.gui_diff_status.content = text
+
+    def _status_text(self, shown, drawn: int, visible: int, stands_for: float, hide_voxels: bool) -> str:
+        """The counter: drawn against visible voxels, a store's overview against the store it stands for."""
+        if hide_voxels:
+            return "voxels hidden: the terrain surface is drawn instead"
+        if any(i in self.stores for i in shown):
+            total = sum(self.stores[i].total_voxels for i in shown if i in self.stores) + sum(
+                len(self.layers[i].state) for i in shown if i not in self.stores)
+            held = sum(len(self.layers[i].state) for i in shown)
+            if held < total:
+                return (f"{drawn:,} voxels drawn of about {round(stands_for):,} visible in the store (decimated: a store overview holds "
+                        f"{held:,} of its {total:,} voxels; choose a tile for full detail)")
+        return f"{drawn:,} of {visible:,} visible voxels drawn" + ("" if drawn == visible else " (decimated; tick *Full map* for all)")
 
     def _draw_layer(self, i: int, rows: np.ndarray) -> None:
         layer = self.layers[i]
@@ -425,33 +663,84 @@ class MapViewer:
             self.voxel_handles[i] = self.server.scene.add_batched_meshes_simple(
                 name, box.vertices.astype(np.float32), box.faces.astype(np.uint32),
                 batched_wxyzs=np.tile(np.array([1.0, 0, 0, 0], np.float32), (len(positions), 1)),
-                batched_positions=positions, batched_colors=colors, visible=len(rows) > 0)
+                batched_positions=positions, batched_colors=vl.mesh_colors(colors), cast_shadow=False, receive_shadow=False,
+                visible=len(rows) > 0)
 
     def _legend_image(self) -> np.ndarray:
-        from PIL import Image, ImageDraw
-
+        pair = self._diff_pair()
+        if pair is not None:
+            if self.gui_diff.value == "labels differ":
+                return vl.swatch_image(list(vl.DIFF_COLORS.items()))
+            lo, hi = self._color_range or (-1.0, 1.0)
+            return vl.colour_bar_image(lo, hi, "variance: first - second map", vl._DIVERGING)
         if self.gui_color_by.value == "semantic":
-            names = self.classes
-            img = Image.new("RGB", (220, 18 * len(names) + 4), (255, 255, 255))
-            draw = ImageDraw.Draw(img)
-            for k, name in enumerate(names):
-                draw.rectangle([4, 4 + 18 * k, 18, 18 + 18 * k], fill=tuple(int(c) for c in self.palette[name]), outline=(90, 90, 90))
-                draw.text((26, 5 + 18 * k), name, fill=(0, 0, 0))
-            return np.asarray(img)
+            return vl.swatch_image([(name, self.palette[name]) for name in self.present_classes] or [("no classes", (128, 128, 128))])
         lo, hi = getattr(self, "_color_range", None) or (0.0, 1.0)
-        bar = colormap(np.linspace(lo, hi, 200), lo, hi)
-        img = Image.new("RGB", (220, 46), (255, 255, 255))
-        img.paste(Image.fromarray(np.repeat(bar[None], 16, axis=0)), (10, 4))
-        draw = ImageDraw.Draw(img)
         label = self.gui_color_by.value + (" (log10 1+n)" if self.gui_color_by.value == "observations" else "")
-        draw.text((10, 24), f"{lo:.3g}", fill=(0, 0, 0))
-        draw.text((150, 24), f"{hi:.3g}", fill=(0, 0, 0))
-        draw.text((10, 34), label, fill=(0, 0, 0))
-        return np.asarray(img)
+        return vl.colour_bar_image(lo, hi, label)
+
+    # ------------------------------------------------------------------ terrain layers
+    def compute_terrain(self) -> None:
+        """Compute the terrain layers of every map (a store's: the mosaic of its tiles) and show them."""
+        started = time.perf_counter()
+        self.gui_terrain_status.content = "computing terrain layers ..."
+        try:
+            for i, layer in enumerate(self.layers):
+                layers, voxel_m = vl.compute_terrain(layer.path, resolution_m=self.terrain_resolution, costs=self.costs)
+                self.terrain[i] = vl.TerrainSurface(layers, voxel_m=voxel_m, max_cells=self.max_voxels)
+        except (ValueError, OSError) as exc:  # ConfigError included: a cost table that does not fit the map's classes
+            self.gui_terrain_status.content = f"**Cannot compute terrain layers:** {exc}"
+            raise
+        bands = self.terrain[0].band_names
+        self.gui_terrain_band.options = tuple(bands)
+        if self.gui_terrain_band.value not in bands:
+            self.gui_terrain_band.value = bands[0]
+        self.gui_terrain_compute.visible = False
+        grid = self.terrain[0].grid
+        self.gui_terrain_status.content = (
+            f"{len(self.terrain)} map(s): cells of {grid.cell_m:g} m, {time.perf_counter() - started:.1f} s; click the surface for a "
+            "cell's values" + ("" if self.terrain[0].stride == 1 else f" (drawn every {self.terrain[0].stride} cells)"))
+        self.refresh()
+
+    def _compute_terrain_from_gui(self) -> None:
+        try:
+            self.compute_terrain()
+        except (ValueError, OSError):
+            pass  # the GUI's status line names the problem
+
+    def _draw_terrain(self, shown: list[int]) -> None:
+        band, mode = self.gui_terrain_band.value, self.gui_terrain_mode.value
+        for i, surface in self.terrain.items():
+            visible = self.gui_terrain_show.value and i in shown and len(surface.rows) > 0
+            if not visible:
+                if i in self.terrain_handles:
+                    self.terrain_handles[i].visible = False
+                continue
+            key = (band, mode, float(self._shift(i)[0]), id(surface))
+            if self._terrain_drawn.get(i) == key and i in self.terrain_handles:
+                self.terrain_handles[i].visible = True  # drawn as asked already: only shown again
+                continue
+            self._terrain_drawn[i] = key
+            layer = self.layers[i]
+            palette = np.array([self.palette[name] for name in layer.classes], np.uint8)
+            tile = surface.grid.cell_m * surface.stride
+            thickness = 0.25 * surface.voxel_m
+            positions = np.c_[surface.centres[:, :2], surface.tile_tops(mode) - thickness / 2] - self.origin + self._shift(i)
+            import trimesh
+
+            box = trimesh.creation.box(extents=[tile * 0.98, tile * 0.98, thickness])
+            self.terrain_handles[i] = self.server.scene.add_batched_meshes_simple(
+                f"/terrain/{i}", box.vertices.astype(np.float32), box.faces.astype(np.uint32),
+                batched_wxyzs=np.tile(np.array([1.0, 0, 0, 0], np.float32), (len(positions), 1)),
+                batched_positions=positions.astype(np.float32), batched_colors=vl.mesh_colors(surface.colors(band, palette)),
+                cast_shadow=False, receive_shadow=False)
+        if self.terrain:
+            first = next((i for i in shown if i in self.terrain), next(iter(self.terrain)))
+            palette = np.array([self.palette[name] for name in self.layers[first].classes], np.uint8)
+            self.gui_terrain_legend.image = self.terrain[first].legend(band, self.layers[first].classes, palette)
 
     # ------------------------------------------------------------------ picking
-    def pick(self, ray_origin, ray_direction) -> tuple[int, int] | None:
-        """(layer, row) of the first visible voxel along a ray given in display coordinates."""
+    def _pick_voxel(self, ray_origin, ray_direction) -> tuple[float, int, int] | None:
         d = np.asarray(ray_direction, np.float64)
         d = d / np.linalg.norm(d)
         best = None
@@ -475,8 +764,46 @@ class MapViewer:
             visible[rows] = True
             good = np.flatnonzero((hit_rows >= 0) & visible[np.maximum(hit_rows, 0)])
             if len(good) and (best is None or ts[good[0]] < best[0]):
-                best = (ts[good[0]], i, int(hit_rows[good[0]]))
-        return None if best is None else (best[1], best[2])
+                row = int(hit_rows[good[0]])
+                # where the ray enters that voxel's box
+                half = layer.resolution / 2.0
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    a, b = (layer.centers[row] - half - o) / d, (layer.centers[row] + half - o) / d
+                entry = float(np.nanmax(np.minimum(a, b)))
+                best = (max(entry, 0.0) if np.isfinite(entry) else float(ts[good[0]]), i, row)
+        return best
+
+    def pick(self, ray_origin, ray_direction) -> tuple[int, int] | None:
+        """(layer, row) of the first visible voxel along a ray given in display coordinates."""
+        hit = self._pick_voxel(ray_origin, ray_direction)
+        return None if hit is None else (hit[1], hit[2])
+
+    def pick_point(self, ray_origin, ray_direction) -> dict | None:
+        """What a click hits first: a visible voxel, a cell of the terrain surface, or the ground grid's
+        plane; a dict with ``kind`` ("voxel", "cell", "ground"), ``point`` (world coordinates, m) and
+        ``layer`` / ``row`` / ``column``."""
+        o = np.asarray(ray_origin, np.float64)
+        d = np.asarray(ray_direction, np.float64)
+        d = d / np.linalg.norm(d)
+        hits = []
+        voxel = self._pick_voxel(o, d)
+        if voxel is not None:
+            t, i, row = voxel
+            hits.append((t, {"kind": "voxel", "layer": i, "row": row, "point": o + t * d + self.origin - self._shift(i)}))
+        if self.gui_terrain_show.value:
+            for i, surface in self.terrain.items():
+                if i not in self._shown_layers():
+                    continue
+                world = o + self.origin - self._shift(i)
+                cell = surface.pick(world, d, self.gui_terrain_mode.value)
+                if cell is not None:
+                    t, row, column = cell
+                    hits.append((t, {"kind": "cell", "layer": i, "row": row, "column": column, "point": world + t * d}))
+        if self.gui_grid.value and d[2] < 0:
+            t = (self.ground.z - self.origin[2] - o[2]) / d[2]
+            if t > 0:
+                hits.append((t, {"kind": "ground", "point": o + t * d + self.origin}))
+        return min(hits, key=lambda h: h[0])[1] if hits else None
 
     def describe(self, i: int, row: int) -> str:
         """Markdown for a voxel: its centre in world coordinates of the map's frame (float64, mm), label, evidence."""
@@ -490,11 +817,63 @@ class MapViewer:
                  f"variance: {layer.variance[row]:.3g}, observations: {int(layer.hits[row])}",
                  "", "| class | alpha | p |", "|---|---|---|"]
         lines += [f"| {name} | {a:.4g} | {p:.3f} |" for name, a, p in zip(layer.classes, alpha, probs)]
+        pair = self._diff_pair()
+        if pair is not None and i == pair[0]:
+            diff = self.diff()
+            at = np.flatnonzero(diff.a_rows == row)
+            if len(at):
+                k = int(at[0])
+                truth = diff.truth[k]
+                lines.insert(4, f"second map ({diff.b_name}): **{layer.classes[diff.b_label[k]]}**, variance "
+                                f"{self.layers[pair[1]].variance[diff.b_rows[k]]:.3g}; truth: "
+                                + (layer.classes[truth] if truth >= 0 else "none here"))
         return "\n".join(lines)
 
     def _on_click(self, event) -> None:
-        hit = self.pick(event.ray_origin, event.ray_direction)
-        self.gui_selection.content = "No visible voxel under the cursor." if hit is None else self.describe(*hit)
+        hit = self.pick_point(event.ray_origin, event.ray_direction)
+        if hit is None:
+            self.gui_selection.content = "Nothing under the cursor."
+            return
+        point = np.asarray(hit["point"], np.float64)
+        self.last_point = point
+        where = (f"clicked point in {describe_frame(self.frame)}: " + ", ".join(f"{a}={c:.3f}" for a, c in zip("xyz", point)) + " m")
+        if hit["kind"] == "voxel":
+            text = self.describe(hit["layer"], hit["row"])
+        elif hit["kind"] == "cell":
+            layer = self.layers[hit["layer"]]
+            text = self.terrain[hit["layer"]].describe(hit["row"], hit["column"], layer.classes, describe_frame(self.frame))
+        else:
+            text = "on the ground grid's plane"
+        self.gui_selection.content = where + "\n\n" + text
+        if self.gui_measure.value:
+            self._add_measure_point(point)
+
+    # ------------------------------------------------------------------ measuring
+    def _reset_measure(self) -> None:
+        self.measure_points = []
+        for handle in self._measure_handles:
+            handle.remove()
+        self._measure_handles = []
+        self.gui_measure_result.content = "Click the first point." if self.gui_measure.value else ""
+
+    def _add_measure_point(self, point: np.ndarray) -> None:
+        """Two clicks: the distance and height difference between them (a third click starts again)."""
+        if len(self.measure_points) >= 2:
+            self._reset_measure()
+        self.measure_points.append(np.asarray(point, np.float64))
+        local = [p - self.origin for p in self.measure_points]
+        scene = self.server.scene
+        self._measure_handles.append(scene.add_point_cloud(f"/measure/point{len(local)}", local[-1][None].astype(np.float32),
+                                                           colors=(230, 0, 230), point_size=0.25, point_shape="circle", precision="float32"))
+        if len(self.measure_points) == 1:
+            self.gui_measure_result.content = "first point set; click the second."
+            return
+        a, b = self.measure_points
+        self._measure_handles.append(scene.add_line_segments("/measure/line", np.array([local], np.float32), colors=(230, 0, 230),
+                                                             thickness=3.0, thickness_units="screen"))
+        self._measure_handles.append(scene.add_label("/measure/label", f"{np.linalg.norm(b - a):.2f} m, dz {b[2] - a[2]:+.2f} m",
+                                                     position=tuple((local[0] + local[1]) / 2), anchor="bottom-center"))
+        self.gui_measure_result.content = vl.measurement_text(a, b, describe_frame(self.frame))
 
     # ------------------------------------------------------------------ export
     def offset_note(self) -> str:
@@ -506,14 +885,64 @@ class MapViewer:
             note += f"; side by side, map i is drawn shifted by a further i x {self.side_by_side_step:.3f} m along x"
         return note
 
+    def legend_html(self) -> str:
+        """The legend and a summary of the view as an HTML panel (``id="evsemmap-legend"``) for the HTML
+        export: class swatches with names (or the colour bar as an image), the terrain layer's bar when the
+        surface is shown, the counter and the maps' frame."""
+        import base64
+        from io import BytesIO
+
+        from PIL import Image
+
+        def image(array, alt):
+            buffer = BytesIO()
+            Image.fromarray(np.asarray(array, np.uint8)).save(buffer, format="PNG")
+            data = base64.b64encode(buffer.getvalue()).decode("ascii")
+            return f'<img alt="{html.escape(alt, quote=True)}" src="data:image/png;base64,{data}" style="display:block;width:220px" />'
+
+        shown = [self.layers[i] for i in self._shown_layers()]
+        pair = self._diff_pair()
+        if pair is not None:
+            title = f"{self.gui_diff.value}: {self.layers[pair[0]].name} against {self.layers[pair[1]].name}"
+        else:
+            title = f"colour by {self.gui_color_by.value}"
+        parts = [f'<div style="font-weight:bold">{html.escape(", ".join(layer.name for layer in shown))}</div>',
+                 f"<div>{html.escape(title)}</div>"]
+        if pair is not None and self.gui_diff.value == "labels differ":
+            entries = list(vl.DIFF_COLORS.items())
+        elif pair is None and self.gui_color_by.value == "semantic":
+            entries = [(name, self.palette[name]) for name in self.present_classes]
+        else:
+            entries = None
+        if entries is not None:
+            for name, colour in entries:
+                rgb = ",".join(str(int(c)) for c in colour)
+                parts.append(f'<div class="evsemmap-legend-entry"><span style="display:inline-block;width:14px;height:14px;'
+                             f'margin-right:6px;vertical-align:middle;border:1px solid #5a5a5a;background:rgb({rgb})"></span>'
+                             f"{html.escape(name)}</div>")
+        else:
+            lo, hi = self._color_range or (0.0, 1.0)
+            parts.append(image(self._legend_image(), f"colour bar {lo:.3g} to {hi:.3g}"))
+        if self.terrain and self.gui_terrain_show.value:
+            parts.append(f"<div>terrain surface: {html.escape(self.gui_terrain_band.value)}</div>")
+            parts.append(image(self.gui_terrain_legend.image, f"terrain {self.gui_terrain_band.value}"))
+        status = self.gui_status.content.replace("*", "")
+        parts.append(f'<div style="color:#444">{html.escape(status)}</div>')
+        parts.append(f'<div style="color:#444">frame: {html.escape(frame_label(self.frame))}; grid lines every '
+                     f"{self.ground.section:g} m</div>")
+        return ('<div id="evsemmap-legend" style="position:fixed;left:8px;top:8px;z-index:1000;max-width:260px;max-height:80vh;'
+                'overflow:auto;font:12px sans-serif;background:rgba(255,255,255,0.92);padding:6px 8px;border-radius:4px;'
+                'border:1px solid #ccc">' + "".join(parts) + "</div>")
+
     def export_html(self, path) -> Path:
-        """A standalone HTML file of the current scene (viewable offline, without the GUI panel).
+        """A standalone HTML file of the current scene (viewable offline, without viser's GUI panel but
+        with the legend, a summary of what is shown and the frame note).
 
         Its positions are viser's float32 scene positions, relative to the local origin (``origin``), not
         world coordinates; the page states the offset: ``<meta name="evsemmap-frame">`` (the frame's name,
         "none" where not recorded), ``evsemmap-crs`` (an EPSG code or "none"), ``evsemmap-local-origin``
         ("x y z", metres in that frame), an HTML comment and a visible note saying the same, and the scene's
-        labelled world axes at the origin."""
+        labelled world axes at the origin. ``<div id="evsemmap-legend">`` (``legend_html``) holds the legend."""
         x, y, z = self.origin
         note = self.offset_note()
         metas = {"evsemmap-frame": self.frame.name if self.frame is not None else "none",
@@ -524,15 +953,15 @@ class MapViewer:
         head += "<!-- evsemmap_warp map viewer export: " + note.replace("--", "- -") + " -->"
         visible = ('<div id="evsemmap-frame-note" style="position:fixed;left:8px;bottom:8px;z-index:1000;'
                    'pointer-events:none;font:12px sans-serif;background:rgba(255,255,255,0.8);padding:2px 6px;'
-                   f'border-radius:4px">{html.escape(note, quote=False)}</div>')
+                   f'border-radius:4px">{html.escape(note, quote=False)}</div>') + self.legend_html()
         page = self.server.get_scene_serializer().as_html()
         at = page.find("<head>")
         page = page[: at + 6] + head + page[at + 6:] if at >= 0 else head + page
         at = page.rfind("</body>")
         page = page[:at] + visible + page[at:] if at >= 0 else page + visible
-        path = Path(path)
-        path.write_text(page, encoding="utf-8")
-        return path
+        from ..files import write_text_atomically
+
+        return write_text_atomically(Path(path), page)  # whole or not at all, errors naming the path
 
     def export_ply(self, path) -> Path:
         """The visible voxels of the shown maps as a binary PLY point cloud: vertex positions are float64
@@ -565,9 +994,9 @@ class MapViewer:
                   f"element vertex {len(vertex)}"]
         header += [f"property {types[vertex.dtype[name].str]} {name}" for name in vertex.dtype.names]
         header.append("end_header")
-        path = Path(path)
-        path.write_bytes(("\n".join(header) + "\n").encode("utf-8") + vertex.tobytes())
-        return path
+        from ..files import write_bytes_atomically
+
+        return write_bytes_atomically(Path(path), ("\n".join(header) + "\n").encode("utf-8") + vertex.tobytes())
 
     def _export_from_gui(self, kind: str) -> None:
         stem = self.export_dir / f"{self.layers[self._shown_layers()[0]].name}_view"

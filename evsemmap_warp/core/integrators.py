@@ -1,4 +1,7 @@
-"""Integrators: one job each, the map handed in. ``prepare`` turns a validated scan into its launch
+"""Integrators: one job each, the map handed in, all behind one protocol (``Integrator``): made from
+(config, num_classes) through the registry (``make_integrator``, keyed by the integration method: the
+compatibility mode and the kernel), each declares what it needs of a scan (``ScanNeeds``: the sensor
+origin, the payload kinds) and turns a validated scan into its launch with ``prepare(scan, device)``
 (host work only, no map access); the launch runs the kernels on the shards.
 
 * ``KernelIntegrator``: the paper's clean algorithm (docs/algorithm.md §3) for S-CSM, S-BKI, EBS and the
@@ -9,48 +12,43 @@
 * ``SbkiCompatIntegrator``: the original S-BKI / S-CSM C++ (docs/compatibility.md §1).
 * ``ReleaseCompatIntegrator``: the released EvSemMap C++ for ebs and dempster (docs/compatibility.md §4).
 
-All receive the map as a list of shards. Warp runs a CPU launch on one core, so on the CPU each
-worker thread scatters a contiguous part of the scan into its own shard (never a shared one: CPU
-"atomics" are plain read-modify-writes); readers add the shards up (``sum_voxel_arrays``). The block
-gathers (the S-BKI and release modes) split by target block instead, each block always in the shard
-its index picks (``block_shard``), so their maps do not depend on the number of workers. A shard's
-jobs run on its own lane (``ShardLanes``), in the order they were submitted: a shard may go on to the
-next scan while another is still on this one, and a launch's voxel updates may still be pending
-(``PendingUpdates``) when it returns.
+All receive the map as a list of shards (``core.shards``: each CPU worker scatters a contiguous part of
+the scan into its own shard; the block gathers put each block in the shard its index picks, so their
+maps do not depend on the number of workers).
 """
 
 from __future__ import annotations
 
+import enum
 import functools
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Callable, Optional, Protocol
 
 import numpy as np
 import warp as wp
 
-from ..config import Fusion, Kernel, MappingConfig, Media
+from ..config import Compat, Fusion, Kernel, MappingConfig, Media, PayloadType
 from ..kernels import block_gather, release
 from ..kernels import scatter as sc
 from ..methods import convbki, evsemmap_release, sbki_compat, see_csom
-from ..voxel_keys import take_rows
-from .voxel_map import VoxelMap, block_model_tables
-
-# Below this many points per shard, splitting a launch costs more than it saves.
-MIN_POINTS_PER_SHARD = 4096
-
+from ..voxel_keys import column_bounds, take_rows
+from .shards import PendingUpdates, ShardLanes, block_shard, for_each_shard, split_over_shards, total_updates
+from .voxel_map import VoxelMap
 
 @dataclass
 class ScanPayload:
     """A validated scan: points [N, 3] float64 (m, relative to the map origin when an integrator gets
     them), class probabilities [N, K], input uncertainty [N] (K / S for alpha, 1 - max p for
     probabilities, 0 for labels), and ``labels`` [N]: ``label_scores`` itself when it is [N], else its
-    row argmax, computed when first asked for (the release mode never asks; 5 % of its time)."""
+    row argmax, computed when first asked for (the release mode never asks; 5 % of its time).
+    ``sensor_origin`` [3] (m, float64, same frame as the points): set for the integrators whose
+    ``needs`` read it, None for the others."""
 
     points: np.ndarray
     probabilities: np.ndarray
     uncertainty: np.ndarray
     label_scores: np.ndarray
+    sensor_origin: np.ndarray | None = None
 
     @functools.cached_property
     def labels(self) -> np.ndarray:
@@ -69,6 +67,12 @@ class IntegrationStats:
     uncertainty_threshold: float | None = None
 
 
+def dirichlet_beliefs(probabilities: np.ndarray, uncertainty: np.ndarray) -> np.ndarray:
+    """The belief masses [N, K] the Dempster-Shafer fusion takes from Dirichlet points: b_k = (alpha_k - 1) / S
+    = p_k - u / K (docs/algorithm.md §3.7), clipped to [0, 1]."""
+    return np.clip(probabilities - uncertainty[:, None] / probabilities.shape[1], 0.0, 1.0)
+
+
 def uncertainty_quantile_mask(uncertainty: np.ndarray, keep_quantile: float) -> tuple[np.ndarray, float]:
     """Keep u <= t with t the floor(N q)-th smallest u (0-based, clamped to N - 1); ties are kept."""
     n = len(uncertainty)
@@ -77,46 +81,67 @@ def uncertainty_quantile_mask(uncertainty: np.ndarray, keep_quantile: float) -> 
     return uncertainty <= threshold, threshold
 
 
-class ShardLanes:
-    """One thread per shard: a shard's jobs run one at a time in the order they were submitted, so its
-    map is the same as when the scans run one after another, while the shards need not wait for each
-    other at the end of every scan (that barrier left a core idle while the slower shard finished:
-    the S-BKI mode at free_res 4 on 2 workers kept 1.61-1.75 of 2 cores busy with it, 1.81-1.91
-    without, and took 0.90-1.00 instead of 1.01-1.07 s, alternating runs)."""
-
-    def __init__(self, count: int):
-        self._lanes = [ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"evsemmap-shard{i}") for i in range(count)]
-
-    def submit(self, index: int, job, *args) -> Future:
-        return self._lanes[index].submit(job, *args)
-
-
-@dataclass
-class PendingUpdates:
-    """Voxel updates of a launch whose jobs may still run on the shards' lanes (ints and futures)."""
-
-    parts: list
-
-    def wait(self) -> None:
-        """Returns once every part has finished, failed or not."""
-        for part in self.parts:
-            if isinstance(part, Future):
-                part.exception()
-
-    def result(self) -> int:
-        """Waits for every part (all of them, even after one failed), then adds them up or raises."""
-        self.wait()
-        return sum(part.result() if isinstance(part, Future) else part for part in self.parts)
-
-
-def total_updates(parts: list):
-    """The sum of the parts' updates: an int, or PendingUpdates while some still run."""
-    return PendingUpdates(parts) if any(isinstance(part, Future) for part in parts) else sum(parts)
-
-
 # What an integrator's ``prepare`` returns: the map update itself, launch(shards, lanes) -> stats (whose
 # voxel_updates may be PendingUpdates).
 Launch = Callable[[list[VoxelMap], Optional[ShardLanes]], IntegrationStats]
+
+
+class SensorOrigin(enum.Enum):
+    """Whether an integrator reads a scan's sensor origin."""
+
+    UNUSED = "unused"  # never read (the scan's ``sensor_origin`` stays None)
+    OPTIONAL = "optional"  # read when given (validated); else the map origin stands in
+    REQUIRED = "required"  # a scan without one is refused
+
+
+@dataclass(frozen=True)
+class ScanNeeds:
+    """What an integrator needs of a scan beyond points and payload, declared so that the Mapper checks
+    every scan the same way: the sensor origin (and, when required, why: the refusal's reason), and the
+    payload kinds it integrates (others are refused with ``payload_reason``)."""
+
+    sensor_origin: SensorOrigin = SensorOrigin.UNUSED
+    sensor_origin_reason: str = ""
+    payload_types: frozenset = frozenset(PayloadType)
+    payload_reason: str = ""
+
+
+class Integrator(Protocol):
+    """One integration method: made from (config, num_classes) by ``make_integrator``, it holds only its
+    parameters. ``needs``: what it reads of a scan; ``grid_offset_m``: where its voxel lattice lies (m;
+    0 but for S-CSM's half-shifted cells); ``prepare(scan, device)``: host work on a validated scan in map
+    coordinates (no map access), returning the launch that updates the shards."""
+
+    needs: ScanNeeds
+    grid_offset_m: float
+
+    def prepare(self, scan: ScanPayload, device: str) -> Launch: ...
+
+
+# (compat, kernel) -> the integrator class of that integration method (``register_integrator``).
+INTEGRATORS: dict[tuple[Compat, Kernel], type] = {}
+
+
+def register_integrator(compat: Compat, *kernels: Kernel):
+    """Class decorator: the integrator of mode ``compat`` with each of ``kernels``."""
+
+    def register(cls):
+        for kernel in kernels:
+            if (compat, kernel) in INTEGRATORS:
+                raise ValueError(f"two integrators for {compat.value} mode with the {kernel.value} kernel")
+            INTEGRATORS[compat, kernel] = cls
+        return cls
+
+    return register
+
+
+def make_integrator(config: MappingConfig, num_classes: int) -> Integrator:
+    """The integrator of ``config``'s method (its compatibility mode and kernel) for K = num_classes."""
+    try:
+        cls = INTEGRATORS[config.compat, config.kernel]
+    except KeyError:
+        raise ValueError(f"no integrator for mapping.compat {config.compat.value} with mapping.kernel {config.kernel.value}") from None
+    return cls(config, num_classes)
 
 
 def launch_step(stats: IntegrationStats, run=None) -> Launch:
@@ -130,24 +155,12 @@ def launch_step(stats: IntegrationStats, run=None) -> Launch:
     return launch
 
 
-def for_each_shard(shards: list[VoxelMap], lanes: ShardLanes | None, job) -> list:
-    """job(shard, shard index) for every shard: on the shards' lanes (futures) when there are lanes."""
-    if lanes is None:
-        return [job(shard, i) for i, shard in enumerate(shards)]
-    return [lanes.submit(i, job, shard, i) for i, shard in enumerate(shards)]
-
-
-def split_over_shards(shards: list[VoxelMap], lanes: ShardLanes | None, n: int, job) -> list:
-    """job(shard, index_range) on contiguous parts of range(n), one part per shard (fewer for small n),
-    on the shards' lanes (futures) when there are lanes."""
-    if lanes is None:
-        return [job(shards[0], np.arange(n))]
-    parts = max(1, min(len(shards), n // MIN_POINTS_PER_SHARD))
-    return [lanes.submit(i, job, shards[i], part) for i, part in enumerate(np.array_split(np.arange(n), parts))]
-
-
+@register_integrator(Compat.CLEAN, Kernel.SPARSE, Kernel.COUNT)
 class KernelIntegrator:
-    def __init__(self, config: MappingConfig):
+    needs = ScanNeeds()
+    grid_offset_m = 0.0
+
+    def __init__(self, config: MappingConfig, num_classes: int | None = None):
         self.config = config
 
     def kernel_lengths(self, uncertainty: np.ndarray) -> np.ndarray:
@@ -172,12 +185,13 @@ class KernelIntegrator:
         media = scan.labels[keep] if onehot else scan.probabilities[keep]
         fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
         if fusion == sc.FUSION_DEMPSTER:
-            # belief masses b_k = (alpha_k - 1) / S = p_k - u / K (docs/algorithm.md §3.7)
-            media = np.clip(media - unc[:, None] / media.shape[1], 0.0, 1.0)
+            media = dirichlet_beliefs(media, unc)
         if c.kernel is Kernel.COUNT:
             mode, sigma0, lengths = sc.MODE_OWN_VOXEL, 1.0, np.full(len(points), c.resolution_m)
         else:
             mode, sigma0, lengths = sc.MODE_RADIUS, c.sigma0, self.kernel_lengths(unc)
+        if lanes is not None and len(points):  # each shard checks its own part: the whole scan first, so a refusal writes nothing
+            shards[0]._check_reach(points, float(np.max(lengths)))
 
         def job(shard: VoxelMap, part: np.ndarray) -> int:
             kw = {"labels": media[part]} if onehot else {"class_weights": media[part]}
@@ -191,9 +205,13 @@ class KernelIntegrator:
         return stats
 
 
+@register_integrator(Compat.CLEAN, Kernel.CONVBKI)
 class ConvBkiIntegrator:
     """Points are voxelised first (evidence summed per voxel, as its authors do: softmax vectors, or
     label counts for one-hot media); each occupied voxel then scatters onto its stencil."""
+
+    needs = ScanNeeds()
+    grid_offset_m = 0.0
 
     def __init__(self, config: MappingConfig, num_classes: int):
         self.config = config
@@ -226,19 +244,27 @@ class ConvBkiIntegrator:
         return stats
 
 
+def _free_samples_need(method: str) -> ScanNeeds:
+    return ScanNeeds(SensorOrigin.REQUIRED, f"{method} adds the sensor origin (and free-space rays) as free samples")
+
+
+@register_integrator(Compat.CLEAN, Kernel.SEE_CSOM)
 class SeeCsomIntegrator:
     """Training data as its code builds it (VoxelGrid with majority labels, the sensor origin as the
     one free sample: its configs' free_resolution of 1000 m), then block statistics and the scatter."""
 
+    grid_offset_m = 0.0
+
     def __init__(self, config: MappingConfig, num_classes: int):
         self.config = config
         self.num_classes = num_classes
+        self.needs = _free_samples_need(config.method)
 
-    def prepare(self, scan: ScanPayload, sensor_origin: np.ndarray, device: str) -> Launch:
+    def prepare(self, scan: ScanPayload, device: str) -> Launch:
         """Training data and block statistics (host work, no map access); the launch scatters."""
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points))
-        points, labels, _ = sbki_compat.training_data(scan.points, scan.labels, sensor_origin, ds_resolution_m=c.ds_resolution_m,
+        points, labels, _ = sbki_compat.training_data(scan.points, scan.labels, scan.sensor_origin, ds_resolution_m=c.ds_resolution_m,
                                                       free_resolution_m=1000.0, max_range_m=c.max_range_m)
         points = points.astype(np.float64)
         stats.kept_points = len(points)
@@ -253,29 +279,28 @@ class SeeCsomIntegrator:
         return launch_step(stats, lambda shards, lanes: total_updates(split_over_shards(shards, lanes, len(points), job)))
 
 
+@register_integrator(Compat.SBKI, Kernel.SPARSE, Kernel.COUNT)
 class SbkiCompatIntegrator:
     """S-BKI (sparse kernel) or S-CSM (count kernel, one-cell blocks on the half-shifted grid)."""
 
-    def __init__(self, config: MappingConfig):
+    def __init__(self, config: MappingConfig, num_classes: int | None = None):
         self.config = config
+        self.needs = _free_samples_need(config.method)
         self.block_depth = 1 if config.kernel is Kernel.COUNT else config.block_depth
         self.cells_per_block = 2 ** (self.block_depth - 1)
         self.block_size = sbki_compat.block_size_m(config.resolution_m, self.block_depth)
+        # S-CSM cells are centred on multiples of r (blocks of one cell), half a cell off the BKI grid.
+        self.grid_offset_m = -0.5 * config.resolution_m if config.kernel is Kernel.COUNT else 0.0
         # kernel factory (class count, cells per block) -> the S-BKI gather kernel; the study swaps in other forms
         self.gather_kernel = block_gather.gather_sbki_kernel
 
-    @staticmethod
-    def grid_offset_m(config: MappingConfig) -> float:
-        # S-CSM cells are centred on multiples of r (blocks of one cell), half a cell off the BKI grid.
-        return -0.5 * config.resolution_m if config.kernel is Kernel.COUNT else 0.0
-
-    def prepare(self, scan: ScanPayload, sensor_origin: np.ndarray, device: str) -> Launch:
+    def prepare(self, scan: ScanPayload, device: str) -> Launch:
         """Training data, block memberships and the gather tables (host work, no map access); the
         launch runs the kernels."""
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points))
         points, labels, _ = sbki_compat.training_data(
-            scan.points, scan.labels, sensor_origin,
+            scan.points, scan.labels, scan.sensor_origin,
             ds_resolution_m=c.ds_resolution_m, free_resolution_m=c.free_resolution_m, max_range_m=c.max_range_m,
         )
         stats.kept_points = len(points)
@@ -289,6 +314,9 @@ class SbkiCompatIntegrator:
     def _scatter_counts(self, shards, points, labels, point_ids, owners, lanes) -> int | PendingUpdates:
         """S-CSM: each (point, block) pair adds 1 to its block's single cell."""
         c = self.config
+        if lanes is not None and len(owners):  # the test blocks' bounds (owners +- 1), before any shard inserts its part
+            lo, hi = column_bounds(np.asarray(owners, np.int64))
+            shards[0].check_block_range(np.stack([lo - 1, hi + 1]), self.cells_per_block)
 
         def job(shard: VoxelMap, part: np.ndarray) -> int:
             # Each shard holds the test blocks of its own points, so its targets are all present.
@@ -306,25 +334,32 @@ class SbkiCompatIntegrator:
         c = self.config
         tables = sbki_compat.gather_tables(owners)
         sorted_points = point_ids[tables.pair_order]
-        gather_inputs = [
-            wp.array(tables.test_blocks.astype(np.int32), dtype=wp.vec3i, device=d, copy=False),
-            wp.array(tables.sources, dtype=int, device=d, copy=False),
-            wp.array(tables.point_start.astype(np.int32), dtype=int, device=d, copy=False),
-            wp.array(block_gather.scale_points(take_rows(points, sorted_points), c.length_m), dtype=wp.vec3, device=d, copy=False),
-            wp.array(np.ascontiguousarray(labels[sorted_points], dtype=np.int32), dtype=int, device=d, copy=False),
-            wp.float64(c.length_m), wp.float64(c.sigma0), wp.float64(c.resolution_m), wp.float64(self.grid_offset_m(c)),
-        ]
-
-        return block_gather_run(tables.test_blocks, self.cells_per_block, self.gather_kernel, gather_inputs, "sbki_gather")
+        scan = block_gather.sbki_blocks(
+            blocks=wp.array(tables.test_blocks.astype(np.int32), dtype=wp.vec3i, device=d, copy=False),
+            sources=wp.array(tables.sources, dtype=int, device=d, copy=False),
+            point_start=wp.array(tables.point_start.astype(np.int32), dtype=int, device=d, copy=False),
+            scaled_points=wp.array(block_gather.scale_points(take_rows(points, sorted_points), c.length_m), dtype=wp.vec3, device=d, copy=False),
+            labels=wp.array(np.ascontiguousarray(labels[sorted_points], dtype=np.int32), dtype=int, device=d, copy=False),
+            length=c.length_m, sigma0=c.sigma0, resolution=c.resolution_m, grid_offset=self.grid_offset_m)
+        return block_gather_run(tables.test_blocks, self.cells_per_block, self.gather_kernel, scan, "sbki_gather")
 
 
+@register_integrator(Compat.EVSEMMAP, Kernel.SPARSE)
 class ReleaseCompatIntegrator:
     """The released EvSemMap (``mapping.compat: evsemmap``): per-scan uncertainty cut, the per-block
     cap (``methods.evsemmap_release``), then the block models as one gather kernel (``kernels.release``).
     Takes alpha payloads."""
 
-    def __init__(self, config: MappingConfig):
+    grid_offset_m = 0.0
+
+    def __init__(self, config: MappingConfig, num_classes: int | None = None):
         self.config = config
+        # The release reads the sensor origin only for its range filter.
+        self.needs = ScanNeeds(
+            SensorOrigin.REQUIRED if config.max_range_m > 0 else SensorOrigin.OPTIONAL,
+            "the evsemmap mode's range filter (mapping.max_range_m) measures from the sensor origin",
+            frozenset({PayloadType.ALPHA}),
+            "the evsemmap compatibility mode reproduces the release, which reads evidential alpha (its uncertainty cut is K / sum(alpha))")
         self.cells_per_block = 2 ** (config.block_depth - 1)
         self.block_size = sbki_compat.block_size_m(config.resolution_m, config.block_depth)
         self.length = evsemmap_release.kernel_length(config.length_m)
@@ -346,41 +381,41 @@ class ReleaseCompatIntegrator:
         counts["after_ds"] = len(keep)
         return keep, counts
 
-    def prepare(self, scan: ScanPayload, sensor_origin: np.ndarray, device: str) -> Launch:
+    def prepare(self, scan: ScanPayload, device: str) -> Launch:
         """The cut, the cap, memberships and the block models' tables (no map access); the launch runs
         the gather kernel."""
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points))
-        keep, _ = self.training_points(scan, sensor_origin)
+        keep, _ = self.training_points(scan, scan.sensor_origin)
         stats.kept_points = len(keep)
         if len(keep) == 0:
             return launch_step(stats)
         points = scan.points[keep].astype(np.float32)
         pair_points, member_blocks = sbki_compat.block_memberships(points, self.block_size)
-        models = evsemmap_release.release_blocks(member_blocks, lambda b, g, lo: block_model_tables(b, g, lo, device))
+        models = evsemmap_release.release_blocks(member_blocks, device=device)
         fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
         sorted_points = pair_points[models.pair_order]
         weights = take_rows(scan.probabilities[keep], sorted_points)
         unc = scan.uncertainty[keep][sorted_points]
         if fusion == sc.FUSION_DEMPSTER:
-            weights = np.clip(weights - unc[:, None] / weights.shape[1], 0.0, 1.0)  # b_k = (alpha_k - 1) / S
+            weights = dirichlet_beliefs(weights, unc)
         d = device
-        gather_inputs = [
-            wp.array(models.blocks.astype(np.int32), dtype=wp.vec3i, device=d, copy=False),
-            wp.array(models.source_blocks, dtype=int, device=d, copy=False), wp.array(models.source_mult, dtype=int, device=d, copy=False),
-            wp.array(models.point_start.astype(np.int32), dtype=int, device=d, copy=False),
-            wp.array(take_rows(points, sorted_points), dtype=wp.vec3, device=d, copy=False),
-            wp.array(np.ascontiguousarray(weights, dtype=np.float64), dtype=release.vector_type(weights.shape[1]), device=d, copy=False),
-            wp.array(np.ascontiguousarray(unc, dtype=np.float64), dtype=wp.float64, device=d, copy=False),
-            wp.float64(self.length), float(c.sigma0), float(c.resolution_m), int(fusion),
-        ]
+        scan = release.release_blocks(
+            blocks=wp.array(models.blocks.astype(np.int32), dtype=wp.vec3i, device=d, copy=False),
+            source_blocks=wp.array(models.source_blocks, dtype=int, device=d, copy=False),
+            source_mult=wp.array(models.source_mult, dtype=int, device=d, copy=False),
+            point_start=wp.array(models.point_start.astype(np.int32), dtype=int, device=d, copy=False),
+            points=wp.array(take_rows(points, sorted_points), dtype=wp.vec3, device=d, copy=False),
+            class_weights=wp.array(np.ascontiguousarray(weights, dtype=np.float64), dtype=release.vector_type(weights.shape[1]), device=d, copy=False),
+            uncertainty=wp.array(np.ascontiguousarray(unc, dtype=np.float64), dtype=wp.float64, device=d, copy=False),
+            length=self.length, sigma0=c.sigma0, resolution=c.resolution_m)
+        kernel_factory = functools.partial(self.gather_kernel, fusion=fusion)
+        return launch_step(stats, block_gather_run(models.blocks, self.cells_per_block, kernel_factory, scan, "release_gather"))
 
-        return launch_step(stats, block_gather_run(models.blocks, self.cells_per_block, self.gather_kernel, gather_inputs, "release_gather"))
 
-
-def block_gather_run(blocks: np.ndarray, cells_per_block: int, kernel_factory, gather_inputs: list, kind: str):
+def block_gather_run(blocks: np.ndarray, cells_per_block: int, kernel_factory, scan, kind: str):
     """run(shards, lanes) -> updates for a block-gather kernel (``kernel_factory(K, cells per block)``)
-    over target ``blocks`` [B, 3], whose arguments start with ``gather_inputs``: the key range is checked
+    over target ``blocks`` [B, 3] (the blocks of ``scan``, its inputs struct): the key range is checked
     before any launch, and each block is gathered in the shard its index picks, so a cell is always
     summed in the same shard in the same order and the map is bit for bit the same for any number of
     workers."""
@@ -392,14 +427,8 @@ def block_gather_run(blocks: np.ndarray, cells_per_block: int, kernel_factory, g
         shards[0].load_kernel(kernel)
 
         def job(shard: VoxelMap, index: int) -> int:
-            return shard.gather_blocks(kernel, gather_inputs, np.flatnonzero(owner == index), cells_per_block=cells_per_block, kind=kind)
+            return shard.gather_blocks(kernel, scan, np.flatnonzero(owner == index), cells_per_block=cells_per_block, kind=kind)
 
         return total_updates(for_each_shard(shards, lanes, job))
 
     return run
-
-
-def block_shard(blocks: np.ndarray, shards: int) -> np.ndarray:
-    """The shard of each block [B, 3]: a fixed hash of its index, so it never depends on the scan."""
-    b = np.asarray(blocks, dtype=np.int64)
-    return ((b[:, 0] * 73856093) ^ (b[:, 1] * 19349663) ^ (b[:, 2] * 83492791)) % shards

@@ -10,7 +10,9 @@ Arrays (V voxels in ascending index order, K classes):
   resolution float64 (m)                         origin [3] float64 map origin (m), on the voxel lattice
   format_version int
   meta: JSON string with the classes, the method and all its parameters, the grid offset, the world
-        frame ({"name", "crs"}: the frame centers and origin are in, docs/algorithm.md §6.6), provenance.
+        frame ({"name", "crs"}: the frame centers and origin are in, docs/algorithm.md §6.6), provenance,
+        scan_ids (the fingerprints of the scans the map holds, core/mapper.scan_fingerprint; optional:
+        a merge refuses maps holding a scan in common) and, in a store's tile, tile (core/map_store.py).
 Voxel i's centre is (i + 0.5) * resolution + grid offset. A round trip is exact.
 
 Reading validates the content, not only the shapes: every member's declared size against what the
@@ -192,6 +194,9 @@ def _read_meta(path: Path, arrays: dict) -> dict:
                            f"(names must be strings, at least 2 classes)")
     if meta["scans_integrated"] < 0 or meta["points_integrated"] < 0:
         raise MapFileError(f"{path}: meta.scans_integrated / points_integrated must be >= 0")
+    ids = meta.get("scan_ids")  # optional: files written before maps recorded their scans have none
+    if ids is not None and not (isinstance(ids, list) and all(isinstance(i, str) for i in ids) and len(set(ids)) == len(ids)):
+        raise MapFileError(f"{path}: meta.scan_ids must be a list of distinct scan ids (strings), got {str(ids)[:80]}")
     try:  # optional: files written before maps recorded their world frame have none
         WorldFrame.from_dict(meta.get("frame"), f"{path}: meta.frame")
     except FrameError as exc:

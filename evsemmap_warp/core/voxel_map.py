@@ -21,13 +21,12 @@ elsewhere.
 
 from __future__ import annotations
 
-import mmap
-import sys
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..voxel_keys import check_index_range, column_bounds, pack_voxel_keys, unpack_voxel_keys
+from . import host_memory
 from .warp_runtime import init_warp, resolve_device
 
 wp = init_warp()
@@ -75,51 +74,6 @@ class VoxelArrays:
                                 self.hits.astype(np.float64), self.touched.astype(np.float64)])
 
 
-def _lazily_zeroed(shape, dtype, populate: bool = False) -> np.ndarray:
-    """A zeroed host array on its own anonymous mapping, without numpy's transparent-huge-page advice.
-
-    numpy advises huge pages for large arrays; where the OS compacts memory on such faults (THP defrag
-    "madvise", as on this project's VMs) the first writes into a freshly grown table stall. Measured on
-    the bench's S-BKI mode at free_resolution 4, one thread: growth took 2.5 s of 10.5 s with np.zeros,
-    0.6 s of 7.4 s with this. Huge pages would make a table that is already faulted in ~30 % faster
-    to probe, but a growing map keeps faulting fresh memory in.
-
-    ``populate``: map the pages at once (Linux's MAP_POPULATE, where the platform has it), for memory
-    that will nearly all be written soon, such as a table grown at a quarter of its slots or more:
-    one populating call costs about half of the faults it replaces (400 MB: 0.21 s against 0.39 s
-    of first writes in random order)."""
-    dtype = np.dtype(dtype)
-    count = int(np.prod(shape, dtype=np.int64))
-    if count == 0:
-        return np.zeros(shape, dtype)
-    if populate and hasattr(mmap, "MAP_POPULATE"):
-        memory = mmap.mmap(-1, count * dtype.itemsize, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | mmap.MAP_POPULATE)
-    else:
-        memory = mmap.mmap(-1, count * dtype.itemsize)
-    return np.frombuffer(memory, dtype=dtype, count=count).reshape(shape)
-
-
-# On the CPU a table's value rows live in one reservation of address space this large (its pages are
-# mapped only as rows are written, and Linux does not count it against memory: MAP_NORESERVE), so a
-# growing table neither moves nor copies its rows. Copying them at each growth faulted every used row
-# in again (S-BKI mode at free_res 4, one thread, alternating runs: 1.58 s with the copies, 1.35 s
-# without; 118 k against 70 k page faults).
-ROW_RESERVATION_BYTES = 1 << 34
-_MAP_NORESERVE = getattr(mmap, "MAP_NORESERVE", 0x4000)  # Linux's value; Python names it from 3.13 on
-
-
-def _reserved_zeros(rows: int, columns: int) -> np.ndarray | None:
-    """A lazily zeroed float64 [rows, columns] array in address space reserved without committing
-    memory, or None where the platform or its overcommit policy refuses (the caller then allocates)."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        memory = mmap.mmap(-1, rows * columns * 8, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | _MAP_NORESERVE)
-    except (OSError, ValueError, OverflowError):
-        return None
-    return np.frombuffer(memory, dtype=np.float64).reshape(rows, columns)
-
-
 def _next_pow2(n: int) -> int:
     return 1 << max(int(n) - 1, 0).bit_length()
 
@@ -155,10 +109,10 @@ class VoxelMap:
 
     # ------------------------------------------------------------------ storage
     def _filled(self, shape, value, dtype, *, populate: bool = False):
-        """``populate``: the memory will nearly all be written soon (see _lazily_zeroed)."""
+        """``populate``: the memory will nearly all be written soon (see host_memory.lazily_zeroed)."""
         if self.device == "cpu":
             # Wrapping host memory (lazily zeroed pages) is ~10x faster than wp.full here.
-            host = _lazily_zeroed(shape, wp.dtype_to_numpy(dtype), populate=populate or value != 0)
+            host = host_memory.lazily_zeroed(shape, wp.dtype_to_numpy(dtype), populate=populate or value != 0)
             if value != 0:
                 host.fill(value)
             return wp.array(host, dtype=dtype, device="cpu", copy=False)
@@ -204,14 +158,14 @@ class VoxelMap:
         """(keys, slot rows) of a table of ``capacity`` slots holding the old table's keys and rows."""
         keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
         # A grown table is at least a quarter full once what it was grown for is in: its slot rows are
-        # written all over, so they are mapped at once (see _lazily_zeroed).
+        # written all over, so they are mapped at once (see host_memory.lazily_zeroed).
         slot_rows = self._filled(capacity, 0, wp.int32, populate=True)
         wp.launch(ht.rehash, dim=len(old_keys), inputs=[old_keys, old_slot_rows, keys, slot_rows], device=self.device)
         return keys, slot_rows
 
     def _row_array(self, capacity: int, used_rows: int, old):
         """A zeroed [capacity, K + 4] row array holding the first ``used_rows`` rows of ``old``: on the CPU
-        a view of the table's row reservation (ROW_RESERVATION_BYTES), which a grown table reuses in place."""
+        a view of the table's row reservation (host_memory.ROW_RESERVATION_BYTES), which a grown table reuses in place."""
         columns = self.num_classes + EXTRA_COLUMNS
         if self.device != "cpu":
             rows = wp.zeros((capacity, columns), dtype=wp.float64, device=self.device)
@@ -220,9 +174,9 @@ class VoxelMap:
             return rows
         store = self._row_store
         if store is None or len(store) < capacity or (old is not None and old.ptr != store.ctypes.data):
-            store = _reserved_zeros(max(capacity, ROW_RESERVATION_BYTES // (8 * columns)), columns)
+            store = host_memory.reserved_zeros(max(capacity, host_memory.ROW_RESERVATION_BYTES // (8 * columns)), columns)
             if store is None:
-                store = _lazily_zeroed((capacity, columns), np.float64)
+                store = host_memory.lazily_zeroed((capacity, columns), np.float64)
             if used_rows:
                 store[:used_rows] = old.numpy()[:used_rows]
             self._row_store = store
@@ -231,6 +185,18 @@ class VoxelMap:
     @property
     def voxel_count(self) -> int:
         return int(self.key_count.numpy()[0])
+
+    def table(self) -> ht.HashTable:
+        """The voxel table as kernels take it, with this launch's fill limit (make one per launch: the
+        table's arrays change when it grows)."""
+        return ht.hash_table(self.keys, self.slot_rows, self.key_count, self._launch_fill_limit())
+
+    def brick_table(self) -> ht.HashTable:
+        """The brick cache as kernels take it (``_allocate_brick_cache``), with this launch's fill limit."""
+        return ht.hash_table(self.brick_keys, self.brick_rows, self.brick_count, self._launch_fill_limit(self.brick_capacity))
+
+    def _target(self, failed, update_count) -> sc.MapTarget:
+        return sc.map_target(self.table(), self.data, failed, update_count)
 
     @property
     def table_bytes(self) -> int:
@@ -328,6 +294,7 @@ class VoxelMap:
             return 0
         if (mode == sc.MODE_STENCIL or fusion == sc.FUSION_DEMPSTER) and class_weights is None:
             raise ValueError("the stencil mode and Dempster fusion read per-class weights: pass class_weights, not labels")
+        kernel = sc.scatter_kernel(mode, fusion, labels is not None)
         stencil_half = 0
         if mode == sc.MODE_STENCIL:
             side = round(len(stencil_weights) ** (1 / 3))
@@ -340,30 +307,26 @@ class VoxelMap:
                 reach = (stencil_half + 1) * self.resolution_m
             self._check_reach(points, reach)
         d = self.device
-        use_labels = labels is not None
-        empty_weights = np.zeros((0, self.num_classes), np.float64)
-        empty_owners = np.zeros((0, 3), np.int32)
-        inputs = [
-            _points_array(points, d),
-            wp.array(np.ascontiguousarray(labels if use_labels else [], dtype=np.int32), dtype=int, device=d, copy=False),
-            _float_array(empty_weights if use_labels else class_weights, d),
-            _float_array(lengths, d),
-            _float_array(point_uncertainty, d),
-            wp.array(empty_owners if owner_blocks is None else np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d,
-                     copy=False),
-            int(mode), int(use_labels), wp.float64(self.resolution_m), wp.float64(self.grid_offset_m), wp.float64(sigma0),
-            int(cells_per_block), int(fusion),
-            _float_array(empty_weights if stencil_weights is None else stencil_weights, d),
-            int(stencil_half),
-        ]
+        scan = sc.scan_points(
+            points=_points_array(points, d), lengths=_float_array(lengths, d), uncertainty=_float_array(point_uncertainty, d),
+            labels=None if labels is None else _int_array(labels, d), class_weights=None if class_weights is None else _float_array(class_weights, d),
+            owner_blocks=None if owner_blocks is None else wp.array(np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d, copy=False))
+        params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, sigma0=sigma0, cells_per_block=cells_per_block,
+                                   stencil_weights=None if stencil_weights is None else _float_array(stencil_weights, d), stencil_half=stencil_half)
         update_count = wp.zeros(1, dtype=wp.int64, device=d)
 
         def launch(ids, failed):
-            wp.launch(sc.scatter_points, dim=len(ids), device=d, inputs=[
-                ids, *inputs, self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
+            scan.point_ids = ids
+            wp.launch(kernel, dim=len(ids), device=d, inputs=[scan, params, self._target(failed, update_count)])
 
-        self._launch_until_done(n, launch, may_insert=mode in (sc.MODE_RADIUS, sc.MODE_OWN_VOXEL, sc.MODE_STENCIL), kind=f"scatter{mode}", most_new=n)
+        self._launch_until_done(n, launch, may_insert=sc.scatter_inserts(mode), kind=f"scatter{mode}", most_new=n)
         return int(update_count.numpy()[0])
+
+    def _radius_scan(self, points, lengths, point_uncertainty, labels, class_weights) -> sc.ScanPoints:
+        d = self.device
+        return sc.scan_points(points=_points_array(points, d), lengths=_float_array(lengths, d), uncertainty=_float_array(point_uncertainty, d),
+                              labels=None if labels is None else _int_array(labels, d),
+                              class_weights=None if class_weights is None else _float_array(class_weights, d))
 
     def scatter_sorted(self, points: np.ndarray, lengths: np.ndarray, point_uncertainty: np.ndarray, *, sigma0: float,
                        labels: np.ndarray | None = None, class_weights: np.ndarray | None = None) -> int:
@@ -374,10 +337,10 @@ class VoxelMap:
             return 0
         self._check_reach(points, float(np.max(lengths)))
         d = self.device
-        points_wp, lengths_wp = _points_array(points, d), _float_array(lengths, d)
-        res, offset = wp.float64(self.resolution_m), wp.float64(self.grid_offset_m)
+        scan = self._radius_scan(points, lengths, point_uncertainty, labels, class_weights)
+        params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, sigma0=sigma0)
         counts = wp.empty(n, dtype=int, device=d)
-        wp.launch(ss.count_pairs, dim=n, device=d, inputs=[points_wp, lengths_wp, res, offset, counts])
+        wp.launch(ss.count_pairs, dim=n, device=d, inputs=[scan, params, ss.pair_counts(counts)])
         offsets = wp.empty(n, dtype=int, device=d)
         wp.utils.array_scan(counts, offsets, inclusive=False)
         pairs = int(offsets.numpy()[-1] + counts.numpy()[-1]) if d == "cpu" else int((offsets[n - 1:n].numpy() + counts[n - 1:n].numpy())[0])
@@ -387,8 +350,8 @@ class VoxelMap:
         ids = wp.empty(2 * pairs, dtype=int, device=d)
         pair_point = wp.empty(pairs, dtype=int, device=d)
         pair_weight = wp.empty(pairs, dtype=wp.float64, device=d)
-        wp.launch(ss.expand_pairs, dim=n, device=d, inputs=[points_wp, lengths_wp, res, offset, wp.float64(sigma0), offsets,
-                                                             keys, ids, pair_point, pair_weight])
+        wp.launch(ss.expand_pairs, dim=n, device=d, inputs=[scan, params, ss.pair_list(offsets=offsets, keys=keys, ids=ids, point=pair_point,
+                                                                                         weight=pair_weight)])
         wp.utils.radix_sort_pairs(keys, ids, pairs)
         heads = wp.empty(pairs, dtype=int, device=d)
         wp.launch(ss.mark_heads, dim=pairs, device=d, inputs=[keys, heads])
@@ -397,14 +360,11 @@ class VoxelMap:
         distinct = int(rank[pairs - 1:pairs].numpy()[0])
         starts = wp.empty(distinct, dtype=int, device=d)
         wp.launch(ss.segment_starts, dim=pairs, device=d, inputs=[heads, rank, starts])
-        use_labels = labels is not None
-        inputs = [wp.array(np.ascontiguousarray(labels if use_labels else [], dtype=np.int32), dtype=int, device=d, copy=False),
-                  _float_array(np.zeros((0, self.num_classes)) if use_labels else class_weights, d), int(use_labels),
-                  _float_array(point_uncertainty, d)]
         self.reserve(distinct)  # every distinct voxel fits: the reduction never fails for room
         failed = wp.zeros(distinct, dtype=int, device=d)
-        wp.launch(ss.reduce_voxels, dim=distinct, device=d, inputs=[starts, pairs, keys, ids, pair_point, pair_weight, *inputs,
-                                                                    self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), self.data, failed])
+        sorted_pairs = ss.sorted_pairs(starts=starts, count=pairs, keys=keys, ids=ids, point=pair_point, weight=pair_weight)
+        wp.launch(ss.reduce_voxels_kernel(labels is not None), dim=distinct, device=d, inputs=[
+            sorted_pairs, scan, params, self._target(failed, wp.zeros(1, dtype=wp.int64, device=d))])
         if failed.numpy().any():
             raise RuntimeError("the sorted reduction ran out of table room after reserving it (a bug)")
         self.reserve(0)
@@ -421,8 +381,8 @@ class VoxelMap:
         longest = float(np.max(lengths))
         self._check_reach(points, longest)
         d = self.device
-        points_wp, lengths_wp = _points_array(points, d), _float_array(lengths, d)
-        res, offset = wp.float64(self.resolution_m), wp.float64(self.grid_offset_m)
+        scan = self._radius_scan(points, lengths, point_uncertainty, labels, class_weights)
+        params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, sigma0=sigma0)
         # The scan's reached voxels, in a key set sized for a voxel per point and grown when it is not enough.
         capacity = _next_pow2(4 * n + 16)
         while True:
@@ -430,24 +390,19 @@ class VoxelMap:
             scan_rows = self._filled(capacity, 0, wp.int32)
             scan_count = wp.zeros(1, dtype=int, device=d)
             failed = wp.zeros(1, dtype=int, device=d)
-            wp.launch(hg.mark_reached, dim=n, device=d, inputs=[points_wp, lengths_wp, res, offset, scan_keys, scan_rows, scan_count,
-                                                               int(capacity * LAUNCH_FILL_LIMIT), failed])
+            reached = hg.reached_keys(ht.hash_table(scan_keys, scan_rows, scan_count, self._launch_fill_limit(capacity)), failed)
+            wp.launch(hg.mark_reached, dim=n, device=d, inputs=[scan, params, reached])
             if not failed.numpy()[0]:
                 break
             capacity *= 4
         reached = int(scan_count.numpy()[0])
         grid = wp.HashGrid(128, 128, 128, device=d, dtype=wp.float64)
-        grid.build(points_wp, longest)
-        use_labels = labels is not None
+        grid.build(scan.points, longest)
         self.reserve(reached)  # every reached voxel fits: the gather never fails for room
         failed = wp.zeros(capacity, dtype=int, device=d)
         update_count = wp.zeros(1, dtype=wp.int64, device=d)
-        wp.launch(hg.gather_voxels, dim=capacity, device=d, inputs=[
-            scan_keys, grid.id, points_wp, lengths_wp, wp.float64(longest),
-            wp.array(np.ascontiguousarray(labels if use_labels else [], dtype=np.int32), dtype=int, device=d, copy=False),
-            _float_array(np.zeros((0, self.num_classes)) if use_labels else class_weights, d), int(use_labels),
-            _float_array(point_uncertainty, d), res, offset, wp.float64(sigma0),
-            self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
+        wp.launch(hg.gather_voxels_kernel(labels is not None), dim=capacity, device=d, inputs=[
+            scan_keys, grid.id, wp.float64(longest), scan, params, self._target(failed, update_count)])
         if failed.numpy().any():
             raise RuntimeError("the hash-grid gather ran out of table room after reserving it (a bug)")
         self.reserve(0)
@@ -462,19 +417,15 @@ class VoxelMap:
         first = owner_blocks.astype(np.int64) * cells_per_block - cells_per_block // 2
         self._check_index_range(first.min(axis=0) - cells_per_block, first.max(axis=0) + 2 * cells_per_block - 1)
         d = self.device
-        inputs = [
-            _points_array(points, d),
-            wp.array(np.ascontiguousarray(labels, dtype=np.int32), dtype=int, device=d, copy=False),
-            _float_array(point_uncertainty, d),
-            wp.array(np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d, copy=False),
-            _float_array(target_lengths, d),
-            wp.float64(self.resolution_m), wp.float64(self.grid_offset_m), int(cells_per_block),
-        ]
+        scan = sc.scan_points(points=_points_array(points, d), labels=_int_array(labels, d), uncertainty=_float_array(point_uncertainty, d),
+                              owner_blocks=wp.array(np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d, copy=False))
+        lengths = _float_array(target_lengths, d)
+        params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, cells_per_block=cells_per_block)
         update_count = wp.zeros(1, dtype=wp.int64, device=d)
 
         def launch(ids, failed):
-            wp.launch(sc.scatter_block_targets, dim=len(ids), device=d, inputs=[
-                ids, *inputs, self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), self.data, failed, update_count])
+            scan.point_ids = ids
+            wp.launch(sc.scatter_block_targets, dim=len(ids), device=d, inputs=[scan, lengths, params, self._target(failed, update_count)])
 
         self._launch_until_done(n, launch, may_insert=True, kind="block_targets", most_new=n * 7 * cells_per_block**3)
         return int(update_count.numpy()[0])
@@ -487,24 +438,20 @@ class VoxelMap:
             kernel.module.load(self.device)
             _loaded_devices.add(key)
 
-    def gather_blocks(self, kernel, gather_inputs: list, block_ids: np.ndarray, *, cells_per_block: int, kind: str) -> int:
+    def gather_blocks(self, kernel, scan, block_ids: np.ndarray, *, cells_per_block: int, kind: str) -> int:
         """A block-gather kernel (``kernels.block_gather`` or ``kernels.release``, made for this class
         count and block size) over the target blocks ``block_ids``: each block finds or inserts its cells
-        and adds its sums once; blocks that did not fit are relaunched after the table grew.
-        ``gather_inputs``: the kernel's arguments from its block array to the last before ``table_keys``
-        (device arrays shared by the shards). Returns updates."""
+        and adds its sums once; blocks that did not fit are relaunched after the table grew. ``scan``:
+        the kernel's inputs struct (``block_gather.SbkiBlocks``, ``release.release_blocks_struct``; device
+        arrays shared by the shards). Returns updates."""
         if len(block_ids) == 0:
             return 0
         d = self.device
-        blocks, *rest = gather_inputs
         ids = wp.array(np.ascontiguousarray(block_ids, dtype=np.int32), dtype=int, device=d, copy=False)
         update_count = wp.zeros(1, dtype=wp.int64, device=d)
 
         def launch(pending, failed):
-            wp.launch(kernel, dim=len(pending), device=d, inputs=[
-                blocks, pending, ids, *rest, self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(),
-                self.brick_keys, self.brick_rows, self.brick_count, self._launch_fill_limit(self.brick_capacity),
-                self.data, failed, update_count])
+            wp.launch(kernel, dim=len(pending), device=d, inputs=[pending, ids, scan, self.table(), self.brick_table(), self.data, failed, update_count])
 
         self._grow_brick_cache(len(block_ids))
         self._launch_until_done(len(block_ids), launch, may_insert=True, kind=kind, most_new=len(block_ids) * cells_per_block**3, exact_most=True)
@@ -522,8 +469,7 @@ class VoxelMap:
 
         def launch(ids, failed):
             wp.launch(sc.insert_block_cells, dim=len(ids), device=d, inputs=[
-                ids, blocks_wp, int(cells_per_block), int(mark_touched),
-                self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), self.data, failed])
+                ids, blocks_wp, int(cells_per_block), int(mark_touched), self.table(), self.data, failed])
 
         self._launch_until_done(len(blocks), launch, may_insert=True, kind="block_cells", most_new=len(blocks) * cells_per_block**3, exact_most=True)
 
@@ -533,8 +479,7 @@ class VoxelMap:
         self.reserve(len(voxel_index))
         while True:
             rows = wp.empty(len(voxel_index), dtype=int, device=self.device)
-            wp.launch(ht.insert_keys, dim=len(voxel_index), inputs=[keys, self.keys, self.slot_rows, self.key_count, self._launch_fill_limit(), rows],
-                      device=self.device)
+            wp.launch(ht.insert_keys, dim=len(voxel_index), inputs=[keys, self.table(), rows], device=self.device)
             rows_np = rows.numpy()
             if (rows_np >= 0).all():
                 return rows_np
@@ -546,8 +491,7 @@ class VoxelMap:
             return np.zeros(0, dtype=np.int64)
         rows = wp.empty(len(points), dtype=int, device=self.device)
         wp.launch(ht.lookup_points, dim=len(points), device=self.device,
-                  inputs=[_points_array(points, self.device), wp.float64(self.resolution_m), wp.float64(self.grid_offset_m),
-                          self.keys, self.slot_rows, rows])
+                  inputs=[_points_array(points, self.device), wp.float64(self.resolution_m), wp.float64(self.grid_offset_m), self.table(), rows])
         return rows.numpy().astype(np.int64)
 
     # ------------------------------------------------------------------ host views
@@ -590,28 +534,16 @@ class VoxelMap:
             self.data = wp.array(data, dtype=wp.float64, device=self.device, copy=False)
 
 
-def block_model_tables(blocks: np.ndarray, grid: np.ndarray, lo: np.ndarray, device: str):
-    """``kernels.release.block_models`` over every block: the release mode's source blocks and model
-    counts [B, 25] from a dense grid of the scan's blocks."""
-    from ..methods.evsemmap_release import FACE_OFFSETS, MODELS_BY_MASK, TARGET_BLOCK_OFFSETS
-
-    n, m = len(blocks), len(TARGET_BLOCK_OFFSETS)
-    source = wp.empty((n, m), dtype=int, device=device)
-    mult = wp.empty((n, m), dtype=int, device=device)
-    wp.launch(release.block_models, dim=n, device=device, inputs=[
-        wp.array(blocks.astype(np.int32), dtype=wp.vec3i, device=device, copy=False), wp.array(grid, dtype=int, device=device, copy=False),
-        wp.vec3i(*[int(v) for v in lo]), wp.array(TARGET_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device, copy=False),
-        wp.array(FACE_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device, copy=False),
-        wp.array(MODELS_BY_MASK, dtype=int, device=device, copy=False), source, mult])
-    return source.numpy(), mult.numpy()
-
-
 def _points_array(points: np.ndarray, device: str):
     return wp.array(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3), dtype=wp.vec3d, device=device, copy=False)
 
 
 def _float_array(values: np.ndarray, device: str):
     return wp.array(np.ascontiguousarray(values, dtype=np.float64), dtype=wp.float64, device=device, copy=False)
+
+
+def _int_array(values: np.ndarray, device: str):
+    return wp.array(np.ascontiguousarray(values, dtype=np.int32), dtype=int, device=device, copy=False)
 
 
 _loaded_devices: set = set()  # devices, and (device, module) of kernels made on demand

@@ -45,7 +45,8 @@ def open_reader(logs: list[Path]):
     try:
         reader.open()
     except Exception as exc:  # rosbags raises its own error types per format; all mean "not a readable log"
-        raise DataError(f"{', '.join(map(str, logs))}: not a readable robot log ({type(exc).__name__}: {exc})") from None
+        raise DataError(f"{', '.join(map(str, logs))}: not a readable robot log ({type(exc).__name__}: {exc}); a log still being "
+                        f"recorded, or cut short, has no index or end yet") from None
     return reader
 
 
@@ -192,6 +193,10 @@ class LogSequence:
         odometry = self._connections(c.odometry_topic, (ODOMETRY_TYPE,), "odometry_topic") if c.pose_source == "odometry" else []
         tf = [x for x in self.reader.connections if x.topic == c.tf_topic and x.msgtype == TF_TYPE] if c.pose_source == "tf" else []
         tf_static = [x for x in self.reader.connections if x.topic == c.tf_static_topic and x.msgtype == TF_TYPE]
+        for key in ("tf_topic", "tf_static_topic"):  # a missing TF topic may be fine (the pose check decides); one of another type is not
+            wrong = sorted({x.msgtype for x in self.reader.connections if x.topic == getattr(c, key) and x.msgtype != TF_TYPE})
+            if wrong and (key != "tf_topic" or c.pose_source == "tf"):
+                raise DataError(f"{self.describe()}: topic {getattr(c, key)!r} (dataset.bag.{key}) carries {wrong[0]}, expected {TF_TYPE}")
         # topics, not connections: a connection refers to its open reader, and the sequence pickles without one
         self._topics = {"cloud": self.cloud_topic, "image": c.image_topic if image else "", "label_image": c.label_image_topic if label_image else ""}
         kinds = {x.id: kind for kind, conns in (("cloud", cloud), ("image", image), ("label_image", label_image), ("info", info),
@@ -202,6 +207,11 @@ class LogSequence:
             first_cloud = self._read_index(wanted, kinds, stamps)
         if first_cloud is None:
             raise DataError(f"{self.describe()}: no message on {self.cloud_topic!r}")
+        cloud_stamps = np.array([s for _, s in stamps["cloud"]], np.int64)
+        unique, counts = np.unique(cloud_stamps, return_counts=True)
+        if (counts > 1).any():  # one sweep twice (a log given twice, a copy of it, a message recorded twice) would count twice
+            raise DataError(f"{self.describe()}: {int((counts - 1).sum())} clouds on {self.cloud_topic!r} repeat a stamp of another (first at "
+                            f"{format_stamp(int(unique[counts > 1][0]))}): a log given twice, or logs that overlap? Name each drive once")
         self.lidar_frame = c.lidar_frame or first_cloud.header.frame_id
         self._cloud_fields = tuple(f.name for f in first_cloud.fields)
         has_labels = bool(c.label_field) and c.label_field in self._cloud_fields
@@ -319,6 +329,8 @@ class LogSequence:
         except TransformError as exc:
             raise DataError(f"{self.describe()}: no pose of the LiDAR in the fixed frame: {exc}") from None
         first, last = self.frames[0].stamp_ns, self.frames[-1].stamp_ns
+        if not self.config.fixed_frame and not any(self.tree.is_timed(f) for f in up_lidar[:-1] + up_fixed[:-1]):
+            self._refuse_standing_still(fixed, up_lidar, first)
         for child in up_lidar[:-1] + up_fixed[:-1]:
             if not self.tree.is_timed(child):
                 continue
@@ -336,6 +348,23 @@ class LogSequence:
                             f"{self.tree.parent(child)!r} -> {child!r} is recorded from {format_stamp(start)} to {format_stamp(end)}, "
                             f"but the clouds run from {format_stamp(first)} to {format_stamp(last)} ({unposed} of {len(self.frames)} "
                             f"clouds have no pose in {fixed!r}){hint}")
+
+    def _refuse_standing_still(self, root: str, up_lidar: list[str], first_ns: int) -> None:
+        """The LiDAR's tree (its root picked as the fixed frame) holds no moving transform: every scan
+        would get the same pose, a moving robot mapped as one standing still. Names the missing link:
+        the root's parent among the moving frames of another tree, or the pose source that gave none."""
+        chain = " -> ".join(reversed(up_lidar))
+        moving = sorted({f for f in self.tree.frames if self.tree.is_timed(f)} | {self.tree.parent(f) for f in self.tree.frames if self.tree.is_timed(f)})
+        if moving:
+            link = (f"the link from one of the moving frames {moving} to {root!r} is missing at {format_stamp(first_ns)} (the first cloud) "
+                    f"and at every later cloud; it belongs on {self.config.tf_static_topic!r} (dataset.bag.tf_static_topic)")
+        else:
+            source = (f"odometry topic {self.config.odometry_topic!r}" if self.config.pose_source == "odometry"
+                      else f"{self.config.tf_topic!r} (dataset.bag.tf_topic)")
+            link = f"the log has no moving transform at all on {source} at {format_stamp(first_ns)} (the first cloud) or later"
+        raise DataError(f"{self.describe()}: no moving transform poses the LiDAR: its TF chain {chain} is static, so every scan would get "
+                        f"the same pose (a moving robot mapped as standing still); {link}; give dataset.bag.lidar_extrinsic, or set "
+                        f"dataset.bag.fixed_frame: {root} for a sensor that never moves")
 
     @property
     def lidar_to_camera(self) -> np.ndarray:

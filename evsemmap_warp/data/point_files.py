@@ -54,9 +54,12 @@ def read_npy(path) -> np.ndarray:
     if magic != b"\x93NUMPY":
         raise ValueError(f"{path}: not an .npy array ({'empty file' if not magic else 'no NUMPY header'})")
     try:
-        return np.load(path, allow_pickle=False)
+        data = np.load(path, allow_pickle=False)
     except (ValueError, EOFError, OSError) as exc:
         raise ValueError(f"{path}: not a readable npy array ({exc})") from None
+    if data.dtype.kind not in "biuf":  # complex: the imaginary part would be dropped without a word
+        raise ValueError(f"{path}: holds {data.dtype} values; point and pose files hold real numbers")
+    return data
 
 
 def read_point_file(path) -> PointFile:

@@ -82,7 +82,9 @@ def read_poses(path: Path) -> np.ndarray:
     bad = np.flatnonzero((off > RIGID_TOLERANCE) | (np.linalg.det(rotations) <= 0))
     if len(bad):
         line = int(bad[0])
-        what = "mirrors" if np.linalg.det(rotations[line]) <= 0 else f"is not orthonormal (|R R^T - I| = {off[line]:.3g})"
+        det = np.linalg.det(rotations[line])
+        what = ("is singular (zero or degenerate)" if abs(det) < 1e-9 else "mirrors" if det < 0
+                else f"is not orthonormal (|R R^T - I| = {off[line]:.3g})")
         raise DataError(f"{path}: pose line {line + 1} is not a rigid transform: its rotation {what}"
                         + (f" ({len(bad)} such lines)" if len(bad) > 1 else ""))
     return poses
@@ -145,6 +147,10 @@ class Rellis3DSequence(_ScanSequence):
         layout = (self.root / "os1_cloud_node_kitti_bin").is_dir()
         scans = sorted((self.root / "os1_cloud_node_kitti_bin").glob("*.bin")) if layout else sorted(self.root.glob("[0-9]*.bin"))
         if not scans:
+            recording = sorted(p.name for p in self.root.glob("*") if p.suffix in (".db3", ".mcap"))
+            if recording:  # a ROS 2 bag folder gets its metadata.yaml when the recorder closes it
+                raise DataError(f"{self.root}: a ROS 2 bag folder without metadata.yaml (still being recorded, or cut short): name its "
+                                f"file {recording[0]} to read what it holds so far")
             raise DataError(f"{self.root}: no scans (expected os1_cloud_node_kitti_bin/NNNNNN.bin or NNNNNN.bin)")
         image_dir = self.root / "pylon_camera_node" if layout else self.root
         images = {}
@@ -196,6 +202,8 @@ class Rellis3DSequence(_ScanSequence):
             fx, fy, cx, cy = (float(v) for v in values)
         except ValueError:
             raise DataError(f"{info}: expected four numbers fx fy cx cy, got {values[:8]}") from None
+        if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0):
+            raise DataError(f"{info}: fx fy cx cy = {values}: the focal lengths must be finite numbers > 0 and the principal point finite")
         distortion = RELLIS3D_DISTORTION
         distortion_file = self.root / "camera_distortion.txt"
         if distortion_file.exists():
@@ -297,11 +305,18 @@ class SemanticKittiSequence(_ScanSequence):
             return np.eye(4)
         for line in read_text(path).splitlines():
             if line.startswith("Tr:"):
-                values = [float(v) for v in line.split()[1:]]
+                try:
+                    values = [float(v) for v in line.split()[1:]]
+                except ValueError:
+                    raise DataError(f"{path}: Tr needs 12 numbers, got {line.split()[1:][:12]}") from None
                 if len(values) != 12:
                     raise DataError(f"{path}: Tr needs 12 numbers, got {len(values)}")
                 tr = np.eye(4)
                 tr[:3, :] = np.reshape(values, (3, 4))
+                rotation = tr[:3, :3]
+                if (not np.isfinite(tr).all() or np.abs(rotation @ rotation.T - np.eye(3)).max() > RIGID_TOLERANCE
+                        or np.linalg.det(rotation) <= 0):
+                    raise DataError(f"{path}: Tr is not a rigid transform (a rotation and a translation, finite): {values}")
                 return tr
         raise DataError(f"{path}: no 'Tr:' line")
 
@@ -392,7 +407,8 @@ def check_sequence(root, *, max_label_files: int = 50) -> CheckReport:
             try:
                 ids = seq.read_label_ids(frame)
             except ValueError as exc:
-                report.problems.append(str(exc))
+                if str(exc) not in report.problems:  # a broken camera_info.txt fails every frame alike: listed once
+                    report.problems.append(str(exc))
                 continue
             outside = np.unique(ids[(ids > 255) | (table[np.clip(ids, 0, 255)] < 0)])
             if len(outside):

@@ -68,6 +68,16 @@ class _TimedEdge:
         return rigid(quaternion_to_matrix(slerp(self.rotations[at], self.rotations[at + 1], fraction)), translation)
 
 
+def _check_parts(parent: str, child: str, translation, quaternion, stamp_ns: int | None = None) -> None:
+    """A transform is a finite translation and a rotation: a zero or non-finite quaternion (an odometry
+    not yet initialised) would make every pose through it NaN, or a singular matrix."""
+    t, q = np.asarray(translation, np.float64), np.asarray(quaternion, np.float64)
+    if not (np.isfinite(t).all() and np.isfinite(q).all() and np.linalg.norm(q) > 1e-9):
+        when = "" if stamp_ns is None else f" at {format_stamp(stamp_ns)}"
+        raise TransformError(f"the transform {parent!r} -> {child!r}{when} is no rigid transform (translation {t.tolist()}, "
+                             f"quaternion {q.tolist()}: finite numbers and a non-zero quaternion needed)")
+
+
 class TransformTree:
     """Frames and their transforms; ``lookup(target, source, t)`` is the 4x4 pose of ``source`` in
     ``target`` (it maps source coordinates into target coordinates)."""
@@ -78,10 +88,12 @@ class TransformTree:
 
     def add_static(self, parent: str, child: str, translation, quaternion) -> None:
         self._check_parent(parent, child)
+        _check_parts(parent, child, translation, quaternion)
         self._static[child] = (parent, rigid(quaternion_to_matrix(quaternion), translation))
 
     def add_timed(self, parent: str, child: str, stamp_ns: int, translation, quaternion) -> None:
         self._check_parent(parent, child)
+        _check_parts(parent, child, translation, quaternion, stamp_ns)
         self._timed.setdefault(child, _TimedEdge(parent)).add(int(stamp_ns), translation, quaternion)
 
     def _check_parent(self, parent: str, child: str) -> None:

@@ -26,7 +26,7 @@ import warp as wp
 
 from ..kernels import release
 from ..voxel_keys import column_bounds, pack_voxel_keys
-from .sbki_compat import block_index, dense_block_grid, group_by_block
+from .sbki_compat import dense_block_grid, group_by_block
 
 # Offsets of the target blocks a point can reach through one model: L1 distance <= 2 (1 + 6 + 12 + 6).
 TARGET_BLOCK_OFFSETS = np.array(
@@ -92,9 +92,9 @@ MAX_DENSE_BLOCK_COUNTS = 1 << 24
 
 
 def first_per_block(block_keys: np.ndarray, cap: int) -> np.ndarray:
-    """Mask keeping the first ``cap`` points (input order) of each block key [N, 3]: counted on a dense
-    grid over the keys' bounding box (``kernels.release.keep_first_per_block``), ranked by a stable sort
-    when that box is too large (the kernel's twin)."""
+    """Mask keeping the first ``cap`` points (input order) of each block key [N, 3], counted by
+    ``kernels.release.keep_first_per_block`` on a dense grid over the keys' bounding box, or, when that
+    box is too large, over the distinct keys (numbered by a sort)."""
     block_keys = np.asarray(block_keys, dtype=np.int64).reshape(-1, 3)
     n = len(block_keys)
     if n == 0:
@@ -102,14 +102,15 @@ def first_per_block(block_keys: np.ndarray, cap: int) -> np.ndarray:
     lo, hi = column_bounds(block_keys)
     span = hi - lo + 1
     if float(np.prod(span.astype(np.float64))) > MAX_DENSE_BLOCK_COUNTS:
-        from ..reference.release import keep_first_per_block
-
-        return keep_first_per_block(pack_voxel_keys(block_keys), cap)
-    relative = block_keys - lo
-    cells = (relative[:, 0] * span[1] + relative[:, 1]) * span[2] + relative[:, 2]
+        distinct, cells = np.unique(pack_voxel_keys(block_keys), return_inverse=True)
+        cell_count = len(distinct)
+    else:
+        relative = block_keys - lo
+        cells = (relative[:, 0] * span[1] + relative[:, 1]) * span[2] + relative[:, 2]
+        cell_count = int(np.prod(span))
     keep = wp.empty(n, dtype=wp.uint8, device="cpu")
     wp.launch(release.keep_first_per_block, dim=1, device="cpu", inputs=[
-        wp.array(cells.astype(np.int32), dtype=int, device="cpu", copy=False), int(cap), wp.zeros(int(np.prod(span)), dtype=int, device="cpu"), keep])
+        wp.array(cells.reshape(-1).astype(np.int32), dtype=int, device="cpu", copy=False), int(cap), wp.zeros(cell_count, dtype=int, device="cpu"), keep])
     return keep.numpy().astype(bool)
 
 
@@ -127,32 +128,31 @@ class ReleaseBlocks:
     source_mult: np.ndarray
 
 
-def release_blocks(member_blocks: np.ndarray, block_models=None) -> ReleaseBlocks:
-    """The gather kernel's tables for one scan's (point, block) memberships [P, 3]. ``block_models``
-    (blocks, grid, lo) -> (source, mult) computes the per-block tables from the dense grid when the
-    scan's blocks fit one (the engine passes ``kernels.release.block_models``); else, and as that
-    kernel's twin, numpy does."""
+def release_blocks(member_blocks: np.ndarray, *, device: str = "cpu") -> ReleaseBlocks:
+    """The gather kernel's tables for one scan's (point, block) memberships [P, 3], the per-block ones
+    from ``kernels.release.block_models`` on ``device`` (``block_model_tables``)."""
     blocks, keys, order, point_start = group_by_block(member_blocks)
     grid, lo = dense_block_grid(blocks)
-    if block_models is not None and grid is not None:
-        source, mult = block_models(blocks, grid, lo)
-    else:
-        source, mult = _block_models_numpy(blocks, keys, grid, lo)
+    source, mult = block_model_tables(blocks, keys, grid, lo, device)
     return ReleaseBlocks(blocks, order, point_start, source, mult)
 
 
-def _block_models_numpy(blocks, keys, grid, lo):
-    index_of = block_index(blocks, keys, grid, lo)
-
-    source = np.full((len(blocks), len(TARGET_BLOCK_OFFSETS)), -1, np.int64)
-    mult = np.zeros_like(source)
-    for o, offset in enumerate(TARGET_BLOCK_OFFSETS):
-        src = blocks + offset
-        source[:, o] = index_of(src)
-        for face in FACE_OFFSETS:
-            # model = source + face is one of the source's models if it holds points; it predicts for
-            # blocks[b] when blocks[b] lies in its extended block: |offset + face|_1 <= 1.
-            if np.abs(offset + face).sum() <= 1:
-                mult[:, o] += index_of(src + face) >= 0
-    mult[source < 0] = 0
-    return source.astype(np.int32), mult.astype(np.int32)
+def block_model_tables(blocks: np.ndarray, keys: np.ndarray, grid: np.ndarray | None, lo, device: str) -> tuple[np.ndarray, np.ndarray]:
+    """``kernels.release.block_models`` over every block: the source blocks and model counts [B, 25],
+    the blocks found on their dense grid (``dense_block_grid``) or, where there is none, by a binary
+    search over their packed ``keys``."""
+    n, m = len(blocks), len(TARGET_BLOCK_OFFSETS)
+    if n == 0:
+        return np.zeros((0, m), np.int32), np.zeros((0, m), np.int32)
+    source = wp.empty((n, m), dtype=int, device=device)
+    mult = wp.empty((n, m), dtype=int, device=device)
+    if grid is not None:
+        lookup = release.block_lookup(grid=wp.array(grid, dtype=int, device=device, copy=False), lo=lo)
+    else:
+        lookup = release.block_lookup(keys=wp.array(np.ascontiguousarray(keys, dtype=np.int64), dtype=wp.int64, device=device, copy=False))
+    wp.launch(release.block_models_kernel(grid is not None), dim=n, device=device, inputs=[
+        wp.array(blocks.astype(np.int32), dtype=wp.vec3i, device=device, copy=False), lookup,
+        wp.array(TARGET_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device, copy=False),
+        wp.array(FACE_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device, copy=False),
+        wp.array(MODELS_BY_MASK, dtype=int, device=device, copy=False), source, mult])
+    return source.numpy(), mult.numpy()

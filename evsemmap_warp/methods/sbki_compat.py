@@ -167,11 +167,15 @@ def free_space_samples(hits: np.ndarray, origin: np.ndarray, free_resolution_m: 
         direction = diff / ray_length[:, None]
     longest = ray_length.max()
     estimate = float(np.sum(ray_length, dtype=np.float64) / float(f)) + 2 * len(hits)
-    if estimate > MAX_FREE_SAMPLES_PER_SCAN:
+    # A ray longer than 2^22 steps: the float32 distance d + f stops growing (f below half its spacing)
+    # and the step list below would grow without end; few points from a far origin pass the estimate.
+    if estimate > MAX_FREE_SAMPLES_PER_SCAN or float(longest) / float(f) >= 2**22:
+        limit = (f"at most {MAX_FREE_SAMPLES_PER_SCAN:,}" if estimate > MAX_FREE_SAMPLES_PER_SCAN
+                 else f"and a ray of {float(longest) / float(f):,.0f} steps, at most {2**22:,} along one ray")
         raise ValueError(
             f"free-space rays would place about {estimate:,.0f} samples in one scan (points up to {float(longest):,.0f} m from "
-            f"the sensor origin {origin.tolist()}, one sample per free_resolution_m = {float(f)} m; at most "
-            f"{MAX_FREE_SAMPLES_PER_SCAN:,}): set mapping.max_range_m, a larger free_resolution_m, or check the sensor origin")
+            f"the sensor origin {origin.tolist()}, one sample per free_resolution_m = {float(f)} m; {limit}): set "
+            f"mapping.max_range_m, a larger free_resolution_m, or check the sensor origin")
     steps = [f]
     while steps[-1] < longest:
         steps.append(np.float32(steps[-1] + f))

@@ -35,18 +35,22 @@ def hash_slot(key: int, mask: int) -> int:
     return (((h & 0x7FFFFFFF) << 3) | local) & mask
 
 
-def table_find_slot(table_keys: np.ndarray, key: int) -> int:
-    if key == EMPTY_KEY:
-        return -1
+def _probe(table_keys: np.ndarray, key: int) -> int:
+    """The slot holding ``key``, or the empty slot its probe run ends at; -1 when neither (a full table)."""
     mask = len(table_keys) - 1
     slot = hash_slot(key, mask)
     for _ in range(len(table_keys)):
-        if table_keys[slot] == key:
+        if table_keys[slot] == key or table_keys[slot] == EMPTY_KEY:
             return slot
-        if table_keys[slot] == EMPTY_KEY:
-            return -1
         slot = (slot + 1) & mask
     return -1
+
+
+def table_find_slot(table_keys: np.ndarray, key: int) -> int:
+    if key == EMPTY_KEY:
+        return -1
+    slot = _probe(table_keys, key)
+    return slot if slot >= 0 and table_keys[slot] == key else -1
 
 
 def table_find(table_keys: np.ndarray, slot_rows: np.ndarray, key: int) -> int:
@@ -59,20 +63,17 @@ def table_find_or_insert(table_keys: np.ndarray, slot_rows: np.ndarray, key_coun
     """Row of ``key``, inserting it (next row) if absent; -1 when the table holds max_count keys."""
     if key == EMPTY_KEY:
         return -1
-    mask = len(table_keys) - 1
-    slot = hash_slot(key, mask)
-    for _ in range(len(table_keys)):
-        if table_keys[slot] == key:
-            return int(slot_rows[slot]) - 1
-        if table_keys[slot] == EMPTY_KEY:
-            if key_count[0] >= max_count:
-                return -1
-            table_keys[slot] = key
-            slot_rows[slot] = key_count[0] + 1
-            key_count[0] += 1
-            return key_count[0] - 1
-        slot = (slot + 1) & mask
-    return -1
+    slot = _probe(table_keys, key)
+    if slot < 0:
+        return -1
+    if table_keys[slot] == key:
+        return int(slot_rows[slot]) - 1
+    if key_count[0] >= max_count:
+        return -1
+    table_keys[slot] = key
+    slot_rows[slot] = key_count[0] + 1
+    key_count[0] += 1
+    return key_count[0] - 1
 
 
 def insert_keys(keys_in: np.ndarray, table_keys: np.ndarray, slot_rows: np.ndarray, key_count: list[int], max_count: int) -> np.ndarray:

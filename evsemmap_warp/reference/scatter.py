@@ -76,6 +76,55 @@ def sbki_sparse_kernel(cells: np.ndarray, points: np.ndarray, ell: np.ndarray, s
     return np.maximum(k, np.float32(0.0)).astype(np.float64)
 
 
+# ---------------------------------------------------------------------------- the weight rules, one per method
+def sparse_weight(d: np.ndarray, lengths: np.ndarray, sigma0: float) -> np.ndarray:
+    """S-BKI, EBS, the ablations and Dempster (clean): k'(d, l_i, sigma0) at distance d (m)."""
+    return sparse_kernel(d, lengths, sigma0)
+
+
+def count_weight(n: int) -> np.ndarray:
+    """S-CSM: 1 per (point, voxel) pair."""
+    return np.ones(n)
+
+
+def sbki_compat_weight(voxels: np.ndarray, points: np.ndarray, lengths: np.ndarray, sigma0: float, resolution: float,
+                       grid_offset: float) -> np.ndarray:
+    """The original S-BKI: its float32 kernel of the float32 cell centres [P, 3] and points [P, 3]."""
+    centers32 = (np.asarray(voxels).astype(np.float32) + np.float32(0.5)) * np.float32(resolution) + np.float32(grid_offset)
+    return sbki_sparse_kernel(centers32, np.asarray(points).astype(np.float32), np.asarray(lengths).astype(np.float32), np.float32(sigma0))
+
+
+def convbki_weight(stencil_rows: np.ndarray, class_weights: np.ndarray, stencil_weights: np.ndarray) -> np.ndarray:
+    """ConvBKI: per pair, the stencil's per-class weights at its offset times the point's class weights [P, K]
+    (their sum is the pair's weight; pairs whose sum is not positive add nothing)."""
+    return np.asarray(stencil_weights, np.float64)[stencil_rows] * np.asarray(class_weights, np.float64)
+
+
+def see_csom_weight(d: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """SEE-CSOM's triangular kernel max(0, 1 - d / l)."""
+    return np.maximum(1.0 - np.asarray(d, np.float64) / np.maximum(np.asarray(lengths, np.float64), 1e-300), 0.0)
+
+
+def weight_rule_values(mode: int, points, lengths, class_weights, pair_point, pair_cell, *, resolution: float, grid_offset: float,
+                       sigma0: float, stencil_weights=None) -> np.ndarray:
+    """The weight ``mode``'s rule gives each (point pair_point[k], voxel pair_cell[k]) pair, 0 where it
+    screens the voxel out (ConvBKI's offsets of no mass), without the reach tests (the traversal's)."""
+    points = np.asarray(points, np.float64)
+    pid, cells = np.asarray(pair_point), np.asarray(pair_cell, np.int64)
+    if mode == MODE_RADIUS:
+        d = np.linalg.norm((cells + 0.5) * resolution + grid_offset - points[pid], axis=1)
+        return sparse_weight(d, np.asarray(lengths, np.float64)[pid], sigma0)
+    if mode in (MODE_OWN_VOXEL, MODE_SBKI_OWN_BLOCK):
+        return count_weight(len(pid))
+    if mode == MODE_SBKI_BLOCKS:
+        return sbki_compat_weight(cells, points[pid], np.asarray(lengths)[pid], sigma0, resolution, grid_offset)
+    half = round(len(stencil_weights) ** (1 / 3)) // 2
+    side = 2 * half + 1
+    o = cells - np.floor((points[pid] - grid_offset) / resolution).astype(np.int64) + half
+    mass = convbki_weight((o[:, 0] * side + o[:, 1]) * side + o[:, 2], np.asarray(class_weights)[pid], stencil_weights).sum(axis=1)
+    return np.where(mass > 0, mass, 0.0)
+
+
 def block_of_voxel(index: np.ndarray, cells_per_block: int) -> np.ndarray:
     return np.floor_divide(index + cells_per_block // 2, cells_per_block)
 
@@ -130,22 +179,21 @@ def scatter_points(
         own = np.floor((points - grid_offset) / resolution).astype(np.int64)
         o = vox - own[pid] + stencil_half
         rows = (o[:, 0] * side + o[:, 1]) * side + o[:, 2]
-        per_class = np.asarray(stencil_weights, np.float64)[rows] * np.asarray(class_weights, np.float64)[pid]
+        per_class = convbki_weight(rows, np.asarray(class_weights, np.float64)[pid], stencil_weights)
         weight = per_class.sum(axis=1)
         keep = weight > 0
         pid, vox, weight, per_class = pid[keep], vox[keep], weight[keep], per_class[keep]
     elif mode in (MODE_OWN_VOXEL, MODE_SBKI_OWN_BLOCK):
-        weight = np.ones(len(pid))
+        weight = count_weight(len(pid))
     else:
         centers = (vox + 0.5) * resolution + grid_offset
         if mode == MODE_RADIUS:
             d = np.linalg.norm(centers - points[pid], axis=1)
             keep = d < lengths[pid]
-            weight = sparse_kernel(d, lengths[pid], sigma0)
+            weight = sparse_weight(d, lengths[pid], sigma0)
         else:
             block_dist = np.abs(block_of_voxel(vox, cells_per_block) - owner_blocks[pid]).sum(axis=1)
-            centers32 = (vox.astype(np.float32) + np.float32(0.5)) * np.float32(resolution) + np.float32(grid_offset)
-            weight = sbki_sparse_kernel(centers32, points[pid].astype(np.float32), lengths[pid].astype(np.float32), np.float32(sigma0))
+            weight = sbki_compat_weight(vox, points[pid], lengths[pid], sigma0, resolution, grid_offset)
             keep = (block_dist <= 1) & (weight > 0)
         pid, vox, weight = pid[keep], vox[keep], weight[keep]
         if fusion == FUSION_DEMPSTER:
@@ -195,7 +243,7 @@ def scatter_block_targets(
         ell.append(np.repeat(target_lengths[use, j], len(cells)))
     pid, vox, ell = np.concatenate(pid), np.concatenate(vox), np.concatenate(ell).astype(np.float64)
     centers = (vox + 0.5) * resolution + grid_offset
-    weight = np.maximum(1.0 - np.linalg.norm(centers - np.asarray(points, np.float64)[pid], axis=1) / np.maximum(ell, 1e-300), 0.0)
+    weight = see_csom_weight(np.linalg.norm(centers - np.asarray(points, np.float64)[pid], axis=1), ell)
     uniq, inverse = _unique_rows(vox)
     flat = inverse * num_classes + np.asarray(labels)[pid]
     alpha = np.bincount(flat, weights=weight, minlength=len(uniq) * num_classes).reshape(len(uniq), num_classes)

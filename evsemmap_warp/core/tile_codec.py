@@ -1,0 +1,158 @@
+"""The compact voxel file of map stores (tiles and partial maps), format 2: what a map needs, exactly,
+in about 11 bytes a voxel where the map-file schema takes 230.
+
+A file is ``MAGIC``, a little-endian uint32 header length, a JSON header, then one zstd frame (with
+zstd's content checksum). The
+header says what the payload holds (voxels, classes, tile, tile size, payload size and CRC-32) and
+carries the caller's identity fields (store identity, frame, chunk), so a file that does not belong
+is refused before it is used. The payload holds only what cannot be derived:
+
+* each voxel's index inside its tile (uint8 per axis for tiles of up to 256 voxels), axis by axis;
+* the [V, K + 3] float64 sums of ``VoxelArrays.rows()`` (evidence, weight sum, weighted-uncertainty
+  sum, contribution count), column by column, so that a class's many zeros run together; float64
+  is kept because a store must export the map ``evsemmap map`` writes, to float64 rounding;
+* the touched flags, one bit each.
+
+Centres, concentrations, labels, states and variance are derived on reading, as a Mapper does.
+
+Why this and not a library format (measured on 763 k voxels, 300 frames of the ``long`` drive, EBS,
+13 tiles): the map-file npz takes 230 B/voxel; the same minimal arrays in an npz 95 B, deflated
+(``np.savez_compressed``) 20.7 B at 0.5 M voxels/s written; zstd of the voxel rows 19.8 B; Parquet
+(pyarrow, zstd, byte-stream-split floats) 17.3 B, read at 1.9 M voxels/s, and a 40 MB dependency;
+zstd of the columns 10.9 B (byte-shuffling them first, as blosc does: 11.2 B). So: columns and zstd,
+with ``zstandard`` (a dependency of its own, 0.9 MB) and numpy.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+
+import numpy as np
+
+from ..files import write_atomically
+
+MAGIC = b"EVSMVOX2"
+CODEC_FORMAT = "evsemmap_warp.voxels"
+CODEC_VERSION = 1
+ZSTD_LEVEL = 3
+_HEADER_LIMIT = 1 << 24  # a header beyond 16 MB is not one this writes
+
+
+class VoxelFileError(ValueError):
+    """A store voxel file that is truncated, corrupt, of another format or of another store."""
+
+
+def _index_dtype(tile_voxels: int):
+    return np.uint8 if tile_voxels <= 256 else np.uint16 if tile_voxels <= 65536 else np.uint32
+
+
+def encode_voxels(index: np.ndarray, rows: np.ndarray, tile: tuple[int, int, int], tile_voxels: int, header: dict) -> bytes:
+    """One file's bytes: voxels of ``tile`` (global ``index`` [V, 3] in key order, ``rows`` [V, K + 4]
+    as ``VoxelArrays.rows()``), with ``header``'s identity fields."""
+    import zstandard
+
+    index = np.asarray(index, np.int64).reshape(-1, 3)
+    rows = np.asarray(rows, np.float64)
+    tile_key = np.asarray(tile, np.int64).reshape(3)
+    local = index - tile_key * tile_voxels
+    if len(local) and (local.min() < 0 or local.max() >= tile_voxels):
+        raise ValueError(f"voxels outside tile {tuple(int(t) for t in tile_key)} of {tile_voxels} voxels")
+    count, columns = len(index), rows.shape[1]
+    parts = [np.ascontiguousarray(local.T, dtype=_index_dtype(tile_voxels)).tobytes()]
+    parts.append(np.ascontiguousarray(rows[:, :-1].T, dtype="<f8").tobytes())  # column by column: a class's zeros run together
+    parts.append(np.packbits(rows[:, -1] > 0).tobytes())
+    payload = zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True).compress(b"".join(parts))
+    head = header | {"format": CODEC_FORMAT, "version": CODEC_VERSION, "voxels": count, "columns": columns,
+                     "tile": [int(t) for t in tile_key], "tile_voxels": int(tile_voxels), "payload_bytes": len(payload),
+                     "payload_crc32": zlib.crc32(payload)}
+    text = json.dumps(head, sort_keys=True).encode()
+    return MAGIC + struct.pack("<I", len(text)) + text + payload
+
+
+def decode_header(data: bytes, where) -> tuple[dict, int]:
+    """The header of a voxel file's bytes (checked), and where its payload starts."""
+    if len(data) < len(MAGIC) + 4 or data[:len(MAGIC)] != MAGIC:
+        raise VoxelFileError(f"{where}: not a store voxel file (no {MAGIC.decode()} signature; truncated, or another format)")
+    (length,) = struct.unpack_from("<I", data, len(MAGIC))
+    start = len(MAGIC) + 4
+    if length > _HEADER_LIMIT or start + length > len(data):
+        raise VoxelFileError(f"{where}: truncated header ({len(data) - start} bytes left for a {length}-byte header)")
+    try:
+        header = json.loads(data[start:start + length])
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise VoxelFileError(f"{where}: header is not valid JSON ({exc})") from None
+    if not isinstance(header, dict) or header.get("format") != CODEC_FORMAT or header.get("version") != CODEC_VERSION:
+        raise VoxelFileError(f"{where}: header of another format or version ({str(header)[:120]})")
+    for key in ("voxels", "columns", "tile_voxels", "payload_bytes", "payload_crc32"):
+        value = header.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise VoxelFileError(f"{where}: header key {key!r} = {value!r} must be a whole number >= 0")
+    tile = header.get("tile")
+    if not (isinstance(tile, list) and len(tile) == 3 and all(isinstance(t, int) and not isinstance(t, bool) for t in tile)):
+        raise VoxelFileError(f"{where}: header key 'tile' = {tile!r} must be three whole numbers")
+    if header["columns"] < 6 or header["tile_voxels"] < 1:
+        raise VoxelFileError(f"{where}: header says {header['columns']} columns and tiles of {header['tile_voxels']} voxels")
+    return header, start + length
+
+
+def decode_voxels(data: bytes, where) -> tuple[dict, np.ndarray, np.ndarray]:
+    """(header, global index [V, 3] int64, rows [V, K + 4] float64) of a voxel file's bytes, checked:
+    signature, header, payload size and CRC, zstd's content checksum, indices inside the tile and in
+    strict key order, finite non-negative sums."""
+    import zstandard
+
+    header, start = decode_header(data, where)
+    payload = data[start:]
+    if len(payload) != header["payload_bytes"]:
+        raise VoxelFileError(f"{where}: {len(payload)} payload bytes, the header says {header['payload_bytes']} (truncated?)")
+    if zlib.crc32(payload) != header["payload_crc32"]:
+        raise VoxelFileError(f"{where}: payload checksum mismatch (the file is corrupt)")
+    count, columns, tile_voxels = header["voxels"], header["columns"], header["tile_voxels"]
+    index_dtype = np.dtype(_index_dtype(tile_voxels))
+    expected = 3 * count * index_dtype.itemsize + (columns - 1) * count * 8 + (count + 7) // 8
+    try:
+        raw = zstandard.ZstdDecompressor().decompress(payload, max_output_size=expected)
+    except zstandard.ZstdError as exc:
+        raise VoxelFileError(f"{where}: payload does not decompress ({exc})") from None
+    if len(raw) != expected:
+        raise VoxelFileError(f"{where}: payload holds {len(raw)} bytes, {count} voxels of {columns} columns need {expected}")
+    at = 3 * count * index_dtype.itemsize
+    local = np.frombuffer(raw[:at], index_dtype).reshape(3, count).T.astype(np.int64)
+    rows = np.empty((count, columns), np.float64)
+    rows[:, :-1] = np.frombuffer(raw, "<f8", count=(columns - 1) * count, offset=at).reshape(columns - 1, count).T
+    at += (columns - 1) * 8 * count
+    rows[:, -1] = np.unpackbits(np.frombuffer(raw, np.uint8, offset=at), count=count)
+    if count:
+        if local.max() >= tile_voxels:
+            raise VoxelFileError(f"{where}: voxel indices outside the tile")
+        keys = (local[:, 0] * tile_voxels + local[:, 1]) * tile_voxels + local[:, 2]
+        if np.any(np.diff(keys) <= 0):
+            raise VoxelFileError(f"{where}: voxels out of key order or repeated")
+        if not np.isfinite(rows).all() or rows[:, :-1].min() < 0:
+            raise VoxelFileError(f"{where}: sums that are negative, NaN or inf")
+    index = local + np.asarray(header["tile"], np.int64) * tile_voxels
+    return header, index, rows
+
+
+def write_voxel_file(path, index, rows, tile, tile_voxels: int, header: dict):
+    """``encode_voxels`` written atomically (a temporary name, then a rename)."""
+    data = encode_voxels(index, rows, tile, tile_voxels, header)
+    return write_atomically(path, lambda f: f.write(data))
+
+
+def read_voxel_file(path, expect: dict | None = None) -> tuple[dict, np.ndarray, np.ndarray]:
+    """``decode_voxels`` of a file; ``expect``: header fields that must match (the store's identity,
+    the tile, the chunk), named when one does not."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError as exc:
+        raise VoxelFileError(f"{path}: cannot read ({exc.strerror})") from None
+    header, index, rows = decode_voxels(data, path)
+    for key, value in (expect or {}).items():
+        if header.get(key) != value:
+            raise VoxelFileError(f"{path}: {key} is {header.get(key)!r}, this store's is {value!r}: the file belongs to another "
+                                 f"store or run")
+    return header, index, rows

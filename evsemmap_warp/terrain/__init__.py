@@ -1,0 +1,12 @@
+"""Terrain layers: the stage after mapping that turns a voxel map into the 2.5-D grids a planner or a
+GIS reads (elevation, slope, roughness, step, surface class and its uncertainty, traversability cost,
+lethal mask), and writes them as a GeoTIFF, an .npz, PNG previews and a ROS bag (docs/terrain.md)."""
+
+from .config import CostSettings, LayerSettings, TerrainConfig, default_costs_path, load_terrain_config
+from .api import compute_layers
+from .layers import LayerGrid, TerrainLayers, band_names
+
+__all__ = [
+    "CostSettings", "LayerGrid", "LayerSettings", "TerrainConfig", "TerrainLayers", "band_names", "compute_layers",
+    "default_costs_path", "load_terrain_config",
+]

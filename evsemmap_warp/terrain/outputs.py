@@ -1,0 +1,393 @@
+"""Writing terrain layers: a multi-band GeoTIFF (rasterio), an .npz, PNG previews with colour bars and
+class legends, and a ROS 1 bag with a ``grid_map_msgs/GridMap`` and a ``nav_msgs/OccupancyGrid``
+(rosbags). Each writer takes the layers grid by grid (a map's one grid, or a store's tiles in turn),
+so a store is written with the memory of a tile (docs/terrain.md).
+
+GeoTIFF: float32 bands in ``band_names`` order, described by name and unit, nodata NaN, north-up, the
+affine transform of the map's world frame, its CRS when it has one, and its name in the tags
+(``FRAME``, always). grid_map: every band a layer, in grid_map's storage order (column-major, index
+(0, 0) at the +x +y corner), the grid's centre as its pose in the world frame. OccupancyGrid: the
+traversability cost as 0..99, lethal 100, unknown -1, row 0 at the southern edge.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..files import write_atomically, write_json_atomically
+from ..frames import WorldFrame
+from .layers import CLASS_BANDS, LayerGrid, TerrainLayers, band_names, band_units
+
+GEOTIFF_NAME = "layers.tif"
+NPZ_NAME = "layers.npz"
+BAG_NAME = "layers.bag"
+PREVIEW_DIR = "previews"
+GRID_MAP_TOPIC = "/terrain/grid_map"
+COSTMAP_TOPIC = "/terrain/costmap"
+BAG_STAMP_NS = 1_000_000_000  # a fixed stamp (1 s): the same layers give the same bag; messages of a store follow 1 ns apart
+UNFRAMED = "map"  # the frame id of maps written before maps recorded their frame
+
+# grid_map's message definitions (ANYbotics/grid_map, grid_map_msgs, ROS 1): registered with rosbags from
+# their text, so their MD5 sums are the ones ROS 1 tools expect (tests check them).
+GRID_MAP_INFO_MSG = """# Header (time and frame)
+Header header
+
+# Resolution of the grid [m/cell].
+float64 resolution
+
+# Length in x-direction [m].
+float64 length_x
+
+# Length in y-direction [m].
+float64 length_y
+
+# Pose of the grid map center in the frame defined in `header` [m].
+geometry_msgs/Pose pose
+"""
+GRID_MAP_MSG = """# Grid map header
+GridMapInfo info
+
+# Grid map layer names.
+string[] layers
+
+# Grid map basic layer names (optional). The basic layers
+# determine which layers from `layers` need to be valid
+# in order for a cell of the grid map to be valid.
+string[] basic_layers
+
+# Grid map data.
+std_msgs/Float32MultiArray[] data
+
+# Row start index (default 0).
+uint16 outer_start_index
+
+# Column start index (default 0).
+uint16 inner_start_index
+"""
+
+
+def check_output_folder(out) -> Path:
+    """The output folder: refused when the path exists as a file."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is a file; the layers are written into a folder (give a new path or a folder)")
+    return out
+
+
+def frame_id(frame: WorldFrame | None) -> str:
+    return UNFRAMED if frame is None else frame.name
+
+
+# GeoTIFF -----------------------------------------------------------------------------------------------
+def _rasterio():
+    try:
+        import rasterio
+    except ImportError:
+        raise ValueError('writing GeoTIFFs needs rasterio: pip install "evsemmap_warp[geo]"') from None
+    return rasterio
+
+
+class GeoTiffWriter:
+    """One multi-band GeoTIFF over ``grid``, written grid by grid (windows); renamed into place on close."""
+
+    def __init__(self, path, grid: LayerGrid, frame: WorldFrame | None, class_names, *, costs_file: str):
+        rasterio = _rasterio()
+        from rasterio.crs import CRS
+        from rasterio.transform import Affine
+
+        self.path = Path(path)
+        self.grid = grid
+        self.names = band_names(class_names)
+        self._temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tiled = grid.width >= 256 and grid.height >= 256
+        self.dataset = rasterio.open(
+            self._temporary, "w", driver="GTiff", width=grid.width, height=grid.height, count=len(self.names), dtype="float32",
+            nodata=float("nan"), crs=CRS.from_string(frame.crs) if frame is not None and frame.crs else None,
+            # DEFLATE, which every GeoTIFF reader knows, at level 1: half the time of the default level 6
+            # for 4 % more bytes (ZSTD was faster still, but older readers lack it)
+            transform=Affine(*grid.transform()), compress="deflate", zlevel=1, predictor=3, tiled=tiled,
+            **({"blockxsize": 256, "blockysize": 256} if tiled else {}), BIGTIFF="IF_SAFER")
+        self.dataset.update_tags(FRAME=frame_id(frame), FRAME_CRS=(frame.crs if frame is not None and frame.crs else ""),
+                                 CLASSES=json.dumps(list(class_names)), COSTS_FILE=costs_file, CELL_M=str(grid.cell_m),
+                                 SOFTWARE=f"evsemmap_warp {__version__}")
+        for b, name in enumerate(self.names, start=1):
+            self.dataset.set_band_description(b, name)
+            tags = {"NAME": name, "UNITS": band_units(name)}
+            if name in CLASS_BANDS:
+                tags["CLASSES"] = json.dumps(list(class_names))
+            self.dataset.update_tags(b, **tags)
+        # cells no grid reaches stay unknown (NaN) but known, lethal and observations are 0 there
+        self._covered = np.zeros((grid.height, grid.width), bool) if grid.width * grid.height <= 1 << 26 else None
+
+    def write(self, layers: TerrainLayers) -> None:
+        from rasterio.windows import Window
+
+        row, column = layers.grid.window_in(self.grid)
+        window = Window(column, row, layers.grid.width, layers.grid.height)
+        for b, name in enumerate(self.names, start=1):
+            self.dataset.write(layers.bands[name], b, window=window)
+        if self._covered is not None:
+            self._covered[row:row + layers.grid.height, column:column + layers.grid.width] = True
+
+    def close(self) -> Path:
+        from rasterio.windows import Window
+
+        if self._covered is not None and not self._covered.all():
+            # known / lethal / observations are 0 (not NaN) where no tile column reached: each row's runs of such cells
+            for row in np.flatnonzero(~self._covered.all(axis=1)):
+                edges = np.flatnonzero(np.diff(np.concatenate([[0], (~self._covered[row]).astype(np.int8), [0]])))
+                for start, stop in zip(edges[::2], edges[1::2]):
+                    zeros = np.zeros((1, int(stop - start)), np.float32)
+                    for name in ("observations", "known", "lethal"):
+                        self.dataset.write(zeros, self.names.index(name) + 1, window=Window(int(start), int(row), int(stop - start), 1))
+        self.dataset.close()
+        os.replace(self._temporary, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        try:
+            self.dataset.close()
+        finally:
+            self._temporary.unlink(missing_ok=True)
+
+
+# npz -------------------------------------------------------------------------------------------------------
+def write_npz(path, layers: TerrainLayers) -> Path:
+    """Every band as a [height, width] float32 array (north-up, NaN unknown) and ``meta``: a JSON string
+    with the grid, the frame, the classes, the bands' units and the affine transform. Compressed at zlib
+    level 1 (numpy's savez_compressed uses 6: 4x the time, which dominated a store's layers)."""
+    import zipfile
+
+    meta = layers.metadata() | {"transform": list(layers.grid.transform()), "written_by": f"evsemmap_warp {__version__}"}
+    arrays = {"meta": np.array(json.dumps(meta))} | {name: layers.bands[name] for name in layers.band_names}
+
+    def write(file):
+        with zipfile.ZipFile(file, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as archive:
+            for name, values in arrays.items():
+                with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                    np.lib.format.write_array(member, np.asanyarray(values), allow_pickle=False)
+
+    return write_atomically(path, write)
+
+
+def read_npz(path) -> tuple[dict[str, np.ndarray], dict]:
+    with np.load(path, allow_pickle=False) as data:
+        meta = json.loads(str(data["meta"]))
+        return {name: data[name] for name in meta["bands"]}, meta
+
+
+# PNG previews ------------------------------------------------------------------------------------------------
+PREVIEW_COLOURMAPS = {
+    "elevation": "terrain", "elevation_top": "terrain", "cover_height": "terrain", "slope": "magma", "roughness": "viridis",
+    "step": "magma", "surface_probability": "viridis", "semantic_variance": "inferno", "input_uncertainty": "inferno",
+    "lethal_class_probability": "Reds", "observations": "cividis", "class_cost_mean": "RdYlGn_r", "class_cost_std": "inferno",
+    "traversability_cost": "RdYlGn_r",
+}
+MAX_PREVIEW_PIXELS = 1600  # the longer side of a preview; larger grids are shown decimated
+
+
+def preview_stride(grid: LayerGrid) -> int:
+    return max(1, int(np.ceil(max(grid.width, grid.height) / MAX_PREVIEW_PIXELS)))
+
+
+def write_previews(folder, bands: dict[str, np.ndarray], grid: LayerGrid, class_names, class_colours: np.ndarray, *,
+                   frame: WorldFrame | None, stride: int = 1) -> list[Path]:
+    """One PNG per band (scalar bands with a colour bar and unit, class bands and masks with legends),
+    plus ``class_probabilities.png`` with every class's probability. ``bands`` may be decimated by
+    ``stride`` (cells per pixel) from ``grid``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    extent = (grid.x0_m, grid.x1_m, grid.y0_m, grid.y1_m)
+    where = f"{frame_id(frame)}" + (f" ({frame.crs})" if frame is not None and frame.crs else "")
+    aspect = grid.height / max(grid.width, 1)
+    size = (9.0, float(np.clip(9.0 * aspect, 3.0, 12.0)))
+    written = []
+    colours = np.asarray(class_colours, np.float64) / 255.0
+
+    def figure(name, title):
+        # fixed places for the map and its colour bar or legend: a layout engine would draw every figure twice
+        fig = plt.figure(figsize=size)
+        ax = fig.add_axes((0.08, 0.1, 0.66, 0.8))
+        ax.set_facecolor((0.85, 0.85, 0.85))  # unknown cells
+        ax.set_title(title + (f" (every {stride}th cell)" if stride > 1 else ""))
+        ax.set_xlabel(f"x (m, {where})")
+        ax.set_ylabel("y (m)")
+        return fig, ax
+
+    def save(fig, name):
+        path = folder / f"{name}.png"
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        written.append(path)
+
+    scalar = [n for n in band_names(class_names) if n in PREVIEW_COLOURMAPS]
+    for name in scalar:
+        values = bands[name]
+        fig, ax = figure(name, name.replace("_", " "))
+        kwargs = {"vmin": 0.0, "vmax": 1.0} if name in ("traversability_cost", "class_cost_mean", "surface_probability",
+                                                         "lethal_class_probability") else {}
+        image = ax.imshow(np.ma.masked_invalid(values), extent=extent, origin="upper", cmap=PREVIEW_COLOURMAPS[name],
+                          interpolation="nearest", **kwargs)
+        fig.colorbar(image, cax=fig.add_axes((0.8, 0.15, 0.025, 0.7)), label=f"{name} ({band_units(name)})")
+        if name == "traversability_cost" and "lethal" in bands:
+            lethal = np.where(bands["lethal"] > 0, 1.0, np.nan)
+            ax.imshow(np.ma.masked_invalid(lethal), extent=extent, origin="upper", cmap=ListedColormap([(0.1, 0.1, 0.1)]),
+                      interpolation="nearest")
+            ax.legend(handles=[Patch(color=(0.1, 0.1, 0.1), label="lethal"), Patch(color=(0.85, 0.85, 0.85), label="unknown")],
+                      loc="lower left", bbox_to_anchor=(1.0, 1.0), fontsize=8)
+        save(fig, name)
+    for name in CLASS_BANDS:
+        values = bands[name]
+        fig, ax = figure(name, name.replace("_", " "))
+        ax.imshow(np.ma.masked_invalid(values), extent=extent, origin="upper", cmap=ListedColormap(colours), vmin=-0.5,
+                  vmax=len(class_names) - 0.5, interpolation="nearest")
+        present = sorted({int(v) for v in np.unique(values[np.isfinite(values)])})
+        handles = [Patch(facecolor=colours[c], edgecolor="k", label=class_names[c]) for c in present]
+        handles.append(Patch(color=(0.85, 0.85, 0.85), label="unknown"))
+        ax.legend(handles=handles, loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8, title="class")
+        save(fig, name)
+    for name, label in (("known", "known (an occupied voxel in the column)"), ("lethal", "lethal")):
+        fig, ax = figure(name, name)
+        ax.imshow(bands[name], extent=extent, origin="upper", cmap=ListedColormap([(1, 1, 1), (0.15, 0.15, 0.15)]), vmin=0, vmax=1,
+                  interpolation="nearest")
+        ax.legend(handles=[Patch(facecolor=(0.15, 0.15, 0.15), label=label), Patch(facecolor=(1, 1, 1), edgecolor="k", label="not")],
+                  loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8)
+        save(fig, name)
+    columns = 3
+    rows = int(np.ceil(len(class_names) / columns))
+    fig, axes = plt.subplots(rows, columns, figsize=(12, max(3.0, 12 * aspect * rows / columns + 1)), squeeze=False)
+    fig.subplots_adjust(left=0.05, right=0.86, bottom=0.05, top=0.95, wspace=0.25, hspace=0.3)
+    for c, ax in enumerate(axes.ravel()):
+        if c >= len(class_names):
+            ax.axis("off")
+            continue
+        ax.set_facecolor((0.85, 0.85, 0.85))
+        image = ax.imshow(np.ma.masked_invalid(bands[f"probability_{class_names[c]}"]), extent=extent, origin="upper", cmap="viridis",
+                          vmin=0, vmax=1, interpolation="nearest")
+        ax.set_title(f"p({class_names[c]})", fontsize=9)
+        ax.tick_params(labelsize=7)
+    fig.colorbar(image, cax=fig.add_axes((0.9, 0.2, 0.02, 0.6)), label="probability of the surface voxel's class")
+    save(fig, "class_probabilities")
+    return written
+
+
+# ROS bag ------------------------------------------------------------------------------------------------------
+def grid_map_typestore():
+    """rosbags' ROS 1 (Noetic) type store with grid_map_msgs/GridMap and GridMapInfo registered from their text."""
+    try:
+        from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+    except ImportError:
+        raise ValueError('writing ROS bags needs the rosbags package: pip install "evsemmap_warp[ros]"') from None
+    store = get_typestore(Stores.ROS1_NOETIC)
+    types = get_types_from_msg(GRID_MAP_INFO_MSG, "grid_map_msgs/msg/GridMapInfo")
+    types.update(get_types_from_msg(GRID_MAP_MSG, "grid_map_msgs/msg/GridMap"))
+    store.register(types)
+    return store
+
+
+def grid_map_data(values: np.ndarray) -> np.ndarray:
+    """A north-up [height, width] band in grid_map's storage order: matrix (i, j), i along x from the
+    +x edge, j along y from the +y edge, column-major (data[i + j * size_x])."""
+    return np.ascontiguousarray(values[:, ::-1], dtype=np.float32).reshape(-1)
+
+
+def band_from_grid_map(data: np.ndarray, size_x: int, size_y: int) -> np.ndarray:
+    """The inverse of ``grid_map_data``."""
+    return np.asarray(data, np.float32).reshape(size_y, size_x)[:, ::-1]
+
+
+def occupancy_values(cost: np.ndarray, lethal: np.ndarray) -> np.ndarray:
+    """North-up cost [0, 1] (NaN unknown) and lethal mask -> OccupancyGrid values, int8: 0..99, 100 lethal, -1 unknown."""
+    values = np.where(np.isnan(cost), -1, np.clip(np.round(np.nan_to_num(cost) * 99), 0, 99)).astype(np.int8)
+    values[(lethal > 0) & ~np.isnan(cost)] = 100
+    return values
+
+
+class BagWriter:
+    """A ROS 1 bag with GridMap messages (one per grid written) and, on close, one OccupancyGrid."""
+
+    def __init__(self, path, frame: WorldFrame | None):
+        try:
+            from rosbags.rosbag1 import Writer
+        except ImportError:
+            raise ValueError('writing ROS bags needs the rosbags package: pip install "evsemmap_warp[ros]"') from None
+        self.path = Path(path)
+        self.store = grid_map_typestore()
+        self.types = self.store.types
+        self.frame_id = frame_id(frame)
+        self._temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp.bag")
+        self._temporary.unlink(missing_ok=True)
+        self.writer = Writer(self._temporary)
+        self.writer.open()
+        self.connections = {}
+        self.messages = 0
+
+    def _header(self, seq: int):
+        T = self.types
+        stamp = BAG_STAMP_NS + self.messages
+        return T["std_msgs/msg/Header"](seq=seq, stamp=T["builtin_interfaces/msg/Time"](sec=stamp // 10**9, nanosec=stamp % 10**9),
+                                        frame_id=self.frame_id)
+
+    def _write(self, topic: str, msg) -> None:
+        msgtype = msg.__msgtype__
+        if topic not in self.connections:
+            self.connections[topic] = self.writer.add_connection(topic, msgtype, typestore=self.store, latching=1)
+        self.writer.write(self.connections[topic], BAG_STAMP_NS + self.messages, self.store.serialize_ros1(msg, msgtype))
+        self.messages += 1
+
+    def _pose(self, x: float, y: float):
+        T = self.types
+        return T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
+                                          orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
+
+    def write_grid_map(self, layers: TerrainLayers) -> None:
+        T = self.types
+        grid = layers.grid
+        size_x, size_y = grid.width, grid.height
+        dims = [T["std_msgs/msg/MultiArrayDimension"](label="column_index", size=size_y, stride=size_x * size_y),
+                T["std_msgs/msg/MultiArrayDimension"](label="row_index", size=size_x, stride=size_x)]
+        layout = T["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0)
+        data = [T["std_msgs/msg/Float32MultiArray"](layout=layout, data=grid_map_data(layers.bands[name])) for name in layers.band_names]
+        info = T["grid_map_msgs/msg/GridMapInfo"](header=self._header(self.messages), resolution=float(grid.cell_m),
+                                                  length_x=float(size_x * grid.cell_m), length_y=float(size_y * grid.cell_m),
+                                                  pose=self._pose((grid.x0_m + grid.x1_m) / 2, (grid.y0_m + grid.y1_m) / 2))
+        self._write(GRID_MAP_TOPIC, T["grid_map_msgs/msg/GridMap"](info=info, layers=list(layers.band_names), basic_layers=["elevation"],
+                                                                  data=data, outer_start_index=0, inner_start_index=0))
+
+    def write_occupancy_grid(self, values: np.ndarray, grid: LayerGrid) -> None:
+        """``values``: north-up int8 from ``occupancy_values``."""
+        T = self.types
+        header = self._header(self.messages)
+        info = T["nav_msgs/msg/MapMetaData"](map_load_time=header.stamp, resolution=float(grid.cell_m), width=grid.width,
+                                             height=grid.height, origin=self._pose(grid.x0_m, grid.y0_m))
+        self._write(COSTMAP_TOPIC, T["nav_msgs/msg/OccupancyGrid"](header=header, info=info,
+                                                                  data=np.ascontiguousarray(values[::-1]).reshape(-1)))
+
+    def close(self) -> Path:
+        self.writer.close()
+        os.replace(self._temporary, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        try:
+            self.writer.close()
+        except Exception:  # noqa: BLE001 - a writer that failed midway may not close; the temporary goes either way
+            pass
+        self._temporary.unlink(missing_ok=True)
+
+
+def write_summary(path, summary: dict) -> Path:
+    return write_json_atomically(path, summary, indent=1)

@@ -1,0 +1,106 @@
+"""One integrator protocol: the registry keyed by integration method, declared scan needs that the Mapper
+checks the same way for every method, and production code that never imports a numpy twin."""
+
+import ast
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evsemmap_warp.config import Compat, Kernel, load_config
+from evsemmap_warp.core import integrators as ig
+from evsemmap_warp.core.mapper import Mapper
+
+REPO = Path(__file__).resolve().parents[1]
+PRESET = REPO / "configs/presets/rellis3d.yaml"
+TOY = REPO / "configs/datasets/sbki_toy.yaml"
+
+
+@pytest.mark.parametrize("files, method, cls", [
+    ([PRESET], "ebs", ig.KernelIntegrator), ([PRESET], "s-csm", ig.KernelIntegrator), ([PRESET], "dempster", ig.KernelIntegrator),
+    ([PRESET], "convbki", ig.ConvBkiIntegrator), ([PRESET], "see-csom", ig.SeeCsomIntegrator),
+    ([TOY], "s-bki", ig.SbkiCompatIntegrator), ([TOY], "s-csm", ig.SbkiCompatIntegrator),
+    ([REPO / "configs/presets/evsemmap-release.yaml"], "ebs", ig.ReleaseCompatIntegrator),
+])
+def test_the_registry_picks_each_methods_integrator(files, method, cls):
+    config = load_config(files, method=method).mapping
+    integrator = ig.make_integrator(config, 4)
+    assert type(integrator) is cls and ig.INTEGRATORS[config.compat, config.kernel] is cls
+    assert isinstance(integrator.needs, ig.ScanNeeds)
+    # S-CSM's compat cells are centred on multiples of r, half a cell off every other lattice
+    assert integrator.grid_offset_m == (-0.5 * config.resolution_m if (config.compat, config.kernel) == (Compat.SBKI, Kernel.COUNT) else 0.0)
+
+
+def test_every_integration_method_is_registered_once():
+    assert set(ig.INTEGRATORS) == {(Compat.CLEAN, k) for k in Kernel} | {(Compat.SBKI, Kernel.SPARSE), (Compat.SBKI, Kernel.COUNT),
+                                                                         (Compat.EVSEMMAP, Kernel.SPARSE)}
+    with pytest.raises(ValueError, match="two integrators"):
+        ig.register_integrator(Compat.CLEAN, Kernel.SPARSE)(type("Another", (), {}))
+
+
+class _Recorder:
+    """A registered integrator that records what the Mapper hands its prepare."""
+
+    grid_offset_m = 0.0
+    seen = []
+
+    def __init__(self, config, num_classes):
+        self.needs = ig.ScanNeeds(ig.SensorOrigin.REQUIRED, "the recorder measures from it", frozenset({ig.PayloadType.LABEL}), "labels only")
+
+    def prepare(self, scan, device):
+        _Recorder.seen.append(scan)
+        return ig.launch_step(ig.IntegrationStats(input_points=len(scan.points)))
+
+
+def test_the_mapper_checks_declared_needs_and_hands_prepare_the_scan_alone(monkeypatch):
+    monkeypatch.setitem(ig.INTEGRATORS, (Compat.CLEAN, Kernel.SPARSE), _Recorder)
+    mapper = Mapper(load_config([PRESET], method="s-bki").mapping, 3, workers=1, origin=[0.0, 0.0, 0.0])
+    points = np.array([[1.0, 2.0, 3.0], [1.5, 2.0, 3.0]])
+    with pytest.raises(ValueError, match="payload_type alpha: labels only"):
+        mapper.integrate(points, np.full((2, 3), 2.0), payload_type="alpha", sensor_origin=[0, 0, 0])
+    with pytest.raises(ValueError, match="sensor_origin: the recorder measures from it; pass it"):
+        mapper.integrate(points, np.array([0, 1]), payload_type="label")
+    with pytest.raises(ValueError, match="sensor_origin"):
+        mapper.integrate(points, np.array([0, 1]), payload_type="label", sensor_origin=[0, np.nan, 0])
+    _Recorder.seen.clear()
+    mapper.integrate(points, np.array([0, 1]), payload_type="label", sensor_origin=[1.0, 1.0, 1.0])
+    (scan,) = _Recorder.seen
+    np.testing.assert_array_equal(scan.sensor_origin, [1.0, 1.0, 1.0])  # map coordinates (origin 0 here)
+    np.testing.assert_array_equal(scan.points, points)
+
+
+def test_an_unused_sensor_origin_is_not_handed_on():
+    mapper = Mapper(load_config([PRESET], method="ebs").mapping, 3, workers=1)
+    seen = []
+    mapper.integrator.prepare = lambda scan, device: seen.append(scan) or ig.launch_step(ig.IntegrationStats())
+    mapper.integrate(np.zeros((1, 3)), np.full((1, 3), 2.0), payload_type="alpha", sensor_origin=[5.0, 5.0, 5.0])
+    assert seen[0].sensor_origin is None
+
+
+def test_the_release_reads_the_sensor_origin_only_for_its_range_filter():
+    config = load_config([REPO / "configs/presets/evsemmap-release.yaml"], method="ebs").mapping
+    assert ig.ReleaseCompatIntegrator(config).needs.sensor_origin is (ig.SensorOrigin.REQUIRED if config.max_range_m > 0 else ig.SensorOrigin.OPTIONAL)
+    ranged = dataclasses.replace(config, max_range_m=30.0)
+    assert ig.ReleaseCompatIntegrator(ranged).needs.sensor_origin is ig.SensorOrigin.REQUIRED
+
+
+def _imports(path: Path) -> list[str]:
+    tree = ast.parse(path.read_text())
+    names = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            names.append("." * node.level + (node.module or ""))
+            names += ["." * node.level + (node.module + "." if node.module else "") + a.name for a in node.names]
+    return names
+
+
+def test_production_code_never_imports_a_numpy_twin():
+    # The twins stay independent of what they check: only tests and tools may use them.
+    files = [p for p in (REPO / "evsemmap_warp").rglob("*.py") if "reference" not in p.relative_to(REPO / "evsemmap_warp").parts]
+    files += list((REPO / "kernels").glob("*.py"))
+    assert len(files) > 30
+    offenders = {str(p.relative_to(REPO)): n for p in files for n in _imports(p) if "reference" in n.split(".")}
+    assert not offenders, f"production modules import numpy twins: {offenders}"

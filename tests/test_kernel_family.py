@@ -1,0 +1,95 @@
+"""The kernel family: kernels specialised when built (no kernel takes a method switch or more than a dozen
+arguments), every scatter combination built once, and each method's weight rule against its numpy twin."""
+
+import importlib
+
+import numpy as np
+import pytest
+import warp as wp
+
+from evsemmap_warp.kernels import block_gather, hashgrid_gather, release, sorted_scatter
+from evsemmap_warp.kernels import scatter as sc
+from evsemmap_warp.reference import scatter as ref
+
+# A kernel with more arguments than this carries loose state that belongs in a struct.
+MAX_KERNEL_ARGUMENTS = 12
+# Arguments that would mean a kernel branches on a method at run time.
+METHOD_SWITCHES = {"mode", "fusion", "use_labels", "media", "payload_type"}
+# The kernel modules of map integration and its preprocessing (issue 27's kernel family).
+MAPPING_MODULES = ("hash_table", "scatter", "sorted_scatter", "hashgrid_gather", "block_gather", "release", "block_membership", "free_space",
+                   "voxel_grid", "radix_sort")
+
+
+def _every_kernel():
+    """(name, kernel) for every module-level kernel of the mapping modules and a made instance of every factory."""
+    made = {
+        "scatter_points": [sc.scatter_kernel(mode, fusion, labels) for (mode, fusion, labels) in sc._SCATTER_KERNELS],
+        "weight_rule_values": [sc.weight_rule_kernel(mode) for mode in sc.SCATTER_MODES],
+        "reduce_voxels": [sorted_scatter.reduce_voxels_kernel(labels) for labels in (True, False)],
+        "gather_voxels": [hashgrid_gather.gather_voxels_kernel(labels) for labels in (True, False)],
+        "gather_sbki_blocks": [block_gather.gather_sbki_kernel(9, 2)],
+        "gather_release_blocks": [release.gather_release_kernel(9, 2, fusion=f) for f in (sc.FUSION_BAYES, sc.FUSION_DEMPSTER)],
+        "block_models": [release.block_models_kernel(dense) for dense in (True, False)],
+    }
+    out = []
+    for module_name in MAPPING_MODULES:
+        module = importlib.import_module(f"evsemmap_warp.kernels.{module_name}")
+        out += [(f"{module_name}.{n}", k) for n, k in vars(module).items() if isinstance(k, wp.Kernel)]
+        for name in getattr(module, "KERNEL_FACTORIES", {}):
+            assert name in made, f"{module_name}.{name}: a kernel factory this test does not make an instance of"
+            out += [(f"{module_name}.{name}", k) for k in made[name]]
+    return out
+
+
+def test_no_kernel_takes_a_method_switch_or_loose_state():
+    kernels = _every_kernel()
+    assert len(kernels) > 20
+    for name, kernel in kernels:
+        args = list(kernel.adj.args)
+        assert len(args) <= MAX_KERNEL_ARGUMENTS, f"{name} takes {len(args)} arguments: {[a.label for a in args]}"
+        switches = METHOD_SWITCHES & {a.label for a in args}
+        assert not switches, f"{name} branches at run time on {switches}: specialise it when it is built"
+
+
+def test_every_valid_scatter_combination_is_built_once_and_the_others_are_refused():
+    assert len(sc._SCATTER_KERNELS) == 10
+    assert len({id(k) for k in sc._SCATTER_KERNELS.values()}) == 10
+    assert sc.scatter_kernel(sc.MODE_RADIUS, sc.FUSION_DEMPSTER, False) is sc._SCATTER_KERNELS[sc.MODE_RADIUS, sc.FUSION_DEMPSTER, False]
+    for combination in [(sc.MODE_STENCIL, sc.FUSION_BAYES, True), (sc.MODE_RADIUS, sc.FUSION_DEMPSTER, True),
+                        (sc.MODE_OWN_VOXEL, sc.FUSION_DEMPSTER, False)]:
+        with pytest.raises(ValueError, match="no scatter for mode"):
+            sc.scatter_kernel(*combination)
+    # only the clean modes insert; the compat modes' cells are inserted beforehand
+    assert [m for m in sc.SCATTER_MODES if sc.scatter_inserts(m)] == [sc.MODE_RADIUS, sc.MODE_OWN_VOXEL, sc.MODE_STENCIL]
+
+
+@pytest.mark.parametrize("mode", sorted(sc.SCATTER_MODES))
+def test_each_weight_rule_matches_its_twin(mode):
+    rng = np.random.default_rng(30 + mode)
+    n, k, res, half = 300, 5, 0.2, 2
+    points = rng.uniform(-2.0, 2.0, (n, 3))
+    lengths = rng.uniform(0.1, 0.5, n)
+    class_weights = rng.dirichlet(np.ones(k), n)
+    stencil = rng.uniform(0.0, 1.0, ((2 * half + 1) ** 3, k)) * (rng.random(((2 * half + 1) ** 3, 1)) < 0.8)  # some offsets of no mass
+    own = np.floor(points / res).astype(np.int64)
+    pair_point = np.repeat(np.arange(n), 20)
+    pair_cell = own[pair_point] + rng.integers(-half, half + 1, (len(pair_point), 3))
+    d = wp.get_device("cpu")
+    scan = sc.scan_points(points=wp.array(points, dtype=wp.vec3d, device=d), lengths=wp.array(lengths, dtype=wp.float64, device=d),
+                          class_weights=wp.array(class_weights, dtype=wp.float64, device=d),
+                          owner_blocks=wp.array(np.floor(points / (2 * res) + 0.5).astype(np.int32), dtype=wp.vec3i, device=d))
+    params = sc.scatter_params(resolution=res, grid_offset=0.0, sigma0=10.0, cells_per_block=2,
+                               stencil_weights=wp.array(stencil, dtype=wp.float64, device=d), stencil_half=half)
+    out = wp.empty(len(pair_point), dtype=wp.float64, device=d)
+    wp.launch(sc.weight_rule_kernel(mode), dim=len(pair_point), device=d, inputs=[
+        scan, params, wp.array(pair_point.astype(np.int32), dtype=int, device=d), wp.array(pair_cell.astype(np.int32), dtype=wp.vec3i, device=d), out])
+    want = ref.weight_rule_values(mode, points, lengths, class_weights, pair_point, pair_cell, resolution=res, grid_offset=0.0, sigma0=10.0,
+                                  stencil_weights=stencil)
+    got = out.numpy()
+    assert (want > 0).any() and (want == 0).any() or mode in (sc.MODE_OWN_VOXEL, sc.MODE_SBKI_OWN_BLOCK)
+    if mode == sc.MODE_SBKI_BLOCKS:
+        # float32 on both sides, from the same float32 operations: at most an ulp of sf2 apart
+        np.testing.assert_allclose(got, want, rtol=2e-7, atol=10.0 * 2e-7)
+    else:
+        # float64: the twin's distance (a norm) and the kernel's (squared offsets summed) differ by an ulp or two
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)

@@ -1,0 +1,82 @@
+"""Run records of the benchmark tools: every figure a README or docs table shows comes from one of these
+JSON files under ``docs/bench/``, written by the tool that measured it.
+
+A record holds the tool, the command line, when it ran, the commit (and whether the tree was
+clean), the machine (CPU model, cores, flags, memory, the load when it started), the versions of
+Python and the packages that matter, and the tool's raw results (every timing, every count).
+
+    from bench_record import write_record
+    path = write_record("bench_batch", results)          # docs/bench/bench_batch-<UTC time>.json
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+RECORDS = REPO / "docs" / "bench"
+
+
+def _git(*args: str) -> str:
+    try:
+        return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
+
+
+def machine() -> dict:
+    """What the figures depend on: CPU model and flags, cores, memory, load, OS."""
+    info = {"platform": platform.platform(), "cores": os.cpu_count(), "load_average_1_5_15": list(os.getloadavg())}
+    try:
+        cpuinfo = Path("/proc/cpuinfo").read_text()
+        for line in cpuinfo.splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name" and "cpu_model" not in info:
+                info["cpu_model"] = value.strip()
+            if key.strip() == "flags" and "cpu_flags" not in info:
+                flags = set(value.split())
+                info["cpu_flags"] = sorted(f for f in flags if f.startswith(("avx", "sse4", "fma", "bmi")))
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal:"):
+                info["memory_gb"] = round(int(line.split()[1]) / 2**20, 1)
+    except OSError:
+        pass
+    return info
+
+
+def versions() -> dict:
+    out = {"python": platform.python_version()}
+    for name in ("numpy", "warp", "torch", "ray", "zstandard"):
+        module = sys.modules.get(name)
+        if module is None:
+            try:
+                from importlib.metadata import version
+
+                out[name] = version({"warp": "warp-lang"}.get(name, name))
+            except Exception:  # not installed: not part of this record
+                continue
+        else:
+            out[name] = getattr(module, "__version__", "")
+    return out
+
+
+def write_record(tool: str, results: dict, *, started: float | None = None) -> Path:
+    """Write ``results`` with the run's provenance to docs/bench/<tool>-<UTC time>.json; returns the path."""
+    now = datetime.datetime.now(datetime.timezone.utc)
+    record = {
+        "tool": tool, "command": [Path(sys.executable).name, *sys.argv], "utc": now.isoformat(timespec="seconds"),
+        "commit": _git("rev-parse", "HEAD"), "tree_clean": _git("status", "--porcelain", "--untracked-files=no") == "",
+        "machine": machine(), "versions": versions(), "results": results,
+    }
+    if started is not None:
+        record["seconds"] = round(now.timestamp() - started, 1)
+    RECORDS.mkdir(parents=True, exist_ok=True)
+    path = RECORDS / f"{tool}-{now.strftime('%Y%m%dT%H%M%SZ')}.json"
+    path.write_text(json.dumps(record, indent=1) + "\n")
+    return path

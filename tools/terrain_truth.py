@@ -1,0 +1,402 @@
+"""Terrain layers against the synthetic world's truth (docs/terrain.md, "Checked against ground truth").
+
+Renders a synthetic drive (LiDAR only), maps it with ``ebs`` from its per-point labels as ``evsemmap
+map`` does, computes the layers, and compares them with what the world knows, per cell centre:
+
+- true terrain height and surface class: a ray straight down onto the terrain's faces only;
+- true obstacles: a ray straight down onto the whole world hitting a non-ground face (trunk, canopy,
+  bush, rock, pole, barrel, vehicle, barrier) less than the layers' clearance above the terrain.
+
+Reported: elevation error (layer - truth) in the cells with a layer elevation (cells the LiDAR saw):
+median, 95th percentile of |error| and the median signed error; surface-class accuracy there; the
+class error rate by decile of the semantic variance; and an A* plan on the traversability cost from
+the drive's first pose to its last (8-connected, step cost = length x (BASE_COST + cost), lethal and
+unknown cells impassable): its length, its share on the true road, and its clearance from the true
+obstacles. The minimum-evidence setting is swept (0 keeps every OCCUPIED voxel). Figures go to
+``--out`` (docs/terrain/PRESET/ by default), with ``truth.json``; the last line printed is that JSON.
+
+    python tools/terrain_truth.py [--preset default] [--work DIR] [--out docs/terrain/PRESET]
+"""
+
+from __future__ import annotations
+
+import argparse
+import heapq
+import json
+import math
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+BASE_COST = 0.05  # per metre, so that a free path still prefers to be short
+ROBOT_RADIUS_M = 0.4  # lethal cells are grown by this much for the plan (a costmap's inflation)
+
+
+def _inflate(mask: np.ndarray, radius_cells: float) -> np.ndarray:
+    """Cells within ``radius_cells`` of a set cell."""
+    out = mask.copy()
+    reach = int(math.floor(radius_cells))
+    rows, columns = mask.shape
+    for dr in range(-reach, reach + 1):
+        for dc in range(-reach, reach + 1):
+            if (dr or dc) and math.hypot(dr, dc) <= radius_cells:
+                shifted = np.zeros_like(mask)
+                shifted[max(dr, 0):rows + min(dr, 0), max(dc, 0):columns + min(dc, 0)] = mask[max(-dr, 0):rows + min(-dr, 0),
+                                                                                                   max(-dc, 0):columns + min(-dc, 0)]
+                out |= shifted
+    return out
+SWEEP = (0.0, 0.2, 0.5)
+
+
+def _world_truth(world, grid, clearance_m: float, device: str):
+    """Per cell (north-up): terrain height, ground v3 class (-1 off the world) and obstacle mask."""
+    from evsemmap_warp.synthetic.scene import MATERIALS
+    from evsemmap_warp.synthetic.sensors import RayCaster
+
+    x, y = grid.cell_centres()
+    xx, yy = np.meshgrid(x, y)
+    top = 500.0
+    origins = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, top)], 1)
+    down = np.tile([0.0, 0.0, -1.0], (len(origins), 1))
+    ground_material = np.array([m.ground for m in MATERIALS])[world.face_material]
+    ground_faces = np.flatnonzero(ground_material)
+    ground = RayCaster(world.vertices, world.faces[ground_faces], device=device)
+    distance, face, _ = ground.cast(origins, down, 2 * top)
+    hit = face >= 0
+    height = np.where(hit, top - distance, np.nan)
+    v3 = world.face_v3
+    ground_class = np.where(hit, v3[ground_faces[np.clip(face, 0, None)]], -1)
+    everything = RayCaster(world.vertices, world.faces, device=device)
+    # obstacles below the clearance: cast down from just above it
+    start = np.where(hit, height + clearance_m, top)
+    distance_all, face_all, _ = everything.cast(np.stack([origins[:, 0], origins[:, 1], start], 1), down, 2 * top)
+    obstacle = hit & (face_all >= 0) & ~ground_material[np.clip(face_all, 0, None)]
+    shape = xx.shape
+    return height.reshape(shape), ground_class.reshape(shape), obstacle.reshape(shape)
+
+
+def _road_mask(world, grid) -> np.ndarray:
+    """Cells within the road's half width of its centre line (north-up)."""
+    x, y = grid.cell_centres()
+    xx, yy = np.meshgrid(x, y)
+    road = world.road[:, :2]
+    distance = np.full(xx.shape, np.inf)
+    for a, b in zip(road[:-1], road[1:]):  # segment distances, vectorised over cells
+        d = b - a
+        t = np.clip(((xx - a[0]) * d[0] + (yy - a[1]) * d[1]) / max(d @ d, 1e-12), 0, 1)
+        distance = np.minimum(distance, np.hypot(xx - a[0] - t * d[0], yy - a[1] - t * d[1]))
+    return distance <= world.params.road_half_width_m
+
+
+def astar(cost: np.ndarray, passable: np.ndarray, start: tuple[int, int], goal: tuple[int, int], cell_m: float):
+    """8-connected A* on a north-up grid; step cost = length (m) x (BASE_COST + cost of the cell entered).
+    Returns the cells [(row, column), ...] from start to goal, or [] when none connects them."""
+    rows, columns = cost.shape
+    best = np.full(cost.shape, np.inf)
+    came = np.full(cost.shape + (2,), -1, np.int64)
+    best[start] = 0.0
+    heuristic = lambda r, c: BASE_COST * cell_m * math.hypot(r - goal[0], c - goal[1])  # noqa: E731
+    queue = [(heuristic(*start), 0.0, start)]
+    moves = [(dr, dc, cell_m * math.hypot(dr, dc)) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc]
+    while queue:
+        _, g, (r, c) = heapq.heappop(queue)
+        if (r, c) == goal:
+            break
+        if g > best[r, c]:
+            continue
+        for dr, dc, length in moves:
+            nr, nc = r + dr, c + dc
+            if 0 <= nr < rows and 0 <= nc < columns and passable[nr, nc]:
+                candidate = g + length * (BASE_COST + cost[nr, nc])
+                if candidate < best[nr, nc]:
+                    best[nr, nc] = candidate
+                    came[nr, nc] = (r, c)
+                    heapq.heappush(queue, (candidate + heuristic(nr, nc), candidate, (nr, nc)))
+    if not np.isfinite(best[goal]):
+        return []
+    path = [goal]
+    while path[-1] != start:
+        path.append(tuple(came[path[-1]]))
+    return path[::-1]
+
+
+def _cell_of(grid, x: float, y: float) -> tuple[int, int]:
+    column = int(math.floor((x - grid.x0_m) / grid.cell_m))
+    row = int(math.floor((grid.y1_m - y) / grid.cell_m))
+    return row, column
+
+
+def _nearest(mask: np.ndarray, cell: tuple[int, int]) -> tuple[int, int]:
+    rows, columns = np.nonzero(mask)
+    k = int(np.argmin((rows - cell[0]) ** 2 + (columns - cell[1]) ** 2))
+    return int(rows[k]), int(columns[k])
+
+
+def _connected(passable: np.ndarray, seed: tuple[int, int]) -> np.ndarray:
+    """The cells 8-connected to ``seed`` through passable cells (breadth first)."""
+    from collections import deque
+
+    reached = np.zeros(passable.shape, bool)
+    reached[seed] = True
+    queue = deque([seed])
+    rows, columns = passable.shape
+    while queue:
+        r, c = queue.popleft()
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                nr, nc = r + dr, c + dc
+                if 0 <= nr < rows and 0 <= nc < columns and passable[nr, nc] and not reached[nr, nc]:
+                    reached[nr, nc] = True
+                    queue.append((nr, nc))
+    return reached
+
+
+def evaluate(layers, truth, road, poses, classes, costs_of_classes: np.ndarray) -> dict:
+    height, ground_class, obstacle = truth
+    bands = layers.bands
+    seen = np.isfinite(bands["elevation"]) & np.isfinite(height)
+    error = (bands["elevation"] - height)[seen]
+    classified = seen & (ground_class >= 0)
+    predicted = bands["surface_class"][classified].astype(int)
+    true = ground_class[classified]
+    correct = predicted == true
+    def by_decile(values):
+        """Class error rate per decile of ``values`` (ranks, so that ties split evenly), and the decile edges."""
+        rank = np.argsort(np.argsort(values, kind="stable"), kind="stable")
+        decile = rank * 10 // len(values)
+        rates = [round(float(1 - correct[decile == d].mean()), 4) for d in range(10)]
+        return rates, [float(f"{np.quantile(values, q):.3g}") for q in np.linspace(0, 1, 11)]
+
+    variance_rates, variance_edges = by_decile(bands["semantic_variance"][classified])
+    # the winning class's probability, least sure first: the same Dirichlet read another way
+    probability_rates, probability_edges = by_decile(bands["surface_probability"][classified])
+    per_class = {classes[c]: {"cells": int((true == c).sum()), "recall": round(float(correct[true == c].mean()), 4)}
+                 for c in np.unique(true)}
+    result = {
+        "cells_seen": int(seen.sum()), "cells_with_truth": int(np.isfinite(height).sum()),
+        "elevation_error_m": {"median_abs": round(float(np.median(np.abs(error))), 4), "p95_abs": round(float(np.quantile(np.abs(error), 0.95)), 4),
+                              "median_signed": round(float(np.median(error)), 4)},
+        "surface_class_accuracy": round(float(correct.mean()), 4), "per_class": per_class,
+        "class_error_rate_by_variance_decile": variance_rates, "variance_decile_edges": variance_edges,
+        "class_error_rate_by_probability_decile": probability_rates, "probability_decile_edges": probability_edges,
+    }
+    known_cost = np.isfinite(bands["traversability_cost"])
+    result["median_cost_on_road"] = round(float(np.median(bands["traversability_cost"][known_cost & road])), 4)
+    result["median_cost_off_road"] = round(float(np.median(bands["traversability_cost"][known_cost & ~road])), 4)
+    cost = np.nan_to_num(bands["traversability_cost"], nan=1.0)
+    grid = layers.grid
+    passable = (bands["known"] > 0) & ~_inflate(bands["lethal"] > 0, ROBOT_RADIUS_M / grid.cell_m)
+    # the cells of the first and last poses, or the nearest cells connected to each other where a pose's own
+    # cell is unknown or lethal (the cells around the first pose are only seen from behind it)
+    goal = _nearest(passable, _cell_of(grid, poses[-1, 0, 3], poses[-1, 1, 3]))
+    start_cell = _cell_of(grid, poses[0, 0, 3], poses[0, 1, 3])
+    start = _nearest(_connected(passable, goal), start_cell)
+    result["plan_endpoints_moved_m"] = [round(math.dist(start, start_cell) * grid.cell_m, 2),
+                                        round(math.dist(goal, _cell_of(grid, poses[-1, 0, 3], poses[-1, 1, 3])) * grid.cell_m, 2)]
+    path = astar(cost, passable, start, goal, grid.cell_m)
+    if path:
+        cells = np.array(path)
+        steps = np.hypot(*np.diff(cells, axis=0).T) * grid.cell_m
+        on_road = road[cells[:, 0], cells[:, 1]]
+        obstacle_cells = np.argwhere(obstacle)
+        clearance = min(float(np.min(np.hypot(obstacle_cells[:, 0] - r, obstacle_cells[:, 1] - c))) for r, c in path) * grid.cell_m
+        result["plan"] = {"length_m": round(float(steps.sum()), 2),
+                          "straight_line_m": round(float(math.hypot(poses[-1, 0, 3] - poses[0, 0, 3], poses[-1, 1, 3] - poses[0, 1, 3])), 2),
+                          "share_on_road": round(float(on_road.mean()), 4), "cells_on_true_obstacles": int(obstacle[cells[:, 0], cells[:, 1]].sum()),
+                          "clearance_from_obstacles_m": round(clearance, 2), "cells": [list(map(int, p)) for p in path]}
+    else:
+        result["plan"] = None
+    # the same plan on the cost the true classes would give (no uncertainty, true obstacles lethal): what the cost
+    # table asks for when the map is perfect
+    true_cost = np.where(ground_class >= 0, costs_of_classes[np.clip(ground_class, 0, None)], 1.0)
+    true_passable = np.isfinite(height) & ~_inflate(obstacle, ROBOT_RADIUS_M / grid.cell_m)
+    true_goal = _nearest(true_passable, _cell_of(grid, poses[-1, 0, 3], poses[-1, 1, 3]))
+    true_start = _nearest(_connected(true_passable, true_goal), _cell_of(grid, poses[0, 0, 3], poses[0, 1, 3]))
+    true_path = np.array(astar(true_cost, true_passable, true_start, true_goal, grid.cell_m))
+    if len(true_path):
+        steps = np.hypot(*np.diff(true_path, axis=0).T) * grid.cell_m
+        result["plan_on_true_classes"] = {"length_m": round(float(steps.sum()), 2), "share_on_road": round(float(road[true_path[:, 0], true_path[:, 1]].mean()), 4)}
+    return result
+
+
+def _figures(out: Path, layers, truth, road, result, poses, classes, colours, sweep) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
+    height, ground_class, obstacle = truth
+    grid = layers.grid
+    extent = (grid.x0_m, grid.x1_m, grid.y0_m, grid.y1_m)
+    written = []
+    bands = layers.bands
+    palette = ListedColormap(np.asarray(colours) / 255.0)
+
+    fig, axes = plt.subplots(2, 3, figsize=(16, 10))
+    panels = [("elevation", "terrain", "m"), ("slope", "magma", "deg"), ("step", "magma", "m"),
+              ("surface_class", None, None), ("semantic_variance", "inferno", "1"), ("traversability_cost", "RdYlGn_r", "[0, 1]")]
+    for ax, (name, cmap, unit) in zip(axes.ravel(), panels):
+        ax.set_facecolor((0.85, 0.85, 0.85))
+        values = np.ma.masked_invalid(bands[name])
+        if cmap is None:
+            ax.imshow(values, extent=extent, cmap=palette, vmin=-0.5, vmax=len(classes) - 0.5, interpolation="nearest")
+            present = sorted({int(v) for v in np.unique(bands[name][np.isfinite(bands[name])])})
+            ax.legend(handles=[Patch(facecolor=np.asarray(colours[c]) / 255, label=classes[c]) for c in present], fontsize=7, loc="lower right")
+        else:
+            kwargs = {"vmin": 0, "vmax": 1} if name == "traversability_cost" else {}
+            if name == "step":
+                kwargs = {"vmin": 0, "vmax": 1.0}
+            image = ax.imshow(values, extent=extent, cmap=cmap, interpolation="nearest", **kwargs)
+            fig.colorbar(image, ax=ax, shrink=0.7, label=unit)
+        if name == "traversability_cost":
+            ax.imshow(np.ma.masked_where(bands["lethal"] == 0, bands["lethal"]), extent=extent, cmap=ListedColormap(["k"]), interpolation="nearest")
+            if result["plan"]:
+                cells = np.array(result["plan"]["cells"])
+                x, y = grid.cell_centres()
+                ax.plot(x[cells[:, 1]], y[cells[:, 0]], color="blue", lw=1.5, label="A* plan")
+                ax.plot(poses[:, 0, 3], poses[:, 1, 3], color="white", lw=0.8, ls="--", label="drive")
+                ax.legend(fontsize=7, loc="lower right")
+        ax.set_title(name.replace("_", " "))
+    fig.suptitle(f"Terrain layers of a synthetic drive ({layers.grid.cell_m} m cells); black: lethal")
+    fig.tight_layout()
+    written.append(out / "layers_overview.png")
+    fig.savefig(written[-1], dpi=72)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
+    seen = np.isfinite(bands["elevation"]) & np.isfinite(height)
+    error = np.where(seen, bands["elevation"] - height, np.nan)
+    image = axes[0].imshow(np.ma.masked_invalid(error), extent=extent, cmap="RdBu_r", vmin=-0.4, vmax=0.4, interpolation="nearest")
+    fig.colorbar(image, ax=axes[0], shrink=0.8, label="layer - true terrain height (m)")
+    axes[0].set_title("elevation error, cells the LiDAR saw")
+    for setting, row in sweep.items():
+        values = row["errors"]
+        axes[1].hist(values, bins=np.arange(-0.4, 0.61, 0.02), histtype="step", label=f"min_evidence {setting}")
+    axes[1].set_xlabel("elevation error (m)")
+    axes[1].set_ylabel("cells")
+    axes[1].legend(fontsize=8)
+    axes[1].set_title("elevation error by minimum evidence")
+    axes[2].bar(np.arange(1, 11) - 0.2, result["class_error_rate_by_variance_decile"], width=0.4, color="tab:red",
+                label="by semantic variance p(1-p)/(S+1), lowest first")
+    axes[2].bar(np.arange(1, 11) + 0.2, result["class_error_rate_by_probability_decile"], width=0.4, color="tab:blue",
+                label="by winning probability p, lowest first")
+    axes[2].set_xlabel("decile")
+    axes[2].set_ylabel("surface class error rate")
+    axes[2].legend(fontsize=8)
+    axes[2].set_title(f"class errors by uncertainty decile (accuracy {result['surface_class_accuracy']:.3f})")
+    fig.tight_layout()
+    written.append(out / "truth_check.png")
+    fig.savefig(written[-1], dpi=72)
+    plt.close(fig)
+
+    if result["plan"]:
+        fig, ax = plt.subplots(figsize=(9, 9))
+        ax.imshow(np.ma.masked_invalid(bands["traversability_cost"]), extent=extent, cmap="RdYlGn_r", vmin=0, vmax=1, interpolation="nearest")
+        ax.imshow(np.ma.masked_where(~road, road.astype(float)), extent=extent, cmap=ListedColormap([(0.2, 0.2, 1.0)]), alpha=0.15,
+                  interpolation="nearest")
+        ax.imshow(np.ma.masked_where(~obstacle, obstacle.astype(float)), extent=extent, cmap=ListedColormap(["k"]), interpolation="nearest")
+        cells = np.array(result["plan"]["cells"])
+        x, y = grid.cell_centres()
+        ax.plot(x[cells[:, 1]], y[cells[:, 0]], color="blue", lw=2)
+        ax.plot(poses[:, 0, 3], poses[:, 1, 3], color="magenta", lw=1, ls="--")
+        ax.legend(handles=[Patch(color="blue", label="A* plan on traversability_cost"), Patch(color="magenta", label="the drive"),
+                           Patch(color="k", label="true obstacles"), Patch(color=(0.2, 0.2, 1.0), alpha=0.3, label="true road")],
+                  loc="lower right", fontsize=8)
+        plan = result["plan"]
+        ax.set_title(f"A* plan: {plan['length_m']} m, {plan['share_on_road'] * 100:.0f} % on the road, "
+                     f"{plan['clearance_from_obstacles_m']} m from the nearest obstacle")
+        fig.tight_layout()
+        written.append(out / "plan.png")
+        fig.savefig(written[-1], dpi=72)
+        plt.close(fig)
+    return written
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="default", help="a synthetic preset of one square world (not a corridor)")
+    parser.add_argument("--work", type=Path, default=Path("/tmp/evsemmap_terrain_truth"), help="drive and map here (kept and reused)")
+    parser.add_argument("--out", type=Path, default=None, help="figures and truth.json (default: docs/terrain/PRESET)")
+    parser.add_argument("--method", default="ebs")
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args()
+
+    from evsemmap_warp.classes import class_set
+    from evsemmap_warp.config import load_config
+    from evsemmap_warp.core.mapper import Mapper, load_map
+    from evsemmap_warp.data.datasets import open_dataset
+    from evsemmap_warp.data.sequences import read_poses
+    from evsemmap_warp.synthetic.preset import load_preset
+    from evsemmap_warp.synthetic.scene import generate_world
+    from evsemmap_warp.synthetic.writer import generate_sequence
+    from evsemmap_warp.terrain import compute_layers, load_terrain_config
+    from evsemmap_warp.terrain.pipeline import class_colours
+
+    preset = load_preset(args.preset)
+    args.out = args.out or REPO / "docs" / "terrain" / args.preset
+    if preset.world.corridor_tiles:
+        raise SystemExit("terrain_truth: give a preset of one square world (demo, default, tiny), not a corridor")
+    drive = args.work / f"{args.preset}_drive"
+    map_path = args.work / f"{args.preset}_{args.method}.npz"
+    timings = {}
+    if not (drive / "poses.txt").exists():
+        started = time.perf_counter()
+        generate_sequence(preset, drive, progress=False, camera=False)
+        timings["render_s"] = round(time.perf_counter() - started, 1)
+    if not map_path.exists():
+        run = load_config([str(drive)], method=args.method)
+        dataset = open_dataset(run.dataset)
+        mapper = Mapper(run.mapping, dataset.num_classes, class_names=dataset.class_names or None, frame=dataset.frame, device=args.device)
+        started = time.perf_counter()
+        mapper.integrate_many(dataset)
+        timings["map_s"] = round(time.perf_counter() - started, 1)
+        mapper.save(map_path)
+    mapper = load_map(map_path, device=args.device)
+    poses = read_poses(drive / "poses.txt")
+    classes = class_set().names
+    world = generate_world(preset.world, preset.seed)
+    base = load_terrain_config()
+    truth = road = None
+    sweep = {}
+    chosen = None
+    for setting in SWEEP:
+        config = replace(base, layers=replace(base.layers, min_evidence=setting))
+        started = time.perf_counter()
+        layers = compute_layers(mapper, config=config, device=args.device)
+        seconds = time.perf_counter() - started
+        if truth is None:
+            truth = _world_truth(world, layers.grid, base.layers.clearance_m, args.device)
+            road = _road_mask(world, layers.grid)
+        result = evaluate(layers, truth, road, poses, classes, np.array([base.costs.classes[n] for n in classes]))
+        result["layer_seconds"] = round(seconds, 3)
+        seen = np.isfinite(layers.bands["elevation"]) & np.isfinite(truth[0])
+        sweep[setting] = {"result": result, "errors": (layers.bands["elevation"] - truth[0])[seen]}
+        if setting == base.layers.min_evidence:
+            chosen = (layers, result)
+        print(f"min_evidence {setting}: {json.dumps({k: v for k, v in result.items() if k not in ('plan', 'per_class')})} "
+              f"plan {json.dumps({k: v for k, v in (result['plan'] or {}).items() if k != 'cells'})}", file=sys.stderr)
+    if chosen is None:
+        raise SystemExit(f"terrain_truth: the default min_evidence {base.layers.min_evidence} is not in the sweep {SWEEP}")
+    layers, result = chosen
+    args.out.mkdir(parents=True, exist_ok=True)
+    figures = _figures(args.out, layers, truth, road, result, poses, classes, class_colours(classes), sweep)
+    summary = {
+        "preset": args.preset, "method": args.method, "voxels": mapper.voxel_count, "cell_m": layers.grid.cell_m, "costs_file": "default",
+        "default_min_evidence": base.layers.min_evidence, "timings": timings,
+        "result": {k: v for k, v in result.items() if k != "plan"} | {"plan": {k: v for k, v in (result["plan"] or {}).items() if k != "cells"}},
+        "sweep": {str(k): {key: v["result"][key] for key in ("cells_seen", "elevation_error_m", "surface_class_accuracy")}
+                  | {"plan": {key: val for key, val in (v["result"]["plan"] or {}).items() if key != "cells"}} for k, v in sweep.items()},
+        "figures": [str(p.relative_to(REPO)) if p.is_relative_to(REPO) else str(p) for p in figures],
+    }
+    (args.out / "truth.json").write_text(json.dumps(summary, indent=1) + "\n")
+    print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()
