@@ -1,8 +1,8 @@
-"""Class sets, colours and id remapping, read from the data files in ``configs/classes/``.
+"""Class sets, colors and id remapping, read from the data files in ``configs/classes/``.
 
 ``remap_v3.yaml`` holds the 9 mapping classes (docs/algorithm.md §5.1) and the original-id -> v3 table shared by
-RELLIS-3D and RUGD (docs/algorithm.md §5.2); ``rellis3d_colors.yaml`` and ``rugd_colors.yaml`` hold the colour-label
-palettes (docs/algorithm.md §5.2). Unknown colours and ids are errors that name the file and the values.
+RELLIS-3D and RUGD (docs/algorithm.md §5.2); ``rellis3d_colors.yaml`` and ``rugd_colors.yaml`` hold the color-label
+palettes (docs/algorithm.md §5.2). Unknown colors and ids are errors that name the file and the values.
 """
 
 from __future__ import annotations
@@ -17,6 +17,8 @@ import yaml
 
 
 def classes_dir() -> Path:
+    """The folder of the class-set files (``configs/classes/``, installed as
+    ``evsemmap_warp.configs.classes``)."""
     return Path(str(resources.files("evsemmap_warp.configs") / "classes"))
 
 
@@ -27,6 +29,8 @@ def _read(name: str) -> dict:
 
 @dataclass(frozen=True)
 class ClassSet:
+    """A class set: the class ``names`` in id order (id = position) and their display ``colors`` [K, 3] uint8
+    RGB."""
     names: tuple[str, ...]
     colors: np.ndarray  # [K, 3] uint8
 
@@ -35,6 +39,8 @@ class ClassSet:
 
 
 def class_set(name: str = "remap_v3") -> ClassSet:
+    """The class set ``configs/classes/NAME.yaml`` (default ``remap_v3``, the 9 mapping classes); raises
+    ValueError when its ids are not 0..K-1."""
     entries = sorted(_read(name)["classes"], key=lambda e: e["id"])
     if [e["id"] for e in entries] != list(range(len(entries))):
         raise ValueError(f"configs/classes/{name}.yaml: class ids must be 0..K-1")
@@ -42,7 +48,7 @@ def class_set(name: str = "remap_v3") -> ClassSet:
 
 
 def named_colors() -> dict[str, tuple[int, int, int]]:
-    """Colour of every class name defined in configs/classes (for displays)."""
+    """Color of every class name defined in configs/classes (for displays)."""
     out = {}
     for path in sorted(classes_dir().glob("*.yaml")):
         for entry in _read(path.stem).get("classes", []):
@@ -59,7 +65,7 @@ def original_to_v3_table() -> np.ndarray:
 
 
 def palette(name: str) -> dict[tuple[int, int, int], int]:
-    """RGB -> original id for a colour-label palette ('rellis3d_colors' or 'rugd_colors')."""
+    """RGB -> original id for a color-label palette ('rellis3d_colors' or 'rugd_colors')."""
     return {tuple(e["rgb"]): int(e["id"]) for e in _read(name)["colors"]}
 
 
@@ -69,7 +75,7 @@ def read_rugd_colormap(path) -> dict[tuple[int, int, int], int]:
     try:
         text = Path(path).read_text()
     except UnicodeDecodeError:
-        raise ValueError(f"{path}: not a text file (a RUGD colour map was expected)") from None
+        raise ValueError(f"{path}: not a text file (a RUGD color map was expected)") from None
     for n, line in enumerate(text.splitlines(), 1):
         parts = line.split()
         if not parts:
@@ -93,10 +99,10 @@ def remap_ids(ids: np.ndarray, source: str) -> np.ndarray:
 
 
 def decode_color_labels(rgb: np.ndarray, colors: dict[tuple[int, int, int], int], source: str) -> np.ndarray:
-    """[H, W, 3] colour label image -> [H, W] original ids; colours not in the palette raise."""
+    """[H, W, 3] color label image -> [H, W] original ids; colors not in the palette raise."""
     rgb = np.asarray(rgb)
     if rgb.ndim != 3 or rgb.shape[2] < 3:
-        raise ValueError(f"{source}: a colour label image must be [H, W, 3], got {list(rgb.shape)}")
+        raise ValueError(f"{source}: a color label image must be [H, W, 3], got {list(rgb.shape)}")
     packed = (rgb[..., 0].astype(np.int64) << 16) | (rgb[..., 1].astype(np.int64) << 8) | rgb[..., 2].astype(np.int64)
     keys = np.array([(r << 16) | (g << 8) | b for r, g, b in colors], np.int64)
     values = np.array(list(colors.values()), np.int64)
@@ -107,5 +113,5 @@ def decode_color_labels(rgb: np.ndarray, colors: dict[tuple[int, int, int], int]
     if not known.all():
         unknown = np.unique(packed[~known])[:5]
         shown = [((int(k) >> 16) & 255, (int(k) >> 8) & 255, int(k) & 255) for k in unknown]
-        raise ValueError(f"{source}: {int((~known).sum())} pixels have colours that are not in the label palette, e.g. {shown}")
+        raise ValueError(f"{source}: {int((~known).sum())} pixels have colors that are not in the label palette, e.g. {shown}")
     return values[pos]

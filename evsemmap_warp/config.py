@@ -10,6 +10,8 @@ from __future__ import annotations
 import dataclasses
 import enum
 import math
+import sys
+import warnings
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -22,27 +24,86 @@ class ConfigError(ValueError):
     """A config file or value is wrong; the message names the file and the key."""
 
 
-class Kernel(str, enum.Enum):
+class _RenamedMembers(enum.EnumMeta):
+    """Enum type whose members renamed in this release still answer to their old names, one release
+    long, with a DeprecationWarning (``_RENAMED_MEMBERS``)."""
+
+    def __getattr__(cls, name):
+        new = globals().get("_RENAMED_MEMBERS", {}).get(cls.__name__, {}).get(name)
+        if new is None:
+            if hasattr(enum.EnumMeta, "__getattr__"):  # before Python 3.12, members that shadow a class attribute
+                return enum.EnumMeta.__getattr__(cls, name)
+            raise AttributeError(f"type object {cls.__name__!r} has no attribute {name!r}")
+        warnings.warn(f"{cls.__name__}.{name} is deprecated, use {cls.__name__}.{new} (the old name goes in the next release)",
+                      DeprecationWarning, stacklevel=2)
+        return cls[new]
+
+
+class _RenamedValues(str, enum.Enum, metaclass=_RenamedMembers):
+    """A config enum whose values renamed in this release still read, one release long: map files and
+    stores written before carry them (read silently), config files are told by ``load_config``."""
+
+    @classmethod
+    def _missing_(cls, value):
+        new = RENAMED_VALUES.get(cls.__name__, {}).get(value)
+        return cls(new) if new is not None else None
+
+
+class Kernel(_RenamedValues):
+    """How a point spreads its evidence over the voxels around it (``mapping.kernel``). A kernel other
+    than sparse and count comes with its method's own integration (``core.integrators``)."""
     SPARSE = "sparse"  # BKI sparse kernel k'(d, l, sigma0)
     COUNT = "count"  # counting sensor model: weight 1 inside the point's own voxel
-    CONVBKI = "convbki"  # ConvBKI: per-class compound kernel on a voxel-centre stencil (docs/compatibility.md §2)
-    SEE_CSOM = "see-csom"  # SEE-CSOM: entropy-gated blocks, triangular kernel (docs/compatibility.md §3)
+    COMPOUND = "compound"  # ConvBKI's per-class compound kernel on a voxel-center stencil (docs/compatibility.md §2)
+    TRIANGULAR = "triangular"  # SEE-CSOM's triangular kernel on entropy-gated blocks (docs/compatibility.md §3)
 
 
 class Fusion(str, enum.Enum):
+    """How the evidence that reaches a voxel combines (``mapping.fusion``)."""
     BAYES = "bayes"  # Dirichlet concentrations add up (every BKI / CSM method)
     DEMPSTER = "dempster"  # belief masses fused with Dempster's rule (docs/algorithm.md §3.7)
 
 
-class Media(str, enum.Enum):
-    ONEHOT = "onehot"  # argmax class of the payload, lowest index on ties (S-CSM, S-BKI)
-    PROB = "prob"  # expected class probabilities alpha / S (EBS, "Prob." ablations)
+class Media(_RenamedValues):
+    """What a point contributes per class (``mapping.media``), whatever its payload (``PayloadType``)."""
+    ONEHOT = "onehot"  # one-hot of the payload's argmax class, lowest index on ties (S-CSM, S-BKI)
+    SOFT = "soft"  # the class-probability vector: alpha / S for alpha payloads (EBS, the "Prob." ablations)
 
 
-class Compat(str, enum.Enum):
+class Compat(_RenamedValues):
+    """Which program's map to compute: the paper's algorithm or one of the original C++ programs
+    (``mapping.compat``)."""
     CLEAN = "clean"  # the paper's algorithm with a true radius search (default)
     SBKI = "sbki"  # reproduce the original S-BKI / S-CSM C++ (docs/compatibility.md §1)
-    EVSEMMAP = "evsemmap"  # reproduce the released EvSemMap C++ for ebs / dempster (docs/compatibility.md §4)
+    RELEASE = "release"  # reproduce the released EvSemMap C++ for ebs / dempster (docs/compatibility.md §4)
+
+
+# Renamed in this release; the old names go in the next. Values: what config files, map files and
+# stores wrote (YAML values); members: the Python names.
+RENAMED_VALUES = {
+    "Kernel": {"convbki": "compound", "see-csom": "triangular"},
+    "Media": {"prob": "soft"},
+    "Compat": {"evsemmap": "release"},
+}
+_RENAMED_MEMBERS = {
+    "Kernel": {"CONVBKI": "COMPOUND", "SEE_CSOM": "TRIANGULAR"},
+    "Media": {"PROB": "SOFT"},
+    "Compat": {"EVSEMMAP": "RELEASE"},
+}
+# Mapping presets renamed in this release: old name -> new.
+RENAMED_PRESETS = {"evsemmap-release": "release"}
+
+
+def warn_deprecated(old: str, new: str) -> None:
+    """Tell the user, in one line on stderr, that ``old`` (a flag, a config key or value, a preset) is
+    now ``new``; once per process for each."""
+    if (old, new) in _WARNED:
+        return
+    _WARNED.add((old, new))
+    print(f"evsemmap: warning: {old} is deprecated, use {new} (the old name goes in the next release)", file=sys.stderr)
+
+
+_WARNED: set[tuple[str, str]] = set()
 
 
 # A kernel that visits more voxels than this per point is a mistake (a length in the wrong unit, say),
@@ -51,6 +112,8 @@ MAX_VOXELS_PER_POINT = 50_000
 
 
 class PayloadType(str, enum.Enum):
+    """What a scan's per-point payload holds, and so how ``Mapper.integrate`` reads it (``Media`` says what
+    a point then contributes to the map)."""
     ALPHA = "alpha"  # evidential Dirichlet parameters, [N, K], alpha >= 1
     PROB = "prob"  # class probabilities, [N, K], rows sum to 1
     LABEL = "label"  # integer class ids, [N]
@@ -60,36 +123,36 @@ class PayloadType(str, enum.Enum):
 class MappingConfig:
     """Everything the mapper needs. Lengths in metres; see docs/algorithm.md §3."""
 
-    method: str = "ebs"
-    kernel: Kernel = Kernel.SPARSE
-    fusion: Fusion = Fusion.BAYES
-    media: Media = Media.PROB
-    adaptive_length: bool = True
-    uncertainty_threshold: bool = True
-    compat: Compat = Compat.CLEAN
-    resolution_m: float = 0.2
-    prior: float = 1.0
+    method: str = "ebs"  # the method's name, recorded in map files (a method file's method.name)
+    kernel: Kernel = Kernel.SPARSE  # how a point spreads its evidence over the voxels around it
+    fusion: Fusion = Fusion.BAYES  # how evidence in a voxel combines
+    media: Media = Media.SOFT  # what a point contributes per class
+    adaptive_length: bool = True  # the kernel length shrinks with a point's uncertainty (docs/algorithm.md §3.4)
+    uncertainty_threshold: bool = True  # drop each insertion's most uncertain points (docs/algorithm.md §3.2)
+    compat: Compat = Compat.CLEAN  # which program's map to compute
+    resolution_m: float = 0.2  # voxel edge (m)
+    prior: float = 1.0  # every voxel's initial concentration per class (alpha0)
     length_m: float = 0.2  # l; the kernel length is l * beta * exp(1 - gamma u_i) when adaptive
-    beta: float = 0.5
-    gamma: float = 10.0
+    beta: float = 0.5  # scale of the adaptive length
+    gamma: float = 10.0  # how fast the adaptive length shrinks with u
     uncertainty_drop_fraction: float = 0.1  # u~: the most uncertain fraction dropped per insertion
-    sigma0: float = 1.0
+    sigma0: float = 1.0  # kernel amplitude: k'(0) = sigma0 (S-BKI's sf2)
     # S-BKI compatibility mode only (docs/compatibility.md §1):
-    block_depth: int = 2
-    ds_resolution_m: float = 0.1
-    free_resolution_m: float = 4.0
-    max_range_m: float = -1.0  # <= 0 disables the range filter
+    block_depth: int = 2  # blocks of 2^(depth - 1) cells a side
+    ds_resolution_m: float = 0.1  # VoxelGrid leaf of the hits (m)
+    free_resolution_m: float = 4.0  # spacing of the free-space samples along each ray (m)
+    max_range_m: float = -1.0  # hits farther from the sensor are dropped (m); <= 0 disables the range filter
     # How the radius kernel (clean mode, Bayes fusion) reaches the map: "atomic" (scatter with atomic
     # adds), "sorted" (sort-then-reduce) or "gather" (per voxel through a hash grid of the points); the
     # last two sum each voxel in a fixed order (docs/kernel_study.md).
     scatter_strategy: str = "atomic"
-    # EvSemMap release mode only: each 0.4 m block keeps its first ds_multiplier + 1 points per scan;
+    # Release mode only: each 0.4 m block keeps its first ds_multiplier + 1 points per scan;
     # -1: the release's own value, 10 for ebs (Bayes fusion) and 5 for dempster.
     ds_multiplier: int = -1
     # ConvBKI only: per-class length scales (a .pt state dict with ell_h / ell_z, or .json / .yaml /
     # .npz with the same keys); empty: every class at its authors' initial 0.5 m.
     convbki_lengths_file: str = ""
-    convbki_stencil_half: int = 2  # the stencil is (2h + 1)^3 voxels
+    convbki_stencil_half: int = 2  # ConvBKI only: the stencil is (2h + 1)^3 voxels
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, text: str) -> None:
@@ -118,11 +181,11 @@ class MappingConfig:
                 f"mapping.length_m = {self.length_m!r} at resolution_m = {self.resolution_m!r}: each point would visit about "
                 f"{visits:,.0f} voxels (kernel reach {longest:.3g} m = {longest / self.resolution_m:.0f} voxels; at most "
                 f"{MAX_VOXELS_PER_POINT:,} allowed); is a length in the wrong unit?")
-        if self.kernel is Kernel.SEE_CSOM:
+        if self.kernel is Kernel.TRIANGULAR:
             need(self.media is Media.ONEHOT, "media", "SEE-CSOM takes hard labels (its code has no soft-label path)")
         if self.fusion is Fusion.DEMPSTER:
             need(self.kernel is Kernel.SPARSE, "kernel", "the Dempster-Shafer variant discounts beliefs with the sparse kernel")
-            need(self.media is Media.PROB, "media", "the Dempster-Shafer variant fuses belief masses from the Dirichlet (media prob)")
+            need(self.media is Media.SOFT, "media", "the Dempster-Shafer variant fuses belief masses from the Dirichlet (media soft)")
         if self.compat is Compat.SBKI:
             need(self.kernel in (Kernel.SPARSE, Kernel.COUNT) and self.fusion is Fusion.BAYES, "kernel",
                  "the sbki compatibility mode reproduces S-BKI / S-CSM only")
@@ -134,9 +197,9 @@ class MappingConfig:
             need(self.kernel is Kernel.SPARSE and self.fusion is Fusion.BAYES and self.compat is Compat.CLEAN, "scatter_strategy",
                  "the sorted and gather strategies integrate the clean sparse kernel with Bayes fusion (s-bki, ebs, prob*)")
         need(self.ds_multiplier >= -1, "ds_multiplier", "must be >= 0 (or -1: the release's value for the fusion)")
-        if self.compat is Compat.EVSEMMAP:
-            need(self.kernel is Kernel.SPARSE, "kernel", "the evsemmap compatibility mode reproduces the release's ebs and dempster (sparse kernel)")
-            need(self.media is Media.PROB, "media", "the released ebs and dempster read class probabilities (media prob)")
+        if self.compat is Compat.RELEASE:
+            need(self.kernel is Kernel.SPARSE, "kernel", "the release mode reproduces the release's ebs and dempster (sparse kernel)")
+            need(self.media is Media.SOFT, "media", "the released ebs and dempster read class probabilities (media soft)")
             need(self.adaptive_length and self.beta == 1.0 and self.gamma == 0.0, "adaptive_length",
                  "the release's kernel length is the constant length_m * e: set adaptive_length true, beta 1, gamma 0")
             need(self.uncertainty_threshold, "uncertainty_threshold", "the released ebs and dempster cut the most uncertain points")
@@ -151,30 +214,33 @@ class MappingConfig:
         """About how many voxels one point's kernel visits (the ball of the longest length)."""
         if self.kernel is Kernel.COUNT:
             return 1.0
-        if self.kernel is Kernel.CONVBKI:
+        if self.kernel is Kernel.COMPOUND:
             return float((2 * self.convbki_stencil_half + 1) ** 3)
-        if self.kernel is Kernel.SEE_CSOM:
+        if self.kernel is Kernel.TRIANGULAR:
             return 7.0 * 8.0  # a block and its 6 face neighbours, 2x2x2 cells each
         reach = self.longest_length_m() / self.resolution_m
         ball = 4.0 / 3.0 * math.pi * (reach + 0.5) ** 3
         if self.compat is Compat.SBKI:
             return min(ball, 7.0 * 8.0 ** (self.block_depth - 1))  # the owner block and its 6 face neighbours
-        if self.compat is Compat.EVSEMMAP:
+        if self.compat is Compat.RELEASE:
             return 25.0 * 8.0 ** (self.block_depth - 1)  # the blocks within L1 distance 2 of the point's block
         return ball
 
     @property
     def release_block_cap(self) -> int:
-        """Points each block keeps per scan in the evsemmap mode: ds_multiplier + 1."""
+        """Points each block keeps per scan in the release mode: ds_multiplier + 1."""
         if self.ds_multiplier >= 0:
             return self.ds_multiplier + 1
         return (5 if self.fusion is Fusion.DEMPSTER else 10) + 1
 
     @property
     def keep_quantile(self) -> float:
+        """The share of each insertion's points the uncertainty threshold keeps: 1 -
+        ``uncertainty_drop_fraction``."""
         return 1.0 - self.uncertainty_drop_fraction
 
     def as_dict(self) -> dict[str, Any]:
+        """Every field by name, enums as their YAML values (what map files record as ``meta.mapping``)."""
         return {f.name: (v.value if isinstance(v := getattr(self, f.name), enum.Enum) else v) for f in dataclasses.fields(self)}
 
 
@@ -196,12 +262,12 @@ class BagConfig:
     lidar_frame: str = ""  # "": the clouds' header frame
     camera_frame: str = ""  # "": the images' header frame
     odometry_topic: str = ""  # nav_msgs/Odometry, when pose_source is odometry
-    tf_topic: str = "/tf"
-    tf_static_topic: str = "/tf_static"
+    tf_topic: str = "/tf"  # tf2_msgs/TFMessage with the moving transforms
+    tf_static_topic: str = "/tf_static"  # tf2_msgs/TFMessage with the fixed transforms
     # x y z qx qy qz qw; empty: from the TF tree. lidar: the LiDAR's pose in the odometry's child frame;
     # camera: the camera's pose in the LiDAR frame (what RELLIS-3D's transforms.yaml stores).
     lidar_extrinsic: tuple[float, ...] = ()
-    camera_extrinsic: tuple[float, ...] = ()
+    camera_extrinsic: tuple[float, ...] = ()  # x y z qx qy qz qw, see lidar_extrinsic
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, text: str) -> None:
@@ -226,16 +292,16 @@ class DatasetConfig:
     dataset reads every one of its ``logs`` in order instead (ROS 1 .bag files, ROS 2 bag folders,
     .db3 or .mcap files), as ``bag`` says."""
 
-    kind: str = ""
-    paths: tuple[str, ...] = ()
-    logs: tuple[str, ...] = ()
-    bag: BagConfig = field(default_factory=BagConfig)
-    pattern: str = ""
-    first_index: int = 1
-    last_index: int = 1
-    payload: PayloadType = PayloadType.LABEL
-    num_classes: int = 0
-    class_names: tuple[str, ...] = ()
+    kind: str = ""  # rellis3d, semantickitti, bag (robot logs), pcd_sequence (numbered PCD files) or bench_npz (an .npz workload)
+    paths: tuple[str, ...] = ()  # candidate locations of the data, relative to the config file; the first that exists is read
+    logs: tuple[str, ...] = ()  # a bag dataset's robot logs, read in order as one drive
+    bag: BagConfig = field(default_factory=BagConfig)  # how to read the logs (the dataset.bag section)
+    pattern: str = ""  # pcd_sequence: the scans' file names, with {index} for the number (e.g. "scan_{index}.pcd")
+    first_index: int = 1  # pcd_sequence: the first scan's number
+    last_index: int = 1  # pcd_sequence: the last scan's number (inclusive)
+    payload: PayloadType = PayloadType.LABEL  # what each point carries
+    num_classes: int = 0  # classes of the payload; 0: the sequence's class set (a pcd_sequence must give it)
+    class_names: tuple[str, ...] = ()  # names of the classes; empty: the sequence's class set
     # The world frame the map lives in (docs/algorithm.md §6.6). "": the data's own frame (a log's fixed
     # frame; a folder's poses.txt frame, named by its frame.yaml or after the folder; a point file's
     # frame); a name: the name of a folder's or point files' frame (a log's must equal its fixed frame);
@@ -261,6 +327,8 @@ class DatasetConfig:
             object.__setattr__(self, "bag", dataclasses.replace(self.bag, fixed_frame=self.frame))
 
     def resolve_path(self) -> Path:
+        """The first of ``paths`` that exists (relative ones are relative to the config file that named
+        them); raises ConfigError listing every path tried when none does."""
         tried = []
         for candidate in self.paths:
             path = Path(candidate).expanduser()
@@ -272,6 +340,8 @@ class DatasetConfig:
         raise ConfigError(f"dataset.paths: none of these exists: {tried}")
 
     def resolve_logs(self) -> list[Path]:
+        """The robot logs of a bag dataset as paths, in order; raises ConfigError when there are none, one
+        does not exist or one is named twice."""
         if not self.logs:
             raise ConfigError("dataset.logs: a bag dataset needs at least one log (a .bag, .mcap or .db3 file or a ROS 2 bag folder): "
                               "name them on the command line or in dataset.logs")
@@ -289,6 +359,9 @@ class DatasetConfig:
 
 @dataclass(frozen=True)
 class RunConfig:
+    """One run's resolved configuration (``load_config``): the mapping parameters, the dataset (None when no
+    file names one), the files it came from, and how many camera-labelled frames are integrated together
+    (``pipeline.bin_frames``)."""
     mapping: MappingConfig
     dataset: DatasetConfig | None = None
     sources: tuple[str, ...] = field(default_factory=tuple)
@@ -300,6 +373,7 @@ _METHOD_KEYS = {"name", "kernel", "fusion", "media", "adaptive_length", "uncerta
 
 
 def methods_dir() -> Path:
+    """The folder of the method files (``configs/methods/``, installed as ``evsemmap_warp.configs.methods``)."""
     return Path(str(resources.files("evsemmap_warp.configs") / "methods"))
 
 
@@ -309,6 +383,9 @@ def preset_path(name_or_path: str) -> Path:
     if path.suffix in (".yaml", ".yml") and path.exists():
         return path
     presets = Path(str(resources.files("evsemmap_warp.configs") / "presets"))
+    if name_or_path in RENAMED_PRESETS:
+        warn_deprecated(f"mapping preset {name_or_path!r}", repr(RENAMED_PRESETS[name_or_path]))
+        name_or_path = RENAMED_PRESETS[name_or_path]
     candidate = presets / f"{name_or_path}.yaml"
     if "/" in str(name_or_path) or "\\" in str(name_or_path) or not candidate.exists():
         if "/" in str(name_or_path) or "\\" in str(name_or_path):  # a path, not a preset's name
@@ -319,10 +396,13 @@ def preset_path(name_or_path: str) -> Path:
 
 
 def available_methods() -> list[str]:
+    """The built-in method names (``configs/methods/*.yaml``), sorted."""
     return sorted(p.stem for p in methods_dir().glob("*.yaml"))
 
 
 def method_path(name_or_path: str) -> Path:
+    """A method file by name (``configs/methods/NAME.yaml``) or path; raises ConfigError naming the known
+    methods when there is none of that name."""
     path = Path(name_or_path)
     if path.suffix in (".yaml", ".yml") and path.exists():
         return path
@@ -472,6 +552,9 @@ def load_config(config_paths: list[str | Path], method: str | None = None, *, fr
                 known = {f.name for f in dataclasses.fields(cls)} - {"config_dir"}
                 if key not in known:
                     raise ConfigError(f"{path}: unknown key {section}.{key}; known: {sorted(known)}")
+                renamed = RENAMED_VALUES.get(type(getattr(cls, key, None)).__name__, {})
+                if isinstance(value, str) and value in renamed:
+                    warn_deprecated(f"{path}: {section}.{key}: {value}", f"{section}.{key}: {renamed[value]}")
                 if section == "dataset" and key == "bag":
                     # key by key, so a user's file can change one topic of a preset
                     if not isinstance(value, dict):

@@ -4,8 +4,10 @@ partial maps, checkpoints, the experiment cache, alpha, ground truth) goes throu
 The content is written under a temporary name in the final file's folder and renamed into place, so a
 writer killed or failing halfway never leaves a file that looks whole under the final name, and an
 existing file stays as it was until the new one is complete. On failure the temporary is removed and
-the error names the final path (never the temporary one). No fsync: this guards against killed
-processes and failed writes, not against power loss.
+the error names the final path (never the temporary one). By default no fsync: this guards against
+killed processes and failed writes, not against power loss; ``durable=True`` also flushes the file and
+its folder to disk before returning, for a write that another file's deletion will rely on (a store
+tile that has absorbed partial maps about to be deleted).
 """
 
 from __future__ import annotations
@@ -24,8 +26,9 @@ def _temporary_name(path: Path) -> Path:
     return path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
 
 
-def write_atomically(path, write: Callable[[BinaryIO], object]) -> Path:
-    """``write(file)`` into a temporary file (binary) beside ``path``, then rename it to ``path``.
+def write_atomically(path, write: Callable[[BinaryIO], object], *, durable: bool = False) -> Path:
+    """``write(file)`` into a temporary file (binary) beside ``path``, then rename it to ``path``
+    (``durable``: on disk, file and rename, when this returns).
 
     Any failure removes the temporary and leaves ``path`` as it was (absent, or the old content); an
     OSError is raised again as an OSError (same errno, so the same subclass) naming ``path``."""
@@ -35,7 +38,16 @@ def write_atomically(path, write: Callable[[BinaryIO], object]) -> Path:
     try:
         with open(temporary, "xb") as f:
             write(f)
+            if durable:
+                f.flush()
+                os.fsync(f.fileno())
         os.replace(temporary, path)
+        if durable:
+            folder = os.open(path.parent, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+            try:
+                os.fsync(folder)
+            finally:
+                os.close(folder)
     except OSError as exc:
         if exc.errno is not None:
             raise OSError(exc.errno, exc.strerror or "write failed", str(path)) from exc
@@ -46,6 +58,7 @@ def write_atomically(path, write: Callable[[BinaryIO], object]) -> Path:
 
 
 def write_bytes_atomically(path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (``write_atomically``); returns the path."""
     return write_atomically(path, lambda f: f.write(data))
 
 
@@ -94,6 +107,7 @@ def _files_under(path: Path) -> list[Path]:
 
 
 def file_sha256(path) -> str:
+    """The SHA-256 of a file's content, hex, read in blocks."""
     import hashlib
 
     digest = hashlib.sha256()

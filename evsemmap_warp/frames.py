@@ -47,6 +47,7 @@ class WorldFrame:
         object.__setattr__(self, "crs", check_crs(self.crs, f"world frame {self.name!r}: crs"))
 
     def as_dict(self) -> dict:
+        """``{"name": ..., "crs": ...}``, as map files and store indexes record it."""
         return {"name": self.name, "crs": self.crs}
 
     @classmethod
@@ -62,10 +63,12 @@ class WorldFrame:
             raise FrameError(f"{where}: {exc}") from None
 
     def describe(self) -> str:
+        """The frame in words for messages, e.g. ``frame 'map' (EPSG:32617)``."""
         return f"frame {self.name!r}" + (f" ({self.crs})" if self.crs else "")
 
 
 def describe_frame(frame: WorldFrame | None) -> str:
+    """``frame.describe()``, or a phrase for maps written before map files recorded their frame (None)."""
     return "no recorded frame (written before maps recorded their frame)" if frame is None else frame.describe()
 
 

@@ -10,16 +10,16 @@ from .kernels.hash_table import INDEX_LIMIT, KEY_BITS, KEY_OFFSET
 
 
 def column_bounds(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-column minimum and maximum of a [N, D] array: the same as min/max(axis=0), which numpy
-    runs ~17x slower on narrow arrays (82 ms against 5 ms for 3M x 3 float32 here)."""
+    """Per-column minimum and maximum of a [N, D] array: the same as min/max(axis=0), which numpy runs much
+    slower on narrow arrays."""
     values = np.asarray(values)
     return (np.array([values[:, d].min() for d in range(values.shape[1])], dtype=values.dtype),
             np.array([values[:, d].max() for d in range(values.shape[1])], dtype=values.dtype))
 
 
 def take_rows(values: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """values[rows] for an [N, ...] array and integer row indices: np.take, which copies rows of a few
-    numbers 2-3x faster than fancy indexing here (3 float32 per row: 20-27 against 67-79 ns)."""
+    """values[rows] for an [N, ...] array and integer row indices: np.take, which copies rows of a few numbers
+    faster than fancy indexing."""
     return np.take(values, rows, axis=0)
 
 
@@ -54,6 +54,7 @@ def pack_voxel_keys(index: np.ndarray) -> np.ndarray:
 
 
 def unpack_voxel_keys(keys: np.ndarray) -> np.ndarray:
+    """The voxel indices [N, 3] int64 that packed keys [N] hold (the inverse of ``pack_voxel_keys``)."""
     field = (1 << KEY_BITS) - 1
     keys = np.asarray(keys, dtype=np.int64)
     return np.stack([(keys >> 42) & field, (keys >> 21) & field, keys & field], axis=1) - KEY_OFFSET

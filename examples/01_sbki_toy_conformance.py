@@ -12,8 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from evsemmap_warp import Mapper, load_config
-from evsemmap_warp.data.datasets import open_dataset
+from evsemmap_warp import Mapper, load_config, open_dataset
 
 REPO = Path(__file__).resolve().parents[1]
 CPP = {"s-csm": {"UNKNOWN": 41329, "FREE": 15813, "OCCUPIED": 6988}, "s-bki": {"UNKNOWN": 0, "FREE": 163872, "OCCUPIED": 52064}}

@@ -2,7 +2,7 @@
 
 Maps the S-BKI toy scans with both methods (sbki compatibility mode), writes the two map files and
 serves them with the viser viewer on http://127.0.0.1:8080: switch maps or show them side by side,
-colour by class, variance, mean input uncertainty or observation count, hide classes, click a voxel.
+color by class, variance, mean input uncertainty or observation count, hide classes, click a voxel.
 
     python examples/02_view_map.py [--device cpu] [--port 8080] [--out-dir .] [--no-serve]
 """
@@ -12,8 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from evsemmap_warp import Mapper, load_config
-from evsemmap_warp.data.datasets import open_dataset
+from evsemmap_warp import Mapper, load_config, open_dataset
 from evsemmap_warp.apps.viewer import MapViewer
 
 REPO = Path(__file__).resolve().parents[1]

@@ -1,7 +1,7 @@
 """Generate a synthetic off-road sequence in the RELLIS-3D layout, project its 2D labels onto its
 LiDAR points (the evaluation's 3D ground truth) and write a debug overlay image.
 
-    python examples/03_synthetic_world.py [--preset tiny] [--out synth_example]
+    python examples/03_synthetic_world.py [--world tiny] [--out synth_example]
 """
 
 import argparse
@@ -15,11 +15,11 @@ from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-parser.add_argument("--preset", default="tiny")
+parser.add_argument("--world", default="tiny")
 parser.add_argument("--out", type=Path, default=Path("synth_example"))
 args = parser.parse_args()
 
-summary = generate_sequence(load_preset(args.preset), args.out / "sequence")
+summary = generate_sequence(load_preset(args.world), args.out / "sequence")
 print(check_sequence(args.out / "sequence").text())
 
 seq = Rellis3DSequence(args.out / "sequence")

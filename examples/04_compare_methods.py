@@ -2,7 +2,7 @@
 API under `evsemmap experiment`. A stand-in "network" gives each pixel a Dirichlet from the 2D
 ground truth, with a share of confidently wrong and of uncertain pixels, so no training is needed.
 
-    python examples/04_compare_methods.py [--preset tiny] [--out compare_example]
+    python examples/04_compare_methods.py [--world tiny] [--out compare_example]
 """
 
 import argparse
@@ -10,9 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from evsemmap_warp import Mapper, load_config
+from evsemmap_warp import Mapper, available_methods, load_config, preset_path
 from evsemmap_warp.classes import class_set, remap_ids
-from evsemmap_warp.config import available_methods, preset_path
 from evsemmap_warp.apps.evaluation import evaluate_map, markdown_table
 from evsemmap_warp.geometry.projection import ProjectionConfig, label_map_for, project_frames
 from evsemmap_warp.data.sequences import Rellis3DSequence
@@ -20,11 +19,11 @@ from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-parser.add_argument("--preset", default="tiny")
+parser.add_argument("--world", default="tiny")
 parser.add_argument("--out", type=Path, default=Path("compare_example"))
 args = parser.parse_args()
 
-generate_sequence(load_preset(args.preset), args.out / "sequence", progress=False)
+generate_sequence(load_preset(args.world), args.out / "sequence", progress=False)
 seq = Rellis3DSequence(args.out / "sequence")
 rng = np.random.default_rng(0)
 

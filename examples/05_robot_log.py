@@ -10,8 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from evsemmap_warp import Mapper, load_config
-from evsemmap_warp.data.datasets import open_dataset
+from evsemmap_warp import Mapper, load_config, open_dataset
 from evsemmap_warp.data.log_writer import LOG_FORMATS, write_log
 from evsemmap_warp.data.logs import check_log
 from evsemmap_warp.synthetic.preset import load_preset

@@ -2,7 +2,7 @@
 (elevation, slope, step, surface class and its uncertainty, traversability cost, lethal mask), write
 them as a GeoTIFF, an npz, PNG previews and a ROS bag, and read the GeoTIFF back (docs/terrain.md).
 
-    python examples/06_terrain_layers.py [--preset tiny] [--out terrain_example] [--device cpu]
+    python examples/06_terrain_layers.py [--world tiny] [--out terrain_example] [--device cpu]
 """
 
 import argparse
@@ -10,20 +10,18 @@ from pathlib import Path
 
 import numpy as np
 
-from evsemmap_warp import Mapper, load_config
-from evsemmap_warp.data.datasets import open_dataset
+from evsemmap_warp import Mapper, load_config, open_dataset
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence
-from evsemmap_warp.terrain import compute_layers
-from evsemmap_warp.terrain.pipeline import write_layers
+from evsemmap_warp.terrain import compute_layers, write_layers
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-parser.add_argument("--preset", default="tiny")
+parser.add_argument("--world", default="tiny")
 parser.add_argument("--out", type=Path, default=Path("terrain_example"))
 parser.add_argument("--device", default="cpu")
 args = parser.parse_args()
 
-generate_sequence(load_preset(args.preset), args.out / "sequence", progress=False, camera=False)
+generate_sequence(load_preset(args.world), args.out / "sequence", progress=False, camera=False)
 run = load_config([str(args.out / "sequence")], method="ebs")
 dataset = open_dataset(run.dataset)
 mapper = Mapper(run.mapping, dataset.num_classes, class_names=dataset.class_names, frame=dataset.frame, device=args.device)

@@ -1,29 +1,25 @@
 """The original S-BKI's block update as a gather kernel (docs/compatibility.md §1) (Warp).
 
 S-BKI predicts, for every test block T (a block holding points or a face neighbour of one), from the
-points of the blocks of T's extended block (T and its 6 face neighbours). Here one thread per test
-block finds or inserts its cells once (one probe of the map's brick cache for a block whose rows are
-consecutive, else one table probe per cell; ``VoxelMap._allocate_brick_cache``), reads those points
-once and weighs each against all of T's cells with the float32 kernel of the scatter form
-(``kernels.scatter`` MODE_SBKI_BLOCKS): no atomics, and a fixed order for every sum. The points
-arrive divided by ell in float32, as the C++ scales them (``scale_points``), and the cells' centres
-are scaled once per block. That float32 kernel is zero from d = 0.984 ell on (every float32 distance
-from 0.95 to 8 ell checked, tests/test_sbki_compat.py), so no reach test is needed beyond the kernel's
-own sign, and a point at 0.99 ell or more from the box of the block's cell centres is skipped with one
-test. Each thread prefetches the cells of the block a few threads ahead. The cell loop is written
-cell by cell, with a branch on the kernel's sign: the compiler turns it into AVX-512 code over a
-block's 8 cells (the kernel in 8 lanes, then masked adds). A form without the branch, which adds
-every cell's value and counts the positive ones, compiles to vector code too and measured slower
-(tools/kernel_study.py keeps both forms and times them). Forms the compiler does not vectorise (the
-offsets squared once per axis, nested per-axis loops, a walk over the set bits of a reach mask)
-measured 1.3-2.4x slower. Reading float32 scaled points instead of float64 ones, without the float64
-reach and box tests, and skipping from 0.99 instead of 1.05 ell, cut the kernel's time by 8-10 %
-(the same map bit for bit; the kernel alone over the last 6 bench scans, alternating with the former
-form in one process: free_res 4 x0.92, free_res 0.5 x0.90).
+points of the blocks of T's extended block (T and its 6 face neighbours). Here one thread per test block
+finds or inserts its cells once (one probe of the map's brick cache for a block whose rows are
+consecutive, else one table probe per cell; ``VoxelMap._allocate_brick_cache``), reads those points once
+and weighs each against all of T's cells with the float32 kernel of the scatter form (``kernels.scatter``
+MODE_SBKI_BLOCKS): no atomics, and a fixed order for every sum. The points arrive divided by ell in
+float32, as the C++ scales them (``scale_points``), and the cells' centers are scaled once per block. That
+float32 kernel is zero from d = 0.984 ell on (every float32 distance from 0.95 to 8 ell checked,
+tests/test_sbki_compat.py), so no reach test is needed beyond the kernel's own sign, and a point at 0.99
+ell or more from the box of the block's cell centers is skipped with one test. Each thread prefetches the
+cells of the block a few threads ahead. The cell loop is written cell by cell, with a branch on the
+kernel's sign: the compiler turns it into AVX-512 code over a block's 8 cells (the kernel in 8 lanes, then
+masked adds). A form without the branch, which adds every cell's value and counts the positive ones,
+compiles to vector code too and measured slower (tools/kernel_study.py keeps both forms and times them);
+forms the compiler does not vectorise measured slower still (docs/performance.md, "Measurements behind the
+code's choices").
 
-The kernel is made per (class count, cells per block) (``gather_sbki_kernel``) from the block gathers'
-one traversal (``block_gather_kernel``: a thread per target block, its cells found or inserted once,
-then the method's sums); its loops are not unrolled (a 4 s cold compile instead of 30 s, at the same speed).
+The kernel is made per (class count, cells per block) (``gather_sbki_kernel``) from the block gathers' one
+traversal (``block_gather_kernel``: a thread per target block, its cells found or inserted once, then the
+method's sums); its loops are not unrolled, which compiles much faster at the same speed.
 
 numpy twin: ``evsemmap_warp/reference/block_gather.py``.
 """
@@ -43,7 +39,7 @@ f64 = wp.float64
 # The float32 S-BKI kernel is zero (not positive) at this distance over ell and beyond (its last
 # positive value is at 0.983759; tests/test_sbki_compat.py checks every float32 distance up to 8).
 SBKI_ZERO_BEYOND = 0.99
-# A point is skipped when its squared distance (over ell) to the box of the block's scaled cell centres is
+# A point is skipped when its squared distance (over ell) to the box of the block's scaled cell centers is
 # at least this: the box distance comes from the same float32 differences as the cells' distances, so no
 # cell is nearer than the box by more than rounding, far inside the margin from 0.984 to 0.99.
 BOX_SKIP_DISTANCE2 = SBKI_ZERO_BEYOND * SBKI_ZERO_BEYOND
@@ -108,7 +104,7 @@ def block_gather_kernel(Inputs, gather_block, *, cells_per_block: int, prefetch:
     that does not fit adds nothing and is flagged in ``failed`` for a relaunch after the table grew) and
     hands them to the method's ``gather_block(scan, b, first, rows, voxel_data) -> float64``, which sums
     the block's source points into its cells' rows and returns how many contributions it added. One Warp
-    module per kernel, its loops not unrolled (a 4 s cold compile instead of 30 s, at the same speed)."""
+    module per kernel, its loops not unrolled (a much faster cold compile at the same speed)."""
     n = cells_per_block
     n3 = n * n * n
     cell_rows = block_rows_type(n3)
@@ -166,7 +162,7 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
         sigma32 = float(scan.sigma0)
         resolution32 = float(scan.resolution)
         offset32 = float(scan.grid_offset)
-        # Per cell, once per block: its centre in float32 divided by ell (as the C++ scales both sides),
+        # Per cell, once per block: its center in float32 divided by ell (as the C++ scales both sides),
         # one coordinate per vector (the cell loops then vectorise).
         scaled_x = cell_floats()
         scaled_y = cell_floats()
@@ -180,8 +176,8 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
         evidence = class_cell_sums()
         weight_sum = cell_scalars()
         hits = cell_scalars()
-        # The scaled cell centres' box (the centres grow with the cell index): a point SBKI_ZERO_BEYOND or
-        # more from it is as far from every cell centre, where the kernel is zero, so one test skips it.
+        # The scaled cell centers' box (the centers grow with the cell index): a point SBKI_ZERO_BEYOND or
+        # more from it is as far from every cell center, where the kernel is zero, so one test skips it.
         box_lo = wp.vec3(scaled_x[0], scaled_y[0], scaled_z[0])
         box_hi = wp.vec3(scaled_x[n3 - 1], scaled_y[n3 - 1], scaled_z[n3 - 1])
         for f in range(scan.sources.shape[1]):
@@ -230,9 +226,8 @@ def extended_block_tables(blocks: wp.array(dtype=wp.vec3i), grid: wp.array3d(dty
     grid: blocks[b] are grid coordinates with grid[blocks[b]] == b (-1 elsewhere, ``marked`` and
     ``marked_columns`` (per x, y) zero, all at least one cell wider than the blocks on every side). Lists
     the test blocks in grid order (x, then y, then z: packed-key order) in tests[:test_count[0]], with
-    sources[t, f] = grid[tests[t] + offsets[f]]. One thread (launch with dim=1): the numpy form's marking
-    and argwhere took ~12 ms per scan; only the z columns holding a test block are walked (the whole
-    grid took 2.3 ms per bench scan at free_res 4)."""
+    sources[t, f] = grid[tests[t] + offsets[f]]. One thread (launch with dim=1), in place of numpy's
+    marking and argwhere; only the z columns holding a test block are walked, not the whole grid."""
     for b in range(blocks.shape[0]):
         for f in range(offsets.shape[0]):
             c = blocks[b] + offsets[f]

@@ -1,13 +1,11 @@
 """Which blocks hold each point, as S-BKI's and the release's inclusive box tests decide (Warp).
 
-Block k spans [k B - B/2, k B + B/2] per axis in float32 (docs/compatibility.md §1): a point on a
-shared face belongs to both blocks. ``block_membership_masks`` finds each point's nearest block (float64
-rounding of p / B) and tests it and its 26 neighbours; one thread walks all points (launch with dim=1),
-as the per-scan preprocessing runs one scan per worker. With the numpy form of the same tests the
-memberships of 10 bench scans at free_resolution 0.5 (3.3 M points) took 0.22 s, with this 0.11 s.
-``membership_counts`` and ``membership_pairs`` then list the (point, block) pairs in the order the
-block gathers sum them, where numpy's 27 selection passes took longer (all 30 bench scans at
-free_resolution 0.5: 0.20-0.22 s for the memberships with them, 0.15 s without).
+Block k spans [k B - B/2, k B + B/2] per axis in float32 (docs/compatibility.md §1): a point on a shared
+face belongs to both blocks. ``block_membership_masks`` finds each point's nearest block (float64 rounding
+of p / B) and tests it and its 26 neighbours; one thread walks all points (launch with dim=1), as the
+per-scan preprocessing runs one scan per worker. ``membership_counts`` and ``membership_pairs`` then list
+the (point, block) pairs in the order the block gathers sum them, in place of numpy's 27 selection passes
+(both faster than their numpy forms: docs/performance.md).
 
 numpy twin: ``evsemmap_warp/reference/block_membership.py``.
 """
@@ -24,9 +22,9 @@ NEAREST_BIT = 13
 def _axis_bits(p: float, k: wp.int64, size: float, half: float) -> int:
     """Bits 0, 1, 2: p lies in block k - 1, k, k + 1 on this axis."""
     below = float(k - wp.int64(1)) * size
-    centre = float(k) * size
+    center = float(k) * size
     above = float(k + wp.int64(1)) * size
-    return (wp.where(below - half <= p and p <= below + half, 1, 0) | wp.where(centre - half <= p and p <= centre + half, 2, 0)
+    return (wp.where(below - half <= p and p <= below + half, 1, 0) | wp.where(center - half <= p and p <= center + half, 2, 0)
             | wp.where(above - half <= p and p <= above + half, 4, 0))
 
 

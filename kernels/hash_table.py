@@ -6,8 +6,8 @@ by a splitmix64 hash of their 2x2x2 brick and linear probing, insertion claims a
 Beside each slot the table keeps its voxel's row (``slot_rows``, row + 1; 0 while the slot is empty):
 rows are handed out densely in insertion order (row = the key count before the insertion), so callers
 keep per-voxel values in ``[rows, ...]`` arrays that keep their rows when the table grows, and a grown
-table rehashes keys and row numbers only. (Values indexed by slot had to be moved row by row at every
-growth and took twice the memory; growing was a quarter of the S-BKI mode's time at free_res 4.) An insertion
+table rehashes keys and row numbers only (values indexed by slot would have to move row by row at
+every growth, and take twice the memory). An insertion
 fails (returns -1) instead of overfilling the table once ``max_count`` keys are in; the host then grows
 the table and re-runs the failed work, so nothing is ever dropped. The block-gather kernels keep a
 second table of the same layout, the brick cache (a block's first cell -> its first row,
@@ -67,6 +67,8 @@ def hash_table(keys, slot_rows, key_count, max_count: int) -> HashTable:
 
 @wp.func
 def pack_key(ix: int, iy: int, iz: int) -> wp.int64:
+    """One int64 key of voxel index (ix, iy, iz), each -2^20 <= i < 2^20 (relative to the map origin): 21
+    bits per axis, offset by 2^20 (``voxel_keys.pack_voxel_keys`` on the host)."""
     return (
         (wp.int64(ix + _KEY_OFFSET) << wp.int64(42))
         | (wp.int64(iy + _KEY_OFFSET) << wp.int64(21))
@@ -76,6 +78,7 @@ def pack_key(ix: int, iy: int, iz: int) -> wp.int64:
 
 @wp.func
 def unpack_key(key: wp.int64) -> wp.vec3i:
+    """The voxel index (ix, iy, iz) a ``pack_key`` key holds."""
     return wp.vec3i(
         int((key >> wp.int64(42)) & _FIELD_MASK) - _KEY_OFFSET,
         int((key >> wp.int64(21)) & _FIELD_MASK) - _KEY_OFFSET,
@@ -85,6 +88,8 @@ def unpack_key(key: wp.int64) -> wp.vec3i:
 
 @wp.func
 def hash_slot(key: wp.int64, mask: int) -> int:
+    """Home slot of ``key`` in a table of ``mask + 1`` slots (a power of two): the eight cells of a 2x2x2
+    brick get neighbouring slots, bricks are spread by the splitmix64 finaliser."""
     # The 2x2x2 brick of cells {2b - 1, 2b} per axis (an S-BKI / release block, at block depth 2)
     # hashes to 8 neighbouring home slots: a block's cells share cache lines and pages of the table
     # and its value rows. The brick's key goes through the splitmix64 finaliser, so neighbouring
@@ -141,16 +146,16 @@ def _prefetch_brick_rows(brick_keys: wp.array(dtype=wp.int64), brick_rows: wp.ar
 @wp.func
 def prefetch_brick(table: HashTable, bricks: HashTable, data: wp.array2d(dtype=wp.float64), first_cell_ahead: wp.vec3i,
                    first_cell_nearer: wp.vec3i, cells: int):
-    """Ask the CPU to start loading a brick's lines of the brick cache and of the table (its cells'
-    slots, for a brick not cached yet), and the value rows of a nearer brick whose cache line was asked
-    for earlier (bricks given by their first cell, lowest index per axis, at their home slots). A hint
-    only, compiled out on CUDA.
+    """Ask the CPU to start loading a brick's lines of the brick cache and of the table (its cells' slots,
+    for a brick not cached yet), and the value rows of a nearer brick whose cache line was asked for
+    earlier (bricks given by their first cell, lowest index per axis, at their home slots). A hint only,
+    compiled out on CUDA.
 
     A serial CPU launch walks its threads in order, and a thread that waits for its brick's cache lines
-    waits alone: the core's reorder window holds about one block's work. Kernels that visit one brick
-    per thread call this with the bricks PREFETCH_AHEAD and PREFETCH_NEARER threads ahead: the
-    rows' place is read from a cache line that has arrived by then (finding a brick's 8 stored cells:
-    ~285 -> ~100 ns; tools/kernel_study.py times the gather kernels with and without it)."""
+    waits alone: the core's reorder window holds about one block's work. Kernels that visit one brick per
+    thread call this with the bricks PREFETCH_AHEAD and PREFETCH_NEARER threads ahead: the rows' place is
+    read from a cache line that has arrived by then (tools/kernel_study.py times the gather kernels with
+    and without it)."""
     ahead = pack_key(first_cell_ahead[0], first_cell_ahead[1], first_cell_ahead[2])
     _prefetch_slot(bricks.keys, bricks.slot_rows, hash_slot(ahead, bricks.keys.shape[0] - 1))
     _prefetch_slot(table.keys, table.slot_rows, hash_slot(ahead, table.keys.shape[0] - 1))
@@ -280,12 +285,16 @@ def find_block_rows(rows: Any, table: HashTable, bricks: HashTable, first: wp.ve
 
 @wp.kernel
 def insert_keys(keys_in: wp.array(dtype=wp.int64), table: HashTable, rows_out: wp.array(dtype=int)):
+    """Kernel, one thread per key: rows_out[i] = the row of keys_in[i], inserting it if absent
+    (``table_find_or_insert``; -1 when the table is at its fill limit)."""
     i = wp.tid()
     rows_out[i] = table_find_or_insert(table, keys_in[i])
 
 
 @wp.kernel
 def lookup_keys(keys_in: wp.array(dtype=wp.int64), table: HashTable, rows_out: wp.array(dtype=int)):
+    """Kernel, one thread per key: rows_out[i] = the row of keys_in[i], or -1 when it is absent
+    (``table_find``)."""
     i = wp.tid()
     rows_out[i] = table_find(table, keys_in[i])
 
@@ -339,6 +348,14 @@ def rehash(
                 new_slot_rows[slot] = old_slot_rows[i]
                 return
             slot = (slot + 1) & mask
+
+
+@wp.kernel
+def read_counters(key_count: wp.array(dtype=int), update_count: wp.array(dtype=wp.int64), out: wp.array(dtype=wp.int64)):
+    """Kernel, one thread: out = (a table's key count, a launch's update count), so that the host reads
+    a launch's outcome back in one copy."""
+    out[0] = wp.int64(key_count[0])
+    out[1] = update_count[0]
 
 
 @wp.kernel

@@ -6,7 +6,7 @@ clean sparse kernel with Bayes fusion.
    traversal, ``kernels.scatter.walk_kernel``, with a marking visit).
 2. ``gather_voxels``: one thread per reached voxel finds or inserts it in the map once, asks the hash
    grid of the scan's points for its neighbours within the longest length, keeps those whose own
-   length reaches the voxel centre, and adds their sums into its row once. No atomics on the map; the
+   length reaches the voxel center, and adds their sums into its row once. No atomics on the map; the
    neighbour order is fixed by the grid build, so the map does not depend on threads or devices.
 
 numpy twin: ``evsemmap_warp/reference/hashgrid_gather.py``.
@@ -16,7 +16,7 @@ import warp as wp
 
 from .hash_table import HashTable, pack_key, table_find_or_insert, unpack_key
 from .scatter import (_EXTRA, _ZERO, REACH_BALL, MapTarget, ScanPoints, ScatterParams, Span, Visit, add_label_evidence,
-                      add_weighted_evidence, centre_offset, count_from_zero, end_nothing, sparse_kernel, tally_row, walk_kernel)
+                      add_weighted_evidence, center_offset, count_from_zero, end_nothing, sparse_kernel, tally_row, walk_kernel)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -60,19 +60,19 @@ def _gather_kernel(evidence):
             out.failed[s] = 1
             return
         v = unpack_key(key)
-        centre = wp.vec3d(centre_offset(v[0], params.resolution, params.grid_offset, _ZERO),
-                          centre_offset(v[1], params.resolution, params.grid_offset, _ZERO),
-                          centre_offset(v[2], params.resolution, params.grid_offset, _ZERO))
+        center = wp.vec3d(center_offset(v[0], params.resolution, params.grid_offset, _ZERO),
+                          center_offset(v[1], params.resolution, params.grid_offset, _ZERO),
+                          center_offset(v[2], params.resolution, params.grid_offset, _ZERO))
         weight_sum = _ZERO
         weighted_u = _ZERO
         hits = int(0)
-        query = wp.hash_grid_query(grid, centre, longest)
+        query = wp.hash_grid_query(grid, center, longest)
         i = int(0)
         while wp.hash_grid_query_next(query, i):
             p = scan.points[i]
-            dx = centre[0] - p[0]
-            dy = centre[1] - p[1]
-            dz = centre[2] - p[2]
+            dx = center[0] - p[0]
+            dy = center[1] - p[1]
+            dz = center[2] - p[2]
             d2 = dx * dx + dy * dy + dz * dz
             length = scan.lengths[i]
             if d2 < length * length:
@@ -101,6 +101,8 @@ KERNEL_FACTORIES = {"gather_voxels": gather_voxels_kernel}
 
 
 def reached_keys(keys: HashTable, failed) -> ReachedKeys:
+    """The ``ReachedKeys`` struct over a key set (``hash_table``) and its ``failed`` [1] flag (host side, no
+    copy)."""
     out = ReachedKeys()
     out.keys = keys
     out.failed = failed

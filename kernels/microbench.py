@@ -11,6 +11,8 @@ wp.set_module_options({"enable_backward": False})
 
 @wp.kernel
 def stream_copy(src: wp.array(dtype=wp.float64), dst: wp.array(dtype=wp.float64)):
+    """Kernel, one thread per element: dst[i] = src[i] (float64), the streaming-bandwidth roof of the kernel
+    study."""
     i = wp.tid()
     dst[i] = src[i]
 
@@ -25,6 +27,8 @@ def add_rows64(rows: wp.array(dtype=int), weights: wp.array(dtype=wp.float64), d
 
 @wp.kernel
 def add_rows32(rows: wp.array(dtype=int), weights: wp.array(dtype=wp.float32), data: wp.array2d(dtype=wp.float32)):
+    """Kernel, one thread per update: atomically adds weights[t] to every column of float32 row rows[t] of
+    ``data`` (the float32 side of the study's precision comparison)."""
     t = wp.tid()
     for c in range(data.shape[1]):
         wp.atomic_add(data, rows[t], c, weights[t])

@@ -1,12 +1,12 @@
 """Stable least-significant-digit radix sort of int64 values by a bit field, for host preprocessing (Warp).
 
-The callers pack a key above each value's position (``methods.sbki_compat.stable_sort``) and sort by
-the key bits only. Each kernel runs as one thread (launch with dim=1 on the CPU): the per-scan
-preprocessing already runs one scan per worker thread, and a sequential pass streams through memory
-in order. The digit histograms come from one read per three passes (``digit_histograms``); each pass then
-moves the values into their digit's range (``radix_scatter``) in input order, which is what makes the
-sort stable. Measured here: ~5 ns per value and pass at up to 10-bit digits (~9 at 11 bits, where the
-write streams outgrow the TLB), against 50-85 ns per value for numpy's sort, which is scalar here.
+The callers pack a key above each value's position (``methods.sbki_compat.stable_sort``) and sort by the
+key bits only. Each kernel runs as one thread (launch with dim=1 on the CPU): the per-scan preprocessing
+already runs one scan per worker thread, and a sequential pass streams through memory in order. The digit
+histograms come from one read per three passes (``digit_histograms``); each pass then moves the values
+into their digit's range (``radix_scatter``) in input order, which is what makes the sort stable. Digits
+of up to 10 bits keep the write streams within the TLB. Against numpy's sort, which is scalar on the CPU:
+docs/performance.md.
 
 numpy twin: ``evsemmap_warp/reference/radix_sort.py``.
 """
@@ -23,10 +23,9 @@ HISTOGRAM_PASSES = 3
 @wp.kernel
 def digit_histograms(values: wp.array(dtype=wp.int64), lowest_bit: int, digit_bits: int, passes: int,
                      first: wp.array(dtype=int), second: wp.array(dtype=int), third: wp.array(dtype=int)):
-    """Counts of the digits of up to three passes (bits lowest_bit + p * digit_bits and up, p < passes):
-    pass 0 in ``first``, 1 in ``second``, 2 in ``third`` (arrays of the passes not counted are not
-    touched). Three flat arrays rather than one [passes, digits] array with a loop over passes: 3.9
-    against 7.1 ns per value at three passes."""
+    """Counts of the digits of up to three passes (bits lowest_bit + p * digit_bits and up, p < passes): pass
+    0 in ``first``, 1 in ``second``, 2 in ``third`` (arrays of the passes not counted are not touched).
+    Three flat arrays rather than one [passes, digits] array with a loop over passes, which is slower."""
     mask = (wp.int64(1) << wp.int64(digit_bits)) - wp.int64(1)
     shift0 = wp.int64(lowest_bit)
     shift1 = wp.int64(lowest_bit + digit_bits)

@@ -19,6 +19,9 @@ def cast_rays(
     face: wp.array(dtype=int),  # out: hit triangle, -1 for a miss
     normal: wp.array(dtype=wp.vec3),  # out: unit geometric normal of the hit triangle
 ):
+    """Kernel, one thread per ray: the first hit of ray i (origin, unit direction; m, the mesh's frame) on
+    the Warp mesh ``mesh`` within ``max_distance``: its distance, triangle and unit geometric normal, or
+    -1 (distance and face) for a miss."""
     i = wp.tid()
     query = wp.mesh_query_ray(mesh, origins[i], directions[i], max_distance)
     if query.result:

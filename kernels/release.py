@@ -1,25 +1,22 @@
 """The released EvSemMap's block models as one gather kernel (docs/compatibility.md §4) (Warp).
 
-In the release every block holding points trains a model on the points of its extended block (itself
-and its 6 face neighbours) and predicts for the blocks of that extended block that hold points. So a
-point of block M reaches a target block T through every occupied model block N with N in M's
-extended block and T in N's; targets lie within L1 distance 2 of M. Here each target block is one
-thread: it finds or inserts its cells once (through the map's brick cache, as ``kernels.block_gather``
-does), then walks the points of its up to 25 source blocks once,
-each weighted by how many models carry it (``block_models`` computes both tables), against all of its
-cells: a point's kernel values for all cells without branches, which the compiler turns into vector
-code (8 cells per AVX-512 register), and the Bayes sums as vectors over the cells. No model is ever
-built, no atomics are used, and the order of every sum is fixed, so the map does not depend on threads. Dempster fusion multiplies
-commonality ratios and takes their logarithm every 40 factors instead of once per contribution.
+In the release every block holding points trains a model on the points of its extended block (itself and
+its 6 face neighbours) and predicts for the blocks of that extended block that hold points. So a point of
+block M reaches a target block T through every occupied model block N with N in M's extended block and T
+in N's; targets lie within L1 distance 2 of M. Here each target block is one thread: it finds or inserts
+its cells once (through the map's brick cache, as ``kernels.block_gather`` does), then walks the points of
+its up to 25 source blocks once, each weighted by how many models carry it (``block_models`` computes both
+tables), against all of its cells: a point's kernel values for all cells without branches, which the
+compiler turns into vector code (8 cells per AVX-512 register), and the Bayes sums as vectors over the
+cells. No model is ever built, no atomics are used, and the order of every sum is fixed, so the map does
+not depend on threads. Dempster fusion multiplies commonality ratios and takes their logarithm every 40
+factors instead of once per contribution.
 
-On the shared bench this form took about half the time of one thread per cell adding into the table
-row per contribution (measured while building it; tools/bench_integrate.py has the current figures).
 The gather kernel is made per (class count, cells per block, fusion) (``gather_release_kernel``) from the
-block gathers' one traversal (``kernels.block_gather.block_gather_kernel``); its loops are not unrolled
-(a 4 s cold compile instead of 30 s, at the same speed).
+block gathers' one traversal (``kernels.block_gather.block_gather_kernel``); its loops are not unrolled (a
+much faster cold compile at the same speed).
 
-numpy twins: ``evsemmap_warp/reference/release.py`` (a literal block-by-block model loop, and the
-tables).
+numpy twins: ``evsemmap_warp/reference/release.py`` (a literal block-by-block model loop, and the tables).
 """
 
 import functools
@@ -40,7 +37,7 @@ def _sparse_kernel_polynomial(degree: int = 14):
     """Power-series coefficients in s = 2x - 1 of the sparse kernel's shape on x = d / l in [0, 1],
     k(x) = (2 + cos 2 pi x)(1 - x) / 3 + sin(2 pi x) / (2 pi), from a Chebyshev fit: max error 2.5e-9,
     below float32's resolution of the release's own float32 arithmetic; a few FMAs where the C++ calls
-    float32 cos and sin (the largest single cost per candidate when this was built)."""
+    float32 cos and sin."""
     import numpy as np
     from numpy.polynomial import chebyshev
 
@@ -138,7 +135,7 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, fusion:
     class_cell_sums = wp.types.matrix(shape=(num_classes, n3), dtype=wp.float64)
     cell_scalars = wp.types.vector(length=n3, dtype=wp.float64)
     cell_rows = block_rows_type(n3)
-    cell_centres = wp.types.matrix(shape=(n3, 3), dtype=wp.float32)
+    cell_centers = wp.types.matrix(shape=(n3, 3), dtype=wp.float32)
 
     @wp.func
     def gather_release_block(scan: Inputs, b: int, first: wp.vec3i, rows: cell_rows, voxel_data: wp.array2d(dtype=wp.float64)) -> wp.float64:
@@ -147,13 +144,13 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, fusion:
         every cell (independent chains the CPU overlaps); then k(d) * y (Bayes) or the log commonality
         ratios (Dempster) and the bookkeeping columns go into each cell's row once. Returns the
         contributions."""
-        centres = cell_centres()
+        centers = cell_centers()
         for j in range(n3):
             cell = block_cell(first, j, n)
-            centre = sbki_voxel_center(cell[0], cell[1], cell[2], scan.resolution, 0.0)
-            centres[j, 0] = centre[0]
-            centres[j, 1] = centre[1]
-            centres[j, 2] = centre[2]
+            center = sbki_voxel_center(cell[0], cell[1], cell[2], scan.resolution, 0.0)
+            centers[j, 0] = center[0]
+            centers[j, 1] = center[1]
+            centers[j, 2] = center[2]
         sigma0 = scan.sigma0
         reach = float(scan.length)
         reach2 = reach * reach
@@ -183,9 +180,9 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, fusion:
                     # adding 0 leaves a sum as it was.
                     weights = cell_scalars()
                     for j in range(n3):
-                        dx = centres[j, 0] - p[0]
-                        dy = centres[j, 1] - p[1]
-                        dz = centres[j, 2] - p[2]
+                        dx = centers[j, 0] - p[0]
+                        dy = centers[j, 1] - p[1]
+                        dz = centers[j, 2] - p[2]
                         d2 = dx * dx + dy * dy + dz * dz
                         weights[j] = wp.where(d2 < reach2, f64(release_sparse_kernel(d2, inverse_length, sigma0)), _ZERO)
                     if wp.static(dempster):
@@ -244,6 +241,8 @@ class BlockLookup:
 
 @wp.func
 def grid_block_index(lookup: BlockLookup, b: wp.vec3i) -> int:
+    """Index of block ``b`` (block coordinates) in a dense ``BlockLookup``'s grid; -1 where no block of the
+    scan is."""
     g = b - lookup.lo
     return lookup.grid[g[0], g[1], g[2]]
 
@@ -278,8 +277,8 @@ def _block_models_kernel(block_index):
         -1 none) and the number of its models that predict for blocks[b]. Those models are the occupied
         blocks blocks[b] + f (f a face offset or 0) that also lie in the source's extended block, so the
         count is models_by_mask[o, mask of the occupied f]: 7 lookups per block where testing every (o, f)
-        took 25 x 7. One thread per block (one per block and offset took ~1.5x as long on the CPU, where
-        each thread has a fixed cost)."""
+        took 25 x 7. One thread per block, not per block and offset: on the CPU each thread has a fixed
+        cost."""
         b = wp.tid()
         occupied = int(0)
         for f in range(face_offsets.shape[0]):
@@ -303,6 +302,8 @@ def block_models_kernel(dense: bool):
 
 
 def block_lookup(*, grid=None, lo=(0, 0, 0), keys=None) -> BlockLookup:
+    """The ``BlockLookup`` struct (host side, no copy): a dense ``grid`` [X, Y, Z] of block indices from
+    block coordinates ``lo``, or the scan's sorted packed block ``keys``."""
     lookup = BlockLookup()
     if grid is not None:
         lookup.grid = grid

@@ -8,7 +8,7 @@ voxel, a *visit* (small ``@wp.func``s captured with ``wp.static``); the scatter,
 scatter's visit is built from a weight rule (one ``@wp.func`` per method) and an evidence rule (one per
 payload kind and fusion); ``mode`` picks where a point reaches and its weight rule:
 
-* ``MODE_RADIUS``: the paper's sparse kernel k'(d, l_i, sigma0) on every voxel whose centre lies
+* ``MODE_RADIUS``: the paper's sparse kernel k'(d, l_i, sigma0) on every voxel whose center lies
   strictly within the point's own length l_i (S-BKI, EBS and the ablations, "clean" mode).
 * ``MODE_OWN_VOXEL``: weight 1 on the voxel containing the point (S-CSM, clean mode).
 * ``MODE_SBKI_BLOCKS``: the original S-BKI rule: the sparse kernel evaluated as the C++ does
@@ -16,7 +16,7 @@ payload kind and fusion); ``mode`` picks where a point reaches and its weight ru
   point's owner block or one of its 6 face neighbours.
 * ``MODE_SBKI_OWN_BLOCK``: the original S-CSM rule: weight 1 on the owner block's single cell.
 * ``MODE_STENCIL``: ConvBKI: every voxel of the (2h + 1)^3 cube around the point's voxel, with a
-  per-class weight looked up by offset in ``stencil_weights`` (distances between voxel centres).
+  per-class weight looked up by offset in ``stencil_weights`` (distances between voxel centers).
 
 ``fusion`` 1 (Dempster-Shafer, docs/algorithm.md §3.7, radius mode): instead of adding w * y, each point's belief
 masses b (``class_weights``) are discounted by min(w, 1) and the voxel accumulates the log
@@ -145,8 +145,8 @@ def sincos_float32(a: float) -> wp.vec2:
     The argument is reduced to |r| <= pi/4 around the nearest multiple of pi/2, where Taylor series to
     r^11 and r^12 are accurate to 1e-11, far below float32's resolution: the result is the correctly
     rounded float32 except where the exact value lies within ~1e-11 ulp of a rounding boundary
-    (tests/test_scatter.py). libm's sinf and cosf are calls the compiler cannot inline or vectorise and
-    took about a third of the S-BKI gather kernel; this form is inline FMAs, identical on every device,
+    (tests/test_scatter.py). libm's sinf and cosf are calls the compiler cannot inline or vectorise (their
+    cost: docs/performance.md); this form is inline FMAs, identical on every device,
     and closer to the exact value (glibc's float32 results are off the correctly rounded ones for
     ~1.3 % of arguments here, numpy's for ~15 %)."""
     x = f64(a)
@@ -182,7 +182,7 @@ def sbki_sparse_kernel_scaled(cell: wp.vec3, point: wp.vec3, sf2: float) -> floa
 
 @wp.func
 def sbki_sparse_kernel(cell: wp.vec3, point: wp.vec3, ell: float, sf2: float) -> float:
-    """``sbki_sparse_kernel_scaled`` of the cell centre and the point, each divided by ell as the C++ does."""
+    """``sbki_sparse_kernel_scaled`` of the cell center and the point, each divided by ell as the C++ does."""
     return sbki_sparse_kernel_scaled(cell / ell, point / ell, sf2)
 
 
@@ -190,7 +190,7 @@ def sbki_sparse_kernel(cell: wp.vec3, point: wp.vec3, ell: float, sf2: float) ->
 
 @wp.func
 def sbki_voxel_center(ix: int, iy: int, iz: int, resolution: float, grid_offset: float) -> wp.vec3:
-    """A cell centre in float32, as the compat kernel evaluates it."""
+    """A cell center in float32, as the compat kernel evaluates it."""
     return wp.vec3(
         (float(ix) + 0.5) * resolution + grid_offset,
         (float(iy) + 0.5) * resolution + grid_offset,
@@ -200,6 +200,8 @@ def sbki_voxel_center(ix: int, iy: int, iz: int, resolution: float, grid_offset:
 
 @wp.func
 def voxel_center(ix: int, iy: int, iz: int, resolution: wp.float64, grid_offset: wp.float64) -> wp.vec3d:
+    """Center (m, relative to the map origin) of voxel (ix, iy, iz) on the lattice of edge ``resolution``
+    offset by ``grid_offset``."""
     return wp.vec3d(
         (f64(ix) + _HALF) * resolution + grid_offset,
         (f64(iy) + _HALF) * resolution + grid_offset,
@@ -209,11 +211,14 @@ def voxel_center(ix: int, iy: int, iz: int, resolution: wp.float64, grid_offset:
 
 @wp.func
 def voxel_of(p: wp.float64, resolution: wp.float64, grid_offset: wp.float64) -> int:
+    """Index of the voxel holding coordinate ``p`` (m, relative to the map origin) on one axis: floor((p -
+    grid_offset) / resolution)."""
     return int(wp.floor((p - grid_offset) / resolution))
 
 
 @wp.func
 def block_of_voxel(i: int, cells_per_block: int) -> int:
+    """Index of the S-BKI block (``cells_per_block`` cells a side) that holds voxel ``i`` on one axis."""
     # Cell j of block b is voxel b * n - n / 2 + j (n even), or voxel b when n == 1.
     half = cells_per_block / 2
     q = i + half
@@ -340,7 +345,7 @@ class WeightRule:
     """What a point gives a voxel it reaches. ``screen`` (scan, params, i, cell, span) -> float64: positive
     where the voxel takes part at all (both passes: a voxel screened out is not even inserted);
     ``weight`` (scan, params, i, p, cell, d2, span, screened) -> float64, in the adding pass, d2 the
-    squared distance (m^2) from the point to the voxel centre; ``positive_only``: nothing is added
+    squared distance (m^2) from the point to the voxel center; ``positive_only``: nothing is added
     where the weight is not positive (the C++ S-BKI adds only positive kernel values)."""
 
     screen: Any
@@ -357,6 +362,7 @@ def stencil_row(cell: wp.vec3i, owner: wp.vec3i, half: int) -> int:
 
 @wp.func
 def every_voxel(scan: ScanPoints, params: ScatterParams, i: int, cell: wp.vec3i, span: Span) -> wp.float64:
+    """A ``screen`` that lets every voxel in a point's span take part (weight 1)."""
     return _ONE
 
 
@@ -388,10 +394,10 @@ def count_weight(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d, c
 @wp.func
 def sbki_compat_weight(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d, cell: wp.vec3i, d2: wp.float64, span: Span,
                        screened: wp.float64) -> wp.float64:
-    """The original S-BKI: its float32 sparse kernel of the float32 point, cell centre, ell and sf2."""
-    centre = sbki_voxel_center(cell[0], cell[1], cell[2], float(params.resolution), float(params.grid_offset))
+    """The original S-BKI: its float32 sparse kernel of the float32 point, cell center, ell and sf2."""
+    center = sbki_voxel_center(cell[0], cell[1], cell[2], float(params.resolution), float(params.grid_offset))
     point = wp.vec3(float(p[0]), float(p[1]), float(p[2]))
-    return f64(sbki_sparse_kernel(centre, point, float(scan.lengths[i]), float(params.sigma0)))
+    return f64(sbki_sparse_kernel(center, point, float(scan.lengths[i]), float(params.sigma0)))
 
 
 @wp.func
@@ -402,9 +408,9 @@ def convbki_weight(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d,
 
 
 @wp.func
-def see_csom_weight(centre: wp.vec3d, p: wp.vec3d, length: wp.float64) -> wp.float64:
+def see_csom_weight(center: wp.vec3d, p: wp.vec3d, length: wp.float64) -> wp.float64:
     """SEE-CSOM's triangular kernel max(0, 1 - d / l)."""
-    return wp.max(_ONE - wp.length(centre - p) / length, _ZERO)
+    return wp.max(_ONE - wp.length(center - p) / length, _ZERO)
 
 
 SPARSE_RULE = WeightRule(every_voxel, sparse_weight)
@@ -434,7 +440,7 @@ def _own_voxel(p: wp.vec3d, params: ScatterParams) -> wp.vec3i:
 
 @wp.func
 def ball_span(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d) -> Span:
-    """Voxels whose centre lies within the point's length."""
+    """Voxels whose center lies within the point's length."""
     return _ball(p, scan.lengths[i], wp.vec3i(0, 0, 0), params)
 
 
@@ -480,8 +486,8 @@ _SPAN_OF = {REACH_BALL: ball_span, REACH_BLOCK_BALL: block_ball_span, REACH_OWN_
 
 
 @wp.func
-def centre_offset(i: int, resolution: wp.float64, grid_offset: wp.float64, p: wp.float64) -> wp.float64:
-    """Voxel i's centre minus p on one axis (m)."""
+def center_offset(i: int, resolution: wp.float64, grid_offset: wp.float64, p: wp.float64) -> wp.float64:
+    """Voxel i's center minus p on one axis (m)."""
     return (f64(i) + _HALF) * resolution + grid_offset - p
 
 
@@ -565,16 +571,16 @@ def walk_kernel(reach: int, visit: Visit, *, module: str):
         counter = wp.static(visit.begin)(scan, out, t, i)
         for pass_index in range(wp.static(first_pass), 2):
             for ix in range(span.lo[0], span.hi[0] + 1):
-                dx = centre_offset(ix, params.resolution, params.grid_offset, p[0])
+                dx = center_offset(ix, params.resolution, params.grid_offset, p[0])
                 bx = block_steps(ix, span.owner[0], params)
                 if reached(dx * dx, bx, span):
                     for iy in range(span.lo[1], span.hi[1] + 1):
-                        dy = centre_offset(iy, params.resolution, params.grid_offset, p[1])
+                        dy = center_offset(iy, params.resolution, params.grid_offset, p[1])
                         dxy2 = dx * dx + dy * dy
                         bxy = bx + block_steps(iy, span.owner[1], params)
                         if reached(dxy2, bxy, span):
                             for iz in range(span.lo[2], span.hi[2] + 1):
-                                dz = centre_offset(iz, params.resolution, params.grid_offset, p[2])
+                                dz = center_offset(iz, params.resolution, params.grid_offset, p[2])
                                 d2 = dxy2 + dz * dz
                                 if reached(d2, bxy + block_steps(iz, span.owner[2], params), span):
                                     cell = wp.vec3i(ix, iy, iz)
@@ -763,9 +769,9 @@ def weight_rule_kernel(mode: int):
         p = scan.points[i]
         cell = pair_cell[k]
         span = wp.static(span_of)(scan, params, i, p)
-        dx = centre_offset(cell[0], params.resolution, params.grid_offset, p[0])
-        dy = centre_offset(cell[1], params.resolution, params.grid_offset, p[1])
-        dz = centre_offset(cell[2], params.resolution, params.grid_offset, p[2])
+        dx = center_offset(cell[0], params.resolution, params.grid_offset, p[0])
+        dy = center_offset(cell[1], params.resolution, params.grid_offset, p[1])
+        dz = center_offset(cell[2], params.resolution, params.grid_offset, p[2])
         d2 = dx * dx + dy * dy + dz * dz
         screened = wp.static(rule.screen)(scan, params, i, cell, span)
         w = _ZERO
@@ -794,6 +800,8 @@ def scan_points(*, point_ids=None, points=None, lengths=None, uncertainty=None, 
 
 def scatter_params(*, resolution: float, grid_offset: float, sigma0: float = 1.0, cells_per_block: int = 1, stencil_weights=None,
                    stencil_half: int = 0) -> ScatterParams:
+    """The ``ScatterParams`` struct (host side): the lattice (``resolution``, ``grid_offset``, m) and the
+    weight rules' numbers; ``stencil_weights`` [(2h + 1)^3, K] and ``stencil_half`` h for ConvBKI."""
     params = ScatterParams()
     params.resolution = wp.float64(resolution)
     params.grid_offset = wp.float64(grid_offset)
@@ -806,6 +814,8 @@ def scatter_params(*, resolution: float, grid_offset: float, sigma0: float = 1.0
 
 
 def map_target(table: HashTable, voxel_data, failed, update_count) -> MapTarget:
+    """The ``MapTarget`` struct (host side, no copy): the voxel table, its value rows, the per-thread
+    ``failed`` flags and the update counter a launch writes to."""
     target = MapTarget()
     target.table = table
     target.voxel_data = voxel_data

@@ -76,6 +76,8 @@ expand_pairs = walk_kernel(REACH_BALL, Visit(PairList, _from_offset, _write_pair
 
 @wp.kernel
 def mark_heads(sorted_keys: wp.array(dtype=wp.int64), heads: wp.array(dtype=int)):
+    """Kernel, one thread per sorted pair: heads[i] = 1 where a run of equal keys starts (i = 0 or a key
+    other than the one before), else 0."""
     i = wp.tid()
     if i == 0 or sorted_keys[i] != sorted_keys[i - 1]:
         heads[i] = 1
@@ -146,18 +148,23 @@ KERNEL_FACTORIES = {"reduce_voxels": reduce_voxels_kernel}
 
 
 def sorted_pairs(*, starts, count: int, keys, ids, point, weight) -> SortedPairs:
+    """The ``SortedPairs`` struct (host side, no copy) over the sorted pairs and the start of each distinct
+    key's run."""
     pairs = SortedPairs()
     pairs.starts, pairs.count, pairs.keys, pairs.ids, pairs.point, pairs.weight = starts, int(count), keys, ids, point, weight
     return pairs
 
 
 def pair_counts(counts) -> PairCounts:
+    """The ``PairCounts`` struct (host side, no copy): ``counts`` [N], the voxels each point reaches."""
     out = PairCounts()
     out.counts = counts
     return out
 
 
 def pair_list(*, offsets, keys, ids, point, weight) -> PairList:
+    """The ``PairList`` struct (host side, no copy): where each point's pairs start, and the pairs' keys,
+    ids, points and weights."""
     out = PairList()
     out.offsets, out.keys, out.ids, out.point, out.weight = offsets, keys, ids, point, weight
     return out

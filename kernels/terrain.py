@@ -2,7 +2,7 @@
 neighbourhood filters on the cell grid (docs/terrain.md).
 
 Cells: cell (i, j) of a grid spans x in [x0 + i * cell, x0 + (i + 1) * cell), y likewise with row j
-(j grows with y here; the Python layer turns grids north-up). A voxel belongs to the cell its centre
+(j grows with y here; the Python layer turns grids north-up). A voxel belongs to the cell its center
 falls in. Voxel indices arrive relative to a reference voxel (``shift`` is that voxel's lower corner
 minus the grid's lower corner, m), so every number stays small however far the map lies from (0, 0, 0).
 
@@ -34,18 +34,21 @@ _ROW_MASK = wp.constant(wp.int64((1 << 32) - 1))
 
 @wp.func
 def pack_voxel(z: int, row: int) -> wp.int64:
+    """A column entry as one int64, (z + Z_OFFSET) << 32 | row, so that an atomic max picks the highest voxel
+    (z index, then row)."""
     return ((wp.int64(z) + _Z_OFFSET) << wp.int64(32)) | wp.int64(row)
 
 
 @wp.func
 def packed_z(key: wp.int64) -> int:
+    """The z index a ``pack_voxel`` entry holds."""
     return int((key >> wp.int64(32)) - _Z_OFFSET)
 
 
 @wp.func
 def cell_of(v: wp.vec3i, voxel_m: wp.float64, shift_x: wp.float64, shift_y: wp.float64, cell_m: wp.float64,
             width: int, height: int, z_low: int, z_high: int) -> int:
-    """The cell (j * width + i) holding voxel v's centre, -1 outside the grid or the z range."""
+    """The cell (j * width + i) holding voxel v's center, -1 outside the grid or the z range."""
     if v[2] < z_low or v[2] > z_high:
         return -1
     i = int(wp.floor(((wp.float64(v[0]) + wp.float64(0.5)) * voxel_m + shift_x) / cell_m))
@@ -110,8 +113,8 @@ def plane_fit(height_m: wp.array2d(dtype=wp.float64), radius: int, cell_m: wp.fl
     rows = height_m.shape[0]
     columns = height_m.shape[1]
     nan = wp.float64(wp.nan)
-    centre = height_m[j, i]
-    if wp.isnan(centre):
+    center = height_m[j, i]
+    if wp.isnan(center):
         slope_deg[j, i] = nan
         roughness_m[j, i] = nan
         return
@@ -134,7 +137,7 @@ def plane_fit(height_m: wp.array2d(dtype=wp.float64), radius: int, cell_m: wp.fl
                 if not wp.isnan(z):
                     x = wp.float64(di) * cell_m
                     y = wp.float64(dj) * cell_m
-                    z = z - centre
+                    z = z - center
                     n += wp.float64(1.0)
                     sx += x
                     sy += y
@@ -174,9 +177,9 @@ def max_step(height_m: wp.array2d(dtype=wp.float64), radius: int, step_m: wp.arr
     j, i = wp.tid()
     rows = height_m.shape[0]
     columns = height_m.shape[1]
-    centre = height_m[j, i]
+    center = height_m[j, i]
     best = wp.float64(-1.0)
-    if not wp.isnan(centre):
+    if not wp.isnan(center):
         for dj in range(-radius, radius + 1):
             for di in range(-radius, radius + 1):
                 jj = j + dj
@@ -184,7 +187,7 @@ def max_step(height_m: wp.array2d(dtype=wp.float64), radius: int, step_m: wp.arr
                 if (dj != 0 or di != 0) and jj >= 0 and jj < rows and ii >= 0 and ii < columns:
                     z = height_m[jj, ii]
                     if not wp.isnan(z):
-                        best = wp.max(best, wp.abs(z - centre))
+                        best = wp.max(best, wp.abs(z - center))
     if best < wp.float64(0.0):
         step_m[j, i] = wp.float64(wp.nan)
     else:

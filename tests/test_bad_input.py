@@ -299,7 +299,7 @@ def test_project_refuses_images_of_another_size_than_the_camera(tmp_path, capsys
     ("- 1\n", "expected a mapping of sections"),
     ("networks:\n  a: {epochs: .nan}\n", "epochs = nan must be a finite number"),
     ("projection: {fov_margin_deg: 400}\n", "fov_margin_deg must lie in"),
-    ("networks:\n  a: {train_on: [s], epochs: 2}\nsequences:\n  s: {preset: tiny, frames: -3}\n", "frames"),
+    ("networks:\n  a: {train_on: [s], epochs: 2}\nsequences:\n  s: {world: tiny, frames: -3}\n", "frames"),
 ])
 def test_bad_experiment_config_is_one_line(tmp_path, capsys, text, pattern):
     path = tmp_path / "study.yaml"
@@ -365,7 +365,7 @@ def test_broken_sequence_is_one_line_naming_the_file(tmp_path, capsys, tiny_sequ
 @pytest.mark.parametrize("argv,pattern", [
     (["map", "{junk}", "--method", "ebs", "--out", "{tmp}/m.npz"], "not a text file"),
     (["experiment", "{junk}"], "not a text file"),
-    (["synth", "--preset", "{junk}", "--out", "{tmp}/s"], "not a text file"),
+    (["synth", "--world", "{junk}", "--out", "{tmp}/s"], "not a text file"),
     (["view", "{map}", "--trajectory", "{junk}", "--no-serve"], "not a table of numbers"),
     (["view", "{map}", "--host", "999.1.1.1", "--no-serve"], "cannot serve on host '999.1.1.1'"),
 ])
@@ -434,7 +434,7 @@ def test_config_and_input_paths_that_crashed_are_one_line(tmp_path, capsys, tiny
     # a path that does not exist is no preset name: named as a path, never "available: " and nothing
     line = run_cli(capsys, "map", tmp_path / "nope" / "seq", "--method", "ebs", "--out", tmp_path / "m.npz")
     assert line.endswith("nope/seq: no such file or folder"), line
-    assert "available: evsemmap-release, offroad" in run_cli(capsys, "map", "nopreset", "--method", "ebs", "--out", tmp_path / "m.npz")
+    assert "available: offroad, release, rellis3d, rellis3d-bag" in run_cli(capsys, "map", "nopreset", "--method", "ebs", "--out", tmp_path / "m.npz")
     # check-data of a missing folder is a problem (exit 1), not silence and exit 0
     assert main(["check-data", str(tmp_path / "nope" / "seq")]) == 1
     assert "no such sequence folder" in capsys.readouterr().out

@@ -17,7 +17,7 @@ def test_methods_ship_as_config_files():
 @pytest.mark.parametrize("method", available_methods())
 @pytest.mark.parametrize("preset", PRESETS, ids=lambda p: p.stem)
 def test_every_method_combines_with_every_preset(method, preset):
-    if preset.stem == "evsemmap-release" and method not in ("ebs", "prob-adap-thr", "dempster"):
+    if preset.stem == "release" and method not in ("ebs", "prob-adap-thr", "dempster"):
         # the release mode reproduces the released ebs and dempster only; others are refused by key
         with pytest.raises(ConfigError, match=r"mapping\.(kernel|media|adaptive_length|uncertainty_threshold)"):
             load_config([preset], method=method)
@@ -29,7 +29,7 @@ def test_every_method_combines_with_every_preset(method, preset):
 def test_switches_and_numbers_land_where_they_belong():
     run = load_config([REPO / "configs/presets/offroad.yaml"], method="prob-thr")
     m = run.mapping
-    assert (m.kernel, m.media, m.adaptive_length, m.uncertainty_threshold) == (Kernel.SPARSE, Media.PROB, False, True)
+    assert (m.kernel, m.media, m.adaptive_length, m.uncertainty_threshold) == (Kernel.SPARSE, Media.SOFT, False, True)
     assert (m.resolution_m, m.length_m, m.beta, m.gamma, m.uncertainty_drop_fraction) == (0.3, 0.3, 1.0, 3.0, 0.3)
     toy = load_config([REPO / "configs/datasets/sbki_toy.yaml"], method="s-csm")
     assert toy.mapping.compat is Compat.SBKI and toy.mapping.sigma0 == 10.0 and toy.dataset.num_classes == 4

@@ -57,10 +57,38 @@ def test_terrain_layers(tmp_path):
     assert "the same elevation: True" in out and "OK" in out and (tmp_path / "t" / "layers" / "layers.bag").exists()
 
 
+def test_drive_playback(tmp_path):
+    from evsemmap_warp.apps.viewer import free_port
+
+    out = _run(str(REPO / "examples/07_drive_playback.py"), "--no-serve", "--port", str(free_port()), "--out", str(tmp_path / "p"),
+               cwd=tmp_path)
+    counts = [int(line.split(": ")[1].split(" voxels")[0].replace(",", "")) for line in out.splitlines() if line.startswith("after scan")]
+    assert len(counts) == 6 and counts == sorted(counts) and counts[0] < counts[-1]  # the map as it grew, scan by scan
+    assert "give the map file back" in out
+
+
+def test_live_map(tmp_path):
+    from evsemmap_warp.apps.viewer import free_port
+
+    out = _run(str(REPO / "examples/08_live_map.py"), "--no-serve", "--port", str(free_port()), "--out", str(tmp_path / "l"), cwd=tmp_path)
+    assert "the map shown is the map written: True" in out and int(out.split(" updates while mapping")[0].split()[-1]) >= 1
+
+
+def test_store_overview(tmp_path):
+    from evsemmap_warp.apps.viewer import free_port
+
+    out = _run(str(REPO / "examples/09_store_overview.py"), "--no-serve", "--port", str(free_port()), "--out", str(tmp_path / "s"),
+               cwd=tmp_path)
+    first = out.split("first frame ready in ")[1]
+    assert int(first.split(": ")[1].split(" of ")[0]) < int(first.split(" of ")[1].split(" tiles")[0])  # before the store was read
+    assert "tile(s) in full" in out
+
+
 def test_examples_are_all_tested():
     names = sorted(p.name for p in (REPO / "examples").glob("*.py"))
     assert names == ["00_quickstart.py", "01_sbki_toy_conformance.py", "02_view_map.py", "03_synthetic_world.py", "04_compare_methods.py",
-                     "05_robot_log.py", "06_terrain_layers.py"], "add a test for each new example"
+                     "05_robot_log.py", "06_terrain_layers.py", "07_drive_playback.py", "08_live_map.py", "09_store_overview.py"], \
+        "add a test for each new example"
 
 
 def test_readme_python_snippet_makes_a_sensible_map(tmp_path, monkeypatch):

@@ -11,8 +11,8 @@ from evsemmap_warp.apps.experiment import Experiment, load_experiment
 CONFIG = """
 name: tiny-study
 sequences:
-  train: {preset: tiny, seed: 3, frames: 4}
-  test: {preset: tiny}
+  train: {world: tiny, seed: 3, frames: 4}
+  test: {world: tiny}
 networks:
   net: {train_on: [train], epochs: 1, batch_size: 2, input_size: [64, 128]}
 conditions:
@@ -69,12 +69,12 @@ def test_study_runs_writes_everything_and_reruns_from_cache(tmp_path):
 @pytest.mark.parametrize("change, message", [
     ("methods: [s-csm, ebs]", "unknown method 'nope'"),
     ("in-domain: {network: net, sequence: test}", "conditions.in-domain names network 'other'"),
-    ("test: {preset: tiny}", "needs exactly one of preset"),
+    ("test: {world: tiny}", "needs exactly one of world"),
 ])
 def test_config_errors_come_before_any_work(tmp_path, change, message):
     replacement = {"methods: [s-csm, ebs]": "methods: [s-csm, nope]",
                    "in-domain: {network: net, sequence: test}": "in-domain: {network: other, sequence: test}",
-                   "test: {preset: tiny}": "test: {preset: tiny, path: /x}"}[change]
+                   "test: {world: tiny}": "test: {world: tiny, path: /x}"}[change]
     path = tmp_path / "bad.yaml"
     path.write_text(CONFIG.replace(change, replacement))
     with pytest.raises(ConfigError, match=message):
@@ -122,7 +122,7 @@ def test_interrupted_training_resumes_from_its_last_epoch(tmp_path, monkeypatch)
 
 def test_conditions_pool_into_one_table(tmp_path):
     """Two conditions on two worlds, pooled as the RELLIS-3D folds are (docs/algorithm.md §4.5), ablation on the pool."""
-    text = CONFIG.replace("  test: {preset: tiny}", "  test: {preset: tiny}\n  test-b: {preset: tiny, seed: 4, frames: 3}")
+    text = CONFIG.replace("  test: {world: tiny}", "  test: {world: tiny}\n  test-b: {world: tiny, seed: 4, frames: 3}")
     text = text.replace("  in-domain: {network: net, sequence: test}", "  in-domain: {network: net, sequence: test}\n  other: {network: net, sequence: test-b}")
     text = text.replace("ablation: {condition: in-domain, methods: [s-bki, prob, convbki]}", "ablation: {condition: both, methods: [s-bki, prob]}")
     path = tmp_path / "pooled.yaml"

@@ -162,7 +162,7 @@ def test_the_experiment_cache_writes_through_it(tmp_path, failing_rename, monkey
     config_path.write_text("""
 name: cache-study
 sequences:
-  test: {preset: tiny, frames: 2}
+  test: {world: tiny, frames: 2}
 networks:
   net: {checkpoint: /nonexistent.pt}
 conditions:

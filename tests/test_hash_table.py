@@ -204,12 +204,12 @@ def test_edge_of_the_key_range_hashes_like_the_twin():
 def test_cpu_rows_stay_in_place_when_reserved_and_are_copied_otherwise(reserved, monkeypatch):
     import sys
 
-    from evsemmap_warp.core import host_memory
+    from evsemmap_warp.core import _host_memory
 
     if reserved and not sys.platform.startswith("linux"):
         pytest.skip("the row reservation is made on Linux only")
     if not reserved:  # a platform or overcommit policy that refuses the reservation
-        monkeypatch.setattr(host_memory, "reserved_zeros", lambda rows, columns: None)
+        monkeypatch.setattr(_host_memory, "reserved_zeros", lambda rows, columns: None)
     vm = VoxelMap(3, 0.5, initial_capacity=16)
     rng = np.random.default_rng(4)
     index = np.unique(rng.integers(-20, 20, size=(300, 3)), axis=0)

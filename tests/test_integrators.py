@@ -18,23 +18,23 @@ TOY = REPO / "configs/datasets/sbki_toy.yaml"
 
 
 @pytest.mark.parametrize("files, method, cls", [
-    ([PRESET], "ebs", ig.KernelIntegrator), ([PRESET], "s-csm", ig.KernelIntegrator), ([PRESET], "dempster", ig.KernelIntegrator),
+    ([PRESET], "ebs", ig.PointKernelIntegrator), ([PRESET], "s-csm", ig.PointKernelIntegrator), ([PRESET], "dempster", ig.PointKernelIntegrator),
     ([PRESET], "convbki", ig.ConvBkiIntegrator), ([PRESET], "see-csom", ig.SeeCsomIntegrator),
     ([TOY], "s-bki", ig.SbkiCompatIntegrator), ([TOY], "s-csm", ig.SbkiCompatIntegrator),
-    ([REPO / "configs/presets/evsemmap-release.yaml"], "ebs", ig.ReleaseCompatIntegrator),
+    ([REPO / "configs/presets/release.yaml"], "ebs", ig.ReleaseCompatIntegrator),
 ])
 def test_the_registry_picks_each_methods_integrator(files, method, cls):
     config = load_config(files, method=method).mapping
     integrator = ig.make_integrator(config, 4)
     assert type(integrator) is cls and ig.INTEGRATORS[config.compat, config.kernel] is cls
     assert isinstance(integrator.needs, ig.ScanNeeds)
-    # S-CSM's compat cells are centred on multiples of r, half a cell off every other lattice
+    # S-CSM's compat cells are centered on multiples of r, half a cell off every other lattice
     assert integrator.grid_offset_m == (-0.5 * config.resolution_m if (config.compat, config.kernel) == (Compat.SBKI, Kernel.COUNT) else 0.0)
 
 
 def test_every_integration_method_is_registered_once():
     assert set(ig.INTEGRATORS) == {(Compat.CLEAN, k) for k in Kernel} | {(Compat.SBKI, Kernel.SPARSE), (Compat.SBKI, Kernel.COUNT),
-                                                                         (Compat.EVSEMMAP, Kernel.SPARSE)}
+                                                                         (Compat.RELEASE, Kernel.SPARSE)}
     with pytest.raises(ValueError, match="two integrators"):
         ig.register_integrator(Compat.CLEAN, Kernel.SPARSE)(type("Another", (), {}))
 
@@ -79,7 +79,7 @@ def test_an_unused_sensor_origin_is_not_handed_on():
 
 
 def test_the_release_reads_the_sensor_origin_only_for_its_range_filter():
-    config = load_config([REPO / "configs/presets/evsemmap-release.yaml"], method="ebs").mapping
+    config = load_config([REPO / "configs/presets/release.yaml"], method="ebs").mapping
     assert ig.ReleaseCompatIntegrator(config).needs.sensor_origin is (ig.SensorOrigin.REQUIRED if config.max_range_m > 0 else ig.SensorOrigin.OPTIONAL)
     ranged = dataclasses.replace(config, max_range_m=30.0)
     assert ig.ReleaseCompatIntegrator(ranged).needs.sensor_origin is ig.SensorOrigin.REQUIRED

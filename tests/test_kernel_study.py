@@ -120,6 +120,14 @@ def test_quick_study_runs_and_its_strategies_agree(tmp_path):
     assert report.count("| S-BKI gather") == 4 and report.count("| release gather") == 2  # every form, the same map
     for png in ("strategies.png", "hash_load.png", "scaling.png"):
         assert (tmp_path / "kernel_study" / png).stat().st_size > 1000
+    # its record beside it, named by the page, holding every speed figure the page prints
+    sys.path.insert(0, str(REPO / "tools"))
+    import perf_records
+
+    records = list((tmp_path / "bench").glob("kernel_study-*.json"))
+    assert len(records) == 1 and f"<!-- page-record: {records[0]} -->" in report
+    checked = perf_records.check([tmp_path / "kernel_study.md"])
+    assert not checked.problems and not checked.unrecorded
 
 
 def test_hashgrid_stages_match_their_twins():

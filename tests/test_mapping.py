@@ -243,7 +243,7 @@ def test_integrate_many_equals_integrate_scan_by_scan(mode):
                             compat=Compat.SBKI, free_resolution_m=2.0)
         scans, payload_type = [(p, np.argmax(a, 1)) for p, a in scans], "label"
     elif mode.startswith("release"):
-        cfg = load_config([REPO / "configs/presets/evsemmap-release.yaml"], method=mode.split()[1]).mapping
+        cfg = load_config([REPO / "configs/presets/release.yaml"], method=mode.split()[1]).mapping
         payload_type = "alpha"
     else:
         cfg, payload_type = _config("ebs"), "alpha"

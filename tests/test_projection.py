@@ -37,7 +37,7 @@ def test_distortion_follows_the_opencv_model():
     tangential = PinholeCamera(100.0, 100.0, 50.0, 40.0, 100, 80, (0.0, 0.0, 0.01, 0.02, 0.0))
     # xd = x + 2 p1 x y + p2 (r2 + 2 x^2) = 0.1 + 0.0004 + 0.0014; yd = y + p1 (r2 + 2 y^2) + 2 p2 x y = 0.2 + 0.0013 + 0.0008
     np.testing.assert_allclose(tangential.project(np.array([[0.1, 0.2, 1.0]])), [[60.18, 60.21]], atol=1e-9)
-    # pixel rays invert the distortion: project(ray) returns the pixel centre
+    # pixel rays invert the distortion: project(ray) returns the pixel center
     rays = camera.pixel_rays()
     np.testing.assert_allclose(camera.project(rays[[3, 70], [5, 90]]), [[5.5, 3.5], [90.5, 70.5]], atol=1e-6)
 

@@ -8,8 +8,8 @@ from evsemmap_warp.synthetic.sensors import RayCaster
 
 
 def random_mesh(rng, triangles):
-    centres = rng.uniform(-5, 5, (triangles, 1, 3))
-    vertices = (centres + rng.normal(0, 1.0, (triangles, 3, 3))).reshape(-1, 3)
+    centers = rng.uniform(-5, 5, (triangles, 1, 3))
+    vertices = (centers + rng.normal(0, 1.0, (triangles, 3, 3))).reshape(-1, 3)
     return vertices.astype(np.float32), np.arange(3 * triangles).reshape(-1, 3)
 
 

@@ -1,4 +1,4 @@
-"""The EvSemMap release compatibility mode (mapping.compat: evsemmap, docs/compatibility.md §4)."""
+"""The release mode (mapping.compat: release, docs/compatibility.md §4): the released EvSemMap C++."""
 
 import dataclasses
 
@@ -9,11 +9,11 @@ from conftest import REPO, shared_path
 from evsemmap_warp.config import ConfigError, load_config
 from evsemmap_warp.core.integrators import ReleaseCompatIntegrator
 from evsemmap_warp.core.mapper import Mapper, prepare_payload
-from evsemmap_warp.methods import evsemmap_release as er
+from evsemmap_warp.methods import release_compat as er
 from evsemmap_warp.reference.release import release_insert
 from evsemmap_warp.voxel_keys import pack_voxel_keys, unpack_voxel_keys
 
-PRESET = REPO / "configs/presets/evsemmap-release.yaml"
+PRESET = REPO / "configs/presets/release.yaml"
 
 
 def _config(method: str, **overrides):
@@ -76,7 +76,7 @@ def test_uncertainty_cut_keeps_ties_at_the_float32_threshold():
 
 def _scan(rng, n, spread=1.6):
     pts = rng.uniform(0, spread, (n, 3)).astype(np.float32)
-    pts[:6, 0] = np.float32(0.2)  # on the face between blocks 0 and 1 (block centres at 0.4 k)
+    pts[:6, 0] = np.float32(0.2)  # on the face between blocks 0 and 1 (block centers at 0.4 k)
     pts[6:10, 1] = np.float32(0.6)
     pts[10:12] = np.float32(0.2)  # on an edge and a corner
     alpha = np.ones((n, 5))
@@ -160,7 +160,7 @@ def test_a_point_weighs_7x_in_its_own_block_2x_in_face_and_edge_neighbours_0x_in
     assert mult([0, 0, 0], [1, 1, 1]) == 0  # corner neighbour: no model holds both
     assert mult([0, 0, 0], [2, 0, 0]) == 1  # two blocks along an axis: through (1, 0, 0) only
     assert mult([1, 1, 1], [1, 1, 0]) == 2  # a corner block's point still reaches its own face neighbours
-    # the literal twin agrees: a point at the centre block's centre, alone vs with the others
+    # the literal twin agrees: a point at the center block's center, alone vs with the others
     alone = release_insert(np.zeros((1, 3), np.float32), np.eye(3)[[1]], np.zeros(1), resolution_m=0.2, block_depth=2,
                            length=er.kernel_length(0.3), sf2=1.0, dempster=False)
     points = np.concatenate([[[0.0, 0.0, 0.0]], 0.4 * occupied[1:] + 0.15]).astype(np.float32)

@@ -264,7 +264,7 @@ def test_toy_scsm_reproduces_the_cpp_map_up_to_one_leafs_summation_order():
     assert mapper.voxel_count == 64130
     assert mapper.state_counts() == {"UNKNOWN": 41329, "FREE": 15813 + 1, "OCCUPIED": 6988 - 1}
     arrays, summary = mapper.voxels()
-    # S-CSM cells sit on the half-shifted grid: centres at multiples of 0.1 m.
+    # S-CSM cells sit on the half-shifted grid: centers at multiples of 0.1 m.
     np.testing.assert_allclose(mapper.voxel_centers(arrays.index[:5]) / 0.1, np.round(mapper.voxel_centers(arrays.index[:5]) / 0.1), atol=1e-9)
     unknown = summary.state == VoxelState.UNKNOWN
     assert (arrays.evidence[unknown] == 0).all()  # created as test blocks, never updated
@@ -657,8 +657,8 @@ def test_block_memberships_match_the_27_box_tests():
     want_ids, want_blocks = [], []
     for shift in [(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)]:
         k = nearest + np.array(shift)
-        centre = (k.astype(np.float32) * size).astype(np.float32)
-        inside = ((centre - half <= points) & (points <= centre + half)).all(axis=1)
+        center = (k.astype(np.float32) * size).astype(np.float32)
+        inside = ((center - half <= points) & (points <= center + half)).all(axis=1)
         want_ids.append(np.flatnonzero(inside))
         want_blocks.append(k[inside])
     np.testing.assert_array_equal(ids, np.concatenate(want_ids))
@@ -704,7 +704,7 @@ def test_the_benchmark_workload_maps_as_the_original_cpp_does():
     assert mapper.voxel_count == want["cells"] == 608_176
     assert abs(states["FREE"] - want["free"]) <= 60 and abs(states["OCCUPIED"] - want["occupied"]) <= 60 and states["UNKNOWN"] == 0
 
-    release = load_config([REPO / "configs/presets/evsemmap-release.yaml"], method="ebs").mapping
+    release = load_config([REPO / "configs/presets/release.yaml"], method="ebs").mapping
     mapper = Mapper(release, 9, workers=1)
     kept = 0
     for scan in scans:

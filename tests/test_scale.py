@@ -31,8 +31,8 @@ def _config(name: str):
     return cfg
 
 
-def _scan(rng, n=3000, spread=6.0, centre=(0.0, 0.0, 0.0)):
-    pts = rng.uniform(-spread, spread, (n, 3)) + np.asarray(centre)
+def _scan(rng, n=3000, spread=6.0, center=(0.0, 0.0, 0.0)):
+    pts = rng.uniform(-spread, spread, (n, 3)) + np.asarray(center)
     return pts, rng.gamma(0.7, 6.0, (n, K)) + 1.0
 
 
@@ -142,7 +142,7 @@ def test_twenty_million_unit_contributions_sum_exactly():
 @pytest.mark.parametrize("method", ALL_METHODS)
 def test_merge_of_disjoint_scan_sets_is_exact_for_every_method(method):
     rng = np.random.default_rng(5)
-    scans = [_scan(rng, 1500, spread=4.0, centre=(i * 1.5, 0, 0)) for i in range(4)]
+    scans = [_scan(rng, 1500, spread=4.0, center=(i * 1.5, 0, 0)) for i in range(4)]
     cfg = _config(method)
     full = _integrate(Mapper(cfg, K), scans)
     first = _integrate(Mapper(cfg, K), scans[::2])
@@ -161,7 +161,7 @@ def test_merge_of_disjoint_scan_sets_is_exact_for_every_method(method):
 def test_merge_reindexes_maps_with_other_origins():
     rng = np.random.default_rng(6)
     cfg = _config("ebs")
-    scans = [_scan(rng, 1500, centre=FAR + [i * 900.0, 0, 0]) for i in range(2)]  # 900 m apart: different origins
+    scans = [_scan(rng, 1500, center=FAR + [i * 900.0, 0, 0]) for i in range(2)]  # 900 m apart: different origins
     full = _integrate(Mapper(cfg, K, origin=FAR), scans)
     first = _integrate(Mapper(cfg, K), scans[:1])
     second = _integrate(Mapper(cfg, K), scans[1:])
@@ -186,7 +186,7 @@ def test_merge_refuses_incompatible_maps_with_the_reason():
         base.merge(Mapper(dataclasses.replace(_config("ebs"), length_m=0.5), K, class_names=list("abcde")))
     rng = np.random.default_rng(1)
     near = _integrate(Mapper(_config("ebs"), K, class_names=list("abcde")), [_scan(rng, 200)])
-    far = _integrate(Mapper(_config("ebs"), K, class_names=list("abcde")), [_scan(rng, 200, centre=(FAR[0], 0, 0))])
+    far = _integrate(Mapper(_config("ebs"), K, class_names=list("abcde")), [_scan(rng, 200, center=(FAR[0], 0, 0))])
     with pytest.raises(ValueError, match="too far apart"):
         near.merge(far)
 
@@ -234,7 +234,7 @@ def test_a_far_map_file_round_trips_and_the_viewer_finds_its_voxels(tmp_path):
     from evsemmap_warp.apps.viewer import MapLayer
 
     rng = np.random.default_rng(8)
-    mapper = _integrate(Mapper(_config("ebs"), K), [_scan(rng, 2000, centre=FAR)])
+    mapper = _integrate(Mapper(_config("ebs"), K), [_scan(rng, 2000, center=FAR)])
     path = mapper.save(tmp_path / "far.npz")
     loaded = Mapper.load(path)
     np.testing.assert_array_equal(loaded.origin, mapper.origin)

@@ -43,7 +43,7 @@ def _random_scan(rng, n, k, spread=3.0):
 
 
 def _away_from_boundaries(pts, lengths, res):
-    """Drop points with any voxel centre within 1e-4 of their kernel length (the tagged band)."""
+    """Drop points with any voxel center within 1e-4 of their kernel length (the tagged band)."""
     keep = np.ones(len(pts), bool)
     for i, (p, l) in enumerate(zip(pts, lengths)):
         lo = np.floor((p - l) / res).astype(int)
@@ -96,7 +96,7 @@ def test_boundary_band_is_the_only_disagreement():
 def test_empty_and_single_point(device):
     vm, updates = _run(np.zeros((0, 3)), np.zeros(0), np.zeros(0), mode=sc.MODE_RADIUS, k=3, device=device, labels=np.zeros(0, int))
     assert updates == 0 and vm.voxel_count == 0
-    # One point at a voxel centre with l = 0.15 < r: exactly its own voxel, weight sigma0.
+    # One point at a voxel center with l = 0.15 < r: exactly its own voxel, weight sigma0.
     p = np.array([[0.1, 0.1, 0.1]])
     vm, updates = _run(p, np.array([0.15]), np.array([0.25]), mode=sc.MODE_RADIUS, k=3, device=device, labels=np.array([2]), sigma0=2.0)
     a = vm.arrays()
@@ -113,13 +113,13 @@ def test_points_exactly_on_voxel_faces(device):
     vm, _ = _run(pts, np.full(3, 0.2), np.zeros(3), mode=sc.MODE_OWN_VOXEL, k=3, device=device, labels=labels)
     np.testing.assert_array_equal(vm.arrays().index, [[-1, -1, -1], [0, 2, 1], [1, 0, 0]])
     # Radius mode: a point on the x-face between voxels (0,0,0) and (1,0,0), level with their
-    # centres, is 0.1 m from both and farther from every other centre: both get the same weight.
+    # centers, is 0.1 m from both and farther from every other center: both get the same weight.
     p = np.array([[0.2, 0.1, 0.1]])
     vm, _ = _run(p, np.array([0.1001]), np.zeros(1), mode=sc.MODE_RADIUS, k=3, device=device, labels=np.array([1]))
     got = vm.arrays()
     np.testing.assert_array_equal(got.index, [[0, 0, 0], [1, 0, 0]])
     w = ref.sparse_kernel(np.array([0.1]), np.array([0.1001]), 1.0)[0]
-    # The two centres differ in float32 (0.1 vs 0.3), so t = 1 - d/l differs by ~1e-7 / 1e-3.
+    # The two centers differ in float32 (0.1 vs 0.3), so t = 1 - d/l differs by ~1e-7 / 1e-3.
     np.testing.assert_allclose(got.evidence[:, 1], [w, w], rtol=2e-3)
 
 
@@ -218,7 +218,7 @@ def test_sparse_kernel_is_accurate_near_the_support_edge():
     length = 0.3
     for t in (0.3, 0.2, 0.05, 1e-2, 1e-3):
         d = length * (1 - t)
-        p = np.array([[0.05 + d, 0.05, 0.05]])  # voxel (0,0,0) centre is (0.05, 0.05, 0.05) at r = 0.1
+        p = np.array([[0.05 + d, 0.05, 0.05]])  # voxel (0,0,0) center is (0.05, 0.05, 0.05) at r = 0.1
         vm, _ = _run(p, np.array([length]), np.zeros(1), mode=sc.MODE_RADIUS, k=2, device="cpu", labels=np.array([1]), res=0.1)
         a = vm.arrays()
         row = np.flatnonzero((a.index == [0, 0, 0]).all(axis=1))[0]

@@ -115,10 +115,10 @@ def test_rellis_folder_layout_and_remap(tmp_path):
     assert set(labels[:, :6].ravel()) == {7} and set(labels[:, 6:].ravel()) == {2}
 
 
-def test_rellis_unknown_colour_and_size_mismatch(tmp_path):
+def test_rellis_unknown_color_and_size_mismatch(tmp_path):
     bad = np.zeros((8, 12, 3), np.uint8)
     bad[0, 0] = (1, 2, 3)
-    with pytest.raises(ValueError, match=r"1 pixels have colours that are not in the label palette, e.g. \[\(1, 2, 3\)\]"):
+    with pytest.raises(ValueError, match=r"1 pixels have colors that are not in the label palette, e.g. \[\(1, 2, 3\)\]"):
         Rellis3DImages(_rellis_fixture(tmp_path / "a", bad))[0]
     with pytest.raises(ValueError, match="is 12x8 but its label"):
         Rellis3DImages(_rellis_fixture(tmp_path / "b", np.zeros((4, 4, 3), np.uint8)))[0]

@@ -136,16 +136,20 @@ def test_a_tile_that_does_not_belong_is_refused_naming_it(drive, store, tmp_path
         shutil.copy(source, copy / "tiles" / name)
         line = _cli_error(capsys, "export", copy, "--out", tmp_path / "out.npz")
         assert str(copy / "tiles" / name) in line and pattern in line and "does not belong" in line, (case, line)
-    # voxels changed after writing (a consistent map file, but not what was written): the checksum
-    copy = _copy(store, tmp_path / "edited")
+    # a tile damaged after writing: its checksum; a partial map or an old-format tile in its place
+    copy = _copy(store, tmp_path / "damaged")
     tile = copy / "tiles" / names[0]
-    with np.load(tile) as data:
-        arrays = {k: data[k] for k in data.files}
-    arrays["hits"] = arrays["hits"] * 2
-    with open(tile, "wb") as f:
-        write_npz(f, **arrays)
-    assert "do not match the checksum" in _cli_error(capsys, "export", copy, "--out", tmp_path / "out.npz")
+    data = bytearray(tile.read_bytes())
+    data[-9] ^= 0xFF
+    tile.write_bytes(bytes(data))
+    assert "payload checksum mismatch" in _cli_error(capsys, "export", copy, "--out", tmp_path / "out.npz")
     assert not (tmp_path / "out.npz").exists()
+    copy = _copy(store, tmp_path / "a-map-file")
+    tile = copy / "tiles" / names[0]
+    MapStore(store).to_mapper().save(tmp_path / "whole.npz")
+    shutil.copy(tmp_path / "whole.npz", tile)
+    line = _cli_error(capsys, "export", copy, "--out", tmp_path / "out.npz")
+    assert str(tile) in line and "not a store voxel file" in line, line
 
 
 STORE_INDEX_CASES = {
@@ -184,6 +188,27 @@ def _first_chunk(store: Path) -> Path:
     return sorted((store / "work").glob("chunk_*"))[0]
 
 
+@pytest.fixture(scope="module")
+def unfolded(drive, tmp_path_factory):
+    """A run killed after mapping every chunk and before folding any: partials of every chunk, no tile."""
+    from evsemmap_warp.apps import batch
+
+    out = tmp_path_factory.mktemp("unfolded") / "store"
+    original = batch.TileFolder.chunk_finished
+    batch.TileFolder.chunk_finished = lambda self, number: self.finished.add(number)
+    try:
+        with pytest.raises(RuntimeError, match="was mapped but not folded"):
+            _batch([drive], out)
+    finally:
+        batch.TileFolder.chunk_finished = original
+    assert not list((out / "tiles").glob("*.vox")) and len(list(_first_chunk(out).glob("*.vox"))) >= 1
+    return out
+
+
+def _partial(s: Path, number: int = 0) -> Path:
+    return sorted(sorted((s / "work").glob("chunk_*"))[number].glob("*.vox"))[0]
+
+
 WORK_CASES = {
     "plan-garbage": (lambda s: (s / "work" / "plan.json").write_text("{oops"), "plan.json: not a readable batch plan"),
     "plan-a-list": (lambda s: (s / "work" / "plan.json").write_text("[1]"), "plan.json: not a batch plan"),
@@ -192,16 +217,19 @@ WORK_CASES = {
         json.dumps(json.loads((_first_chunk(s) / "done.json").read_text()) | {"scans": -1})), "whole counts >= 0"),
     "done-another-chunk": (lambda s: (_first_chunk(s) / "done.json").write_text(
         json.dumps(json.loads((_first_chunk(s) / "done.json").read_text()) | {"number": 7})), "says chunk 7"),
-    "partial-truncated": (lambda s: (lambda p: p.write_bytes(p.read_bytes()[:300]))(sorted(_first_chunk(s).glob("*.npz"))[0]),
-                          "not a readable partial map (BadZipFile"),
-    "partial-missing": (lambda s: sorted(_first_chunk(s).glob("*.npz"))[0].unlink(), "whose partial"),
+    "partial-truncated": (lambda s: (lambda p: p.write_bytes(p.read_bytes()[:300]))(_partial(s)), "the header says"),
+    "partial-missing": (lambda s: _partial(s).unlink(), "whose partial"),
+    "partial-of-the-old-format": (lambda s: (lambda p: p.write_bytes(b"PK\x03\x04" + p.read_bytes()))(_partial(s)),
+                                  "not a store voxel file"),
+    "partial-of-another-chunk": (lambda s: shutil.copy(sorted((s / "work").glob("chunk_*"))[1] / _partial(s).name, _partial(s)),
+                                 "chunk is 1, this store's is 0"),
 }
 
 
 @pytest.mark.parametrize("case", sorted(WORK_CASES))
-def test_damaged_work_files_are_one_line_naming_them(drive, store, tmp_path, capsys, case):
+def test_damaged_work_files_are_one_line_naming_them(drive, unfolded, tmp_path, capsys, case):
     damage, pattern = WORK_CASES[case]
-    copy = _copy(store, tmp_path / "store")
+    copy = _copy(unfolded, tmp_path / "store")
     damage(copy)
     line = _cli_error(capsys, "batch", drive, "--method", "ebs", "--out", copy, "--workers", "1", "--quiet")
     assert pattern in line and str(copy / "work") in line, line
@@ -305,10 +333,10 @@ def test_a_full_disk_while_mapping_a_chunk_names_the_store_and_leaves_nothing_ha
 
     original = map_store.write_partial
 
-    def full(path, index, rows):  # the disk fills up while the third chunk is written
+    def full(path, *args):  # the disk fills up while the third chunk is written
         if ".chunk_000002." in str(path):
             raise OSError(errno.ENOSPC, "No space left on device", str(path))
-        return original(path, index, rows)
+        return original(path, *args)
 
     out = tmp_path / "store"
     monkeypatch.setattr(map_store, "write_partial", full)
@@ -318,7 +346,7 @@ def test_a_full_disk_while_mapping_a_chunk_names_the_store_and_leaves_nothing_ha
     assert not list((out / "work").glob(".chunk_*")) and not (out / "store.json").exists()
     monkeypatch.setattr(map_store, "write_partial", original)
     (out / "tiles").mkdir(exist_ok=True)
-    (out / "tiles" / ".0_0_0.npz.123.abcd.tmp").write_bytes(b"half a tile")  # what a killed reducer leaves
+    (out / "tiles" / ".0_0_0.vox.123.abcd.tmp").write_bytes(b"half a tile")  # what a killed writer leaves
     summary = _batch([drive], out)
     assert summary["chunks_resumed"] >= 1 and not list((out / "tiles").glob(".*.tmp"))
     _batch([drive], tmp_path / "reference")

@@ -104,7 +104,7 @@ def test_a_synthetic_sequence_maps_from_its_point_labels(tiny_sequence, tmp_path
 
 
 def test_synth_and_check_data_commands(tmp_path, capsys):
-    assert main(["synth", "--preset", "tiny", "--frames", "1", "--out", str(tmp_path / "s"), "--quiet"]) == 0
+    assert main(["synth", "--world", "tiny", "--frames", "1", "--out", str(tmp_path / "s"), "--quiet"]) == 0
     assert main(["check-data", str(tmp_path / "s")]) == 0
     assert "OK" in capsys.readouterr().out
     (tmp_path / "s" / "camera_info.txt").unlink()
@@ -122,7 +122,7 @@ def test_project_and_train_convbki_commands(tiny_sequence, tmp_path, capsys):
     report = json.loads(capsys.readouterr().out)
     assert report["frames"] == 6 and report["agreement_with_point_labels_v3"] > 0.9
     assert (tmp_path / "gt" / "ground_truth.npz").exists() and len(list((tmp_path / "gt").glob("overlay_*.png"))) == 1
-    assert main(["project", str(out), "--out", str(tmp_path / "depth"), "--overlays", "2", "--colour-by", "depth"]) == 0
+    assert main(["project", str(out), "--out", str(tmp_path / "depth"), "--overlays", "2", "--color-by", "depth"]) == 0
     capsys.readouterr()
     assert len(list((tmp_path / "depth").glob("overlay_*.png"))) == 2
     # alpha standing in for a network's: evidence 20 on each pixel's true class, at half resolution
@@ -133,7 +133,7 @@ def test_project_and_train_convbki_commands(tiny_sequence, tmp_path, capsys):
         alpha = np.ones((9, *labels.shape), np.float16)
         np.put_along_axis(alpha, labels[None], 21.0, axis=0)
         np.save(tmp_path / "alpha" / f"{frame.image.stem}.npy", alpha)
-    assert main(["train-convbki", str(out), "--alpha", str(tmp_path / "alpha"), "--out", str(tmp_path / "l.json"),
+    assert main(["train-convbki", str(out), "--alpha-dir", str(tmp_path / "alpha"), "--out", str(tmp_path / "l.json"),
                  "--window-scans", "3", "--epochs", "2", "--quiet"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["windows"] == 2 and len(result["ell_h"]) == 9

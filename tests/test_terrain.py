@@ -71,7 +71,7 @@ def scene_layers():
 def test_elevation_cover_and_overhangs(scene_layers):
     L = scene_layers
     assert L.grid.width == L.grid.height == 20 and L.grid.cell_m == VOXEL_M
-    assert _at(L, "elevation", 3, 3) == pytest.approx(0.1)  # the ground voxel's centre
+    assert _at(L, "elevation", 3, 3) == pytest.approx(0.1)  # the ground voxel's center
     assert _at(L, "surface_class", 3, 3) == C["paved"] and _at(L, "cover_class", 3, 3) == C["paved"]
     # the box: the ground below supports, the box top is what a robot meets
     assert _at(L, "elevation", 8, 8) == pytest.approx(0.1)
@@ -253,7 +253,7 @@ def test_geotiff_reads_back_with_rasterio(written):
         assert np.isnan(tif.nodata) and tif.dtypes[0] == "float32"
         assert tif.transform.a == VOXEL_M and tif.transform.e == -VOXEL_M
         assert tif.transform.c == pytest.approx(FAR[0]) and tif.transform.f == pytest.approx(FAR[1] + 20 * VOXEL_M)
-        # the world position of a cell centre comes back through the transform
+        # the world position of a cell center comes back through the transform
         x, y = tif.xy(0, 0)
         assert (x, y) == (pytest.approx(FAR[0] + 0.1), pytest.approx(FAR[1] + 20 * VOXEL_M - 0.1))
         assert tif.tags(tif.descriptions.index("elevation") + 1)["UNITS"] == "m"
@@ -284,8 +284,8 @@ def test_npz_and_previews_read_back(written):
     for path in previews:
         with Image.open(path) as image:
             pixels = np.asarray(image.convert("RGB")).astype(np.uint32)
-            colours = np.unique((pixels[..., 0] << 16) | (pixels[..., 1] << 8) | pixels[..., 2])
-            assert image.width >= 600 and len(colours) > 20, path.name  # a plot, a bar, a legend
+            colors = np.unique((pixels[..., 0] << 16) | (pixels[..., 1] << 8) | pixels[..., 2])
+            assert image.width >= 600 and len(colors) > 20, path.name  # a plot, a bar, a legend
     assert json.loads((out / "layers.json").read_text())["known_cells"] == summary["known_cells"] == 399
 
 
@@ -395,7 +395,7 @@ def test_a_bad_costs_file_is_one_line_naming_file_and_key(scene_file, tmp_path, 
     (["--resolution-m", "-1"], "resolution_m = -1.0 must be a finite number > 0"),
     (["--resolution-m", "nan"], "resolution_m = nan must be a finite number > 0"),
     (["--resolution-m", "0.1"], "finer than the map's voxels"),
-    (["--bounds", "50", "50", "60", "60"], r"lie outside the map \(voxel centres span x 0.10..3.90"),
+    (["--bounds", "50", "50", "60", "60"], r"lie outside the map \(voxel centers span x 0.10..3.90"),
     (["--bounds", "3", "0", "1", "4"], "the x minimum 3.0 is larger than its maximum 1.0"),
     (["--bounds", "0", "0", "5", "1", "4", "-5"], "the z minimum 5.0 is larger than its maximum -5.0"),
     (["--bounds", "0", "0", "nan", "4"], "x and y must be finite"),
@@ -421,7 +421,7 @@ def test_an_empty_map_an_existing_file_and_a_store_missing_tiles(scene_file, dri
     taken.write_text("")
     assert f"--out {taken}: exists and is a file" in run_cli(capsys, "layers", scene_file, "--out", taken)
     broken = shutil.copytree(drive_store, tmp_path / "broken")
-    lost = sorted((broken / "tiles").glob("*.npz"))[3]
+    lost = sorted((broken / "tiles").glob("*.vox"))[3]
     lost.unlink()
     line = run_cli(capsys, "layers", broken, "--out", tmp_path / "o2")
     assert f"tiles/{lost.name}" in line and "1 of the" in line

@@ -2,7 +2,7 @@
 on random inputs and edge cases: no voxel, one voxel, cells larger than a voxel, voxels far from
 (0, 0, 0), the grid's edges, a z range; NaN-riddled grids, one known cell, cells on one line.
 
-Tagged boundary band (style recommendation 3): a voxel centre exactly on a cell face (cells that are
+Tagged boundary band (style recommendation 3): a voxel center exactly on a cell face (cells that are
 not a multiple of the voxel size) may fall either side in the kernel's arithmetic and the twin's; only
 cells holding such voxels may differ, and the test counts them.
 """
@@ -107,11 +107,11 @@ def test_cells_that_are_not_a_voxel_multiple_differ_only_on_cell_faces(device):
     grid = grid_covering((-3.2, 3.2), (-3.2, 3.2), 0.3, 0.0)
     got = column_reduction(voxels, grid, voxel_m=0.2, offset_m=0.0, surface_mask=SURFACE, clearance_m=0.6, device=device)
     expected = _twin(voxels, grid, 0.2, 0.0, SURFACE, 0.6)
-    # cells holding a voxel whose centre lies on a cell face (x or y centre a multiple of 0.3 m), and their neighbours
-    centres = (voxels.index[:, :2] + 0.5) * 0.2
-    on_face = np.any(np.abs(centres / 0.3 - np.round(centres / 0.3)) < 1e-9, axis=1)
+    # cells holding a voxel whose center lies on a cell face (x or y center a multiple of 0.3 m), and their neighbours
+    centers = (voxels.index[:, :2] + 0.5) * 0.2
+    on_face = np.any(np.abs(centers / 0.3 - np.round(centers / 0.3)) < 1e-9, axis=1)
     band = np.zeros((grid.height, grid.width), bool)
-    for c in centres[on_face]:
+    for c in centers[on_face]:
         i, j = int(np.floor((c[0] - grid.x0_m) / 0.3)), int(np.floor((c[1] - grid.y0_m) / 0.3))
         band[max(j - 1, 0):j + 2, max(i - 1, 0):i + 2] = True
     band = band.reshape(-1)

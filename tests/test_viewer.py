@@ -346,7 +346,7 @@ def test_terrain_surface_picking_and_cli(tmp_path, capsys):
         assert all(len(rows) == 0 for rows in v.visible_rows) and "terrain surface is drawn instead" in v.gui_status.content
         # a ray straight down onto a known cell hits that cell, at its height
         row, col = surface.rows[len(surface.rows) // 2], surface.cols[len(surface.rows) // 2]
-        x, y = surface.grid.cell_centres()[0][col], surface.grid.cell_centres()[1][row]
+        x, y = surface.grid.cell_centers()[0][col], surface.grid.cell_centers()[1][row]
         hit = v.pick_point(np.array([x, y, 20.0]) - v.origin, (0, 0, -1))
         assert hit["kind"] == "cell" and (hit["row"], hit["column"]) == (row, col)
         assert abs(hit["point"][2] - surface.height[row, col]) < 0.06

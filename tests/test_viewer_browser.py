@@ -11,7 +11,7 @@ from io import BytesIO
 import numpy as np
 import pytest
 
-from evsemmap_warp.apps.viewer import CLASS_COLORS, MapViewer, free_port
+from evsemmap_warp.apps.viewer import CLASS_COLORS, MapViewer, colormap, free_port
 
 from test_viewer import make_map
 
@@ -505,3 +505,239 @@ def test_diff_of_two_maps_against_a_ground_truth(open_page, tmp_path):
         assert sum(_near(img, c, 6).sum() for c in list(shown)[:50]) > 500, "no variance-difference colours"
     finally:
         viewer.server.stop()
+
+
+# --- issue 30 item 3: drive playback -------------------------------------------------------------------------------
+def _number_box(page, label: str):
+    """A slider's number box, found by the slider's label."""
+    return page.locator(f"xpath=//label[normalize-space()='{label}']/ancestor::div[.//input[contains(@class, 'NumberInput-input')]][1]"
+                        "//input[contains(@class, 'NumberInput-input')]").first
+
+
+@pytest.fixture(scope="module")
+def alpha_drive(tmp_path_factory):
+    """A tiny synthetic drive, its alpha files, and its map made from them (one frame per scan)."""
+    from evsemmap_warp.apps.cli import main
+    from evsemmap_warp.synthetic.preset import load_preset
+    from evsemmap_warp.synthetic.writer import generate_sequence
+    from test_viewer_drive import write_alpha_files
+
+    root = tmp_path_factory.mktemp("alpha_drive")
+    generate_sequence(load_preset("tiny"), root / "seq", progress=False)
+    write_alpha_files(root / "seq", root / "alpha")
+    assert main(["map", str(root / "seq"), "rellis3d", "--method", "ebs", "--alpha-dir", str(root / "alpha"), "--bin-frames", "1",
+                 "--out", str(root / "map.npz"), "--quiet"]) == 0
+    return root
+
+
+def test_drive_playback_scrubs_the_map_and_shows_the_scan_and_the_camera(open_page, alpha_drive):
+    """Issue 30 item 3: a time slider over the drive; the map as it stood after the chosen scan, the scan by
+    label or input uncertainty, and the camera image with its predicted labels and uncertainty beside it."""
+    from evsemmap_warp.apps.viewer_drive import DrivePlayback, open_drive
+
+    drive, replay = open_drive(alpha_drive / "map.npz", [alpha_drive / "seq", "rellis3d"], alpha_dir=alpha_drive / "alpha",
+                               bin_frames=1, snapshot_every=2)
+    viewer = MapViewer([alpha_drive / "map.npz"], port=free_port())
+    playback = DrivePlayback(viewer, drive, replay, precompute=False)
+    try:
+        page = open_page(viewer)
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000)
+        assert playback.wait_until_drawn(5)
+        # the camera, its predicted labels and their uncertainty: three images in the Drive folder, below the legend
+        assert _wait(lambda: len(_panel_images(page)) >= 4), _panel_images(page)
+        page.get_by_text("predicted labels (alpha files)").first.scroll_into_view_if_needed()
+        time.sleep(1.0)
+        legend, camera, labels, uncertainty = _panel_images(page)[:4]
+        img = _image(page.screenshot())
+
+        def inside(box):
+            return img[int(box["top"]):int(box["bottom"]), int(box["left"]):int(box["right"])]
+
+        assert camera["width"] > 150 and camera["height"] > 50
+        assert _near(inside(labels), CLASS_COLORS["grass"], 10).sum() > 200, "no predicted grass in the label image"
+        # uncertainty: the left half of each alpha image has weak evidence (K/S 0.5), the right half strong (0.04)
+        half = inside(uncertainty).shape[1] // 2
+        strong, weak = colormap(np.array([9 / 208]), 0, 1)[0], colormap(np.array([9 / 18]), 0, 1)[0]
+        assert _near(inside(uncertainty)[:, half:], strong, 25).sum() > 200 and _near(inside(uncertainty)[:, :half], weak, 25).sum() > 200
+        # scrub to the first scan in the page: the map as it stood then, smaller
+        voxels_at_end = int((viewer.layers[0].state == 2).sum())
+        vegetation_at_end = _near(_image(page.screenshot())[:, :900], CLASS_COLORS["vegetation"], 20).sum()
+        box = _number_box(page, "Scan")
+        box.fill("0")
+        box.press("Enter")
+        assert _wait(lambda: playback._drawn_map == 1, 60), playback.errors
+        page.get_by_text("of 6 (frame 0, t = 0.00 s)").first.wait_for(timeout=20_000)
+        page.get_by_text("as it stood after scan 1").first.wait_for(timeout=20_000)
+        assert int((viewer.layers[0].state == 2).sum()) < 0.6 * voxels_at_end
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["vegetation"], 20).sum() < 0.8 * vegetation_at_end), \
+            "the scene still shows the whole map"
+        # the scan by input uncertainty: its unsure points (the left half of the camera's view) turn teal
+        time.sleep(1.0)
+        before = _image(page.screenshot())[:, :900]
+        _choose(page, "Colour scan by", "input uncertainty")
+        assert _wait(lambda: playback._drawn_scan == (0, "input uncertainty"), 30)
+        assert _wait(lambda: (_near(_image(page.screenshot())[:, :900], weak, 20).sum() - _near(before, weak, 20).sum()) > 100), \
+            "no scan points in the uncertainty colours"
+    finally:
+        playback.close()
+        viewer.server.stop()
+
+
+# --- issue 30 item 5: maps watched while they are made -------------------------------------------------------------
+def _visible_count(viewer) -> int:
+    return int(viewer.visible_mask(0).sum())
+
+
+def test_map_being_made_updates_in_the_browser_and_ends_as_written(open_page, tmp_path):
+    """Issue 30 item 5: `map --view` serves while mapping, the map updating every N scans, and shows the map as
+    written at the end."""
+    import threading
+
+    from evsemmap_warp.apps.scan_sources import mapper_for, open_scan_source
+    from evsemmap_warp.apps.viewer import MapLayer
+    from evsemmap_warp.apps.viewer_live import LiveMap, map_live
+    from evsemmap_warp.config import load_config
+    from evsemmap_warp.core.map_file import read_map_arrays
+    from evsemmap_warp.synthetic.preset import load_preset
+    from evsemmap_warp.synthetic.writer import generate_sequence
+
+    generate_sequence(load_preset("tiny", trajectory__frames=8), tmp_path / "seq", progress=False)
+    run = load_config([str(tmp_path / "seq"), "rellis3d"], method="ebs")
+    source = open_scan_source(run)
+    mapper = mapper_for(source, run.mapping)
+    out = tmp_path / "live.npz"
+    viewer = MapViewer([MapLayer.from_mapper("live", out, mapper)], port=free_port())
+    live = LiveMap(viewer, mapper, name="live", path=out, scan_total=len(source))
+    gate = threading.Event()
+
+    def held_at_half():
+        for k, scan in enumerate(source):
+            if k == 4:
+                gate.wait(120)
+            yield scan
+
+    mapping = threading.Thread(target=map_live, args=(mapper, held_at_half(), live), kwargs={"every": 2})
+    try:
+        page = open_page(viewer)
+        page.get_by_text("waiting for the first scans").first.wait_for(timeout=10_000)
+        mapping.start()
+        # the first half, drawn while mapping waits for the rest
+        assert _wait(lambda: live.updates >= 1 and not live.busy, 60), live.errors
+        half = _visible_count(viewer)
+        assert half > 500
+        page.get_by_text(f"{half:,} of {half:,} visible voxels drawn").first.wait_for(timeout=20_000)
+        page.get_by_text(f"of {len(source)} scans").first.wait_for(timeout=10_000)
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 1000), "the map never appeared"
+        gate.set()
+        mapping.join(120)
+        mapper.save(out)
+        final = live.show_final()
+        arrays, _ = read_map_arrays(out)
+        np.testing.assert_array_equal(final.voxel_index, arrays["voxel_index"])
+        np.testing.assert_array_equal(final.label, arrays["label"])
+        whole = _visible_count(viewer)
+        assert whole > 1.1 * half
+        page.get_by_text(f"{whole:,} of {whole:,} visible voxels drawn").first.wait_for(timeout=20_000)
+        page.get_by_text("the map as written to").first.wait_for(timeout=10_000)
+    finally:
+        gate.set()
+        live.close()
+        viewer.server.stop()
+
+
+def test_batch_tiles_fill_in_the_overview(open_page, tmp_path):
+    """Issue 30 item 5: `batch --view`: the overview's tiles appear as the driver reports them (run_batch's on_tile)."""
+    from test_viewer_live import _store_tiles
+
+    from evsemmap_warp.apps.viewer import MapLayer
+    from evsemmap_warp.apps.viewer_live import LiveTiles, reading_template
+
+    store, tiles = _store_tiles(tmp_path)
+    template = reading_template(store.tile(next(iter(tiles))))
+    viewer = MapViewer([MapLayer.from_mapper("store", tmp_path / "store", template)], port=free_port())
+    live = LiveTiles(viewer, template, name="store", path=tmp_path / "store", max_voxels=100_000, tile_total=len(tiles))
+    try:
+        page = open_page(viewer)
+        names = sorted(tiles, key=lambda n: -int((store.tile(n).voxels()[1].label == 7).sum()))  # the grassiest tile first
+        live(names[0], tiles[names[0]])
+        assert live.wait_idle() and not live.errors
+        page.get_by_text(f"1 of {len(tiles)} tiles so far").first.wait_for(timeout=20_000)
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 300), "the first tile never appeared"
+        assert _near(_image(page.screenshot())[:, :900], CLASS_COLORS["object"]).sum() < 300  # that tile holds no object
+        for name in names[1:]:
+            live(name, tiles[name])
+        assert live.wait_idle() and not live.errors
+        page.get_by_text(f"{len(tiles)} of {len(tiles)} tiles so far").first.wait_for(timeout=20_000)
+        # the camera follows the overview while the user has not moved it: the object's tiles come into view
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["object"]).sum() > 2000), "the other tiles never appeared"
+    finally:
+        live.close()
+        viewer.server.stop()
+
+
+# --- issue 30 item 6: stores at scale ------------------------------------------------------------------------------
+def test_store_first_frame_fills_in_and_shows_tiles_in_full_on_approach(open_page, tmp_path):
+    """Issue 30 item 6: a store's first frame comes from its first tiles, the overview fills in behind it, and the
+    tiles a camera comes near are drawn in full."""
+    from evsemmap_warp.apps.cli import main
+
+    make_map(tmp_path / "a.npz")
+    make_map(tmp_path / "b.npz", seed=1, offset=(0.3, 0, 0))
+    assert main(["merge", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--out", str(tmp_path / "store"), "--tile-voxels", "8"]) == 0
+    viewer = MapViewer([tmp_path / "store"], port=free_port(), max_voxels=150, store_first_voxels=1)
+    overview = viewer.stores[0]
+    read_next = overview.read_next
+
+    def slowly():  # a store far larger than this one: its tiles come in over seconds
+        time.sleep(0.4)
+        return read_next()
+
+    overview.read_next = slowly
+    try:
+        page = open_page(viewer)
+        page.get_by_text("reading its tiles").first.wait_for(timeout=10_000)
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 100), "no first frame"
+        first = _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum()
+        assert _wait(lambda: overview.complete, 60)
+        assert _wait(lambda: "reading its tiles" not in page.inner_text("body"), 20)
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() > 2 * first), "the overview never filled in"
+        # the camera comes down over the ground, away from the box: that tile column in full, densely drawn
+        layer = viewer.layers[0]
+        spot = layer.centers[(layer.label == 7) & (layer.centers[:, 0] < 101.0) & (layer.centers[:, 1] < 101.0)].mean(axis=0)
+        viewer.APPROACH_TILES = 0.0  # first the overview from there, for comparison
+        _top_down(viewer, 1.2, spot - viewer.origin)  # nearer than a tile edge (1.6 m)
+        time.sleep(2.0)
+        window = (slice(300, 500), slice(540, 740))  # around the orbit centre (640, 400)
+        sparse = _near(_image(page.screenshot())[window], CLASS_COLORS["grass"]).mean()
+        assert overview.detail == () and sparse < 0.6, sparse
+        viewer.APPROACH_TILES = 1.0
+        _top_down(viewer, 1.1, spot - viewer.origin)
+        assert _wait(lambda: len(overview.detail) > 0, 30), "no tile in full near the camera"
+        page.get_by_text("tile(s) in full").first.wait_for(timeout=20_000)
+        assert _wait(lambda: _near(_image(page.screenshot())[window], CLASS_COLORS["grass"]).mean() > 0.9), \
+            f"the tile in full is not drawn densely (the overview covered {sparse:.0%} of the ground)"
+    finally:
+        viewer.close()
+
+
+# --- issue 30 item 7: the docs' screenshots ------------------------------------------------------------------------
+def test_the_docs_screenshots_come_from_the_screenshot_tool(tmp_path):
+    """docs/viewer/*.png are made by tools/viewer_screenshots.py; here it runs every mode on tiny data, and each
+    shot shows its mode (a scene drawn), and the docs show each mode's image."""
+    import subprocess
+    import sys
+
+    sys.path.insert(0, str(REPO / "tools"))
+    import viewer_screenshots
+
+    # as a user runs it (its Playwright cannot share this process with the tests' browser)
+    done = subprocess.run([sys.executable, str(REPO / "tools" / "viewer_screenshots.py"), "--preset", "tiny", "--frames", "6",
+                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=1200)
+    assert done.returncode == 0, done.stderr[-3000:]
+    written = [tmp_path / f"{mode}.png" for mode in viewer_screenshots.MODES]
+    for path in written:
+        image = _image(path.read_bytes())[:, :900]
+        assert (image.max(axis=2) - image.min(axis=2) > 60).sum() > 1000, f"{path.name}: nothing coloured drawn"
+    pages = (REPO / "docs" / "viewer.md").read_text() + (REPO / "README.md").read_text()
+    for mode in viewer_screenshots.MODES:
+        assert (REPO / "docs" / "viewer" / f"{mode}.png").is_file() and f"viewer/{mode}.png" in pages, mode

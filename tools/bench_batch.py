@@ -1,31 +1,38 @@
-"""Batch-mapping benchmark on this machine: the long synthetic drive (``evsemmap synth --preset long
+"""Batch-mapping benchmark on this machine: the long synthetic drive (``evsemmap synth --world long
 --no-camera``: 5,000 LiDAR frames, 2 km) mapped by ``evsemmap map`` and by ``evsemmap batch`` with the
 local process pool and with Ray, at 1 and 2 workers, in one run.
 
 Each configuration runs as the command a user types (a fresh process, start-up included), after a
 warm-up batch on the first 200 frames (kernel cache, page cache). Reported per configuration: wall
-time, frames/s, input points/s, peak memory of a worker and of the driver, the reduction's cost
-(summing partials and writing the tiles) and the store's size, and the speed-up over ``evsemmap map``.
-From the measured per-frame mapping cost (per input point) and per-tile reduction cost, the tool
-projects the wall time of a whole RELLIS-3D and of a 1,000 km fleet log on a 16-node cluster (the
-model is printed with the figures). The last line printed is one JSON object.
+time, frames/s, input points/s, peak memory of a worker and of the driver, the streaming reduction's
+cost (folding partials into tiles, in the driver while the workers map), the store's size (bytes per
+voxel) and the peak disk use during the run (sampled), and the speed-up over ``evsemmap map``. From
+the measured per-point mapping cost and per-tile fold cost, the tool projects the wall time of a whole
+RELLIS-3D and of a 1,000 km fleet log on a 16-node cluster (the model is printed with the figures).
+The results go to a run record (docs/bench/bench_batch-<UTC>.json, tools/bench_record.py); the last
+line printed is its path.
 
-    python tools/bench_batch.py [--frames 5000] [--method ebs] [--data DIR] [--repeats 1]
+    python tools/bench_batch.py [--frames 2000] [--method ebs] [--data DIR] [--repeats 1]
+    python tools/bench_batch.py --markdown docs/bench/bench_batch-<UTC>.json   # a record's table, for the docs
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
 import yaml
+
+from bench_record import write_record
 
 REPO = Path(__file__).resolve().parents[1]
 EVSEMMAP = [sys.executable, "-m", "evsemmap_warp.apps.cli"]
@@ -38,35 +45,84 @@ FLEET_FRAME_SPACING_M = 0.5  # 10 Hz at 5 m/s
 CLUSTER = {"nodes": 16, "cores_per_node": 16}
 
 
-def run(args: list[str]) -> tuple[float, dict]:
+def folder_size(path: Path) -> int:
+    total = 0
+    for f in path.rglob("*"):
+        try:
+            total += f.stat().st_size if f.is_file() else 0
+        except OSError:  # renamed or deleted while we looked (a temporary file, a folded partial)
+            pass
+    return total
+
+
+def run(args: list[str], watch: Path | None = None) -> tuple[float, dict, int]:
+    """Wall time, the JSON summary and, with ``watch``, the largest size the folder reached (sampled
+    every 0.25 s in a thread of this process: it costs the run a little CPU, the same for every run)."""
+    peak = [0]
+    stop = threading.Event()
+
+    def sample():
+        while not stop.wait(0.25):
+            if watch is not None and watch.exists():
+                peak[0] = max(peak[0], folder_size(watch))
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
     started = time.perf_counter()
     done = subprocess.run(EVSEMMAP + args, capture_output=True, text=True, cwd=REPO)
     seconds = time.perf_counter() - started
+    stop.set()
+    sampler.join()
     if done.returncode != 0:
         raise SystemExit(f"{' '.join(args)} failed:\n{done.stderr[-3000:]}")
-    return seconds, json.loads(done.stdout)
+    if watch is not None:
+        peak[0] = max(peak[0], folder_size(watch))
+    return seconds, json.loads(done.stdout), peak[0]
 
 
-def folder_size(path: Path) -> int:
-    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+def markdown(record_path: Path) -> str:
+    """The docs' table of a run record (docs/performance.md shows it as printed here)."""
+    record = json.loads(Path(record_path).read_text())
+    results = record["results"]
+    runs = results["runs"]
+    names = {"map": "`evsemmap map` (2 threads)", "localx1": "`batch`, local, 1 worker", "localx2": "`batch`, local, 2 workers",
+             "rayx1": "`batch`, Ray, 1 worker", "rayx2": "`batch`, Ray, 2 workers"}
+    lines = [f"<!-- record: docs/bench/{Path(record_path).name} -->",
+             "| run | wall | frames/s | input points/s | vs `evsemmap map` | driver's folding | store | peak disk | worker peak | driver peak |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for key, name in names.items():
+        if key not in runs:
+            continue
+        r = runs[key]
+        if key == "map":
+            lines.append(f"| {name} | {r['wall_s']} s | {r['frames_per_s']} | {r['input_points_per_s'] / 1e3:.0f} k | 1.00x | - | - | - | - | - |")
+            continue
+        lines.append(f"| {name} | {r['wall_s']} s | {r['frames_per_s']} | {r['input_points_per_s'] / 1e3:.0f} k | {r['speedup_vs_map']}x | "
+                     f"{r['fold_s']} s | {r['store_mb']} MB ({r['store_bytes_per_voxel']} B/voxel) | {r['peak_disk_mb']} MB | "
+                     f"{r['worker_peak_mb']:.0f} MB | {r['driver_peak_mb']:.0f} MB |")
+    return "\n".join(lines)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=5000)
+    parser.add_argument("--markdown", type=Path, metavar="RECORD", help="print the docs' table of a run record and exit")
+    parser.add_argument("--frames", type=int, default=2000)
     parser.add_argument("--method", default="ebs")
-    parser.add_argument("--chunk-frames", type=int, default=100)
+    parser.add_argument("--chunk-frames", type=int, help="default: batch's automatic choice")
     parser.add_argument("--data", type=Path, help="render the long drive here (kept and reused), default a temporary folder")
     parser.add_argument("--repeats", type=int, default=1, help="runs per configuration (median reported)")
     parser.add_argument("--executors", default="local,ray")
     args = parser.parse_args()
+    if args.markdown:
+        print(markdown(args.markdown))
+        return
     tmp = Path(tempfile.mkdtemp(prefix="bench_batch_"))
     data = args.data or tmp / "long"
     results = {"method": args.method, "frames": args.frames, "chunk_frames": args.chunk_frames, "repeats": args.repeats, "runs": {}}
     try:
         if not (data / "synth.yaml").exists():
             started = time.perf_counter()
-            subprocess.run(EVSEMMAP + ["synth", "--preset", "long", "--no-camera", "--frames", str(args.frames), "--out", str(data), "--quiet"],
+            subprocess.run(EVSEMMAP + ["synth", "--world", "long", "--no-camera", "--frames", str(args.frames), "--out", str(data), "--quiet"],
                            check=True, capture_output=True, cwd=REPO)
             results["render_seconds"] = round(time.perf_counter() - started, 1)
             print(f"rendered {args.frames} frames in {results['render_seconds']} s", flush=True)
@@ -77,16 +133,17 @@ def main() -> None:
         run(["batch", str(warm_seq), "--method", args.method, "--out", str(warm), "--quiet"])
 
         def repeat(name: str, command: list[str], out: Path | None):
-            times, summaries = [], []
+            times, summaries, peaks = [], [], []
             for _ in range(args.repeats):
                 if out is not None:
                     shutil.rmtree(out, ignore_errors=True)
-                seconds, summary = run(command)
+                seconds, summary, peak = run(command, out)
                 times.append(seconds)
                 summaries.append(summary)
-            return statistics.median(times), summaries[-1]
+                peaks.append(peak)
+            return statistics.median(times), summaries[-1], max(peaks)
 
-        map_seconds, map_report = repeat("map", ["map", str(data), "--method", args.method, "--out", str(tmp / "map.npz"), "--quiet"], None)
+        map_seconds, map_report, _ = repeat("map", ["map", str(data), "--method", args.method, "--out", str(tmp / "map.npz"), "--quiet"], None)
         points = map_report["input_points"]
         results["runs"]["map"] = {"wall_s": round(map_seconds, 2), "frames_per_s": round(args.frames / map_seconds, 1),
                                   "input_points_per_s": round(points / map_seconds), "voxels": map_report["voxels"]}
@@ -94,46 +151,66 @@ def main() -> None:
         for executor in args.executors.split(","):
             for workers in (1, 2):
                 out = tmp / f"store_{executor}_{workers}"
-                seconds, summary = repeat(f"{executor}{workers}", ["batch", str(data), "--method", args.method, "--out", str(out), "--executor",
-                                                                    executor, "--workers", str(workers), "--chunk-frames", str(args.chunk_frames), "--quiet"], out)
+                chunking = ["--chunk-frames", str(args.chunk_frames)] if args.chunk_frames else []
+                seconds, summary, peak_disk = repeat(f"{executor}{workers}", ["batch", str(data), "--method", args.method, "--out", str(out),
+                                                                              "--executor", executor, "--workers", str(workers), *chunking, "--quiet"], out)
+                store_bytes = folder_size(out / "tiles")
                 row = {
                     "wall_s": round(seconds, 2), "frames_per_s": round(args.frames / seconds, 1), "input_points_per_s": round(points / seconds),
                     "speedup_vs_map": round(map_seconds / seconds, 2), "map_stage_s": summary["seconds"]["map"],
-                    "reduce_s": summary["seconds"]["reduce"], "index_s": summary["seconds"]["index"], "store_mb": round(folder_size(out / "tiles") / 1e6, 1),
-                    "partials_mb": round(folder_size(out / "work") / 1e6, 1), "tiles": summary["tiles"], "voxels": summary["voxels"],
+                    "fold_s": summary["seconds"]["fold"], "index_s": summary["seconds"]["index"], "store_mb": round(store_bytes / 1e6, 1),
+                    "store_bytes_per_voxel": round(store_bytes / max(summary["voxels"], 1), 1), "peak_disk_mb": round(peak_disk / 1e6, 1),
+                    "work_mb_after": round(folder_size(out / "work") / 1e6, 2), "tiles": summary["tiles"], "voxels": summary["voxels"],
+                    "chunks": summary["chunks"], "chunk_frames": summary["chunk_frames"],
                     "worker_peak_mb": summary["peak_rss_mb"]["worker_max"], "driver_peak_mb": summary["peak_rss_mb"]["driver"],
-                    "chunk_s_median": summary["chunk_seconds_median"], "tile_s_median": summary["tile_seconds_median"],
+                    "chunk_s_median": summary["chunk_seconds_median"],
                     "memory_budget_per_worker_mb": summary["memory_budget"]["per_worker_mb"],
                 }
                 results["runs"][f"{executor}x{workers}"] = row
                 print(f"batch {executor} x{workers}: {seconds:.1f} s ({row['speedup_vs_map']:.2f}x map), {row['frames_per_s']} frames/s, "
-                      f"reduce {row['reduce_s']:.1f} s, store {row['store_mb']} MB in {row['tiles']} tiles, worker peak {row['worker_peak_mb']:.0f} MB, "
-                      f"driver {row['driver_peak_mb']:.0f} MB", flush=True)
-        # Projection: mapping cost per input point (one worker, median chunk) and reduction cost per tile,
+                      f"fold {row['fold_s']:.1f} s, store {row['store_mb']} MB ({row['store_bytes_per_voxel']} B/voxel) in {row['tiles']} tiles, "
+                      f"peak disk {row['peak_disk_mb']} MB, worker peak {row['worker_peak_mb']:.0f} MB, driver {row['driver_peak_mb']:.0f} MB", flush=True)
+        # Projection: mapping cost per input point (one worker, median chunk) and fold cost per tile,
         # spread over every core of the cluster; tiles grow with the distance driven.
         one = results["runs"].get("localx1") or next(iter(v for k, v in results["runs"].items() if k != "map"))
-        chunk_points = points / max(1, -(-args.frames // args.chunk_frames))
+        chunk_points = points / max(1, one["chunks"])
+        fold_per_tile = one["fold_s"] / max(1, one["tiles"])
         per_point = one["chunk_s_median"] / chunk_points
         drive_km = float(yaml.safe_load((data / "synth.yaml").read_text())["summary"]["drive_m"]) / 1000
         tiles_per_km = one["tiles"] / drive_km
         cores = CLUSTER["nodes"] * CLUSTER["cores_per_node"]
 
+        # The fold runs in the driver, one tile after another, beside the workers: it does not spread
+        # over the cluster's cores, so the model takes the larger of the two (they overlap).
         def projected(frames: float, points_per_frame: float, km: float) -> dict:
             mapping = frames * points_per_frame * per_point / cores
-            reduction = km * tiles_per_km * one["tile_s_median"] / cores
-            return {"frames": int(frames), "mapping_s": round(mapping, 1), "reduction_s": round(reduction, 1), "total_s": round(mapping + reduction, 1)}
+            folding = km * tiles_per_km * fold_per_tile
+            return {"frames": int(frames), "mapping_s": round(mapping, 1), "folding_s": round(folding, 1),
+                    "total_s": round(max(mapping, folding), 1), "limited_by": "mapping" if mapping >= folding else "the driver's fold"}
 
         fleet_frames = FLEET_KM * 1000 / FLEET_FRAME_SPACING_M
         results["projection"] = {
-            "model": (f"wall = frames x points/frame x {per_point * 1e9:.1f} ns/point (one worker, measured) / {cores} cores "
-                      f"+ km x {tiles_per_km:.1f} tiles/km x {one['tile_s_median']:.3f} s/tile / {cores} cores; "
-                      f"{CLUSTER['nodes']} nodes x {CLUSTER['cores_per_node']} cores, perfect scaling, storage and network not limiting"),
+            "model": (f"wall = max(frames x points/frame x {per_point * 1e9:.1f} ns/point (one worker, measured) / {cores} cores, "
+                      f"km x {tiles_per_km:.1f} tiles/km x {fold_per_tile:.3f} s of folding/tile in the one driver); "
+                      f"{CLUSTER['nodes']} nodes x {CLUSTER['cores_per_node']} cores, perfect scaling of the workers, start-up, "
+                      f"storage and network not counted"),
             "rellis3d": projected(RELLIS3D["frames"], RELLIS3D["points_per_frame"], RELLIS3D["drive_km"]),
             "fleet_1000km": projected(fleet_frames, RELLIS3D["points_per_frame"], FLEET_KM),
         }
+        # Workers on one machine beyond this one's cores: predicted from the measured 1-worker chunk time,
+        # not measured (this machine has os.cpu_count() cores).
+        start_s = max(0.0, one["wall_s"] - one["chunks"] * one["chunk_s_median"])
+        results["scaling_model"] = {
+            "measured_up_to_workers": os.cpu_count(),
+            "model": f"wall(w) = {start_s:.1f} s (start-up and tail, measured at 1 worker) + max({one['chunks']} chunks x "
+                     f"{one['chunk_s_median']:.2f} s / w, {one['fold_s']:.1f} s of folding)",
+            "predicted_wall_s": {w: round(start_s + max(one["chunks"] * one["chunk_s_median"] / w, one["fold_s"]), 1) for w in (1, 2, 4, 8, 16)},
+        }
         print(f"projection ({results['projection']['model']}): RELLIS-3D {results['projection']['rellis3d']['total_s']} s, "
-              f"1,000 km fleet log {results['projection']['fleet_1000km']['total_s']} s")
-        print(json.dumps(results))
+              f"1,000 km fleet log {results['projection']['fleet_1000km']['total_s']} s "
+              f"({results['projection']['fleet_1000km']['limited_by']})")
+        print(f"scaling model ({results['scaling_model']['model']}): {results['scaling_model']['predicted_wall_s']}")
+        print(write_record("bench_batch", results))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

@@ -12,7 +12,7 @@ process, and next to the original C++ figures: those stored with the workload (i
   (r 0.2, block depth 2, ell 0.3, sf2 10, prior 0.001, VoxelGrid 0.1, free_resolution F) and the
   workload's S-BKI input labels (its ``label`` array, which the C++ runs read): the same map semantics
   as the C++ rows, so the ratio against them is like for like;
-* ``ebs-release``, ``dempster-release``: the release-compatibility mode (configs/presets/evsemmap-release.yaml)
+* ``ebs-release``, ``dempster-release``: the release mode (configs/presets/release.yaml)
   against the released EvSemMap C++ (its counts after the cut, after "ds" and its cells are checked).
 
 The like-for-like rows run at 1 and 2 worker threads (``@1t``, ``@2t``): ``@1t`` is compared with the
@@ -21,10 +21,17 @@ slower). ``@1t`` rows call ``Mapper.integrate`` scan by scan, throughput = input
 time of those calls; ``@2t`` rows and the clean rows (2 workers) map through ``Mapper.integrate_many``
 (the next scans' host work overlaps this scan's kernels), throughput = input points / its wall time.
 Scans are in memory (loading excluded); median of --repeats fresh maps after one warm-up (kernel
-compile); the numpy twin likewise, at one thread (numpy's scatter does not thread). A C++ rate is
-input points / the median of its runs' summed insert times. The cell counts, and the release's counts
-after the cut and after "ds", must equal the C++'s, or the tool exits 1.
-The last line printed is one JSON object: row name -> input points per second.
+compile); the numpy twin likewise, at one thread (numpy's scatter does not thread). The map's
+read-out that a query needs (``Mapper.voxels()``: the shards merged, the summary) is timed apart, after
+each repeat (``summary_seconds``). A C++ rate is input points / the median of its runs' summed insert
+times. The cell counts, and the release's counts after the cut and after "ds", must equal the C++'s, or
+the tool exits 1 (after writing its record, which lists the mismatch).
+
+The run's record (docs/bench/bench_integrate-<UTC>.json, tools/bench_record.py) holds every row's
+repeats, counts, rates and ratios and the C++ rates they were set against; ``python tools/perf_records.py
+table RECORD`` writes docs/performance.md's table from it. The last line printed is one JSON object: row
+name -> input points per second. ``--scans N`` maps the first N scans only (a trial of the tool: its
+counts cannot match the C++'s; ``--record-dir`` then keeps its record out of docs/bench).
 
     python tools/bench_integrate.py [--repeats 3] [--device cpu] [--plot bench.png] [--cpp-timings docs/cpp_side_by_side.json]
 """
@@ -52,6 +59,9 @@ from evsemmap_warp.core.integrators import uncertainty_quantile_mask  # noqa: E4
 from evsemmap_warp.kernels import scatter as sc  # noqa: E402
 from evsemmap_warp.core.mapper import Mapper  # noqa: E402
 from evsemmap_warp.reference import scatter as ref  # noqa: E402
+
+sys.path.insert(0, str(REPO / "tools"))
+from bench_record import RECORDS, write_record  # noqa: E402
 
 DATASET = REPO / "configs/datasets/bench_rellis_like.yaml"
 PRESET = REPO / "configs/presets/rellis3d.yaml"
@@ -103,7 +113,7 @@ def compat_config(free_resolution: float) -> MappingConfig:
 
 # The paper's method, its baselines in this engine, and the Dempster-Shafer variant, same workload.
 METHODS = ("ebs", "s-bki", "convbki", "see-csom", "dempster")
-RELEASE_PRESET = REPO / "configs/presets/evsemmap-release.yaml"
+RELEASE_PRESET = REPO / "configs/presets/release.yaml"
 RELEASE_METHODS = ("ebs", "dempster")
 
 
@@ -119,7 +129,7 @@ def release_counts(config: MappingConfig, scans) -> int:
 def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, repeats, progress, workers=None, pipelined=False):
     warm = Mapper(config, 9, device=device, workers=workers)
     warm.integrate(scans[0].points[:1000], payloads[0][:1000], payload_type=payload_type, sensor_origin=scans[0].sensor_origin)
-    runs, first = [], None
+    runs, summaries, first = [], [], None
     for _ in range(repeats):
         mapper = Mapper(config, 9, device=device, workers=workers)
         if pipelined:
@@ -135,6 +145,9 @@ def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, re
                 elapsed += time.perf_counter() - start
                 progress.update(len(scan.points))
         runs.append(elapsed)
+        start = time.perf_counter()
+        mapper.voxels()
+        summaries.append(time.perf_counter() - start)
         if first is None:
             counts = mapper.state_counts()
             first = {
@@ -147,7 +160,8 @@ def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, re
         # 3.0 s with them kept), which made every repeat after the first slower than the first.
         del mapper, all_stats
         gc.collect()
-    return first | {"seconds": statistics.median(runs), "all_seconds": [round(r, 3) for r in runs]}
+    return first | {"seconds": statistics.median(runs), "all_seconds": [round(r, 3) for r in runs],
+                    "summary_seconds": statistics.median(summaries), "all_summary_seconds": [round(r, 4) for r in summaries]}
 
 
 def time_numpy(config: MappingConfig, scans, payloads, repeats: int):
@@ -188,20 +202,26 @@ def main() -> int:
     parser.add_argument("--cpp-timings", type=Path, default=None,
                         help="the originals' timings measured on this machine, in the layout of the workload's .json "
                              "(e.g. docs/cpp_side_by_side.json), instead of the workload's stored figures")
+    parser.add_argument("--scans", type=int, default=None, help="map the first N scans only (a trial: the counts cannot match the C++'s)")
+    parser.add_argument("--record-dir", type=Path, default=RECORDS, help="where the run's record goes (default docs/bench)")
     args = parser.parse_args()
+    started = time.time()
 
     if not DATASET.exists() or not (REPO.parent / "shared/data/bench/rellis_like_30scans.npz").exists():
         print("the benchmark workload ../shared/data/bench/rellis_like_30scans.npz is absent; nothing to measure", file=sys.stderr)
         return 1
     dataset, scans = load_scans()
+    labels = sbki_labels(dataset)
+    if args.scans is not None:
+        scans, labels = scans[:args.scans], labels[:args.scans]
     n_points = sum(len(s.points) for s in scans)
+    cpp_path = args.cpp_timings or dataset.path.with_suffix(".json")
     try:
-        sbki, evsemmap, cpp_source = read_cpp_figures(args.cpp_timings or dataset.path.with_suffix(".json"))
+        sbki, evsemmap, cpp_source = read_cpp_figures(cpp_path)
     except ValueError as exc:
         print(exc, file=sys.stderr)
         return 2
     alphas = [s.payload for s in scans]
-    labels = sbki_labels(dataset)
 
     rows = {}
     thread_counts = (1, 2) if args.device == "cpu" else (1,)
@@ -236,25 +256,14 @@ def main() -> int:
     print(f"C++ figures: {cpp_source}")
     print(f"{'row':28s} {'s':>7s} {'input pts/s':>12s} {'voxel upd/s':>12s} {'voxels':>9s} {'B/voxel':>8s}  vs numpy  "
           f"vs C++ (@1t: C++ 1 thread; @2t and others: C++ at its best of 1/2 threads)")
-    throughput, references = {}, {}
+    references = compare_rows(rows, n_points, cpp_rate)
+    throughput = {name: round(row["input_points_per_s"]) for name, row in rows.items()}
     for name, row in rows.items():
-        pts = n_points / row["seconds"]
-        throughput[name] = round(pts)
-        vs_numpy = ""
-        if f"numpy:{name}" in rows:
-            vs_numpy = f"x{rows[f'numpy:{name}']['seconds'] / row['seconds']:.1f}"
-        base, _, threads = name.rpartition("@")
-        if threads == "1t":
-            reference = cpp_rate.get((base, 1))
-        else:
-            base = base if threads == "2t" else name
-            reference = max(cpp_rate.get((base, 1), 0), cpp_rate.get((base, 2), 0)) or None
-        vs_cpp = f"x{pts / reference:.1f} ({reference / 1e3:.0f}k)" if reference else ""
-        if reference:
-            references[name] = reference
+        vs_numpy = f"x{row['vs_numpy']:.1f}" if "vs_numpy" in row else ""
+        vs_cpp = f"x{row['vs_cpp']:.1f} ({row['cpp_points_per_s'] / 1e3:.0f}k)" if "vs_cpp" in row else ""
         if name == "ebs":
             vs_cpp += " other map semantics"
-        print(f"{name:28s} {row['seconds']:7.2f} {pts:12,.0f} {row['voxel_updates'] / row['seconds']:12,.0f} "
+        print(f"{name:28s} {row['seconds']:7.2f} {row['input_points_per_s']:12,.0f} {row['voxel_updates_per_s']:12,.0f} "
               f"{row['voxels']:9,d} {row.get('bytes_per_voxel', float('nan')):8.1f}  {vs_numpy:8s}  {vs_cpp}")
     problems = []
     for name in like_for_like:
@@ -275,11 +284,63 @@ def main() -> int:
     print("details: " + json.dumps(rows, default=lambda o: None))
     if args.plot:
         plot(throughput, references, args.plot)
+    results = integration_results(rows, scans=len(scans), n_points=n_points, device=args.device, repeats=args.repeats,
+                                  free_resolutions=args.free_resolutions, thread_counts=thread_counts, like_for_like=like_for_like,
+                                  cpp_path=cpp_path, cpp_source=cpp_source, cpp_rate=cpp_rate, release_after_cut=release_after_cut,
+                                  problems=problems)
+    print(write_record("bench_integrate", results, started=started, folder=args.record_dir))
     print(json.dumps(throughput))
     if problems:
         print("MISMATCH: " + "; ".join(problems), file=sys.stderr)
         return 1
     return 0
+
+
+def compare_rows(rows: dict, n_points: int, cpp_rate: dict) -> dict:
+    """Add to each row its rates (input points/s, voxel updates/s) and its comparisons: with the numpy
+    twin's row of the same method (``vs_numpy``, a time ratio) and with the C++ (``cpp_points_per_s``,
+    ``vs_cpp``, ``cpp_threads``): an @1t row against the C++ on 1 thread, the others against the C++ at its
+    best of 1 and 2 threads (``cpp_rate``: (row name without @, threads) -> input points/s; the clean
+    ``ebs`` is set beside the release's, ``cpp_semantics`` "other"). Returns row -> the C++ rate it was
+    set against."""
+    best_threads = {name: max((1, 2), key=lambda t: cpp_rate.get((name, t), 0)) for name, _ in cpp_rate}
+    if "ebs-release" in best_threads:
+        best_threads["ebs"] = best_threads["ebs-release"]
+    references = {}
+    for name, row in rows.items():
+        row["input_points_per_s"] = n_points / row["seconds"]
+        row["voxel_updates_per_s"] = row["voxel_updates"] / row["seconds"]
+        if f"numpy:{name}" in rows:
+            row["vs_numpy"] = rows[f"numpy:{name}"]["seconds"] / row["seconds"]
+        base, _, threads = name.rpartition("@")
+        if threads == "1t":
+            reference, label = cpp_rate.get((base, 1)), "1 thread"
+        else:
+            base = base if threads == "2t" else name
+            reference = max(cpp_rate.get((base, 1), 0), cpp_rate.get((base, 2), 0)) or None
+            best = best_threads.get(base, 1)
+            label = f"its best: {best} thread{'s' if best > 1 else ''}"
+        if reference:
+            references[name] = reference
+            row["cpp_points_per_s"], row["vs_cpp"], row["cpp_threads"] = reference, row["input_points_per_s"] / reference, label
+            if name == "ebs":
+                row["cpp_semantics"] = "other"  # the release's rate, for scale: not the same map
+    return references
+
+
+def integration_results(rows: dict, *, scans: int, n_points: int, device: str, repeats: int, free_resolutions, thread_counts,
+                        like_for_like, cpp_path: Path, cpp_source: str, cpp_rate: dict, release_after_cut: dict, problems: list) -> dict:
+    """The results part of a run's record: the workload, the run's settings, the rows (as ``compare_rows``
+    left them), the C++ rates and where they come from, the release's counts after its cut, and the
+    mismatches against the C++'s counts."""
+    cpp_file = cpp_path.resolve().relative_to(REPO).as_posix() if cpp_path.resolve().is_relative_to(REPO) else str(cpp_path)
+    return {
+        "workload": {"file": "../shared/data/bench/rellis_like_30scans.npz", "scans": scans, "input_points": n_points},
+        "device": device, "repeats": repeats, "free_resolutions": list(free_resolutions), "thread_counts": list(thread_counts),
+        "methods": list(METHODS), "like_for_like": list(like_for_like),
+        "cpp": {"file": cpp_file, "summary": cpp_source, "points_per_s": {f"{name}@{t}t": rate for (name, t), rate in cpp_rate.items()}},
+        "release_after_cut": release_after_cut, "rows": rows, "problems": problems,
+    }
 
 
 def plot(throughput, baselines, path: Path) -> None:

@@ -1,7 +1,7 @@
 """Terrain-layer benchmark on this machine: ``evsemmap layers`` on the ``long`` drive's store and on the
 bench map, against the time mapping them took (docs/terrain.md, "Speed and memory").
 
-* the store: the ``long`` synthetic drive (``evsemmap synth --preset long --no-camera``: 5,000 frames,
+* the store: the ``long`` synthetic drive (``evsemmap synth --world long --no-camera``: 5,000 frames,
   2 km) mapped by ``evsemmap batch`` (local pool, 2 workers, EBS) into a store of 51.2 m tiles, both
   made here unless ``--data`` already holds them (``long/`` and ``long_store/``, kept for reruns);
   then ``evsemmap layers STORE`` as a user types it (a fresh process, start-up included) with every
@@ -12,7 +12,8 @@ bench map, against the time mapping them took (docs/terrain.md, "Speed and memor
 
 Reported per row: wall time, input points per second (the points that made the map, over the layers'
 time: comparable with mapping's rate), voxels and cells per second, the child's peak memory, and the
-layers' time as a share of the mapping time. The last line printed is one JSON object.
+layers' time as a share of the mapping time. The results go to a run record
+(docs/bench/bench_layers-<UTC>.json, tools/bench_record.py); the last line printed is its path.
 
     python tools/bench_layers.py [--data DIR] [--frames 5000] [--repeats 3]
 """
@@ -27,6 +28,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from bench_record import write_record
 
 REPO = Path(__file__).resolve().parents[1]
 # Runs the CLI in a child and prints its peak resident memory (MB) as the last stderr line.
@@ -48,7 +51,7 @@ def store_rows(data: Path, frames: int) -> tuple[list[dict], dict]:
     drive, store = data / "long", data / "long_store"
     made = {}
     if not (drive / "poses.txt").exists():
-        seconds, _, _ = run_cli(["synth", "--preset", "long", "--no-camera", "--frames", str(frames), "--out", str(drive), "--quiet"])
+        seconds, _, _ = run_cli(["synth", "--world", "long", "--no-camera", "--frames", str(frames), "--out", str(drive), "--quiet"])
         made["render_s"] = round(seconds, 1)
     if not (store / "store.json").exists():
         seconds, summary, peak = run_cli(["batch", str(drive), "--method", "ebs", "--out", str(store), "--workers", "2", "--quiet"])
@@ -132,7 +135,7 @@ def main() -> None:
         peak = f"{r['peak_mb']} MB" if "peak_mb" in r else "-"
         print(f"| {r['row']} | {r['wall_s']} s | {r['input_points_per_s']:,} | {r['voxels_per_s']:,} | {r['cells_per_s']:,} | {peak} | "
               f"{r['mapping_s']} s | {r['share_of_mapping'] * 100:.1f} % |")
-    print(json.dumps({"rows": rows, **made}))
+    print(write_record("bench_layers", {"rows": rows, **made}))
 
 
 if __name__ == "__main__":

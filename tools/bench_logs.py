@@ -12,7 +12,7 @@ For each log format:
 
 Warm-up pass first, then the median of ``--repeats``. The last line printed is one JSON object.
 
-    python tools/bench_logs.py [--preset default] [--frames 30] [--repeats 3]
+    python tools/bench_logs.py [--world default] [--frames 30] [--repeats 3]
 """
 
 from __future__ import annotations
@@ -90,14 +90,14 @@ def map_pass(sources: list[str]) -> int:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="default")
+    parser.add_argument("--world", default="default")
     parser.add_argument("--frames", type=int, default=30)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
-    results = {"preset": args.preset, "frames": args.frames, "repeats": args.repeats, "formats": {}}
+    results = {"preset": args.world, "frames": args.frames, "repeats": args.repeats, "formats": {}}
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "folder"
-        generate_sequence(load_preset(args.preset, trajectory__frames=args.frames), folder, progress=False)
+        generate_sequence(load_preset(args.world, trajectory__frames=args.frames), folder, progress=False)
         start = time.perf_counter()
         folder_map_s, folder_points = median_time(lambda: map_pass([str(folder), "rellis3d"]), args.repeats)
         results["folder_map"] = {"seconds": round(folder_map_s, 3), "input_points_per_s": round(folder_points / folder_map_s)}

@@ -3,7 +3,9 @@ JSON files under ``docs/bench/``, written by the tool that measured it.
 
 A record holds the tool, the command line, when it ran, the commit (and whether the tree was
 clean), the machine (CPU model, cores, flags, memory, the load when it started), the versions of
-Python and the packages that matter, and the tool's raw results (every timing, every count).
+Python and the packages that matter, how Warp compiles CPU kernels (its flags: the figures depend on
+them), and the tool's raw results (every timing, every count). ``tools/perf_records.py`` generates
+docs tables from records and checks that the docs' figures are in them.
 
     from bench_record import write_record
     path = write_record("bench_batch", results)          # docs/bench/bench_batch-<UTC time>.json
@@ -66,17 +68,38 @@ def versions() -> dict:
     return out
 
 
-def write_record(tool: str, results: dict, *, started: float | None = None) -> Path:
-    """Write ``results`` with the run's provenance to docs/bench/<tool>-<UTC time>.json; returns the path."""
+def warp_build() -> dict | None:
+    """How Warp builds CPU kernels in this process (None when Warp is not loaded): its CPU compiler flags
+    and optimization level. Warp compiles with its own Clang/LLVM, at -O2 on the CPU unless
+    ``wp.config.optimization_level`` says otherwise, for the host's CPU (``-march=native``)."""
+    warp = sys.modules.get("warp")
+    if warp is None:
+        return None
+    level = getattr(warp.config, "optimization_level", None)
+    return {"cpu_compiler_flags": getattr(warp.config, "cpu_compiler_flags", None),
+            "cpu_optimization_level": level if level is not None else "default (-O2 on the CPU)", "mode": getattr(warp.config, "mode", None)}
+
+
+def _json_value(value):
+    """numpy scalars and arrays (a tool's counts often are) as JSON values."""
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON")
+
+
+def write_record(tool: str, results: dict, *, started: float | None = None, folder: Path = RECORDS) -> Path:
+    """Write ``results`` with the run's provenance to <folder>/<tool>-<UTC time>.json (``folder``:
+    docs/bench unless a trial run puts it elsewhere); returns the path."""
     now = datetime.datetime.now(datetime.timezone.utc)
     record = {
         "tool": tool, "command": [Path(sys.executable).name, *sys.argv], "utc": now.isoformat(timespec="seconds"),
         "commit": _git("rev-parse", "HEAD"), "tree_clean": _git("status", "--porcelain", "--untracked-files=no") == "",
-        "machine": machine(), "versions": versions(), "results": results,
+        "machine": machine(), "versions": versions(), "warp_build": warp_build(), "results": results,
     }
     if started is not None:
         record["seconds"] = round(now.timestamp() - started, 1)
-    RECORDS.mkdir(parents=True, exist_ok=True)
-    path = RECORDS / f"{tool}-{now.strftime('%Y%m%dT%H%M%SZ')}.json"
-    path.write_text(json.dumps(record, indent=1) + "\n")
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{tool}-{now.strftime('%Y%m%dT%H%M%SZ')}.json"
+    path.write_text(json.dumps(record, indent=1, default=_json_value) + "\n")
     return path

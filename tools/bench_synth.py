@@ -8,7 +8,7 @@
 
 The last line printed is one JSON object of the figures.
 
-    python tools/bench_synth.py [--preset default] [--repeats 3]
+    python tools/bench_synth.py [--world default] [--repeats 3]
 """
 
 from __future__ import annotations
@@ -34,11 +34,11 @@ from evsemmap_warp.synthetic.writer import generate_sequence  # noqa: E402
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="default")
+    parser.add_argument("--world", default="default")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
-    preset = load_preset(args.preset)
+    preset = load_preset(args.world)
 
     with tempfile.TemporaryDirectory() as tmp:
         generate_sequence(load_preset("tiny", trajectory__frames=1), Path(tmp) / "warmup", progress=False, device=args.device)

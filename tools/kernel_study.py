@@ -3,8 +3,11 @@
     python tools/kernel_study.py [--device cpu|cuda] [--quick] [--out docs]
 
 Everything in the report comes from this one run (no hand-edited numbers): warm-up launch first,
-then the median of --repeats. Workload: the shared benchmark scans (../shared/data/bench) when present,
-else LiDAR-like synthetic scans (rings of points on a ground plane with a few walls) made here.
+then the median of --repeats. Its conclusions are computed from the run's figures (a sentence that the
+figures do not support is not written). The run's record (every row, the figures derived from them and
+the machine; tools/bench_record.py) goes to <out>/bench/kernel_study-<UTC>.json, docs/bench by
+default, and the report names it. Workload: the shared benchmark scans (../shared/data/bench) when
+present, else LiDAR-like synthetic scans (rings of points on a ground plane with a few walls) made here.
 
 1. Integration strategies, each an engine backend with the same map out (the tool checks that and
    exits 1 otherwise): the atomic scatter, sort-then-reduce and the gather through ``wp.HashGrid``
@@ -34,6 +37,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "tools"))
 
 from evsemmap_warp.config import load_config  # noqa: E402
 from evsemmap_warp.core.mapper import Mapper  # noqa: E402
@@ -42,11 +46,13 @@ from evsemmap_warp.reference import scatter as ref  # noqa: E402
 from evsemmap_warp.voxel_keys import pack_voxel_keys  # noqa: E402
 
 wp = init_warp()
+from bench_record import machine, write_record  # noqa: E402
+
 from evsemmap_warp.kernels import hash_table as ht  # noqa: E402
 from evsemmap_warp.kernels import microbench as mb  # noqa: E402
 
 PRESET = REPO / "configs/presets/rellis3d.yaml"
-RELEASE = REPO / "configs/presets/evsemmap-release.yaml"
+RELEASE = REPO / "configs/presets/release.yaml"
 STRATEGIES = ("atomic", "sorted", "gather")
 BENCH = REPO / "configs/datasets/bench_rellis_like.yaml"
 
@@ -116,7 +122,7 @@ def strategies(scans, device, repeats, workers_list):
                 holder = {}
                 seconds = timed(lambda: holder.update(result=run_mapper(cfg, scans, device, workers)), repeats)
                 mapper, updates = holder["result"]
-                maps[(method, strategy, workers)] = mapper.voxels()[0]
+                maps[(method, strategy, workers)] = mapper.voxels().arrays
                 rows.append({"method": method, "strategy": strategy, "workers": workers, "seconds": seconds,
                              "points_per_s": n_points / seconds, "updates": updates, "updates_per_s": updates / seconds,
                              "voxels": mapper.voxel_count})
@@ -174,7 +180,7 @@ def gather_forms(scans, device, repeats):
             holder["mapper"] = mapper
 
         seconds = timed(run, repeats)
-        arrays = holder["mapper"].voxels()[0]
+        arrays = holder["mapper"].voxels().arrays
         if kernel_name not in reference:
             reference[kernel_name] = (arrays, seconds)
         first, first_seconds = reference[kernel_name]
@@ -384,24 +390,87 @@ def determinism_cost(strategy_rows) -> dict[str, float]:
     return {name: one[name] / one["atomic"] for name in STRATEGIES if name != "atomic" and name in one}
 
 
-def write_report(out: Path, device, workload, strategy_rows, problems, gather_rows, hash_rows, prec, scaling_rows, seconds):
+def derived_figures(strategy_rows, hash_rows, prec, k: int = 9) -> dict:
+    """What the report concludes from, computed from the run's figures (kept in the record): each
+    strategy row's modelled bytes per update and share of the streaming bandwidth (added to the row), the
+    time of one update of the atomic scatter (s-bki, one thread) beside a random keyed row add and a hash
+    find measured in the same run, the cost of float64 and of determinism."""
+    for r in strategy_rows:
+        if r.get("updates_per_s"):
+            model = r["strategy"] if r["strategy"] in STRATEGIES else "release"
+            r["bytes_per_update_model"] = bytes_per_update(model, k)
+            r["roofline_share_percent"] = r["updates_per_s"] * r["bytes_per_update_model"] / 1e9 / prec["stream_gbs"] * 100
+    shares = [r for r in strategy_rows if "roofline_share_percent" in r]
+    top = max(shares, key=lambda r: r["roofline_share_percent"]) if shares else None
+    out = {"bytes_per_update_model": {name: bytes_per_update(name, k) for name in (*STRATEGIES, "release")},
+           "highest_roofline_share_percent": top["roofline_share_percent"] if top else None,
+           "highest_roofline_share_row": f"{top['method']}, {top['strategy']}, {top['workers']} thread{'s' if top['workers'] > 1 else ''}"
+           if top else None,
+           "float64_cost": prec["row_add32_per_s"] / prec["row_add64_per_s"], "determinism_cost": determinism_cost(strategy_rows)}
+    atomic = next((r for r in strategy_rows if r["method"] == "s-bki" and r["strategy"] == "atomic" and r["workers"] == 1), None)
+    find = next((r for r in hash_rows if r["keys"] == "lidar-like" and r["load"] == 0.5), None)
+    if atomic and find:
+        out["update_ns"] = 1e9 / atomic["updates_per_s"]
+        out["row_add_ns"], out["row_columns"] = 1e9 / prec["row_add64_per_s"], prec["row_columns"]
+        out["find_ns"] = 1e9 / find["find_per_s"]
+        out["row_add_and_two_finds_ns"] = out["row_add_ns"] + 2 * out["find_ns"]
+    return out
+
+
+def conclusions(derived: dict) -> list[str]:
+    """The roofline section's conclusions, each argued from this run's figures."""
+    out = []
+    share = derived["highest_roofline_share_percent"]
+    if share is not None:
+        text = f"The highest share in this run is {share:.0f} % ({derived['highest_roofline_share_row']})"
+        if share < 50:
+            text += (": by this model every strategy moves less than half the bytes the streaming copy moves in the same time, "
+                     "so none is bound by memory bandwidth in this run.")
+        else:
+            text += ": by this model that row is within a factor of two of the bandwidth roof."
+        out.append(text)
+    if "update_ns" in derived:
+        update, accesses = derived["update_ns"], derived["row_add_and_two_finds_ns"]
+        text = (f"One voxel update of the atomic scatter (s-bki, one thread) takes {update:.0f} ns; in the microbenchmarks below a "
+                f"random keyed add of a {derived['row_columns']}-column float64 row takes {derived['row_add_ns']:.0f} ns and a hash find "
+                f"at load 0.5 (LiDAR-like keys) {derived['find_ns']:.0f} ns, so the update's row add and its two probes (insert pass, find pass) would take "
+                f"{accesses:.0f} ns at random addresses. ")
+        if update > accesses:
+            text += (f"The update takes {update / accesses:.1f}x that: with accesses no slower than random ones, at least "
+                     f"{update - accesses:.0f} ns of it is the kernel's own work (its traversal, weight and bookkeeping), which this "
+                     "run does not break down further.")
+        else:
+            text += ("The update takes no longer than that, so its memory accesses could account for all of its time; this run does "
+                     "not separate them from its arithmetic.")
+        out.append(text)
+    return out
+
+
+def vector_unit() -> str:
+    """The widest vector instructions this machine's CPU has (from its flags)."""
+    flags = set(machine().get("cpu_flags", []))
+    return "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "AVX" if "avx" in flags else "SSE"
+
+
+def record_name(path: Path) -> str:
+    return path.resolve().relative_to(REPO).as_posix() if path.resolve().is_relative_to(REPO) else str(path)
+
+
+def write_report(out: Path, device, workload, strategy_rows, problems, gather_rows, hash_rows, prec, scaling_rows, seconds, derived,
+                 record: Path):
     lines = [
         "# Kernel study", "",
-        f"Written by `python tools/kernel_study.py --device {device}` in {seconds:.0f} s ({workload}). Medians after a warm-up; "
-        "one run, so ratios are like for like. Regenerate rather than edit.", "",
+        f"<!-- page-record: {record_name(record)} -->",
+        f"Written by `python tools/kernel_study.py --device {device}` in {seconds:.0f} s ({workload}); its record: "
+        f"`{record_name(record)}`. Medians after a warm-up; one run, so ratios are like for like. Regenerate rather than edit.", "",
         "## Integration strategies (same map out of each: checked by the tool)", "",
         "| method | strategy | threads | s | input pts/s | voxel updates/s | roofline share |", "|---|---|---|---|---|---|---|",
     ]
     k = 9
-    shares = [0.0]
     for r in strategy_rows:
         ups = r.get("updates_per_s")
         strategy = r["strategy"]
-        roof = ""
-        if ups:
-            model = strategy if strategy in STRATEGIES else "release"
-            shares.append(ups * bytes_per_update(model, k) / 1e9 / prec["stream_gbs"] * 100)
-            roof = f"{shares[-1]:.0f} %"
+        roof = f"{r['roofline_share_percent']:.0f} %" if ups else ""
         lines.append(f"| {r['method']} | {strategy} | {r['workers']} | {r['seconds']:.3f} | {r['points_per_s']:,.0f} | "
                      f"{ups:,.0f} | {roof} |" if ups else f"| {r['method']} | {strategy} | 1 | {r['seconds']:.3f} | {r['points_per_s']:,.0f} | | |")
         if "torch_index_add_seconds" in r:
@@ -414,9 +483,7 @@ def write_report(out: Path, device, workload, strategy_rows, problems, gather_ro
               "modelled bytes per voxel update (atomic: two key probes + a read-modify-write of K + 3 float64 columns = "
               f"{bytes_per_update('atomic', k):.0f} B at K = 9; sorted: {bytes_per_update('sorted', k):.0f} B; hash-grid gather: "
               f"{bytes_per_update('gather', k):.0f} B; release block gather: {bytes_per_update('release', k):.0f} B) times the "
-              f"achieved update rate, over that bandwidth. The highest share in this run is {max(shares):.0f} %"
-              + (": every strategy is bound by latency (dependent hash probes, the kernel's sqrt and polynomial, branches), not "
-                 "by memory bandwidth, so fewer dependent steps per update pay more than a denser layout." if max(shares) < 50 else "."), "",
+              "achieved update rate, over that bandwidth.", "", *[line for text in conclusions(derived) for line in (text, "")],
               "## Cost of precision and of determinism", "",
               f"Keyed atomic row adds ({prec['row_columns']} columns, random rows): float64 {prec['row_add64_per_s']:,.0f} rows/s, "
               f"float32 {prec['row_add32_per_s']:,.0f} rows/s (float64 costs x{prec['row_add32_per_s'] / prec['row_add64_per_s']:.2f}). ",
@@ -430,7 +497,7 @@ def write_report(out: Path, device, workload, strategy_rows, problems, gather_ro
               "once; the same map bit for bit from every form (checked). "
               "Branch-free: a point's kernel values for all of a block's cells added, zeros included (S-BKI), or selected "
               "within reach (release); per-cell branches (S-BKI): a branch on each cell's kernel value being positive. The "
-              "compiler turns both into vector code over a block's 8 cells (AVX-512 on this project's VMs; the branches become "
+              f"compiler turns both into vector code over a block's 8 cells ({vector_unit()} on this machine; the branches become "
               "masked adds). Prefetch: each thread asks for the brick-cache and table "
               "lines of the block 16 threads ahead and the value rows of the block 8 ahead (`prefetch_brick`). The first form of "
               "each kernel is the engine's.", "",
@@ -471,8 +538,15 @@ def main() -> int:
     scaling_rows = scaling(scans, device, args.quick, repeats)
     (args.out / "kernel_study").mkdir(parents=True, exist_ok=True)
     plot(args.out / "kernel_study", strategy_rows, hash_rows, scaling_rows, device)
+    derived = derived_figures(strategy_rows, hash_rows, prec)
+    seconds = time.perf_counter() - start
+    results = {"device": device, "quick": args.quick, "repeats": repeats, "workload": workload, "seconds": seconds, "strategies": strategy_rows,
+               "gather_forms": gather_rows, "hash_table": hash_rows, "precision_and_stream": prec, "scaling": scaling_rows, "derived": derived,
+               "problems": problems}
+    record = write_record("kernel_study", results, folder=args.out / "bench")
     write_report(args.out / "kernel_study.md", device, workload, strategy_rows, problems, gather_rows, hash_rows, prec, scaling_rows,
-                 time.perf_counter() - start)
+                 seconds, derived, record)
+    print(f"record: {record}", file=sys.stderr)
     print(f"wrote {args.out / 'kernel_study.md'} in {time.perf_counter() - start:.0f} s", file=sys.stderr)
     if problems:
         print("MISMATCH: " + "; ".join(problems), file=sys.stderr)

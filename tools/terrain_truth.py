@@ -1,7 +1,7 @@
 """Terrain layers against the synthetic world's truth (docs/terrain.md, "Checked against ground truth").
 
 Renders a synthetic drive (LiDAR only), maps it with ``ebs`` from its per-point labels as ``evsemmap
-map`` does, computes the layers, and compares them with what the world knows, per cell centre:
+map`` does, computes the layers, and compares them with what the world knows, per cell center:
 
 - true terrain height and surface class: a ray straight down onto the terrain's faces only;
 - true obstacles: a ray straight down onto the whole world hitting a non-ground face (trunk, canopy,
@@ -15,7 +15,7 @@ unknown cells impassable): its length, its share on the true road, and its clear
 obstacles. The minimum-evidence setting is swept (0 keeps every OCCUPIED voxel). Figures go to
 ``--out`` (docs/terrain/PRESET/ by default), with ``truth.json``; the last line printed is that JSON.
 
-    python tools/terrain_truth.py [--preset default] [--work DIR] [--out docs/terrain/PRESET]
+    python tools/terrain_truth.py [--world default] [--work DIR] [--out docs/terrain/WORLD]
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ def _world_truth(world, grid, clearance_m: float, device: str):
     from evsemmap_warp.synthetic.scene import MATERIALS
     from evsemmap_warp.synthetic.sensors import RayCaster
 
-    x, y = grid.cell_centres()
+    x, y = grid.cell_centers()
     xx, yy = np.meshgrid(x, y)
     top = 500.0
     origins = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, top)], 1)
@@ -80,8 +80,8 @@ def _world_truth(world, grid, clearance_m: float, device: str):
 
 
 def _road_mask(world, grid) -> np.ndarray:
-    """Cells within the road's half width of its centre line (north-up)."""
-    x, y = grid.cell_centres()
+    """Cells within the road's half width of its center line (north-up)."""
+    x, y = grid.cell_centers()
     xx, yy = np.meshgrid(x, y)
     road = world.road[:, :2]
     distance = np.full(xx.shape, np.inf)
@@ -223,7 +223,7 @@ def evaluate(layers, truth, road, poses, classes, costs_of_classes: np.ndarray) 
     return result
 
 
-def _figures(out: Path, layers, truth, road, result, poses, classes, colours, sweep) -> list[Path]:
+def _figures(out: Path, layers, truth, road, result, poses, classes, colors, sweep) -> list[Path]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -236,7 +236,7 @@ def _figures(out: Path, layers, truth, road, result, poses, classes, colours, sw
     extent = (grid.x0_m, grid.x1_m, grid.y0_m, grid.y1_m)
     written = []
     bands = layers.bands
-    palette = ListedColormap(np.asarray(colours) / 255.0)
+    palette = ListedColormap(np.asarray(colors) / 255.0)
 
     fig, axes = plt.subplots(2, 3, figsize=(16, 10))
     panels = [("elevation", "terrain", "m"), ("slope", "magma", "deg"), ("step", "magma", "m"),
@@ -247,7 +247,7 @@ def _figures(out: Path, layers, truth, road, result, poses, classes, colours, sw
         if cmap is None:
             ax.imshow(values, extent=extent, cmap=palette, vmin=-0.5, vmax=len(classes) - 0.5, interpolation="nearest")
             present = sorted({int(v) for v in np.unique(bands[name][np.isfinite(bands[name])])})
-            ax.legend(handles=[Patch(facecolor=np.asarray(colours[c]) / 255, label=classes[c]) for c in present], fontsize=7, loc="lower right")
+            ax.legend(handles=[Patch(facecolor=np.asarray(colors[c]) / 255, label=classes[c]) for c in present], fontsize=7, loc="lower right")
         else:
             kwargs = {"vmin": 0, "vmax": 1} if name == "traversability_cost" else {}
             if name == "step":
@@ -258,7 +258,7 @@ def _figures(out: Path, layers, truth, road, result, poses, classes, colours, sw
             ax.imshow(np.ma.masked_where(bands["lethal"] == 0, bands["lethal"]), extent=extent, cmap=ListedColormap(["k"]), interpolation="nearest")
             if result["plan"]:
                 cells = np.array(result["plan"]["cells"])
-                x, y = grid.cell_centres()
+                x, y = grid.cell_centers()
                 ax.plot(x[cells[:, 1]], y[cells[:, 0]], color="blue", lw=1.5, label="A* plan")
                 ax.plot(poses[:, 0, 3], poses[:, 1, 3], color="white", lw=0.8, ls="--", label="drive")
                 ax.legend(fontsize=7, loc="lower right")
@@ -302,7 +302,7 @@ def _figures(out: Path, layers, truth, road, result, poses, classes, colours, sw
                   interpolation="nearest")
         ax.imshow(np.ma.masked_where(~obstacle, obstacle.astype(float)), extent=extent, cmap=ListedColormap(["k"]), interpolation="nearest")
         cells = np.array(result["plan"]["cells"])
-        x, y = grid.cell_centres()
+        x, y = grid.cell_centers()
         ax.plot(x[cells[:, 1]], y[cells[:, 0]], color="blue", lw=2)
         ax.plot(poses[:, 0, 3], poses[:, 1, 3], color="magenta", lw=1, ls="--")
         ax.legend(handles=[Patch(color="blue", label="A* plan on traversability_cost"), Patch(color="magenta", label="the drive"),
@@ -320,7 +320,7 @@ def _figures(out: Path, layers, truth, road, result, poses, classes, colours, sw
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="default", help="a synthetic preset of one square world (not a corridor)")
+    parser.add_argument("--world", default="default", help="a synthetic world preset with one square world (not a corridor)")
     parser.add_argument("--work", type=Path, default=Path("/tmp/evsemmap_terrain_truth"), help="drive and map here (kept and reused)")
     parser.add_argument("--out", type=Path, default=None, help="figures and truth.json (default: docs/terrain/PRESET)")
     parser.add_argument("--method", default="ebs")
@@ -336,14 +336,14 @@ def main() -> None:
     from evsemmap_warp.synthetic.scene import generate_world
     from evsemmap_warp.synthetic.writer import generate_sequence
     from evsemmap_warp.terrain import compute_layers, load_terrain_config
-    from evsemmap_warp.terrain.pipeline import class_colours
+    from evsemmap_warp.terrain.pipeline import class_colors
 
-    preset = load_preset(args.preset)
-    args.out = args.out or REPO / "docs" / "terrain" / args.preset
+    preset = load_preset(args.world)
+    args.out = args.out or REPO / "docs" / "terrain" / args.world
     if preset.world.corridor_tiles:
         raise SystemExit("terrain_truth: give a preset of one square world (demo, default, tiny), not a corridor")
-    drive = args.work / f"{args.preset}_drive"
-    map_path = args.work / f"{args.preset}_{args.method}.npz"
+    drive = args.work / f"{args.world}_drive"
+    map_path = args.work / f"{args.world}_{args.method}.npz"
     timings = {}
     if not (drive / "poses.txt").exists():
         started = time.perf_counter()
@@ -385,9 +385,9 @@ def main() -> None:
         raise SystemExit(f"terrain_truth: the default min_evidence {base.layers.min_evidence} is not in the sweep {SWEEP}")
     layers, result = chosen
     args.out.mkdir(parents=True, exist_ok=True)
-    figures = _figures(args.out, layers, truth, road, result, poses, classes, class_colours(classes), sweep)
+    figures = _figures(args.out, layers, truth, road, result, poses, classes, class_colors(classes), sweep)
     summary = {
-        "preset": args.preset, "method": args.method, "voxels": mapper.voxel_count, "cell_m": layers.grid.cell_m, "costs_file": "default",
+        "preset": args.world, "method": args.method, "voxels": mapper.voxel_count, "cell_m": layers.grid.cell_m, "costs_file": "default",
         "default_min_evidence": base.layers.min_evidence, "timings": timings,
         "result": {k: v for k, v in result.items() if k != "plan"} | {"plan": {k: v for k, v in (result["plan"] or {}).items() if k != "cells"}},
         "sweep": {str(k): {key: v["result"][key] for key in ("cells_seen", "elevation_error_m", "surface_class_accuracy")}

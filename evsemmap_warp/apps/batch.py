@@ -10,13 +10,17 @@ BKI maps are sums, so partial maps of disjoint scan sets add up exactly. A run:
 2. maps each chunk in a worker into a partial map, written per spatial tile under ``STORE/work``
    (a chunk is done when its folder is renamed into place, so a killed worker leaves nothing that
    counts);
-3. reduces each tile: its partials summed in chunk order (the result does not depend on which chunk
-   finished first), written in the map-file schema under ``STORE/tiles``;
+3. folds, in the driver while the workers map, every finished chunk's partials into the store's
+   tiles, in chunk order (so the sums do not depend on which chunk finished first), and deletes them:
+   a tile is final as soon as the last chunk touching it is folded, and the disk holds the tiles plus
+   the partials of chunks not yet folded. Each tile records the last chunk folded into it, so a
+   resumed run folds every chunk into every tile exactly once;
 4. writes ``STORE/store.json`` last.
 
-A rerun of the same command skips finished chunks and reduces again, so an interrupted run finishes
-without counting any chunk twice; a worker that dies is replaced and its chunk mapped again. The same
-inputs give the same store, byte for byte, whatever the executor, worker count or completion order.
+A rerun of the same command skips finished chunks and folds what is left, so an interrupted run
+finishes without counting any chunk twice; a worker that dies is replaced and its chunk mapped again.
+The same inputs give the same store, byte for byte, whatever the executor, worker count or completion
+order.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ import shutil
 import sys
 import threading
 import time
+from collections import OrderedDict
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
@@ -39,14 +44,15 @@ import numpy as np
 
 from .. import files
 from ..config import ConfigError, MappingConfig, is_robot_log, load_config
-from ..core import map_store
-from ..core.mapper import Mapper, VoxelState
+from ..core import map_store, tile_codec
+from ..core.mapper import Mapper
 from ..core.voxel_map import EXTRA_COLUMNS, VoxelArrays
 from ..frames import WorldFrame, check_same_frame
 from .scan_sources import map_scans, mapper_for, open_scan_source
 
 WORKER_OVERHEAD_BYTES = 450 * 2**20  # a worker process with numpy, Warp and its kernels loaded (measured: ~0.4 GB)
 DRIVER_OVERHEAD_BYTES = 450 * 2**20
+FOLD_CACHE_TILES = 12  # tiles the driver keeps in memory while folding (the drive passes through them; up to ~15 MB each)
 # The automatic chunk size (--chunk-frames not given): the inputs' frames cut into at least AUTO_CHUNKS
 # chunks (two per worker up to 8 workers, so short inputs use every core), at most MAX_AUTO_CHUNK_FRAMES
 # frames each. It depends on the inputs only, never on the worker count: stores stay byte-identical.
@@ -64,6 +70,8 @@ class _FaultPlan:
 
 @dataclass(frozen=True)
 class BatchOptions:
+    """What ``evsemmap batch`` was asked for (its flags); ``run_batch`` takes the inputs beside it."""
+
     method: str
     out: Path
     executor: str = "local"  # local | ray (| inline: in this process, for tests and debugging)
@@ -83,6 +91,8 @@ class BatchOptions:
 
 @dataclass(frozen=True)
 class Chunk:
+    """A run's unit of work: insertions ``start..stop-1`` of input ``sequence``, ``frames`` frames."""
+
     number: int
     sequence: int  # which input
     start: int  # insertions start..stop-1 of that input
@@ -105,7 +115,12 @@ class Context:
     fault: _FaultPlan | None = None  # tests only (run_batch's _fault); None in use
 
     def template(self) -> Mapper:
+        """An empty Mapper with the store's parameters, classes, origin and frame (map_store.template_mapper)."""
         return map_store.template_mapper(self.config, self.class_names, self.origin_index, self.frame)
+
+    def identity(self) -> str:
+        """The store's identity (map_store.store_identity), which its partials and tiles record."""
+        return map_store.template_identity(self.template(), self.tile_voxels)
 
 
 # Planning ------------------------------------------------------------------------------------------
@@ -127,6 +142,7 @@ def split_inputs(paths: list[str]) -> tuple[list[str], list[str]]:
 
 
 def load_yaml_sections(path: Path) -> set:
+    """The top-level keys of a YAML file (empty when it holds no mapping)."""
     from ..config import read_yaml_file
 
     data = read_yaml_file(path)
@@ -194,6 +210,7 @@ def plan_batch(paths: list[str], options: BatchOptions):
     if not chunks:
         raise ConfigError(f"batch: the inputs {inputs} hold no scans")
     identity = {
+        "store_format_version": map_store.STORE_VERSION,
         "inputs": [_input_identity([text] + shared, run.dataset) for text, run in zip(inputs, runs)], "method": options.method,
         "mapping": config.as_dict(),
         "chunk_frames": chunk_frames, "tile_voxels": options.tile_voxels,  # the number used, chosen or given
@@ -232,6 +249,7 @@ def probe(sources, config: MappingConfig) -> tuple[np.ndarray, tuple[str, ...], 
 
 
 def available_memory() -> int:
+    """Bytes of memory available to new processes (MemAvailable; the physical size where that is not known)."""
     try:
         for line in Path("/proc/meminfo").read_text().splitlines():
             if line.startswith("MemAvailable:"):
@@ -281,7 +299,7 @@ def check_memory(options: BatchOptions, workers: int, chunk_insertions: int, fir
 _CONTEXT: Context | None = None
 
 
-_IN_TASK = False  # a worker process is running a task (map_chunk, reduce_tile) now
+_IN_TASK = False  # a worker process is running a task (map_chunk) now
 
 
 def _worker_interrupt(signum, frame) -> None:
@@ -331,7 +349,7 @@ def _inject_fault(context: Context, chunk: Chunk, partial_dir: Path) -> None:
         if not marker.exists():
             marker.write_text("killed once\n")
             partial_dir.mkdir(parents=True, exist_ok=True)
-            (partial_dir / "0_0_0.npz").write_bytes(b"half a file")
+            (partial_dir / f"0_0_0{map_store.PARTIAL_SUFFIX}").write_bytes(b"half a file")
             os._exit(137)
 
 
@@ -351,10 +369,11 @@ def map_chunk(chunk: Chunk, context: Context | None = None) -> dict:
     points, scans = sum(s.input_points for s in stats), len(stats)
     voxels, _ = mapper.voxels()
     parts = map_store.split_by_tile(voxels.index, voxels.rows(), context.tile_voxels)
+    identity = context.identity()
     try:
         partial.mkdir(parents=True, exist_ok=True)
         for name, (index, rows) in parts.items():
-            map_store.write_partial(partial / f"{name}.npz", index, rows)
+            map_store.write_partial(partial / f"{name}{map_store.PARTIAL_SUFFIX}", index, rows, context.tile_voxels, identity, chunk.number)
     except OSError as exc:  # a full disk: nothing of the chunk stays, the error names the store, not the temporary folder
         shutil.rmtree(partial, ignore_errors=True)
         raise files.error_naming(exc, context.store, f"writing chunk {chunk.number}'s partial maps; the mapped chunks are kept, "
@@ -369,26 +388,111 @@ def map_chunk(chunk: Chunk, context: Context | None = None) -> dict:
     return record | {"seconds": time.perf_counter() - started, "peak_rss_mb": _peak_rss_mb()}
 
 
-def reduce_tile(name: str, chunks: list[int], totals: dict, context: Context | None = None) -> dict:
-    """Sum one tile's partials in chunk order and write the tile; returns its index entry."""
-    context = context or _CONTEXT
-    started = time.perf_counter()
-    template = context.template()
-    columns = context.num_classes + EXTRA_COLUMNS
-    parts = [map_store.read_partial(_chunk_dir(context.store, n) / f"{name}.npz", columns, context.tile_voxels) for n in chunks]
-    voxels = map_store.reduce_partials(template, parts)
-    entry = _write_tile(context.store, name, template, voxels, totals, context.tile_voxels)
-    return entry | {"seconds": time.perf_counter() - started, "peak_rss_mb": _peak_rss_mb()}
+class TileFolder:
+    """The driver's side of the streaming reduction: finished chunks' partials folded into the store's
+    tiles in chunk order (map_store.fold). The tiles the drive is passing stay in memory (the
+    ``FOLD_CACHE_TILES`` most recently folded); a tile leaving them, and every tile at the end, is
+    written durably with the last chunk it holds (``folded_through``), and only then are the partials
+    it absorbed deleted. A killed run therefore loses nothing: what is not in a tile file is still in a
+    partial, and the rerun folds exactly the chunks each tile lacks. ``on_tile(name, voxels)`` sees
+    every tile as it grows (a live view)."""
 
+    def __init__(self, out: Path, context: Context, chunks: list[Chunk], on_tile=None):
+        self.out, self.chunks, self.on_tile = out, chunks, on_tile
+        self.template = context.template()
+        self.identity = context.identity()
+        self.tile_voxels = context.tile_voxels
+        self.columns = context.num_classes + EXTRA_COLUMNS
+        self.frontier = 0  # chunks[:frontier] are folded
+        self.finished: set[int] = set()
+        self.records: dict[int, dict] = {}
+        self.entries: dict[str, dict] = {}  # store.json entries of the tiles as written
+        self.folded: dict[str, int] = {}  # tile -> the last chunk folded into it (in memory or on disk)
+        self._running: OrderedDict[str, tuple[np.ndarray, np.ndarray]] = OrderedDict()  # tile -> (index, rows), in memory
+        self._absorbed: dict[str, list[int]] = {}  # tile -> chunks folded into it in memory only: their partials wait for its write
+        self.seconds = 0.0
+        self.tiles_written = 0
+        for path in sorted((out / "tiles").glob(f"*{map_store.TILE_SUFFIX[map_store.STORE_VERSION]}")):
+            header = self._tile_header(path)
+            self.folded[path.stem] = header["folded_through"]
+            self.entries[path.stem] = header["entry"]
 
-def _write_tile(store: Path, name: str, template: Mapper, voxels, totals: dict, tile_voxels: int) -> dict:
-    """Write one tile; its entry in the store index (voxels, bounds, states)."""
-    map_store.write_tile(store / "tiles" / f"{name}.npz", template, voxels, totals, tile_voxels)
-    summary = template.summarize(voxels.evidence, voxels.touched)
-    centres = template.voxel_centers(voxels.index)
-    half = template.config.resolution_m / 2
-    return {"voxels": int(len(voxels.index)), "bounds_m": [(centres.min(axis=0) - half).tolist(), (centres.max(axis=0) + half).tolist()],
-            "states": {s.name: int((summary.state == s).sum()) for s in VoxelState}}
+    def _tile_path(self, name: str) -> Path:
+        return self.out / "tiles" / f"{name}{map_store.TILE_SUFFIX[map_store.STORE_VERSION]}"
+
+    def _partial_path(self, number: int, name: str) -> Path:
+        return _chunk_dir(self.out, number) / f"{name}{map_store.PARTIAL_SUFFIX}"
+
+    def _tile_header(self, path: Path) -> dict:
+        try:
+            header = tile_codec.read_voxel_header(path)
+        except tile_codec.VoxelFileError as exc:
+            raise map_store.StoreError(f"{exc}; delete {self.out} and map again (its tiles hold chunks whose partials are gone)") from None
+        folded = header.get("folded_through")
+        if (header.get("kind") != "tile" or header.get("store") != self.identity or isinstance(folded, bool) or not isinstance(folded, int)
+                or not isinstance(header.get("entry"), dict)):
+            raise map_store.StoreError(f"{path}: not a tile of this batch run (another store's, or one written by a merge); "
+                                       f"delete {self.out} and map again, or give a new --out")
+        return header
+
+    def chunk_finished(self, number: int) -> None:
+        """Chunk ``number`` is mapped: fold it, and every finished chunk after it up to the first that is not."""
+        self.finished.add(number)
+        started = time.perf_counter()
+        while self.frontier < len(self.chunks) and self.chunks[self.frontier].number in self.finished:
+            self._fold(self.chunks[self.frontier])
+            self.frontier += 1
+        self.seconds += time.perf_counter() - started
+
+    def finish(self) -> None:
+        """Write every tile still in memory (the run's last step before store.json)."""
+        started = time.perf_counter()
+        while self._running:
+            self._write(next(iter(self._running)))
+        self.seconds += time.perf_counter() - started
+
+    def _fold(self, chunk: Chunk) -> None:
+        record = _read_done(self.out, chunk, self.folded)
+        for name in record["tiles"]:
+            if self.folded.get(name, -1) >= chunk.number:
+                self._partial_path(chunk.number, name).unlink(missing_ok=True)  # folded and written before the last run was killed
+                continue
+            index, rows = map_store.read_partial(self._partial_path(chunk.number, name), self.columns, self.tile_voxels, self.identity,
+                                                 chunk.number)
+            running = map_store.fold(self._running_tile(name), index, rows)
+            self._running[name] = running
+            self._running.move_to_end(name)
+            self.folded[name] = chunk.number
+            self._absorbed.setdefault(name, []).append(chunk.number)
+            if self.on_tile is not None:
+                self.on_tile(name, VoxelArrays.from_rows(*running))
+        self.records[chunk.number] = record
+        while len(self._running) > FOLD_CACHE_TILES:
+            self._write(next(iter(self._running)))
+
+    def _write(self, name: str) -> None:
+        """Write tile ``name`` from memory, then delete the partials it absorbed."""
+        index, rows = self._running.pop(name)
+        try:  # durable: the partials are deleted next, and the tile is then the only copy of their evidence
+            self.entries[name] = map_store.write_tile(self._tile_path(name), self.template, VoxelArrays.from_rows(index, rows),
+                                                      self.tile_voxels, folded_through=self.folded[name], durable=True)
+        except OSError as exc:  # a full disk: the tile keeps its last whole version and the partials stay
+            raise files.error_naming(exc, self.out, f"writing tile {name}, which holds chunks up to {self.folded[name]}; nothing is "
+                                                    f"lost, rerun to resume once there is room") from None
+        self.tiles_written += 1
+        for number in self._absorbed.pop(name, []):
+            self._partial_path(number, name).unlink(missing_ok=True)
+
+    def _running_tile(self, name: str) -> tuple[np.ndarray, np.ndarray] | None:
+        if name in self._running:
+            return self._running[name]
+        if name not in self.folded:
+            return None
+        try:
+            _, index, rows = tile_codec.read_voxel_file(self._tile_path(name), {"kind": "tile", "store": self.identity})
+        except tile_codec.VoxelFileError as exc:
+            raise map_store.StoreError(f"{exc}; delete {self.out} and map again (the tile holds chunks whose partials are gone)") from None
+        return index, rows
 
 
 def _store_index(template: Mapper, tile_voxels: int, entries: dict, inputs: list, chunks: list, totals: dict, scan_ids) -> dict:
@@ -403,7 +507,7 @@ def _store_index(template: Mapper, tile_voxels: int, entries: dict, inputs: list
         "grid_offset_m": template.grid_offset_m, "frame": None if template.frame is None else template.frame.as_dict(),
         "classes": list(template.class_names), "method": config.method,
         "mapping": config.as_dict(), "tile_voxels": tile_voxels,
-        "tiles": {name: {k: e[k] for k in ("voxels", "bounds_m", "states")} for name, e in sorted(entries.items())},
+        "tiles": {name: entries[name] for name in sorted(entries)},
         "inputs": inputs, "chunks": chunks, "scans": int(totals["scans"]), "points": int(totals["points"]),
     }
 
@@ -417,7 +521,8 @@ def write_store_from_mapper(mapper: Mapper, out, tile_voxels: int, sources: list
     template = map_store.template_mapper(mapper.config, mapper.class_names,
                                          mapper.origin_index if mapper.origin_index is not None else np.zeros(3, np.int64), mapper.frame)
     totals = {"scans": mapper.scans_integrated, "points": mapper.points_integrated}
-    entries = {name: _write_tile(out, name, template, VoxelArrays.from_rows(index, rows), totals, tile_voxels)
+    entries = {name: map_store.write_tile(out / "tiles" / f"{name}{map_store.TILE_SUFFIX[map_store.STORE_VERSION]}", template,
+                                          VoxelArrays.from_rows(index, rows), tile_voxels)
                for name, (index, rows) in map_store.split_by_tile(voxels.index, voxels.rows(), tile_voxels).items()}
     map_store.write_json(out / map_store.INDEX_NAME, _store_index(template, tile_voxels, entries, [{"source": s} for s in sources], [], totals,
                                                                   mapper.scan_ids))
@@ -436,11 +541,12 @@ class InlineExecutor:
         self.context = context
 
     def run(self, fn, items: list, on_done) -> None:
+        """``fn(*item)`` for every item in order; ``on_done(item, result)`` after each."""
         for item in items:
             on_done(item, fn(*item, context=self.context))
 
     def close(self) -> None:
-        pass
+        """Nothing to release."""
 
 
 class LocalExecutor:
@@ -531,6 +637,7 @@ class LocalExecutor:
                 process.terminate()
 
     def close(self) -> None:
+        """Stop the pool's workers (tasks not started are cancelled)."""
         if self._pool is not None:
             self._pool.shutdown(cancel_futures=True)
             self._pool = None
@@ -541,8 +648,8 @@ _RAY_CONTEXTS: dict = {}  # object id -> context, per Ray worker process
 
 def _ray_task(fn, threads: int, context_box: list, *args):
     """A Ray task. The context (put once by the driver) comes boxed in a list, so Ray does not fetch
-    and unpickle it for every task: each worker process fetches it once (measured: unboxed, the
-    per-task unpickling of the sources made the 212 tile reductions of the long drive 3x slower)."""
+    and unpickle it for every task: each worker process fetches it once (unboxed, unpickling the
+    sources for every task made short tasks several times slower, docs/performance.md)."""
     import ray
 
     key = context_box[0].hex()
@@ -576,6 +683,7 @@ class RayExecutor:
         self._task = ray.remote(num_cpus=1, max_retries=3)(_ray_task)
 
     def run(self, fn, items: list, on_done) -> None:
+        """``fn(*item)`` for every item as Ray tasks, at most two per worker in flight; ``on_done(item, result)``."""
         queue = list(items)
         flight = {}
         threads = max(1, (os.cpu_count() or 1) // self.workers)
@@ -588,6 +696,7 @@ class RayExecutor:
                 on_done(flight.pop(ref), self.ray.get(ref))
 
     def close(self) -> None:
+        """Shut down the Ray instance this executor started (a cluster given by address is left running)."""
         if self.started:
             self.ray.shutdown()
 
@@ -600,8 +709,9 @@ def _read_work_json(path: Path, what: str, remedy: str):
         raise map_store.StoreError(f"{path}: not a readable {what} ({type(exc).__name__}: {exc}); {remedy}") from None
 
 
-def _read_done(store: Path, chunk: Chunk) -> dict:
-    """A finished chunk's record (done.json), validated against the chunk and the partials beside it."""
+def _read_done(store: Path, chunk: Chunk, folded: dict[str, int] | None = None) -> dict:
+    """A finished chunk's record (done.json), validated against the chunk and, given ``folded`` (tile ->
+    the last chunk folded into it), against the partials beside it: each tile's is there, or folded."""
     folder = _chunk_dir(store, chunk.number)
     path = folder / "done.json"
     record = _read_work_json(path, "chunk record", f"delete {folder} and rerun to map that chunk again")
@@ -624,8 +734,9 @@ def _read_done(store: Path, chunk: Chunk) -> dict:
             except map_store.StoreError as exc:
                 problem = str(exc)
                 break
-            if not (folder / f"{name}.npz").is_file():
-                problem = f"lists tile {name}, whose partial {folder / (name + '.npz')} is missing"
+            partial = folder / f"{name}{map_store.PARTIAL_SUFFIX}"
+            if folded is not None and not partial.is_file() and folded.get(name, -1) < chunk.number:
+                problem = f"lists tile {name}, whose partial {partial} is missing (and not folded into the tile)"
                 break
     if problem:
         raise map_store.StoreError(f"{path}: {problem}; delete {folder} and rerun to map that chunk again")
@@ -638,15 +749,31 @@ def _check_store(out: Path, identity: dict) -> None:
         earlier = _read_work_json(plan_path, "batch plan", f"delete {out / 'work'} to start over")
         if not isinstance(earlier, dict):
             raise map_store.StoreError(f"{plan_path}: not a batch plan (a JSON object); delete {out / 'work'} to start over")
+        if earlier.get("store_format_version") != identity["store_format_version"]:
+            raise ConfigError(f"{out}: a store of format {earlier.get('store_format_version', 1)}, written by an older evsemmap_warp; "
+                              f"this version writes format {identity['store_format_version']} (it still reads the old one: info, "
+                              f"export, view, layers): give a new --out to map again")
         if earlier != identity:
             differing = sorted(k for k in set(earlier) | set(identity) if earlier.get(k) != identity.get(k))
             raise ConfigError(f"{out}: holds a batch run of other inputs or settings (differing: {', '.join(differing)}); "
                               f"give a new --out, or delete {out} to start over")
+    elif (out / map_store.INDEX_NAME).is_file() and _store_format(out) != map_store.STORE_VERSION:
+        raise ConfigError(f"{out}: a store of format {_store_format(out)}, written by an older evsemmap_warp; this version writes "
+                          f"format {map_store.STORE_VERSION} (it still reads the old one: info, export, view, layers): give a new --out "
+                          f"to map again")
     elif (out / map_store.INDEX_NAME).is_file():
         raise ConfigError(f"{out}: a finished store whose partial maps were discarded (--discard-partials); delete it to map again, "
                           f"or give a new --out")
     elif out.exists() and any(out.iterdir()):
         raise ConfigError(f"{out}: exists and is not a batch store; give a new --out")
+
+
+def _store_format(out: Path):
+    """The format version store.json states (None when it states none or cannot be read)."""
+    try:
+        return json.loads((out / map_store.INDEX_NAME).read_text()).get("format_version")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
+        return None
 
 
 def _remove_unfinished_chunks(out: Path) -> None:
@@ -680,14 +807,16 @@ def _store_lock(out: Path):
             out.rmdir()
 
 
-def run_batch(paths: list[str], options: BatchOptions, log=None, *, _fault: _FaultPlan | None = None) -> dict:
-    """Plan, map chunks, reduce tiles and write the store; returns the summary. ``_fault``: the
-    tests' fault injection (a _FaultPlan the workers receive in their Context), never used otherwise."""
+def run_batch(paths: list[str], options: BatchOptions, log=None, *, on_tile=None, _fault: _FaultPlan | None = None) -> dict:
+    """Plan, map chunks, fold them into tiles and write the store; returns the summary. ``on_tile(name,
+    voxels)``: called in this process with each tile's voxels (VoxelArrays, global indices) every time a
+    chunk is folded into it (a live view of the store filling in). ``_fault``: the tests' fault injection
+    (a _FaultPlan the workers receive in their Context), never used otherwise."""
     with _store_lock(Path(options.out)):
-        return _run_batch(paths, options, log, _fault=_fault)
+        return _run_batch(paths, options, log, on_tile=on_tile, _fault=_fault)
 
 
-def _run_batch(paths: list[str], options: BatchOptions, log=None, *, _fault: _FaultPlan | None = None) -> dict:
+def _run_batch(paths: list[str], options: BatchOptions, log=None, *, on_tile=None, _fault: _FaultPlan | None = None) -> dict:
     log = log or (lambda m: print(m, file=sys.stderr))
     times = {}
     started = time.perf_counter()
@@ -721,46 +850,42 @@ def _run_batch(paths: list[str], options: BatchOptions, log=None, *, _fault: _Fa
         executor = InlineExecutor(context)
     else:
         executor = LocalExecutor(workers, context, log=log)
-    records = {}
+    folder = TileFolder(out, context, chunks, on_tile)
     try:
         from tqdm import tqdm
 
         stage = time.perf_counter()
+        for chunk in finished:  # a resumed run folds what the killed one mapped but did not fold
+            folder.chunk_finished(chunk.number)
         bar = tqdm(total=total_frames, initial=sum(c.frames for c in finished), unit="frame", desc=f"batch {executor.name} x{executor.workers}",
                    disable=not options.progress, dynamic_ncols=True)
         costs = []
 
         def chunk_done(item, result):
             costs.append(result)
+            folder.chunk_finished(item[0].number)
             bar.update(item[0].frames)
 
         executor.run(map_chunk, [(c,) for c in todo], chunk_done)
         bar.close()
         _remove_unfinished_chunks(out)
         times["map"] = time.perf_counter() - stage
-        for c in chunks:
-            records[c.number] = _read_done(out, c)
-        totals = {"scans": sum(r["scans"] for r in records.values()), "points": sum(r["points"] for r in records.values())}
-        tiles: dict[str, list[int]] = {}
-        for c in chunks:
-            for name in records[c.number]["tiles"]:
-                tiles.setdefault(name, []).append(c.number)
-        largest = max((sum((_chunk_dir(out, n) / f"{name}.npz").stat().st_size for n in numbers) for name, numbers in tiles.items()), default=0)
-        reducer_bytes = WORKER_OVERHEAD_BYTES + 3 * largest
-        if options.executor == "local" and DRIVER_OVERHEAD_BYTES + min(workers, max(len(tiles), 1)) * reducer_bytes > available_memory():
-            raise ConfigError(f"batch: reducing the largest tile needs about {reducer_bytes / 2**30:.1f} GB per reducer; "
-                              f"use a smaller --tile-voxels or fewer --workers (the mapped chunks are kept: rerun to resume)")
-        stage = time.perf_counter()
-        entries = {}
-        executor.run(reduce_tile, [(name, numbers, totals) for name, numbers in sorted(tiles.items())],
-                     lambda item, result: entries.__setitem__(item[0], result))
-        times["reduce"] = time.perf_counter() - stage
     finally:
         executor.close()
+    if folder.frontier < len(chunks):  # every chunk is mapped once executor.run returns; this names a broken invariant, not a user error
+        raise RuntimeError(f"batch: chunk {folder.chunks[folder.frontier].number} was mapped but not folded")
     stage = time.perf_counter()
-    for old in (out / "tiles").glob("*.npz"):
-        if old.stem not in entries:
+    folder.finish()
+    times["write_tiles"] = time.perf_counter() - stage
+    times["fold"] = folder.seconds
+    stage = time.perf_counter()
+    records, entries = folder.records, folder.entries
+    totals = {"scans": sum(r["scans"] for r in records.values()), "points": sum(r["points"] for r in records.values())}
+    listed = {name for r in records.values() for name in r["tiles"]}
+    for old in (out / "tiles").glob("*"):
+        if old.is_file() and old.stem not in listed and not old.name.startswith("."):
             old.unlink()
+    entries = {name: entries[name] for name in sorted(listed)}
     inputs_entry = [{"source": str(Path(text).resolve()) if Path(text).exists() else text, "insertions": len(s), "frames": s.frames_in(0, len(s))}
                     for text, s in zip(inputs, sources)]
     chunks_entry = [dataclasses.asdict(c) | {k: records[c.number][k] for k in ("scans", "points", "voxels")} for c in chunks]
@@ -776,12 +901,11 @@ def _run_batch(paths: list[str], options: BatchOptions, log=None, *, _fault: _Fa
         "store": str(out), "executor": executor.name, "workers": executor.workers, "inputs": len(inputs), "frames": total_frames,
         "chunks": len(chunks), "chunks_resumed": len(finished), "chunk_frames": chunk_frames, "chunk_frames_rule": chunk_rule,
         "input_points": totals["points"],
-        "voxels": sum(e["voxels"] for e in entries.values()), "tiles": len(entries),
+        "voxels": sum(e["voxels"] for e in entries.values()), "tiles": len(entries), "tile_writes": folder.tiles_written,
         "seconds": {k: round(v, 3) for k, v in times.items()},
         "frames_per_second": round(sum(c.frames for c in todo) / times["map"], 2) if todo and times["map"] > 0 else None,
         "chunk_seconds_median": round(float(np.median(chunk_seconds)), 3) if chunk_seconds else None,
-        "tile_seconds_median": round(float(np.median([e["seconds"] for e in entries.values()])), 3) if entries else None,
-        "peak_rss_mb": {"worker_max": round(max([r["peak_rss_mb"] for r in costs] + [e["peak_rss_mb"] for e in entries.values()], default=0.0), 1),
+        "peak_rss_mb": {"worker_max": round(max([r["peak_rss_mb"] for r in costs], default=0.0), 1),
                         "driver": round(_peak_rss_mb(), 1)},
         "memory_budget": budget,
     }

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ..config import ConfigError, available_methods, load_config
+from ..config import ConfigError, available_methods, load_config, warn_deprecated
 
 
 def _cmd_map(args) -> int:
@@ -30,21 +30,37 @@ def _cmd_map(args) -> int:
 
     data = run.dataset.resolve_logs() if run.dataset.kind == "bag" else [run.dataset.resolve_path()]
     check_not_inside(args.out, data, "map --out")  # never over a log, nor into a sequence folder
-    dataset = open_scan_source(run, checkpoint=args.checkpoint, alpha_dir=args.alpha, bin_frames=args.bin_frames, batch_size=args.batch_size)
+    dataset = open_scan_source(run, checkpoint=args.checkpoint, alpha_dir=args.alpha_dir, bin_frames=args.bin_frames, batch_size=args.batch_size)
     mapper = mapper_for(dataset, run.mapping, device=args.device, workers=args.workers)
+    live = None
+    if args.view:
+        live = _live_viewer(args, mapper, len(dataset))
+    elif (args.host, args.port, args.view_every) != (None, None, None):
+        raise ConfigError("--host, --port and --view-every serve the map while it is made: give --view too")
     if not args.quiet:
-        what = f"{len(dataset)} bins of camera-labelled frames" if args.checkpoint or args.alpha else f"{len(dataset)} scans"
+        what = f"{len(dataset)} bins of camera-labelled frames" if args.checkpoint or args.alpha_dir else f"{len(dataset)} scans"
         print(f"mapping {what} with {run.mapping.method} ({run.mapping.compat.value} mode) on {mapper.device}, "
               f"{len(mapper.shards)} worker(s), in {dataset.frame.describe()}", file=sys.stderr)
     start = time.perf_counter()
-    with tqdm(total=len(dataset), unit="scan", disable=args.quiet, dynamic_ncols=True) as bar:
-        # Reading and host work of the next scans overlap this one's kernels; errors name their scan.
-        stats = map_scans(mapper, dataset, progress=lambda scan, _: bar.update(1))
+    try:
+        with tqdm(total=len(dataset), unit="scan", disable=args.quiet, dynamic_ncols=True) as bar:
+            # Reading and host work of the next scans overlap this one's kernels; errors name their scan.
+            if live is None:
+                stats = map_scans(mapper, dataset, progress=lambda scan, _: bar.update(1))
+            else:
+                from .viewer_live import map_live
+
+                stats = map_live(mapper, dataset, live, every=args.view_every or 10, progress=lambda scan, _: bar.update(1))
+    except BaseException:
+        if live is not None:
+            live.close()
+            live.viewer.close()
+        raise
     elapsed = time.perf_counter() - start
     points = sum(s.input_points for s in stats)
     save_map(args.out, mapper)
     counts = mapper.state_counts()
-    _, summary = mapper.voxels()
+    summary = mapper.voxels().summary
     occupied = summary.state == VoxelState.OCCUPIED
     per_class = np.bincount(summary.label[occupied], minlength=mapper.num_classes)
     report = {
@@ -60,21 +76,69 @@ def _cmd_map(args) -> int:
         "map_file": str(args.out),
     }
     print(json.dumps(report, indent=1))
+    if live is not None:
+        live.show_final()  # the map as written, read out as the file holds it
+        print(f"evsemmap viewer: {live.viewer.url} shows the map as written to {args.out} (Ctrl-C to stop)", file=sys.stderr)
+        live.viewer.serve_forever()
+        live.close()
     return 0
+
+
+def _live_viewer(args, mapper, scan_total: int):
+    """The browser view of a map being made (``map --view``), serving before the first scan."""
+    from .viewer import MapLayer, MapViewer
+    from .viewer_live import LiveMap
+
+    viewer = MapViewer([MapLayer.from_mapper(args.out.stem, args.out, mapper)], host=args.host or "127.0.0.1", port=args.port or 8080)
+    live = LiveMap(viewer, mapper, name=args.out.stem, path=args.out, scan_total=scan_total)
+    print(f"evsemmap viewer: open {viewer.url} in a browser to watch the map being made (updated every {args.view_every or 10} scans)",
+          file=sys.stderr)
+    return live
 
 
 def _cmd_batch(args) -> int:
     from .batch import BatchOptions, run_batch
 
     options = BatchOptions(method=args.method, out=args.out, executor=args.executor, workers=args.workers, chunk_frames=args.chunk_frames,
-                           ray_address=args.ray_address, checkpoint=args.checkpoint, alpha=args.alpha, bin_frames=args.bin_frames,
+                           ray_address=args.ray_address, checkpoint=args.checkpoint, alpha=args.alpha_dir, bin_frames=args.bin_frames,
                            batch_size=args.batch_size, tile_voxels=args.tile_voxels, discard_partials=args.discard_partials,
                            progress=not args.quiet, frame=args.frame, crs=args.crs)
     if args.ray_address and args.executor != "ray":
         raise ConfigError("--ray-address needs --executor ray")
-    summary = run_batch(list(args.configs), options, log=(lambda m: None) if args.quiet else (lambda m: print(m, file=sys.stderr)))
+    if not args.view and (args.host, args.port) != (None, None):
+        raise ConfigError("--host and --port serve the store while it is made: give --view too")
+    live = _live_tiles(args, options) if args.view else None
+    try:
+        summary = run_batch(list(args.configs), options, log=(lambda m: None) if args.quiet else (lambda m: print(m, file=sys.stderr)),
+                            on_tile=live)
+    except BaseException:
+        if live is not None:
+            live.close()
+            live.viewer.close()
+        raise
     print(json.dumps(summary, indent=1))
+    if live is not None:
+        live.wait_idle()
+        print(f"evsemmap viewer: {live.viewer.url} shows the store's overview as written to {args.out} (Ctrl-C to stop; "
+              f"`evsemmap view {args.out}` shows any tile in full)", file=sys.stderr)
+        live.viewer.serve_forever()
+        live.close()
     return 0
+
+
+def _live_tiles(args, options):
+    """The browser view of a store being made (``batch --view``): its tiles fill in as chunks are folded into them."""
+    from .batch import plan_batch
+    from .scan_sources import mapper_for
+    from .viewer import MapLayer, MapViewer
+    from .viewer_live import LiveTiles
+
+    _, sources, config, _, _ = plan_batch(list(args.configs), options)  # the store's classes, frame and parameters
+    template = mapper_for(sources[0], config, workers=1)
+    viewer = MapViewer([MapLayer.from_mapper(args.out.name, args.out, template)], host=args.host or "127.0.0.1", port=args.port or 8080)
+    live = LiveTiles(viewer, template, name=args.out.name, path=args.out, max_voxels=500_000)
+    print(f"evsemmap viewer: open {viewer.url} in a browser to watch the store's tiles fill in", file=sys.stderr)
+    return live
 
 
 def _load_map_or_store(path: Path):
@@ -177,17 +241,37 @@ def _cmd_info(args) -> int:
 
 def _cmd_view(args) -> int:
     from ..frames import describe_frame
-    from .viewer import MapViewer
+    from .viewer import MapViewer, check_address
 
+    drive = None
+    if args.drive:
+        from ..core.map_store import is_store
+        from .viewer_drive import open_drive
+
+        if len(args.maps) != 1 or is_store(args.maps[0]):
+            raise ValueError(f"--drive plays back the drive of one map file (.npz), got {' '.join(map(str, args.maps))}")
+        check_address(args.host, args.port)  # before the drive is read and checked
+        drive = open_drive(args.maps[0], args.drive, checkpoint=args.checkpoint, alpha_dir=args.alpha_dir, bin_frames=args.bin_frames,
+                           snapshot_every=args.snapshot_every)
+    else:
+        for flag, value in (("--checkpoint", args.checkpoint), ("--alpha-dir", args.alpha_dir), ("--bin-frames", args.bin_frames)):
+            if value is not None:
+                raise ValueError(f"{flag} labels the scans of a --drive: give --drive too")
     viewer = MapViewer(args.maps, host=args.host, port=args.port, style=args.style, max_voxels=args.max_voxels,
                        trajectory=args.trajectory, scan=args.scan, export_dir=args.export_dir, terrain=args.layers,
                        terrain_resolution=args.layers_resolution_m, costs=args.costs, truth=args.truth)
+    if args.export_html is not None or args.export_ply is not None:
+        viewer.wait_for_stores()  # a store's whole overview, not its first frame's tiles
     for path, export in ((args.export_html, viewer.export_html), (args.export_ply, viewer.export_ply)):
         if path is not None:
             print(f"wrote {export(path)}", file=sys.stderr)
     if args.no_serve:
-        viewer.server.stop()
+        viewer.close()
         return 0
+    if drive is not None:
+        from .viewer_drive import DrivePlayback
+
+        DrivePlayback(viewer, *drive)
     print(f"evsemmap viewer: open {viewer.url} in a browser (Ctrl-C to stop); maps in {describe_frame(viewer.frame)}, "
           f"local origin at {viewer.origin_text()}", file=sys.stderr)
     viewer.serve_forever()
@@ -213,7 +297,7 @@ def _cmd_train_seg(args) -> int:
     config = TrainConfig(
         model=ModelConfig(arch=args.arch, num_classes=len(classes), width=args.width, aspp_channels=args.aspp_channels),
         head=args.head, input_size=tuple(args.input_size), epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
-        kl_schedule=args.kl_schedule, val_fraction=args.val_fraction, seed=args.seed, time_budget_s=args.time_budget,
+        kl_schedule=args.kl_schedule, val_fraction=args.val_fraction, seed=args.seed, time_budget_s=args.time_budget_s,
         logit_clamp=args.logit_clamp, normalization=args.normalization,
         backbone_weights=str(args.backbone_weights) if args.backbone_weights else None,
     )
@@ -267,7 +351,7 @@ def _cmd_synth(args) -> int:
 
     from ..files import error_naming
 
-    preset = load_preset(args.preset, seed=args.seed, appearance__domain=args.domain, trajectory__frames=args.frames)
+    preset = load_preset(args.world, seed=args.seed, appearance__domain=args.domain, trajectory__frames=args.frames)
     if args.format == "folder":
         created = not args.out.exists()
         try:
@@ -328,7 +412,7 @@ def _cmd_project(args) -> int:
     """Project a sequence's 2D labels onto its scans: 3D ground truth, agreement with the per-point
     labels where the sequence has them, and overlay images."""
     from ..classes import class_set, original_to_v3_table
-    from ..geometry.projection import ProjectionConfig, depth_colours, label_map_for, project_frames, save_overlay
+    from ..geometry.projection import ProjectionConfig, depth_colors, label_map_for, project_frames, save_overlay
     from ..data.datasets import open_sequence
     from ..data.sequences import remap_point_labels
     from ..files import savez_atomically
@@ -343,7 +427,7 @@ def _cmd_project(args) -> int:
         raise ValueError(f"{' '.join(args.sequence)}: no frame has a 2D label image")
     args.out.mkdir(parents=True, exist_ok=True)
     table = original_to_v3_table()
-    colours = class_set("remap_v3").colors
+    colors = class_set("remap_v3").colors
     by_index = {f.index: f for f in frames}
     points, labels, agree, compared = [], [], 0, 0
     for n, item in enumerate(project_frames(seq, frames, label_map_for(seq), config, seq.world)):
@@ -356,7 +440,7 @@ def _cmd_project(args) -> int:
             compared += len(own)
         if n < args.overlays:
             depth = np.linalg.norm(item.points - item.sensor_origin, axis=1)
-            shown = depth_colours(depth) if args.colour_by == "depth" else colours[item.values]
+            shown = depth_colors(depth) if args.color_by == "depth" else colors[item.values]
             save_overlay(args.out / f"overlay_{frame.index:06d}.png", seq.read_image(frame), item.pixel, shown)
     savez_atomically(args.out / "ground_truth.npz", compressed=True, points=np.concatenate(points), labels=np.concatenate(labels),
                      frame=np.array(json.dumps(seq.world.frame.as_dict())))  # the world frame the points are in
@@ -373,19 +457,21 @@ def _cmd_train_convbki(args) -> int:
     from ..geometry.projection import ProjectionConfig
     from ..data.sequences import Rellis3DSequence
 
+    if args.alpha_dir is None:  # not argparse's required=True, which would refuse its old name --alpha
+        raise ConfigError("train-convbki: --alpha-dir DIR is required (the folder of per-frame alpha .npy `evsemmap infer` wrote)")
     seq = Rellis3DSequence(args.sequence)
 
     def alpha_for_frame(frame):
         for name in (f"{frame.index:06d}.npy", f"{frame.image.stem}.npy"):  # experiment cache or `evsemmap infer` names
-            if (args.alpha / name).exists():
-                return np.load(args.alpha / name).astype(np.float32)
+            if (args.alpha_dir / name).exists():
+                return np.load(args.alpha_dir / name).astype(np.float32)
         return None
 
     windows = convbki.training_windows(seq, alpha_for_frame, ProjectionConfig(), window_scans=args.window_scans,
                                        queries_per_window=args.queries)
     if not windows:
-        raise ValueError(f"{args.sequence}: no window of {args.window_scans} scans with alpha in {args.alpha} and per-point labels")
-    lengths, history = convbki.train_lengths(windows, len(class_set().names), args.resolution, epochs=args.epochs, progress=not args.quiet)
+        raise ValueError(f"{args.sequence}: no window of {args.window_scans} scans with alpha in {args.alpha_dir} and per-point labels")
+    lengths, history = convbki.train_lengths(windows, len(class_set().names), args.resolution_m, epochs=args.epochs, progress=not args.quiet)
     convbki.save_lengths(args.out, lengths)
     print(json.dumps({"out": str(args.out), "windows": len(windows), "loss": [round(h, 4) for h in history]} | lengths.as_dict(), indent=1))
     return 0
@@ -439,6 +525,25 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+class _RenamedFlag(argparse.Action):
+    """A flag renamed in this release: still read one release long, into the new flag's value, with a
+    one-line warning on stderr."""
+
+    def __init__(self, option_strings, dest, new_flag: str = "", **kwargs):
+        self.new_flag = new_flag
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        warn_deprecated(option_string, self.new_flag)
+        setattr(namespace, self.dest, values)
+
+
+def _renamed_flag(parser, old: str, new: str, **kwargs) -> None:
+    """Let ``parser`` read the old flag ``old`` as ``new`` (hidden from --help)."""
+    parser.add_argument(old, dest=new.lstrip("-").replace("-", "_"), action=_RenamedFlag, new_flag=new, help=argparse.SUPPRESS,
+                        default=argparse.SUPPRESS, **kwargs)
+
+
 def _port(text: str) -> int:
     value = _int(text)
     if not 1 <= value <= 65535:
@@ -485,6 +590,7 @@ def _add_frame_args(p) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``evsemmap`` argument parser: one subcommand per task, each with its flags and help."""
     from ..segmentation.config import ModelConfig
 
     parser = _Parser(prog="evsemmap", description="Evidential semantic mapping on Warp kernels.")
@@ -498,12 +604,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=_positive, default=None, help="CPU threads, each scattering into its own map shard (default: up to 2 on the CPU)")
     p.add_argument("--checkpoint", type=Path, help="label the scans from the camera with this segmentation checkpoint "
                                                    "(evsemmap train-seg) instead of their per-point labels")
-    p.add_argument("--alpha", type=Path, help="label the scans from the camera with the per-image alpha files `evsemmap infer` wrote "
-                                              "into this folder (NAME.npy per image, or NNNNNN.npy per frame)")
-    p.add_argument("--bin-frames", type=_positive, default=None, help="with --checkpoint or --alpha: frames integrated together "
+    p.add_argument("--alpha-dir", type=Path, metavar="DIR", help="label the scans from the camera with the per-image alpha files "
+                                                                   "`evsemmap infer` wrote into this folder (NAME.npy per image, or "
+                                                                   "NNNNNN.npy per frame)")
+    _renamed_flag(p, "--alpha", "--alpha-dir", type=Path)
+    p.add_argument("--bin-frames", type=_positive, default=None, help="with --checkpoint or --alpha-dir: frames integrated together "
                                                                     "(default: the preset's pipeline.bin_frames, else 1)")
     p.add_argument("--batch-size", type=_positive, default=4, help="with --checkpoint: images per inference batch")
     _add_frame_args(p)
+    p.add_argument("--view", action="store_true", help="serve the map in a browser while it is made (viser), updated every "
+                                                      "--view-every scans, and the map as written once done (until Ctrl-C)")
+    p.add_argument("--view-every", type=_positive, default=None, help="with --view: scans between updates of the map shown (default 10)")
+    p.add_argument("--host", default=None, help="with --view: address to serve on (default 127.0.0.1: this machine only)")
+    p.add_argument("--port", type=_port, default=None, help="with --view: port to serve on (default 8080)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or start-up line")
     p.set_defaults(func=_cmd_map)
 
@@ -520,18 +633,24 @@ def build_parser() -> argparse.ArgumentParser:
                         "never from the worker count, so stores are the same for any; the JSON summary gives the value and rule)")
     p.add_argument("--ray-address", default=None, help="an existing Ray cluster: auto, or ray://host:port (default: a local Ray instance)")
     p.add_argument("--checkpoint", type=Path, help="label the scans from the camera with this segmentation checkpoint (inference in each task)")
-    p.add_argument("--alpha", type=Path, help="label the scans from the camera with the alpha files of `evsemmap infer` in this folder")
-    p.add_argument("--bin-frames", type=_positive, default=None, help="with --checkpoint or --alpha: frames per insertion (default: the preset's)")
+    p.add_argument("--alpha-dir", type=Path, metavar="DIR", help="label the scans from the camera with the alpha files of `evsemmap infer` "
+                                                                   "in this folder")
+    _renamed_flag(p, "--alpha", "--alpha-dir", type=Path)
+    p.add_argument("--bin-frames", type=_positive, default=None, help="with --checkpoint or --alpha-dir: frames per insertion (default: the preset's)")
     p.add_argument("--batch-size", type=_positive, default=4, help="with --checkpoint: images per inference batch")
     p.add_argument("--tile-voxels", type=_positive, default=256, help="tile edge in voxels (default 256: 51.2 m at 0.2 m)")
-    p.add_argument("--discard-partials", action="store_true", help="delete the per-chunk partial maps at the end (a rerun then starts over)")
+    p.add_argument("--discard-partials", action="store_true", help="delete STORE/work (the run's plan and chunk records; partial maps are deleted as they are folded) at the end: a rerun then starts over")
     _add_frame_args(p)
+    p.add_argument("--view", action="store_true", help="serve the store's overview in a browser while it is made (viser): tiles fill in "
+                                                      "as chunks finish; then the overview as written (until Ctrl-C)")
+    p.add_argument("--host", default=None, help="with --view: address to serve on (default 127.0.0.1: this machine only)")
+    p.add_argument("--port", type=_port, default=None, help="with --view: port to serve on (default 8080)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or progress messages (errors are still reported); the JSON summary still goes to stdout")
     p.set_defaults(func=_cmd_batch)
 
     p = sub.add_parser("export", help="a map store (or the part of it inside --bounds) as one map file")
     p.add_argument("store", type=Path)
-    p.add_argument("--bounds", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"), help="keep voxels whose centres lie in this box (m)")
+    p.add_argument("--bounds", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"), help="keep voxels whose centers lie in this box (m)")
     p.add_argument("--out", type=Path, required=True, help="map file to write (.npz)")
     p.set_defaults(func=_cmd_export)
 
@@ -540,10 +659,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("map", type=Path, help="a map file (.npz) or a map store (a folder)")
     p.add_argument("--out", type=Path, required=True, help="folder to write layers.tif, layers.npz (a store: tiles/X_Y.npz), "
                                                            "layers.bag, previews/ and layers.json into")
-    p.add_argument("--resolution-m", "--resolution", dest="resolution_m", type=float, default=None,
-                   help="cell edge (m; default: the map's voxel size; a store's must divide its tiles)")
+    p.add_argument("--resolution-m", type=float, default=None, help="cell edge (m; default: the map's voxel size; a store's must divide its tiles)")
+    _renamed_flag(p, "--resolution", "--resolution-m", type=float)
     p.add_argument("--bounds", type=float, nargs="+", metavar="M", help="the region: X0 Y0 X1 Y1, or X0 Y0 Z0 X1 Y1 Z1 to count only "
-                                                                        "voxels whose centres lie between Z0 and Z1 (m, the map's world frame)")
+                                                                        "voxels whose centers lie between Z0 and Z1 (m, the map's world frame)")
     p.add_argument("--costs", type=Path, default=None, help="surface classes and cost table YAML (default: configs/terrain/costs_v3.yaml, "
                                                            "for the remap-v3 / RELLIS-3D classes)")
     p.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N or auto")
@@ -574,13 +693,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--export-ply", type=Path, help="write the visible voxels as a PLY point cloud: float64 world coordinates "
                                                    "of the maps' frame, named in the header")
     p.add_argument("--export-dir", type=Path, help="folder for the GUI's export buttons (default: beside the first map)")
-    p.add_argument("--layers", action="store_true", help="compute each map's terrain layers at start and draw one as a coloured "
+    p.add_argument("--layers", action="store_true", help="compute each map's terrain layers at start and draw one as a colored "
                                                          "height surface (the GUI's button does it on demand otherwise; docs/terrain.md)")
     p.add_argument("--layers-resolution-m", type=_positive_float, default=None, help="terrain cell edge (m; default: the voxel size)")
     p.add_argument("--costs", type=Path, default=None, help="the terrain layers' cost table YAML (default: configs/terrain/costs_v3.yaml)")
     p.add_argument("--truth", type=Path, default=None, help="ground truth for comparing two maps: `evsemmap project`'s ground_truth.npz "
-                                                            "(points, labels) or a map file; differing voxels are coloured by which map "
+                                                            "(points, labels) or a map file; differing voxels are colored by which map "
                                                             "agrees with it")
+    p.add_argument("--drive", nargs="+", metavar="SOURCE", help="play back the drive the map was made from: its sequence folder or "
+                                                                  "robot log (with the presets it needs), labelled as when mapping "
+                                                                  "(--checkpoint, --alpha-dir, --bin-frames); a time slider shows the pose, "
+                                                                  "the scan, the camera and the map as it stood after each scan")
+    p.add_argument("--checkpoint", type=Path, help="with --drive: the segmentation checkpoint that labelled the map's scans")
+    p.add_argument("--alpha-dir", type=Path, metavar="DIR", help="with --drive: the folder of alpha files that labelled the map's scans")
+    _renamed_flag(p, "--alpha", "--alpha-dir", type=Path)
+    p.add_argument("--bin-frames", type=_positive, default=None, help="with --drive and --checkpoint or --alpha-dir: frames per insertion, "
+                                                                    "as when mapping")
+    p.add_argument("--snapshot-every", type=_positive, default=10, help="with --drive: keep a copy of the replayed map every N scans "
+                                                                      "(a scrub replays at most N scans)")
     p.add_argument("--no-serve", action="store_true", help="export and exit instead of serving")
     p.set_defaults(func=_cmd_view)
 
@@ -604,7 +734,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=_positive_float, default=2e-3)
     p.add_argument("--kl-schedule", choices=("paper", "release"), default="paper")
     p.add_argument("--val-fraction", type=float, default=0.1)
-    p.add_argument("--time-budget", type=_positive_float, default=None, help="stop after the epoch that passes this many seconds")
+    p.add_argument("--time-budget-s", type=_positive_float, default=None, help="stop after the epoch that passes this many seconds")
+    _renamed_flag(p, "--time-budget", "--time-budget-s", type=_positive_float)
     p.add_argument("--logit-clamp", type=_positive_float, default=10.0, help="evidence = exp(clamp(logit, -c, c))")
     p.add_argument("--normalization", choices=("imagenet", "caffe"), default="imagenet")
     p.add_argument("--backbone-weights", type=Path, help="backbone state dict to start from (nothing is downloaded)")
@@ -628,7 +759,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_infer)
 
     p = sub.add_parser("synth", help="generate a synthetic off-road sequence in the RELLIS-3D layout")
-    p.add_argument("--preset", default="default", help="tiny, demo, default, long (a 2 km drive) or a preset YAML file")
+    p.add_argument("--world", default="default", help="the world preset: tiny, demo, default, long (a 2 km drive) or a YAML file "
+                                                      "(configs/synthetic/)")
+    _renamed_flag(p, "--preset", "--world")
     p.add_argument("--out", type=Path, required=True, help="sequence folder to write")
     p.add_argument("--domain", default=None, help="appearance domain (summer, autumn, dusk); default: the preset's")
     p.add_argument("--seed", type=int, default=None, help="world seed; default: the preset's")
@@ -653,16 +786,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--zbuffer", action="store_true", help="drop points hidden behind nearer points")
     p.add_argument("--overlays", type=_non_negative, default=3, help="overlay images to write")
-    p.add_argument("--colour-by", choices=("label", "depth"), default="label", help="overlay points in their label's colour or by range")
+    p.add_argument("--color-by", choices=("label", "depth"), default="label", help="overlay points in their label's color or by range")
+    _renamed_flag(p, "--colour-by", "--color-by", choices=("label", "depth"))
     p.add_argument("--max-frames", type=_positive, default=None)
     _add_frame_args(p)
     p.set_defaults(func=_cmd_project)
 
     p = sub.add_parser("train-convbki", help="learn ConvBKI's per-class length scales from a projected, labelled sequence")
     p.add_argument("sequence", type=Path, help="RELLIS-3D-layout sequence with per-point labels")
-    p.add_argument("--alpha", type=Path, required=True, help="folder of per-frame alpha .npy (evsemmap infer output)")
+    p.add_argument("--alpha-dir", type=Path, metavar="DIR", help="folder of per-frame alpha .npy (evsemmap infer output; required)")
+    _renamed_flag(p, "--alpha", "--alpha-dir", type=Path)
     p.add_argument("--out", type=Path, required=True, help="length-scale file to write (.json; use as mapping.convbki_lengths_file)")
-    p.add_argument("--resolution", type=_positive_float, default=0.3, help="voxel size of the map it will be used with (m)")
+    p.add_argument("--resolution-m", type=_positive_float, default=0.3, help="voxel size of the map it will be used with (m)")
+    _renamed_flag(p, "--resolution", "--resolution-m", type=_positive_float)
     p.add_argument("--epochs", type=_positive, default=15)
     p.add_argument("--window-scans", type=_positive, default=10)
     p.add_argument("--queries", type=_positive, default=4000, help="ground-truth points scored per window")
@@ -695,6 +831,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run ``evsemmap`` with ``argv`` (default: the process's arguments); returns the exit code. A
+    ConfigError, ValueError or OSError ends in one line on stderr naming the file, key or value, with exit
+    code 2; Ctrl-C in 130."""
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

@@ -25,6 +25,10 @@ PAPER_SCORED_CLASSES = (2, 3, 4, 5, 6, 7, 8)
 
 @dataclass
 class MapScores:
+    """A map's scores at the 3D ground truth (the module's definitions): the confusion matrix [K, K] (truth
+    rows), IoU per scored class (None where absent), mIoU, Acc and O.Acc in [0, 1], the Brier scores
+    (x100; None without occupied voxels), and the query counts."""
+
     class_names: tuple[str, ...]
     scored_classes: tuple[int, ...]
     confusion: np.ndarray  # [K, K] int64
@@ -49,6 +53,7 @@ class MapScores:
         return out
 
     def as_dict(self) -> dict:
+        """The scores as plain values for JSON (``scores.json``): lists instead of arrays, plus ``extra``."""
         return {"class_names": list(self.class_names), "scored_classes": list(self.scored_classes),
                 "confusion": self.confusion.tolist(), "iou": self.iou, "miou": self.miou, "accuracy": self.accuracy,
                 "occupied_accuracy": self.occupied_accuracy, "brier_minmax": self.brier_minmax,
@@ -163,4 +168,5 @@ def markdown_table(rows: dict[str, dict], columns: list[str], digits: int = 1) -
 
 
 def scored_class_names(scores: MapScores) -> list[str]:
+    """The names of the classes ``scores`` scored, in id order."""
     return [scores.class_names[c] for c in scores.scored_classes]

@@ -7,10 +7,10 @@ interrupted run resumes from the stages it finished (training resumes from its l
 Config (YAML)::
 
     name: demo
-    sequences:            # synthetic (preset + overrides) or real (path) RELLIS-3D-layout sequences
-      train: {preset: demo, seed: 11, spacing_m: 0.5, frames: 150}
-      test: {preset: demo, seed: 12}
-      test-dusk: {preset: demo, seed: 12, domain: dusk}
+    sequences:            # synthetic (a world preset + overrides) or real (path) RELLIS-3D-layout sequences
+      train: {world: demo, seed: 11, spacing_m: 0.5, frames: 150}
+      test: {world: demo, seed: 12}
+      test-dusk: {world: demo, seed: 12, domain: dusk}
       rellis: {path: /data/Rellis-3D/00004}
     networks:             # segmentation networks and what they train on (or a checkpoint path)
       summer: {train_on: [train], epochs: 12}   # time_budget_s: S stops early, reported as a warning
@@ -42,7 +42,8 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import __version__, files
-from ..config import ConfigError, Kernel, PayloadType, dataclass_from_dict, is_robot_log, load_config, preset_path, read_yaml_file
+from ..config import (ConfigError, Kernel, PayloadType, dataclass_from_dict, is_robot_log, load_config, preset_path, read_yaml_file,
+                      warn_deprecated)
 from .evaluation import PAPER_SCORED_CLASSES, MapScores, evaluate_map, markdown_table, pool_scores
 from ..classes import class_set
 from ..data.datasets import Scan
@@ -52,39 +53,50 @@ from .scan_sources import ScanList, map_scans, mapper_for
 
 @dataclass(frozen=True)
 class SequenceSpec:
-    preset: str = ""
+    """A sequence of a study: a synthetic one rendered from the world preset ``world`` (with its overrides)
+    or a real one at ``path``; exactly one of the two."""
+
+    world: str = ""  # a synthetic world preset to render (configs/synthetic/NAME.yaml or a path)
     path: str = ""  # a RELLIS-3D-layout folder, or a robot log read with log_config
     log_config: str = "rellis3d-bag"  # for a log: the preset or dataset config that says its topics
-    seed: int = -1  # -1: the preset's
-    domain: str = ""
-    frames: int = 0  # 0: the preset's
-    spacing_m: float = 0.0  # 0: the preset's
+    seed: int = -1  # -1: the world preset's
+    domain: str = ""  # appearance domain of a synthetic sequence; "": the world preset's
+    frames: int = 0  # 0: the world preset's
+    spacing_m: float = 0.0  # 0: the world preset's
 
 
 @dataclass(frozen=True)
 class NetworkSpec:
-    train_on: tuple = ()
+    """A segmentation network of a study: trained on the camera images of ``train_on`` (or read from
+    ``checkpoint``)."""
+
+    train_on: tuple = ()  # names of sequences (above) whose camera images and label images it trains on
     checkpoint: str = ""  # use this trained checkpoint instead of training
     fraction: float = 1.0  # share of the training frames used (the paper's "trained on a subset")
-    arch: str = "r18-os16"
-    input_size: tuple = (128, 256)
-    epochs: int = 12
-    batch_size: int = 8
-    lr: float = 2e-3
+    arch: str = "r18-os16"  # r18-os16 (CPU default), r50-os8 (full size) or torchvision-r50
+    input_size: tuple = (128, 256)  # network input, height and width (px)
+    epochs: int = 12  # passes over the training frames
+    batch_size: int = 8  # images per training step
+    lr: float = 2e-3  # learning rate
     time_budget_s: float = 0.0  # 0: no limit
-    seed: int = 1
+    seed: int = 1  # of the split, the initialisation and the data order
 
 
 @dataclass(frozen=True)
 class ConditionSpec:
-    network: str = ""
-    sequence: str = ""
+    """One condition of a study: the alpha of ``network`` on ``sequence``, mapped with every method and
+    scored against that sequence's 3D ground truth."""
+
+    network: str = ""  # a network's name (above): its alpha is mapped
+    sequence: str = ""  # a sequence's name (above): mapped and scored
 
 
 @dataclass(frozen=True)
 class AblationSpec:
-    condition: str = ""
-    methods: tuple = ()
+    """The ablation table: ``methods`` mapped and scored on one condition (or pool)."""
+
+    condition: str = ""  # the condition (or pool) the ablation runs on
+    methods: tuple = ()  # the methods of the ablation table
 
 
 @dataclass(frozen=True)
@@ -92,34 +104,54 @@ class ConvBkiTraining:
     """How ConvBKI's length scales are learned when a method needs them and no file is given: on the
     network's own training sequences (its alpha, projected; the LiDAR's per-point labels as truth)."""
 
-    window_scans: int = 10
-    windows: int = 8
-    queries_per_window: int = 4000
-    epochs: int = 10
+    window_scans: int = 10  # scans per training window (one stencil update)
+    windows: int = 8  # windows drawn from the training sequences
+    queries_per_window: int = 4000  # points of a window's last scan the loss is taken at
+    epochs: int = 10  # passes over the windows
 
 
 @dataclass(frozen=True)
 class ExperimentConfig:
-    name: str = "experiment"
-    sequences: dict = field(default_factory=dict)
-    networks: dict = field(default_factory=dict)
-    conditions: dict = field(default_factory=dict)
-    mapping_preset: str = "offroad"
-    projection: ProjectionConfig = field(default_factory=ProjectionConfig)
-    methods: tuple = ()
-    ablation: AblationSpec = field(default_factory=AblationSpec)
-    scored_classes: tuple = PAPER_SCORED_CLASSES
+    """A whole study (``evsemmap experiment CONFIG``): its sequences, networks and conditions by name, the
+    mapping preset under every method, the projection, the methods and the ablation, the scored classes
+    and pools."""
+
+    name: str = "experiment"  # names the results folder (results_NAME)
+    sequences: dict = field(default_factory=dict)  # name -> a sequence (sequences.NAME below)
+    networks: dict = field(default_factory=dict)  # name -> a network (networks.NAME below)
+    conditions: dict = field(default_factory=dict)  # name -> a network's alpha on a sequence (conditions.NAME below)
+    mapping_preset: str = "offroad"  # configs/presets/NAME.yaml or a path, under every method
+    projection: ProjectionConfig = field(default_factory=ProjectionConfig)  # the projection section below
+    methods: tuple = ()  # the methods mapped and scored in every condition
+    ablation: AblationSpec = field(default_factory=AblationSpec)  # the ablation section below
+    scored_classes: tuple = PAPER_SCORED_CLASSES  # the classes scored (the paper's seven)
     # name -> conditions scored as one (docs/algorithm.md §4.5: the RELLIS-3D folds; pooled confusion matrices,
     # and the mean of the per-condition scores beside them)
     pools: dict = field(default_factory=dict)
-    convbki: ConvBkiTraining = field(default_factory=ConvBkiTraining)
+    convbki: ConvBkiTraining = field(default_factory=ConvBkiTraining)  # the convbki section below
 
 
 def experiments_dir() -> Path:
+    """The folder of the built-in experiment configs (``configs/experiments/``, installed as
+    ``evsemmap_warp.configs.experiments``)."""
     return Path(str(resources.files("evsemmap_warp.configs") / "experiments"))
 
 
+def _renamed_sequence_keys(entry, where: str):
+    """A sequence entry with the keys renamed in this release under their new names (``preset`` is now
+    ``world``), each told once on stderr."""
+    if not isinstance(entry, dict) or "preset" not in entry:
+        return entry
+    if "world" in entry:
+        raise ConfigError(f"{where}: give world only (preset is its old name)")
+    warn_deprecated(f"{where}.preset", f"{where}.world")
+    return {("world" if k == "preset" else k): v for k, v in entry.items()}
+
+
 def load_experiment(name_or_path) -> tuple[ExperimentConfig, Path]:
+    """An experiment config by path or built-in name, and its path. Raises ConfigError naming the file and
+    the key when it is missing, not YAML, or names sequences, networks, conditions or methods that do not
+    exist, before any work is done."""
     path = Path(name_or_path)
     if not path.exists():
         path = experiments_dir() / f"{name_or_path}.yaml"
@@ -133,13 +165,16 @@ def load_experiment(name_or_path) -> tuple[ExperimentConfig, Path]:
     for section, cls in (("sequences", SequenceSpec), ("networks", NetworkSpec), ("conditions", ConditionSpec)):
         if not isinstance(data.get(section, {}), dict):
             raise ConfigError(f"{src}: {section} must be a mapping of names")
-        data[section] = {k: dataclass_from_dict(cls, v, f"{src}: {section}.{k}") for k, v in (data.get(section) or {}).items()}
+        entries = data.get(section) or {}
+        if section == "sequences":
+            entries = {k: _renamed_sequence_keys(v, f"{src}: sequences.{k}") for k, v in entries.items()}
+        data[section] = {k: dataclass_from_dict(cls, v, f"{src}: {section}.{k}") for k, v in entries.items()}
     config = dataclass_from_dict(ExperimentConfig, data, src)
     for name, seq in config.sequences.items():
-        if bool(seq.preset) == bool(seq.path):
-            raise ConfigError(f"{src}: sequences.{name} needs exactly one of preset (synthetic) or path (a RELLIS-3D-layout folder or a robot log)")
+        if bool(seq.world) == bool(seq.path):
+            raise ConfigError(f"{src}: sequences.{name} needs exactly one of world (synthetic) or path (a RELLIS-3D-layout folder or a robot log)")
         if seq.frames < 0 or seq.spacing_m < 0:
-            raise ConfigError(f"{src}: sequences.{name}: frames ({seq.frames}) and spacing_m ({seq.spacing_m}) must be >= 0 (0: the preset's)")
+            raise ConfigError(f"{src}: sequences.{name}: frames ({seq.frames}) and spacing_m ({seq.spacing_m}) must be >= 0 (0: the world preset's)")
     for name, net in config.networks.items():
         if net.epochs < 1 or net.batch_size < 1 or not net.lr > 0 or net.time_budget_s < 0 or not 0 < net.fraction <= 1:
             raise ConfigError(f"{src}: networks.{name}: need epochs >= 1, batch_size >= 1, lr > 0, time_budget_s >= 0 "
@@ -168,6 +203,9 @@ def _digest(*parts) -> str:
 
 
 class Experiment:
+    """Runs a study stage by stage into ``out``: sequences, networks, alpha, projection, maps and scores,
+    each stage cached under ``cache`` by a hash of its inputs, so a rerun redoes only what changed."""
+
     def __init__(self, config: ExperimentConfig, out, *, cache=None, device: str | None = "cpu", progress: bool = True, log=print):
         """``cache``: the stage cache folder (default OUT/cache); studies that share it share data,
         networks and alpha (stages are keyed by their inputs, not by the study)."""
@@ -195,6 +233,8 @@ class Experiment:
         return self._sequences[name]
 
     def sequence_dir(self, name: str) -> Path:
+        """The folder (or robot log) of sequence ``name``, rendered into the cache first when it is
+        synthetic; raises ConfigError when a real sequence's path is neither a folder nor a log."""
         if name in self._sequence_dirs:
             return self._sequence_dirs[name]
         spec = self.config.sequences[name]
@@ -207,7 +247,7 @@ class Experiment:
         from ..synthetic.preset import load_preset
         from ..synthetic.writer import generate_sequence
 
-        preset = load_preset(spec.preset, seed=None if spec.seed < 0 else spec.seed, appearance__domain=spec.domain or None,
+        preset = load_preset(spec.world, seed=None if spec.seed < 0 else spec.seed, appearance__domain=spec.domain or None,
                              trajectory__frames=spec.frames or None, trajectory__spacing_m=spec.spacing_m or None)
         folder = self.cache / "sequences" / f"{name}-{_digest(dataclasses.asdict(preset), __version__)}"
         if not (folder / "synth.yaml").exists():  # written last by the generator
@@ -272,10 +312,14 @@ class Experiment:
         self.notes.append(text)
 
     def alpha_dir(self, condition: str) -> Path:
+        """The folder of the per-frame alpha files (float16 .npy) of condition ``condition``'s network on its
+        sequence."""
         cond = self.config.conditions[condition]
         return self.alpha_for(cond.network, cond.sequence)
 
     def alpha_for(self, network: str, sequence: str) -> Path:
+        """The folder of ``network``'s alpha on ``sequence``, one float16 [K, H, W] .npy per camera frame;
+        inferred into the cache first when it is not there."""
         from ..segmentation.train import infer_alpha, load_checkpoint
 
         checkpoint = self.network(network)
@@ -323,6 +367,9 @@ class Experiment:
         return path
 
     def ground_truth(self, sequence: str) -> tuple[np.ndarray, np.ndarray]:
+        """The 3D ground truth of ``sequence``: points [M, 3] (m, the sequence's world frame) and their
+        labels [M], its 2D label images projected onto its LiDAR points (cached). Raises ConfigError when
+        no frame has a label image."""
         seq = self.sequence(sequence)
         # the frame is part of the key: ground truth projected into another frame is another file
         key = _digest(self._source_key(sequence), dataclasses.asdict(self.config.projection), seq.world.frame.as_dict())
@@ -359,11 +406,15 @@ class Experiment:
         return ScanList(scans, len(names), names, seq.world.frame)
 
     def map_and_score(self, condition: str, method: str, bins: ScanList, gt) -> MapScores:
+        """Map condition ``condition``'s projected alpha ``bins`` with ``method`` (under the study's mapping
+        preset; ConvBKI with lengths learned on the network's training data), save the map under
+        ``out/maps/CONDITION/METHOD.npz`` (reused when its inputs are unchanged) and score it against
+        ``gt`` (points, labels)."""
         from ..core.mapper import load_map, save_map
 
         run = load_config([preset_path(self.config.mapping_preset)], method=method)
         mapping = run.mapping
-        if mapping.kernel is Kernel.CONVBKI and not mapping.convbki_lengths_file:
+        if mapping.kernel is Kernel.COMPOUND and not mapping.convbki_lengths_file:
             lengths = self.convbki_lengths(self.config.conditions[condition].network, mapping.resolution_m)
             mapping = dataclasses.replace(mapping, convbki_lengths_file=str(lengths))
         key = _digest(mapping.as_dict(), str(self.alpha_dir(condition)), dataclasses.asdict(self.config.projection), bins.frame.as_dict(),
@@ -387,6 +438,9 @@ class Experiment:
 
     # -- the whole study -------------------------------------------------------------------------
     def run(self) -> dict:
+        """The whole study: every condition mapped with every method (and the ablation's methods on its
+        condition), scored, pooled, and written as ``results.md``, ``scores.csv``, ``scores.json``, plots
+        and ``record.json``; returns the scores by condition (and ``pool:NAME``) and method."""
         started = time.perf_counter()
         self.out.mkdir(parents=True, exist_ok=True)
         results: dict[str, dict[str, MapScores]] = {}

@@ -47,6 +47,14 @@ class _CameraScans:
     def frames_in(self, start: int, stop: int) -> int:
         return len(self.frames[start * self.bin_frames: stop * self.bin_frames])
 
+    def insertion_frames(self, k: int) -> list:
+        """The frames binned into insertion ``k``."""
+        return self.frames[k * self.bin_frames: (k + 1) * self.bin_frames]
+
+    def frame_values(self, frame) -> np.ndarray:
+        """[K, H, W] what ``scans`` projects for one frame: the checkpoint's alpha (or probabilities) or the alpha file's."""
+        return self._values([frame])(frame)
+
     def _values(self, frames):
         """values_for_frame over ``frames``, asked in that order."""
         raise NotImplementedError
@@ -98,7 +106,7 @@ class AlphaFileScans(_CameraScans):
         super().__init__(run, bin_frames_)
         self.folder = Path(folder)
         if not self.folder.is_dir():
-            raise ConfigError(f"--alpha {self.folder}: no such folder")
+            raise ConfigError(f"--alpha-dir {self.folder}: no such folder")
         self.frames = [f for f in self.frames if self._path(f) is not None]
         if not self.frames:
             raise ConfigError(f"{self.folder}: no alpha file for any frame (expected <image name>.npy or NNNNNN.npy)")
@@ -135,13 +143,13 @@ class AlphaFileScans(_CameraScans):
 def open_scan_source(run: RunConfig, *, checkpoint=None, alpha_dir=None, bin_frames: int | None = None, batch_size: int = 4):
     """The scans of a run: per-point labels, or the camera labelled by a checkpoint or alpha files."""
     if checkpoint is not None and alpha_dir is not None:
-        raise ConfigError("--checkpoint and --alpha both label the scans from the camera: give one of them")
+        raise ConfigError("--checkpoint and --alpha-dir both label the scans from the camera: give one of them")
     if checkpoint is not None:
         return CheckpointScans(run, checkpoint, bin_frames, batch_size)
     if alpha_dir is not None:
         return AlphaFileScans(run, alpha_dir, bin_frames)
     if bin_frames is not None:
-        raise ConfigError("--bin-frames applies to camera-labelled scans (--checkpoint or --alpha)")
+        raise ConfigError("--bin-frames applies to camera-labelled scans (--checkpoint or --alpha-dir)")
     return open_dataset(run.dataset)
 
 
@@ -161,6 +169,7 @@ class ScanList:
         return iter(self.items)
 
     def scans(self, start: int, stop: int) -> Iterator[Scan]:
+        """Scans ``start`` .. ``stop - 1`` of the list."""
         return iter(self.items[start:stop])
 
 

@@ -30,6 +30,7 @@ from __future__ import annotations
 import html
 import math
 import socket
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ..classes import named_colors
-from ..core.map_file import lattice_index, read_map_arrays
+from ..core.map_file import file_arrays, lattice_index, read_map_arrays
 from ..data.point_files import read_npy, read_point_file
 from ..frames import WorldFrame, check_same_frame, describe_frame
 from ..voxel_keys import voxel_index_of
@@ -129,6 +130,13 @@ class MapLayer:
                    arrays["label"], arrays["state"], arrays["variance"], arrays["hits"], mean_unc, meta["method"],
                    frame_of(meta, path), lattice_index(np.asarray(arrays["origin"], np.float64), float(arrays["resolution"])))
 
+    @classmethod
+    def from_mapper(cls, name: str, path, mapper, voxels=None) -> "MapLayer":
+        """A map in memory, as its map file would show it: ``mapper``'s voxels, or ``voxels`` (a copy of
+        them, global indices) read out with ``mapper``'s parameters, origin and frame."""
+        contents = mapper.contents_of(*(mapper.voxels() if voxels is None else (voxels,)))
+        return cls.from_arrays(name, Path(path), file_arrays(contents), contents.meta)
+
     def voxel_at(self, points_world: np.ndarray) -> np.ndarray:
         """Row of the voxel containing each point, -1 where none is stored (map files are sorted by key)."""
         if len(self.voxel_index) == 0:
@@ -154,44 +162,128 @@ _LAYER_ARRAYS = ("centers", "voxel_index", "alpha", "label", "state", "variance"
 
 
 class StoreOverview:
-    """A map store in the viewer: every tile decimated to a share of ``max_voxels`` (read one tile at
-    a time, so the overview, not the store, is what is held), and one selected tile in full detail."""
+    """A map store in the viewer, at two levels of detail: an overview in which every tile holds an evenly
+    spaced share of ``max_voxels`` (its share of the store's voxels, from store.json's counts), and up to
+    ``max_detail_tiles`` tiles in full (asked for by the GUI, a pick, or a camera coming near). What is
+    held is the overview and those tiles, never the store: tiles are read one at a time and dropped.
 
-    def __init__(self, path, max_voxels: int):
+    The overview fills in tile by tile (``read_next``, nearest the store's centre first), so a viewer can
+    draw a first frame before the store is read; the store's extent comes from store.json. Thread-safe:
+    the viewer's loader thread reads while GUI callbacks ask for detail."""
+
+    def __init__(self, path, max_voxels: int, *, max_detail_tiles: int = 6):
         from ..core.map_store import MapStore
 
-        self.store = MapStore(path, cache_tiles=1)
+        self.store = MapStore(path, cache_tiles=0)
         self.path = Path(path)
-        total = max(self.store.voxel_count, 1)
-        self.parts: dict[str, dict] = {}
-        self.meta = None
-        self.total_voxels = 0  # in the store's tiles (the overview holds a share of them)
-        present = set()
-        for name in sorted(self.store.tiles):
-            arrays, meta = read_map_arrays(self.store.tile_path(name))
-            self.meta = self.meta or meta
-            n = len(arrays["state"])
-            self.total_voxels += n
-            present.update(np.unique(arrays["label"][arrays["state"] != STATE_NAMES.index("UNKNOWN")]).tolist())
-            keep = max(1, int(max_voxels * n / total)) if n else 0
-            rows = np.linspace(0, n - 1, min(keep, n)).astype(np.int64) if n else np.zeros(0, np.int64)
-            self.parts[name] = {k: arrays[k][rows] for k in _LAYER_ARRAYS} | {"resolution": arrays["resolution"], "origin": arrays["origin"],
-                                                                             "weight": np.full(len(rows), n / max(len(rows), 1), np.float64)}
-        self.present = np.array(sorted(present), np.int64)
-        self.detail = ""
+        if not self.store.tiles:
+            raise ValueError(f"{self.path}: the store has no tiles")
+        self.max_voxels, self.max_detail_tiles = int(max_voxels), int(max_detail_tiles)
+        self.total_voxels = self.store.voxel_count  # in the store's tiles (the overview holds a share of them)
+        boxes = {name: np.asarray(info["bounds_m"], np.float64) for name, info in self.store.tiles.items()}
+        self.bounds = (np.min([b[0] for b in boxes.values()], axis=0), np.max([b[1] for b in boxes.values()], axis=0))
+        centre = (self.bounds[0] + self.bounds[1]) / 2
+        # the tiles nearest the middle of the first view first
+        self.unread = sorted(boxes, key=lambda name: (float(np.linalg.norm(boxes[name].mean(axis=0)[:2] - centre[:2])), name))
+        self.parts: dict[str, dict] = {}  # tile -> its overview rows
+        self.details: dict[str, dict] = {}  # tile -> all its rows, most recently asked for last
+        self.meta = self.store.template.metadata()
+        self._present: set[int] = set()
+        self._lock = threading.RLock()
         # store.json's frame (MapStore.frame); a store from before stores recorded it: its tiles' meta
         self.frame = self.store.frame if hasattr(self.store, "frame") else frame_of(self.meta, self.path)
 
-    def layer(self, detail: str = "") -> MapLayer:
-        """The overview, with tile ``detail`` (a tile name; "" for none) in full."""
-        parts = dict(self.parts)
-        if detail:
-            arrays, _ = read_map_arrays(self.store.tile_path(detail))
-            parts[detail] = {k: arrays[k] for k in _LAYER_ARRAYS} | {"resolution": arrays["resolution"], "origin": arrays["origin"],
-                                                                     "weight": np.ones(len(arrays["state"]))}
-        self.detail = detail
-        if not parts:
-            raise ValueError(f"{self.path}: the store has no tiles")
+    @property
+    def complete(self) -> bool:
+        return not self.unread
+
+    @property
+    def detail(self) -> tuple[str, ...]:
+        return tuple(self.details)
+
+    @property
+    def present(self) -> np.ndarray:
+        return np.array(sorted(self._present), np.int64)
+
+    @property
+    def held_rows(self) -> int:
+        """Voxel rows held: the overview's and the detail tiles' (what bounds the viewer's memory)."""
+        with self._lock:
+            return sum(len(p["state"]) for p in self.parts.values()) + sum(len(p["state"]) for p in self.details.values())
+
+    def _read(self, name: str, keep: int | None) -> dict:
+        arrays = file_arrays(self.store.tile_contents(name))
+        n = len(arrays["state"])
+        self._present.update(np.unique(arrays["label"][arrays["state"] != STATE_NAMES.index("UNKNOWN")]).tolist())
+        rows = np.arange(n) if keep is None or keep >= n else np.linspace(0, n - 1, keep).astype(np.int64)
+        return {k: arrays[k][rows] for k in _LAYER_ARRAYS} | {"resolution": arrays["resolution"], "origin": arrays["origin"],
+                                                             "weight": np.full(len(rows), n / max(len(rows), 1), np.float64)}
+
+    def read_next(self) -> str | None:
+        """Read the next tile into the overview; its name, None when every tile is read."""
+        with self._lock:
+            if not self.unread:
+                return None
+            name = self.unread.pop(0)
+            self.parts[name] = self._read(name, self._share(self.store.tiles[name]["voxels"]))
+            return name
+
+    def _share(self, n: int) -> int:
+        """Overview rows of a tile of ``n`` voxels: its share of ``max_voxels``, at least one, at most all."""
+        return min(n, max(1, int(self.max_voxels * n / max(self.total_voxels, 1))))
+
+    def read_first(self, voxels: int, rows: int | None = None) -> None:
+        """Read tiles into the overview, nearest the centre first, until it is complete or the next tile would take
+        the voxels read beyond ``voxels`` (the cost of reading) or the overview beyond ``rows`` (the cost of
+        sending and drawing); at least one tile."""
+        read, held = 0, 0
+        while self.unread:
+            n = self.store.tiles[self.unread[0]]["voxels"]
+            share = self._share(n)
+            if read and (read + n > voxels or (rows is not None and held + share > rows)):
+                return
+            read, held = read + n, held + share
+            self.read_next()
+
+    def set_detail(self, names) -> bool:
+        """Hold these tiles (the latest ``max_detail_tiles`` of them) in full, and no others; whether that changed anything."""
+        names = [n for n in dict.fromkeys(names) if n in self.store.tiles][-self.max_detail_tiles:]
+        with self._lock:
+            if list(self.details) == names:
+                return False
+            self.details = {name: self.details.get(name) or self._read(name, None) for name in names}
+            return True
+
+    def add_detail(self, names) -> bool:
+        """Hold these tiles in full as well, dropping those asked for longest ago beyond ``max_detail_tiles``."""
+        with self._lock:
+            return self.set_detail([n for n in self.details if n not in names] + list(names))
+
+    def tiles_at(self, points_world: np.ndarray, *, column: bool = True) -> list[str]:
+        """The store's tiles holding these world points (with ``column``: every tile above and below them too)."""
+        from ..core.map_store import tile_keys
+
+        keys = {tuple(k) for k in tile_keys(self.store.voxel_index_of(np.asarray(points_world, np.float64).reshape(-1, 3)),
+                                            self.store.tile_voxels).tolist()}
+        names = []
+        for name in sorted(self.store.tiles):
+            key = tuple(int(v) for v in name.split("_"))
+            if key in keys or (column and key[:2] in {k[:2] for k in keys}):
+                names.append(name)
+        return names
+
+    def layer(self) -> MapLayer:
+        """The overview read so far, with the detail tiles in full."""
+        with self._lock:
+            parts = dict(self.parts) | dict(self.details)  # a tile in full replaces its overview rows
+            if not parts:  # nothing read yet: an empty map of the store's classes
+                from ..core.voxel_map import VoxelArrays
+
+                empty = VoxelArrays.from_rows(np.zeros((0, 3), np.int64), np.zeros((0, self.store.num_classes + 4)))
+                layer = MapLayer.from_arrays(self.path.name, self.path, file_arrays(self.store.template.contents_of(empty)), self.meta)
+                layer.frame, layer.weight, layer.present = self.frame, np.zeros(0), self.present
+                return layer
+            present = self.present
         joined = {k: np.concatenate([p[k] for p in parts.values()]) for k in _LAYER_ARRAYS + ("weight",)}
         joined["resolution"] = next(iter(parts.values()))["resolution"]
         joined["origin"] = next(iter(parts.values()))["origin"]  # a store's tiles share its origin
@@ -200,7 +292,7 @@ class StoreOverview:
         layer = MapLayer.from_arrays(self.path.name, self.path, joined, self.meta)
         layer.frame = self.frame
         layer.weight = joined["weight"]
-        layer.present = self.present
+        layer.present = present
         return layer
 
 
@@ -254,11 +346,19 @@ class MapViewer:
     table ``costs``; the GUI's button does it on demand otherwise). ``truth``: a ground truth for the
     comparison of two maps (``viewer_layers.load_truth``). Handles are attributes: ``server``, ``gui_*``
     for the controls, ``voxel_handles`` per layer, ``terrain_handles``, ``grid_handle``,
-    ``origin_axes`` and ``origin_label``."""
+    ``origin_axes`` and ``origin_label``.
+
+    ``map_paths`` may hold ``MapLayer`` objects (a map in memory: a live map, a drive's replay), which
+    ``replace_layer`` updates. A store (``StoreOverview``) is read for its first frame up to
+    ``store_first_voxels`` of its voxels (and ``FIRST_FRAME_ROWS`` overview rows), nearest its centre
+    first; a loader thread reads the rest of its overview, and the tiles a browser's camera comes near or
+    a click hits, in full."""
+
+    FIRST_FRAME_ROWS = 100_000  # a store's first frame: about 1.5 MB to send, a fraction of a second to draw
 
     def __init__(self, map_paths, *, host: str = "127.0.0.1", port: int = 8080, style: str = "points",
                  max_voxels: int = 500_000, trajectory=None, scan=None, export_dir=None, terrain: bool = False,
-                 terrain_resolution=None, costs=None, truth=None):
+                 terrain_resolution=None, costs=None, truth=None, store_first_voxels: int = 1_000_000):
         import viser
 
         if style not in ("points", "boxes"):
@@ -267,8 +367,12 @@ class MapViewer:
             raise ValueError("give at least one map file")
         from ..core.map_store import is_store
 
-        self.stores = {i: StoreOverview(p, max_voxels) for i, p in enumerate(map_paths) if is_store(p)}
-        self.layers = [self.stores[i].layer() if i in self.stores else MapLayer.from_file(p) for i, p in enumerate(map_paths)]
+        # a MapLayer is shown as given (a live map, a drive's replay); paths are read
+        self.stores = {i: StoreOverview(p, max_voxels) for i, p in enumerate(map_paths) if not isinstance(p, MapLayer) and is_store(p)}
+        for overview in self.stores.values():  # the tiles of the first frame; the rest fill in after it
+            overview.read_first(store_first_voxels, self.FIRST_FRAME_ROWS)
+        self.layers = [p if isinstance(p, MapLayer) else self.stores[i].layer() if i in self.stores else MapLayer.from_file(p)
+                       for i, p in enumerate(map_paths)]
         for layer in self.layers[1:]:  # switchable or side by side: only maps of one frame share the scene
             check_same_frame("view together", (str(self.layers[0].path), self.layers[0].frame), (str(layer.path), layer.frame))
         self.frame = self.layers[0].frame
@@ -290,10 +394,19 @@ class MapViewer:
         self.measure_points: list[np.ndarray] = []
         self.scale_bar: tuple[float, float, float] | None = None  # (metres, pixels, metres per pixel)
         self.last_point: np.ndarray | None = None  # world coordinates of the last clicked point
-        lo = np.min([layer.centers.min(axis=0) for layer in self.layers if len(layer.centers)] or [np.zeros(3)], axis=0)
-        hi = np.max([layer.centers.max(axis=0) for layer in self.layers if len(layer.centers)] or [np.zeros(3)], axis=0)
-        # A local origin keeps float32 positions fine-grained however far the map is from 0.
+        # Updates of a layer (replace_layer) and the controls' callbacks (viser's threads) take turns.
+        self._lock = threading.RLock()
+        self._refresh_held_by: int | None = None  # the thread in replace_layer, whose control changes wait for its refresh
+        self._closed = threading.Event()
+        self._detail_wanted: dict[int, list[str]] = {}  # store -> tiles to show in full, for the loader thread
+        self._cameras_placed: set[int] = set()  # browsers whose camera has been where the viewer put it
+        self._store_wake = threading.Condition()
+        self._overviews_shown = threading.Event()  # every store's overview read in full and drawn
+        lo, hi = self._bounds()
+        # A local origin keeps float32 positions fine-grained however far the map is from 0. Maps that start
+        # empty (a live map) get theirs from their first voxels (replace_layer); a store's comes from its index.
         self.origin = np.round((lo + hi) / 2.0)
+        self._origin_from_data = any(len(layer.centers) for layer in self.layers) or bool(self.stores)
         self.side_by_side_step = float(hi[0] - lo[0]) + 2.0
         # A fixed random order per layer: decimation keeps the same voxels as filters change.
         self._lod_order = [np.random.default_rng(0).permutation(len(layer.centers)) for layer in self.layers]
@@ -304,8 +417,8 @@ class MapViewer:
         self.server.scene.set_up_direction("+z")
         vl.configure_lighting(self.server.scene)
         extent = float(max(np.max(hi - lo), 1.0))
-        self.server.initial_camera.position = (0.0, -0.9 * extent, 0.7 * extent)
-        self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
+        self._auto_camera = None  # (position, look_at) the viewer last set: browsers still there follow the maps as they grow
+        self._frame_camera(lo, hi)
         self._build_gui()
         self._add_origin_marker(extent)
         self._add_ground_grid(lo, hi)
@@ -335,6 +448,12 @@ class MapViewer:
         except BaseException:
             self.server.stop()
             raise
+        # stores: the rest of the overview, and tiles in full when asked for (a pick, the camera coming near)
+        if all(o.complete for o in self.stores.values()):
+            self._overviews_shown.set()
+        if self.stores:
+            self._store_loader = threading.Thread(target=self._load_stores, name="evsemmap-store-tiles", daemon=True)
+            self._store_loader.start()
 
     @property
     def url(self) -> str:
@@ -356,16 +475,12 @@ class MapViewer:
             # the terrain surface's colour bar or class legend, once layers are computed
             self.gui_terrain_legend = gui.add_image(vl.swatch_image([("", (255, 255, 255))]), label=None, visible=False)
             self.gui_scale_bar = gui.add_html('<div id="evsemmap-scale-bar" style="font:12px sans-serif">scale: waiting for the camera</div>')
+        # filled by a drive's playback (viewer_drive.DrivePlayback) or a live map (viewer_live): kept next to the legend
+        self.gui_drive_folder = gui.add_folder("Drive", visible=False)
         with gui.add_folder("Selected"):
             self.gui_selection = gui.add_markdown("Click a voxel, the terrain surface or the ground.")
         with gui.add_folder("Filters"):
-            max_var = max([float(layer.variance.max()) for layer in self.layers if len(layer.variance)] or [1.0])
-            # The slider counts in units of 10^e so that its number box shows the whole value ("1.71", not "0.01710").
-            self.variance_unit = 10.0 ** math.floor(math.log10(max_var)) if max_var > 0 else 1.0
-            step = 10.0 ** math.floor(math.log10(max(max_var / self.variance_unit, 1e-12) / 200))
-            top = math.ceil(max_var / self.variance_unit / step - 1e-9) * step if max_var > 0 else 1.0
-            exponent = int(round(math.log10(self.variance_unit)))
-            label = "Max variance" + (f" ×1e{exponent}" if exponent else "")
+            self.variance_unit, step, top, label = self._variance_slider_range()
             self.gui_max_variance = gui.add_slider(label, min=0.0, max=top, step=step, initial_value=top)
             self.gui_show_free = gui.add_checkbox("Show FREE", initial_value=False)
             self.gui_show_unknown = gui.add_checkbox("Show UNKNOWN", initial_value=False)
@@ -375,7 +490,8 @@ class MapViewer:
                 tiles = ("(overview only)",) + tuple(f"{i}: {t}" for i, o in self.stores.items() for t in sorted(o.store.tiles))
                 self.gui_tile = gui.add_dropdown("Store tile in full", options=tiles, initial_value=tiles[0])
                 self.gui_tile.on_update(lambda _event: self.show_tile(self.gui_tile.value))
-        with gui.add_folder("Classes"):
+        self.gui_classes_folder = gui.add_folder("Classes")
+        with self.gui_classes_folder:
             self.gui_classes = {name: gui.add_checkbox(name, initial_value=True) for name in self.present_classes}
         with gui.add_folder("Orientation and measuring"):
             self.gui_grid = gui.add_checkbox("Ground grid", initial_value=True)
@@ -405,12 +521,114 @@ class MapViewer:
         if self.gui_diff is not None:
             controls += [self.gui_diff, self.gui_diff_against]
         for handle in controls:
-            handle.on_update(lambda _event: self.refresh())
+            handle.on_update(lambda _event: self._on_control())
         self.gui_grid.on_update(lambda _event: self._show_grid(self.gui_grid.value))
         self.gui_measure.on_update(lambda _event: self._reset_measure())
         self.gui_terrain_compute.on_click(lambda _event: self._compute_terrain_from_gui())
         self.gui_export_html.on_click(lambda _event: self._export_from_gui("html"))
         self.gui_export_ply.on_click(lambda _event: self._export_from_gui("ply"))
+
+    def _on_control(self) -> None:
+        # replace_layer sets several controls, then refreshes once; a change made on another thread meanwhile refreshes itself
+        if self._refresh_held_by != threading.get_ident():
+            self.refresh()
+
+    def _variance_slider_range(self) -> tuple[float, float, float, str]:
+        """(unit, step, top, label) of the variance slider for the maps' largest variance."""
+        max_var = max([float(layer.variance.max()) for layer in self.layers if len(layer.variance)] or [1.0])
+        # The slider counts in units of 10^e so that its number box shows the whole value ("1.71", not "0.01710").
+        unit = 10.0 ** math.floor(math.log10(max_var)) if max_var > 0 else 1.0
+        step = 10.0 ** math.floor(math.log10(max(max_var / unit, 1e-12) / 200))
+        top = math.ceil(max_var / unit / step - 1e-9) * step if max_var > 0 else 1.0
+        exponent = int(round(math.log10(unit)))
+        return unit, step, top, "Max variance" + (f" ×1e{exponent}" if exponent else "")
+
+    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The maps' bounding box (world coordinates, m): their voxel centres, and the whole of each store (from
+        its index, however much of it is read); zeros while every map is empty."""
+        lows = [layer.centers.min(axis=0) for layer in self.layers if len(layer.centers)] + [o.bounds[0] for o in self.stores.values()]
+        highs = [layer.centers.max(axis=0) for layer in self.layers if len(layer.centers)] + [o.bounds[1] for o in self.stores.values()]
+        return np.min(lows or [np.zeros(3)], axis=0), np.max(highs or [np.zeros(3)], axis=0)
+
+    def replace_layer(self, i: int, layer: "MapLayer") -> None:
+        """Show ``layer`` as map ``i`` from now on (a drive's map as of a scan, a live map's latest copy,
+        a store overview with more tiles): the classes it holds join the toggles, and the variance slider,
+        the ground grid and (for maps that were empty) the local origin are fitted to it. Safe to call
+        from any thread."""
+        with self._lock:
+            if self._closed.is_set():  # a loader, a replay or a live map still at work after close()
+                return
+            check_same_frame("view together", (str(self.layers[i].path), self.layers[i].frame), (str(layer.path), layer.frame))
+            was_at_top = self.gui_max_variance.value >= self.gui_max_variance.max - 0.5 * self.gui_max_variance.step
+            threshold = self.max_variance
+            if self.voxel_handles[i] is not None and layer.name != self.layers[i].name:
+                self.voxel_handles[i].remove()  # its scene node is named after the map: another name, another node
+                self.voxel_handles[i] = None
+            self.layers[i] = layer
+            self._lod_order[i] = np.random.default_rng(0).permutation(len(layer.centers))
+            self._refresh_held_by = threading.get_ident()
+            try:
+                self._add_new_classes()
+                unit, step, top, label = self._variance_slider_range()
+                if (unit, step, top) != (self.variance_unit, self.gui_max_variance.step, self.gui_max_variance.max):
+                    self.variance_unit = unit
+                    self.gui_max_variance.label, self.gui_max_variance.step, self.gui_max_variance.max = label, step, top
+                    # the threshold keeps its variance (the slider's unit may change), or stays at the top
+                    self.gui_max_variance.value = top if was_at_top else min(round(threshold / unit / step) * step, top)
+                self._fit_scene()
+            finally:
+                self._refresh_held_by = None
+            self.refresh()
+
+    def _add_new_classes(self) -> None:
+        for layer in self.layers:
+            for name in layer.classes:
+                if name not in self.palette:
+                    self.classes.append(name)
+                    self.palette[name] = class_palette(self.classes)[-1]
+        present = {layer.classes[k] for layer in self.layers for k in layer.present_labels() if k < len(layer.classes)}
+        new = [c for c in self.classes if c in present and c not in self.present_classes]
+        if not new:
+            return
+        self.present_classes = [c for c in self.classes if c in present or c in self.present_classes]
+        with self.gui_classes_folder:
+            for name in new:
+                self.gui_classes[name] = self.server.gui.add_checkbox(name, initial_value=True)
+                self.gui_classes[name].on_update(lambda _event: self._on_control())
+
+    def _fit_scene(self) -> None:
+        """The local origin from the first voxels of maps that started empty; the ground grid over the maps' extent."""
+        lo, hi = self._bounds()
+        if not any(len(layer.centers) for layer in self.layers):
+            return
+        extent = float(max(np.max(hi - lo), 1.0))
+        if not self._origin_from_data:
+            self.origin = np.round((lo + hi) / 2.0)
+            self._origin_from_data = True
+            self._add_origin_marker(extent)
+            self.gui_frame.content = self._frame_text()
+            self._frame_camera(lo, hi)
+            self._add_ground_grid(lo, hi)
+        elif np.any(lo[:2] < (self.ground.x0, self.ground.y0)) or np.any(hi[:2] > (self.ground.x1, self.ground.y1)):
+            self._frame_camera(lo, hi)
+            self._add_ground_grid(lo, hi)
+        self.side_by_side_step = float(hi[0] - lo[0]) + 2.0
+
+    def _frame_camera(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Point the initial camera, and the cameras of browsers whose users have not moved theirs, at the maps' extent."""
+        extent = float(max(np.max(hi - lo), 1.0))
+        look_at = np.round((lo + hi) / 2.0) - self.origin
+        position = look_at + np.array([0.0, -0.9 * extent, 0.7 * extent])
+        previous, self._auto_camera = self._auto_camera, (position, look_at)
+        self.server.initial_camera.position, self.server.initial_camera.look_at = tuple(position), tuple(look_at)
+        if previous is None:
+            return
+        tolerance = 1e-3 * max(float(np.linalg.norm(previous[0] - previous[1])), 1.0)
+        for client in self.server.get_clients().values():
+            camera = client.camera
+            if (np.linalg.norm(np.asarray(camera.position) - previous[0]) < tolerance
+                    and np.linalg.norm(np.asarray(camera.look_at) - previous[1]) < tolerance):
+                camera.position, camera.look_at = tuple(position), tuple(look_at)
 
     @property
     def max_variance(self) -> float:
@@ -454,15 +672,17 @@ class MapViewer:
         x1 = grid.x1 + grid.section * (round((grid.x1 - grid.x0) / grid.section) % 2)
         y1 = grid.y1 + grid.section * (round((grid.y1 - grid.y0) / grid.section) % 2)
         self.ground = vl.GroundGrid(grid.x0, grid.y0, x1, y1, grid.z, grid.section, grid.cell, grid.labels)
+        for handle in getattr(self, "grid_label_handles", []):  # a grid redrawn for maps that grew
+            handle.remove()
         centre = np.array([(grid.x0 + x1) / 2, (grid.y0 + y1) / 2, grid.z]) - self.origin
         size = max(x1 - grid.x0, y1 - grid.y0)
         self.grid_handle = self.server.scene.add_grid(
             "/ground_grid", width=x1 - grid.x0, height=y1 - grid.y0, plane="xy", cell_size=grid.cell, section_size=grid.section,
             cell_color=(215, 215, 215), section_color=(150, 150, 150), section_thickness=1.5, fade_distance=4.0 * size,
-            shadow_opacity=0.0, position=tuple(centre))
+            shadow_opacity=0.0, position=tuple(centre), visible=self.gui_grid.value)
         self.grid_label_handles = [
             self.server.scene.add_label(f"/ground_grid_labels/{k}", text, position=tuple(position - self.origin), anchor="center-center",
-                                        font_screen_scale=0.8)
+                                        font_screen_scale=0.8, visible=self.gui_grid.value)
             for k, (text, position) in enumerate(grid.labels)]
 
     def _show_grid(self, visible: bool) -> None:
@@ -470,8 +690,21 @@ class MapViewer:
             handle.visible = bool(visible)
 
     def _on_connect(self, client) -> None:
-        client.camera.on_update(lambda camera: self._update_scale_bar(camera))
+        client.camera.on_update(lambda camera: self._on_camera(client.client_id, camera))
         self._update_scale_bar(client.camera)
+
+    def _on_camera(self, client_id: int, camera) -> None:
+        self._update_scale_bar(camera)
+        if not self.stores:
+            return
+        # A browser first reports viser's default camera (3 m from the origin), then the initial one: only a
+        # camera that has been where the viewer put it has come near anything.
+        if client_id not in self._cameras_placed:
+            position, look_at = self._auto_camera
+            if np.linalg.norm(np.asarray(camera.position) - position) > 1e-3 * max(float(np.linalg.norm(position - look_at)), 1.0):
+                return
+            self._cameras_placed.add(client_id)
+        self._approach(camera)
 
     def _update_scale_bar(self, camera) -> None:
         """The scale bar for a browser's camera: a round length and its screen pixels at the orbit centre."""
@@ -488,14 +721,73 @@ class MapViewer:
 
     # ------------------------------------------------------------------ layers shown
     def show_tile(self, choice: str) -> None:
-        """Show a store's tile ("i: X_Y_Z", or "(overview only)") in full detail over its overview."""
+        """Show a store's tile ("i: X_Y_Z", or "(overview only)") in full detail over its overview, and no other."""
         chosen = None if choice.startswith("(") else (int(choice.split(":")[0]), choice.split(": ")[1])
         for i, overview in self.stores.items():
-            detail = chosen[1] if chosen and chosen[0] == i else ""
-            if detail != overview.detail:
-                self.layers[i] = overview.layer(detail)
-                self._lod_order[i] = np.random.default_rng(0).permutation(len(self.layers[i].centers))
-        self.refresh()
+            if overview.set_detail([chosen[1]] if chosen and chosen[0] == i else []):
+                self.replace_layer(i, overview.layer())
+
+    # ------------------------------------------------------------------ store tiles in the background
+    APPROACH_TILES = 1.0  # a camera nearer a store tile's column than this many tile edges shows it in full
+
+    def request_detail(self, i: int, names: list[str]) -> None:
+        """Have store ``i``'s tiles ``names`` shown in full (read on the loader thread)."""
+        if names and not set(names) <= set(self.stores[i].detail):
+            with self._store_wake:
+                self._detail_wanted[i] = list(names)
+                self._store_wake.notify_all()
+
+    def _approach(self, camera) -> None:
+        """Tiles in full where a browser's camera has come near a store (its orbit centre's tile column)."""
+        try:
+            position, look_at = np.asarray(camera.position, np.float64), np.asarray(camera.look_at, np.float64)
+        except (AttributeError, TypeError, ValueError):
+            return
+        for i, overview in self.stores.items():
+            if i not in self._shown_layers():
+                continue
+            tile_m = overview.store.tile_voxels * self.layers[i].resolution
+            if np.linalg.norm(position - look_at) < self.APPROACH_TILES * tile_m:
+                self.request_detail(i, overview.tiles_at(look_at + self.origin - self._shift(i)))
+
+    def _load_stores(self) -> None:
+        sent = {i: len(self.layers[i].state) for i in self.stores}  # rows each store's overview had when last sent
+        while not self._closed.is_set():
+            with self._store_wake:
+                while not self._closed.is_set() and not self._detail_wanted and all(o.complete for o in self.stores.values()):
+                    self._store_wake.wait(timeout=1.0)
+                wanted, self._detail_wanted = self._detail_wanted, {}
+            try:
+                for i, names in wanted.items():
+                    if self.stores[i].add_detail(names):
+                        self.replace_layer(i, self.stores[i].layer())
+                for i, overview in self.stores.items():
+                    if overview.complete or wanted:
+                        continue  # detail first: what the user is looking at
+                    overview.read_next()
+                    # Each push sends the whole overview again: pushed as it grows by half, the browser receives about
+                    # twice the final overview in all, however many tiles the store has.
+                    if overview.complete or overview.held_rows >= 1.5 * sent[i]:
+                        self.replace_layer(i, overview.layer())
+                        sent[i] = len(self.layers[i].state)
+                    if all(o.complete for o in self.stores.values()):
+                        self._overviews_shown.set()
+                    break
+            except Exception as exc:  # shown, not raised: the viewer keeps serving what it has
+                self.gui_status.content = f"**Cannot read the store:** {type(exc).__name__}: {exc}"
+                self._closed.wait(5.0)
+
+    def wait_for_stores(self, timeout: float | None = None) -> bool:
+        """Wait until every store's overview is read in full and shown (exports then hold all of it); whether it was."""
+        return self._overviews_shown.wait(timeout)
+
+    def close(self) -> None:
+        """Stop reading stores and serving."""
+        with self._lock:  # after a layer update under way, and before any other
+            self._closed.set()
+        with self._store_wake:
+            self._store_wake.notify_all()
+        self.server.stop()
 
     def _diff_pair(self) -> tuple[int, int] | None:
         """(first, second) map indices while a comparison is shown."""
@@ -586,6 +878,10 @@ class MapViewer:
 
     def refresh(self) -> None:
         """Recompute what is shown from the controls and push it to every browser."""
+        with self._lock:
+            self._refresh()
+
+    def _refresh(self) -> None:
         try:
             pair = self._diff_pair()
             if pair is not None:
@@ -641,9 +937,20 @@ class MapViewer:
             total = sum(self.stores[i].total_voxels for i in shown if i in self.stores) + sum(
                 len(self.layers[i].state) for i in shown if i not in self.stores)
             held = sum(len(self.layers[i].state) for i in shown)
+            unread = sum(len(self.stores[i].unread) for i in shown if i in self.stores)
+            reading = f"; reading its tiles: {unread:,} to go" if unread else ""
+            full = sum(len(self.stores[i].detail) for i in shown if i in self.stores)
+            detail = f"; {full} tile(s) in full" if full else ""
             if held < total:
                 return (f"{drawn:,} voxels drawn of about {round(stands_for):,} visible in the store (decimated: a store overview holds "
-                        f"{held:,} of its {total:,} voxels; choose a tile for full detail)")
+                        f"{held:,} of its {total:,} voxels{detail}{reading}; come near a tile, click it or choose it for full detail)")
+        elif any(self.layers[i].weight is not None for i in shown):  # an overview of tiles as they are written
+            total = round(sum(float(self.layers[i].weight.sum()) if self.layers[i].weight is not None else len(self.layers[i].state)
+                              for i in shown))
+            held = sum(len(self.layers[i].state) for i in shown)
+            if held < total:
+                return (f"{drawn:,} voxels drawn of about {round(stands_for):,} visible (decimated: the overview holds {held:,} of the "
+                        f"tiles' {total:,} voxels)")
         return f"{drawn:,} of {visible:,} visible voxels drawn" + ("" if drawn == visible else " (decimated; tick *Full map* for all)")
 
     def _draw_layer(self, i: int, rows: np.ndarray) -> None:
@@ -839,6 +1146,8 @@ class MapViewer:
         where = (f"clicked point in {describe_frame(self.frame)}: " + ", ".join(f"{a}={c:.3f}" for a, c in zip("xyz", point)) + " m")
         if hit["kind"] == "voxel":
             text = self.describe(hit["layer"], hit["row"])
+            if hit["layer"] in self.stores:  # a store's voxel: its tile column in full
+                self.request_detail(hit["layer"], self.stores[hit["layer"]].tiles_at(point))
         elif hit["kind"] == "cell":
             layer = self.layers[hit["layer"]]
             text = self.terrain[hit["layer"]].describe(hit["row"], hit["column"], layer.classes, describe_frame(self.frame))
@@ -1010,4 +1319,4 @@ class MapViewer:
         except KeyboardInterrupt:
             pass
         finally:
-            self.server.stop()
+            self.close()

@@ -210,7 +210,7 @@ class TerrainSurface:
             keep = (rows % self.stride == 0) & (cols % self.stride == 0)
             rows, cols = rows[keep], cols[keep]
         self.rows, self.cols = rows, cols
-        xs, ys = self.grid.cell_centres()
+        xs, ys = self.grid.cell_centers()
         # a tile of stride cells covers its cell and the next ones east and south: centre it on them
         half = (self.stride - 1) * 0.5 * self.grid.cell_m
         self.centres = np.c_[xs[cols] + half, ys[rows] - half, height[rows, cols]]  # world coordinates, m
@@ -310,7 +310,7 @@ class TerrainSurface:
         """Markdown: a cell's centre in world coordinates and every layer's value there."""
         from ..terrain.layers import band_units
 
-        xs, ys = self.grid.cell_centres()
+        xs, ys = self.grid.cell_centers()
         bands = self.layers.bands
         lines = [f"**terrain cell** (column {col}, row {row}) of {self.grid.cell_m:g} m",
                  f"centre in {frame_text}: x={xs[col]:.3f}, y={ys[row]:.3f} m", "", "| layer | value | unit |", "|---|---|---|"]
@@ -464,11 +464,9 @@ def load_truth(path, layer, frame=None) -> np.ndarray:
         votes = np.bincount(rows[ok] * k + labels[ok], minlength=len(layer.centers) * k).reshape(len(layer.centers), k)
         return np.where(votes.sum(axis=1) > 0, votes.argmax(axis=1), -1)
     if "alpha" in arrays or "centers" in arrays:
-        from .viewer import MapLayer, frame_of
-
         data, meta = read_map_arrays(path)
-        other = MapLayer.from_arrays(path.stem, path, data, meta)
-        check_same_frame("compare with the truth", (str(layer.path), frame), (str(path), frame_of(meta, path)))
+        other = type(layer).from_arrays(path.stem, path, data, meta)  # the viewer's MapLayer, without importing the viewer back
+        check_same_frame("compare with the truth", (str(layer.path), frame), (str(path), WorldFrame.from_dict(meta.get("frame"), f"{path}: meta.frame")))
         other_names = [c.lower() for c in other.classes]
         table = np.array([names.index(n) if n in names else -1 for n in other_names], np.int64)
         rows = other.voxel_at(layer.centers)

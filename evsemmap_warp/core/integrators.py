@@ -4,15 +4,15 @@ compatibility mode and the kernel), each declares what it needs of a scan (``Sca
 origin, the payload kinds) and turns a validated scan into its launch with ``prepare(scan, device)``
 (host work only, no map access); the launch runs the kernels on the shards.
 
-* ``KernelIntegrator``: the paper's clean algorithm (docs/algorithm.md §3) for S-CSM, S-BKI, EBS and the
+* ``PointKernelIntegrator``: the paper's clean algorithm (docs/algorithm.md §3) for S-CSM, S-BKI, EBS and the
   ablations: optional per-insertion uncertainty threshold, optional adaptive length, one scatter.
   With ``fusion: dempster`` the same scatter fuses belief masses instead (docs/algorithm.md §3.7).
 * ``ConvBkiIntegrator``: ConvBKI (docs/compatibility.md §2): voxelise, then a per-class stencil scatter.
 * ``SeeCsomIntegrator``: SEE-CSOM (docs/compatibility.md §3): block statistics, then a block-gated scatter.
 * ``SbkiCompatIntegrator``: the original S-BKI / S-CSM C++ (docs/compatibility.md §1).
-* ``ReleaseCompatIntegrator``: the released EvSemMap C++ for ebs and dempster (docs/compatibility.md §4).
+* ``ReleaseCompatIntegrator``: the release mode, the released EvSemMap C++ for ebs and dempster (docs/compatibility.md §4).
 
-All receive the map as a list of shards (``core.shards``: each CPU worker scatters a contiguous part of
+All receive the map as a list of shards (``core._shards``: each CPU worker scatters a contiguous part of
 the scan into its own shard; the block gathers put each block in the shard its index picks, so their
 maps do not depend on the number of workers).
 """
@@ -30,37 +30,43 @@ import warp as wp
 from ..config import Compat, Fusion, Kernel, MappingConfig, Media, PayloadType
 from ..kernels import block_gather, release
 from ..kernels import scatter as sc
-from ..methods import convbki, evsemmap_release, sbki_compat, see_csom
+from ..methods import convbki, release_compat, sbki_compat, see_csom
 from ..voxel_keys import column_bounds, take_rows
-from .shards import PendingUpdates, ShardLanes, block_shard, for_each_shard, split_over_shards, total_updates
+from ._shards import PendingUpdates, ShardLanes, block_shard, for_each_shard, split_over_shards, total_updates
 from .voxel_map import VoxelMap
 
 @dataclass
 class ScanPayload:
-    """A validated scan: points [N, 3] float64 (m, relative to the map origin when an integrator gets
-    them), class probabilities [N, K], input uncertainty [N] (K / S for alpha, 1 - max p for
-    probabilities, 0 for labels), and ``labels`` [N]: ``label_scores`` itself when it is [N], else its
-    row argmax, computed when first asked for (the release mode never asks; 5 % of its time).
-    ``sensor_origin`` [3] (m, float64, same frame as the points): set for the integrators whose
-    ``needs`` read it, None for the others."""
+    """A validated scan: points [N, 3] float64 (m, relative to the map origin when an integrator gets them),
+    class probabilities [N, K], input uncertainty [N] (K / S for alpha, 1 - max p for probabilities, 0 for
+    labels), the ``payload`` as given ([N] labels, or [N, K] alpha or probabilities), and ``labels`` [N]:
+    the payload itself when it is [N], else its row argmax, computed when first asked for (the release
+    mode never asks). ``sensor_origin`` [3] (m, float64, same frame as the
+    points): set for the integrators whose ``needs`` read it, None for the others."""
 
     points: np.ndarray
     probabilities: np.ndarray
     uncertainty: np.ndarray
-    label_scores: np.ndarray
+    payload: np.ndarray
     sensor_origin: np.ndarray | None = None
 
     @functools.cached_property
     def labels(self) -> np.ndarray:
-        if self.label_scores.ndim == 1:
-            return self.label_scores
-        if len(self.label_scores) == 0:
+        """[N] class ids: the payload itself when it is [N] labels, else its row argmax (computed when
+        first asked for)."""
+        if self.payload.ndim == 1:
+            return self.payload
+        if len(self.payload) == 0:
             return np.zeros(0, np.int64)
-        return np.argmax(self.label_scores, axis=1)
+        return np.argmax(self.payload, axis=1)
 
 
 @dataclass
 class IntegrationStats:
+    """What one insertion did: its input points, the points kept (after the uncertainty threshold in the
+    clean mode, training points in the sbki mode), the voxel updates made (point-voxel contributions), and
+    the threshold u applied (None without one)."""
+
     input_points: int = 0
     kept_points: int = 0  # after the uncertainty threshold (clean) or as training points (sbki)
     voxel_updates: int = 0
@@ -115,7 +121,9 @@ class Integrator(Protocol):
     needs: ScanNeeds
     grid_offset_m: float
 
-    def prepare(self, scan: ScanPayload, device: str) -> Launch: ...
+    def prepare(self, scan: ScanPayload, device: str) -> Launch:
+        """Host work on a validated scan in map coordinates, without touching the map; returns the launch
+        that updates the shards."""
 
 
 # (compat, kernel) -> the integrator class of that integration method (``register_integrator``).
@@ -156,7 +164,13 @@ def launch_step(stats: IntegrationStats, run=None) -> Launch:
 
 
 @register_integrator(Compat.CLEAN, Kernel.SPARSE, Kernel.COUNT)
-class KernelIntegrator:
+class PointKernelIntegrator:
+    """Each point through its own kernel, in the clean mode: the sparse kernel (S-BKI, EBS and the Prob.
+    ablations, Dempster-Shafer) on a true radius search around the point, or the counting model (S-CSM)
+    in the point's own voxel (docs/algorithm.md §3). Applies the uncertainty threshold and the adaptive length when the config asks
+    for them, then scatters each point into the voxels whose centers lie within its length, through
+    ``mapping.scatter_strategy``."""
+
     needs = ScanNeeds()
     grid_offset_m = 0.0
 
@@ -164,6 +178,8 @@ class KernelIntegrator:
         self.config = config
 
     def kernel_lengths(self, uncertainty: np.ndarray) -> np.ndarray:
+        """Each point's kernel length (m) from its uncertainty u [N]: l * beta * exp(1 - gamma u) with the
+        adaptive length, else l."""
         c = self.config
         if c.adaptive_length:
             return c.length_m * c.beta * np.exp(1.0 - c.gamma * uncertainty)
@@ -174,6 +190,9 @@ class KernelIntegrator:
         return lambda shards, lanes=None: self.integrate(shards, scan, lanes)
 
     def integrate(self, shards: list[VoxelMap], scan: ScanPayload, lanes: ShardLanes | None = None) -> IntegrationStats:
+        """Threshold, lengths and media of one scan, then its scatter into ``shards`` (the points split over
+        them, on ``lanes`` when given); returns the insertion's stats. Raises ValueError, before anything
+        is written, when a point's kernel would reach past the map's key range."""
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points))
         keep = np.ones(len(scan.points), dtype=bool)
@@ -205,7 +224,7 @@ class KernelIntegrator:
         return stats
 
 
-@register_integrator(Compat.CLEAN, Kernel.CONVBKI)
+@register_integrator(Compat.CLEAN, Kernel.COMPOUND)
 class ConvBkiIntegrator:
     """Points are voxelised first (evidence summed per voxel, as its authors do: softmax vectors, or
     label counts for one-hot media); each occupied voxel then scatters onto its stencil."""
@@ -226,6 +245,8 @@ class ConvBkiIntegrator:
         return lambda shards, lanes=None: self.integrate(shards, scan, lanes)
 
     def integrate(self, shards: list[VoxelMap], scan: ScanPayload, lanes: ShardLanes | None = None) -> IntegrationStats:
+        """Voxelise one scan (evidence, uncertainty and counts summed per voxel) and scatter each occupied
+        voxel onto its stencil in ``shards``; returns the insertion's stats."""
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points), kept_points=len(scan.points))
         if len(scan.points) == 0:
@@ -233,14 +254,14 @@ class ConvBkiIntegrator:
         k = scan.probabilities.shape[1]
         evidence = np.eye(k)[scan.labels] if c.media is Media.ONEHOT else scan.probabilities
         voxels, summed = convbki.voxelise(scan.points, np.column_stack([evidence, scan.uncertainty, np.ones(len(evidence))]), c.resolution_m)
-        centres = (voxels + 0.5) * c.resolution_m
+        centers = (voxels + 0.5) * c.resolution_m
         mean_uncertainty = summed[:, k] / summed[:, k + 1]
 
         def job(shard: VoxelMap, part: np.ndarray) -> int:
-            return shard.scatter(centres[part], np.full(len(part), c.resolution_m), mean_uncertainty[part], mode=sc.MODE_STENCIL,
+            return shard.scatter(centers[part], np.full(len(part), c.resolution_m), mean_uncertainty[part], mode=sc.MODE_STENCIL,
                                  sigma0=1.0, class_weights=summed[part, :k], stencil_weights=self.weights)
 
-        stats.voxel_updates = total_updates(split_over_shards(shards, lanes, len(centres), job))
+        stats.voxel_updates = total_updates(split_over_shards(shards, lanes, len(centers), job))
         return stats
 
 
@@ -248,7 +269,7 @@ def _free_samples_need(method: str) -> ScanNeeds:
     return ScanNeeds(SensorOrigin.REQUIRED, f"{method} adds the sensor origin (and free-space rays) as free samples")
 
 
-@register_integrator(Compat.CLEAN, Kernel.SEE_CSOM)
+@register_integrator(Compat.CLEAN, Kernel.TRIANGULAR)
 class SeeCsomIntegrator:
     """Training data as its code builds it (VoxelGrid with majority labels, the sensor origin as the
     one free sample: its configs' free_resolution of 1000 m), then block statistics and the scatter."""
@@ -289,7 +310,7 @@ class SbkiCompatIntegrator:
         self.block_depth = 1 if config.kernel is Kernel.COUNT else config.block_depth
         self.cells_per_block = 2 ** (self.block_depth - 1)
         self.block_size = sbki_compat.block_size_m(config.resolution_m, self.block_depth)
-        # S-CSM cells are centred on multiples of r (blocks of one cell), half a cell off the BKI grid.
+        # S-CSM cells are centered on multiples of r (blocks of one cell), half a cell off the BKI grid.
         self.grid_offset_m = -0.5 * config.resolution_m if config.kernel is Kernel.COUNT else 0.0
         # kernel factory (class count, cells per block) -> the S-BKI gather kernel; the study swaps in other forms
         self.gather_kernel = block_gather.gather_sbki_kernel
@@ -344,10 +365,10 @@ class SbkiCompatIntegrator:
         return block_gather_run(tables.test_blocks, self.cells_per_block, self.gather_kernel, scan, "sbki_gather")
 
 
-@register_integrator(Compat.EVSEMMAP, Kernel.SPARSE)
+@register_integrator(Compat.RELEASE, Kernel.SPARSE)
 class ReleaseCompatIntegrator:
-    """The released EvSemMap (``mapping.compat: evsemmap``): per-scan uncertainty cut, the per-block
-    cap (``methods.evsemmap_release``), then the block models as one gather kernel (``kernels.release``).
+    """The release mode (``mapping.compat: release``), the released EvSemMap: per-scan uncertainty cut,
+    the per-block cap (``methods.release_compat``), then the block models as one gather kernel (``kernels.release``).
     Takes alpha payloads."""
 
     grid_offset_m = 0.0
@@ -357,12 +378,12 @@ class ReleaseCompatIntegrator:
         # The release reads the sensor origin only for its range filter.
         self.needs = ScanNeeds(
             SensorOrigin.REQUIRED if config.max_range_m > 0 else SensorOrigin.OPTIONAL,
-            "the evsemmap mode's range filter (mapping.max_range_m) measures from the sensor origin",
+            "the release mode's range filter (mapping.max_range_m) measures from the sensor origin",
             frozenset({PayloadType.ALPHA}),
-            "the evsemmap compatibility mode reproduces the release, which reads evidential alpha (its uncertainty cut is K / sum(alpha))")
+            "the release mode reproduces the released EvSemMap, which reads evidential alpha (its uncertainty cut is K / sum(alpha))")
         self.cells_per_block = 2 ** (config.block_depth - 1)
         self.block_size = sbki_compat.block_size_m(config.resolution_m, config.block_depth)
-        self.length = evsemmap_release.kernel_length(config.length_m)
+        self.length = release_compat.kernel_length(config.length_m)
         # kernel factory (class count, cells per block) -> the gather kernel; the study swaps in other forms
         self.gather_kernel = release.gather_release_kernel
 
@@ -372,12 +393,12 @@ class ReleaseCompatIntegrator:
         keep = np.arange(len(scan.points))
         if c.max_range_m > 0:
             keep = keep[np.linalg.norm(scan.points.astype(np.float32).astype(np.float64) - sensor_origin, axis=1) <= c.max_range_m]
-        cut, _ = evsemmap_release.uncertainty_cut(scan.uncertainty[keep], c.keep_quantile)
+        cut, _ = release_compat.uncertainty_cut(scan.uncertainty[keep], c.keep_quantile)
         keep = keep[cut]
         counts = {"after_cut": len(keep)}
         if len(keep):
-            blocks = evsemmap_release.snapped_block_keys(scan.points[keep], c.ds_resolution_m, self.block_size)
-            keep = keep[evsemmap_release.first_per_block(blocks, c.release_block_cap)]
+            blocks = release_compat.snapped_block_keys(scan.points[keep], c.ds_resolution_m, self.block_size)
+            keep = keep[release_compat.first_per_block(blocks, c.release_block_cap)]
         counts["after_ds"] = len(keep)
         return keep, counts
 
@@ -392,7 +413,7 @@ class ReleaseCompatIntegrator:
             return launch_step(stats)
         points = scan.points[keep].astype(np.float32)
         pair_points, member_blocks = sbki_compat.block_memberships(points, self.block_size)
-        models = evsemmap_release.release_blocks(member_blocks, device=device)
+        models = release_compat.release_blocks(member_blocks, device=device)
         fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
         sorted_points = pair_points[models.pair_order]
         weights = take_rows(scan.probabilities[keep], sorted_points)

@@ -1,7 +1,7 @@
 """The map file: one ``.npz`` (no pickle), schema defined here and nowhere else.
 
 Arrays (V voxels in ascending index order, K classes):
-  centers [V, 3] float64 voxel centres (m)      voxel_index [V, 3] int64 global grid indices
+  centers [V, 3] float64 voxel centers (m)      voxel_index [V, 3] int64 global grid indices
   alpha [V, K] float64 concentrations            label [V] int32 argmax class (lowest on ties)
   evidence [V, K] float64 alpha - prior as accumulated (kept so that a round trip is exact)
   state [V] int8 0 UNKNOWN, 1 FREE, 2 OCCUPIED   variance [V] float64 variance of the label's class
@@ -13,7 +13,7 @@ Arrays (V voxels in ascending index order, K classes):
         frame ({"name", "crs"}: the frame centers and origin are in, docs/algorithm.md §6.6), provenance,
         scan_ids (the fingerprints of the scans the map holds, core/mapper.scan_fingerprint; optional:
         a merge refuses maps holding a scan in common) and, in a store's tile, tile (core/map_store.py).
-Voxel i's centre is (i + 0.5) * resolution + grid offset. A round trip is exact.
+Voxel i's center is (i + 0.5) * resolution + grid offset. A round trip is exact.
 
 Reading validates the content, not only the shapes: every member's declared size against what the
 file holds (before anything is allocated), finite non-negative evidence, unique integer indices within
@@ -44,7 +44,7 @@ _REQUIRED = _PER_VOXEL + ("resolution", "format_version", "meta")
 # meta key -> accepted types
 _META_TYPES = {"format": (str,), "classes": (list,), "num_classes": (int,), "method": (str,), "mapping": (dict,),
                "grid_offset_m": (int, float), "scans_integrated": (int,), "points_integrated": (int,), "format_version": (int,)}
-# How far an origin or a centre may sit off the lattice and still count as on it (in voxels).
+# How far an origin or a center may sit off the lattice and still count as on it (in voxels).
 _LATTICE_TOLERANCE = 1e-6
 
 
@@ -76,10 +76,14 @@ class MapContents:
 def write_map_file(path, contents: MapContents) -> Path:
     """Write atomically (files.write_atomically: a temporary name in the same folder, then a rename), so
     that a killed writer never leaves a half-written file under the final name."""
-    path = Path(path)
+    return files.write_atomically(Path(path), lambda f: write_npz(f, **file_arrays(contents)))
+
+
+def file_arrays(contents: MapContents) -> dict[str, np.ndarray]:
+    """The arrays a map file of ``contents`` holds (``read_map_arrays`` gives them back), in the schema's
+    types: for readers that want a map file's arrays of a map that is not one (a store's tile)."""
     meta = contents.meta | {"format_version": FORMAT_VERSION}
-    return files.write_atomically(path, lambda f: write_npz(
-        f,
+    return dict(
         centers=contents.centers,
         voxel_index=contents.index.astype(np.int64),
         alpha=contents.alpha.astype(np.float64),
@@ -95,7 +99,7 @@ def write_map_file(path, contents: MapContents) -> Path:
         origin=np.asarray(contents.origin, np.float64),
         format_version=np.int64(FORMAT_VERSION),
         meta=np.array(json.dumps(meta)),
-    ))
+    )
 
 
 def write_npz(file, **arrays: np.ndarray) -> None:

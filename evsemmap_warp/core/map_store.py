@@ -5,16 +5,20 @@ process's memory (written by ``evsemmap batch``, read here).
                             the world frame (name, CRS), classes, method and every mapping parameter, tile size, per-tile voxel
                             counts and bounds, the inputs and the chunks the map holds, its ``identity``
                             (store_identity) and the ids of the scans it holds (a merge never counts one twice)
-    STORE/tiles/X_Y_Z.npz   one tile's voxels in the map-file schema (core/map_file.py): tile (X, Y, Z)
-                            holds the voxels whose global index // tile_voxels is (X, Y, Z); its meta.tile
-                            names its store's identity, its own name and a checksum of its voxels, so a
-                            tile that does not belong (another store's, another place's, edited) is refused
-    STORE/work/             a batch run's partial maps (one folder per chunk), kept so that a rerun
-                            resumes instead of starting over
+    STORE/tiles/X_Y_Z.vox   one tile's voxels (core/tile_codec.py: the accumulated float64 sums and
+                            nothing derivable, zstd-compressed, ~11 B a voxel): tile (X, Y, Z) holds the
+                            voxels whose global index // tile_voxels is (X, Y, Z); its header names its
+                            store's identity and parameters, its tile, its index entry and the last chunk
+                            folded into it, so a tile that does not belong (another store's, another
+                            place's, damaged) is refused
+    STORE/work/             a batch run's plan and chunk records, and the partial maps (chunk_N/X_Y_Z.vox,
+                            same codec) of chunks not yet folded into the tiles, so that a rerun resumes
 
-Every file is written under a temporary name and renamed, so a killed writer never leaves a file that
-looks whole; files hold no pickle, and the same content gives the same bytes. Opening a store reads
-the index only; a query loads the tiles its points fall in, nothing else.
+Format 1 stores (tiles/X_Y_Z.npz in the map-file schema, 230 B a voxel) are still read. Every file is
+written under a temporary name and renamed, so a killed writer never leaves a file that looks whole;
+files hold no pickle, and the same content gives the same bytes. Opening a store reads the index only; a
+query loads the tiles its points fall in, nothing else; the read-out (centres, concentrations, labels,
+states, variance) is derived from the sums on reading, as a Mapper derives it.
 """
 
 from __future__ import annotations
@@ -22,7 +26,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import zipfile
 from collections import OrderedDict
 from pathlib import Path
 
@@ -31,13 +34,16 @@ import numpy as np
 from .. import files
 from ..config import MappingConfig, dataclass_from_dict
 from ..frames import FrameError, WorldFrame, describe_frame
-from ..voxel_keys import voxel_index_of
-from . import map_file
+from ..voxel_keys import pack_voxel_keys, voxel_index_of
+from . import map_file, tile_codec
 from .mapper import MAX_COORDINATE_M, Mapper, QueryResult, UNKNOWN_LABEL, VoxelState
-from .voxel_map import EXTRA_COLUMNS, VoxelArrays, add_duplicate_voxels
+from .voxel_map import EXTRA_COLUMNS, VoxelArrays
 
 STORE_FORMAT = "evsemmap_warp.store"
-STORE_VERSION = 1
+STORE_VERSION = 2
+READABLE_STORE_VERSIONS = (1, 2)
+TILE_SUFFIX = {1: ".npz", 2: ".vox"}  # by store format version
+PARTIAL_SUFFIX = ".vox"
 INDEX_NAME = "store.json"
 DEFAULT_TILE_VOXELS = 256  # 51.2 m at 0.2 m: a few MB per tile of a LiDAR map
 
@@ -47,6 +53,7 @@ class StoreError(ValueError):
 
 
 def is_store(path) -> bool:
+    """Whether ``path`` is a store folder (holds a store.json); its content is checked on opening."""
     return (Path(path) / INDEX_NAME).is_file()
 
 
@@ -56,10 +63,12 @@ def tile_keys(index: np.ndarray, tile_voxels: int) -> np.ndarray:
 
 
 def tile_name(key) -> str:
+    """A tile's name, "X_Y_Z", from its key (X, Y, Z)."""
     return "_".join(str(int(k)) for k in key)
 
 
 def parse_tile_name(name: str) -> tuple[int, int, int]:
+    """A tile's key (X, Y, Z) from its name "X_Y_Z"; raises StoreError for anything else."""
     parts = name.split("_")
     if len(parts) != 3:
         raise StoreError(f"{name!r} is not a tile name (X_Y_Z)")
@@ -83,8 +92,8 @@ def split_by_tile(index: np.ndarray, rows: np.ndarray, tile_voxels: int) -> dict
 
 def group_by_tile(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The distinct tile keys of [N, 3] ``keys``, a stable order grouping rows by tile and each
-    group's bounds in it: group t is order[bounds[t]:bounds[t + 1]]. One sort of packed int64 keys:
-    np.unique(axis=0) sorted rows of three and took 15 % of a batch worker's time (3.9 of 29.7 s)."""
+    group's bounds in it: group t is order[bounds[t]:bounds[t + 1]]. One sort of packed int64 keys,
+    not np.unique(axis=0), which sorts rows of three (docs/performance.md: a batch worker's time)."""
     low = keys.min(axis=0)
     span = keys.max(axis=0) - low + 1
     packed = ((keys[:, 0] - low[0]) * span[1] + (keys[:, 1] - low[1])) * span[2] + (keys[:, 2] - low[2])
@@ -94,49 +103,59 @@ def group_by_tile(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return keys[order[starts]], order, np.r_[starts, len(order)]
 
 
-# ``write(file)`` into a temporary name beside ``path``, then renamed into place (the package's one writer).
-write_atomically = files.write_atomically
-
-
 def write_json(path: Path, data) -> Path:
     """The store's JSON files (store.json, plan.json, done.json): indented, keys sorted, a final newline."""
     return files.write_json_atomically(path, data, indent=1, sort_keys=True)
 
 
-def write_partial(path: Path, index: np.ndarray, rows: np.ndarray) -> Path:
-    """A partial map's voxels (global indices and [V, K + 4] rows), for reduction."""
-    return write_atomically(path, lambda f: map_file.write_npz(f, index=np.asarray(index, np.int64), rows=np.asarray(rows, np.float64)))
+def write_partial(path: Path, index: np.ndarray, rows: np.ndarray, tile_voxels: int, identity: str, chunk: int) -> Path:
+    """Chunk ``chunk``'s voxels in tile ``path.stem`` (global indices in key order, [V, K + 4] rows) for
+    the store of ``identity``."""
+    return tile_codec.write_voxel_file(path, index, rows, parse_tile_name(Path(path).stem), tile_voxels,
+                                       {"kind": "partial", "store": identity, "chunk": int(chunk)})
 
 
-def read_partial(path: Path, columns: int, tile_voxels: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """A partial map (write_partial), validated: integer indices [V, 3], unique, in the tile its name
-    says (with ``tile_voxels``), finite non-negative rows [V, columns]."""
+def read_partial(path: Path, columns: int, tile_voxels: int, identity: str, chunk: int) -> tuple[np.ndarray, np.ndarray]:
+    """A partial map (write_partial), validated: of this store and chunk, in the tile its name says,
+    [V, columns] finite non-negative sums, voxels unique and in key order."""
+    folder = Path(path).parent
     try:
-        with np.load(path, allow_pickle=False) as data:
-            index, rows = data["index"], data["rows"]
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-        raise StoreError(f"{path}: not a readable partial map ({type(exc).__name__}: {exc}); delete its chunk folder "
-                         f"{Path(path).parent} and rerun to map that chunk again") from None
-    if (index.ndim != 2 or index.shape[1:] != (3,) or not np.issubdtype(index.dtype, np.integer) or rows.shape != (len(index), columns)
-            or not np.issubdtype(rows.dtype, np.floating) or not np.isfinite(rows).all() or (rows.size and rows.min() < 0)):
-        raise StoreError(f"{path}: a partial map needs integer index [V, 3] and finite non-negative float rows [V, {columns}], "
-                         f"got {index.dtype} {list(index.shape)} and {rows.dtype} {list(rows.shape)}")
-    if tile_voxels is not None and len(index):
-        if (tile_keys(index, tile_voxels) != parse_tile_name(Path(path).stem)).any():
-            raise StoreError(f"{path}: holds voxels outside tile {Path(path).stem}")
-        if len(np.unique(index, axis=0)) != len(index):
-            raise StoreError(f"{path}: a voxel appears more than once")
-    return index.astype(np.int64), rows
+        header, index, rows = tile_codec.read_voxel_file(path, {"kind": "partial", "store": identity, "chunk": int(chunk),
+                                                                "tile": list(parse_tile_name(Path(path).stem)), "tile_voxels": tile_voxels})
+    except (tile_codec.VoxelFileError, StoreError) as exc:
+        raise StoreError(f"{exc}; delete its chunk folder {folder} and rerun to map that chunk again") from None
+    if rows.shape[1] != columns:
+        raise StoreError(f"{path}: {rows.shape[1]} columns, this store's maps have {columns}; delete its chunk folder {folder} "
+                         f"and rerun to map that chunk again")
+    return index, rows
 
 
-def reduce_partials(template: Mapper, parts: list[tuple[np.ndarray, np.ndarray]]) -> VoxelArrays:
-    """The sum of partial maps (global indices), one row per voxel in key order; the parts are added
-    in the order given, so the result does not depend on which finished first."""
-    index = np.concatenate([p[0] for p in parts])
-    rows = np.concatenate([p[1] for p in parts])
-    summed = add_duplicate_voxels(index - template.origin_index, rows)
-    summed.index = summed.index + template.origin_index
-    return summed
+def fold(running: tuple[np.ndarray, np.ndarray] | None, index: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``running`` (a tile's sum so far: global indices [V, 3] in key order and [V, K + 4] rows) plus a
+    partial's voxels (the same, each voxel once): the voxels of both in key order, rows of one voxel
+    added, touched or-ed. Folding partials one by one in chunk order gives the bits that summing all of
+    them at once gives (add_duplicate_voxels, the twin the tests hold it to): each voxel's rows are added
+    left to right starting from zero, and 0 + x is x. A merge of two sorted key lists (searchsorted and
+    insert, linear in the tile), not np.unique and np.add.at over both (docs/performance.md: batch)."""
+    index = np.asarray(index, np.int64).reshape(-1, 3)
+    if running is None or not len(running[0]):
+        summed = np.zeros_like(rows, dtype=np.float64)
+        summed += rows
+        summed[:, -1] = np.minimum(summed[:, -1], 1.0)
+        return index, summed
+    if not len(index):
+        return running
+    running_index, running_rows = running
+    base = np.minimum(running_index.min(axis=0), index.min(axis=0))
+    running_keys, keys = pack_voxel_keys(running_index - base), pack_voxel_keys(index - base)
+    at = np.searchsorted(running_keys, keys)
+    present = running_keys[np.minimum(at, len(running_keys) - 1)] == keys
+    summed = running_rows.copy()
+    summed[at[present]] += rows[present]
+    summed[at[present], -1] = np.minimum(summed[at[present], -1], 1.0)  # touched is or-ed, not added
+    new = ~present  # inserted before the running voxel that follows them; np.insert keeps their (key) order
+    summed = np.insert(summed, at[new], rows[new], axis=0)
+    return np.insert(running_index, at[new], index[new], axis=0), summed
 
 
 def template_mapper(config: MappingConfig, class_names, origin_index, frame: WorldFrame | None) -> Mapper:
@@ -156,12 +175,13 @@ def store_identity(mapping: dict, classes, frame: dict | None, origin_index, til
 
 
 def template_identity(template: Mapper, tile_voxels: int) -> str:
+    """store_identity of the store ``template`` (template_mapper) describes, tiled by ``tile_voxels``."""
     return store_identity(template.config.as_dict(), template.class_names, None if template.frame is None else template.frame.as_dict(),
                           template.origin_index, tile_voxels, template.grid_offset_m)
 
 
 def voxel_checksum(voxels: VoxelArrays) -> str:
-    """SHA-256 of a tile's voxels (indices and every accumulated column, as the map file stores them)."""
+    """SHA-256 of a format-1 tile's voxels (indices and every accumulated column, as the map file stores them)."""
     digest = hashlib.sha256()
     for array, dtype in ((voxels.index, np.int64), (voxels.evidence, np.float64), (voxels.weight_sum, np.float64),
                          (voxels.weighted_uncertainty_sum, np.float64), (voxels.hits, np.int64), (voxels.touched, bool)):
@@ -171,20 +191,28 @@ def voxel_checksum(voxels: VoxelArrays) -> str:
     return digest.hexdigest()
 
 
-def write_tile(path: Path, template: Mapper, voxels: VoxelArrays, totals: dict, tile_voxels: int | None = None) -> Path:
-    """One tile in the map-file schema; ``template`` (an empty Mapper with the store's config and
-    origin) gives the read-out, ``totals`` the whole map's scan and point counts. Its meta names the
-    store it belongs to (store_identity), its tile and a checksum of its voxels, checked on reading."""
+def tile_entry(template: Mapper, voxels: VoxelArrays) -> dict:
+    """A tile's entry in store.json: its voxel count, the box its voxels fill (m) and its voxels per state."""
     summary = template.summarize(voxels.evidence, voxels.touched)
-    meta = template.metadata() | {"scans_integrated": int(totals["scans"]), "points_integrated": int(totals["points"]), "scan_ids": None}
-    if tile_voxels is not None:
-        meta["tile"] = {"store": template_identity(template, tile_voxels), "name": Path(path).stem, "checksum": voxel_checksum(voxels)}
-    contents = map_file.MapContents(
-        meta=meta, origin=template.origin, index=voxels.index, evidence=voxels.evidence, alpha=template.concentrations(voxels.evidence),
-        centers=template.voxel_centers(voxels.index), summary=summary, weight_sum=voxels.weight_sum,
-        weighted_uncertainty_sum=voxels.weighted_uncertainty_sum, hits=voxels.hits, touched=voxels.touched,
-        resolution=template.config.resolution_m)
-    return map_file.write_map_file(path, contents)
+    low, high = voxels.index.min(axis=0), voxels.index.max(axis=0)
+    half = template.config.resolution_m / 2
+    return {"voxels": int(len(voxels.index)),
+            "bounds_m": [(template.voxel_centers(low) - half).tolist(), (template.voxel_centers(high) + half).tolist()],
+            "states": {s.name: int(np.count_nonzero(summary.state == s)) for s in VoxelState}}
+
+
+def write_tile(path: Path, template: Mapper, voxels: VoxelArrays, tile_voxels: int, *, folded_through: int | None = None,
+               durable: bool = False) -> dict:
+    """One tile (``voxels``: global indices in key order) of the store ``template`` (an empty Mapper with
+    its parameters, classes, frame and origin) describes; returns its index entry. Its header names the
+    store (identity, method and parameters, classes, frame), the entry and ``folded_through``, the last
+    chunk whose partial it holds (a resumed run folds only later ones)."""
+    entry = tile_entry(template, voxels)
+    header = {"kind": "tile", "store": template_identity(template, tile_voxels), "mapping": template.config.as_dict(),
+              "classes": list(template.class_names), "frame": None if template.frame is None else template.frame.as_dict(),
+              "entry": entry, "folded_through": folded_through}
+    tile_codec.write_voxel_file(path, voxels.index, voxels.rows(), parse_tile_name(Path(path).stem), tile_voxels, header, durable=durable)
+    return entry
 
 
 def check_bounds(bounds, what: str = "bounds") -> tuple[np.ndarray, np.ndarray]:
@@ -248,8 +276,11 @@ class MapStore:
         index = self.index
         if not isinstance(index, dict) or index.get("format") != STORE_FORMAT:
             raise StoreError(f"{where}: not an {STORE_FORMAT} index")
-        if index.get("format_version") != STORE_VERSION:
-            raise StoreError(f"{where}: store format version {index.get('format_version')!r}; this version reads {STORE_VERSION}")
+        if index.get("format_version") not in READABLE_STORE_VERSIONS or isinstance(index.get("format_version"), bool):
+            raise StoreError(f"{where}: store format version {index.get('format_version')!r}; this version of evsemmap_warp reads "
+                             f"{', '.join(map(str, READABLE_STORE_VERSIONS))}")
+        if index["format_version"] >= 2 and not isinstance(index.get("identity"), str):
+            raise StoreError(f"{where}: key 'identity' missing or not a string (every format-{index['format_version']} store records it)")
         for key, kind in (("mapping", dict), ("classes", list), ("tiles", dict), ("origin_index", list), ("tile_voxels", int),
                           ("scans", int), ("points", int)):
             if not isinstance(index.get(key), kind) or isinstance(index.get(key), bool):
@@ -307,56 +338,102 @@ class MapStore:
     # Reading -----------------------------------------------------------------------------------------
     @property
     def voxel_count(self) -> int:
+        """Voxels in all tiles, as the index counts them."""
         return sum(info["voxels"] for info in self.tiles.values())
 
+    @property
+    def format_version(self) -> int:
+        """The store's format: 2 (compact tiles, written now) or 1 (map-file tiles, read only)."""
+        return int(self.index["format_version"])
+
     def tile_path(self, name: str) -> Path:
-        return self.path / "tiles" / f"{name}.npz"
+        """Where tile ``name``'s file is (its suffix depends on the store's format)."""
+        return self.path / "tiles" / f"{name}{TILE_SUFFIX[self.format_version]}"
 
     def tile(self, name: str) -> Mapper:
-        """Tile ``name`` as a Mapper (validated on reading; its origin is the store's)."""
+        """Tile ``name`` as a read-only Mapper (validated on reading; its origin, frame and scan counts
+        are the store's)."""
         if name in self._cache:
             self._cache.move_to_end(name)
             return self._cache[name]
-        path = self.tile_path(name)
-        contents = self._read_tile(name)
-        try:
-            mapper = Mapper.from_contents(contents, path)
-        except (map_file.MapFileError, ValueError) as exc:
-            raise StoreError(f"{path}: {exc}") from None
+        voxels = self._read_tile(name)
+        mapper = Mapper(self.config, self.num_classes, class_names=self.class_names, workers=1, initial_capacity=max(16, len(voxels.index)),
+                        frame=self.frame)
+        mapper.load_voxels(voxels, origin_index=self.template.origin_index)
+        mapper.scans_integrated, mapper.points_integrated = int(self.index["scans"]), int(self.index["points"])
+        mapper.scan_ids = None if self.scan_ids is None else set(self.scan_ids)
         mapper.read_only = (f"tile {name} of the store {self.path} (shared by its later queries); use MapStore.to_mapper() "
-                            f"or Mapper.load({str(path)!r}) for a map to change")
+                            f"for a map to change")
         self.tiles_loaded += 1
         self._cache[name] = mapper
         while len(self._cache) > self.cache_tiles:
             self._cache.popitem(last=False)
         return mapper
 
-    def _read_tile(self, name: str) -> "map_file.MapContents":
+    def tile_arrays(self, name: str) -> VoxelArrays:
+        """Tile ``name``'s voxels (global indices, key order), read and checked as ``tile`` reads them,
+        without building a Mapper's table: for readers that scan a tile's arrays once (the terrain
+        layers). Cached tiles are not read again."""
+        if name in self._cache:
+            return self._cache[name].voxels()[0]
+        voxels = self._read_tile(name)
+        self.tiles_loaded += 1
+        return voxels
+
+    def tile_contents(self, name: str) -> "map_file.MapContents":
+        """Tile ``name`` as a map file's contents (the read-out derived from its sums): for readers of
+        map-file arrays (the viewer, map_file.file_arrays)."""
+        return self.template.contents_of(self.tile_arrays(name), scans_integrated=int(self.index["scans"]),
+                                         points_integrated=int(self.index["points"]), scan_ids=None)
+
+    def _read_tile(self, name: str) -> VoxelArrays:
         """Tile ``name``'s file, read and checked (the one reader of ``tile`` and ``tile_arrays``)."""
         if name not in self.tiles:
             raise StoreError(f"{self.path}: no tile {name}")
         path = self.tile_path(name)
+        if self.format_version == 1:
+            try:
+                contents = map_file.read_map_file(path)
+            except (map_file.MapFileError, OSError, ValueError) as exc:
+                raise StoreError(str(exc) if str(path) in str(exc) else f"{path}: {exc}") from None
+            self._check_tile(name, path, contents)
+            return VoxelArrays(index=contents.index, evidence=contents.evidence, weight_sum=contents.weight_sum,
+                               weighted_uncertainty_sum=contents.weighted_uncertainty_sum, hits=contents.hits, touched=contents.touched)
         try:
-            contents = map_file.read_map_file(path)
-        except (map_file.MapFileError, OSError, ValueError) as exc:
-            raise StoreError(str(exc) if str(path) in str(exc) else f"{path}: {exc}") from None
-        self._check_tile(name, path, contents)
-        return contents
+            header, index, rows = tile_codec.read_voxel_file(path)
+        except tile_codec.VoxelFileError as exc:
+            raise StoreError(f"{exc}; the store {self.path} cannot be read until the tile is restored (rerun the batch command "
+                             f"that wrote it)") from None
+        self._check_tile_header(name, path, header, len(index), rows.shape[1])
+        return VoxelArrays.from_rows(index, rows)
 
-    def tile_arrays(self, name: str) -> VoxelArrays:
-        """Tile ``name``'s voxels (global indices, key order), read and checked as ``tile`` reads them,
-        without building a Mapper's table: for readers that scan a tile's arrays once (the terrain layers'
-        sweep over 1,000 frames of the ``long`` drive: 4.4 s against 7.9 s through ``tile``). Cached tiles
-        are not read again."""
-        if name in self._cache:
-            return self._cache[name].voxels()[0]
-        contents = self._read_tile(name)
-        self.tiles_loaded += 1
-        return VoxelArrays(index=contents.index, evidence=contents.evidence, weight_sum=contents.weight_sum,
-                           weighted_uncertainty_sum=contents.weighted_uncertainty_sum, hits=contents.hits, touched=contents.touched)
+    def _check_tile_header(self, name: str, path: Path, header: dict, voxels: int, columns: int) -> None:
+        """Refuse a format-2 tile that does not belong to this store, naming what differs."""
+        def refuse(text: str):
+            raise StoreError(f"{path}: {text}; this tile does not belong to the store {self.path}")
+
+        if header.get("kind") != "tile":
+            refuse(f"it is a {header.get('kind')!r} file, not a tile")
+        if header.get("store") != self.identity:
+            mine, theirs = self.index["mapping"], header.get("mapping") if isinstance(header.get("mapping"), dict) else {}
+            differing = [f"{k} {theirs.get(k)!r} vs {mine[k]!r}" for k in mine if theirs.get(k) != mine[k]]
+            if header.get("classes") != list(self.class_names):
+                differing.append(f"classes {header.get('classes')} vs {list(self.class_names)}")
+            if header.get("frame") != self.index.get("frame"):
+                differing.append(f"frame {header.get('frame')} vs {self.index.get('frame')}")
+            refuse("its " + ", ".join(differing) if differing else
+                   f"it was written for another store (identity {str(header.get('store'))[:16]}..., this store's {self.identity[:16]}...: "
+                   f"another origin, tiling or parameters)")
+        if header["tile"] != list(parse_tile_name(name)) or header["tile_voxels"] != self.tile_voxels:
+            refuse(f"it is tile {tile_name(header['tile'])}, not {name}")
+        if columns != self.num_classes + EXTRA_COLUMNS:
+            refuse(f"{columns} columns, this store's maps have {self.num_classes + EXTRA_COLUMNS}")
+        expected = self.tiles[name]["voxels"]
+        if voxels != expected:
+            raise StoreError(f"{path}: {voxels} voxels, the index says {expected}")
 
     def _check_tile(self, name: str, path: Path, contents: "map_file.MapContents") -> None:
-        """Refuse a tile that does not belong to this store, naming what differs: another store's (its
+        """Refuse a format-1 tile that does not belong to this store, naming what differs: another store's (its
         recorded identity, or its method, parameters, classes or frame), another tile's place, voxels
         changed since writing (the checksum), or a voxel count other than the index's."""
         def refuse(text: str):
@@ -430,7 +507,7 @@ class MapStore:
             bounds = np.stack(check_bounds(bounds, "bounds"))
         parts = []
         for name in self.tiles_in(bounds):
-            voxels = self.tile(name).voxels()[0]
+            voxels = self.tile_arrays(name)
             if bounds is not None:
                 centres = self.template.voxel_centers(voxels.index)
                 inside = np.all((centres >= bounds[0]) & (centres <= bounds[1]), axis=1)

@@ -25,6 +25,7 @@ from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -34,11 +35,13 @@ from ..frames import WorldFrame, check_same_frame
 from ..voxel_keys import check_index_range, voxel_index_of
 from . import map_file
 from .integrators import IntegrationStats, Launch, ScanPayload, SensorOrigin, make_integrator
-from .shards import PendingUpdates, ShardLanes
+from ._shards import PendingUpdates, ShardLanes
 from .voxel_map import EXTRA_COLUMNS, VoxelArrays, VoxelMap, add_duplicate_voxels, sum_voxel_arrays
 
 
 class VoxelState(enum.IntEnum):
+    """A voxel's state: UNKNOWN (no evidence reached it), FREE (label 0 wins), OCCUPIED (another class wins)."""
+
     UNKNOWN = 0
     FREE = 1
     OCCUPIED = 2
@@ -66,6 +69,8 @@ class DirichletSummary:
 
 
 def summarize_dirichlet(alpha: np.ndarray, touched: np.ndarray) -> DirichletSummary:
+    """The read-out of concentrations ``alpha`` [V, K] (``touched`` [V]: any update landed): the
+    ``DirichletSummary`` of every voxel, in float64."""
     # float64: concentrations of a long drive's ground voxels differ in digits float32 does not hold.
     alpha = np.asarray(alpha, dtype=np.float64)
     total = alpha.sum(axis=1)
@@ -103,12 +108,10 @@ def summarize_beliefs(masses: np.ndarray, touched: np.ndarray) -> DirichletSumma
 
 
 def scan_fingerprint(points: np.ndarray, payload: np.ndarray) -> str:
-    """A scan's identity by content, cheap enough for every scan: its size and about 256 evenly spaced
-    points and payload rows, hashed (16 hex digits). Two different scans share it only if they agree
-    in all of those rows, which different sweeps never do; the same scan mapped twice always does.
-    Sampling instead of hashing everything keeps it at 0.04-0.09 ms a scan of 130k points (labels,
-    9-class alpha); hashing all the points took 11 ms (measured together on a loaded 2-core machine),
-    more than half the release mode's 18 ms per scan."""
+    """A scan's identity by content, cheap enough for every scan: its size and about 256 evenly spaced points
+    and payload rows, hashed (16 hex digits). Two different scans share it only if they agree in all of
+    those rows, which different sweeps never do; the same scan mapped twice always does. Sampling instead
+    of hashing everything keeps it a small share of a scan's mapping time (docs/performance.md)."""
     import hashlib
 
     n = len(points)
@@ -143,7 +146,17 @@ class QueryResult:
     voxel_index: np.ndarray
 
 
-# Coordinates farther than this from (0, 0, 0) are no positions of a map (Earth-centred ones reach
+class MapVoxels(NamedTuple):
+    """Every stored voxel of a map (``Mapper.voxels``): ``arrays``, the accumulated sums per voxel with global
+    indices (``VoxelArrays``: index [V, 3], evidence [V, K], hits, touched, ...), and ``summary``, their
+    read-out (``DirichletSummary``: label, probabilities, variance, state), row for row in key order.
+    Unpacks as ``arrays, summary = mapper.voxels()``."""
+
+    arrays: VoxelArrays
+    summary: DirichletSummary
+
+
+# Coordinates farther than this from (0, 0, 0) are no positions of a map (Earth-centered ones reach
 # 6.4e6 m); beyond it float64 cannot place points on a fine voxel lattice, and the origin arithmetic overflows.
 MAX_COORDINATE_M = 1e12
 
@@ -245,8 +258,8 @@ class Mapper:
 
     ``workers``: CPU threads that scatter in parallel, each into its own shard (default: up to 2 on
     the CPU, where one Warp launch uses one core; always 1 on CUDA). Results do not depend on it
-    beyond float64 summation order. ``origin`` [3] (m): where the map's key range is centred; by
-    default the first scan's bounding-box centre. Either is snapped to a multiple of
+    beyond float64 summation order. ``origin`` [3] (m): where the map's key range is centered; by
+    default the first scan's bounding-box center. Either is snapped to a multiple of
     ORIGIN_STEP_VOXELS voxels; the map spans +-2^20 voxels around it. ``frame``: the world frame the
     points are in (recorded in the map file; maps of different frames do not merge); None when the
     caller does not say."""
@@ -292,7 +305,7 @@ class Mapper:
         self.scan_ids: set[str] | None = set()
         # Why the map may not change (a store's cached tile: its later queries would answer from the change); None: it may.
         self.read_only: str | None = None
-        self._summary_cache: tuple[VoxelArrays, DirichletSummary] | None = None
+        self._summary_cache: MapVoxels | None = None
 
     def _new_shard(self, device) -> VoxelMap:
         return VoxelMap(self.num_classes, self.config.resolution_m, prior=self.config.prior,
@@ -313,9 +326,10 @@ class Mapper:
 
     @property
     def voxel_count(self) -> int:
+        """Number of voxels in the map (all shards, a voxel counted once)."""
         if len(self.shards) == 1:
             return self.shards[0].voxel_count
-        return len(self.voxels()[0].index)
+        return len(self.voxels().arrays.index)
 
     @property
     def device_bytes(self) -> int:
@@ -430,7 +444,7 @@ class Mapper:
             raise ValueError(f"sensor_origin: {needs.sensor_origin_reason}; pass it")
         if reads_sensor_origin and sensor_origin is not None:
             sensor_origin = _validate_point(sensor_origin, "sensor_origin")
-        scan_id = scan_fingerprint(scan.points, scan.label_scores)
+        scan_id = scan_fingerprint(scan.points, scan.payload)
         sets_origin = self.origin_index is None
         if sets_origin:
             self.origin_index = self._snap_origin((scan.points.min(axis=0) + scan.points.max(axis=0)) / 2)
@@ -473,14 +487,14 @@ class Mapper:
     def _local_voxels(self) -> VoxelArrays:
         return sum_voxel_arrays([shard.arrays() for shard in self.shards])
 
-    def voxels(self) -> tuple[VoxelArrays, DirichletSummary]:
-        """All stored voxels in key order, with global indices, and their post-pass (cached until the
-        next integrate)."""
+    def voxels(self) -> MapVoxels:
+        """All stored voxels in key order, with global indices (``.arrays``), and their read-out
+        (``.summary``); cached until the next integrate."""
         if self._summary_cache is None:
             arrays = self._local_voxels()
             if self.origin_index is not None:
                 arrays.index = arrays.index + self.origin_index
-            self._summary_cache = (arrays, self.summarize(arrays.evidence, arrays.touched))
+            self._summary_cache = MapVoxels(arrays, self.summarize(arrays.evidence, arrays.touched))
         return self._summary_cache
 
     def concentrations(self, evidence: np.ndarray) -> np.ndarray:
@@ -491,12 +505,14 @@ class Mapper:
         return self.config.prior + np.asarray(evidence, dtype=np.float64)
 
     def summarize(self, evidence: np.ndarray, touched: np.ndarray) -> DirichletSummary:
+        """The read-out of voxels' ``evidence`` [V, K] and ``touched`` [V] with this map's prior and fusion:
+        labels, probabilities, variance and states."""
         if self.config.fusion is Fusion.DEMPSTER:
             return summarize_beliefs(belief_masses(evidence), touched)
         return summarize_dirichlet(self.concentrations(evidence), touched)
 
     def voxel_centers(self, index: np.ndarray) -> np.ndarray:
-        """World centres (m, float64) of global voxel indices."""
+        """World centers (m, float64) of global voxel indices."""
         return (np.asarray(index, dtype=np.float64) + 0.5) * self.config.resolution_m + self.grid_offset_m
 
     def query(self, points) -> QueryResult:
@@ -520,18 +536,27 @@ class Mapper:
         return QueryResult(label, summary.probabilities, summary.variance, summary.state, voxel_index)
 
     def state_counts(self) -> dict[str, int]:
-        _, summary = self.voxels()
+        """How many voxels are UNKNOWN, FREE and OCCUPIED, by state name."""
+        summary = self.voxels().summary
         return {s.name: int((summary.state == s).sum()) for s in VoxelState}
 
     # ------------------------------------------------------------------ files and merging
     def save(self, path) -> Path:
         """Write the map file (schema in ``core/map_file.py``)."""
         arrays, summary = self.voxels()
-        return map_file.write_map_file(path, map_file.MapContents(
-            meta=self.metadata(), origin=self.origin, index=arrays.index, evidence=arrays.evidence,
+        return map_file.write_map_file(path, self.contents_of(arrays, summary))
+
+    def contents_of(self, arrays: VoxelArrays, summary: DirichletSummary | None = None, **meta) -> "map_file.MapContents":
+        """What a map file of ``arrays`` (global indices) holds with this map's parameters, origin and
+        frame: the read-out (concentrations, centers, labels, states, variance) derived here; ``meta``
+        overrides keys of ``metadata()``."""
+        summary = summary if summary is not None else self.summarize(arrays.evidence, arrays.touched)
+        return map_file.MapContents(
+            meta=self.metadata() | meta, origin=self.origin, index=arrays.index, evidence=arrays.evidence,
             alpha=self.concentrations(arrays.evidence), centers=self.voxel_centers(arrays.index), summary=summary,
             weight_sum=arrays.weight_sum, weighted_uncertainty_sum=arrays.weighted_uncertainty_sum, hits=arrays.hits,
-            touched=arrays.touched, resolution=self.config.resolution_m))
+            touched=arrays.touched, resolution=self.config.resolution_m, config=self.config, origin_index=self.origin_index,
+            frame=self.frame)
 
     def _check_writable(self) -> None:
         if self.read_only is not None:
@@ -589,7 +614,7 @@ class Mapper:
         out = Mapper(self.config, self.num_classes, class_names=self.class_names, device=self.device, workers=len(self.shards),
                      frame=self.frame)
         out.origin_index = self.origin_index if self.origin_index is not None else other.origin_index
-        parts = [m.voxels()[0] for m in (self, other) if m.origin_index is not None]
+        parts = [m.voxels().arrays for m in (self, other) if m.origin_index is not None]
         if parts:
             index = np.concatenate([p.index for p in parts])
             merged = VoxelArrays.from_rows(index, np.concatenate([p.rows() for p in parts]))
@@ -604,13 +629,13 @@ class Mapper:
 
     def load_voxels(self, voxels: VoxelArrays, *, origin_index=None) -> None:
         """Replace the map's contents with ``voxels`` (global indices; several rows of one voxel are
-        added up), re-indexed around ``origin_index`` (default: the map's own, or the data's centre)."""
+        added up), re-indexed around ``origin_index`` (default: the map's own, or the data's center)."""
         self._check_writable()
         if origin_index is None:
             origin_index = self.origin_index
         if origin_index is None and len(voxels.index):
-            centre = (voxels.index.min(axis=0) + voxels.index.max(axis=0)) // 2
-            origin_index = self._snap_origin(centre * self.config.resolution_m)
+            center = (voxels.index.min(axis=0) + voxels.index.max(axis=0)) // 2
+            origin_index = self._snap_origin(center * self.config.resolution_m)
         self.origin_index = None if origin_index is None else np.asarray(origin_index, np.int64).reshape(3)
         local = voxels.index - (self.origin_index if self.origin_index is not None else 0)
         check_index_range(local, "voxel indices")
@@ -621,6 +646,9 @@ class Mapper:
         self.scan_ids = None  # which scans these voxels hold is the caller's to say (load, merge, a store's to_mapper)
 
     def metadata(self) -> dict:
+        """What a map file records beside the arrays (its ``meta``): format, classes, method and every
+        mapping parameter, grid offset, world frame, scan and point counts, scan ids and the writer's
+        version."""
         return {
             "format": map_file.FORMAT_NAME,
             "classes": list(self.class_names),
@@ -637,8 +665,11 @@ class Mapper:
 
 
 def save_map(path, mapper: Mapper) -> Path:
+    """``mapper.save(path)``: write the map file; returns its path."""
     return mapper.save(path)
 
 
 def load_map(path, *, device: str | None = "cpu") -> Mapper:
+    """``Mapper.load(path)``: a map file as a Mapper on ``device``. Raises MapFileError naming the file when
+    its content is missing, truncated or does not add up."""
     return Mapper.load(path, device=device)

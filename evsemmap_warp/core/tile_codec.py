@@ -136,10 +136,24 @@ def decode_voxels(data: bytes, where) -> tuple[dict, np.ndarray, np.ndarray]:
     return header, index, rows
 
 
-def write_voxel_file(path, index, rows, tile, tile_voxels: int, header: dict):
-    """``encode_voxels`` written atomically (a temporary name, then a rename)."""
+def write_voxel_file(path, index, rows, tile, tile_voxels: int, header: dict, *, durable: bool = False):
+    """``encode_voxels`` written atomically (a temporary name, then a rename; ``durable``: on disk
+    when this returns, see files.write_atomically)."""
     data = encode_voxels(index, rows, tile, tile_voxels, header)
-    return write_atomically(path, lambda f: f.write(data))
+    return write_atomically(path, lambda f: f.write(data), durable=durable)
+
+
+def read_voxel_header(path) -> dict:
+    """A voxel file's header alone (checked as ``decode_header`` checks it), without its payload: what
+    a store's index pass and a resumed run need to know of a tile."""
+    try:
+        with open(path, "rb") as f:
+            start = f.read(len(MAGIC) + 4)
+            length = struct.unpack_from("<I", start, len(MAGIC))[0] if len(start) == len(MAGIC) + 4 else 0
+            data = start + f.read(min(length, _HEADER_LIMIT + 1))
+    except OSError as exc:
+        raise VoxelFileError(f"{path}: cannot read ({exc.strerror})") from None
+    return decode_header(data, path)[0]
 
 
 def read_voxel_file(path, expect: dict | None = None) -> tuple[dict, np.ndarray, np.ndarray]:

@@ -1,7 +1,7 @@
 """The sparse voxel map: a Warp hash table of voxel keys plus per-voxel arrays on one device.
 
 Voxel i spans [i r + o, (i + 1) r + o) on every axis in coordinates relative to the map origin
-(r = resolution, o = grid offset, 0 except for the S-CSM compatibility grid), so its centre is
+(r = resolution, o = grid offset, 0 except for the S-CSM compatibility grid), so its center is
 (i + 0.5) r + o. Per voxel the map keeps one float64 row of ``data`` [capacity, K + 4], rows in the
 order the voxels were inserted (the table's ``slot_rows`` says which row a slot's voxel has):
 
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..voxel_keys import check_index_range, column_bounds, pack_voxel_keys, unpack_voxel_keys
-from . import host_memory
+from . import _host_memory
 from .warp_runtime import init_warp, resolve_device
 
 wp = init_warp()
@@ -63,6 +63,8 @@ class VoxelArrays:
 
     @classmethod
     def from_rows(cls, index: np.ndarray, rows: np.ndarray) -> "VoxelArrays":
+        """The arrays of voxels ``index`` [V, 3] from their value rows [V, K + EXTRA_COLUMNS] (evidence, then
+        the bookkeeping columns), copied."""
         k = rows.shape[1] - EXTRA_COLUMNS
         return cls(index=np.asarray(index, np.int64), evidence=rows[:, :k].copy(),
                    weight_sum=rows[:, k + sc.COL_WEIGHT].copy(), weighted_uncertainty_sum=rows[:, k + sc.COL_WEIGHTED_UNCERTAINTY].copy(),
@@ -79,6 +81,13 @@ def _next_pow2(n: int) -> int:
 
 
 class VoxelMap:
+    """One sparse voxel map on one device: a hash table of voxel keys and a float64 value row per voxel, with
+    the launches that add evidence to it (see the module's description). ``num_classes`` K >= 2;
+    ``resolution_m`` the voxel edge (m); ``grid_offset_m`` the lattice's offset (m, 0 but for S-CSM's
+    half-shifted grid); ``prior`` alpha0; ``device`` a Warp device name; ``initial_capacity`` slots
+    (rounded up to a power of two); ``max_load`` the fill the table grows at, in [0.05, 0.75]. Raises
+    ValueError for values outside those ranges."""
+
     def __init__(
         self,
         num_classes: int,
@@ -105,14 +114,22 @@ class VoxelMap:
         self.grow_count = 0
         self._last_new_voxels: dict[str, int] = {}  # per kind of launch: how many voxels the last one made
         _load_kernels(self.device)
+        # Reused by every launch, so that a warm scan allocates nothing: the failure flags (all zero between
+        # launches), the thread ids 0..n-1 (both grown to powers of two), the launch's update count, and the
+        # counters read back after it (key count, update count) in one copy.
+        self._failure_flags = None
+        self._thread_ids = None
+        self._updates = wp.zeros(1, dtype=wp.int64, device=self.device)
+        self._counters = wp.zeros(2, dtype=wp.int64, device=self.device)
+        self._counted_updates = 0
         self._allocate(max(MIN_CAPACITY, _next_pow2(initial_capacity)))
 
     # ------------------------------------------------------------------ storage
     def _filled(self, shape, value, dtype, *, populate: bool = False):
-        """``populate``: the memory will nearly all be written soon (see host_memory.lazily_zeroed)."""
+        """``populate``: the memory will nearly all be written soon (see _host_memory.lazily_zeroed)."""
         if self.device == "cpu":
             # Wrapping host memory (lazily zeroed pages) is ~10x faster than wp.full here.
-            host = host_memory.lazily_zeroed(shape, wp.dtype_to_numpy(dtype), populate=populate or value != 0)
+            host = _host_memory.lazily_zeroed(shape, wp.dtype_to_numpy(dtype), populate=populate or value != 0)
             if value != 0:
                 host.fill(value)
             return wp.array(host, dtype=dtype, device="cpu", copy=False)
@@ -123,19 +140,21 @@ class VoxelMap:
         self.keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
         self.slot_rows = self._filled(capacity, 0, wp.int32)
         self.key_count = wp.zeros(1, dtype=int, device=self.device)
+        # The key count as last read back, None once a launch may have inserted since (``table``).
+        self._known_count: int | None = 0
         self._row_store = None
         self.data = self._row_array(capacity, 0, None)
         self._allocate_brick_cache(MIN_CAPACITY)
 
     def _allocate_brick_cache(self, capacity: int) -> None:
-        """The brick cache of the block-gather kernels: a table like the voxel table, keyed by a
-        block's first cell, holding its first row, for blocks whose cells have consecutive rows. Blocks
-        of the gather kernels are inserted whole, so on the CPU nearly all are cached: a block is then
-        found with one probe in a table about cells-per-block times smaller (fits the CPU's caches
-        where the voxel table does not) instead of one probe per cell (the S-BKI kernel alone on a built
-        free_res 4 map: 0.66x the time). Rows never move while the map lives, so an entry stays true;
-        the cache is dropped with the rows (``_allocate``). On a GPU concurrent inserters interleave
-        rows, so few blocks are cached there and most are found cell by cell."""
+        """The brick cache of the block-gather kernels: a table like the voxel table, keyed by a block's first
+        cell, holding its first row, for blocks whose cells have consecutive rows. Blocks of the gather
+        kernels are inserted whole, so on the CPU nearly all are cached: a block is then found with one probe
+        in a table about cells-per-block times smaller (fits the CPU's caches where the voxel table does not)
+        instead of one probe per cell (docs/performance.md, "How the engine gets there"). Rows never move
+        while the map lives, so an entry stays true; the cache is dropped with the rows (``_allocate``). On a
+        GPU concurrent inserters interleave rows, so few blocks are cached there and most are found cell by
+        cell."""
         self.brick_capacity = capacity
         self.brick_keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
         self.brick_rows = self._filled(capacity, 0, wp.int32)
@@ -158,14 +177,14 @@ class VoxelMap:
         """(keys, slot rows) of a table of ``capacity`` slots holding the old table's keys and rows."""
         keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
         # A grown table is at least a quarter full once what it was grown for is in: its slot rows are
-        # written all over, so they are mapped at once (see host_memory.lazily_zeroed).
+        # written all over, so they are mapped at once (see _host_memory.lazily_zeroed).
         slot_rows = self._filled(capacity, 0, wp.int32, populate=True)
         wp.launch(ht.rehash, dim=len(old_keys), inputs=[old_keys, old_slot_rows, keys, slot_rows], device=self.device)
         return keys, slot_rows
 
     def _row_array(self, capacity: int, used_rows: int, old):
         """A zeroed [capacity, K + 4] row array holding the first ``used_rows`` rows of ``old``: on the CPU
-        a view of the table's row reservation (host_memory.ROW_RESERVATION_BYTES), which a grown table reuses in place."""
+        a view of the table's row reservation (_host_memory.ROW_RESERVATION_BYTES), which a grown table reuses in place."""
         columns = self.num_classes + EXTRA_COLUMNS
         if self.device != "cpu":
             rows = wp.zeros((capacity, columns), dtype=wp.float64, device=self.device)
@@ -174,9 +193,9 @@ class VoxelMap:
             return rows
         store = self._row_store
         if store is None or len(store) < capacity or (old is not None and old.ptr != store.ctypes.data):
-            store = host_memory.reserved_zeros(max(capacity, host_memory.ROW_RESERVATION_BYTES // (8 * columns)), columns)
+            store = _host_memory.reserved_zeros(max(capacity, _host_memory.ROW_RESERVATION_BYTES // (8 * columns)), columns)
             if store is None:
-                store = host_memory.lazily_zeroed((capacity, columns), np.float64)
+                store = _host_memory.lazily_zeroed((capacity, columns), np.float64)
             if used_rows:
                 store[:used_rows] = old.numpy()[:used_rows]
             self._row_store = store
@@ -184,11 +203,17 @@ class VoxelMap:
 
     @property
     def voxel_count(self) -> int:
-        return int(self.key_count.numpy()[0])
+        """Number of voxels stored (a device-to-host read, unless no launch could have inserted since the
+        count was last read)."""
+        if self._known_count is None:
+            self._known_count = int(self.key_count.numpy()[0])
+        return self._known_count
 
     def table(self) -> ht.HashTable:
         """The voxel table as kernels take it, with this launch's fill limit (make one per launch: the
-        table's arrays change when it grows)."""
+        table's arrays change when it grows). A launch given it may insert, so the key count the host
+        knows is dropped."""
+        self._known_count = None
         return ht.hash_table(self.keys, self.slot_rows, self.key_count, self._launch_fill_limit())
 
     def brick_table(self) -> ht.HashTable:
@@ -250,25 +275,66 @@ class VoxelMap:
         self._check_index_range(np.floor((lo - reach - self.grid_offset_m) / self.resolution_m),
                                 np.floor((hi + reach - self.grid_offset_m) / self.resolution_m))
 
-    def _launch_until_done(self, n: int, launch, *, may_insert: bool, kind: str, most_new: int, exact_most: bool = False) -> None:
-        """launch(ids, failed) over range(n), relaunching the failed ids after the table grew.
+    def _failure_flags_for(self, n: int):
+        """n failure flags, all zero (a view of the reused buffer)."""
+        if self._failure_flags is None or len(self._failure_flags) < n:
+            self._failure_flags = wp.zeros(_next_pow2(n), dtype=int, device=self.device)
+        return self._failure_flags[:n]
+
+    def _thread_ids_for(self, n: int):
+        """The ids 0..n-1 (a view of the reused buffer)."""
+        if self._thread_ids is None or len(self._thread_ids) < n:
+            self._thread_ids = wp.array(np.arange(_next_pow2(n), dtype=np.int32), dtype=int, device=self.device)
+        return self._thread_ids[:n]
+
+    def _read_counters(self) -> int:
+        """The key count and the last launches' update count, read back in one copy; returns the key count."""
+        wp.launch(ht.read_counters, dim=1, inputs=[self.key_count, self._updates, self._counters], device=self.device)
+        key_count, self._counted_updates = (int(value) for value in self._counters.numpy())
+        self._known_count = key_count
+        return key_count
+
+    def _launch_until_done(self, n: int, launch, *, may_insert: bool, kind: str, most_new: int, exact_most: bool = False,
+                           fails_only_when_full: bool = False) -> None:
+        """launch(ids, failed) over range(n), relaunching the failed ids after the table grew; the updates
+        the launches counted in ``self._updates`` (zeroed first) are then in ``self._counted_updates``.
 
         The table is first grown for as many new voxels as the previous launch of this kind made, at
         most ``most_new``; for the first launch of a kind, for none, or for ``most_new`` when that is
         the launch's own bound (``exact_most``: whole blocks, every cell new in a map's first scan,
         where growing step by step relaunched most blocks three times). A wrong guess costs a relaunch
-        of the items that did not fit, never a voxel."""
+        of the items that did not fit, never a voxel.
+
+        ``fails_only_when_full``: the launch's items fail only where an insertion found the table at the
+        launch's fill limit (the inserting scatters, the block gathers), and the key count never drops, so
+        a launch that leaves it below that limit failed nowhere: its flags are not read, and a warm scan
+        reads its launch's outcome back once (``_read_counters``)."""
         self.reserve(min(most_new, self._last_new_voxels.get(kind, most_new if exact_most else 0)) if may_insert else 0)
         before = self.voxel_count
-        pending = np.arange(n, dtype=np.int32)
-        while len(pending):
-            failed = wp.zeros(len(pending), dtype=int, device=self.device)
-            launch(wp.array(pending, dtype=int, device=self.device, copy=False), failed)
-            pending = pending[failed.numpy().astype(bool)]
-            if len(pending):
+        self._updates.zero_()
+        pending = None  # None: every item, in order
+        try:
+            while True:
+                count = n if pending is None else len(pending)
+                failed = self._failure_flags_for(count)
+                limit = self._launch_fill_limit()
+                launch(self._thread_ids_for(n) if pending is None else wp.array(pending, dtype=int, device=self.device, copy=False), failed)
+                if fails_only_when_full and self._read_counters() < limit:
+                    break
+                flagged = failed.numpy().astype(bool)
+                retry = np.flatnonzero(flagged).astype(np.int32) if pending is None else pending[flagged]
+                if not len(retry):
+                    break
+                failed.zero_()
                 if not may_insert:
-                    raise RuntimeError(f"{len(pending)} items reached voxels that were never inserted (a bug)")
+                    raise RuntimeError(f"{len(retry)} items reached voxels that were never inserted (a bug)")
                 self.grow(self.capacity * 2)
+                pending = retry
+        except BaseException:
+            self._failure_flags = None  # flags a failed launch may have set are never read as a later launch's
+            raise
+        if not fails_only_when_full:
+            self._read_counters()
         self._last_new_voxels[kind] = self.voxel_count - before
         self.reserve(0)
 
@@ -313,14 +379,14 @@ class VoxelMap:
             owner_blocks=None if owner_blocks is None else wp.array(np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d, copy=False))
         params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, sigma0=sigma0, cells_per_block=cells_per_block,
                                    stencil_weights=None if stencil_weights is None else _float_array(stencil_weights, d), stencil_half=stencil_half)
-        update_count = wp.zeros(1, dtype=wp.int64, device=d)
 
         def launch(ids, failed):
             scan.point_ids = ids
-            wp.launch(kernel, dim=len(ids), device=d, inputs=[scan, params, self._target(failed, update_count)])
+            wp.launch(kernel, dim=len(ids), device=d, inputs=[scan, params, self._target(failed, self._updates)])
 
-        self._launch_until_done(n, launch, may_insert=sc.scatter_inserts(mode), kind=f"scatter{mode}", most_new=n)
-        return int(update_count.numpy()[0])
+        inserts = sc.scatter_inserts(mode)  # the other modes' points fail only where a target was never inserted (a bug): always read
+        self._launch_until_done(n, launch, may_insert=inserts, kind=f"scatter{mode}", most_new=n, fails_only_when_full=inserts)
+        return self._counted_updates
 
     def _radius_scan(self, points, lengths, point_uncertainty, labels, class_weights) -> sc.ScanPoints:
         d = self.device
@@ -421,14 +487,14 @@ class VoxelMap:
                               owner_blocks=wp.array(np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d, copy=False))
         lengths = _float_array(target_lengths, d)
         params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, cells_per_block=cells_per_block)
-        update_count = wp.zeros(1, dtype=wp.int64, device=d)
 
         def launch(ids, failed):
             scan.point_ids = ids
-            wp.launch(sc.scatter_block_targets, dim=len(ids), device=d, inputs=[scan, lengths, params, self._target(failed, update_count)])
+            wp.launch(sc.scatter_block_targets, dim=len(ids), device=d, inputs=[scan, lengths, params, self._target(failed, self._updates)])
 
-        self._launch_until_done(n, launch, may_insert=True, kind="block_targets", most_new=n * 7 * cells_per_block**3)
-        return int(update_count.numpy()[0])
+        self._launch_until_done(n, launch, may_insert=True, kind="block_targets", most_new=n * 7 * cells_per_block**3,
+                                fails_only_when_full=True)
+        return self._counted_updates
 
     def load_kernel(self, kernel) -> None:
         """Compile/load a kernel made on demand (a block-gather kernel for this class count and block
@@ -448,15 +514,17 @@ class VoxelMap:
             return 0
         d = self.device
         ids = wp.array(np.ascontiguousarray(block_ids, dtype=np.int32), dtype=int, device=d, copy=False)
-        update_count = wp.zeros(1, dtype=wp.int64, device=d)
 
         def launch(pending, failed):
-            wp.launch(kernel, dim=len(pending), device=d, inputs=[pending, ids, scan, self.table(), self.brick_table(), self.data, failed, update_count])
+            wp.launch(kernel, dim=len(pending), device=d, inputs=[pending, ids, scan, self.table(), self.brick_table(), self.data, failed,
+                                                                  self._updates])
 
         self._grow_brick_cache(len(block_ids))
-        self._launch_until_done(len(block_ids), launch, may_insert=True, kind=kind, most_new=len(block_ids) * cells_per_block**3, exact_most=True)
+        self._launch_until_done(len(block_ids), launch, may_insert=True, kind=kind, most_new=len(block_ids) * cells_per_block**3,
+                                exact_most=True, fails_only_when_full=True)
+        updates = self._counted_updates
         self._grow_brick_cache()
-        return int(update_count.numpy()[0])
+        return updates
 
     def insert_blocks(self, blocks: np.ndarray, cells_per_block: int, *, mark_touched: bool) -> None:
         """Insert every cell of each block [B, 3] (block b holds voxels b n - n/2 ... b n + n/2 - 1)."""
@@ -471,7 +539,8 @@ class VoxelMap:
             wp.launch(sc.insert_block_cells, dim=len(ids), device=d, inputs=[
                 ids, blocks_wp, int(cells_per_block), int(mark_touched), self.table(), self.data, failed])
 
-        self._launch_until_done(len(blocks), launch, may_insert=True, kind="block_cells", most_new=len(blocks) * cells_per_block**3, exact_most=True)
+        self._launch_until_done(len(blocks), launch, may_insert=True, kind="block_cells", most_new=len(blocks) * cells_per_block**3, exact_most=True,
+                                fails_only_when_full=True)
 
     def insert_voxels(self, voxel_index: np.ndarray) -> np.ndarray:
         """Insert voxel indices [V, 3]; returns their rows (growing as needed)."""
@@ -503,6 +572,8 @@ class VoxelMap:
         return keys[slots], self.slot_rows.numpy()[slots].astype(np.int64) - 1
 
     def arrays(self) -> VoxelArrays:
+        """A host copy of every stored voxel (``VoxelArrays``), in ascending key order; indices relative to
+        the map origin."""
         keys, rows = self.stored_keys_and_rows()
         return VoxelArrays.from_rows(unpack_voxel_keys(keys), self.data.numpy()[rows])
 

@@ -1,8 +1,9 @@
 """Warp start-up in one place: a predictable kernel cache, quiet logs, device choice.
 
-Kernel inputs are made from numpy with ``wp.array(..., copy=False)`` throughout: on the CPU the kernels
-then read numpy's memory in place (Warp keeps a reference to it), where a copy cost ~0.1 s per 30
-bench scans in the S-BKI mode; on a GPU Warp copies them, as it must."""
+Kernel inputs are made from numpy with ``wp.array(..., copy=False)`` throughout: on the CPU the kernels then
+read numpy's memory in place (Warp keeps a reference to it) instead of a copy per launch; on a GPU Warp copies
+them, as it must.
+"""
 
 from __future__ import annotations
 

@@ -21,6 +21,10 @@ from .world_frame import place_in_world
 
 @dataclass
 class Scan:
+    """One insertion of a dataset: its ``name`` (for error messages), points [N, 3] (m, the dataset's world
+    frame), the payload ([N] labels or [N, K] alpha / probabilities, as ``payload_type`` says) and the
+    sensor origin [3] (m, same frame)."""
+
     name: str
     points: np.ndarray  # [N, 3] world frame, m
     payload: np.ndarray  # [N] labels or [N, K] alpha / probabilities, as payload_type says
@@ -42,9 +46,12 @@ class Dataset(Protocol):
 
     def __iter__(self) -> Iterator[Scan]: ...
 
-    def scans(self, start: int, stop: int) -> Iterator[Scan]: ...
+    def scans(self, start: int, stop: int) -> Iterator[Scan]:
+        """Insertions ``start`` .. ``stop - 1``, exactly as iterating the whole dataset yields them."""
 
-    def frames_in(self, start: int, stop: int) -> int: ...
+    def frames_in(self, start: int, stop: int) -> int:
+        """How many sensor frames insertions ``start`` .. ``stop - 1`` hold (one per insertion, or a bin's
+        frames)."""
 
 
 class _Insertions:
@@ -80,6 +87,8 @@ class PcdSequence(_Insertions):
         return len(self.files)
 
     def scans(self, start: int, stop: int) -> Iterator[Scan]:
+        """The scans of files ``start`` .. ``stop - 1``: points and sensor origin as the files give them, the
+        ``label`` field as payload. An extra undeclared column warns once per dataset."""
         for path in self.files[start:stop]:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
@@ -113,6 +122,8 @@ class BenchNpz(_Insertions):
 
     @property
     def data(self):
+        """The workload's arrays (an open ``np.load``, read once); raises ConfigError when the file is not a
+        readable benchmark npz."""
         if self._data is None:
             try:
                 self._data = np.load(self.path, allow_pickle=False)
@@ -128,10 +139,13 @@ class BenchNpz(_Insertions):
         return len(self.offsets) - 1
 
     def scan_points(self, i: int) -> np.ndarray:
+        """Scan ``i``'s points [N, 3] (m, float64 from the file's millimetres rounded through float32, as the
+        C++ reads them)."""
         a, b = self.offsets[i], self.offsets[i + 1]
         return (self.data["xyz_mm"][a:b] / 1000.0).astype(np.float32).astype(np.float64)
 
     def scan_alpha(self, i: int) -> np.ndarray:
+        """Scan ``i``'s alpha [N, K] float32: 1 plus the evidence of each point's top two classes."""
         a, b = self.offsets[i], self.offsets[i + 1]
         alpha = np.ones((b - a, self.num_classes), dtype=np.float32)
         rows = np.arange(b - a)
@@ -140,6 +154,8 @@ class BenchNpz(_Insertions):
         return alpha
 
     def scans(self, start: int, stop: int) -> Iterator[Scan]:
+        """Scans ``start`` .. ``stop - 1`` with their alpha (or the workload's ``label`` array when the
+        payload is labels) and sensor origins."""
         for i in range(start, min(stop, len(self))):
             a, b = self.offsets[i], self.offsets[i + 1]
             origin = self.data["origins_mm"][i] / 1000.0
@@ -186,6 +202,8 @@ class LabelledSequence(_Insertions):
         return len(self.frames)
 
     def scans(self, start: int, stop: int) -> Iterator[Scan]:
+        """Frames ``start`` .. ``stop - 1`` as scans: points placed in the world frame with their float64
+        poses, zero returns dropped, labels remapped to the class set."""
         from .sequences import remap_point_labels
 
         for frame in self.frames[start:stop]:
@@ -218,6 +236,8 @@ DATASETS = {"pcd_sequence": PcdSequence, "bench_npz": BenchNpz, "rellis3d": Labe
 
 
 def open_dataset(config: DatasetConfig) -> Dataset:
+    """The dataset a config's ``dataset`` section describes (its ``kind`` picks the reader); raises
+    ConfigError for an unknown kind or data that is missing or inconsistent."""
     if config.kind not in DATASETS:
         raise ConfigError(f"dataset.kind {config.kind!r} is unknown; known: {sorted(DATASETS)}")
     return DATASETS[config.kind](config)

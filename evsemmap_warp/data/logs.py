@@ -142,6 +142,8 @@ class LogSequence:
 
     @property
     def reader(self):
+        """The open log reader, opened on first use (after unpickling in a batch worker only the index came
+        along)."""
         if self._reader is None:  # unpickled in a batch worker: the index came along, the file is opened here
             self._reader = open_reader(self.logs)
         return self._reader
@@ -150,11 +152,13 @@ class LogSequence:
         return self.__dict__ | {"_reader": None, "_cursors": {}, "_decoded": None}
 
     def close(self) -> None:
+        """Close the log files (reopened on the next read)."""
         if self._reader is not None:
             self._reader.close()
             self._reader = None
 
     def describe(self) -> str:
+        """The logs' paths, for messages."""
         return ", ".join(str(p) for p in self.logs)
 
     # Index -----------------------------------------------------------------------------------------
@@ -283,6 +287,8 @@ class LogSequence:
     # Calibration and poses ---------------------------------------------------------------------
     @property
     def camera_frame(self) -> str:
+        """The camera's TF frame: ``dataset.bag.camera_frame``, else the camera info's header frame; raises
+        DataError when neither names one."""
         if self.config.camera_frame:
             return self.config.camera_frame
         if self._camera_info is not None and self._camera_info.frame_id:
@@ -291,6 +297,7 @@ class LogSequence:
 
     @property
     def camera(self) -> PinholeCamera:
+        """The camera's intrinsics from the log's camera info; raises DataError when the log has none."""
         if self._camera_info is None and "camera_info_topic" in self.missing_topics:
             raise DataError(self.missing_topics["camera_info_topic"])
         if self._camera_info is None:
@@ -436,6 +443,8 @@ class LogSequence:
         return pixels, where
 
     def read_image(self, frame: LogFrame) -> np.ndarray:
+        """Frame ``frame``'s camera image, [H, W, 3] uint8 RGB; raises DataError when the image topic is
+        missing or no image lies within ``image_tolerance_s`` of the cloud."""
         if "image_topic" in self.missing_topics:
             raise DataError(self.missing_topics["image_topic"])
         if frame.image is None:
@@ -444,7 +453,7 @@ class LogSequence:
         return np.repeat(image[..., None], 3, axis=2).astype(np.uint8) if image.ndim == 2 else image
 
     def read_label_ids(self, frame: LogFrame) -> np.ndarray:
-        """[H, W] raw ontology ids of the frame's 2D labels (one-channel ids, or RELLIS-3D colours)."""
+        """[H, W] raw ontology ids of the frame's 2D labels (one-channel ids, or RELLIS-3D colors)."""
         if frame.label_image is None:
             raise DataError(self.missing_topics.get("label_image_topic", f"{frame.scan}: no label image paired with its camera image"))
         raw, where = self._picture("label_image", frame.label_image, self.config.label_image_topic)

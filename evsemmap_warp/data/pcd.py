@@ -1,9 +1,9 @@
 """A small PCD (v0.7) reader: ascii and binary data, VIEWPOINT as the sensor origin.
 
-Written by hand on purpose: open3d costs 627 MB and its legacy reader drops the ``label`` field;
-this reader is 1 ms for a 1M-point binary file (measured on the 2-core CI machine). ``binary_compressed`` (LZF)
-is refused with a clear error. Extra, undeclared columns in ascii files (the S-BKI toy scans carry
-a trailing ``-1``) are ignored with a warning instead of corrupting the data, as PCL <= 1.11 did.
+Written by hand on purpose: open3d costs 627 MB and its legacy reader drops the ``label`` field, and binary
+data is read without a Python loop over points. ``binary_compressed`` (LZF) is refused with a clear error.
+Extra, undeclared columns in ascii files (the S-BKI toy scans carry a trailing ``-1``) are ignored with a
+warning instead of corrupting the data, as PCL <= 1.11 did.
 """
 
 from __future__ import annotations
@@ -29,16 +29,21 @@ class PcdError(ValueError):
 
 @dataclass
 class PointCloud:
+    """A PCD file's content: every field by name ([N], or [N, COUNT] for fields of several values), the
+    VIEWPOINT (tx ty tz qw qx qy qz) and the path."""
+
     fields: dict[str, np.ndarray]  # name -> [N] or [N, COUNT] array
     viewpoint: np.ndarray  # [7]: tx ty tz qw qx qy qz
     path: Path
 
     @property
     def points(self) -> np.ndarray:
+        """[N, 3] x, y, z in the file's dtype (m, the file's frame)."""
         return np.stack([self.fields["x"], self.fields["y"], self.fields["z"]], axis=1)
 
     @property
     def sensor_origin(self) -> np.ndarray:
+        """[3] the VIEWPOINT's translation: where the sensor was (m, the file's frame)."""
         return self.viewpoint[:3].copy()
 
     def __len__(self) -> int:
@@ -46,6 +51,9 @@ class PointCloud:
 
 
 def read_pcd(path) -> PointCloud:
+    """Read a PCD v0.7 file (ascii or binary). Raises PcdError naming the file when the header is malformed,
+    a type is unsupported, the data is truncated or disagrees with the header, or the data is
+    ``binary_compressed``; warns (ExtraColumnsWarning) when ascii rows carry undeclared columns."""
     path = Path(path)
     try:
         raw = path.read_bytes()

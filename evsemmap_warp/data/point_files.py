@@ -17,6 +17,9 @@ POINT_SUFFIXES = (".pcd", ".ply", ".npy", ".bin")
 
 @dataclass
 class PointFile:
+    """A point file's content: points [N, 3] float64 (m, the file's own frame), per-point extra fields ([N]
+    or [N, C]) and the path."""
+
     points: np.ndarray  # [N, 3] float64
     fields: dict[str, np.ndarray]  # per-point extras, [N] or [N, C]
     path: Path
@@ -63,6 +66,9 @@ def read_npy(path) -> np.ndarray:
 
 
 def read_point_file(path) -> PointFile:
+    """Read a .pcd, .ply (vertex x, y, z and any other vertex properties), .npy ([N, >= 3]) or KITTI .bin
+    ([N, 4] float32) file. Raises ValueError naming the file for an unknown suffix, a truncated or
+    malformed file, or NaN/inf coordinates, and FileNotFoundError when it does not exist."""
     path = Path(path)
     if path.suffix not in POINT_SUFFIXES:
         raise ValueError(f"{path}: unknown point file type {path.suffix!r}; known: {', '.join(POINT_SUFFIXES)}")

@@ -100,7 +100,7 @@ _CHANNELS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "8UC1": 1
 
 def decode_image(msg, where: str) -> np.ndarray:
     """sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8, mono16) or CompressedImage (jpeg, png)
-    -> [H, W, 3] uint8 RGB for colour encodings, [H, W] for one-channel ones."""
+    -> [H, W, 3] uint8 RGB for color encodings, [H, W] for one-channel ones."""
     if hasattr(msg, "encoding"):
         encoding = msg.encoding
         if encoding not in _CHANNELS:
@@ -128,6 +128,8 @@ def decode_image(msg, where: str) -> np.ndarray:
 
 @dataclass(frozen=True)
 class CameraInfo:
+    """A decoded sensor_msgs/CameraInfo: the pinhole camera with its distortion, and the header's frame id."""
+
     camera: PinholeCamera
     frame_id: str
 

@@ -37,6 +37,10 @@ class DataError(ValueError):
 
 @dataclass
 class Frame:
+    """One frame of a sequence: its index (scan number = pose line), the scan file, and the files beside it
+    when it has them: per-point labels, camera image, 2D label image (colors or ids, as
+    ``label_is_color`` says)."""
+
     index: int  # frame number = scan index = pose line
     scan: Path
     point_labels: Path | None = None
@@ -140,6 +144,11 @@ class _ScanSequence:
 
 
 class Rellis3DSequence(_ScanSequence):
+    """A RELLIS-3D-layout sequence folder (``os1_cloud_node_kitti_bin/``, labels, ``pylon_camera_node/``
+    images and label images, ``poses.txt``, ``camera_info.txt``, ``transforms.yaml``; what ``evsemmap
+    synth`` writes), or RELLIS-3D's loose example files (NNNNNN.bin beside their images). Raises DataError
+    naming the folder when it does not exist or holds no scans."""
+
     def __init__(self, root):
         self.root = Path(root)
         if not self.root.is_dir():
@@ -189,6 +198,9 @@ class Rellis3DSequence(_ScanSequence):
     # Calibration ---------------------------------------------------------------------------------
     @property
     def camera(self) -> PinholeCamera:
+        """The camera's intrinsics and distortion (``camera_info.txt``, ``camera_distortion.txt`` or
+        RELLIS-3D's fixed distortion), read on first use; raises DataError when a file is missing or
+        malformed."""
         if self._camera is None:
             self._camera = self._read_camera()
         return self._camera
@@ -257,17 +269,21 @@ class Rellis3DSequence(_ScanSequence):
         return self._poses
 
     def pose(self, frame: Frame) -> np.ndarray:
+        """Frame ``frame``'s LiDAR pose [4, 4] float64 in the poses' frame (``poses.txt`` line
+        ``frame.index``; identity without a poses file). Raises DataError when the poses run short."""
         return self._pose_line(self.poses, frame)
 
     # Per-frame data ------------------------------------------------------------------------------
     def read_image(self, frame: Frame) -> np.ndarray:
+        """Frame ``frame``'s camera image, [H, W, 3] uint8 RGB; raises DataError when its size is not the
+        camera's."""
         with Image.open(frame.image) as img:
             image = np.asarray(img.convert("RGB"))
         self._check_image_size(frame.image, *image.shape[:2])
         return image
 
     def read_label_ids(self, frame: Frame) -> np.ndarray:
-        """[H, W] raw ontology ids of the frame's 2D labels (colour PNGs decoded with the palette)."""
+        """[H, W] raw ontology ids of the frame's 2D labels (color PNGs decoded with the palette)."""
         if frame.label_image is None:
             raise DataError(f"{frame.image}: no label image for this frame")
         with Image.open(frame.label_image) as img:
@@ -321,6 +337,8 @@ class SemanticKittiSequence(_ScanSequence):
         raise DataError(f"{path}: no 'Tr:' line")
 
     def pose(self, frame: Frame) -> np.ndarray:
+        """Frame ``frame``'s LiDAR pose [4, 4] float64, inv(Tr) * P * Tr (docs/algorithm.md §5.4); raises
+        DataError when the poses run short."""
         return self._pose_line(self.poses, frame)
 
 
@@ -337,6 +355,9 @@ def semantickitti_learning_map() -> np.ndarray:
 # Checking a folder before a long run -------------------------------------------------------------
 @dataclass
 class CheckReport:
+    """What ``evsemmap check-data`` found in one folder or log: counts of frames, images and label images,
+    the problems that would stop a run, notes, and what the source holds."""
+
     root: Path
     frames: int = 0
     with_images: int = 0
@@ -348,9 +369,11 @@ class CheckReport:
 
     @property
     def ok(self) -> bool:
+        """True when nothing would stop a run."""
         return not self.problems
 
     def text(self) -> str:
+        """The report as the lines ``check-data`` prints."""
         lines = [f"{self.root}: {self.frames} {self.unit}, {self.with_images} with a camera image, {self.with_labels} with a 2D label image"]
         lines += [f"  {d}" for d in self.details]
         lines += [f"  problem: {p}" for p in self.problems]

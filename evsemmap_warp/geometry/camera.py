@@ -16,6 +16,10 @@ RELLIS3D_DISTORTION = (-0.134313, -0.025905, 0.002181, 0.00084, 0.0)
 
 @dataclass(frozen=True)
 class PinholeCamera:
+    """A pinhole camera with OpenCV distortion: focal lengths and principal point (px), image size (px) and
+    k1 k2 p1 p2 k3. Raises ValueError for non-positive focal lengths or size, or a distortion of other
+    than five values."""
+
     fx: float
     fy: float
     cx: float
@@ -32,14 +36,18 @@ class PinholeCamera:
 
     @classmethod
     def from_fov(cls, width: int, height: int, hfov_deg: float, distortion=(0.0,) * 5) -> "PinholeCamera":
+        """A distortion-free camera (unless ``distortion`` says otherwise) of ``width`` x ``height`` px with
+        horizontal field of view ``hfov_deg``, square pixels and the principal point at the center."""
         f = width / (2 * np.tan(np.radians(hfov_deg) / 2))
         return cls(f, f, width / 2, height / 2, width, height, tuple(float(d) for d in distortion))
 
     @property
     def matrix(self) -> np.ndarray:
+        """The 3x3 intrinsic matrix K."""
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
 
     def distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """OpenCV's distortion of normalised image coordinates (x, y) = (X / Z, Y / Z): the distorted (x, y)."""
         k1, k2, p1, p2, k3 = self.distortion
         r2 = x * x + y * y
         radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
@@ -54,7 +62,7 @@ class PinholeCamera:
         return np.stack([self.fx * x + self.cx, self.fy * y + self.cy], axis=1)
 
     def pixel_rays(self, iterations: int = 20) -> np.ndarray:
-        """[H, W, 3] unit ray directions (camera frame) through pixel centres, distortion inverted by
+        """[H, W, 3] unit ray directions (camera frame) through pixel centers, distortion inverted by
         fixed-point iteration (as cv2.undistortPoints does)."""
         u, v = np.meshgrid(np.arange(self.width) + 0.5, np.arange(self.height) + 0.5)
         xd, yd = (u - self.cx) / self.fx, (v - self.cy) / self.fy
@@ -109,6 +117,7 @@ def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
 
 
 def rigid(rotation: np.ndarray, translation) -> np.ndarray:
+    """The 4x4 transform of a 3x3 ``rotation`` and a ``translation`` [3]."""
     out = np.eye(4)
     out[:3, :3] = rotation
     out[:3, 3] = translation
@@ -125,5 +134,6 @@ def relative_pose(reference: np.ndarray, pose: np.ndarray) -> np.ndarray:
 
 
 def transform_points(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``points`` [N, 3] mapped by the 4x4 ``transform`` (float64)."""
     points = np.asarray(points, np.float64)
     return points @ transform[:3, :3].T + transform[:3, 3]

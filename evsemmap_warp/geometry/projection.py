@@ -26,12 +26,15 @@ from ..config import ConfigError
 
 @dataclass(frozen=True)
 class ProjectionConfig:
+    """How LiDAR points read per-pixel values from an image (docs/algorithm.md §2): the lookup, the
+    field-of-view pre-filter, the optional z-buffer and the bins of frames."""
+
     lookup: str = "nearest"  # or "bilinear" (the release: upsample the map bilinearly, then truncate)
-    fov_margin_deg: float = 10.0
-    zbuffer: bool = False
+    fov_margin_deg: float = 10.0  # points up to this far outside the camera's field of view pass the pre-filter
+    zbuffer: bool = False  # drop points hidden behind nearer ones
     zbuffer_cell_px: int = 4  # image pixels per z-buffer cell (LiDAR points are sparse in the image)
     zbuffer_tolerance_m: float = 0.5  # a point is hidden when this much farther than the cell's nearest
-    bin_frames: int = 1
+    bin_frames: int = 1  # consecutive frames integrated as one insertion (30 for RELLIS-3D)
 
     def __post_init__(self):
         if self.lookup not in ("nearest", "bilinear"):
@@ -44,12 +47,18 @@ class ProjectionConfig:
 
 @dataclass
 class Projected:
+    """The points of a scan that land in the image: their rows in the scan, their pixel coordinates (u right,
+    v down, px) and their depth (m, camera z)."""
+
     index: np.ndarray  # [M] rows of the scan that landed in the image
     pixel: np.ndarray  # [M, 2] float image coordinates (u right, v down)
     depth: np.ndarray  # [M] camera z, m
 
 
 def project_scan(points_lidar: np.ndarray, camera: PinholeCamera, lidar_to_camera: np.ndarray, config: ProjectionConfig = ProjectionConfig()) -> Projected:
+    """Project a scan's points [N, 3] (m, LiDAR frame; zero returns skipped) through ``lidar_to_camera`` [4,
+    4] and ``camera``: the points inside the field of view and the image, with their pixels and depths
+    (and only the nearest ones with the z-buffer). Raises ValueError for NaN or inf points."""
     points_lidar = np.asarray(points_lidar, np.float64)[:, :3]
     if not np.isfinite(points_lidar).all():
         bad = int(np.flatnonzero(~np.isfinite(points_lidar).all(1))[0])
@@ -105,35 +114,39 @@ def sample_map(values: np.ndarray, pixel: np.ndarray, image_size: tuple[int, int
     return (top * (1 - fv) + bottom * fv).T
 
 
-def overlay_image(image: np.ndarray, pixel: np.ndarray, colours: np.ndarray, radius: int = 1) -> np.ndarray:
-    """The camera image dimmed, with projected points drawn as small squares in ``colours`` [M, 3]."""
+def overlay_image(image: np.ndarray, pixel: np.ndarray, colors: np.ndarray, radius: int = 1) -> np.ndarray:
+    """The camera image dimmed, with projected points drawn as small squares in ``colors`` [M, 3]."""
     out = (np.asarray(image, np.float32) * 0.6).astype(np.uint8)
     h, w = out.shape[:2]
     iu, iv = np.floor(pixel[:, 0]).astype(int), np.floor(pixel[:, 1]).astype(int)
     for du in range(-radius, radius + 1):
         for dv in range(-radius, radius + 1):
             u, v = np.clip(iu + du, 0, w - 1), np.clip(iv + dv, 0, h - 1)
-            out[v, u] = colours
+            out[v, u] = colors
     return out
 
 
-def depth_colours(depth: np.ndarray) -> np.ndarray:
+def depth_colors(depth: np.ndarray) -> np.ndarray:
+    """A color per point [M, 3] uint8 from its ``depth`` [M] (turbo, nearest to farthest), for overlays."""
     import matplotlib
 
     scaled = np.clip((depth - depth.min()) / max(np.ptp(depth), 1e-6), 0, 1) if len(depth) else depth
     return (matplotlib.colormaps["turbo"](scaled)[:, :3] * 255).astype(np.uint8)
 
 
-def save_overlay(path, image: np.ndarray, pixel: np.ndarray, colours: np.ndarray) -> None:
-    """Debug image: the projected points over the camera image (``depth_colours`` for depth)."""
-    Image.fromarray(overlay_image(image, pixel, colours, radius=max(1, image.shape[1] // 640))).save(path)
+def save_overlay(path, image: np.ndarray, pixel: np.ndarray, colors: np.ndarray) -> None:
+    """Debug image: the projected points over the camera image (``depth_colors`` for depth)."""
+    Image.fromarray(overlay_image(image, pixel, colors, radius=max(1, image.shape[1] // 640))).save(path)
 
 
 # Sequences ---------------------------------------------------------------------------------------
 @dataclass
 class ProjectedFrame:
+    """One frame's projected points: points [M, 3] (m, the sequence's world frame), their values ([M, C] or
+    [M] labels), the sensor origin [3] (m, world frame), their rows in the scan file and their pixels."""
+
     frame_index: int
-    points: np.ndarray  # [M, 3] world frame (the first frame's LiDAR frame)
+    points: np.ndarray  # [M, 3] world frame, m
     values: np.ndarray  # [M, C] or [M]
     sensor_origin: np.ndarray  # [3] world frame
     scan_rows: np.ndarray  # [M] rows of the scan file
@@ -142,6 +155,9 @@ class ProjectedFrame:
 
 @dataclass
 class Bin:
+    """Consecutive projected frames joined as one map insertion: their indices, points [M, 3] and values (m,
+    world frame), and the sensor origin of the bin's last frame."""
+
     frames: list[int]
     points: np.ndarray
     values: np.ndarray

@@ -22,6 +22,7 @@ class TransformError(ValueError):
 
 
 def format_stamp(stamp_ns: int) -> str:
+    """A stamp in nanoseconds as ``t = S.SSSSSS s``, for messages."""
     return f"t = {stamp_ns / 1e9:.6f} s"
 
 
@@ -87,11 +88,16 @@ class TransformTree:
         self._timed: dict[str, _TimedEdge] = {}  # child -> edge
 
     def add_static(self, parent: str, child: str, translation, quaternion) -> None:
+        """Add the fixed transform of ``child`` in ``parent`` (translation [3] m, quaternion x y z w). Raises
+        TransformError for a frame given two parents, a transform of a frame to itself, or a non-finite or
+        zero quaternion."""
         self._check_parent(parent, child)
         _check_parts(parent, child, translation, quaternion)
         self._static[child] = (parent, rigid(quaternion_to_matrix(quaternion), translation))
 
     def add_timed(self, parent: str, child: str, stamp_ns: int, translation, quaternion) -> None:
+        """Add one sample, at ``stamp_ns``, of the moving transform of ``child`` in ``parent`` (translation
+        [3] m, quaternion x y z w); raises TransformError as ``add_static``."""
         self._check_parent(parent, child)
         _check_parts(parent, child, translation, quaternion, stamp_ns)
         self._timed.setdefault(child, _TimedEdge(parent)).add(int(stamp_ns), translation, quaternion)
@@ -104,6 +110,7 @@ class TransformTree:
             raise TransformError(f"frame {child!r} has two parents, {known!r} and {parent!r} (a TF tree gives each frame one)")
 
     def parent(self, frame: str) -> str | None:
+        """The parent frame of ``frame``, or None for a root or an unknown frame."""
         if frame in self._static:
             return self._static[frame][0]
         if frame in self._timed:
@@ -112,17 +119,21 @@ class TransformTree:
 
     @property
     def frames(self) -> set[str]:
+        """Every frame the tree names."""
         children = set(self._static) | set(self._timed)
         return children | {self.parent(c) for c in children}
 
     def is_timed(self, frame: str) -> bool:
+        """True when ``frame``'s transform to its parent moves (has timed samples)."""
         return frame in self._timed
 
     def time_range(self, frame: str) -> tuple[int, int] | None:
+        """(first, last) stamp (ns) of ``frame``'s timed samples, or None for a fixed or unknown edge."""
         edge = self._timed.get(frame)
         return (edge.stamps[0], edge.stamps[-1]) if edge else None
 
     def path_to_root(self, frame: str) -> list[str]:
+        """``frame`` and its ancestors up to the root; raises TransformError when the tree has a loop."""
         path = [frame]
         while (parent := self.parent(path[-1])) is not None:
             if parent in path:
@@ -131,6 +142,7 @@ class TransformTree:
         return path
 
     def root(self, frame: str) -> str:
+        """The root of ``frame``'s tree."""
         return self.path_to_root(frame)[-1]
 
     def chain(self, target: str, source: str) -> tuple[list[str], list[str]]:
@@ -144,10 +156,16 @@ class TransformTree:
         return up_source[: up_source.index(common) + 1], up_target[: up_target.index(common) + 1]
 
     def is_static_between(self, target: str, source: str) -> bool:
+        """True when no transform on the chain from ``source`` to ``target`` moves; raises TransformError
+        when they are not connected."""
         up_source, up_target = self.chain(target, source)
         return not any(self.is_timed(f) for f in up_source[:-1] + up_target[:-1])
 
     def lookup(self, target: str, source: str, stamp_ns: int) -> np.ndarray:
+        """The pose [4, 4] of ``source`` in ``target`` at ``stamp_ns`` (maps source coordinates to target
+        coordinates): timed edges interpolated (linear translation, slerp rotation). Raises TransformError
+        when the frames are not connected or the stamp lies outside a timed edge's samples, naming the
+        frames and the time."""
         up_source, up_target = self.chain(target, source)
         common_from_source = np.eye(4)
         for frame in up_source[:-1]:

@@ -1,4 +1,4 @@
-"""ConvBKI (docs/compatibility.md §2): per-class compound kernel on a voxel-centre stencil, its length
+"""ConvBKI (docs/compatibility.md §2): per-class compound kernel on a voxel-center stencil, its length
 scales (loaded from a file or learned), and the voxelisation that precedes the "convolution".
 
 The dense depthwise conv3d of its authors equals, by linearity, a scatter of every occupied voxel's
@@ -24,14 +24,18 @@ LENGTH_RANGE_M = (0.01, 1.0)  # clamped after every training step, as the author
 
 @dataclass
 class ConvBkiLengths:
+    """ConvBKI's per-class length scales: ``horizontal`` and ``vertical`` [K] (m)."""
+
     horizontal: np.ndarray  # [K] metres
     vertical: np.ndarray  # [K] metres
 
     def as_dict(self) -> dict:
+        """``{"ell_h": [...], "ell_z": [...]}``, as length files store them."""
         return {"ell_h": self.horizontal.tolist(), "ell_z": self.vertical.tolist()}
 
 
 def default_lengths(num_classes: int) -> ConvBkiLengths:
+    """Every class at its authors' initial length (0.5 m), horizontal and vertical."""
     return ConvBkiLengths(np.full(num_classes, INITIAL_LENGTH_M), np.full(num_classes, INITIAL_LENGTH_M))
 
 
@@ -70,6 +74,7 @@ def load_lengths(path, num_classes: int) -> ConvBkiLengths:
 
 
 def save_lengths(path, lengths: ConvBkiLengths) -> None:
+    """Write ``lengths`` as JSON (``ell_h``, ``ell_z``) to ``path``, atomically."""
     files.write_json_atomically(path, lengths.as_dict(), indent=1)
 
 
@@ -86,6 +91,7 @@ def _factor(d, length):
 
 
 def stencil_offsets(half: int) -> np.ndarray:
+    """The (2 half + 1)^3 voxel offsets [S, 3] of the stencil, x slowest, z fastest."""
     r = np.arange(-half, half + 1)
     return np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)
 
@@ -143,6 +149,9 @@ def stencil_evidence_at(query_voxels, voxels, summed, ell_h, ell_z, resolution_m
 
 @dataclass
 class TrainingWindow:
+    """One training window for the lengths: the points [N, 3] (m, world frame) and class probabilities [N, K]
+    of its scans, and its last scan's points [M, 3] with their true labels [M], where the loss is taken."""
+
     points: np.ndarray  # [N, 3] world, all scans of the window
     evidence: np.ndarray  # [N, K] class probabilities (softmax / alpha / S) per point
     query_points: np.ndarray  # [M, 3] the window's last scan

@@ -102,11 +102,10 @@ MIN_RADIX_SORT_KEYS = 50_000
 def stable_sort(keys: np.ndarray, key_limit: int) -> tuple[np.ndarray, np.ndarray]:
     """(sorted keys, the stable order) of non-negative int64 keys below ``key_limit``.
 
-    Each key is packed with its position into one int64 (the packed values are unique, so any sort
-    of them is stable) and the packed values are sorted by the key bits alone: by the LSD radix sort
-    of ``kernels.radix_sort`` for large inputs (free_res 0.5 scans sort 0.5-0.8 M leaf indices of ~26
-    bits in 3 passes: ~25-45 instead of ~50-80 ns per key), by numpy's sort for small ones. Keys too
-    wide to pack take numpy's stable argsort."""
+    Each key is packed with its position into one int64 (the packed values are unique, so any sort of them is
+    stable) and the packed values are sorted by the key bits alone: by the LSD radix sort of
+    ``kernels.radix_sort`` for large inputs (free_res 0.5 scans sort 0.5-0.8 M leaf indices of ~26 bits in 3
+    passes), by numpy's sort for small ones. Keys too wide to pack take numpy's stable argsort."""
     keys = np.asarray(keys, dtype=np.int64)
     n = len(keys)
     position_bits = max(1, int(n - 1).bit_length())
@@ -221,7 +220,7 @@ def training_data(
 def block_memberships(points: np.ndarray, block_size: np.float32) -> tuple[np.ndarray, np.ndarray]:
     """Every (point, block) pair with the point inside the block's closed float32 box.
 
-    Block k spans [k B - B/2, k B + B/2] per axis (centre k B, as S-BKI's hash_key_to_block); the
+    Block k spans [k B - B/2, k B + B/2] per axis (center k B, as S-BKI's hash_key_to_block); the
     R-tree query of the C++ is inclusive, so a point on a shared face belongs to both blocks.
     Returns point ids [M] and block indices [M, 3], block shift by block shift around each point's
     nearest block, points ascending within a shift (``kernels.block_membership`` tests the boxes and
@@ -277,6 +276,9 @@ class GatherTables:
 
 
 def gather_tables(owner_blocks: np.ndarray) -> GatherTables:
+    """The ``GatherTables`` of one scan from each point's owner block [N, 3]: the blocks holding points, the
+    points sorted by block, the test blocks and their sources (dense grid in a Warp kernel where the
+    blocks fit one, else sorted keys)."""
     blocks, keys, order, point_start = group_by_block(owner_blocks)
     grid, lo = dense_block_grid(blocks)
     if grid is not None:

@@ -15,15 +15,15 @@ def gather_sbki_blocks(test_blocks, sources, point_start, points, labels, *, len
     out = {}
     for b, block in enumerate(np.asarray(test_blocks)):
         index = block * n - n // 2 + local
-        centres64 = (index + 0.5) * resolution_m + grid_offset_m
-        centres32 = ((index.astype(np.float32) + np.float32(0.5)) * np.float32(resolution_m) + np.float32(grid_offset_m)).astype(np.float32)
+        centers64 = (index + 0.5) * resolution_m + grid_offset_m
+        centers32 = ((index.astype(np.float32) + np.float32(0.5)) * np.float32(resolution_m) + np.float32(grid_offset_m)).astype(np.float32)
         rows = np.zeros((len(index), num_classes + 2))
         for s in sources[b]:
             if s < 0:
                 continue
             for q in range(point_start[s], point_start[s + 1]):
-                near = np.sum((centres64 - points[q]) ** 2, axis=1) < (length * SBKI_REACH_FACTOR) ** 2
-                w = sbki_sparse_kernel(centres32, np.broadcast_to(points[q], centres32.shape), np.full(len(index), length), sigma0)
+                near = np.sum((centers64 - points[q]) ** 2, axis=1) < (length * SBKI_REACH_FACTOR) ** 2
+                w = sbki_sparse_kernel(centers32, np.broadcast_to(points[q], centers32.shape), np.full(len(index), length), sigma0)
                 hit = near & (w > 0)
                 rows[hit, labels[q]] += w[hit]
                 rows[hit, num_classes] += w[hit]

@@ -6,14 +6,17 @@ import numpy as np
 
 
 def block_membership_masks(points: np.ndarray, size: np.float32) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``kernels.block_membership.block_membership_masks``: each point's nearest block (float64
+    rounding of p / size) [N, 3] and the 27-bit mask of the blocks around it whose closed float32 box
+    holds it [N]."""
     points = np.asarray(points, np.float32)
     size = np.float32(size)
     half = np.float32(size / np.float32(2.0))
     nearest = np.floor(points.astype(np.float64) / np.float64(size) + 0.5).astype(np.int64)
     masks = np.zeros(len(points), np.int64)
     for bit, shift in enumerate((x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)):
-        centre = ((nearest + np.array(shift)).astype(np.float32) * size).astype(np.float32)
-        inside = ((centre - half <= points) & (points <= centre + half)).all(axis=1)
+        center = ((nearest + np.array(shift)).astype(np.float32) * size).astype(np.float32)
+        inside = ((center - half <= points) & (points <= center + half)).all(axis=1)
         masks[inside] |= 1 << bit
     return nearest, masks
 

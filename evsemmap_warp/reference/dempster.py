@@ -20,12 +20,12 @@ def dempster_map(points: np.ndarray, beliefs: np.ndarray, lengths: np.ndarray, v
                  resolution: float, sigma0: float) -> np.ndarray:
     """Masses [V, K] of ``voxels`` [V, 3] (indices) after fusing, for each voxel, every point within its
     kernel length, discounted by min(k, 1), one after another (the voxel starts vacuous)."""
-    centres = (np.asarray(voxels, np.float64) + 0.5) * resolution
+    centers = (np.asarray(voxels, np.float64) + 0.5) * resolution
     out = np.zeros((len(voxels), beliefs.shape[1]))
-    for v, centre in enumerate(centres):
+    for v, center in enumerate(centers):
         masses = np.zeros(beliefs.shape[1])
         for p, b, length in zip(points, beliefs, lengths):
-            d = np.linalg.norm(centre - p)
+            d = np.linalg.norm(center - p)
             if d < length:
                 w = min(float(sparse_kernel(np.array([d]), np.array([length]), sigma0)[0]), 1.0)
                 masses = fuse(masses, np.clip(b * w, 0.0, 1.0 - BELIEF_EPSILON))

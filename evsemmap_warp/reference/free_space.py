@@ -6,6 +6,9 @@ import numpy as np
 
 
 def ray_samples(direction, ray_length, origin, free_resolution, steps, samples_per_hit, first_row, total_rows: int) -> np.ndarray:
+    """Twin of ``kernels.free_space.ray_samples``: per hit h, rows first_row[h]... of the [total_rows, 3]
+    float32 output: the sensor origin, samples_per_hit[h] samples at ``steps`` along the ray, and one at
+    ray_length[h] - free_resolution when the ray is longer than that (m, the scan's frame)."""
     out = np.zeros((total_rows, 3), np.float32)
     origin = np.asarray(origin, np.float32)
     f = np.float32(free_resolution)

@@ -19,12 +19,14 @@ def pack_key(index: np.ndarray) -> np.ndarray:
 
 
 def unpack_key(keys: np.ndarray) -> np.ndarray:
+    """Twin of ``kernels.hash_table.unpack_key``: the voxel indices [..., 3] that packed int64 keys hold."""
     keys = np.asarray(keys, dtype=np.int64)
     field = (1 << KEY_BITS) - 1
     return np.stack([(keys >> 42) & field, (keys >> 21) & field, keys & field], axis=-1) - KEY_OFFSET
 
 
 def hash_slot(key: int, mask: int) -> int:
+    """Twin of ``kernels.hash_table.hash_slot``: the home slot of ``key`` in a table of ``mask + 1`` slots."""
     rounded = int(key) + ((1 << 42) | (1 << 21) | 1)
     brick = (rounded >> 1) & ((((1 << 20) - 1) << 42) | (((1 << 20) - 1) << 21) | ((1 << 20) - 1))
     local = ((rounded >> 40) & 4) | ((rounded >> 20) & 2) | (rounded & 1)
@@ -47,6 +49,8 @@ def _probe(table_keys: np.ndarray, key: int) -> int:
 
 
 def table_find_slot(table_keys: np.ndarray, key: int) -> int:
+    """Twin of ``kernels.hash_table.table_find_slot``: the slot holding ``key`` in ``table_keys``, or -1 when
+    it is absent."""
     if key == EMPTY_KEY:
         return -1
     slot = _probe(table_keys, key)
@@ -82,6 +86,7 @@ def insert_keys(keys_in: np.ndarray, table_keys: np.ndarray, slot_rows: np.ndarr
 
 
 def lookup_keys(keys_in: np.ndarray, table_keys: np.ndarray, slot_rows: np.ndarray) -> np.ndarray:
+    """Twin of ``kernels.hash_table.lookup_keys``: the row of each key of ``keys_in`` [N], -1 where absent."""
     return np.array([table_find(table_keys, slot_rows, int(k)) for k in keys_in], dtype=np.int64)
 
 
@@ -111,3 +116,8 @@ def rehash(old_keys: np.ndarray, old_slot_rows: np.ndarray, new_capacity: int) -
 def gather_rows(src: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """src[rows[i]] for every i."""
     return np.asarray(src)[np.asarray(rows, dtype=np.int64)]
+
+
+def read_counters(key_count: np.ndarray, update_count: np.ndarray) -> np.ndarray:
+    """Twin of ``kernels.hash_table.read_counters``: [key count, update count] as int64."""
+    return np.array([key_count[0], update_count[0]], dtype=np.int64)

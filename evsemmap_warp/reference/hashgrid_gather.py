@@ -1,5 +1,5 @@
 """numpy twin of ``kernels/hashgrid_gather.py``: the reached voxels, then per voxel the sums of the
-points whose length reaches its centre (vectorised over (point, voxel) pairs; no hash grid)."""
+points whose length reaches its center (vectorised over (point, voxel) pairs; no hash grid)."""
 
 from __future__ import annotations
 

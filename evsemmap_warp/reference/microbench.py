@@ -4,16 +4,20 @@ import numpy as np
 
 
 def stream_copy(src: np.ndarray) -> np.ndarray:
+    """Twin of ``kernels.microbench.stream_copy``: a copy of ``src``."""
     return src.copy()
 
 
 def add_rows64(rows: np.ndarray, weights: np.ndarray, data: np.ndarray) -> np.ndarray:
+    """Twin of ``kernels.microbench.add_rows64``: ``data`` with weights[t] added to every column of row
+    rows[t], in float64."""
     out = np.array(data, dtype=np.float64)
     np.add.at(out, rows, np.asarray(weights, np.float64)[:, None])
     return out
 
 
 def add_rows32(rows: np.ndarray, weights: np.ndarray, data: np.ndarray) -> np.ndarray:
+    """Twin of ``kernels.microbench.add_rows32``: the same in float32."""
     out = np.array(data, dtype=np.float32)
     np.add.at(out, rows, np.asarray(weights, np.float32)[:, None])
     return out

@@ -81,14 +81,14 @@ def gather_release_blocks(blocks, source_blocks, source_mult, point_start, point
     out = {}
     for b, block in enumerate(blocks):
         index = np.asarray(block) * n - n // 2 + local
-        centres = (index.astype(np.float32) + np.float32(0.5)) * np.float32(resolution_m)
+        centers = (index.astype(np.float32) + np.float32(0.5)) * np.float32(resolution_m)
         rows = np.zeros((len(index), k + 3))
         for o in range(source_blocks.shape[1]):
             s = source_blocks[b, o]
             if s < 0:
                 continue
             for q in range(point_start[s], point_start[s + 1]):
-                w = release_kernel(centres, points[q], length, sf2)
+                w = release_kernel(centers, points[q], length, sf2)
                 hit = w > 0
                 rows[hit, :k] += source_mult[b, o] * w[hit, None] * class_weights[q]
                 rows[hit, k] += source_mult[b, o] * w[hit]

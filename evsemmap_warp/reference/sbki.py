@@ -29,7 +29,7 @@ def sbki_insert(points, labels, *, resolution_m: float, block_depth: int, ell: f
                 counting: bool, num_classes: int) -> dict[tuple[int, int, int], tuple[np.ndarray, bool]]:
     """One S-BKI (or, with ``counting``, S-CSM) insertion of training points [N, 3] float32 with
     labels [N]. Returns {cell index: (evidence [K] float64, touched)} for every test-block cell.
-    Cell indices follow the engine's grid: for S-CSM (block_depth 1) cell i is centred at i r."""
+    Cell indices follow the engine's grid: for S-CSM (block_depth 1) cell i is centered at i r."""
     points = np.asarray(points, dtype=np.float32)
     size = np.float32(np.float32(2 ** (block_depth - 1)) * np.float32(resolution_m))
     n = 2 ** (block_depth - 1)

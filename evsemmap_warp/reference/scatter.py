@@ -89,7 +89,7 @@ def count_weight(n: int) -> np.ndarray:
 
 def sbki_compat_weight(voxels: np.ndarray, points: np.ndarray, lengths: np.ndarray, sigma0: float, resolution: float,
                        grid_offset: float) -> np.ndarray:
-    """The original S-BKI: its float32 kernel of the float32 cell centres [P, 3] and points [P, 3]."""
+    """The original S-BKI: its float32 kernel of the float32 cell centers [P, 3] and points [P, 3]."""
     centers32 = (np.asarray(voxels).astype(np.float32) + np.float32(0.5)) * np.float32(resolution) + np.float32(grid_offset)
     return sbki_sparse_kernel(centers32, np.asarray(points).astype(np.float32), np.asarray(lengths).astype(np.float32), np.float32(sigma0))
 
@@ -126,6 +126,8 @@ def weight_rule_values(mode: int, points, lengths, class_weights, pair_point, pa
 
 
 def block_of_voxel(index: np.ndarray, cells_per_block: int) -> np.ndarray:
+    """Twin of ``kernels.scatter.block_of_voxel``: the S-BKI block (``cells_per_block`` cells a side) of each
+    voxel index."""
     return np.floor_divide(index + cells_per_block // 2, cells_per_block)
 
 

@@ -9,7 +9,7 @@ from .scatter import MODE_RADIUS, _candidate_pairs, sparse_kernel
 
 
 def _pairs(points, lengths, resolution, grid_offset):
-    """Point ids, voxel indices and distances of the pairs with the voxel centre within the length."""
+    """Point ids, voxel indices and distances of the pairs with the voxel center within the length."""
     points, lengths = np.asarray(points, np.float64), np.asarray(lengths, np.float64)
     point_id, index = _candidate_pairs(points, lengths, None, MODE_RADIUS, resolution, grid_offset)
     d = np.linalg.norm((index + 0.5) * resolution + grid_offset - points[point_id], axis=1)
@@ -18,6 +18,8 @@ def _pairs(points, lengths, resolution, grid_offset):
 
 
 def count_pairs(points, lengths, resolution, grid_offset) -> np.ndarray:
+    """Twin of ``kernels.sorted_scatter.count_pairs``: how many voxel centers lie strictly within each
+    point's length [N] (points and lengths in m, relative to the map origin)."""
     point_id = _pairs(points, lengths, resolution, grid_offset)[0]
     return np.bincount(point_id, minlength=len(points))
 
@@ -31,10 +33,14 @@ def expand_pairs(points, lengths, resolution, grid_offset, sigma0):
 
 
 def mark_heads(sorted_keys: np.ndarray) -> np.ndarray:
+    """Twin of ``kernels.sorted_scatter.mark_heads``: 1 where a run of equal sorted keys starts, else 0 [N]
+    int32."""
     return np.r_[True, sorted_keys[1:] != sorted_keys[:-1]].astype(np.int32) if len(sorted_keys) else np.zeros(0, np.int32)
 
 
 def segment_starts(heads: np.ndarray) -> np.ndarray:
+    """Twin of ``kernels.sorted_scatter.segment_starts``: the positions of the heads, the first sorted pair
+    of each distinct voxel."""
     return np.flatnonzero(heads)
 
 

@@ -6,6 +6,8 @@ import numpy as np
 
 
 def leaf_indices(points, inverse_leaf, lowest, leaves_x, leaves_y) -> np.ndarray:
+    """Twin of ``kernels.voxel_grid.leaf_indices``: each point's VoxelGrid leaf index, floor(p *
+    inverse_leaf) - lowest per axis in float32, x fastest [N] int64."""
     rel = np.floor(np.asarray(points, np.float32) * np.float32(inverse_leaf)).astype(np.int64) - np.asarray(lowest, np.int64)
     return rel[:, 0] + rel[:, 1] * leaves_x + rel[:, 2] * (leaves_x * leaves_y)
 

@@ -43,6 +43,7 @@ class SyntheticOffroad:
         return self.length
 
     def name(self, i: int) -> str:
+        """Frame ``i``'s name, unique per domain and seed."""
         return f"synthetic_{self.domain}_{self.seed}_{i:05d}"
 
     def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:
@@ -98,6 +99,11 @@ def _pair_check(image: np.ndarray, label: np.ndarray, image_path, label_path) ->
 
 
 class Rellis3DImages:
+    """RELLIS-3D camera images with their 2D labels (color or id images), remapped to the 9 mapping classes:
+    one sequence folder, or every sequence under a root (``sequences`` picks some). Items are (image [H,
+    W, 3] uint8, labels [H, W]); unknown colors or ids, non-RGB images and label images of another size
+    raise ValueError naming the file."""
+
     num_classes = 9
 
     def __init__(self, root, sequences: list[str] | None = None):
@@ -123,6 +129,7 @@ class Rellis3DImages:
         return len(self.items)
 
     def name(self, i: int) -> str:
+        """Item ``i``'s name: its image file's stem."""
         return self.items[i][0].stem
 
     def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:
@@ -153,6 +160,7 @@ class SequenceImages:
         return len(self.frames)
 
     def name(self, i: int) -> str:
+        """Item ``i``'s name: ``frameNNNNNN`` of its frame index."""
         return f"frame{self.frames[i].index:06d}"
 
     def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:
@@ -161,6 +169,9 @@ class SequenceImages:
 
 
 class RugdImages:
+    """RUGD frames with their color annotations, remapped to the 9 mapping classes (``scenes`` picks some).
+    Raises ValueError when the root lacks RUGD's two folders or holds no annotated frames."""
+
     num_classes = 9
 
     def __init__(self, root, scenes: list[str] | None = None):
@@ -180,6 +191,7 @@ class RugdImages:
         return len(self.items)
 
     def name(self, i: int) -> str:
+        """Item ``i``'s name: its image file's stem."""
         return self.items[i][0].stem
 
     def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:
@@ -203,6 +215,8 @@ def resize_pair(image: np.ndarray, label: np.ndarray | None, size: tuple[int, in
 
 
 def to_tensor(image: np.ndarray, mean, std) -> torch.Tensor:
+    """An RGB image [H, W, 3] uint8 as a normalised float tensor [3, H, W] ((x / 255 - mean) / std); raises
+    ValueError for any other shape or dtype."""
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise ValueError(f"expected uint8 RGB images [H, W, 3], got {image.dtype} {list(image.shape)}")
     t = torch.from_numpy(np.array(image)).permute(2, 0, 1).float() / 255.0  # a copy: inputs may be read-only

@@ -12,6 +12,10 @@ import numpy as np
 
 @dataclass
 class SegmentationMetrics:
+    """Running 2D metrics of a segmentation network, fed batch by batch (``update``): the confusion matrix, a
+    reliability histogram of the winning probability (``bins`` bins) and histograms of the uncertainty u
+    on right and wrong pixels."""
+
     num_classes: int
     bins: int = 15
     confusion: np.ndarray = field(init=False)
@@ -60,19 +64,23 @@ class SegmentationMetrics:
 
     @property
     def miou(self) -> float:
+        """Mean IoU over the classes present in the ground truth (NaN when none is)."""
         return float(np.nanmean(self.iou)) if np.isfinite(self.iou).any() else float("nan")
 
     @property
     def pixel_accuracy(self) -> float:
+        """Share of pixels labelled right."""
         return float(np.trace(self.confusion) / max(self.confusion.sum(), 1))
 
     @property
     def ece(self) -> float:
+        """Expected calibration error of the winning probability over the reliability bins."""
         n = self.bin_count.sum()
         gap = np.abs(self.bin_correct - self.bin_confidence)  # per bin: |sum correct - sum confidence|
         return float(gap.sum() / max(n, 1))
 
     def mean_uncertainty(self, correct: bool) -> float:
+        """Mean u over the pixels labelled right (``correct``) or wrong."""
         hist = self.u_hist_correct if correct else self.u_hist_wrong
         centers = (np.arange(1000) + 0.5) / 1000
         return float((hist * centers).sum() / max(hist.sum(), 1))
@@ -87,6 +95,8 @@ class SegmentationMetrics:
         return float((wrong * (right_below + 0.5 * right)).sum() / (wrong.sum() * right.sum()))
 
     def summary(self, class_names) -> dict:
+        """The metrics as plain values for ``metrics.json``: mIoU, pixel accuracy, ECE, the AUROC of u, mean
+        u right and wrong, and IoU per class (None where absent)."""
         return {
             "miou": self.miou, "pixel_accuracy": self.pixel_accuracy, "ece": self.ece,
             "uncertainty_auroc": self.uncertainty_auroc,

@@ -18,6 +18,8 @@ from .config import ModelConfig
 
 
 class BasicBlock(nn.Module):
+    """ResNet's two-convolution residual block (ResNet-18/34), with stride and dilation."""
+
     expansion = 1
 
     def __init__(self, cin, cout, stride=1, dilation=1):
@@ -29,12 +31,16 @@ class BasicBlock(nn.Module):
         self.down = None if stride == 1 and cin == cout else nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
 
     def forward(self, x):
+        """x [B, cin, H, W] -> [B, cout, H / stride, W / stride]."""
         y = F.relu(self.bn1(self.conv1(x)))
         y = self.bn2(self.conv2(y))
         return F.relu(y + (x if self.down is None else self.down(x)))
 
 
 class Bottleneck(nn.Module):
+    """ResNet's 1x1-3x3-1x1 residual block (ResNet-50), output channels 4 x ``planes``, with stride and
+    dilation."""
+
     expansion = 4
 
     def __init__(self, cin, planes, stride=1, dilation=1):
@@ -49,6 +55,7 @@ class Bottleneck(nn.Module):
         self.down = None if stride == 1 and cin == cout else nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
 
     def forward(self, x):
+        """x [B, cin, H, W] -> [B, 4 planes, H / stride, W / stride]."""
         y = F.relu(self.bn1(self.conv1(x)))
         y = F.relu(self.bn2(self.conv2(y)))
         y = self.bn3(self.conv3(y))
@@ -76,10 +83,14 @@ class DilatedResNet(nn.Module):
         self.out_channels = cin
 
     def forward(self, x):
+        """Images [B, 3, H, W] -> features [B, C, H / os, W / os] (os: the output stride)."""
         return self.layer4(self.layer3(self.layer2(self.layer1(self.stem(x)))))
 
 
 class ASPP(nn.Module):
+    """Atrous spatial pyramid pooling: a 1x1 branch, a 3x3 branch per dilation rate and an image-pooling
+    branch, concatenated and projected to ``cout`` channels."""
+
     def __init__(self, cin, cout, rates):
         super().__init__()
         branch = lambda k, r: nn.Sequential(nn.Conv2d(cin, cout, k, padding=0 if k == 1 else r, dilation=r, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))  # noqa: E731
@@ -88,6 +99,7 @@ class ASPP(nn.Module):
         self.project = nn.Sequential(nn.Conv2d(cout * (len(rates) + 2), cout, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True), nn.Dropout(0.1))
 
     def forward(self, x):
+        """Features [B, cin, h, w] -> [B, cout, h, w]."""
         pooled = F.interpolate(self.pool(x), size=x.shape[-2:], mode="bilinear", align_corners=False)
         return self.project(torch.cat([b(x) for b in self.branches] + [pooled], dim=1))
 
@@ -110,6 +122,7 @@ class DeepLabV3(nn.Module):
                                   nn.BatchNorm2d(c), nn.ReLU(inplace=True), nn.Conv2d(c, config.num_classes, 1))
 
     def forward(self, x):
+        """Images [B, 3, H, W] (normalised) -> logits [B, K, H, W]."""
         return F.interpolate(self.head(self.backbone(x)), size=x.shape[-2:], mode="bilinear", align_corners=False)
 
 
@@ -125,6 +138,8 @@ class _TorchvisionDeepLab(nn.Module):
 
 
 def build_model(config: ModelConfig) -> nn.Module:
+    """The network ``config`` describes (randomly initialised). Raises ValueError for ``torchvision-r50``
+    without an importable torchvision."""
     if config.arch == "torchvision-r50":
         try:
             return _TorchvisionDeepLab(config)

@@ -30,6 +30,10 @@ CHECKPOINT_VERSION = 1
 
 @dataclass
 class TrainConfig:
+    """How a segmentation network is trained (``evsemmap train-seg``'s flags; stored in checkpoints): its
+    model, head, input size (H, W px), schedule, KL annealing, logit clamp, validation share, seed,
+    optional time budget (s), normalisation and starting weights."""
+
     model: ModelConfig = ModelConfig()
     head: str = "evidential"  # evidential (EDL loss) | softmax (cross-entropy, the "vanilla" baseline)
     input_size: tuple[int, int] = (128, 256)
@@ -48,9 +52,12 @@ class TrainConfig:
 
     @property
     def mean_std(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """The per-channel (mean, std) images are normalised with, RGB order."""
         return (IMAGENET_MEAN if self.normalization == "imagenet" else CAFFE_MEAN), IMAGENET_STD
 
     def validate(self) -> None:
+        """Raise ValueError naming the first value out of its range (head, validation share, epochs, batch
+        size, learning rate, normalisation, logit clamp)."""
         if self.head not in ("evidential", "softmax"):
             raise ValueError(f"head must be 'evidential' or 'softmax', got {self.head!r}")
         if not 0 < self.val_fraction < 1:
@@ -64,6 +71,7 @@ class TrainConfig:
 
 
 def seed_everything(seed: int) -> None:
+    """Seed Python's, numpy's and torch's random generators."""
     random.seed(seed)
     np.random.seed(seed)
     torch.manual_seed(seed)
@@ -80,6 +88,8 @@ def predict(model, images: torch.Tensor, head: str, clamp: float):
 
 @torch.no_grad()
 def evaluate(model, loader, head: str, clamp: float, num_classes: int) -> SegmentationMetrics:
+    """The ``SegmentationMetrics`` of ``model`` over ``loader``'s (images, labels) batches, in eval mode
+    without gradients."""
     model.eval()
     metrics = SegmentationMetrics(num_classes)
     for images, labels in loader:
@@ -93,6 +103,9 @@ class TimeBudgetWarning(UserWarning):
 
 
 def save_checkpoint(path, model, optimizer, epoch: int, config: TrainConfig, class_names, history) -> Path:
+    """Write a checkpoint (weights, optimizer state and the meta ``load_checkpoint`` needs: classes,
+    normalisation, training config, epoch, history) to ``path`` atomically; tensors and plain values only.
+    Returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {
@@ -137,6 +150,8 @@ def load_checkpoint(path, class_names=None):
 
 
 def split_indices(n: int, val_fraction: float, seed: int) -> tuple[list[int], list[int]]:
+    """(train, validation) indices of ``n`` items, a seeded random ``val_fraction`` (at least one) for
+    validation, both sorted; raises ValueError when no training item would be left."""
     order = np.random.default_rng(seed).permutation(n)
     n_val = max(1, int(round(n * val_fraction)))
     if n - n_val < 1:

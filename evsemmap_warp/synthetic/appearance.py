@@ -1,7 +1,7 @@
-"""How the synthetic world looks to the camera: per-class colours, surface patterns, sun and sky light,
+"""How the synthetic world looks to the camera: per-class colors, surface patterns, sun and sky light,
 cast shadows, distance haze and sensor noise, under named appearance domains.
 
-A domain (season, time of day, palette) changes colours and light but not geometry or labels, so a
+A domain (season, time of day, palette) changes colors and light but not geometry or labels, so a
 network trained in one domain meets the same scene looking different in another: the paper's
 "unseen environment" experiment, reproducible.
 """
@@ -12,7 +12,7 @@ import numpy as np
 
 from .noise import value_noise
 
-# Per-class base colours (by v3 class name), the sun's elevation and strength, sky colours, haze.
+# Per-class base colors (by v3 class name), the sun's elevation and strength, sky colors, haze.
 DOMAINS = {
     "summer": {"sky": (150, 190, 235), "vegetation": (40, 100, 35), "grass": (95, 160, 60), "dirt": (120, 90, 60),
                "paved": (110, 110, 115), "unpaved": (170, 150, 120), "water": (70, 90, 110), "object": (200, 60, 40),
@@ -37,8 +37,8 @@ def sun_direction(domain: str) -> np.ndarray:
     return np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
 
 
-def sky_colour(domain: str, directions: np.ndarray) -> np.ndarray:
-    """[N, 3] float sky radiance for ray ``directions`` [N, 3]: horizon colour blending to the zenith."""
+def sky_color(domain: str, directions: np.ndarray) -> np.ndarray:
+    """[N, 3] float sky radiance for ray ``directions`` [N, 3]: horizon color blending to the zenith."""
     style = DOMAINS[domain]
     t = np.clip(directions[:, 2], 0, 1)[:, None] ** 0.6
     return (np.array(style["sky"], float) * (1 - t) + np.array(style["sky_zenith"], float) * t) * style["light"]
@@ -59,25 +59,25 @@ def shade(
     """[N, 3] float radiance (0-255 scale) of N surface hits.
 
     ``face_material`` [N] indexes ``materials`` (scene.MATERIALS); ``lit`` [N] bool says whether the
-    sun reaches the point; ``face_index`` [N] gives each object part a stable colour variation.
+    sun reaches the point; ``face_index`` [N] gives each object part a stable color variation.
     """
     style = DOMAINS[domain]
-    base = np.array([np.array(style[m.colour_class], float) * m.tint for m in materials])
+    base = np.array([np.array(style[m.color_class], float) * m.tint for m in materials])
     scale = np.array([m.texture_scale_m for m in materials])
     amplitude = np.array([m.texture_amplitude for m in materials])
-    colour = base[face_material]
+    color = base[face_material]
     # Surface pattern in world coordinates (so it stays put as the camera moves): two octaves.
     coords = hit_points[:, :2] + hit_points[:, 2:3] * 0.7  # vertical faces still vary with height
     pattern = 0.65 * value_noise(coords / scale[face_material, None], 1.0, seed) + 0.35 * value_noise(coords / scale[face_material, None], 0.37, seed + 1)
-    colour = colour * (1 + amplitude[face_material, None] * (pattern[:, None] - 0.5) * 2)
+    color = color * (1 + amplitude[face_material, None] * (pattern[:, None] - 0.5) * 2)
     # Objects and plants differ a little from each other (by face group); ground does not.
     varies = np.array([not m.ground for m in materials])[face_material]
     variation = ((face_index.astype(np.int64) // 64 * 2654435761) % 1000) / 1000.0
-    colour = colour * np.where(varies, 0.9 + 0.2 * variation, 1.0)[:, None]
+    color = color * np.where(varies, 0.9 + 0.2 * variation, 1.0)[:, None]
     facing = np.where((normals * directions).sum(1, keepdims=True) > 0, -normals, normals)
     diffuse = np.clip(facing @ sun_direction(domain), 0, 1) * lit
     light = (AMBIENT + (1 - AMBIENT) * diffuse)[:, None] * style["light"]
-    radiance = colour * light
+    radiance = color * light
     haze = 1 - np.exp(-np.asarray(distances, float) / style["haze_m"])
     return radiance * (1 - haze[:, None]) + np.array(style["sky"], float) * style["light"] * haze[:, None]
 

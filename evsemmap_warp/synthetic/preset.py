@@ -11,20 +11,23 @@ from ..config import ConfigError, dataclass_from_dict, read_yaml_file
 
 @dataclass(frozen=True)
 class WorldParams:
-    size_m: float = 100.0  # square world, centred on the origin
-    terrain_cell_m: float = 0.5
-    hill_amplitude_m: float = 2.0
-    road_half_width_m: float = 3.0
-    trail_half_width_m: float = 1.4
+    """The procedural world: its size, terrain, road and trail, and how many of each object it holds (lengths
+    in m)."""
+
+    size_m: float = 100.0  # square world, centered on the origin
+    terrain_cell_m: float = 0.5  # edge of the terrain mesh's cells
+    hill_amplitude_m: float = 2.0  # peak-to-trough height of the rolling terrain
+    road_half_width_m: float = 3.0  # the road the drive follows
+    trail_half_width_m: float = 1.4  # the unpaved trail beside it
     gravel_road_fraction: float = 0.35  # share of the road's length that is unpaved (gravel), not asphalt
     dirt_fraction: float = 0.08  # share of the open ground covered by dirt patches
-    puddles: int = 12
-    trees_per_hectare: float = 50.0
-    bushes_per_hectare: float = 120.0
-    rocks_per_hectare: float = 30.0
-    vehicles: int = 3
-    poles: int = 10
-    barrels: int = 8
+    puddles: int = 12  # water patches on the ground
+    trees_per_hectare: float = 50.0  # density off the road
+    bushes_per_hectare: float = 120.0  # density off the road
+    rocks_per_hectare: float = 30.0  # density off the road
+    vehicles: int = 3  # objects placed by the road
+    poles: int = 10  # objects placed by the road
+    barrels: int = 8  # objects placed by the road
     barriers: int = 4  # void obstacles (RELLIS "barrier")
     # > 0: a corridor of this many size_m squares along x, generated tile by tile as the drive reaches
     # them (only the tiles in sensor range are held), for drives of any length
@@ -41,9 +44,11 @@ class WorldParams:
 
 @dataclass(frozen=True)
 class TrajectoryParams:
-    frames: int = 60
-    spacing_m: float = 1.0
-    sensor_height_m: float = 1.9
+    """The drive: LiDAR frames every ``spacing_m`` along the road, the sensor ``sensor_height_m`` above it."""
+
+    frames: int = 60  # LiDAR frames (fewer when the road is too short)
+    spacing_m: float = 1.0  # distance between frames along the road
+    sensor_height_m: float = 1.9  # the LiDAR above the road
     margin_m: float = 12.0  # distance kept from the world's edge
 
     def __post_init__(self):
@@ -53,13 +58,16 @@ class TrajectoryParams:
 
 @dataclass(frozen=True)
 class LidarParams:
-    beams: int = 64
-    azimuth_steps: int = 1024
-    fov_up_deg: float = 16.6
-    fov_down_deg: float = -16.6
-    max_range_m: float = 80.0
-    range_noise_m: float = 0.015
-    dropout: float = 0.02
+    """The spinning LiDAR: beams and columns, vertical field of view (degrees), range, range noise (m) and
+    dropouts."""
+
+    beams: int = 64  # rows of the spinning LiDAR
+    azimuth_steps: int = 1024  # columns per revolution
+    fov_up_deg: float = 16.6  # vertical field of view, upper edge
+    fov_down_deg: float = -16.6  # vertical field of view, lower edge
+    max_range_m: float = 80.0  # beams hitting nothing nearer return nothing
+    range_noise_m: float = 0.015  # standard deviation of the measured range
+    dropout: float = 0.02  # probability that a return is lost
     water_dropout: float = 0.6  # puddles are specular: most beams do not come back
 
     def __post_init__(self):
@@ -73,13 +81,16 @@ class LidarParams:
 
 @dataclass(frozen=True)
 class CameraParams:
-    width: int = 640
-    height: int = 400
-    hfov_deg: float = 70.0
+    """The pinhole camera on its LiDAR mount: image size (px), field of view and tilt (degrees), offset (m,
+    LiDAR frame), OpenCV distortion and JPEG quality."""
+
+    width: int = 640  # image size (px)
+    height: int = 400  # image size (px)
+    hfov_deg: float = 70.0  # horizontal field of view
     pitch_deg: float = -6.0  # downward tilt
-    offset_m: tuple = (0.15, 0.0, -0.25)  # camera centre in the LiDAR frame (x forward, y left, z up)
+    offset_m: tuple = (0.15, 0.0, -0.25)  # camera center in the LiDAR frame (x forward, y left, z up)
     distortion: tuple = (0.0, 0.0, 0.0, 0.0, 0.0)  # OpenCV k1 k2 p1 p2 k3
-    jpeg_quality: int = 95
+    jpeg_quality: int = 95  # of the written camera images
 
     def __post_init__(self):
         if self.width < 8 or self.height < 8 or not 10 <= self.hfov_deg <= 150:
@@ -90,7 +101,9 @@ class CameraParams:
 
 @dataclass(frozen=True)
 class AppearanceParams:
-    domain: str = "summer"
+    """How the camera sees the world: the appearance domain (colors and light) and the sensor noise."""
+
+    domain: str = "summer"  # appearance: summer, autumn or dusk (colors and light; geometry and labels unchanged)
     noise_sigma: float = 3.0  # sensor noise, 8-bit grey levels
 
     def __post_init__(self):
@@ -102,8 +115,11 @@ class AppearanceParams:
 
 @dataclass(frozen=True)
 class SynthPreset:
-    name: str = "custom"
-    seed: int = 0
+    """A synthetic preset (``configs/synthetic/NAME.yaml``): its name, seed and the sections world,
+    trajectory, lidar, camera and appearance."""
+
+    name: str = "custom"  # recorded in the sequence's synth.yaml; a built-in preset's file name
+    seed: int = 0  # the world, the drive and the sensor noise follow from it
     world: WorldParams = field(default_factory=WorldParams)
     trajectory: TrajectoryParams = field(default_factory=TrajectoryParams)
     lidar: LidarParams = field(default_factory=LidarParams)
@@ -112,10 +128,13 @@ class SynthPreset:
 
 
 def presets_dir() -> Path:
+    """The folder of the built-in synthetic presets (``configs/synthetic/``, installed as
+    ``evsemmap_warp.configs.synthetic``)."""
     return Path(str(resources.files("evsemmap_warp.configs") / "synthetic"))
 
 
 def available_presets() -> list[str]:
+    """The built-in synthetic preset names, sorted."""
     return sorted(p.stem for p in presets_dir().glob("*.yaml"))
 
 

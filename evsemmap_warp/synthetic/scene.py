@@ -22,10 +22,13 @@ from .preset import TrajectoryParams, WorldParams
 
 @dataclass(frozen=True)
 class Material:
+    """A surface of the synthetic world: the RELLIS-3D ontology id its points and pixels are labelled with,
+    its look (base color class, tint, surface pattern), its LiDAR reflectivity and whether it is ground."""
+
     name: str
     original_id: int  # RELLIS-3D ontology id written to the label files (id 11 "gravel" is RUGD's)
-    colour_class: str  # which appearance-domain colour it starts from
-    tint: tuple[float, float, float]  # multiplies that colour
+    color_class: str  # which appearance-domain color it starts from
+    tint: tuple[float, float, float]  # multiplies that color
     texture_scale_m: float  # feature size of its surface pattern
     texture_amplitude: float  # relative brightness variation of that pattern
     reflectivity: float  # LiDAR intensity at normal incidence
@@ -54,19 +57,24 @@ MATERIAL_ORIGINAL_IDS = np.array([m.original_id for m in MATERIALS], np.uint8)
 
 @dataclass
 class World:
+    """A rendered world as one triangle mesh: vertices [V, 3] (m, float32), faces [F, 3], each face's
+    material, the road's center line [M, 3], and the parameters and seed it came from."""
+
     vertices: np.ndarray  # [V, 3] float32, metres
     faces: np.ndarray  # [F, 3] int32
     face_material: np.ndarray  # [F] int16 index into MATERIALS
-    road: np.ndarray  # [M, 3] centre line of the paved road, sampled densely
+    road: np.ndarray  # [M, 3] center line of the paved road, sampled densely
     params: WorldParams
     seed: int
 
     @property
     def face_original_id(self) -> np.ndarray:
+        """[F] the RELLIS-3D ontology id of each face."""
         return MATERIAL_ORIGINAL_IDS[self.face_material]
 
     @property
     def face_v3(self) -> np.ndarray:
+        """[F] the 9-class (remap v3) id of each face."""
         return original_to_v3_table()[self.face_original_id].astype(np.int16)
 
     def mesh(self) -> trimesh.Trimesh:
@@ -104,7 +112,7 @@ class _Terrain:
         self.road_wavelength = shape_rng.uniform(0.7, 1.1) * params.size_m
         self.road_phase = shape_rng.uniform(0, 2 * np.pi)
         self.x_offset = x_offset
-        # The road is graded: near it the ground blends into the height of the road's centre line.
+        # The road is graded: near it the ground blends into the height of the road's center line.
         road_height = self._grid_height(height, x, self.road_y(x))
         blend = np.clip((np.abs(y - self.road_y(x)) - params.road_half_width_m - 0.5) / 4.0, 0, 1)
         self.height = road_height + (height - road_height) * blend
@@ -132,7 +140,7 @@ class _Terrain:
 
 
 def _road_distance(terrain: _Terrain, x, y):
-    """Distance to the road centre line, approximated by the vertical offset scaled by the slope."""
+    """Distance to the road center line, approximated by the vertical offset scaled by the slope."""
     slope = terrain.road_amplitude * 2 * np.pi / terrain.road_wavelength * np.cos(2 * np.pi * x / terrain.road_wavelength + terrain.road_phase)
     return np.abs(y - terrain.road_y(x)) / np.sqrt(1 + slope**2)
 
@@ -165,15 +173,15 @@ def _terrain_mesh(terrain: _Terrain, params: WorldParams, rng: np.random.Generat
     index = np.arange((n + 1) * (n + 1)).reshape(n + 1, n + 1)
     a, b, c, d = index[:-1, :-1].ravel(), index[1:, :-1].ravel(), index[1:, 1:].ravel(), index[:-1, 1:].ravel()
     faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])  # counter-clockwise from above: normals up
-    centre = vertices[faces].mean(axis=1)
-    cx, cy = centre[:, 0], centre[:, 1]
+    center = vertices[faces].mean(axis=1)
+    cx, cy = center[:, 0], center[:, 1]
     material = np.full(len(faces), MATERIAL_INDEX["grass"], np.int16)
-    patches = value_noise(centre[:, :2], 6.0, seed + 11)
+    patches = value_noise(center[:, :2], 6.0, seed + 11)
     material[patches > np.quantile(patches, 1 - params.dirt_fraction)] = MATERIAL_INDEX["dirt"]
     trail_distance = _trail_distance(terrain, cx, cy)
     material[trail_distance < params.trail_half_width_m] = MATERIAL_INDEX["gravel"]
     muddy = (trail_distance >= params.trail_half_width_m) & (trail_distance < params.trail_half_width_m + 0.6)
-    material[muddy & (value_noise(centre[:, :2], 2.0, seed + 12) > 0.6)] = MATERIAL_INDEX["mud"]
+    material[muddy & (value_noise(center[:, :2], 2.0, seed + 12) > 0.6)] = MATERIAL_INDEX["mud"]
     road = _road_distance(terrain, cx, cy) < params.road_half_width_m
     material[road] = MATERIAL_INDEX["asphalt"]
     # Off-road tracks change surface: one stretch of the road is gravel (its own generator, so that the
@@ -188,7 +196,7 @@ def _terrain_mesh(terrain: _Terrain, params: WorldParams, rng: np.random.Generat
 
 
 def _place(terrain, rng, count, min_road_m, size_m):
-    """``count`` ground positions at least ``min_road_m`` from the road's centre line."""
+    """``count`` ground positions at least ``min_road_m`` from the road's center line."""
     out = []
     for _ in range(20 * max(count, 1)):
         if len(out) >= count:
@@ -216,7 +224,7 @@ def _jitter(mesh: trimesh.Trimesh, rng, amount):
 
 def generate_world(params: WorldParams, seed: int, *, tile: int | None = None) -> World:
     """The world of ``seed``; with ``tile``, the tile-th square of the corridor world of ``seed``
-    (centred at x = tile * size_m; its hills and road continue into its neighbours, its objects,
+    (centered at x = tile * size_m; its hills and road continue into its neighbours, its objects,
     puddles, trail and patches are its own), so a drive of any length needs only the tiles in view."""
     rng = np.random.default_rng(seed if tile is None else [seed, tile])
     terrain = _corridor_terrain(params, seed, tile, rng) if tile is not None else _Terrain(params, rng)
@@ -308,7 +316,7 @@ def _corridor_terrain(params: WorldParams, seed: int, tile: int, rng: np.random.
 
 
 def corridor_road(params: WorldParams, seed: int, tiles: int) -> np.ndarray:
-    """[M, 3] the road's centre line through a corridor world of ``tiles`` tiles (terrain only: no
+    """[M, 3] the road's center line through a corridor world of ``tiles`` tiles (terrain only: no
     tile's objects are built)."""
     parts = []
     for tile in range(tiles):

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..core.warp_runtime import init_warp, resolve_device
 from ..geometry.camera import PinholeCamera, rigid, transform_points
-from .appearance import add_sensor_noise, shade, sky_colour, sun_direction
+from .appearance import add_sensor_noise, shade, sky_color, sun_direction
 from .preset import CameraParams, LidarParams
 from .scene import MATERIAL_INDEX, MATERIALS, World
 
@@ -31,6 +31,9 @@ class RayCaster:
         self.mesh = wp.Mesh(points=self._points, indices=self._indices)
 
     def cast(self, origins: np.ndarray, directions: np.ndarray, max_distance: float):
+        """Cast rays from ``origins`` ([N, 3] or one [3], m, the world's frame) along unit ``directions`` [N,
+        3] up to ``max_distance`` (m): hit distances [N] (-1 for a miss), hit faces [N] (-1 for a miss)
+        and unit normals [N, 3]."""
         wp, n = self.wp, len(directions)
         origins = np.broadcast_to(np.asarray(origins, np.float32), (n, 3))
         distance = wp.empty(n, dtype=float, device=self.device)
@@ -46,6 +49,9 @@ class RayCaster:
 
 @dataclass
 class LidarScan:
+    """One LiDAR scan: points [beams * azimuth_steps, 4] float32 (x, y, z in m, LiDAR frame, and intensity;
+    zeros where no return) and each point's RELLIS-3D ontology id (0 where no return)."""
+
     points: np.ndarray  # [beams * azimuth_steps, 4] float32 x, y, z, intensity in the LiDAR frame; zeros where no return
     original_id: np.ndarray  # [same] uint32 RELLIS-3D ontology id per point (0 where no return)
 
@@ -89,11 +95,15 @@ def camera_to_lidar(params: CameraParams) -> np.ndarray:
 
 
 def camera_model(params: CameraParams) -> PinholeCamera:
+    """The pinhole camera of a preset's camera section."""
     return PinholeCamera.from_fov(params.width, params.height, params.hfov_deg, params.distortion)
 
 
 @dataclass
 class CameraFrame:
+    """One camera frame: RGB [H, W, 3] uint8, each pixel's RELLIS-3D ontology id [H, W] (sky where rays
+    escape) and its distance along the ray (m, inf for sky)."""
+
     rgb: np.ndarray  # [H, W, 3] uint8
     original_id: np.ndarray  # [H, W] uint8 RELLIS-3D ontology id per pixel (7 = sky where rays escape)
     depth: np.ndarray  # [H, W] float32 distance along the ray, inf for sky
@@ -114,7 +124,7 @@ def render_camera(caster: RayCaster, world: World, pose: np.ndarray, params: Cam
     origin = camera_pose[:3, 3]
     distance, face, normal = caster.cast(origin, directions, max_distance)
     hit = face >= 0
-    radiance = sky_colour(domain, directions)
+    radiance = sky_color(domain, directions)
     hit_points = origin + directions[hit] * distance[hit, None]
     # Shadow rays towards the sun from every visible surface point.
     facing = np.where((normal[hit] * directions[hit]).sum(1, keepdims=True) > 0, -normal[hit], normal[hit])
@@ -129,5 +139,6 @@ def render_camera(caster: RayCaster, world: World, pose: np.ndarray, params: Cam
 
 
 def lidar_points_in_world(scan: LidarScan, pose: np.ndarray) -> np.ndarray:
+    """The scan's returned points [M, 3] (m) in the world frame, through the LiDAR ``pose`` [4, 4]."""
     returned = np.any(scan.points[:, :3] != 0, axis=1)
     return transform_points(pose, scan.points[returned, :3])

@@ -34,12 +34,14 @@ FRAME_PERIOD_S = 0.1  # 10 Hz, like RELLIS-3D's LiDAR
 
 
 def frame_stem(index: int) -> str:
+    """The file stem of frame ``index`` as RELLIS-3D names its camera files: ``frameNNNNNN-<sec>_<msec>``,
+    from a fixed start time and frame period."""
     stamp = 1_600_000_000 + index * FRAME_PERIOD_S
     return f"frame{index:06d}-{int(stamp)}_{int(round((stamp % 1) * 1000)):03d}"
 
 
-def colour_lut() -> np.ndarray:
-    """[256, 3] uint8: ontology id -> RELLIS-3D label colour."""
+def color_lut() -> np.ndarray:
+    """[256, 3] uint8: ontology id -> RELLIS-3D label color."""
     lut = np.zeros((256, 3), np.uint8)
     for rgb, original in palette("rellis3d_colors").items():
         lut[original] = rgb
@@ -47,6 +49,9 @@ def colour_lut() -> np.ndarray:
 
 
 def write_sequence_metadata(out: Path, preset: SynthPreset, poses: np.ndarray) -> None:
+    """Write a sequence's calibration and poses beside its frames: ``camera_info.txt``,
+    ``camera_distortion.txt``, ``transforms.yaml`` (the camera's LiDAR mount), ``poses.txt`` (every digit
+    of the LiDAR poses [F, 4, 4]) and ``frame.yaml`` (the poses' frame name)."""
     camera = camera_model(preset.camera)
     (out / "camera_info.txt").write_text(f"{camera.fx:.6f} {camera.fy:.6f} {camera.cx:.6f} {camera.cy:.6f}\n")
     (out / "camera_distortion.txt").write_text(" ".join(f"{d:.6f}" for d in camera.distortion) + "\n")
@@ -75,8 +80,8 @@ class _CorridorWorld:
 
     def at(self, pose: np.ndarray):
         size, tiles = self.preset.world.size_m, self.preset.world.corridor_tiles
-        centre = int(np.floor((pose[0, 3] + size / 2) / size))
-        window = tuple(t for t in range(centre - self.tiles_each_side, centre + self.tiles_each_side + 1) if 0 <= t < tiles)
+        center = int(np.floor((pose[0, 3] + size / 2) / size))
+        window = tuple(t for t in range(center - self.tiles_each_side, center + self.tiles_each_side + 1) if 0 <= t < tiles)
         if window != self.window:
             parts = [generate_world(self.preset.world, self.preset.seed, tile=t) for t in window]
             self.world = concatenate_worlds(parts)
@@ -116,7 +121,7 @@ def generate_sequence(preset: SynthPreset, out, *, device: str | None = "cpu", p
     for folder in folders.values():
         folder.mkdir(parents=True, exist_ok=True)
     write_sequence_metadata(out, preset, poses)
-    lut = colour_lut()
+    lut = color_lut()
     beams = lidar_directions(preset.lidar)
     pixel_rays = camera_model(preset.camera).pixel_rays().reshape(-1, 3) if camera else None
     lidar_rays = 0

@@ -5,8 +5,9 @@ lethal mask), and writes them as a GeoTIFF, an .npz, PNG previews and a ROS bag 
 from .config import CostSettings, LayerSettings, TerrainConfig, default_costs_path, load_terrain_config
 from .api import compute_layers
 from .layers import LayerGrid, TerrainLayers, band_names
+from .pipeline import write_layers
 
 __all__ = [
     "CostSettings", "LayerGrid", "LayerSettings", "TerrainConfig", "TerrainLayers", "band_names", "compute_layers",
-    "default_costs_path", "load_terrain_config",
+    "default_costs_path", "load_terrain_config", "write_layers",
 ]

@@ -15,7 +15,7 @@ def compute_layers(source, *, resolution_m=None, bounds=None, config: TerrainCon
 
     ``resolution_m``: cell edge (m), default the map's voxel size (a store's must divide its tiles).
     ``bounds``: [x0, y0, x1, y1] or [x0, y0, z0, x1, y1, z1] (m, the map's world frame): the grid covers
-    the cells meeting it, and only voxels whose centres lie in its z range count. ``config``: surface
+    the cells meeting it, and only voxels whose centers lie in its z range count. ``config``: surface
     classes, windows and cost table (``load_terrain_config``; default: configs/terrain/costs_v3.yaml)."""
     config = config if config is not None else load_terrain_config()
     if isinstance(source, MapStore):

@@ -25,6 +25,7 @@ DEFAULT_COSTS_NAME = "costs_v3.yaml"
 
 
 def default_costs_path() -> Path:
+    """The default cost table, ``configs/terrain/costs_v3.yaml`` (the 9 remap-v3 / RELLIS-3D classes)."""
     return Path(str(resources.files("evsemmap_warp.configs") / "terrain" / DEFAULT_COSTS_NAME))
 
 
@@ -37,14 +38,14 @@ class LayerSettings:
     a robot (higher ones, a canopy, are overhangs). ``plane_window_cells``, ``step_window_cells``: odd
     window edges (cells) of the plane fit (slope, roughness) and of the step. ``min_plane_cells``: known
     cells a plane fit needs. ``min_evidence``: evidence (summed over classes) an OCCUPIED voxel needs to
-    count; below it a voxel holds only the tails of kernels centred elsewhere."""
+    count; below it a voxel holds only the tails of kernels centered elsewhere."""
 
-    surface_classes: tuple = ("water", "paved", "unpaved", "dirt", "grass")
-    clearance_m: float = 1.5
-    min_evidence: float = 0.0
-    plane_window_cells: int = 5
-    step_window_cells: int = 3
-    min_plane_cells: int = 6
+    surface_classes: tuple = ("water", "paved", "unpaved", "dirt", "grass")  # classes whose occupied voxels support a robot
+    clearance_m: float = 1.5  # occupied voxels up to this far above the support meet a robot; higher ones are overhangs
+    min_evidence: float = 0.0  # evidence (summed over classes) an OCCUPIED voxel needs to count
+    plane_window_cells: int = 5  # odd window edge of the plane fit (slope, roughness), cells
+    step_window_cells: int = 3  # odd window edge of the step, cells
+    min_plane_cells: int = 6  # known cells a plane fit needs
 
     def __post_init__(self):
         for key in ("plane_window_cells", "step_window_cells"):
@@ -71,15 +72,15 @@ class CostSettings:
     probability reaches ``lethal_probability`` (two lethal classes sharing a voxel), or its slope or
     step passes its limit."""
 
-    classes: dict = field(default_factory=dict)
-    lethal_classes: tuple = ()
-    lethal_probability: float = 0.5
-    uncertainty_weight: float = 1.0
-    max_slope_deg: float = 25.0
-    slope_weight: float = 0.3
-    max_step_m: float = 0.3
-    free_step_m: float = 0.2
-    step_weight: float = 0.3
+    classes: dict = field(default_factory=dict)  # class name -> cost >= 0; every class of the map needs one
+    lethal_classes: tuple = ()  # classes a robot must not meet
+    lethal_probability: float = 0.5  # lethal when the lethal classes' expected probability reaches this
+    uncertainty_weight: float = 1.0  # standard deviations of the class cost added to its mean
+    max_slope_deg: float = 25.0  # steeper is lethal; below it the slope adds slope_weight * slope / max_slope_deg
+    slope_weight: float = 0.3  # cost of a slope just below max_slope_deg
+    max_step_m: float = 0.3  # a larger step is lethal
+    free_step_m: float = 0.2  # steps up to this cost nothing; then the cost rises linearly to step_weight at max_step_m
+    step_weight: float = 0.3  # cost of a step just below max_step_m
 
     def __post_init__(self):
         for name, cost in self.classes.items():
@@ -101,6 +102,9 @@ class CostSettings:
 
 @dataclass(frozen=True)
 class TerrainConfig:
+    """The terrain settings of one file: the column reduction's and filters' ``layers``, the cost model's
+    ``costs``, and the file they came from (for messages)."""
+
     layers: LayerSettings = field(default_factory=LayerSettings)
     costs: CostSettings = field(default_factory=CostSettings)
     source: str = "defaults"  # the file it was read from

@@ -43,14 +43,18 @@ MAX_CELLS = 1 << 30  # a grid of more cells is refused (a typo in --bounds or --
 
 
 def probability_band(name: str) -> str:
+    """The band name of class ``name``'s expected probability: ``probability_<name>``."""
     return f"probability_{name}"
 
 
 def band_names(class_names) -> list[str]:
+    """Every band of layers of these classes, in file order: the scalar bands, then one probability band per
+    class."""
     return list(SCALAR_BANDS) + [probability_band(n) for n in class_names]
 
 
 def band_units(name: str) -> str:
+    """The unit of band ``name`` (``m``, ``deg``, ...; ``1`` for unitless bands)."""
     return UNITS.get(name, "1")
 
 
@@ -68,18 +72,22 @@ class LayerGrid:
 
     @property
     def x0_m(self) -> float:
+        """The grid's western edge (m, the map's world frame)."""
         return self.offset_m + self.first_cell[0] * self.cell_m
 
     @property
     def y0_m(self) -> float:
+        """The grid's southern edge (m, the map's world frame)."""
         return self.offset_m + self.first_cell[1] * self.cell_m
 
     @property
     def x1_m(self) -> float:
+        """The grid's eastern edge (m, the map's world frame)."""
         return self.x0_m + self.width * self.cell_m
 
     @property
     def y1_m(self) -> float:
+        """The grid's northern edge (m, the map's world frame)."""
         return self.y0_m + self.height * self.cell_m
 
     def transform(self) -> tuple[float, float, float, float, float, float]:
@@ -92,13 +100,14 @@ class LayerGrid:
         row = (outer.first_cell[1] + outer.height) - (self.first_cell[1] + self.height)
         return row, column
 
-    def cell_centres(self) -> tuple[np.ndarray, np.ndarray]:
-        """x [width] and y [height] of the cell centres, y north-up (m)."""
+    def cell_centers(self) -> tuple[np.ndarray, np.ndarray]:
+        """x [width] and y [height] of the cell centers, y north-up (m)."""
         x = self.x0_m + (np.arange(self.width) + 0.5) * self.cell_m
         y = self.y1_m - (np.arange(self.height) + 0.5) * self.cell_m
         return x, y
 
     def as_dict(self) -> dict:
+        """The grid as plain values for JSON metadata, with its bounds (m)."""
         return {"cell_m": self.cell_m, "offset_m": self.offset_m, "first_cell": list(self.first_cell), "width": self.width,
                 "height": self.height, "bounds_m": [self.x0_m, self.y0_m, self.x1_m, self.y1_m]}
 
@@ -115,9 +124,11 @@ class TerrainLayers:
 
     @property
     def band_names(self) -> list[str]:
+        """Every band name, in file order."""
         return band_names(self.class_names)
 
     def metadata(self) -> dict:
+        """The layers' metadata for files: grid, frame, classes, bands, units and the cost file."""
         return {"grid": self.grid.as_dict(), "frame": None if self.frame is None else self.frame.as_dict(),
                 "classes": list(self.class_names), "bands": self.band_names, "units": {b: band_units(b) for b in self.band_names},
                 "costs_file": self.config.source}
@@ -135,7 +146,7 @@ def check_resolution(resolution_m, voxel_m: float) -> float:
     if not math.isfinite(value) or value <= 0:
         raise ValueError(f"resolution_m = {resolution_m!r} must be a finite number > 0 (m)")
     if value < voxel_m * (1 - 1e-9):
-        raise ValueError(f"resolution_m = {value} is finer than the map's voxels ({voxel_m} m): most cells would hold no voxel centre")
+        raise ValueError(f"resolution_m = {value} is finer than the map's voxels ({voxel_m} m): most cells would hold no voxel center")
     return value
 
 
@@ -171,7 +182,7 @@ def grid_covering(x_range, y_range, cell_m: float, offset_m: float) -> LayerGrid
 
 
 def voxel_extent(index: np.ndarray, voxel_m: float, offset_m: float) -> np.ndarray:
-    """[[x0, y0, z0], [x1, y1, z1]]: the box of the voxels' centres (m)."""
+    """[[x0, y0, z0], [x1, y1, z1]]: the box of the voxels' centers (m)."""
     return (np.stack([index.min(axis=0), index.max(axis=0)]).astype(np.float64) + 0.5) * voxel_m + offset_m
 
 
@@ -181,7 +192,7 @@ def grid_for(extent: np.ndarray, cell_m: float, offset_m: float, bounds: np.ndar
         return grid_covering(extent[:, 0], extent[:, 1], cell_m, offset_m)
     if np.any(bounds[0] > extent[1]) or np.any(bounds[1] < extent[0]):
         box = ", ".join(f"{a} {lo:.2f}..{hi:.2f}" for a, lo, hi in zip("xyz", extent[0], extent[1]))
-        raise ValueError(f"bounds {bounds.reshape(-1).tolist()} lie outside {where} (voxel centres span {box})")
+        raise ValueError(f"bounds {bounds.reshape(-1).tolist()} lie outside {where} (voxel centers span {box})")
     return grid_covering(bounds[:, 0], bounds[:, 1], cell_m, offset_m)
 
 
@@ -406,6 +417,7 @@ def to_north_up(bands: dict[str, np.ndarray], class_names) -> dict[str, np.ndarr
 
 # The API -------------------------------------------------------------------------------------------------
 def surface_mask(config: TerrainConfig, class_names) -> np.ndarray:
+    """[K] int32: 1 for the classes the config's ``surface_classes`` name, else 0."""
     return np.array([name in config.layers.surface_classes for name in class_names], np.int32)
 
 
@@ -414,7 +426,7 @@ def map_layers(mapper: Mapper, *, resolution_m=None, bounds=None, config: Terrai
 
     ``resolution_m``: cell edge (m), default the map's voxel size. ``bounds``: [x0, y0, x1, y1] or
     [x0, y0, z0, x1, y1, z1] (m, the map's world frame): the grid covers the cells meeting it, and only
-    voxels whose centres lie in its z range count. ``config``: settings and cost table
+    voxels whose centers lie in its z range count. ``config``: settings and cost table
     (``load_terrain_config``; default: configs/terrain/costs_v3.yaml)."""
     config = config if config is not None else load_terrain_config()
     if not isinstance(mapper, Mapper):

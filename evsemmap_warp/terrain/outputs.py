@@ -1,4 +1,4 @@
-"""Writing terrain layers: a multi-band GeoTIFF (rasterio), an .npz, PNG previews with colour bars and
+"""Writing terrain layers: a multi-band GeoTIFF (rasterio), an .npz, PNG previews with color bars and
 class legends, and a ROS 1 bag with a ``grid_map_msgs/GridMap`` and a ``nav_msgs/OccupancyGrid``
 (rosbags). Each writer takes the layers grid by grid (a map's one grid, or a store's tiles in turn),
 so a store is written with the memory of a tile (docs/terrain.md).
@@ -6,7 +6,7 @@ so a store is written with the memory of a tile (docs/terrain.md).
 GeoTIFF: float32 bands in ``band_names`` order, described by name and unit, nodata NaN, north-up, the
 affine transform of the map's world frame, its CRS when it has one, and its name in the tags
 (``FRAME``, always). grid_map: every band a layer, in grid_map's storage order (column-major, index
-(0, 0) at the +x +y corner), the grid's centre as its pose in the world frame. OccupancyGrid: the
+(0, 0) at the +x +y corner), the grid's center as its pose in the world frame. OccupancyGrid: the
 traversability cost as 0..99, lethal 100, unknown -1, row 0 at the southern edge.
 """
 
@@ -80,6 +80,7 @@ def check_output_folder(out) -> Path:
 
 
 def frame_id(frame: WorldFrame | None) -> str:
+    """The ROS frame id of the layers' world frame (``map`` for maps written before frames were recorded)."""
     return UNFRAMED if frame is None else frame.name
 
 
@@ -126,6 +127,7 @@ class GeoTiffWriter:
         self._covered = np.zeros((grid.height, grid.width), bool) if grid.width * grid.height <= 1 << 26 else None
 
     def write(self, layers: TerrainLayers) -> None:
+        """Write every band of ``layers`` (a part of the writer's grid) into its window."""
         from rasterio.windows import Window
 
         row, column = layers.grid.window_in(self.grid)
@@ -136,6 +138,8 @@ class GeoTiffWriter:
             self._covered[row:row + layers.grid.height, column:column + layers.grid.width] = True
 
     def close(self) -> Path:
+        """Finish the file (cells no part reached get zero counts and masks) and rename it into place;
+        returns its path."""
         from rasterio.windows import Window
 
         if self._covered is not None and not self._covered.all():
@@ -151,6 +155,7 @@ class GeoTiffWriter:
         return self.path
 
     def abort(self) -> None:
+        """Close and delete the unfinished file; the final path is left untouched."""
         try:
             self.dataset.close()
         finally:
@@ -159,9 +164,9 @@ class GeoTiffWriter:
 
 # npz -------------------------------------------------------------------------------------------------------
 def write_npz(path, layers: TerrainLayers) -> Path:
-    """Every band as a [height, width] float32 array (north-up, NaN unknown) and ``meta``: a JSON string
-    with the grid, the frame, the classes, the bands' units and the affine transform. Compressed at zlib
-    level 1 (numpy's savez_compressed uses 6: 4x the time, which dominated a store's layers)."""
+    """Every band as a [height, width] float32 array (north-up, NaN unknown) and ``meta``: a JSON string with the
+    grid, the frame, the classes, the bands' units and the affine transform. Compressed at zlib level 1
+    (numpy's savez_compressed uses 6, whose time dominated a store's layers)."""
     import zipfile
 
     meta = layers.metadata() | {"transform": list(layers.grid.transform()), "written_by": f"evsemmap_warp {__version__}"}
@@ -177,13 +182,14 @@ def write_npz(path, layers: TerrainLayers) -> Path:
 
 
 def read_npz(path) -> tuple[dict[str, np.ndarray], dict]:
+    """The bands (name -> [height, width] float32) and metadata of a ``layers.npz`` or tile npz."""
     with np.load(path, allow_pickle=False) as data:
         meta = json.loads(str(data["meta"]))
         return {name: data[name] for name in meta["bands"]}, meta
 
 
 # PNG previews ------------------------------------------------------------------------------------------------
-PREVIEW_COLOURMAPS = {
+PREVIEW_COLORMAPS = {
     "elevation": "terrain", "elevation_top": "terrain", "cover_height": "terrain", "slope": "magma", "roughness": "viridis",
     "step": "magma", "surface_probability": "viridis", "semantic_variance": "inferno", "input_uncertainty": "inferno",
     "lethal_class_probability": "Reds", "observations": "cividis", "class_cost_mean": "RdYlGn_r", "class_cost_std": "inferno",
@@ -193,12 +199,14 @@ MAX_PREVIEW_PIXELS = 1600  # the longer side of a preview; larger grids are show
 
 
 def preview_stride(grid: LayerGrid) -> int:
+    """The decimation of previews of ``grid``: the smallest step that keeps its longer side within
+    MAX_PREVIEW_PIXELS."""
     return max(1, int(np.ceil(max(grid.width, grid.height) / MAX_PREVIEW_PIXELS)))
 
 
-def write_previews(folder, bands: dict[str, np.ndarray], grid: LayerGrid, class_names, class_colours: np.ndarray, *,
+def write_previews(folder, bands: dict[str, np.ndarray], grid: LayerGrid, class_names, class_colors: np.ndarray, *,
                    frame: WorldFrame | None, stride: int = 1) -> list[Path]:
-    """One PNG per band (scalar bands with a colour bar and unit, class bands and masks with legends),
+    """One PNG per band (scalar bands with a color bar and unit, class bands and masks with legends),
     plus ``class_probabilities.png`` with every class's probability. ``bands`` may be decimated by
     ``stride`` (cells per pixel) from ``grid``."""
     import matplotlib
@@ -215,10 +223,10 @@ def write_previews(folder, bands: dict[str, np.ndarray], grid: LayerGrid, class_
     aspect = grid.height / max(grid.width, 1)
     size = (9.0, float(np.clip(9.0 * aspect, 3.0, 12.0)))
     written = []
-    colours = np.asarray(class_colours, np.float64) / 255.0
+    colors = np.asarray(class_colors, np.float64) / 255.0
 
     def figure(name, title):
-        # fixed places for the map and its colour bar or legend: a layout engine would draw every figure twice
+        # fixed places for the map and its color bar or legend: a layout engine would draw every figure twice
         fig = plt.figure(figsize=size)
         ax = fig.add_axes((0.08, 0.1, 0.66, 0.8))
         ax.set_facecolor((0.85, 0.85, 0.85))  # unknown cells
@@ -233,13 +241,13 @@ def write_previews(folder, bands: dict[str, np.ndarray], grid: LayerGrid, class_
         plt.close(fig)
         written.append(path)
 
-    scalar = [n for n in band_names(class_names) if n in PREVIEW_COLOURMAPS]
+    scalar = [n for n in band_names(class_names) if n in PREVIEW_COLORMAPS]
     for name in scalar:
         values = bands[name]
         fig, ax = figure(name, name.replace("_", " "))
         kwargs = {"vmin": 0.0, "vmax": 1.0} if name in ("traversability_cost", "class_cost_mean", "surface_probability",
                                                          "lethal_class_probability") else {}
-        image = ax.imshow(np.ma.masked_invalid(values), extent=extent, origin="upper", cmap=PREVIEW_COLOURMAPS[name],
+        image = ax.imshow(np.ma.masked_invalid(values), extent=extent, origin="upper", cmap=PREVIEW_COLORMAPS[name],
                           interpolation="nearest", **kwargs)
         fig.colorbar(image, cax=fig.add_axes((0.8, 0.15, 0.025, 0.7)), label=f"{name} ({band_units(name)})")
         if name == "traversability_cost" and "lethal" in bands:
@@ -252,10 +260,10 @@ def write_previews(folder, bands: dict[str, np.ndarray], grid: LayerGrid, class_
     for name in CLASS_BANDS:
         values = bands[name]
         fig, ax = figure(name, name.replace("_", " "))
-        ax.imshow(np.ma.masked_invalid(values), extent=extent, origin="upper", cmap=ListedColormap(colours), vmin=-0.5,
+        ax.imshow(np.ma.masked_invalid(values), extent=extent, origin="upper", cmap=ListedColormap(colors), vmin=-0.5,
                   vmax=len(class_names) - 0.5, interpolation="nearest")
         present = sorted({int(v) for v in np.unique(values[np.isfinite(values)])})
-        handles = [Patch(facecolor=colours[c], edgecolor="k", label=class_names[c]) for c in present]
+        handles = [Patch(facecolor=colors[c], edgecolor="k", label=class_names[c]) for c in present]
         handles.append(Patch(color=(0.85, 0.85, 0.85), label="unknown"))
         ax.legend(handles=handles, loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8, title="class")
         save(fig, name)
@@ -354,6 +362,8 @@ class BagWriter:
                                           orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
 
     def write_grid_map(self, layers: TerrainLayers) -> None:
+        """Add one ``grid_map_msgs/GridMap`` of ``layers`` (every band a layer, ``elevation`` the basic
+        layer) on the grid map topic."""
         T = self.types
         grid = layers.grid
         size_x, size_y = grid.width, grid.height
@@ -377,11 +387,13 @@ class BagWriter:
                                                                   data=np.ascontiguousarray(values[::-1]).reshape(-1)))
 
     def close(self) -> Path:
+        """Finish the bag and rename it into place; returns its path."""
         self.writer.close()
         os.replace(self._temporary, self.path)
         return self.path
 
     def abort(self) -> None:
+        """Close and delete the unfinished bag; the final path is left untouched."""
         try:
             self.writer.close()
         except Exception:  # noqa: BLE001 - a writer that failed midway may not close; the temporary goes either way
@@ -390,4 +402,5 @@ class BagWriter:
 
 
 def write_summary(path, summary: dict) -> Path:
+    """Write ``summary`` as JSON to ``path`` atomically (``layers.json``); returns the path."""
     return write_json_atomically(path, summary, indent=1)

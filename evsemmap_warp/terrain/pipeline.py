@@ -4,7 +4,7 @@
     OUT/layers.npz            every band (a map file's grid; a store writes OUT/tiles/X_Y.npz per tile column)
     OUT/layers.bag            ROS 1: /terrain/grid_map (grid_map_msgs/GridMap, one per grid) and
                               /terrain/costmap (nav_msgs/OccupancyGrid of the whole grid)
-    OUT/previews/*.png        one image per band with its colour bar or legend
+    OUT/previews/*.png        one image per band with its color bar or legend
     OUT/layers.json           what was computed: grid, frame, bands and units, cost file, counts, timings
 
 A store is computed and written tile column by tile column (``terrain.stores``): memory holds a few
@@ -35,8 +35,8 @@ from .stores import iterate_store_layers, plan_store_layers, tile_name_of
 SUMMARY_NAME = "layers.json"
 
 
-def class_colours(class_names) -> np.ndarray:
-    """[K, 3] uint8 display colours of the classes (configs/classes), grey for names without one."""
+def class_colors(class_names) -> np.ndarray:
+    """[K, 3] uint8 display colors of the classes (configs/classes), grey for names without one."""
     known = named_colors()
     return np.array([known.get(name.lower(), (128, 128, 128)) for name in class_names], np.uint8)
 
@@ -126,7 +126,7 @@ def _write_map(mapper: Mapper, out: Path, *, resolution_m, bounds, config, devic
     if previews:
         stride = preview_stride(layers.grid)
         decimated = {name: values[::stride, ::stride] for name, values in layers.bands.items()}
-        files += write_previews(out / PREVIEW_DIR, decimated, layers.grid, layers.class_names, class_colours(layers.class_names),
+        files += write_previews(out / PREVIEW_DIR, decimated, layers.grid, layers.class_names, class_colors(layers.class_names),
                                 frame=layers.frame, stride=stride)
     return _summary(layers.metadata(), out, files, source="map", voxels=mapper.voxel_count, **_counts(layers.bands),
                     layer_seconds=round(seconds, 3), cells_per_second=round(layers.grid.width * layers.grid.height / max(seconds, 1e-9)))
@@ -185,7 +185,7 @@ def _write_store(store: MapStore, out: Path, *, resolution_m, bounds, config: Te
         stride = preview_stride(grid)
         bands = _TiffPreviewBands(out / GEOTIFF_NAME, band_names(store.class_names), stride)
         try:
-            files += write_previews(out / PREVIEW_DIR, bands, grid, store.class_names, class_colours(store.class_names), frame=store.frame,
+            files += write_previews(out / PREVIEW_DIR, bands, grid, store.class_names, class_colors(store.class_names), frame=store.frame,
                                     stride=stride)
         finally:
             bands.close()

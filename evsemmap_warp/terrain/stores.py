@@ -63,7 +63,7 @@ def plan_store_layers(store: MapStore, *, resolution_m=None, bounds=None, config
     offset_m = store.template.grid_offset_m
     if bounds is None:
         used = np.array([store.tiles[name]["bounds_m"] for name in names], np.float64)
-        # voxel boxes: the cells holding their centres
+        # voxel boxes: the cells holding their centers
         half = voxel_m / 2
         grid = grid_covering((used[:, 0, 0].min() + half, used[:, 1, 0].max() - half), (used[:, 0, 1].min() + half, used[:, 1, 1].max() - half),
                              cell_m, offset_m)

@@ -13,15 +13,12 @@ def lazily_zeroed(shape, dtype, populate: bool = False) -> np.ndarray:
     """A zeroed host array on its own anonymous mapping, without numpy's transparent-huge-page advice.
 
     numpy advises huge pages for large arrays; where the OS compacts memory on such faults (THP defrag
-    "madvise", as on this project's VMs) the first writes into a freshly grown table stall. Measured on
-    the bench's S-BKI mode at free_resolution 4, one thread: growth took 2.5 s of 10.5 s with np.zeros,
-    0.6 s of 7.4 s with this. Huge pages would make a table that is already faulted in ~30 % faster
-    to probe, but a growing map keeps faulting fresh memory in.
+    "madvise", as on this project's VMs) the first writes into a freshly grown table stall, and a growing map
+    keeps faulting fresh memory in (docs/performance.md, "Measurements behind the code's choices").
 
-    ``populate``: map the pages at once (Linux's MAP_POPULATE, where the platform has it), for memory
-    that will nearly all be written soon, such as a table grown at a quarter of its slots or more:
-    one populating call costs about half of the faults it replaces (400 MB: 0.21 s against 0.39 s
-    of first writes in random order)."""
+    ``populate``: map the pages at once (Linux's MAP_POPULATE, where the platform has it), for memory that
+    will nearly all be written soon, such as a table grown at a quarter of its slots or more: one populating
+    call costs less than the faults it replaces."""
     dtype = np.dtype(dtype)
     count = int(np.prod(shape, dtype=np.int64))
     if count == 0:

@@ -1,6 +1,7 @@
-"""Per-scan preprocessing of the released EvSemMap C++ (junwon-vision/EvSemMap, docs/compatibility.md §4).
+"""The release mode's per-scan preprocessing, as the released EvSemMap C++ does it (junwon-vision/EvSemMap,
+docs/compatibility.md §4).
 
-What ``SemanticBKIOctoMap::insert_pointcloud`` does before its models (with prob media and the
+What ``SemanticBKIOctoMap::insert_pointcloud`` does before its models (with soft media and the
 adaptive/threshold policy of the release's ``ebs`` and ``dempster`` configs):
 
 1. the uncertainty cut: u = K / sum(alpha) in double; the threshold is the float32 value at index
@@ -45,7 +46,7 @@ def _models_by_mask() -> np.ndarray:
 
 MODELS_BY_MASK = _models_by_mask()
 
-# The C++ hashes blocks as int64(x / (double) size + 524288.5): the nearest block centre for |x| < 2^19 blocks.
+# The C++ hashes blocks as int64(x / (double) size + 524288.5): the nearest block center for |x| < 2^19 blocks.
 _BLOCK_KEY_SHIFT = 524288.5
 
 

@@ -21,16 +21,17 @@ MIN_POINTS_PER_SHARD = 4096
 
 
 class ShardLanes:
-    """One thread per shard: a shard's jobs run one at a time in the order they were submitted, so its
-    map is the same as when the scans run one after another, while the shards need not wait for each
-    other at the end of every scan (that barrier left a core idle while the slower shard finished:
-    the S-BKI mode at free_res 4 on 2 workers kept 1.61-1.75 of 2 cores busy with it, 1.81-1.91
-    without, and took 0.90-1.00 instead of 1.01-1.07 s, alternating runs)."""
+    """One thread per shard: a shard's jobs run one at a time in the order they were submitted, so its map is the
+    same as when the scans run one after another, while the shards need not wait for each other at the end of
+    every scan (that barrier left a core idle while the slower shard finished; docs/performance.md has the
+    measurement)."""
 
     def __init__(self, count: int):
         self._lanes = [ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"evsemmap-shard{i}") for i in range(count)]
 
     def submit(self, index: int, job, *args) -> Future:
+        """Run ``job(*args)`` on shard ``index``'s thread after the jobs submitted to it before; returns its
+        Future."""
         return self._lanes[index].submit(job, *args)
 
 

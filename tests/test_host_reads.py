@@ -1,0 +1,192 @@
+"""What ``Mapper.integrate`` asks of the device per scan once warm, counted on the CPU backend: reads
+back to the host, new device allocations, and host arrays handed to kernels, for the clean-mode methods.
+
+A read is what waits for the device and copies to the host on a GPU (``wp.array.numpy``, ``.list``, a
+``wp.copy`` into a CPU array); an allocation is a call to Warp's allocator or a ``wp.HashGrid``; a
+host array is a ``wp.array`` made over host data (free on the CPU, an allocation and an upload on a
+GPU, until scans are staged through reused buffers). The budget is per shard and scan: one read (the
+launch's counters together), no allocation, and the scan's own inputs (points, lengths, uncertainty,
+payload). A scan that finds the table full reads its failure flags too and relaunches; the scans
+counted here (the same scan again, the map warm) never do.
+"""
+
+from __future__ import annotations
+
+import threading
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from conftest import REPO
+
+from evsemmap_warp.config import load_config
+from evsemmap_warp.core.mapper import Mapper
+from evsemmap_warp.core.warp_runtime import init_warp
+
+wp = init_warp()
+
+PRESET = REPO / "configs/presets/rellis3d.yaml"
+# Per shard and scan, warm: reads, allocations, host arrays (points, lengths, uncertainty, payload).
+# Each launch allocating its failure flags and update count, and reading the key count around it, made
+# 6 reads, 2 allocations and 5 host arrays per shard and scan.
+BUDGET = {"reads": 1, "allocations": 0, "host_arrays": 4}
+
+
+@dataclass
+class Counts:
+    reads: int = 0
+    allocations: int = 0
+    host_arrays: int = 0
+
+
+@contextmanager
+def counting():
+    """Count reads, allocations and host arrays (see the module's description) while the block runs, in
+    every thread (a shard's lane runs its launches)."""
+    from warp._src import context as wp_context
+
+    counts = Counts()
+    lock = threading.Lock()
+    inside = threading.local()  # a read made by another counted read (numpy() inside list()) counts once
+
+    def tally(field):
+        with lock:
+            setattr(counts, field, getattr(counts, field) + 1)
+
+    def reading(method):
+        def wrapped(self, *args, **kwargs):
+            if getattr(inside, "depth", 0) == 0:
+                tally("reads")
+            inside.depth = getattr(inside, "depth", 0) + 1
+            try:
+                return method(self, *args, **kwargs)
+            finally:
+                inside.depth -= 1
+
+        return wrapped
+
+    originals = []
+
+    def patch(owner, name, value):
+        originals.append((owner, name, getattr(owner, name)))
+        setattr(owner, name, value)
+
+    patch(wp.array, "numpy", reading(wp.array.numpy))
+    patch(wp.array, "list", reading(wp.array.list))
+    original_copy = wp.copy
+
+    def copy(dest, src, *args, **kwargs):
+        if dest.device.is_cpu and getattr(inside, "depth", 0) == 0:
+            tally("reads")
+        return original_copy(dest, src, *args, **kwargs)
+
+    patch(wp, "copy", copy)
+    for allocator in (wp_context.CpuDefaultAllocator, wp_context.CpuPinnedAllocator):
+        original_allocate = allocator.allocate
+
+        def allocate(self, size, original_allocate=original_allocate):
+            tally("allocations")
+            return original_allocate(self, size)
+
+        patch(allocator, "allocate", allocate)
+    original_grid = wp.HashGrid.__init__
+
+    def grid_init(self, *args, **kwargs):
+        tally("allocations")
+        original_grid(self, *args, **kwargs)
+
+    patch(wp.HashGrid, "__init__", grid_init)
+    original_array = wp.array.__init__
+
+    def array_init(self, data=None, *args, **kwargs):
+        if data is not None and getattr(inside, "depth", 0) == 0:
+            tally("host_arrays")
+        original_array(self, data, *args, **kwargs)
+
+    patch(wp.array, "__init__", array_init)
+    try:
+        yield counts
+    finally:
+        for owner, name, value in reversed(originals):
+            setattr(owner, name, value)
+
+
+def _scan(seed: int = 0, n: int = 12_000, k: int = 9):
+    """A LiDAR-like scan: rings of points on a ground plane 1.2 m below the sensor, walls beyond 12 m."""
+    rng = np.random.default_rng(seed)
+    azimuth = rng.uniform(0, 2 * np.pi, n)
+    elevation = np.deg2rad(rng.uniform(-22.5, -1.0, n))
+    reach = np.minimum(1.2 / np.tan(-elevation), 12 + rng.uniform(0, 2, n))
+    points = np.column_stack([reach * np.cos(azimuth), reach * np.sin(azimuth), -np.minimum(reach * np.tan(-elevation), 1.2)])
+    alpha = np.ones((n, k))
+    alpha[np.arange(n), rng.integers(1, k, n)] += rng.gamma(2.0, 200.0, n)  # confident: EBS's adaptive lengths reach voxels
+    return points, alpha
+
+
+def per_scan_counts(method: str, workers: int, warm_scans: int = 3, counted_scans: int = 3) -> list[Counts]:
+    """Counts of each of ``counted_scans`` scans after ``warm_scans`` of the same scan (the map warm: no new
+    voxel, so no growth)."""
+    points, alpha = _scan()
+    mapper = Mapper(load_config([PRESET], method=method).mapping, alpha.shape[1], workers=workers)
+    assert len(mapper.shards) == workers
+    for _ in range(warm_scans):
+        mapper.integrate(points, alpha, payload_type="alpha")
+    out = []
+    for _ in range(counted_scans):
+        with counting() as counts:
+            stats = mapper.integrate(points, alpha, payload_type="alpha")
+        assert stats.voxel_updates > 0
+        out.append(counts)
+    return out
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+@pytest.mark.parametrize("method", ["ebs", "s-csm", "s-bki"])
+def test_a_warm_scan_reads_once_per_shard_and_allocates_nothing(method, workers):
+    counted = per_scan_counts(method, workers)
+    for counts in counted:
+        for field, per_shard in BUDGET.items():
+            assert getattr(counts, field) <= per_shard * workers, (
+                f"{method}, {workers} worker(s): {getattr(counts, field)} {field.replace('_', ' ')} in a warm scan, budget "
+                f"{per_shard} per shard (all counts: {counts})")
+
+
+def test_the_counters_see_what_they_count():
+    # Each kind of event, once, so that a Warp release renaming what is patched fails here, not silently.
+    host = np.arange(4.0)
+    with counting() as counts:
+        a = wp.zeros(4, dtype=wp.float64, device="cpu")
+        b = wp.array(host, dtype=wp.float64, device="cpu", copy=False)
+        wp.copy(a, b)
+        a.numpy()
+        b.list()
+        wp.HashGrid(4, 4, 4, device="cpu")
+    assert counts == Counts(reads=3, allocations=2, host_arrays=1)
+
+
+def test_a_scan_that_fills_the_table_still_maps_every_point():
+    # A table too small for the scan: the launch runs out of room, reads its failure flags, grows and
+    # relaunches the points that did not fit; the map is that of a table large enough from the start.
+    points, alpha = _scan(1, n=3000)
+    config = load_config([PRESET], method="s-bki").mapping
+    small = Mapper(config, alpha.shape[1], workers=1, initial_capacity=16)
+    large = Mapper(config, alpha.shape[1], workers=1, initial_capacity=1 << 20)
+    for mapper in (small, large):
+        mapper.integrate(points, alpha, payload_type="alpha")
+        mapper.integrate(points + 0.37, alpha, payload_type="alpha")
+    assert small.shards[0].grow_count > 0 and large.shards[0].grow_count == 0
+    a, b = small.voxels().arrays, large.voxels().arrays
+    np.testing.assert_array_equal(a.index, b.index)
+    np.testing.assert_allclose(a.rows(), b.rows(), rtol=1e-12, atol=0)
+
+
+def test_the_counters_kernel_matches_its_twin():
+    from evsemmap_warp.kernels import hash_table as ht
+    from evsemmap_warp.reference import hash_table as ht_ref
+
+    key_count, updates = np.array([12345], np.int32), np.array([1 << 40], np.int64)
+    out = wp.zeros(2, dtype=wp.int64, device="cpu")
+    wp.launch(ht.read_counters, dim=1, inputs=[wp.array(key_count, dtype=int, device="cpu"), wp.array(updates, dtype=wp.int64, device="cpu"), out],
+              device="cpu")
+    np.testing.assert_array_equal(out.numpy(), ht_ref.read_counters(key_count, updates))

@@ -1,0 +1,183 @@
+"""The store format (issue 32): format-2 tiles and partials are compact and exact, the streaming
+reduction's fold gives the bits a one-shot sum gives, format-1 stores still read, a new run refuses an
+old store naming its format, and a full disk (a real one, where this test may mount a small tmpfs)
+loses nothing: the rerun resumes to the store an uninterrupted run writes."""
+
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evsemmap_warp.apps.batch import BatchOptions, run_batch
+from evsemmap_warp.apps.cli import main
+from evsemmap_warp.core.map_store import MapStore, fold
+from evsemmap_warp.core.mapper import load_map
+from evsemmap_warp.core.voxel_map import add_duplicate_voxels
+from evsemmap_warp.synthetic.preset import load_preset
+from evsemmap_warp.synthetic.writer import generate_sequence
+
+V1 = Path(__file__).parent / "data" / "store_v1"
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("format") / "drive"
+    generate_sequence(load_preset("tiny"), folder, progress=False)
+    return folder
+
+
+def _batch(sources, out, **options) -> dict:
+    options = {"progress": False, "executor": "inline", "method": "ebs", **options}
+    return run_batch([str(s) for s in sources], BatchOptions(out=out, **options), log=lambda m: None)
+
+
+def _cli_error(capsys, *argv) -> str:
+    code = main([str(a) for a in argv])
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if not line.startswith("Warp CUDA warning")]
+    assert code == 2 and len(err) == 1 and "Traceback" not in err[0], (code, err)
+    return err[0]
+
+
+def _random_partials(rng, chunks: int, tile_voxels: int, columns: int):
+    """Chunks' partials of one tile: overlapping voxel sets (collisions), values of very different scales
+    (so that the order of float64 additions shows), one chunk of a single voxel on the tile's far face."""
+    parts = []
+    for c in range(chunks):
+        count = 1 if c == 1 else int(rng.integers(2, 60))
+        local = rng.integers(0, 6, size=(count, 3)) if c != 1 else np.full((1, 3), tile_voxels - 1)
+        local = np.unique(local, axis=0)
+        rows = rng.random((len(local), columns)) * 10.0 ** rng.integers(-8, 9, size=(len(local), 1))
+        rows[:, -2] = rng.integers(0, 1000, len(local))  # hits: whole counts
+        rows[:, -1] = rng.random(len(local)) < 0.5  # touched
+        parts.append((local + np.array([-3, 7, 2**19 // tile_voxels]) * tile_voxels, rows))
+    return parts
+
+
+def test_folding_chunk_by_chunk_gives_the_bits_of_one_sum():
+    rng = np.random.default_rng(3)
+    for trial in range(30):
+        parts = _random_partials(rng, int(rng.integers(1, 8)), 32, 9 + 4)
+        running = None
+        for index, rows in parts:
+            running = fold(running, index, rows)
+        index = np.concatenate([p[0] for p in parts])
+        base = index.min(axis=0)
+        once = add_duplicate_voxels(index - base, np.concatenate([p[1] for p in parts]))
+        np.testing.assert_array_equal(running[0], once.index + base)
+        assert running[1].tobytes() == once.rows().tobytes(), trial
+    empty = (np.zeros((0, 3), np.int64), np.zeros((0, 13)))
+    assert fold(running, *empty) is running  # an empty partial changes nothing
+    assert fold(None, *empty)[0].shape == (0, 3)
+    assert fold(empty, *running)[1].tobytes() == running[1].tobytes()
+
+
+def test_a_store_is_compact_and_exports_the_map(drive, tmp_path):
+    summary = _batch([drive], tmp_path / "store")
+    tiles = sorted((tmp_path / "store" / "tiles").glob("*.vox"))
+    assert len(tiles) == summary["tiles"] > 1
+    bytes_per_voxel = sum(p.stat().st_size for p in tiles) / summary["voxels"]
+    assert bytes_per_voxel <= 48, bytes_per_voxel  # the issue's target; the map-file schema took 230
+    assert not list((tmp_path / "store" / "work").rglob("*.vox"))  # every partial folded and deleted
+    store = MapStore(tmp_path / "store")
+    assert store.format_version == 2 and store.voxel_count == summary["voxels"]
+
+
+def test_a_format_1_store_still_reads_as_it_was_written(tmp_path, capsys):
+    store = MapStore(V1 / "store")
+    assert store.format_version == 1 and store.voxel_count == 1050
+    expected = load_map(V1 / "map.npz")
+    (a, sa), (b, sb) = store.to_mapper().voxels(), expected.voxels()
+    np.testing.assert_array_equal(a.index, b.index)
+    assert a.rows().tobytes() == b.rows().tobytes()
+    np.testing.assert_array_equal(sa.label, sb.label)
+    points = expected.voxel_centers(b.index[::7])
+    np.testing.assert_array_equal(store.query(points).probabilities, expected.query(points).probabilities)
+    assert main(["info", str(V1 / "store")]) == 0
+    assert json.loads(capsys.readouterr().out)["format_version"] == 1
+    assert main(["export", str(V1 / "store"), "--out", str(tmp_path / "export.npz")]) == 0
+    capsys.readouterr()
+    assert load_map(tmp_path / "export.npz").voxels()[0].rows().tobytes() == b.rows().tobytes()
+    contents = store.tile_contents(sorted(store.tiles)[0])  # the viewer's reader of tiles
+    assert len(contents.index) == store.tiles[sorted(store.tiles)[0]]["voxels"]
+
+
+def test_a_new_run_refuses_an_old_store_naming_its_format(drive, tmp_path, capsys):
+    finished = shutil.copytree(V1 / "store", tmp_path / "finished")
+    line = _cli_error(capsys, "batch", drive, "--method", "ebs", "--out", finished, "--quiet")
+    assert str(finished) in line and "a store of format 1" in line and "give a new --out" in line
+    running = tmp_path / "running"  # a run of the old version, killed before it wrote store.json
+    (running / "work").mkdir(parents=True)
+    (running / "work" / "plan.json").write_text(json.dumps({"inputs": [], "method": "ebs"}))
+    line = _cli_error(capsys, "batch", drive, "--method", "ebs", "--out", running, "--quiet")
+    assert str(running) in line and "a store of format 1" in line
+    assert sorted(p.name for p in running.rglob("*")) == ["plan.json", "work"]  # nothing written
+
+
+def _mount_small_tmpfs(folder: Path, size: str) -> bool:
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        return False
+    folder.mkdir(parents=True, exist_ok=True)
+    return subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)], capture_output=True).returncode == 0
+
+
+@pytest.mark.parametrize("size, writing", [("200k", "writing chunk 0's partial maps"), ("800k", "writing tile")])
+def test_a_full_disk_loses_nothing_and_the_rerun_resumes(drive, tmp_path, capsys, size, writing):
+    """On a real full filesystem: a small tmpfs that fills up while the run writes (a partial map, or a
+    tile being folded), grown once the error is shown, as a user would free space."""
+    reference = tmp_path / "reference"
+    _batch([drive], reference, chunk_frames=2)
+    small = tmp_path / "small"
+    if not _mount_small_tmpfs(small, size):
+        pytest.skip("mounting a small tmpfs needs root and mount(8); the ENOSPC paths are tested with injected errors too")
+    try:
+        out = small / "store"
+        argv = ["batch", drive, "--method", "ebs", "--out", out, "--chunk-frames", "2", "--workers", "1", "--quiet"]
+        line = _cli_error(capsys, *argv)
+        assert "No space left on device" in line and writing in line and str(out) in line and "rerun" in line, line
+        assert not (out / "store.json").exists()
+        subprocess.run(["mount", "-o", "remount,size=64m", str(small)], check=True)
+        assert main([str(a) for a in argv]) == 0
+        capsys.readouterr()
+        for name in sorted(p.name for p in (reference / "tiles").iterdir()):
+            assert (out / "tiles" / name).read_bytes() == (reference / "tiles" / name).read_bytes(), name
+        assert (out / "store.json").read_bytes() == (reference / "store.json").read_bytes()
+    finally:
+        subprocess.run(["umount", "-l", str(small)], capture_output=True)
+
+
+def test_tiles_leaving_memory_early_and_a_run_killed_while_folding_give_the_same_store(drive, tmp_path, monkeypatch):
+    """With room for one tile in memory, tiles are written and read back at every turn of the drive;
+    a run stopped halfway through folding (here: at the first partial of chunk 3) resumes from the tiles
+    and partials it left, and both give the store, byte for byte, of an uninterrupted run."""
+    from evsemmap_warp.apps import batch
+    from evsemmap_warp.core import map_store
+
+    reference = tmp_path / "reference"
+    _batch([drive], reference, chunk_frames=1)
+    monkeypatch.setattr(batch, "FOLD_CACHE_TILES", 1)
+    summary = _batch([drive], tmp_path / "evicting", chunk_frames=1)
+    assert summary["tile_writes"] > summary["tiles"]  # tiles were written before the end and folded into again
+
+    original = map_store.read_partial
+
+    def stop_at_chunk_3(path, columns, tile_voxels, identity, chunk):
+        if chunk == 3:
+            raise KeyboardInterrupt
+        return original(path, columns, tile_voxels, identity, chunk)
+
+    monkeypatch.setattr(map_store, "read_partial", stop_at_chunk_3)
+    with pytest.raises(KeyboardInterrupt):
+        _batch([drive], tmp_path / "killed", chunk_frames=1)
+    assert list((tmp_path / "killed" / "tiles").glob("*.vox")) and not (tmp_path / "killed" / "store.json").exists()
+    monkeypatch.setattr(map_store, "read_partial", original)
+    resumed = _batch([drive], tmp_path / "killed", chunk_frames=1)
+    assert resumed["chunks_resumed"] == 4
+    for store in ("evicting", "killed"):
+        for name in sorted(p.name for p in (reference / "tiles").iterdir()):
+            assert (tmp_path / store / "tiles" / name).read_bytes() == (reference / "tiles" / name).read_bytes(), (store, name)
+        assert (tmp_path / store / "store.json").read_bytes() == (reference / "store.json").read_bytes()
+        assert not list((tmp_path / store / "work").rglob("*.vox"))

@@ -1,0 +1,168 @@
+"""Stores in the viewer at scale (issue 30 item 6): a first frame before the store is read, the overview filling in,
+tiles in full near the camera or where a click lands, and memory bounded by what is shown."""
+
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from evsemmap_warp.apps.cli import main
+from evsemmap_warp.apps.viewer import MapViewer, StoreOverview, free_port
+
+from test_viewer import make_map
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("store")
+    make_map(folder / "a.npz")
+    make_map(folder / "b.npz", seed=1, offset=(0.3, 0, 0))
+    assert main(["merge", str(folder / "a.npz"), str(folder / "b.npz"), "--out", str(folder / "store"), "--tile-voxels", "8"]) == 0
+    return folder / "store"
+
+
+def _wait(predicate, timeout=30.0):
+    end = time.time() + timeout
+    while time.time() < end:
+        if predicate():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_first_frame_from_the_first_tiles_then_the_overview_fills_in(store):
+    viewer = MapViewer([store], port=free_port(), max_voxels=600, store_first_voxels=1)
+    overview = viewer.stores[0]
+    try:
+        tiles = len(overview.store.tiles)
+        assert tiles > 10
+        origin = viewer.origin.copy()
+        lo, hi = overview.bounds
+        np.testing.assert_array_equal(origin, np.round((lo + hi) / 2))  # the whole store's middle, before it is read
+        assert _wait(lambda: overview.complete)
+        assert _wait(lambda: len(viewer.layers[0].state) == overview.held_rows)
+        np.testing.assert_array_equal(viewer.origin, origin)  # the origin does not move as tiles arrive
+        assert overview.held_rows <= 600 + tiles  # each tile its share of max_voxels (at least one row)
+        assert round(viewer.layers[0].weight.sum()) == overview.total_voxels
+        assert set(viewer.present_classes) == {"void", "object", "grass"}
+        assert "reading its tiles" not in viewer.gui_status.content
+    finally:
+        viewer.close()
+
+
+def test_the_first_tiles_are_the_middle_ones_within_the_budget(store):
+    overview = StoreOverview(store, 600)
+    sizes = [overview.store.tiles[name]["voxels"] for name in overview.unread]
+    centre = (overview.bounds[0] + overview.bounds[1]) / 2
+    distances = [np.linalg.norm(np.mean(overview.store.tiles[n]["bounds_m"], axis=0)[:2] - centre[:2]) for n in overview.unread]
+    assert distances == sorted(distances)
+    overview.read_first(sizes[0] + sizes[1])
+    assert len(overview.parts) == 2 and len(overview.unread) == len(sizes) - 2
+    overview.read_first(1)  # at least one tile, whatever the budget
+    assert len(overview.parts) == 3
+
+
+def test_tiles_in_full_near_the_camera_and_where_a_click_lands(store):
+    viewer = MapViewer([store], port=free_port(), max_voxels=300)
+    overview = viewer.stores[0]
+    try:
+        assert overview.complete and overview.detail == ()
+        layer = viewer.layers[0]
+        # the camera comes near the box's tiles: their columns in full
+        box = layer.centers[layer.label == 3].mean(axis=0)
+        look_at = box - viewer.origin
+        far = SimpleNamespace(position=look_at + [0, -20.0, 20.0], look_at=look_at)
+        viewer._approach(far)  # 28 m away: more than a tile (1.6 m) from it, nothing happens
+        time.sleep(0.5)
+        assert overview.detail == ()
+        near = SimpleNamespace(position=look_at + [0, -0.5, 0.8], look_at=look_at)
+        viewer._approach(near)
+        column = overview.tiles_at(box)
+        assert _wait(lambda: overview.detail == tuple(column))
+        assert _wait(lambda: "tile(s) in full" in viewer.gui_status.content)
+        shown = viewer.layers[0]
+        index = shown.voxel_index
+        for name in column:  # every voxel of those tiles is held, each standing for one
+            key = np.array([int(v) for v in name.split("_")])
+            inside = np.all(np.floor_divide(index, overview.store.tile_voxels) == key, axis=1)
+            assert inside.sum() == overview.store.tiles[name]["voxels"] and np.all(shown.weight[inside] == 1.0)
+        # a click on a voxel of another tile: that tile's column in full as well
+        ground = shown.centers[(shown.label == 7) & np.all(np.abs(shown.centers[:, :2] - box[:2]) > 2.0, axis=1)][0]
+        ray_origin = ground - viewer.origin + [0, 0, 5.0]
+        viewer._on_click(SimpleNamespace(ray_origin=ray_origin, ray_direction=(0.0, 0.0, -1.0)))
+        assert "voxel" in viewer.gui_selection.content
+        clicked = overview.tiles_at(ground)
+        assert _wait(lambda: set(clicked) <= set(overview.detail) and set(column) <= set(overview.detail))
+    finally:
+        viewer.close()
+
+
+def test_memory_is_bounded_by_the_tiles_shown(store):
+    viewer = MapViewer([store], port=free_port(), max_voxels=300)
+    overview = viewer.stores[0]
+    overview.max_detail_tiles = 3
+    try:
+        sizes = sorted((info["voxels"] for info in overview.store.tiles.values()), reverse=True)
+        overview_rows = sum(len(p["state"]) for p in overview.parts.values())
+        for name in sorted(overview.store.tiles):  # a drive over the whole store, tile by tile
+            viewer.request_detail(0, [name])
+            assert _wait(lambda: name in overview.detail)
+            assert len(overview.detail) <= 3
+            assert overview.held_rows <= overview_rows + sum(sizes[:3])
+            assert len(viewer.layers[0].state) <= overview_rows + sum(sizes[:3])
+        viewer.show_tile("(overview only)")
+        assert overview.detail == () and overview.held_rows == overview_rows
+    finally:
+        viewer.close()
+
+
+def test_exports_wait_for_the_whole_overview(store, tmp_path, monkeypatch):
+    read_next = StoreOverview.read_next
+
+    def slowly(self):
+        time.sleep(0.05)
+        return read_next(self)
+
+    monkeypatch.setattr(StoreOverview, "read_next", slowly)
+    viewer = MapViewer([store], port=free_port(), max_voxels=600, store_first_voxels=1)
+    overview = viewer.stores[0]
+    try:
+        assert not overview.complete and "reading its tiles" in viewer.gui_status.content
+        assert viewer.wait_for_stores(60)
+        assert overview.complete and len(viewer.layers[0].state) == sum(len(p["state"]) for p in overview.parts.values())
+        from test_viewer import read_ply
+
+        _, vertices = read_ply(viewer.export_ply(tmp_path / "all.ply"))
+        assert len(vertices) == len(viewer.visible_rows[0]) > 0
+    finally:
+        viewer.close()
+
+
+def test_a_small_store_is_read_whole_before_the_first_frame(store):
+    """A store whose tiles fit the first frame's budget is complete when the viewer is built (its overview
+    rows are its voxels, not its shares of a max_voxels larger than the store)."""
+    viewer = MapViewer([store], port=free_port())  # max_voxels 500k: far more than the store holds
+    try:
+        assert viewer.stores[0].complete and len(viewer.layers[0].state) == viewer.stores[0].total_voxels
+    finally:
+        viewer.close()
+
+
+def test_a_browsers_first_default_camera_is_not_an_approach(store, tmp_path):
+    """A browser first reports viser's default camera, 5 m from the scene's origin, before the viewer's own:
+    that is not a user coming near a tile (it put the origin's tiles in full on every page load)."""
+    folder = store.parent  # the maps the store was merged from, into tiles of 6.4 m: the default camera is within one
+    assert main(["merge", str(folder / "a.npz"), str(folder / "b.npz"), "--out", str(tmp_path / "store"), "--tile-voxels", "32"]) == 0
+    viewer = MapViewer([tmp_path / "store"], port=free_port(), max_voxels=300)
+    overview = viewer.stores[0]
+    try:
+        viewer._on_camera(7, SimpleNamespace(position=np.array([3.0, 3.0, 3.0]), look_at=np.zeros(3), fov=1.0, image_height=800))
+        time.sleep(0.5)
+        assert overview.detail == ()
+        position, look_at = viewer._auto_camera  # then the viewer's camera arrives; from there on, the user moves
+        viewer._on_camera(7, SimpleNamespace(position=position, look_at=look_at, fov=1.0, image_height=800))
+        viewer._on_camera(7, SimpleNamespace(position=np.array([0.0, -0.5, 1.0]), look_at=np.zeros(3), fov=1.0, image_height=800))
+        assert _wait(lambda: overview.detail != ())
+    finally:
+        viewer.close()
