@@ -4,7 +4,7 @@ image with the labels and uncertainty that labelled it, and the map as it stood 
 incremental replay of the integration, from snapshots every few scans). The same as
 ``evsemmap view MAP --drive SEQUENCE``.
 
-    python examples/07_drive_playback.py [--preset tiny] [--out playback_example] [--port 8080] [--no-serve]
+    python examples/07_drive_playback.py [--world tiny] [--out playback_example] [--port 8080] [--no-serve]
 """
 
 import argparse
@@ -23,14 +23,14 @@ from evsemmap_warp.synthetic.writer import generate_sequence
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="tiny")
+    parser.add_argument("--world", default="tiny", help="the synthetic world preset")
     parser.add_argument("--out", type=Path, default=Path("playback_example"))
     parser.add_argument("--port", type=int, default=8080)
     parser.add_argument("--no-serve", action="store_true", help="step through the drive, print what each scan shows, and exit")
     args = parser.parse_args()
 
     sequence = args.out / "sequence"
-    generate_sequence(load_preset(args.preset), sequence, progress=False)
+    generate_sequence(load_preset(args.world), sequence, progress=False)
     # Alpha files stand in for a network's (`evsemmap infer`): evidence on each pixel's true class, weak on the
     # left half of the image, so that the uncertainty image and the scan's uncertainty show something.
     images = Rellis3DSequence(sequence)

@@ -3,7 +3,7 @@ scans on the viewer's own thread (mapping only copies the voxel tables between u
 viewer is still busy), and shows the map exactly as written once done. The same as
 ``evsemmap map SEQUENCE --method ebs --out MAP --view``.
 
-    python examples/08_live_map.py [--preset tiny] [--frames 12] [--every 3] [--out live_example] [--port 8080] [--no-serve]
+    python examples/08_live_map.py [--world tiny] [--frames 12] [--every 3] [--out live_example] [--port 8080] [--no-serve]
 """
 
 import argparse
@@ -22,7 +22,7 @@ from evsemmap_warp.synthetic.writer import generate_sequence
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="tiny")
+    parser.add_argument("--world", default="tiny", help="the synthetic world preset")
     parser.add_argument("--frames", type=int, default=12)
     parser.add_argument("--every", type=int, default=3, help="scans between updates of the map shown")
     parser.add_argument("--out", type=Path, default=Path("live_example"))
@@ -30,7 +30,7 @@ def main() -> None:
     parser.add_argument("--no-serve", action="store_true", help="map, check the map shown against the file written, and exit")
     args = parser.parse_args()
 
-    generate_sequence(load_preset(args.preset, trajectory__frames=args.frames), args.out / "sequence", progress=False, camera=False)
+    generate_sequence(load_preset(args.world, trajectory__frames=args.frames), args.out / "sequence", progress=False, camera=False)
     run = load_config([str(args.out / "sequence"), "rellis3d"], method="ebs")
     source = open_scan_source(run)
     mapper = mapper_for(source, run.mapping)

@@ -4,7 +4,7 @@ middle, the rest of the overview fills in behind it, and a tile is shown in full
 near it or a click lands on it; what the server holds is the overview and those tiles, never the store.
 The same as ``evsemmap view STORE``.
 
-    python examples/09_store_overview.py [--preset tiny] [--out store_example] [--max-voxels 2000] [--port 8080] [--no-serve]
+    python examples/09_store_overview.py [--world tiny] [--out store_example] [--max-voxels 2000] [--port 8080] [--no-serve]
 """
 
 import argparse
@@ -20,14 +20,14 @@ from evsemmap_warp.synthetic.writer import generate_sequence
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="tiny")
+    parser.add_argument("--world", default="tiny", help="the synthetic world preset")
     parser.add_argument("--out", type=Path, default=Path("store_example"))
     parser.add_argument("--max-voxels", type=int, default=2000, help="the overview's size")
     parser.add_argument("--port", type=int, default=8080)
     parser.add_argument("--no-serve", action="store_true", help="come near one tile, print what is held, and exit")
     args = parser.parse_args()
 
-    generate_sequence(load_preset(args.preset), args.out / "sequence", progress=False, camera=False)
+    generate_sequence(load_preset(args.world), args.out / "sequence", progress=False, camera=False)
     store = args.out / "store"
     assert evsemmap(["batch", str(args.out / "sequence"), "rellis3d", "--method", "ebs", "--out", str(store), "--tile-voxels", "32",
                      "--workers", "1", "--quiet"]) == 0

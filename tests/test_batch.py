@@ -238,14 +238,14 @@ def test_export_bounds_info_merge_and_view_of_stores(tmp_path, capsys):
     assert main(["info", str(tmp_path / "ab_store")]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["voxels"] == full.voxel_count and info["tiles"] > 1 and info["method"] == "s-csm"
-    # a box: exactly the map's voxels whose centres lie in it, from the tiles that meet it
+    # a box: exactly the map's voxels whose centers lie in it, from the tiles that meet it
     bounds = np.array([[-5.0, -5.0, -2.0], [5.0, 5.0, 2.0]])
     assert main(["export", str(tmp_path / "ab_store"), "--bounds", *map(str, bounds.ravel()), "--out", str(tmp_path / "box.npz")]) == 0
     report = json.loads(capsys.readouterr().out)
     box = Mapper.load(tmp_path / "box.npz")
     voxels, _ = full.voxels()
-    centres = full.voxel_centers(voxels.index)
-    inside = np.all((centres >= bounds[0]) & (centres <= bounds[1]), axis=1)
+    centers = full.voxel_centers(voxels.index)
+    inside = np.all((centers >= bounds[0]) & (centers <= bounds[1]), axis=1)
     np.testing.assert_array_equal(box.voxels()[0].index, voxels.index[inside])
     assert report["tiles_read"] < info["tiles"]
     # the viewer: a decimated overview of every tile, one tile in full
@@ -313,3 +313,23 @@ def test_a_corridor_world_is_seamless_and_long_drives_need_only_tiles_in_view(tm
         scan = scan_lidar(caster, whole, poses[index], preset.lidar, np.random.default_rng([preset.seed, index]), lidar_directions(preset.lidar))
         written = np.fromfile(tmp_path / "long" / "os1_cloud_node_kitti_bin" / f"{index:06d}.bin", np.float32).reshape(-1, 4)
         np.testing.assert_array_equal(written, scan.points)
+
+
+def test_pool_workers_start_with_math_libraries_at_their_share_of_the_cores(drive, tmp_path, monkeypatch):
+    """Every worker's BLAS used every core (the point transforms): two workers on two cores ran their
+    chunks slower than with one thread each. The driver's own environment is left as it was."""
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    monkeypatch.setenv("MKL_NUM_THREADS", "3")  # a user's own setting is kept
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    options = BatchOptions(method="ebs", out=tmp_path / "store")
+    inputs, sources, config, chunks, identity = batch.plan_batch([str(drive)], options)
+    origin_index, class_names, *_ = batch.probe(sources, config)
+    context = batch.Context(tmp_path / "store", sources, config, sources[0].num_classes, class_names, origin_index, 256)
+    executor = batch.LocalExecutor(2, context)
+    seen = []
+    try:
+        executor.run(os.getenv, [("OPENBLAS_NUM_THREADS",), ("MKL_NUM_THREADS",)], lambda item, value: seen.append((item[0], value)))
+    finally:
+        executor.close()
+    assert sorted(seen) == [("MKL_NUM_THREADS", "3"), ("OPENBLAS_NUM_THREADS", "1")]
+    assert "OPENBLAS_NUM_THREADS" not in os.environ and os.environ["MKL_NUM_THREADS"] == "3"

@@ -172,14 +172,14 @@ OLD_NAMES = re.compile(
     r"|synth --preset|[\"']--preset[\"']|[\"' ]--alpha[\"' ]|--time-budget\b(?!-s)|--colour-by|[\"']--resolution[\"']|\{preset: ")
 # Where the old names live on as aliases (and their tests).
 ALIASES = {"evsemmap_warp/config.py", "evsemmap_warp/apps/cli.py", "evsemmap_warp/apps/experiment.py", "docs/configuration.md",
-           "docs/troubleshooting.md", "tests/test_renamed_names.py"}
+           "docs/troubleshooting.md", "tests/test_renamed_names.py",
+           "tools/ab_maps.py"}  # ab_maps.py maps older checkouts too, whose release preset has the old name
 # Being rewritten in parallel with issue 28 (viewer, batch): their own rewrite renames what is left.
 # Remove a file once it is clean; the test fails when a listed file is gone.
 PENDING = {
     "evsemmap_warp/apps/viewer.py", "evsemmap_warp/apps/viewer_layers.py", "evsemmap_warp/apps/viewer_drive.py",
-    "evsemmap_warp/core/map_store.py", "tests/test_batch.py", "tests/test_viewer.py", "tests/test_viewer_browser.py",
-    "tests/test_viewer_drive.py", "tests/test_viewer_store.py", "tools/bench_viewer.py", "tools/viewer_screenshots.py",
-    "examples/07_drive_playback.py", "examples/08_live_map.py", "examples/09_store_overview.py",
+    "tests/test_viewer.py", "tests/test_viewer_browser.py", "tests/test_viewer_drive.py", "tests/test_viewer_store.py",
+    "tools/bench_viewer.py", "tools/viewer_screenshots.py",
 }
 SOURCES = ["evsemmap_warp", "kernels", "configs", "tools", "examples", "tests", "docs", ".ci"]
 

@@ -731,7 +731,7 @@ def test_the_docs_screenshots_come_from_the_screenshot_tool(tmp_path):
     import viewer_screenshots
 
     # as a user runs it (its Playwright cannot share this process with the tests' browser)
-    done = subprocess.run([sys.executable, str(REPO / "tools" / "viewer_screenshots.py"), "--preset", "tiny", "--frames", "6",
+    done = subprocess.run([sys.executable, str(REPO / "tools" / "viewer_screenshots.py"), "--world", "tiny", "--frames", "6",
                            "--out", str(tmp_path)], capture_output=True, text=True, timeout=1200)
     assert done.returncode == 0, done.stderr[-3000:]
     written = [tmp_path / f"{mode}.png" for mode in viewer_screenshots.MODES]

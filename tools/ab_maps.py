@@ -9,7 +9,7 @@ Prints one line per (method, workers) and exits 1 when any map differs.
     python tools/ab_maps.py /tmp/main_ref [--methods ebs s-csm s-bki] [--workers 1 2] [--scans 30]
 
 ``--methods`` takes method names (the RELLIS-3D preset), ``release:ebs`` / ``release:dempster`` (the release
-mode) ``sbki:F`` (the sbki mode with the C++ S-BKI bench parameters at free_resolution F) and ``sbki-csm:F`` (its
+mode), ``sbki:F`` (the sbki mode with the C++ S-BKI bench parameters at free_resolution F) and ``sbki-csm:F`` (its
 S-CSM).
 """
 
@@ -30,12 +30,11 @@ FIELDS = ("index", "evidence", "weight_sum", "weighted_uncertainty_sum", "hits",
 # Run in a child with the checkout to test first on the path (the editable install's finder removed, so
 # that ``evsemmap_warp`` and its kernels come from that checkout): maps every (method, workers).
 CHILD = r"""
-import sys, json, importlib.util, types
+import sys, json, importlib.util
 from pathlib import Path
 root = Path(sys.argv[1])
 sys.meta_path[:] = [f for f in sys.meta_path if "editable" not in type(f).__module__.lower() + repr(f).lower()]
 sys.path.insert(0, str(root))
-package = types.ModuleType("evsemmap_warp")
 spec = importlib.util.spec_from_file_location("evsemmap_warp", root / "evsemmap_warp" / "__init__.py",
                                               submodule_search_locations=[str(root / "evsemmap_warp")])
 package = importlib.util.module_from_spec(spec)
@@ -51,7 +50,9 @@ spec.loader.exec_module(package)
 import numpy as np
 from evsemmap_warp.config import load_config
 from evsemmap_warp.core.mapper import Mapper
-assert Path(sys.modules["evsemmap_warp.core.mapper"].__file__).is_relative_to(root), "imported the wrong checkout"
+import evsemmap_warp.kernels.scatter
+for module in ("evsemmap_warp.core.mapper", "evsemmap_warp.kernels.scatter"):
+    assert Path(sys.modules[module].__file__).resolve().is_relative_to(root.resolve()), f"{module}: imported from the wrong checkout"
 work = np.load(sys.argv[2])
 runs = json.loads(sys.argv[3])
 out = {}

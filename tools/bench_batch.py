@@ -47,11 +47,12 @@ CLUSTER = {"nodes": 16, "cores_per_node": 16}
 
 def folder_size(path: Path) -> int:
     total = 0
-    for f in path.rglob("*"):
-        try:
-            total += f.stat().st_size if f.is_file() else 0
-        except OSError:  # renamed or deleted while we looked (a temporary file, a folded partial)
-            pass
+    for folder, _, names in os.walk(path):  # os.walk skips what vanishes while it looks, rglob raises
+        for name in names:
+            try:
+                total += os.stat(os.path.join(folder, name)).st_size
+            except OSError:  # renamed or deleted while we looked (a temporary file, a folded partial)
+                pass
     return total
 
 

@@ -1,7 +1,7 @@
 """Viewer benchmark in real Chromium: how soon a map store's first frame shows, how the viewer answers while the
 overview fills in, and what the server and the browser hold.
 
-The stores are the synthetic ``long`` drive's (``evsemmap synth --preset long --no-camera --frames N`` then
+The stores are the synthetic ``long`` drive's (``evsemmap synth --world long --no-camera --frames N`` then
 ``evsemmap batch``), one per ``--frames`` number, built once under ``--work`` unless ``--store`` names them;
 each is opened with the same ``--max-voxels``, so that what the server holds can be compared across sizes. ``evsemmap view STORE`` runs as
 a user starts it (a fresh process, imports included); Debian's chromium, driven by Playwright as
@@ -52,7 +52,7 @@ def build_store(work: Path, frames: int) -> Path:
     """The long drive's first ``frames`` frames as a store (kept under ``work`` for later runs)."""
     drive, store = work / f"long_{frames}", work / f"long_{frames}_store"
     if not (drive / "poses.txt").is_file():
-        subprocess.run(EVSEMMAP + ["synth", "--preset", "long", "--no-camera", "--frames", str(frames), "--out", str(drive), "--quiet"],
+        subprocess.run(EVSEMMAP + ["synth", "--world", "long", "--no-camera", "--frames", str(frames), "--out", str(drive), "--quiet"],
                        check=True)
     if not (store / "store.json").is_file():
         shutil.rmtree(store, ignore_errors=True)

@@ -4,8 +4,8 @@ record, the check of that rule, and the tables generated from records.
 The rule. A *speed figure* is a number with a time unit (s, ms, µs, ns, min, seconds, minutes) or a
 rate unit (anything "/s" or "per second": points/s, M voxel updates/s, GB/s) in prose or in a table
 cell, and every number past the first column of a *performance table* (a table whose header names a
-time, a rate, a share or a comparison: "s", "wall", "/s", "vs", "share", ...), ratios (×3.8, 0.93x)
-included. Text in code (fenced blocks, `inline code`) and link targets is not read. Every block of
+time, a rate or a comparison: "s", "wall", "time", "/s", "vs", "×", "roofline", ...), ratios (×3.8,
+0.93x) and shares (12 %) included. Text in code (fenced blocks, `inline code`) and link targets is not read. Every block of
 text (a paragraph, a list, a table: lines up to a blank line) that holds a speed figure must say
 where it comes from, in an HTML comment on the line before it:
 

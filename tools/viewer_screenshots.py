@@ -4,9 +4,9 @@ by Playwright, the way tests/test_viewer_browser.py drives it (and that test run
 Modes: ``map`` (a map with its drive), ``drive`` (playback: a scan, the pose, the camera with its labels and
 uncertainty, the map as it stood then), ``live`` (a map being made, half way), ``store`` (a store's overview
 with a tile in full), ``compare`` (two maps against the ground truth), ``terrain`` (the traversability cost
-as a height surface). The data is a synthetic drive (``--preset``, ``--frames``), mapped here.
+as a height surface). The data is a synthetic drive (``--world``, ``--frames``), mapped here.
 
-    python tools/viewer_screenshots.py [--preset demo] [--frames 16] [--out docs/viewer] [--modes map drive ...]
+    python tools/viewer_screenshots.py [--world demo] [--frames 16] [--out docs/viewer] [--modes map drive ...]
 """
 
 from __future__ import annotations
@@ -208,7 +208,7 @@ def main(argv=None) -> list[Path]:
     from playwright.sync_api import sync_playwright
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--preset", default="demo", help="the synthetic world (default demo)")
+    parser.add_argument("--world", default="demo", help="the synthetic world (default demo)")
     parser.add_argument("--frames", type=int, default=16, help="frames of its drive (default 16)")
     parser.add_argument("--out", type=Path, default=REPO / "docs" / "viewer")
     parser.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
@@ -223,7 +223,7 @@ def main(argv=None) -> list[Path]:
         cwd = os.getcwd()
         os.chdir(work)  # the GUI shows the paths as a user typing the commands there would give them
         try:
-            data = build_data(Path("."), args.preset, args.frames)
+            data = build_data(Path("."), args.world, args.frames)
             with sync_playwright() as p:
                 browser = p.chromium.launch(executable_path=chromium, headless=True, args=CHROMIUM_ARGS)
                 try:

@@ -549,6 +549,9 @@ class InlineExecutor:
         """Nothing to release."""
 
 
+_MATH_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
 class LocalExecutor:
     """A process pool, one worker per core by default; a pool whose worker died is replaced and the
     unfinished tasks are run again (each at most ``retries`` more times)."""
@@ -566,13 +569,23 @@ class LocalExecutor:
     def _submit(self, fn, item):
         """Submit a task; a worker process started by it starts with Ctrl-C ignored (the setting passes
         through exec) until _init_worker installs its handler, so an interrupt while workers start up
-        leaves no traceback of theirs, only the driver's "interrupted"."""
+        leaves no traceback of theirs, only the driver's "interrupted". It also starts with its math
+        libraries' thread pools (OpenBLAS, OpenMP, MKL) at its share of the cores, which they read once
+        on loading: at their default, every worker's BLAS used every core (the point transforms), and two
+        workers on two cores ran their chunks slower than with one thread each. A user's own setting of
+        those variables is kept."""
         import signal
 
         previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if threading.current_thread() is threading.main_thread() else None
+        saved = {name: os.environ.get(name) for name in _MATH_THREAD_VARIABLES}
+        for name in _MATH_THREAD_VARIABLES:
+            os.environ.setdefault(name, str(self._threads))
         try:
             return self._pool.submit(_as_task, fn, *item)
         finally:
+            for name, value in saved.items():
+                if value is None:
+                    os.environ.pop(name, None)
             if previous is not None:
                 signal.signal(signal.SIGINT, previous)
 

@@ -17,7 +17,7 @@ process's memory (written by ``evsemmap batch``, read here).
 Format 1 stores (tiles/X_Y_Z.npz in the map-file schema, 230 B a voxel) are still read. Every file is
 written under a temporary name and renamed, so a killed writer never leaves a file that looks whole;
 files hold no pickle, and the same content gives the same bytes. Opening a store reads the index only; a
-query loads the tiles its points fall in, nothing else; the read-out (centres, concentrations, labels,
+query loads the tiles its points fall in, nothing else; the read-out (centers, concentrations, labels,
 states, variance) is derived from the sums on reading, as a Mapper derives it.
 """
 
@@ -160,7 +160,7 @@ def fold(running: tuple[np.ndarray, np.ndarray] | None, index: np.ndarray, rows:
 
 def template_mapper(config: MappingConfig, class_names, origin_index, frame: WorldFrame | None) -> Mapper:
     """An empty Mapper with a store's parameters, origin and world frame: the read-out (labels,
-    states, concentrations, centres) of tiles and partials, without a table of its own to speak of."""
+    states, concentrations, centers) of tiles and partials, without a table of its own to speak of."""
     mapper = Mapper(config, len(class_names), class_names=tuple(class_names), workers=1, initial_capacity=16, frame=frame)
     mapper.origin_index = np.asarray(origin_index, np.int64).reshape(3)
     return mapper
@@ -502,15 +502,15 @@ class MapStore:
                       if np.all(np.asarray(info["bounds_m"][1]) >= low) and np.all(np.asarray(info["bounds_m"][0]) <= high))
 
     def to_mapper(self, bounds=None) -> Mapper:
-        """The store (or the voxels whose centres lie in ``bounds``) as one Mapper."""
+        """The store (or the voxels whose centers lie in ``bounds``) as one Mapper."""
         if bounds is not None:
             bounds = np.stack(check_bounds(bounds, "bounds"))
         parts = []
         for name in self.tiles_in(bounds):
             voxels = self.tile_arrays(name)
             if bounds is not None:
-                centres = self.template.voxel_centers(voxels.index)
-                inside = np.all((centres >= bounds[0]) & (centres <= bounds[1]), axis=1)
+                centers = self.template.voxel_centers(voxels.index)
+                inside = np.all((centers >= bounds[0]) & (centers <= bounds[1]), axis=1)
                 voxels = VoxelArrays.from_rows(voxels.index[inside], voxels.rows()[inside])
             parts.append(voxels)
         out = Mapper(self.config, self.num_classes, class_names=self.class_names, workers=1, frame=self.frame)
