@@ -118,11 +118,13 @@ class MapLayer:
 
     @classmethod
     def from_file(cls, path) -> "MapLayer":
+        """A map file as a layer (read and validated by map_file.read_map_arrays)."""
         arrays, meta = read_map_arrays(path)
         return cls.from_arrays(Path(path).stem, Path(path), arrays, meta)
 
     @classmethod
     def from_arrays(cls, name: str, path: Path, arrays: dict, meta: dict) -> "MapLayer":
+        """A layer from a map file's arrays and meta (map_file.file_arrays gives them for maps that are not files)."""
         with np.errstate(invalid="ignore", divide="ignore"):
             mean_unc = np.where(arrays["weight_sum"] > 0, arrays["weighted_uncertainty_sum"] / arrays["weight_sum"], np.nan)
         return cls(name, path, list(meta["classes"]), float(arrays["resolution"]), float(meta.get("grid_offset_m", 0.0)),
@@ -195,14 +197,17 @@ class StoreOverview:
 
     @property
     def complete(self) -> bool:
+        """Every tile is in the overview (the background reading is done)."""
         return not self.unread
 
     @property
     def detail(self) -> tuple[str, ...]:
+        """The tiles held in full detail now."""
         return tuple(self.details)
 
     @property
     def present(self) -> np.ndarray:
+        """Class indices that some voxel of the tiles read so far carries."""
         return np.array(sorted(self._present), np.int64)
 
     @property
@@ -331,6 +336,7 @@ def check_address(host: str, port: int) -> None:
 
 
 def free_port() -> int:
+    """A TCP port on 127.0.0.1 that is free now (for tests and examples that serve on their own port)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
@@ -457,6 +463,7 @@ class MapViewer:
 
     @property
     def url(self) -> str:
+        """The address the viewer serves on (http://host:port)."""
         return f"http://{self.server.get_host()}:{self.server.get_port()}"
 
     # ------------------------------------------------------------------ GUI
@@ -812,6 +819,7 @@ class MapViewer:
         return bool(self.terrain) and self.gui_terrain_show.value and self.gui_terrain_mode.value == vl.TERRAIN_MODES[1]
 
     def visible_mask(self, i: int) -> np.ndarray:
+        """[V] bool: the voxels of layer ``i`` the panel's filters (states, classes, maximum variance, the diff) leave visible."""
         layer = self.layers[i]
         keep = np.ones(len(layer.state), bool)
         if not self.gui_show_free.value:
@@ -850,6 +858,7 @@ class MapViewer:
         return self._diff_cache[key]
 
     def colors(self, i: int, rows: np.ndarray) -> np.ndarray:
+        """[len(rows), 3] uint8 sRGB colors of layer ``i``'s voxels ``rows`` in the chosen coloring (class, variance, uncertainty, or the diff's)."""
         layer = self.layers[i]
         pair = self._diff_pair()
         if pair is not None and i == pair[0]:
@@ -1313,6 +1322,7 @@ class MapViewer:
         self.gui_export_status.content = f"written: `{path}`"
 
     def serve_forever(self) -> None:
+        """Keep serving until Ctrl-C, then stop the server."""
         try:
             while True:
                 time.sleep(1.0)

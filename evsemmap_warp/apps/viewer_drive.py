@@ -97,6 +97,7 @@ class Drive:
         return image, (self.source.frame_values(frames[-1]) if self.labelled_by else None)
 
     def describe(self, k: int) -> str:
+        """Markdown for the panel: which scan ``k`` is, its frames and (when the source has stamps) its time."""
         frames = self.insertions[k]
         which = f"frame {frames[0].index}" if len(frames) == 1 else f"frames {frames[0].index}..{frames[-1].index}"
         when = f", t = {self.times_s[k]:.2f} s" if self.times_s is not None else ""
@@ -269,6 +270,7 @@ class DrivePlayback:
             self._cond.notify_all()
 
     def close(self) -> None:
+        """Stop the replay thread (the playback shows nothing new after this)."""
         with self._cond:
             self._stopped = True
             self._cond.notify_all()

@@ -37,11 +37,13 @@ _RRT = (0.0245786, 0.000090537, 0.983729, 0.4329510, 0.238081)
 
 
 def srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
+    """sRGB values 0..255 as linear light 0..1 (the standard sRGB transfer curve)."""
     s = np.asarray(rgb, np.float64) / 255.0
     return np.where(s <= 0.04045, s / 12.92, ((s + 0.055) / 1.055) ** 2.4)
 
 
 def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
+    """Linear light 0..1 as sRGB values 0..255 (the inverse of srgb_to_linear)."""
     v = np.clip(np.asarray(linear, np.float64), 0.0, 1.0)
     return 255.0 * np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1 / 2.4) - 0.055)
 
@@ -217,17 +219,21 @@ class TerrainSurface:
 
     @property
     def band_names(self) -> list[str]:
+        """The layers' bands in the order the selector lists them."""
         return terrain_band_order(list(self.layers.bands))
 
     def class_band(self, band: str) -> bool:
+        """Whether ``band`` holds class indices (drawn with the class palette) rather than values."""
         from ..terrain.layers import CLASS_BANDS
 
         return band in CLASS_BANDS
 
     def values(self, band: str) -> np.ndarray:
+        """``band``'s value at each drawn cell (float64, NaN where unknown)."""
         return np.asarray(self.layers.bands[band], np.float64)[self.rows, self.cols]
 
     def value_range(self, band: str) -> tuple[float, float]:
+        """The (low, high) of ``band``'s finite values that its color bar spans."""
         finite = self.values(band)
         finite = finite[np.isfinite(finite)]
         return (float(finite.min()), float(finite.max())) if len(finite) else (0.0, 1.0)
@@ -247,6 +253,7 @@ class TerrainSurface:
         return ramp(values, lo, hi)
 
     def legend(self, band: str, classes: list[str], palette: np.ndarray) -> np.ndarray:
+        """An RGB image of ``band``'s color bar (values with their unit) or class legend, for the side panel."""
         from ..terrain.layers import band_units
 
         if self.class_band(band):
@@ -394,6 +401,7 @@ class MapDiff:
         return out
 
     def describe(self, keep: np.ndarray | None = None) -> str:
+        """Markdown: how many voxels differ, and, with a truth, which map agrees with it where they do."""
         c = self.counts(keep)
         share = 100.0 * c["differ"] / c["compared"] if c["compared"] else 0.0
         lines = [f"first **{self.a_name}**, second **{self.b_name}**",
@@ -515,6 +523,7 @@ class GroundGrid:
 
 
 def ground_grid(lo: np.ndarray, hi: np.ndarray, ground_z: float, max_labels: int = 12) -> GroundGrid:
+    """Grid lines and metre labels on the ground plane ``ground_z`` covering the box ``lo``..``hi`` (m), at a round spacing."""
     extent = float(max(hi[0] - lo[0], hi[1] - lo[1], 1.0))
     section = nice_length(extent / 4.0)
     while (hi[0] - lo[0]) / section > max_labels or (hi[1] - lo[1]) / section > max_labels:
@@ -550,6 +559,7 @@ def scale_bar_html(m_per_px: float, target_px: float = 120.0) -> tuple[str, floa
 
 
 def measurement_text(a: np.ndarray, b: np.ndarray, frame_text: str) -> str:
+    """Markdown: the two picked points in world coordinates, their distance and height difference (m)."""
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     d = b - a
     return (f"distance **{np.linalg.norm(d):.3f} m**, horizontal {np.hypot(d[0], d[1]):.3f} m, "
