@@ -1,4 +1,4 @@
-"""The map viewer in-process: filters, colourings, several maps, picking, exports, the CLI."""
+"""The map viewer in-process: filters, colorings, several maps, picking, exports, the CLI."""
 
 import html
 
@@ -75,16 +75,16 @@ def test_class_toggle_and_variance_slider(viewer):
     assert 0 < len(shown) < len(before) and layer.variance[shown].max() <= threshold + 1e-9
 
 
-def test_colourings(viewer):
+def test_colorings(viewer):
     rows = viewer.visible_rows[0]
     semantic = viewer.colors(0, rows)
     labels = viewer.layers[0].label[rows]
     assert (semantic[labels == 3] == CLASS_COLORS["object"]).all() and (semantic[labels == 7] == CLASS_COLORS["grass"]).all()
     for mode in ("variance", "mean uncertainty", "observations"):
         viewer.gui_color_by.value = mode
-        colours = viewer.colors(0, rows)
-        assert len(np.unique(colours, axis=0)) > 5, mode
-        assert viewer.gui_legend.image.shape[0] == 46  # a colour bar instead of the class legend
+        colors = viewer.colors(0, rows)
+        assert len(np.unique(colors, axis=0)) > 5, mode
+        assert viewer.gui_legend.image.shape[0] == 46  # a color bar instead of the class legend
     np.testing.assert_array_equal(colormap(np.array([0.0, 1.0, np.nan]), 0, 1), [[68, 1, 84], [253, 231, 37], [128, 128, 128]])
 
 
@@ -219,7 +219,7 @@ def test_clicked_voxel_is_described_in_world_coordinates_of_its_frame(far_viewer
     v._on_click(Click)
     cx, cy, cz = layer.centers[top]
     assert cx > 500_000 and cy > 4_000_000
-    assert f"centre in frame 'map' (EPSG:32617): x={cx:.3f}, y={cy:.3f}, z={cz:.3f} m" in v.gui_selection.content
+    assert f"center in frame 'map' (EPSG:32617): x={cx:.3f}, y={cy:.3f}, z={cz:.3f} m" in v.gui_selection.content
 
 
 def test_ply_export_holds_float64_world_coordinates_and_names_the_frame(far_viewer, tmp_path):
@@ -295,15 +295,15 @@ def test_a_store_shows_its_frame_and_is_refused_beside_another(tmp_path):
 from evsemmap_warp.apps import viewer_layers as vl
 
 
-def test_lit_mesh_colours_render_as_the_palette():
+def test_lit_mesh_colors_render_as_the_palette():
     """The forward model (tone map of lit reflectance, fitted against Chromium: tests/test_viewer_browser.py) maps
-    the compensated colours back onto the palette, within what ACES can render (saturated yellow the furthest)."""
+    the compensated colors back onto the palette, within what ACES can render (saturated yellow the furthest)."""
     names = ["grass", "object", "dirt", "vegetation", "unpaved", "water", "sky", "paved"]
     palette = np.array([CLASS_COLORS[n] for n in names], np.uint8)
     shown = vl.rendered_top_color(vl.mesh_colors(palette)).astype(int)
     error = np.abs(shown - palette).max(axis=1)
     assert (error[:-1] <= 30).all() and error[-1] <= 60, dict(zip(names, error))
-    # viser's defaults (the instance colour itself, as the boxes were drawn) wash them out far more
+    # viser's defaults (the instance color itself, as the boxes were drawn) wash them out far more
     assert (np.abs(vl.rendered_top_color(palette).astype(int) - palette).max(axis=1)[:5] > 60).all()
     np.testing.assert_allclose(vl.aces(vl.aces_inverse(np.array([[0.2, 0.3, 0.1]]))), [[0.2, 0.3, 0.1]], atol=1e-6)
 
@@ -447,7 +447,7 @@ def test_diff_counts_against_a_projection_and_a_map(tmp_path, capsys):
 def test_html_export_holds_the_legend(viewer, tmp_path):
     page = viewer.export_html(tmp_path / "scene.html").read_text()
     legend = page[page.index('<div id="evsemmap-legend"'):]
-    assert "grass" in legend and "object" in legend and "sky" not in legend and "colour by semantic" in legend
+    assert "grass" in legend and "object" in legend and "sky" not in legend and "color by semantic" in legend
     viewer.gui_color_by.value = "variance"
     page = viewer.export_html(tmp_path / "scene2.html").read_text()
-    assert 'alt="colour bar' in page and "data:image/png;base64," in page
+    assert 'alt="color bar' in page and "data:image/png;base64," in page

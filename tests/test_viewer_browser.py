@@ -46,7 +46,7 @@ def test_scene_renders_and_controls_change_it(tmp_path):
             browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
             page = browser.new_page(viewport={"width": 1280, "height": 800})
             page.goto(viewer.url)
-            page.get_by_text("Colour by").first.wait_for(timeout=30_000)
+            page.get_by_text("Color by").first.wait_for(timeout=30_000)
 
             def shot_has(rgb, at_least=2000):
                 return lambda: _pixels_near(page.screenshot(), rgb) >= at_least
@@ -59,8 +59,8 @@ def test_scene_renders_and_controls_change_it(tmp_path):
             assert _wait(lambda: not viewer.gui_classes["object"].value)
             assert _wait(lambda: _pixels_near(page.screenshot(), CLASS_COLORS["object"]) < 50)
 
-            # The colouring dropdown switches to the variance colour map.
-            page.get_by_label("Colour by").click()
+            # The coloring dropdown switches to the variance color map.
+            page.get_by_label("Color by").click()
             page.get_by_role("option", name="variance").click()
             assert _wait(lambda: viewer.gui_color_by.value == "variance")
             assert _wait(lambda: _pixels_near(page.screenshot(), CLASS_COLORS["grass"]) < 200)
@@ -79,14 +79,14 @@ def test_far_map_shows_its_frame_origin_and_world_coordinates_of_a_click(tmp_pat
             browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
             page = browser.new_page(viewport={"width": 1280, "height": 800})
             page.goto(viewer.url)
-            page.get_by_text("Colour by").first.wait_for(timeout=30_000)
+            page.get_by_text("Color by").first.wait_for(timeout=30_000)
             # 500 km / 4000 km from 0, the voxels still render (float32 positions about the local origin)
             assert _wait(lambda: _pixels_near(page.screenshot(), CLASS_COLORS["grass"]) >= 2000), "grass voxels never appeared"
             page.get_by_text("map (EPSG:32617)").first.wait_for(timeout=10_000)  # the GUI names the frame
             page.get_by_text(viewer.origin_text()).first.wait_for(timeout=10_000)  # the axes' label, and the GUI line
-            # a click on the map reports the voxel's centre in world coordinates of the frame
+            # a click on the map reports the voxel's center in world coordinates of the frame
             page.mouse.click(450, 450)
-            assert _wait(lambda: "centre in frame 'map' (EPSG:32617): x=500" in viewer.gui_selection.content), viewer.gui_selection.content
+            assert _wait(lambda: "center in frame 'map' (EPSG:32617): x=500" in viewer.gui_selection.content), viewer.gui_selection.content
             assert "y=4000" in viewer.gui_selection.content
             browser.close()
     finally:
@@ -119,7 +119,7 @@ def open_page(browser):
         page = browser.new_page(viewport={"width": width, "height": height})
         opened.append(page)
         page.goto(viewer.url)
-        page.get_by_text("Colour by").first.wait_for(timeout=30_000)
+        page.get_by_text("Color by").first.wait_for(timeout=30_000)
         return page
 
     yield open_
@@ -158,15 +158,15 @@ def _trajectory_files(tmp_path):
     return tmp_path / "poses.txt", tmp_path / "scan.bin"
 
 
-def test_boxes_show_the_palette_colours(open_page, tmp_path):
+def test_boxes_show_the_palette_colors(open_page, tmp_path):
     """Issue 30: the boxes style was washed out (viser's lights and tone mapping): the boxes' tops now show
-    the class colours as the points do."""
+    the class colors as the points do."""
     make_map(tmp_path / "m.npz")
     viewer = MapViewer([tmp_path / "m.npz"], port=free_port(), style="boxes")
     try:
         page = open_page(viewer)
         assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000), \
-            "grass boxes never showed the grass colour (washed out?)"
+            "grass boxes never showed the grass color (washed out?)"
         assert _near(_image(page.screenshot())[:, :900], CLASS_COLORS["object"]).sum() >= 300
     finally:
         viewer.server.stop()
@@ -185,7 +185,7 @@ def test_boxes_with_trajectory_and_scan_keep_the_legend_in_view(open_page, tmp_p
         legend = _panel_images(page)[0]
         assert legend["top"] >= 0 and legend["bottom"] <= 800 and legend["height"] > 30, f"legend out of view: {legend}"
         img = _image(page.screenshot())
-        # its swatches are drawn: the class colours inside the legend's box
+        # its swatches are drawn: the class colors inside the legend's box
         box = img[int(legend["top"]):int(legend["bottom"]), int(legend["left"]):int(legend["right"])]
         assert _near(box, CLASS_COLORS["grass"], 10).sum() > 50 and _near(box, CLASS_COLORS["object"], 10).sum() > 50
         # no blank block: no run of white rows taller than 80 px from the panel's top to the legend's bottom
@@ -197,8 +197,8 @@ def test_boxes_with_trajectory_and_scan_keep_the_legend_in_view(open_page, tmp_p
         viewer.server.stop()
 
 
-def test_readme_names_the_drive_colour_the_browser_shows(open_page, tmp_path):
-    """Issue 30: the README's caption of docs/demo_map.png names the colour the trajectory is drawn in."""
+def test_readme_names_the_drive_color_the_browser_shows(open_page, tmp_path):
+    """Issue 30: the README's caption of docs/demo_map.png names the color the trajectory is drawn in."""
     make_map(tmp_path / "m.npz")
     poses, _ = _trajectory_files(tmp_path)
     viewer = MapViewer([tmp_path / "m.npz"], port=free_port(), trajectory=poses)
@@ -329,9 +329,9 @@ def test_orientation_grid_scale_bar_world_coordinates_and_measuring(open_page, t
         assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000)
         layer = viewer.layers[0]
         ground = layer.centers[layer.label == 7]
-        centre = (ground.min(axis=0) + ground.max(axis=0)) / 2 - viewer.origin
-        centre[2] = np.median(ground[:, 2]) - viewer.origin[2]
-        _top_down(viewer, 9.0, centre)
+        center = (ground.min(axis=0) + ground.max(axis=0)) / 2 - viewer.origin
+        center[2] = np.median(ground[:, 2]) - viewer.origin[2]
+        _top_down(viewer, 9.0, center)
         client = next(iter(viewer.server.get_clients().values()))
         assert _wait(lambda: abs(np.linalg.norm(client.camera.position - client.camera.look_at) - 9.0) < 0.05)
         time.sleep(2.0)
@@ -344,7 +344,7 @@ def test_orientation_grid_scale_bar_world_coordinates_and_measuring(open_page, t
         # section apart; along a row between the grid's south edge and the map, their spacing in pixels
         img = _image(page.screenshot())[:, :940]
         grass = _near(img, CLASS_COLORS["grass"])
-        look = centre + viewer.origin
+        look = center + viewer.origin
         row = int(round(400 + (look[1] - (viewer.ground.y0 + 0.15 * viewer.ground.section)) / m_per_px))
         dark = np.flatnonzero(img[row, 250:940].max(axis=1) < 190) + 250  # section lines (grey 150), not the cells' (215)
         groups = [g for g in np.split(dark, np.flatnonzero(np.diff(dark) > 3) + 1) if len(g)]
@@ -367,7 +367,7 @@ def test_orientation_grid_scale_bar_world_coordinates_and_measuring(open_page, t
         assert any(t.startswith("x 500,") and t.endswith(" m") for t in labels) and any(t.startswith("y 4,000,") for t in labels)
         page.get_by_label("Ground grid", exact=True).click()
         # a click reports the world coordinates of the point it hits
-        cx, cy = 640, 500  # the orbit centre is the canvas' centre (640, 400); 100 px south of it lies grass
+        cx, cy = 640, 500  # the orbit center is the canvas' center (640, 400); 100 px south of it lies grass
         page.mouse.click(cx - 150, cy + 60)
         assert _wait(lambda: "clicked point in frame 'map' (EPSG:32617): x=" in viewer.gui_selection.content)
         # measuring: two clicks, the distance and the height difference, in the page
@@ -389,9 +389,9 @@ def test_orientation_grid_scale_bar_world_coordinates_and_measuring(open_page, t
         viewer.server.stop()
 
 
-def test_terrain_layer_as_a_coloured_height_surface_with_picking(open_page, tmp_path):
-    """Issue 26 item 5: a terrain layer drawn as a height surface instead of the voxels, coloured by the
-    selected layer, with its colour bar, and a click that reports the cell's values."""
+def test_terrain_layer_as_a_colored_height_surface_with_picking(open_page, tmp_path):
+    """Issue 26 item 5: a terrain layer drawn as a height surface instead of the voxels, colored by the
+    selected layer, with its color bar, and a click that reports the cell's values."""
     make_map(tmp_path / "m.npz")
     viewer = MapViewer([tmp_path / "m.npz"], port=free_port(), terrain=True)
     try:
@@ -401,11 +401,11 @@ def test_terrain_layer_as_a_coloured_height_surface_with_picking(open_page, tmp_
         assert _wait(lambda: viewer.gui_terrain_mode.value == vl.TERRAIN_MODES[1])
         _choose(page, "Layer", "surface_class")
         assert _wait(lambda: viewer.gui_terrain_band.value == "surface_class")
-        assert all(len(rows) == 0 for rows in viewer.visible_rows)  # no voxel is drawn: the colours come from the surface
-        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000), "no grass-coloured surface"
+        assert all(len(rows) == 0 for rows in viewer.visible_rows)  # no voxel is drawn: the colors come from the surface
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000), "no grass-colored surface"
         _choose(page, "Layer", "elevation")
         assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() < 300)
-        # the colour bar of the layer, in the legend at the panel's top (the voxels' legend is hidden with the voxels)
+        # the color bar of the layer, in the legend at the panel's top (the voxels' legend is hidden with the voxels)
         time.sleep(1.0)
         page.evaluate("""() => [...document.querySelectorAll('img')].filter(e => e.src.startsWith('blob:') && e.getBoundingClientRect().width > 0)
             .forEach(e => e.scrollIntoView({block: 'nearest'}))""")  # the dropdowns' clicks may have scrolled the panel
@@ -416,7 +416,7 @@ def test_terrain_layer_as_a_coloured_height_surface_with_picking(open_page, tmp_
         assert bar["top"] >= 0 and bar["bottom"] <= 800, bar
         img = _image(page.screenshot())
         box = img[int(bar["top"]):int(bar["bottom"]), int(bar["left"]):int(bar["right"])]
-        assert _near(box, (253, 231, 37), 30).sum() > 20 and _near(box, (68, 1, 84), 30).sum() > 20, "no colour bar"
+        assert _near(box, (253, 231, 37), 30).sum() > 20 and _near(box, (68, 1, 84), 30).sum() > 20, "no color bar"
         # a click on the surface: that cell's values
         surface = viewer.terrain[0]
         for x, y in ((450, 470), (420, 500), (480, 520), (400, 450), (500, 430)):
@@ -472,7 +472,7 @@ def _truth_file(path, dirt_below_x: float):
 
 
 def test_diff_of_two_maps_against_a_ground_truth(open_page, tmp_path):
-    """Issue 30 item 4: the voxels whose labels differ, coloured by which map agrees with the truth, with
+    """Issue 30 item 4: the voxels whose labels differ, colored by which map agrees with the truth, with
     counts; and the variance difference."""
     make_map(tmp_path / "a.npz")
     make_map(tmp_path / "b.npz", dirt_below_x=1.5)  # the same points; the second map calls a strip dirt
@@ -486,10 +486,10 @@ def test_diff_of_two_maps_against_a_ground_truth(open_page, tmp_path):
         counts = viewer.diff().counts(viewer.visible_mask(0)[viewer.diff().a_rows])
         first, second = counts["first map agrees with the truth"], counts["second map agrees with the truth"]
         assert first > 20 and second > 20 and counts["differ"] >= first + second
-        colours = list(vl.DIFF_COLORS.values())
-        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], colours[0], 25).sum() > 300), "no 'first agrees' voxels"
+        colors = list(vl.DIFF_COLORS.values())
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], colors[0], 25).sum() > 300), "no 'first agrees' voxels"
         img = _image(page.screenshot())[:, :900]
-        assert _near(img, colours[1], 25).sum() > 300, "no 'second agrees' voxels"
+        assert _near(img, colors[1], 25).sum() > 300, "no 'second agrees' voxels"
         assert _near(img, CLASS_COLORS["grass"]).sum() < 100  # only the differing voxels are drawn
         body = page.inner_text("body")
         assert f"first map agrees with the truth {first:,}" in body and f"second map agrees with the truth {second:,}" in body, body[-1500:]
@@ -500,9 +500,9 @@ def test_diff_of_two_maps_against_a_ground_truth(open_page, tmp_path):
         diff = viewer.diff()
         assert np.abs(diff.variance_difference).max() > 0
         img = _image(page.screenshot())[:, :900]
-        colours = vl.diverging(diff.variance_difference, np.abs(diff.variance_difference).max())
-        shown = {tuple(c) for c in colours}
-        assert sum(_near(img, c, 6).sum() for c in list(shown)[:50]) > 500, "no variance-difference colours"
+        colors = vl.diverging(diff.variance_difference, np.abs(diff.variance_difference).max())
+        shown = {tuple(c) for c in colors}
+        assert sum(_near(img, c, 6).sum() for c in list(shown)[:50]) > 500, "no variance-difference colors"
     finally:
         viewer.server.stop()
 
@@ -574,10 +574,10 @@ def test_drive_playback_scrubs_the_map_and_shows_the_scan_and_the_camera(open_pa
         # the scan by input uncertainty: its unsure points (the left half of the camera's view) turn teal
         time.sleep(1.0)
         before = _image(page.screenshot())[:, :900]
-        _choose(page, "Colour scan by", "input uncertainty")
+        _choose(page, "Color scan by", "input uncertainty")
         assert _wait(lambda: playback._drawn_scan == (0, "input uncertainty"), 30)
         assert _wait(lambda: (_near(_image(page.screenshot())[:, :900], weak, 20).sum() - _near(before, weak, 20).sum()) > 100), \
-            "no scan points in the uncertainty colours"
+            "no scan points in the uncertainty colors"
     finally:
         playback.close()
         viewer.server.stop()
@@ -707,7 +707,7 @@ def test_store_first_frame_fills_in_and_shows_tiles_in_full_on_approach(open_pag
         viewer.APPROACH_TILES = 0.0  # first the overview from there, for comparison
         _top_down(viewer, 1.2, spot - viewer.origin)  # nearer than a tile edge (1.6 m)
         time.sleep(2.0)
-        window = (slice(300, 500), slice(540, 740))  # around the orbit centre (640, 400)
+        window = (slice(300, 500), slice(540, 740))  # around the orbit center (640, 400)
         sparse = _near(_image(page.screenshot())[window], CLASS_COLORS["grass"]).mean()
         assert overview.detail == () and sparse < 0.6, sparse
         viewer.APPROACH_TILES = 1.0
@@ -737,7 +737,7 @@ def test_the_docs_screenshots_come_from_the_screenshot_tool(tmp_path):
     written = [tmp_path / f"{mode}.png" for mode in viewer_screenshots.MODES]
     for path in written:
         image = _image(path.read_bytes())[:, :900]
-        assert (image.max(axis=2) - image.min(axis=2) > 60).sum() > 1000, f"{path.name}: nothing coloured drawn"
+        assert (image.max(axis=2) - image.min(axis=2) > 60).sum() > 1000, f"{path.name}: nothing colored drawn"
     pages = (REPO / "docs" / "viewer.md").read_text() + (REPO / "README.md").read_text()
     for mode in viewer_screenshots.MODES:
         assert (REPO / "docs" / "viewer" / f"{mode}.png").is_file() and f"viewer/{mode}.png" in pages, mode

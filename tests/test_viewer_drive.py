@@ -128,8 +128,8 @@ def test_playback_of_an_alpha_labelled_map_shows_the_camera_labels_and_uncertain
         assert uncertainty[:, : alpha.shape[2] // 2].mean() > 2 * uncertainty[:, alpha.shape[2] // 2:].mean()  # weaker evidence: less sure
         np.testing.assert_array_equal(playback.gui_camera.image, drive_.sequence.read_image(frame))
         # the scan by input uncertainty: K/S of each point's alpha
-        assert playback.gui_scan_colour.options == ("label", "input uncertainty")
-        playback.gui_scan_colour.value = "input uncertainty"
+        assert playback.gui_scan_color.options == ("label", "input uncertainty")
+        playback.gui_scan_color.value = "input uncertainty"
         assert _wait(lambda: playback._drawn_scan == (1, "input uncertainty"), 30)
         scan = drive_.scan(1)
         want = colormap(9.0 / scan.payload.sum(axis=1), 0.0, 1.0)
@@ -144,7 +144,7 @@ def test_labels_only_drive_offers_no_input_uncertainty(drive):
     viewer = MapViewer([drive / "labels.npz"], port=free_port())
     playback = DrivePlayback(viewer, drive_, replay, precompute=False)
     try:
-        assert playback.gui_scan_colour.options == ("label",)
+        assert playback.gui_scan_color.options == ("label",)
         assert playback.wait_until_drawn(5)
         assert playback.gui_camera.visible and not playback.gui_labels.visible  # the camera, and nothing labels it
     finally:

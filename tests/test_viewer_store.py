@@ -54,8 +54,8 @@ def test_first_frame_from_the_first_tiles_then_the_overview_fills_in(store):
 def test_the_first_tiles_are_the_middle_ones_within_the_budget(store):
     overview = StoreOverview(store, 600)
     sizes = [overview.store.tiles[name]["voxels"] for name in overview.unread]
-    centre = (overview.bounds[0] + overview.bounds[1]) / 2
-    distances = [np.linalg.norm(np.mean(overview.store.tiles[n]["bounds_m"], axis=0)[:2] - centre[:2]) for n in overview.unread]
+    center = (overview.bounds[0] + overview.bounds[1]) / 2
+    distances = [np.linalg.norm(np.mean(overview.store.tiles[n]["bounds_m"], axis=0)[:2] - center[:2]) for n in overview.unread]
     assert distances == sorted(distances)
     overview.read_first(sizes[0] + sizes[1])
     assert len(overview.parts) == 2 and len(overview.unread) == len(sizes) - 2

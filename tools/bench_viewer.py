@@ -8,7 +8,7 @@ a user starts it (a fresh process, imports included); Debian's chromium, driven 
 tests/test_viewer_browser.py drives it, opens the page. Measured:
 
 - ``ready_s``: from starting the command to its "open http://..." line (the server serves);
-- ``first_frame_s``: from starting the command to the first screenshot showing voxels in class colours
+- ``first_frame_s``: from starting the command to the first screenshot showing voxels in class colors
   (screenshots are polled, so this is an upper bound by about one screenshot's time);
 - ``overview_complete_s``: until the page's counter no longer says tiles are being read;
 - ``control_round_trip_s``: a click on *Show FREE* until the page's counter changes (during the filling
@@ -101,14 +101,14 @@ def browser_rss_mb(server_pid: int) -> float:
     return round(total / 1024, 1)
 
 
-def voxel_pixels(page, colours: np.ndarray) -> int:
-    """Pixels of the scene (left of the GUI panel) within 30 of a class colour."""
+def voxel_pixels(page, colors: np.ndarray) -> int:
+    """Pixels of the scene (left of the GUI panel) within 30 of a class color."""
     from PIL import Image
 
     image = np.asarray(Image.open(BytesIO(page.screenshot())).convert("RGB")).astype(int)[:, :900]
     near = np.zeros(image.shape[:2], bool)
-    for colour in colours:
-        near |= np.abs(image - colour).max(axis=2) < 30
+    for color in colors:
+        near |= np.abs(image - color).max(axis=2) < 30
     return int(near.sum())
 
 
@@ -136,7 +136,7 @@ def measure(store: Path, max_voxels: int, port: int) -> dict:
     from evsemmap_warp.core.map_store import MapStore
 
     index = MapStore(store)
-    colours = np.array([CLASS_COLORS[name] for name in index.class_names if name in CLASS_COLORS and name not in ("void", "sky")])
+    colors = np.array([CLASS_COLORS[name] for name in index.class_names if name in CLASS_COLORS and name not in ("void", "sky")])
     results = {"store": {"path": str(store), "voxels": index.voxel_count, "tiles": len(index.tiles), "scans": int(index.index["scans"]),
                          "tile_voxels": index.tile_voxels},
                "max_voxels": max_voxels}
@@ -161,8 +161,8 @@ def measure(store: Path, max_voxels: int, port: int) -> dict:
             results["ready_s"] = round(time.perf_counter() - started, 2)
             url = re.search(r"http://\S+", lines[-1]).group(0)
             page.goto(url)
-            page.get_by_text("Colour by").first.wait_for(timeout=120_000)
-            while voxel_pixels(page, colours) < 2000:
+            page.get_by_text("Color by").first.wait_for(timeout=120_000)
+            while voxel_pixels(page, colors) < 2000:
                 if time.perf_counter() - started > 600:
                     raise SystemExit("bench_viewer: no voxels drawn after 600 s")
                 time.sleep(0.1)

@@ -69,23 +69,23 @@ def _wait(predicate, timeout: float = 60.0) -> bool:
 
 
 def class_pixels(png: bytes) -> int:
-    """Pixels of the scene (left of the GUI panel) within 30 of a class colour."""
+    """Pixels of the scene (left of the GUI panel) within 30 of a class color."""
     from PIL import Image
 
     from evsemmap_warp.apps.viewer import CLASS_COLORS
 
     image = np.asarray(Image.open(BytesIO(png)).convert("RGB")).astype(int)[:, :900]
     near = np.zeros(image.shape[:2], bool)
-    for name, colour in CLASS_COLORS.items():
+    for name, color in CLASS_COLORS.items():
         if name not in ("void", "sky"):
-            near |= np.abs(image - np.array(colour)).max(axis=2) < 30
+            near |= np.abs(image - np.array(color)).max(axis=2) < 30
     return int(near.sum())
 
 
 def _open(browser, viewer):
     page = browser.new_page(viewport={"width": 1280, "height": 800})
     page.goto(viewer.url)
-    page.get_by_text("Colour by").first.wait_for(timeout=180_000)
+    page.get_by_text("Color by").first.wait_for(timeout=180_000)
     return page
 
 
@@ -197,7 +197,7 @@ def shoot(mode: str, data: SimpleNamespace, browser, out: Path) -> Path:
 
 
 def _drawn_surface(png: bytes) -> bool:
-    """Enough coloured (not grey or white) pixels in the scene: the cost surface is drawn."""
+    """Enough colored (not grey or white) pixels in the scene: the cost surface is drawn."""
     from PIL import Image
 
     image = np.asarray(Image.open(BytesIO(png)).convert("RGB")).astype(int)[:, :900]

@@ -5,9 +5,9 @@ point sprites or instanced boxes, in float32 positions relative to a local origi
 float16 would quantise a map a few hundred metres from its origin). Everything a control changes
 goes through ``refresh()``, so the same code serves the browser and the tests.
 
-Coordinates: a map's voxel centres are float64 world coordinates of its world frame (``frames.WorldFrame``:
+Coordinates: a map's voxel centers are float64 world coordinates of its world frame (``frames.WorldFrame``:
 a name and an optional EPSG CRS, e.g. UTM metres). The viewer shows that frame, reports a clicked voxel's
-centre in it (float64, mm digits), and draws a world-axes marker at the local origin labelled with the
+center in it (float64, mm digits), and draws a world-axes marker at the local origin labelled with the
 origin's world coordinates. Maps are shown together (switchable or side by side) only when their frames
 agree (two maps written before frames were recorded agree; an unrecorded and a recorded frame do not).
 ``--trajectory`` and ``--scan`` files are read as world coordinates of the maps' frame. Exports: the PLY
@@ -15,14 +15,14 @@ holds float64 world coordinates (header comments ``frame`` and ``crs``); the HTM
 positions relative to the local origin, and states that origin and the frame in a ``<meta>`` element, a
 comment and a visible note, beside the legend and a summary of what is shown.
 
-Beside the voxels (``viewer_layers``): a terrain layer as a coloured height surface (``terrain=True`` or
+Beside the voxels (``viewer_layers``): a terrain layer as a colored height surface (``terrain=True`` or
 the GUI's button computes ``terrain.compute_layers`` of each map or store), two maps' differences
-(labels that differ, coloured by which map agrees with a ground truth when ``truth`` gives one, and the
+(labels that differ, colored by which map agrees with a ground truth when ``truth`` gives one, and the
 variance difference), a ground grid labelled in metres of the world frame, a scale bar that follows the
 camera, and a measuring tool. A click reports the world coordinates of the point it hits (a voxel, a
 terrain cell, or the ground grid's plane): viser 1.1 sends clicks, not pointer moves, to the server,
 so there are no coordinates on hover. Lit meshes (boxes, the surface) are drawn under the viewer's own
-lights with compensated colours so that they show the palette's colours.
+lights with compensated colors so that they show the palette's colors.
 """
 
 from __future__ import annotations
@@ -46,11 +46,11 @@ from . import viewer_layers as vl
 
 STATE_NAMES = ("UNKNOWN", "FREE", "OCCUPIED")
 COLOR_MODES = ("semantic", "variance", "mean uncertainty", "observations")
-# Class colours come from configs/classes (docs/algorithm.md §5.1 for the mapping classes); other names get tab10.
+# Class colors come from configs/classes (docs/algorithm.md §5.1 for the mapping classes); other names get tab10.
 CLASS_COLORS = named_colors()
 _FALLBACK = np.array([(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
                       (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)], np.uint8)
-# viridis at 9 stops; np.interp between them is indistinguishable at voxel-colour precision.
+# viridis at 9 stops; np.interp between them is indistinguishable at voxel-color precision.
 _VIRIDIS = np.array([(68, 1, 84), (71, 44, 122), (59, 81, 139), (44, 113, 142), (33, 144, 141),
                      (39, 173, 129), (92, 200, 99), (170, 220, 50), (253, 231, 37)], np.float64)
 _NO_DATA = np.array([128, 128, 128], np.uint8)
@@ -58,12 +58,12 @@ TRAJECTORY_COLOR = (255, 140, 0)  # orange (README: "the drive in orange")
 
 
 def class_palette(classes: list[str]) -> np.ndarray:
-    """[K, 3] uint8: the class set's colour for known class names, a tab10 colour otherwise."""
+    """[K, 3] uint8: the class set's color for known class names, a tab10 color otherwise."""
     return np.array([CLASS_COLORS.get(name.lower(), tuple(_FALLBACK[i % len(_FALLBACK)])) for i, name in enumerate(classes)], np.uint8)
 
 
 def colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """viridis colours for values in [lo, hi]; NaN -> grey."""
+    """viridis colors for values in [lo, hi]; NaN -> grey."""
     finite = np.isfinite(values)
     t = np.clip((np.where(finite, values, lo) - lo) / (hi - lo if hi > lo else 1.0), 0, 1)
     stops = np.linspace(0, 1, len(_VIRIDIS))
@@ -87,7 +87,7 @@ def frame_label(frame: WorldFrame | None) -> str:
 
 @dataclass
 class MapLayer:
-    """One map file, as the viewer needs it: float64 centres in world coordinates of ``frame`` (metres)."""
+    """One map file, as the viewer needs it: float64 centers in world coordinates of ``frame`` (metres)."""
 
     name: str
     path: Path
@@ -169,7 +169,7 @@ class StoreOverview:
     ``max_detail_tiles`` tiles in full (asked for by the GUI, a pick, or a camera coming near). What is
     held is the overview and those tiles, never the store: tiles are read one at a time and dropped.
 
-    The overview fills in tile by tile (``read_next``, nearest the store's centre first), so a viewer can
+    The overview fills in tile by tile (``read_next``, nearest the store's center first), so a viewer can
     draw a first frame before the store is read; the store's extent comes from store.json. Thread-safe:
     the viewer's loader thread reads while GUI callbacks ask for detail."""
 
@@ -184,9 +184,9 @@ class StoreOverview:
         self.total_voxels = self.store.voxel_count  # in the store's tiles (the overview holds a share of them)
         boxes = {name: np.asarray(info["bounds_m"], np.float64) for name, info in self.store.tiles.items()}
         self.bounds = (np.min([b[0] for b in boxes.values()], axis=0), np.max([b[1] for b in boxes.values()], axis=0))
-        centre = (self.bounds[0] + self.bounds[1]) / 2
+        center = (self.bounds[0] + self.bounds[1]) / 2
         # the tiles nearest the middle of the first view first
-        self.unread = sorted(boxes, key=lambda name: (float(np.linalg.norm(boxes[name].mean(axis=0)[:2] - centre[:2])), name))
+        self.unread = sorted(boxes, key=lambda name: (float(np.linalg.norm(boxes[name].mean(axis=0)[:2] - center[:2])), name))
         self.parts: dict[str, dict] = {}  # tile -> its overview rows
         self.details: dict[str, dict] = {}  # tile -> all its rows, most recently asked for last
         self.meta = self.store.template.metadata()
@@ -238,7 +238,7 @@ class StoreOverview:
         return min(n, max(1, int(self.max_voxels * n / max(self.total_voxels, 1))))
 
     def read_first(self, voxels: int, rows: int | None = None) -> None:
-        """Read tiles into the overview, nearest the centre first, until it is complete or the next tile would take
+        """Read tiles into the overview, nearest the center first, until it is complete or the next tile would take
         the voxels read beyond ``voxels`` (the cost of reading) or the overview beyond ``rows`` (the cost of
         sending and drawing); at least one tile."""
         read, held = 0, 0
@@ -343,7 +343,7 @@ def free_port() -> int:
 
 
 class MapViewer:
-    """A viser server showing one or more map files, with filters, colourings, picking and export.
+    """A viser server showing one or more map files, with filters, colorings, picking and export.
 
     All maps must be in one world frame (``frame``; a ``FrameError`` naming both files and both frames
     otherwise). ``trajectory`` and ``scan`` are read as world coordinates of that frame. The scene is
@@ -356,7 +356,7 @@ class MapViewer:
 
     ``map_paths`` may hold ``MapLayer`` objects (a map in memory: a live map, a drive's replay), which
     ``replace_layer`` updates. A store (``StoreOverview``) is read for its first frame up to
-    ``store_first_voxels`` of its voxels (and ``FIRST_FRAME_ROWS`` overview rows), nearest its centre
+    ``store_first_voxels`` of its voxels (and ``FIRST_FRAME_ROWS`` overview rows), nearest its center
     first; a loader thread reads the rest of its overview, and the tiles a browser's camera comes near or
     a click hits, in full."""
 
@@ -469,17 +469,17 @@ class MapViewer:
     # ------------------------------------------------------------------ GUI
     def _build_gui(self) -> None:
         gui = self.server.gui
-        # The panel's first screen holds what a user reads all the time: the map, its colouring, the
+        # The panel's first screen holds what a user reads all the time: the map, its coloring, the
         # counter, the legend and the scale; filters, classes and tools follow.
         with gui.add_folder("Map"):
             names = tuple(f"{i}: {layer.name} ({layer.method})" for i, layer in enumerate(self.layers))
             self.gui_map = gui.add_dropdown("Map", options=names, initial_value=names[0])
             self.gui_side_by_side = gui.add_checkbox("Side by side", initial_value=False, disabled=len(self.layers) == 1)
-            self.gui_color_by = gui.add_dropdown("Colour by", options=COLOR_MODES, initial_value="semantic")
+            self.gui_color_by = gui.add_dropdown("Color by", options=COLOR_MODES, initial_value="semantic")
             self.gui_status = gui.add_markdown("")
         with gui.add_folder("Legend"):
             self.gui_legend = gui.add_image(vl.swatch_image([("", (255, 255, 255))]), label=None)
-            # the terrain surface's colour bar or class legend, once layers are computed
+            # the terrain surface's color bar or class legend, once layers are computed
             self.gui_terrain_legend = gui.add_image(vl.swatch_image([("", (255, 255, 255))]), label=None, visible=False)
             self.gui_scale_bar = gui.add_html('<div id="evsemmap-scale-bar" style="font:12px sans-serif">scale: waiting for the camera</div>')
         # filled by a drive's playback (viewer_drive.DrivePlayback) or a live map (viewer_live): kept next to the legend
@@ -551,7 +551,7 @@ class MapViewer:
         return unit, step, top, "Max variance" + (f" ×1e{exponent}" if exponent else "")
 
     def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """The maps' bounding box (world coordinates, m): their voxel centres, and the whole of each store (from
+        """The maps' bounding box (world coordinates, m): their voxel centers, and the whole of each store (from
         its index, however much of it is read); zeros while every map is empty."""
         lows = [layer.centers.min(axis=0) for layer in self.layers if len(layer.centers)] + [o.bounds[0] for o in self.stores.values()]
         highs = [layer.centers.max(axis=0) for layer in self.layers if len(layer.centers)] + [o.bounds[1] for o in self.stores.values()]
@@ -675,18 +675,18 @@ class MapViewer:
         resolution = min(layer.resolution for layer in self.layers)
         ground = float(np.percentile(occupied, 1.0)) if len(occupied) else float(lo[2])
         grid = vl.ground_grid(lo, hi, ground - 0.5 * resolution)
-        # the grid is drawn about its centre: keep an even number of sections so that its lines stay on the round coordinates
+        # the grid is drawn about its center: keep an even number of sections so that its lines stay on the round coordinates
         x1 = grid.x1 + grid.section * (round((grid.x1 - grid.x0) / grid.section) % 2)
         y1 = grid.y1 + grid.section * (round((grid.y1 - grid.y0) / grid.section) % 2)
         self.ground = vl.GroundGrid(grid.x0, grid.y0, x1, y1, grid.z, grid.section, grid.cell, grid.labels)
         for handle in getattr(self, "grid_label_handles", []):  # a grid redrawn for maps that grew
             handle.remove()
-        centre = np.array([(grid.x0 + x1) / 2, (grid.y0 + y1) / 2, grid.z]) - self.origin
+        center = np.array([(grid.x0 + x1) / 2, (grid.y0 + y1) / 2, grid.z]) - self.origin
         size = max(x1 - grid.x0, y1 - grid.y0)
         self.grid_handle = self.server.scene.add_grid(
             "/ground_grid", width=x1 - grid.x0, height=y1 - grid.y0, plane="xy", cell_size=grid.cell, section_size=grid.section,
             cell_color=(215, 215, 215), section_color=(150, 150, 150), section_thickness=1.5, fade_distance=4.0 * size,
-            shadow_opacity=0.0, position=tuple(centre), visible=self.gui_grid.value)
+            shadow_opacity=0.0, position=tuple(center), visible=self.gui_grid.value)
         self.grid_label_handles = [
             self.server.scene.add_label(f"/ground_grid_labels/{k}", text, position=tuple(position - self.origin), anchor="center-center",
                                         font_screen_scale=0.8, visible=self.gui_grid.value)
@@ -714,7 +714,7 @@ class MapViewer:
         self._approach(camera)
 
     def _update_scale_bar(self, camera) -> None:
-        """The scale bar for a browser's camera: a round length and its screen pixels at the orbit centre."""
+        """The scale bar for a browser's camera: a round length and its screen pixels at the orbit center."""
         try:
             height = float(camera.image_height)
             m_per_px = vl.metres_per_pixel(camera.position, camera.look_at, camera.fov, height)
@@ -745,7 +745,7 @@ class MapViewer:
                 self._store_wake.notify_all()
 
     def _approach(self, camera) -> None:
-        """Tiles in full where a browser's camera has come near a store (its orbit centre's tile column)."""
+        """Tiles in full where a browser's camera has come near a store (its orbit center's tile column)."""
         try:
             position, look_at = np.asarray(camera.position, np.float64), np.asarray(camera.look_at, np.float64)
         except (AttributeError, TypeError, ValueError):
@@ -934,7 +934,7 @@ class MapViewer:
             keep = self.visible_mask(pair[0])[self.diff().a_rows] if self.gui_diff.value == "variance difference" else None
             text = self.diff().describe(keep)
             if self.gui_diff.value == "variance difference" and self._color_range:
-                text += (f"\n\ncolour: variance of the first minus the second, ±{self._color_range[1]:.3g} "
+                text += (f"\n\ncolor: variance of the first minus the second, ±{self._color_range[1]:.3g} "
                          "(blue: the first map is surer, red: the second)")
             self.gui_diff_status.content = text
 
@@ -988,12 +988,12 @@ class MapViewer:
             if self.gui_diff.value == "labels differ":
                 return vl.swatch_image(list(vl.DIFF_COLORS.items()))
             lo, hi = self._color_range or (-1.0, 1.0)
-            return vl.colour_bar_image(lo, hi, "variance: first - second map", vl._DIVERGING)
+            return vl.color_bar_image(lo, hi, "variance: first - second map", vl._DIVERGING)
         if self.gui_color_by.value == "semantic":
             return vl.swatch_image([(name, self.palette[name]) for name in self.present_classes] or [("no classes", (128, 128, 128))])
         lo, hi = getattr(self, "_color_range", None) or (0.0, 1.0)
         label = self.gui_color_by.value + (" (log10 1+n)" if self.gui_color_by.value == "observations" else "")
-        return vl.colour_bar_image(lo, hi, label)
+        return vl.color_bar_image(lo, hi, label)
 
     # ------------------------------------------------------------------ terrain layers
     def compute_terrain(self) -> None:
@@ -1041,7 +1041,7 @@ class MapViewer:
             palette = np.array([self.palette[name] for name in layer.classes], np.uint8)
             tile = surface.grid.cell_m * surface.stride
             thickness = 0.25 * surface.voxel_m
-            positions = np.c_[surface.centres[:, :2], surface.tile_tops(mode) - thickness / 2] - self.origin + self._shift(i)
+            positions = np.c_[surface.centers[:, :2], surface.tile_tops(mode) - thickness / 2] - self.origin + self._shift(i)
             import trimesh
 
             box = trimesh.creation.box(extents=[tile * 0.98, tile * 0.98, thickness])
@@ -1122,13 +1122,13 @@ class MapViewer:
         return min(hits, key=lambda h: h[0])[1] if hits else None
 
     def describe(self, i: int, row: int) -> str:
-        """Markdown for a voxel: its centre in world coordinates of the map's frame (float64, mm), label, evidence."""
+        """Markdown for a voxel: its center in world coordinates of the map's frame (float64, mm), label, evidence."""
         layer = self.layers[i]
         alpha = layer.alpha[row]
         probs = alpha / alpha.sum()
-        centre = np.asarray(layer.centers[row], np.float64)
+        center = np.asarray(layer.centers[row], np.float64)
         lines = [f"**{layer.name}** voxel {tuple(int(v) for v in layer.voxel_index[row])}",
-                 f"centre in {describe_frame(layer.frame)}: " + ", ".join(f"{a}={c:.3f}" for a, c in zip("xyz", centre)) + " m",
+                 f"center in {describe_frame(layer.frame)}: " + ", ".join(f"{a}={c:.3f}" for a, c in zip("xyz", center)) + " m",
                  f"label: **{layer.classes[layer.label[row]]}** ({layer.label[row]}), state {STATE_NAMES[layer.state[row]]}",
                  f"variance: {layer.variance[row]:.3g}, observations: {int(layer.hits[row])}",
                  "", "| class | alpha | p |", "|---|---|---|"]
@@ -1205,7 +1205,7 @@ class MapViewer:
 
     def legend_html(self) -> str:
         """The legend and a summary of the view as an HTML panel (``id="evsemmap-legend"``) for the HTML
-        export: class swatches with names (or the colour bar as an image), the terrain layer's bar when the
+        export: class swatches with names (or the color bar as an image), the terrain layer's bar when the
         surface is shown, the counter and the maps' frame."""
         import base64
         from io import BytesIO
@@ -1223,7 +1223,7 @@ class MapViewer:
         if pair is not None:
             title = f"{self.gui_diff.value}: {self.layers[pair[0]].name} against {self.layers[pair[1]].name}"
         else:
-            title = f"colour by {self.gui_color_by.value}"
+            title = f"color by {self.gui_color_by.value}"
         parts = [f'<div style="font-weight:bold">{html.escape(", ".join(layer.name for layer in shown))}</div>',
                  f"<div>{html.escape(title)}</div>"]
         if pair is not None and self.gui_diff.value == "labels differ":
@@ -1233,14 +1233,14 @@ class MapViewer:
         else:
             entries = None
         if entries is not None:
-            for name, colour in entries:
-                rgb = ",".join(str(int(c)) for c in colour)
+            for name, color in entries:
+                rgb = ",".join(str(int(c)) for c in color)
                 parts.append(f'<div class="evsemmap-legend-entry"><span style="display:inline-block;width:14px;height:14px;'
                              f'margin-right:6px;vertical-align:middle;border:1px solid #5a5a5a;background:rgb({rgb})"></span>'
                              f"{html.escape(name)}</div>")
         else:
             lo, hi = self._color_range or (0.0, 1.0)
-            parts.append(image(self._legend_image(), f"colour bar {lo:.3g} to {hi:.3g}"))
+            parts.append(image(self._legend_image(), f"color bar {lo:.3g} to {hi:.3g}"))
         if self.terrain and self.gui_terrain_show.value:
             parts.append(f"<div>terrain surface: {html.escape(self.gui_terrain_band.value)}</div>")
             parts.append(image(self.gui_terrain_legend.image, f"terrain {self.gui_terrain_band.value}"))
@@ -1284,7 +1284,7 @@ class MapViewer:
     def export_ply(self, path) -> Path:
         """The visible voxels of the shown maps as a binary PLY point cloud: vertex positions are float64
         (``property double x/y/z``) world coordinates of the maps' frame, metres, not shifted side by side;
-        colour (RGBA) and label, state, variance and observation count as per-vertex properties. The
+        color (RGBA) and label, state, variance and observation count as per-vertex properties. The
         header names the frame: ``comment frame NAME`` and ``comment crs EPSG:NNNN`` ("none" where not
         recorded)."""
         parts = [(i, self.visible_rows[i]) for i in self._shown_layers()]
@@ -1306,7 +1306,7 @@ class MapViewer:
 
         types = {"<f8": "double", "|u1": "uchar", "<f4": "float"}
         header = ["ply", "format binary_little_endian 1.0",
-                  "comment evsemmap_warp map viewer export: voxel centres, float64 world coordinates (m) of the frame below",
+                  "comment evsemmap_warp map viewer export: voxel centers, float64 world coordinates (m) of the frame below",
                   f"comment frame {one_line(self.frame.name) if self.frame is not None else 'none'}",
                   f"comment crs {(self.frame.crs if self.frame is not None else None) or 'none'}",
                   f"element vertex {len(vertex)}"]

@@ -5,7 +5,7 @@ was made from (a sequence folder or a robot log, labelled as ``evsemmap map`` la
 labels, ``--checkpoint`` or ``--alpha-dir``), read through the same scan sources (``scan_sources``) with the
 map's own mapping parameters. A time slider picks a scan; the viewer then shows
 
-- the robot's LiDAR pose at that scan (axes) on the drive's path, and the scan's points coloured by
+- the robot's LiDAR pose at that scan (axes) on the drive's path, and the scan's points colored by
   label or by input uncertainty (K/S of the alpha; 1 - max p for probabilities);
 - the frame's camera image, and when a checkpoint or alpha files label the scans, the predicted labels
   and their uncertainty beside it (GUI images);
@@ -35,7 +35,7 @@ from ..core.integrators import ScanPayload
 from ..core.mapper import prepare_payload, scan_fingerprint
 from .viewer import TRAJECTORY_COLOR, MapLayer, colormap
 
-SCAN_COLOURINGS = ("label", "input uncertainty")
+SCAN_COLORINGS = ("label", "input uncertainty")
 PLAYBACK_BUTTONS = ("◀", "play", "pause", "▶")  # previous scan, play, pause, next scan
 _STAMP = re.compile(r"-(\d+)_(\d+)$")  # RELLIS-3D image names: frameNNNNNN-<seconds>_<milliseconds>
 
@@ -195,7 +195,7 @@ def same_map(layer: MapLayer, other: MapLayer) -> bool:
 class DrivePlayback:
     """A time slider over ``drive`` on ``viewer``, which shows the map file the drive made as map
     ``map_index``: the robot's pose and scan, the camera, and the map as it stood after the chosen scan
-    (``replay``). Handles: ``gui_scan`` (the slider), ``gui_play``, ``gui_scan_colour``,
+    (``replay``). Handles: ``gui_scan`` (the slider), ``gui_play``, ``gui_scan_color``,
     ``gui_map_as_of``, ``gui_status``, ``gui_camera`` / ``gui_labels`` / ``gui_uncertainty`` (images),
     ``pose_handle``, ``scan_handle``, ``path_handle``. ``precompute``: fill in the snapshots while idle."""
 
@@ -210,7 +210,7 @@ class DrivePlayback:
         self._maps: OrderedDict[int, MapLayer] = OrderedDict()  # scans integrated -> layer, most recent last
         self._cond = threading.Condition()
         self._wanted = len(drive) - 1
-        self._drawn_scan: tuple | None = None  # (scan, colouring) drawn
+        self._drawn_scan: tuple | None = None  # (scan, coloring) drawn
         self._drawn_map: int | None = None  # scans in the map drawn; None: the map file's own layer
         self._playing = False
         self._stopped = False
@@ -230,8 +230,8 @@ class DrivePlayback:
         with folder:
             self.gui_scan = gui.add_slider("Scan", min=0, max=max(n - 1, 1), step=1, initial_value=n - 1, disabled=n == 1)
             self.gui_play = gui.add_button_group("Playback", PLAYBACK_BUTTONS)
-            colourings = SCAN_COLOURINGS if self.drive.payload_type is not PayloadType.LABEL else SCAN_COLOURINGS[:1]
-            self.gui_scan_colour = gui.add_dropdown("Colour scan by", options=colourings, initial_value="label")
+            colorings = SCAN_COLORINGS if self.drive.payload_type is not PayloadType.LABEL else SCAN_COLORINGS[:1]
+            self.gui_scan_color = gui.add_dropdown("Color scan by", options=colorings, initial_value="label")
             self.gui_map_as_of = gui.add_checkbox("Map as of this scan", initial_value=True)
             self.gui_status = gui.add_markdown("")
             blank = np.full((2, 2, 3), 255, np.uint8)
@@ -239,7 +239,7 @@ class DrivePlayback:
             self.gui_labels = gui.add_image(blank, label="predicted labels", format="png", visible=False)
             self.gui_uncertainty = gui.add_image(blank, label="uncertainty", format="png", visible=False)
         self.gui_scan.on_update(lambda _event: self.show(int(self.gui_scan.value)))
-        self.gui_scan_colour.on_update(lambda _event: self._wake())
+        self.gui_scan_color.on_update(lambda _event: self._wake())
         self.gui_map_as_of.on_update(lambda _event: self._wake())
         self.gui_play.on_click(lambda event: self._on_button(event.target.value))
 
@@ -314,7 +314,7 @@ class DrivePlayback:
 
     def _has_work(self) -> bool:
         k = self._wanted
-        if self._drawn_scan != (k, self.gui_scan_colour.value) or self._map_wanted(k) != self._drawn_map or self._playing:
+        if self._drawn_scan != (k, self.gui_scan_color.value) or self._map_wanted(k) != self._drawn_map or self._playing:
             return True
         return self.precompute and self.replay.next_missing_snapshot() is not None
 
@@ -325,7 +325,7 @@ class DrivePlayback:
         return k + 1
 
     def _step(self, k: int) -> None:
-        if self._drawn_scan != (k, self.gui_scan_colour.value):
+        if self._drawn_scan != (k, self.gui_scan_color.value):
             self._draw_scan(k)
         wanted = self._map_wanted(k)
         if wanted != self._drawn_map:
@@ -342,28 +342,28 @@ class DrivePlayback:
 
     def _draw_scan(self, k: int) -> None:
         drive, viewer = self.drive, self.viewer
-        colouring = self.gui_scan_colour.value
+        coloring = self.gui_scan_color.value
         scan = drive.scan(k)
         payload: ScanPayload = prepare_payload(scan.points, scan.payload, scan.payload_type, len(self.file_layer.classes))
-        if colouring == "label":
-            colours = self.palette[np.clip(payload.labels, 0, len(self.palette) - 1)]
+        if coloring == "label":
+            colors = self.palette[np.clip(payload.labels, 0, len(self.palette) - 1)]
         else:
-            colours = colormap(payload.uncertainty, 0.0, 1.0)
+            colors = colormap(payload.uncertainty, 0.0, 1.0)
         origin = viewer.origin
         points = (payload.points - origin).astype(np.float32)
         if len(points) == 0:
-            points, colours = np.zeros((1, 3), np.float32), np.zeros((1, 3), np.uint8)
+            points, colors = np.zeros((1, 3), np.float32), np.zeros((1, 3), np.uint8)
         scene = viewer.server.scene
         size = 0.5 * self.file_layer.resolution
         with viewer.server.atomic():
-            self.scan_handle = scene.add_point_cloud("/drive/scan", points, colours, point_size=size, point_shape="circle",
+            self.scan_handle = scene.add_point_cloud("/drive/scan", points, colors, point_size=size, point_shape="circle",
                                                      precision="float32", visible=len(payload.points) > 0)
             pose = drive.poses[k]
             axes = float(np.clip(8 * self.file_layer.resolution, 0.5, 5.0))
             self.pose_handle = scene.add_frame("/drive/pose", axes_length=axes, axes_radius=axes / 15, wxyz=rotation_wxyz(pose[:3, :3]),
                                                position=tuple(pose[:3, 3] - origin))
         self._draw_camera(k)
-        self._drawn_scan = (k, colouring)
+        self._drawn_scan = (k, coloring)
         self._status(k)
 
     def _draw_camera(self, k: int) -> None:

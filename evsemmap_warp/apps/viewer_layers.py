@@ -1,17 +1,17 @@
-"""What ``viewer.MapViewer`` draws and computes beside the voxels: the colour compensation of lit meshes,
-a terrain layer as a coloured height surface, the difference of two maps (against a ground truth when
+"""What ``viewer.MapViewer`` draws and computes beside the voxels: the color compensation of lit meshes,
+a terrain layer as a colored height surface, the difference of two maps (against a ground truth when
 one is given), and the orientation aids (ground grid, scale bar, measured distances).
 
 Everything here is numpy on arrays the viewer already holds; the viewer owns the viser handles.
 
 Lit meshes. viser draws meshes (``--style boxes``, the terrain surface) with three.js's
 MeshStandardMaterial under the client's ACES filmic tone mapping, and point clouds unlit and not
-tone mapped. A mesh's colour c (0..1, taken as linear reflectance) lit by an ambient light A and a
+tone mapped. A mesh's color c (0..1, taken as linear reflectance) lit by an ambient light A and a
 directional light D at angle t to the face's normal leaves the face with radiance c (A + D cos t) / pi,
 which is tone mapped, ACES(x) = OUT . rrt(IN . x / 0.6), and sRGB-encoded. Under viser's default
-lights (an environment map and two directional lights) the same colours come out pale: the boxes looked
+lights (an environment map and two directional lights) the same colors come out pale: the boxes looked
 washed out beside the points. ``configure_lighting`` sets one ambient and one directional light, and
-``mesh_colors`` inverts the chain for faces that look up, so that their tops show the palette's colour
+``mesh_colors`` inverts the chain for faces that look up, so that their tops show the palette's color
 (as closely as ACES can render it) while the sides, lit less, shade the boxes.
 """
 
@@ -57,7 +57,7 @@ def aces(radiance: np.ndarray) -> np.ndarray:
 
 
 def aces_inverse(linear: np.ndarray) -> np.ndarray:
-    """The radiance whose tone map is ``linear`` (clipped to >= 0 where ACES cannot reach the colour)."""
+    """The radiance whose tone map is ``linear`` (clipped to >= 0 where ACES cannot reach the color)."""
     a, b, c, d, e = _RRT
     z = np.clip(np.asarray(linear, np.float64) @ np.linalg.inv(_ACES_OUT).T, 0.0, 0.999 / c)
     # rrt(v) = z  <=>  v^2 (1 - c z) + v (a - d z) - (b + e z) = 0, the root >= 0
@@ -71,17 +71,17 @@ _MESH_COLOR_LOCK = threading.Lock()  # GUI callbacks run on viser's threads
 
 
 def _solve_mesh_colors(table: np.ndarray) -> np.ndarray:
-    """[n, 3] sent colours (float 0..255) whose top faces render nearest to the sRGB colours ``table``."""
+    """[n, 3] sent colors (float 0..255) whose top faces render nearest to the sRGB colors ``table``."""
     target = table.astype(np.float64)
     levels = np.arange(256, dtype=np.float64)
 
-    def error(candidates):  # [colours, n, 3] sent -> [colours, n] max channel error, ties broken by the squared error
+    def error(candidates):  # [colors, n, 3] sent -> [colors, n] max channel error, ties broken by the squared error
         shown = linear_to_srgb(aces(candidates / 255.0 * TOP_GAIN))
         diff = np.abs(shown - target[:, None, :])
         return diff.max(axis=-1) + 1e-3 * (diff ** 2).sum(axis=-1)
 
-    # the exact inverse where ACES reaches the colour, or the best of a coarse grid; then, per channel in
-    # turn, the value whose rendering is nearest (this also settles the colours ACES cannot reach exactly)
+    # the exact inverse where ACES reaches the color, or the best of a coarse grid; then, per channel in
+    # turn, the value whose rendering is nearest (this also settles the colors ACES cannot reach exactly)
     exact = np.round(np.clip(aces_inverse(srgb_to_linear(table)) / TOP_GAIN, 0.0, 1.0) * 255.0)
     coarse = np.array([0, 2, 5, 10, 18, 30, 48, 75, 110, 160, 210, 255], np.float64)
     grid = np.stack(np.meshgrid(coarse, coarse, coarse, indexing="ij"), axis=-1).reshape(1, -1, 3)
@@ -96,15 +96,15 @@ def _solve_mesh_colors(table: np.ndarray) -> np.ndarray:
 
 
 def mesh_colors(rgb: np.ndarray) -> np.ndarray:
-    """[N, 3] uint8 instance colours that a mesh face looking up renders as ``rgb`` (sRGB) under
+    """[N, 3] uint8 instance colors that a mesh face looking up renders as ``rgb`` (sRGB) under
     ``configure_lighting`` (``rendered_top_color`` gives what it renders as). Solved once per distinct
-    colour (cached), 256 colours at a time."""
+    color (cached), 256 colors at a time."""
     rgb = np.asarray(rgb, np.uint8)
     flat = rgb.reshape(-1, 3)
     keys = (flat[:, 0].astype(np.int64) << 16) | (flat[:, 1].astype(np.int64) << 8) | flat[:, 2].astype(np.int64)
     unique, inverse = np.unique(keys, return_inverse=True)
     with _MESH_COLOR_LOCK:
-        if len(_MESH_COLOR_CACHE) + len(unique) > 200_000:  # a bound on memory: colour ramps of many values
+        if len(_MESH_COLOR_CACHE) + len(unique) > 200_000:  # a bound on memory: color ramps of many values
             _MESH_COLOR_CACHE.clear()
         missing = np.array([k for k in unique.tolist() if k not in _MESH_COLOR_CACHE], np.int64)
         for start in range(0, len(missing), 256):
@@ -117,7 +117,7 @@ def mesh_colors(rgb: np.ndarray) -> np.ndarray:
 
 
 def rendered_top_color(sent: np.ndarray) -> np.ndarray:
-    """What the browser shows for a face looking up with instance colour ``sent`` (the forward model)."""
+    """What the browser shows for a face looking up with instance color ``sent`` (the forward model)."""
     return np.round(linear_to_srgb(aces(np.asarray(sent, np.float64) / 255.0 * TOP_GAIN))).astype(np.uint8)
 
 
@@ -129,7 +129,7 @@ def configure_lighting(scene) -> None:
     scene.add_light_directional("/lights/sun", intensity=SUN_INTENSITY, position=SUN_POSITION)
 
 
-# ---------------------------------------------------------------------------------------------- colours
+# ---------------------------------------------------------------------------------------------- colors
 _VIRIDIS = np.array([(68, 1, 84), (71, 44, 122), (59, 81, 139), (44, 113, 142), (33, 144, 141),
                      (39, 173, 129), (92, 200, 99), (170, 220, 50), (253, 231, 37)], np.float64)
 # blue (the first map surer) - white - red (the second surer), ColorBrewer RdBu
@@ -139,7 +139,7 @@ NO_DATA = np.array([128, 128, 128], np.uint8)
 
 
 def ramp(values: np.ndarray, lo: float, hi: float, stops: np.ndarray = _VIRIDIS) -> np.ndarray:
-    """Colours of ``values`` on a colour ramp over [lo, hi]; NaN grey."""
+    """Colors of ``values`` on a color ramp over [lo, hi]; NaN grey."""
     values = np.asarray(values, np.float64)
     finite = np.isfinite(values)
     t = np.clip((np.where(finite, values, lo) - lo) / (hi - lo if hi > lo else 1.0), 0, 1)
@@ -150,12 +150,12 @@ def ramp(values: np.ndarray, lo: float, hi: float, stops: np.ndarray = _VIRIDIS)
 
 
 def diverging(values: np.ndarray, limit: float) -> np.ndarray:
-    """Colours of signed ``values`` on a blue-white-red ramp over [-limit, limit]."""
+    """Colors of signed ``values`` on a blue-white-red ramp over [-limit, limit]."""
     return ramp(values, -limit, limit, _DIVERGING)
 
 
-def colour_bar_image(lo: float, hi: float, label: str, stops: np.ndarray = _VIRIDIS, width: int = 220) -> np.ndarray:
-    """A 46-pixel-high colour bar with its ends' values and a label (a legend image)."""
+def color_bar_image(lo: float, hi: float, label: str, stops: np.ndarray = _VIRIDIS, width: int = 220) -> np.ndarray:
+    """A 46-pixel-high color bar with its ends' values and a label (a legend image)."""
     from PIL import Image, ImageDraw
 
     bar = ramp(np.linspace(lo, hi, 200), lo, hi, stops)
@@ -170,13 +170,13 @@ def colour_bar_image(lo: float, hi: float, label: str, stops: np.ndarray = _VIRI
 
 
 def swatch_image(entries: list[tuple[str, tuple]], width: int = 220) -> np.ndarray:
-    """A legend of coloured squares and names."""
+    """A legend of colored squares and names."""
     from PIL import Image, ImageDraw
 
     img = Image.new("RGB", (width, 18 * len(entries) + 4), (255, 255, 255))
     draw = ImageDraw.Draw(img)
-    for k, (name, colour) in enumerate(entries):
-        draw.rectangle([4, 4 + 18 * k, 18, 18 + 18 * k], fill=tuple(int(c) for c in colour), outline=(90, 90, 90))
+    for k, (name, color) in enumerate(entries):
+        draw.rectangle([4, 4 + 18 * k, 18, 18 + 18 * k], fill=tuple(int(c) for c in color), outline=(90, 90, 90))
         draw.text((26, 5 + 18 * k), name, fill=(0, 0, 0))
     return np.asarray(img)
 
@@ -195,7 +195,7 @@ def terrain_band_order(names: list[str]) -> list[str]:
 class TerrainSurface:
     """A grid of terrain layers (``terrain.TerrainLayers``) drawn as a height surface: one flat tile per
     cell with a height (the ``elevation`` layer: the top of the supporting surface; ``cover_height``
-    where a cell has no supporting class), coloured by the selected layer. More than ``max_cells``
+    where a cell has no supporting class), colored by the selected layer. More than ``max_cells``
     cells are drawn every ``stride``-th row and column with tiles ``stride`` cells wide (picking still
     reads every cell)."""
 
@@ -213,9 +213,9 @@ class TerrainSurface:
             rows, cols = rows[keep], cols[keep]
         self.rows, self.cols = rows, cols
         xs, ys = self.grid.cell_centers()
-        # a tile of stride cells covers its cell and the next ones east and south: centre it on them
+        # a tile of stride cells covers its cell and the next ones east and south: center it on them
         half = (self.stride - 1) * 0.5 * self.grid.cell_m
-        self.centres = np.c_[xs[cols] + half, ys[rows] - half, height[rows, cols]]  # world coordinates, m
+        self.centers = np.c_[xs[cols] + half, ys[rows] - half, height[rows, cols]]  # world coordinates, m
 
     @property
     def band_names(self) -> list[str]:
@@ -239,7 +239,7 @@ class TerrainSurface:
         return (float(finite.min()), float(finite.max())) if len(finite) else (0.0, 1.0)
 
     def colors(self, band: str, palette: np.ndarray) -> np.ndarray:
-        """[tiles, 3] uint8 sRGB colours of the drawn tiles by ``band`` (``palette``: [K, 3] class colours)."""
+        """[tiles, 3] uint8 sRGB colors of the drawn tiles by ``band`` (``palette``: [K, 3] class colors)."""
         values = self.values(band)
         if self.class_band(band):
             out = np.tile(NO_DATA, (len(values), 1))
@@ -263,12 +263,12 @@ class TerrainSurface:
             off, on = BINARY_BANDS[band]
             return swatch_image([(f"{band}: no", off), (f"{band}: yes", on)])
         lo, hi = self.value_range(band)
-        return colour_bar_image(lo, hi, f"terrain {band} ({band_units(band)})")
+        return color_bar_image(lo, hi, f"terrain {band} ({band_units(band)})")
 
     def tile_tops(self, mode: str) -> np.ndarray:
         """z of the drawn tiles' tops: the layer's height, or half a voxel lower (the support voxel's
         bottom face) when the voxels are drawn on it."""
-        return self.centres[:, 2] - (0.5 * self.voxel_m if mode == TERRAIN_MODES[0] else 0.0)
+        return self.centers[:, 2] - (0.5 * self.voxel_m if mode == TERRAIN_MODES[0] else 0.0)
 
     # ------------------------------------------------------------------ picking
     def cell_at(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -314,13 +314,13 @@ class TerrainSurface:
         return float(ts[k]), int(row[k]), int(col[k])
 
     def describe(self, row: int, col: int, classes: list[str], frame_text: str) -> str:
-        """Markdown: a cell's centre in world coordinates and every layer's value there."""
+        """Markdown: a cell's center in world coordinates and every layer's value there."""
         from ..terrain.layers import band_units
 
         xs, ys = self.grid.cell_centers()
         bands = self.layers.bands
         lines = [f"**terrain cell** (column {col}, row {row}) of {self.grid.cell_m:g} m",
-                 f"centre in {frame_text}: x={xs[col]:.3f}, y={ys[row]:.3f} m", "", "| layer | value | unit |", "|---|---|---|"]
+                 f"center in {frame_text}: x={xs[col]:.3f}, y={ys[row]:.3f} m", "", "| layer | value | unit |", "|---|---|---|"]
         probabilities = []
         for name, values in bands.items():
             value = float(values[row, col])
@@ -541,7 +541,7 @@ def ground_grid(lo: np.ndarray, hi: np.ndarray, ground_z: float, max_labels: int
 
 
 def metres_per_pixel(camera_position, look_at, fov_rad: float, image_height_px: float) -> float:
-    """Metres per screen pixel at the orbit centre (the look-at point) of a perspective camera."""
+    """Metres per screen pixel at the orbit center (the look-at point) of a perspective camera."""
     distance = float(np.linalg.norm(np.asarray(camera_position, np.float64) - np.asarray(look_at, np.float64)))
     return 2.0 * distance * math.tan(float(fov_rad) / 2.0) / max(float(image_height_px), 1.0)
 
@@ -554,7 +554,7 @@ def scale_bar_html(m_per_px: float, target_px: float = 120.0) -> tuple[str, floa
     html = (f'<div id="evsemmap-scale-bar" data-metres="{metres:g}" data-pixels="{pixels:.2f}" '
             'style="font:12px sans-serif;padding:2px 0 4px 4px">'
             f'<div style="width:{pixels:.2f}px;height:7px;border:2px solid #222;border-top:none;box-sizing:border-box"></div>'
-            f'<span>{text}</span> <span style="color:#666">(at the orbit centre)</span></div>')
+            f'<span>{text}</span> <span style="color:#666">(at the orbit center)</span></div>')
     return html, metres, pixels
 
 
