@@ -198,3 +198,37 @@ def test_batch_view_flags_need_view(sequence, tmp_path, capsys):
     assert main(["batch", str(sequence), "rellis3d", "--method", "ebs", "--out", str(tmp_path / "s"), "--port", "8123", "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--view" in err and not (tmp_path / "s").exists()
+
+
+class _Camera:
+    def __init__(self, position, look_at):
+        self.position, self.look_at = np.asarray(position, float), np.asarray(look_at, float)
+
+
+class _Client:
+    def __init__(self, camera):
+        self.camera = camera
+
+
+def test_cameras_follow_the_growing_map_despite_late_reports_and_stop_once_moved(sequence, tmp_path, monkeypatch):
+    """A browser reports its camera a move or two late (sent before the move arrived): it has still not been moved
+    by its user and keeps following; a camera the user moved stays where the user put it. (A browser test failed
+    in CI when only the last move counted: the tiles grew the map past a camera that reported late.)"""
+    source, mapper = _source_and_mapper(sequence)
+    viewer = _empty_viewer(mapper, tmp_path / "live.npz")
+    try:
+        first = viewer._auto_camera
+        lagging = _Camera(*first)  # reports the first placement while the viewer moves on twice
+        moved = _Camera(first[0] + np.array([5.0, 0.0, 0.0]), first[1])
+        monkeypatch.setattr(viewer.server, "get_clients", lambda: {1: _Client(lagging), 2: _Client(moved)})
+        viewer._frame_camera(np.zeros(3), np.full(3, 10.0))
+        second = viewer._auto_camera
+        lagging.position, lagging.look_at = first[0].copy(), first[1].copy()  # its report of the first placement arrives late
+        viewer._frame_camera(np.zeros(3), np.full(3, 40.0))
+        third = viewer._auto_camera
+        assert not np.allclose(second[0], third[0])
+        np.testing.assert_allclose(lagging.position, third[0])
+        np.testing.assert_allclose(lagging.look_at, third[1])
+        np.testing.assert_allclose(moved.position, first[0] + np.array([5.0, 0.0, 0.0]))
+    finally:
+        viewer.server.stop()

@@ -27,6 +27,7 @@ lights with compensated colors so that they show the palette's colors.
 
 from __future__ import annotations
 
+import collections
 import html
 import math
 import socket
@@ -424,6 +425,9 @@ class MapViewer:
         vl.configure_lighting(self.server.scene)
         extent = float(max(np.max(hi - lo), 1.0))
         self._auto_camera = None  # (position, look_at) the viewer last set: browsers still there follow the maps as they grow
+        # every position the viewer has put cameras at: a browser's report can lag a move or two behind (it was
+        # sent before the move arrived), and a camera at any of them has not been moved by its user
+        self._auto_positions: collections.deque = collections.deque(maxlen=64)
         self._frame_camera(lo, hi)
         self._build_gui()
         self._add_origin_marker(extent)
@@ -628,14 +632,20 @@ class MapViewer:
         position = look_at + np.array([0.0, -0.9 * extent, 0.7 * extent])
         previous, self._auto_camera = self._auto_camera, (position, look_at)
         self.server.initial_camera.position, self.server.initial_camera.look_at = tuple(position), tuple(look_at)
-        if previous is None:
-            return
-        tolerance = 1e-3 * max(float(np.linalg.norm(previous[0] - previous[1])), 1.0)
-        for client in self.server.get_clients().values():
-            camera = client.camera
-            if (np.linalg.norm(np.asarray(camera.position) - previous[0]) < tolerance
-                    and np.linalg.norm(np.asarray(camera.look_at) - previous[1]) < tolerance):
-                camera.position, camera.look_at = tuple(position), tuple(look_at)
+        if previous is not None:
+            for client in self.server.get_clients().values():
+                if self._camera_left_alone(client.camera):
+                    client.camera.position, client.camera.look_at = tuple(position), tuple(look_at)
+        self._auto_positions.append((position, 1e-3 * max(float(np.linalg.norm(position - look_at)), 1.0)))
+
+    def _camera_left_alone(self, camera) -> bool:
+        """Whether a browser's camera is still where the viewer put it, at this or an earlier move (the position
+        alone: a report sent between a move's position and its look-at holds the one and not the other)."""
+        try:
+            reported = np.asarray(camera.position, dtype=np.float64)
+        except AssertionError:  # viser: this browser has not reported its camera yet; the initial camera will place it
+            return False
+        return any(np.linalg.norm(reported - placed) < tolerance for placed, tolerance in self._auto_positions)
 
     @property
     def max_variance(self) -> float:
