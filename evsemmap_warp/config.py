@@ -70,6 +70,14 @@ class Media(_RenamedValues):
     SOFT = "soft"  # the class-probability vector: alpha / S for alpha payloads (EBS, the "Prob." ablations)
 
 
+class ThresholdScope(str, enum.Enum):
+    """Over which points the uncertainty threshold drops its fraction (``mapping.threshold_scope``)."""
+    INSERTION = "insertion"  # the most uncertain points of the whole insertion (the paper)
+    # the most uncertain points of each class the network predicted, in each insertion: a class the network is
+    # unsure of as a whole (small objects, rare ground) keeps its surest points instead of losing most of them
+    PREDICTED_CLASS = "predicted-class"
+
+
 class Compat(_RenamedValues):
     """Which program's map to compute: the paper's algorithm or one of the original C++ programs
     (``mapping.compat``)."""
@@ -136,6 +144,7 @@ class MappingConfig:
     beta: float = 0.5  # scale of the adaptive length
     gamma: float = 10.0  # how fast the adaptive length shrinks with u
     uncertainty_drop_fraction: float = 0.1  # u~: the most uncertain fraction dropped per insertion
+    threshold_scope: ThresholdScope = ThresholdScope.INSERTION  # ... of the whole insertion, or per predicted class
     sigma0: float = 1.0  # kernel amplitude: k'(0) = sigma0 (S-BKI's sf2)
     # S-BKI compatibility mode only (docs/compatibility.md §1):
     block_depth: int = 2  # blocks of 2^(depth - 1) cells a side
@@ -203,6 +212,9 @@ class MappingConfig:
             need(self.adaptive_length and self.beta == 1.0 and self.gamma == 0.0, "adaptive_length",
                  "the release's kernel length is the constant length_m * e: set adaptive_length true, beta 1, gamma 0")
             need(self.uncertainty_threshold, "uncertainty_threshold", "the released ebs and dempster cut the most uncertain points")
+        if self.threshold_scope is not ThresholdScope.INSERTION:
+            need(self.compat is Compat.CLEAN and self.kernel is Kernel.SPARSE, "threshold_scope",
+                 "a threshold per predicted class is an option of the clean sparse-kernel methods (ebs, dempster, prob-*)")
 
     def longest_length_m(self) -> float:
         """The longest kernel length any point can get (u = 0 with the adaptive length)."""
@@ -369,7 +381,7 @@ class RunConfig:
 
 
 _SECTIONS = {"method": MappingConfig, "mapping": MappingConfig, "dataset": DatasetConfig}
-_METHOD_KEYS = {"name", "kernel", "fusion", "media", "adaptive_length", "uncertainty_threshold", "compat"}
+_METHOD_KEYS = {"name", "kernel", "fusion", "media", "adaptive_length", "uncertainty_threshold", "threshold_scope", "compat"}
 
 
 def methods_dir() -> Path:

@@ -19,7 +19,7 @@ def test_methods_ship_as_config_files():
 def test_every_method_combines_with_every_preset(method, preset):
     if preset.stem == "release" and method not in ("ebs", "prob-adap-thr", "dempster"):
         # the release mode reproduces the released ebs and dempster only; others are refused by key
-        with pytest.raises(ConfigError, match=r"mapping\.(kernel|media|adaptive_length|uncertainty_threshold)"):
+        with pytest.raises(ConfigError, match=r"mapping\.(kernel|media|adaptive_length|uncertainty_threshold|threshold_scope)"):
             load_config([preset], method=method)
         return
     run = load_config([preset], method=method)

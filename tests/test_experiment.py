@@ -82,7 +82,7 @@ def test_config_errors_come_before_any_work(tmp_path, change, message):
 
 
 def test_builtin_experiment_configs_load(capsys):
-    for name in ("demo", "paper-main", "paper-robustness", "paper-ablation", "rellis3d-5fold"):
+    for name in ("demo", "paper-main", "paper-robustness", "paper-ablation", "rellis3d-5fold", "paper-unseen"):
         config, _ = load_experiment(name)
         assert config.conditions and config.methods
     assert main(["experiment", "no-such-study"]) == 2

@@ -79,7 +79,8 @@ class NetworkSpec:
     batch_size: int = 8  # images per training step
     lr: float = 2e-3  # learning rate
     time_budget_s: float = 0.0  # 0: no limit
-    seed: int = 1  # of the split, the initialisation and the data order
+    seed: int = 1  # of the split, the initialisation and the data order (and of the subset when subset: random)
+    subset: str = "first"  # with fraction < 1: first (each sequence's first frames) or random (frames drawn by seed)
 
 
 @dataclass(frozen=True)
@@ -129,6 +130,15 @@ class ExperimentConfig:
     # and the mean of the per-condition scores beside them)
     pools: dict = field(default_factory=dict)
     convbki: ConvBkiTraining = field(default_factory=ConvBkiTraining)  # the convbki section below
+    # every network trained once per seed (NAME@sSEED), every condition and pool with it; the tables give the
+    # mean and spread over the seeds, so that a difference can be judged against the training noise
+    seeds: tuple = ()
+    # per condition: does the network's u flag its errors, what each method's threshold and adaptive length do
+    # with the points, and the maps' errors by variance decile (apps/uncertainty_study.py); tables and plots
+    diagnostics: bool = False
+    # `--quick`: overrides for every sequence (e.g. world, frames) and network (e.g. epochs), and the seeds:
+    # the same study, scaled down to check that it runs (CI), not to read its numbers
+    quick: dict = field(default_factory=dict)
 
 
 def experiments_dir() -> Path:
@@ -148,10 +158,11 @@ def _renamed_sequence_keys(entry, where: str):
     return {("world" if k == "preset" else k): v for k, v in entry.items()}
 
 
-def load_experiment(name_or_path) -> tuple[ExperimentConfig, Path]:
-    """An experiment config by path or built-in name, and its path. Raises ConfigError naming the file and
-    the key when it is missing, not YAML, or names sequences, networks, conditions or methods that do not
-    exist, before any work is done."""
+def load_experiment(name_or_path, *, quick: bool = False) -> tuple[ExperimentConfig, Path]:
+    """An experiment config by path or built-in name, and its path; ``quick``: with its ``quick`` overrides
+    applied. Networks and conditions come once per seed when it lists ``seeds``. Raises ConfigError naming the
+    file and the key when it is missing, not YAML, or names sequences, networks, conditions or methods that do
+    not exist, before any work is done."""
     path = Path(name_or_path)
     if not path.exists():
         path = experiments_dir() / f"{name_or_path}.yaml"
@@ -170,6 +181,8 @@ def load_experiment(name_or_path) -> tuple[ExperimentConfig, Path]:
             entries = {k: _renamed_sequence_keys(v, f"{src}: sequences.{k}") for k, v in entries.items()}
         data[section] = {k: dataclass_from_dict(cls, v, f"{src}: {section}.{k}") for k, v in entries.items()}
     config = dataclass_from_dict(ExperimentConfig, data, src)
+    if quick:
+        config = _quick(config, src)
     for name, seq in config.sequences.items():
         if bool(seq.world) == bool(seq.path):
             raise ConfigError(f"{src}: sequences.{name} needs exactly one of world (synthetic) or path (a RELLIS-3D-layout folder or a robot log)")
@@ -179,6 +192,8 @@ def load_experiment(name_or_path) -> tuple[ExperimentConfig, Path]:
         if net.epochs < 1 or net.batch_size < 1 or not net.lr > 0 or net.time_budget_s < 0 or not 0 < net.fraction <= 1:
             raise ConfigError(f"{src}: networks.{name}: need epochs >= 1, batch_size >= 1, lr > 0, time_budget_s >= 0 "
                               f"and fraction in (0, 1]; got {net.epochs}, {net.batch_size}, {net.lr}, {net.time_budget_s}, {net.fraction}")
+        if net.subset not in ("first", "random"):
+            raise ConfigError(f"{src}: networks.{name}.subset must be first or random, got {net.subset!r}")
         missing = [s for s in net.train_on if s not in config.sequences]
         if missing or (not net.train_on and not net.checkpoint):
             raise ConfigError(f"{src}: networks.{name} trains on unknown sequences {missing} or on nothing (give train_on or checkpoint)")
@@ -195,7 +210,50 @@ def load_experiment(name_or_path) -> tuple[ExperimentConfig, Path]:
             raise ConfigError(f"{src}: pools.{name} must list conditions defined above, got {members!r}")
     if config.ablation.methods and config.ablation.condition not in config.conditions and config.ablation.condition not in config.pools:
         raise ConfigError(f"{src}: ablation.condition {config.ablation.condition!r} is neither a condition nor a pool")
+    if config.seeds:
+        if config.ablation.methods:
+            raise ConfigError(f"{src}: seeds and ablation together are not supported (the ablation runs on one network)")
+        if len(set(config.seeds)) != len(config.seeds) or not all(isinstance(s, int) and s >= 0 for s in config.seeds):
+            raise ConfigError(f"{src}: seeds must be distinct integers >= 0, got {list(config.seeds)}")
+        config = _per_seed(config)
     return config, path
+
+
+SEED_MARK = "@s"  # a network, condition or pool of one seed: NAME@sSEED
+
+
+def seed_group(name: str) -> str:
+    """The name a per-seed network, condition or pool was expanded from (``in-domain@s2`` -> ``in-domain``)."""
+    return name.rsplit(SEED_MARK, 1)[0] if SEED_MARK in name else name
+
+
+def _per_seed(config: ExperimentConfig) -> ExperimentConfig:
+    def each(name: str) -> list[str]:
+        return [f"{name}{SEED_MARK}{seed}" for seed in config.seeds]
+
+    networks = {f"{name}{SEED_MARK}{seed}": dataclasses.replace(net, seed=seed) for name, net in config.networks.items() for seed in config.seeds}
+    conditions = {f"{name}{SEED_MARK}{seed}": dataclasses.replace(cond, network=f"{cond.network}{SEED_MARK}{seed}")
+                  for name, cond in config.conditions.items() for seed in config.seeds}
+    pools = {f"{name}{SEED_MARK}{seed}": [f"{m}{SEED_MARK}{seed}" for m in members] for name, members in config.pools.items() for seed in config.seeds}
+    return dataclasses.replace(config, networks=networks, conditions=conditions, pools=pools)
+
+
+def _quick(config: ExperimentConfig, src: str) -> ExperimentConfig:
+    quick = dict(config.quick)
+    unknown = set(quick) - {"sequences", "networks", "seeds"}
+    if not quick or unknown:
+        raise ConfigError(f"{src}: --quick needs a quick section with sequences, networks and/or seeds"
+                          + (f"; unknown key(s) {sorted(unknown)}" if unknown else ""))
+
+    def overridden(entry, overrides, where):
+        if entry.path:  # a real sequence stays what it is
+            return entry
+        return dataclass_from_dict(type(entry), dataclasses.asdict(entry) | dict(overrides or {}), where)
+
+    sequences = {k: overridden(v, quick.get("sequences"), f"{src}: quick.sequences") for k, v in config.sequences.items()}
+    networks = {k: dataclass_from_dict(NetworkSpec, dataclasses.asdict(v) | dict(quick.get("networks") or {}), f"{src}: quick.networks")
+                for k, v in config.networks.items()}
+    return dataclasses.replace(config, sequences=sequences, networks=networks, seeds=tuple(quick.get("seeds", config.seeds)))
 
 
 def _digest(*parts) -> str:
@@ -216,6 +274,7 @@ class Experiment:
         self._networks: dict[str, Path] = {}
         self._sequence_dirs: dict[str, Path] = {}
         self._sequences: dict = {}
+        self._mappers: dict = {}  # (condition, method) -> (the map, its mapping config), for the diagnostics
 
     # -- stages ----------------------------------------------------------------------------------
     def _source_key(self, name: str) -> str:
@@ -278,7 +337,10 @@ class Experiment:
         config = TrainConfig(model=ModelConfig(arch=spec.arch, num_classes=len(classes)), input_size=tuple(spec.input_size),
                              epochs=spec.epochs, batch_size=spec.batch_size, lr=spec.lr, seed=spec.seed,
                              time_budget_s=spec.time_budget_s or None)
-        folder = self.cache / "networks" / f"{name}-{_digest(dataclasses.asdict(spec), [s.name for s in sources], __version__)}"
+        described = dataclasses.asdict(spec)
+        if spec.subset == "first":  # the key networks had before subsets could be drawn: their caches stay valid
+            del described["subset"]
+        folder = self.cache / "networks" / f"{name}-{_digest(described, [s.name for s in sources], __version__)}"
         if (folder / "metrics.json").exists():  # written last by train()
             summary = json.loads((folder / "metrics.json").read_text())
             if summary.get("epochs_run", spec.epochs) >= spec.epochs:
@@ -288,7 +350,11 @@ class Experiment:
                        f"(time budget); training resumes")
         folder.mkdir(parents=True, exist_ok=True)
         images = [SequenceImages(self.sequence(s)) if is_robot_log(path) else Rellis3DImages(path) for s, path in zip(spec.train_on, sources)]
-        source = _Frames([(s, i) for s in images for i in range(max(1, int(round(len(s) * spec.fraction))))])
+        source = _Frames([(s, i) for s in images for i in _subset(len(s), spec)])
+        try:
+            split_indices(len(source), config.val_fraction, config.seed)
+        except ValueError as exc:
+            raise ConfigError(f"networks.{name}: fraction {spec.fraction:g} of {', '.join(spec.train_on)} is {len(source)} frames: {exc}") from None
         resume = folder / "last.pt" if (folder / "last.pt").exists() else None
         if resume is not None and int(load_checkpoint(resume)[2]["epoch"]) >= config.epochs:
             # interrupted after the last epoch's checkpoint, before the summary: only the summary is missing
@@ -417,7 +483,10 @@ class Experiment:
         if mapping.kernel is Kernel.COMPOUND and not mapping.convbki_lengths_file:
             lengths = self.convbki_lengths(self.config.conditions[condition].network, mapping.resolution_m)
             mapping = dataclasses.replace(mapping, convbki_lengths_file=str(lengths))
-        key = _digest(mapping.as_dict(), str(self.alpha_dir(condition)), dataclasses.asdict(self.config.projection), bins.frame.as_dict(),
+        described = mapping.as_dict()
+        if described["threshold_scope"] == "insertion":  # the key maps had before the option: their caches stay valid
+            del described["threshold_scope"]
+        key = _digest(described, str(self.alpha_dir(condition)), dataclasses.asdict(self.config.projection), bins.frame.as_dict(),
                       __version__)
         map_path = self.out / "maps" / condition / f"{method}.npz"
         record_path = map_path.with_suffix(".json")
@@ -434,7 +503,53 @@ class Experiment:
             files.write_json_atomically(record_path, {"key": key, "seconds": elapsed, "points": points, "voxels": mapper.voxel_count})
         scores = evaluate_map(mapper, gt[0], gt[1], self.config.scored_classes)
         scores.extra["voxels"] = mapper.voxel_count
+        scores.extra["map_key"] = key
+        self._mappers[(condition, method)] = (mapper, mapping)
         return scores
+
+    def diagnose(self, condition: str, scores: dict[str, MapScores], gt) -> "ConditionDiagnostics":
+        """The condition's uncertainty diagnostics (apps/uncertainty_study.py) for the methods mapped in
+        ``scores``; cached beside its maps, keyed by them."""
+        from . import uncertainty_study as us
+        from ..geometry.projection import sample_map
+
+        key = _digest(str(self.alpha_dir(condition)), {m: s.extra["map_key"] for m, s in scores.items()}, self.config.scored_classes, __version__)
+        path = self.out / "maps" / condition / "diagnostics.json"
+        if path.exists():
+            cached = json.loads(path.read_text())
+            if cached.get("key") == key:
+                return us.ConditionDiagnostics.from_arrays(cached["arrays"])
+        cond = self.config.conditions[condition]
+        alpha_dir, seq = self.alpha_dir(condition), self.sequence(cond.sequence)
+        frames = [f for f in seq.frames if f.label_image is not None and (alpha_dir / f"{f.index:06d}.npy").exists()]
+        num_classes, scored = len(class_set().names), np.asarray(self.config.scored_classes)
+        labels_of = label_map_for(seq)
+        pixels = us.SegmentationMetrics(num_classes)
+        per_frame = []
+        camera = seq.camera
+        for frame in frames:
+            alpha = np.load(alpha_dir / f"{frame.index:06d}.npy").astype(np.float32)
+            labels = labels_of(frame)
+            probabilities, u = us.uncertainty_of(alpha, axis=0)
+            truth = us.pixel_labels_at_alpha(labels, alpha.shape[1:])
+            pixels = pixels.merged(us.network_metrics(num_classes, probabilities.reshape(num_classes, -1).T, u.ravel(), truth.ravel(), scored))
+            projected = next(project_frames(seq, [frame], lambda f, a=alpha: a, self.config.projection, seq.world))
+            point_truth = sample_map(labels, projected.pixel, (camera.width, camera.height), "nearest").astype(np.int64)
+            p, pu = us.uncertainty_of(projected.values, axis=1)
+            per_frame.append((projected.points, pu, p.argmax(axis=1) == point_truth, point_truth, p.argmax(axis=1), p))
+        n = self.config.projection.bin_frames
+        insertions = [tuple(np.concatenate([f[j] for f in per_frame[i:i + n]]) for j in range(5)) for i in range(0, len(per_frame), n)]
+        points = us.network_metrics(num_classes, np.concatenate([f[5] for f in per_frame]) if per_frame else np.zeros((0, num_classes)),
+                                    np.concatenate([f[1] for f in per_frame]) if per_frame else np.zeros(0),
+                                    np.concatenate([f[3] for f in per_frame]) if per_frame else np.zeros(0, np.int64), scored)
+        methods = {}
+        for method, s in scores.items():
+            mapper, mapping = self._mappers[(condition, method)]
+            methods[method] = us.method_diagnostics(mapping, num_classes, insertions, scored, mapper=mapper, gt=gt,
+                                                    brier=(s.brier_minmax, s.brier_analytic, s.brier_per_query))
+        result = us.ConditionDiagnostics(pixels, points, methods)
+        files.write_json_atomically(path, {"key": key, "arrays": result.arrays()})
+        return result
 
     # -- the whole study -------------------------------------------------------------------------
     def run(self) -> dict:
@@ -444,6 +559,7 @@ class Experiment:
         started = time.perf_counter()
         self.out.mkdir(parents=True, exist_ok=True)
         results: dict[str, dict[str, MapScores]] = {}
+        diagnostics: dict = {}
         ablation = self.config.ablation
         for condition, cond in self.config.conditions.items():
             methods = list(self.config.methods)
@@ -457,14 +573,17 @@ class Experiment:
                 results[condition][method] = self.map_and_score(condition, method, bins, gt)
                 self.log(f"[map] {condition:>12} {method:>14}: mIoU {100 * results[condition][method].miou:5.1f}  "
                          f"Acc {100 * results[condition][method].accuracy:5.1f}")
+            if self.config.diagnostics:
+                diagnostics[condition] = self.diagnose(condition, results[condition], gt)
+            self._mappers.clear()  # maps are large; the diagnostics hold what they need
             self.timings[f"map+score {condition}"] = time.perf_counter() - stage
         self.timings["total"] = time.perf_counter() - started
         pooled = {f"pool:{name}": {m: pool_scores([results[c][m] for c in members]) for m in results[members[0]]}
                   for name, members in self.config.pools.items()}
-        self._write_results(results, pooled)
+        self._write_results(results, pooled, diagnostics)
         return results | pooled
 
-    def _write_results(self, results: dict[str, dict[str, MapScores]], pooled: dict[str, dict[str, MapScores]]) -> None:
+    def _write_results(self, results: dict[str, dict[str, MapScores]], pooled: dict[str, dict[str, MapScores]], diagnostics: dict) -> None:
         from .evaluation import scored_class_names
 
         config = self.config
@@ -473,30 +592,17 @@ class Experiment:
         sections = [f"# {config.name}: results\n", "Queries of the 3D ground truth (2D labels projected onto the LiDAR points); IoU, mIoU, "
                     "Acc, O.Acc in %; BS x100 (lower is better; min-max normalised variance per scored voxel). "
                     "'-' marks classes absent from the ground truth.\n"]
-        for condition, by_method in results.items():
-            cond = config.conditions[condition]
-            rows = {m: s.row() for m, s in by_method.items() if m in config.methods}
-            sections.append(f"## {condition} (network '{cond.network}' on sequence '{cond.sequence}')\n")
-            sections.append(markdown_table(rows, class_names + ["mIoU", "Acc"]) + "\n")
-        for pool, members in config.pools.items():
-            rows = {m: p.row() for m, p in pooled[f"pool:{pool}"].items() if m in config.methods}
-            for m in config.methods:
-                rows[m]["mean mIoU"] = float(np.mean([100 * results[c][m].miou for c in members]))
-                rows[m]["mean Acc"] = float(np.mean([100 * results[c][m].accuracy for c in members]))
-            sections.append(f"## Pooled: {pool} ({', '.join(members)}; confusion matrices summed, then the mean of the per-condition scores)\n")
-            sections.append(markdown_table(rows, class_names + ["mIoU", "Acc", "mean mIoU", "mean Acc"]) + "\n")
-        if len(results) > 1:
-            rows = {m: {} for m in config.methods}
-            for condition, by_method in results.items():
-                for m in config.methods:
-                    rows[m][condition] = f"{100 * by_method[m].miou:.1f} / {100 * by_method[m].accuracy:.1f}"
-            sections.append("## Robustness: mIoU / Acc per condition\n")
-            sections.append(markdown_table(rows, list(results)) + "\n")
+        if config.seeds:
+            sections.append(self._spread_section(results, pooled))
+        else:
+            sections += self._condition_sections(results, pooled, class_names)
         if config.ablation.methods:
             by_method = results.get(config.ablation.condition) or pooled[f"pool:{config.ablation.condition}"]
             rows = {m: by_method[m].row() for m in config.ablation.methods}
             sections.append(f"## Ablation ({config.ablation.condition})\n")
             sections.append(markdown_table(rows, ["mIoU", "Acc", "O.Acc", "BS", "BS (analytic)", "BS (per query)"]) + "\n")
+        if diagnostics:
+            sections.append(self._diagnostics_section(diagnostics))
         if self.notes:
             sections.insert(1, "**Warnings**\n\n" + "\n".join(f"- {n}" for n in self.notes) + "\n")
         files.write_text_atomically(self.out / "results.md", "\n".join(sections))
@@ -523,13 +629,126 @@ class Experiment:
                   "versions": _versions(), "sequences": {k: str(v) for k, v in self._sequence_dirs.items()}}
         files.write_json_atomically(self.out / "record.json", record, indent=1, default=str)
 
+    def _condition_sections(self, results, pooled, class_names) -> list[str]:
+        config, sections = self.config, []
+        for condition, by_method in results.items():
+            cond = config.conditions[condition]
+            rows = {m: s.row() for m, s in by_method.items() if m in config.methods}
+            sections.append(f"## {condition} (network '{cond.network}' on sequence '{cond.sequence}')\n")
+            sections.append(markdown_table(rows, class_names + ["mIoU", "Acc"]) + "\n")
+        for pool, members in config.pools.items():
+            rows = {m: p.row() for m, p in pooled[f"pool:{pool}"].items() if m in config.methods}
+            for m in config.methods:
+                rows[m]["mean mIoU"] = float(np.mean([100 * results[c][m].miou for c in members]))
+                rows[m]["mean Acc"] = float(np.mean([100 * results[c][m].accuracy for c in members]))
+            sections.append(f"## Pooled: {pool} ({', '.join(members)}; confusion matrices summed, then the mean of the per-condition scores)\n")
+            sections.append(markdown_table(rows, class_names + ["mIoU", "Acc", "mean mIoU", "mean Acc"]) + "\n")
+        if len(results) > 1:
+            rows = {m: {} for m in config.methods}
+            for condition, by_method in results.items():
+                for m in config.methods:
+                    rows[m][condition] = f"{100 * by_method[m].miou:.1f} / {100 * by_method[m].accuracy:.1f}"
+            sections.append("## Robustness: mIoU / Acc per condition\n")
+            sections.append(markdown_table(rows, list(results)) + "\n")
+        return sections
+
+    def spread(self, results, pooled) -> dict[str, dict[str, dict]]:
+        """Per group (a condition or pool as configured, over the seeds) and method: mIoU and Acc (%) of each
+        seed, their mean and sample standard deviation."""
+        everything = results | {name[len("pool:"):]: by_method for name, by_method in pooled.items()}
+        pooled_conditions = {m for members in self.config.pools.values() for m in members}
+        groups: dict[str, list[str]] = {}  # a pool's scores stand for its conditions
+        for name in everything:
+            if name in self.config.pools or name not in pooled_conditions:
+                groups.setdefault(seed_group(name), []).append(name)
+        table: dict[str, dict[str, dict]] = {}
+        for group, names in groups.items():
+            for method in self.config.methods:
+                miou = [100 * everything[n][method].miou for n in names]
+                acc = [100 * everything[n][method].accuracy for n in names]
+                table.setdefault(group, {})[method] = {
+                    "seeds": len(names), "mIoU": miou, "Acc": acc, "mIoU mean": float(np.mean(miou)), "Acc mean": float(np.mean(acc)),
+                    "mIoU sd": float(np.std(miou, ddof=1)) if len(miou) > 1 else 0.0, "Acc sd": float(np.std(acc, ddof=1)) if len(acc) > 1 else 0.0}
+        return table
+
+    def condition_groups(self) -> dict[str, list[str]]:
+        """The groups the tables report: a pool's conditions over all seeds, or a condition not pooled over all seeds."""
+        groups: dict[str, list[str]] = {}
+        pooled = {m for members in self.config.pools.values() for m in members}
+        for name, members in self.config.pools.items():
+            groups.setdefault(seed_group(name), []).extend(members)
+        for name in self.config.conditions:
+            if name not in pooled:
+                groups.setdefault(seed_group(name), []).append(name)
+        return groups
+
+    def _diagnostics_section(self, diagnostics: dict) -> str:
+        from . import uncertainty_study as us
+
+        resolution = load_config([preset_path(self.config.mapping_preset)], method=self.config.methods[0]).mapping.resolution_m
+        network_rows, method_rows, class_rows, summary = {}, {}, {}, {}
+        names = class_set().names
+        for group, members in self.condition_groups().items():
+            parts = [diagnostics[c] for c in members if c in diagnostics]
+            if not parts:
+                continue
+            merged = parts[0]
+            for part in parts[1:]:
+                merged = merged.merge(part)
+            summary[group] = merged.summary()
+            us.plot_group(f"{group} ({len(parts)} maps of each method)", merged, self.config.methods, resolution,
+                          self.out / f"diagnostics_{group}.png")
+            px, pt = summary[group]["pixels"], summary[group]["points"]
+            network_rows[group] = {"pixel Acc": 100 * px["accuracy"], "pixel AUROC": px["uncertainty_auroc"], "pixel ECE": px["ece"],
+                                   "point Acc": 100 * pt["accuracy"], "point AUROC": pt["uncertainty_auroc"], "point ECE": pt["ece"],
+                                   "u right": pt["mean_u_right"], "u wrong": pt["mean_u_wrong"]}
+            for method, d in summary[group]["methods"].items():
+                deciles = d["error_rate_by_variance_decile"]
+
+                def pct(v):
+                    return None if v is None else 100 * v
+
+                method_rows[f"{group} / {method}"] = {
+                    "dropped": pct(d["dropped_share"]), "right among dropped": pct(d["dropped_right_share"]),
+                    "right among kept": pct(d["kept_right_share"]), "kept l < half voxel": pct(d["kept_short_share"]),
+                    "kept reaching no voxel": pct(d["kept_reaching_nothing_share"]), "median l (cm)": None if d["median_length_m"] is None else 100 * d["median_length_m"],
+                    "BS (per query)": d["brier_per_query"], "error, least-variance decile": pct(deciles[0]),
+                    "error, most-variance decile": pct(deciles[-1])}
+                if d["dropped_share"]:
+                    class_rows[f"{group} / {method}"] = {names[c]: pct(d["dropped_share_by_true_class"][c]) for c in self.config.scored_classes}
+        files.write_json_atomically(self.out / "diagnostics.json", summary, indent=1)
+        network_table = markdown_table(network_rows, list(next(iter(network_rows.values()))), digits=3).replace("| method |", "| condition |", 1)
+        method_table = markdown_table(method_rows, list(next(iter(method_rows.values()))), digits=1).replace("| method |", "| condition / method |", 1)
+        return ("## Uncertainty diagnostics (all seeds and drives of each condition together)\n\n"
+                "The network at the camera pixels and at the projected points (scored classes): accuracy (%), the AUROC of "
+                "u = K / S for its wrong labels (0.5: u says nothing), the expected calibration error, and the mean u of its "
+                "right and wrong labels.\n\n" + network_table + "\n\n"
+                "What each method does with the points (%, of the scored points): the share its uncertainty threshold drops "
+                "and how many of those the network had right, beside the accuracy of the points it keeps; of the kept points, "
+                "the share whose adaptive kernel is shorter than half a voxel and the share whose kernel reaches no voxel "
+                "center (they update nothing); the median kernel length; the map's Brier score and its error rate in the "
+                "lowest and highest variance decile. Plots: diagnostics_CONDITION.png.\n\n" + method_table + "\n\n"
+                + ("The share of each true class's points that the thresholds drop (%):\n\n"
+                   + markdown_table(class_rows, [names[c] for c in self.config.scored_classes]).replace("| method |", "| condition / method |", 1) + "\n"
+                   if class_rows else ""))
+
+    def _spread_section(self, results, pooled) -> str:
+        table = self.spread(results, pooled)
+        groups = list(table)
+        rows = {m: {g: (f"{table[g][m]['mIoU mean']:.1f} ± {table[g][m]['mIoU sd']:.1f} / "
+                        f"{table[g][m]['Acc mean']:.1f} ± {table[g][m]['Acc sd']:.1f}") for g in groups} for m in self.config.methods}
+        files.write_json_atomically(self.out / "spread.json", table, indent=1)
+        return (f"## mIoU / Acc over {len(self.config.seeds)} training seeds ({', '.join(map(str, self.config.seeds))}): mean ± sd\n\n"
+                "Each seed trains every network anew (initialisation, data order, validation split, and the subset when it is "
+                "drawn); per-seed scores are in scores.csv and spread.json.\n\n" + markdown_table(rows, groups) + "\n")
+
     def _plots(self, results, pooled, class_names) -> None:
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        for condition, by_method in results.items():
+        for condition, by_method in ({} if self.config.seeds else results).items():
             methods = [m for m in self.config.methods if m in by_method]
             fig, ax = plt.subplots(figsize=(1.4 * len(class_names) + 3, 4.5))
             width = 0.8 / len(methods)
@@ -574,6 +793,15 @@ class Experiment:
             fig.tight_layout(rect=(0, 0.07, 1, 1))
             fig.savefig(self.out / "ablation.png", dpi=110)
             plt.close(fig)
+
+
+def _subset(frames: int, spec: NetworkSpec) -> list[int]:
+    """The frames of a training sequence a network trains on: all, or its share ``fraction`` (at least one),
+    the first ones or drawn by the network's seed."""
+    keep = max(1, int(round(frames * spec.fraction)))
+    if spec.subset == "first" or keep >= frames:
+        return list(range(keep))
+    return sorted(int(i) for i in np.random.default_rng(spec.seed).choice(frames, keep, replace=False))
 
 
 class _Frames:

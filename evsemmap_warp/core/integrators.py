@@ -27,7 +27,7 @@ from typing import Callable, Optional, Protocol
 import numpy as np
 import warp as wp
 
-from ..config import Compat, Fusion, Kernel, MappingConfig, Media, PayloadType
+from ..config import Compat, Fusion, Kernel, MappingConfig, Media, PayloadType, ThresholdScope
 from ..kernels import block_gather, release
 from ..kernels import scatter as sc
 from ..methods import convbki, release_compat, sbki_compat, see_csom
@@ -85,6 +85,23 @@ def uncertainty_quantile_mask(uncertainty: np.ndarray, keep_quantile: float) -> 
     k = min(int(np.floor(n * keep_quantile)), n - 1)
     threshold = float(np.partition(uncertainty, k)[k])
     return uncertainty <= threshold, threshold
+
+
+def per_class_quantile_mask(uncertainty: np.ndarray, predicted: np.ndarray, keep_quantile: float) -> np.ndarray:
+    """``uncertainty_quantile_mask`` within each predicted class: each class keeps its own surest share."""
+    keep = np.ones(len(uncertainty), dtype=bool)
+    for label in np.unique(predicted):
+        rows = np.flatnonzero(predicted == label)
+        keep[rows] = uncertainty_quantile_mask(uncertainty[rows], keep_quantile)[0]
+    return keep
+
+
+def threshold_mask(config: MappingConfig, uncertainty: np.ndarray, predicted: np.ndarray) -> tuple[np.ndarray, float | None]:
+    """The points of one insertion that the uncertainty threshold keeps (``config.threshold_scope``: over the
+    insertion, or per ``predicted`` class), and the threshold u when there is one (None per class)."""
+    if config.threshold_scope is ThresholdScope.PREDICTED_CLASS:
+        return per_class_quantile_mask(uncertainty, predicted, config.keep_quantile), None
+    return uncertainty_quantile_mask(uncertainty, config.keep_quantile)
 
 
 # What an integrator's ``prepare`` returns: the map update itself, launch(shards, lanes) -> stats (whose
@@ -197,7 +214,7 @@ class PointKernelIntegrator:
         stats = IntegrationStats(input_points=len(scan.points))
         keep = np.ones(len(scan.points), dtype=bool)
         if c.uncertainty_threshold:
-            keep, stats.uncertainty_threshold = uncertainty_quantile_mask(scan.uncertainty, c.keep_quantile)
+            keep, stats.uncertainty_threshold = threshold_mask(c, scan.uncertainty, scan.labels)
         points, unc = scan.points[keep], scan.uncertainty[keep]
         stats.kept_points = len(points)
         onehot = c.media is Media.ONEHOT

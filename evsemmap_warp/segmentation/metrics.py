@@ -79,6 +79,15 @@ class SegmentationMetrics:
         gap = np.abs(self.bin_correct - self.bin_confidence)  # per bin: |sum correct - sum confidence|
         return float(gap.sum() / max(n, 1))
 
+    def merged(self, other: "SegmentationMetrics") -> "SegmentationMetrics":
+        """The metrics of both inputs together (the counts and histograms added)."""
+        if (other.num_classes, other.bins) != (self.num_classes, self.bins):
+            raise ValueError(f"cannot merge metrics of {other.num_classes} classes / {other.bins} bins into {self.num_classes} / {self.bins}")
+        out = SegmentationMetrics(self.num_classes, self.bins)
+        for name in ("confusion", "bin_count", "bin_confidence", "bin_correct", "u_hist_correct", "u_hist_wrong"):
+            setattr(out, name, getattr(self, name) + getattr(other, name))
+        return out
+
     def mean_uncertainty(self, correct: bool) -> float:
         """Mean u over the pixels labelled right (``correct``) or wrong."""
         hist = self.u_hist_correct if correct else self.u_hist_wrong

@@ -151,11 +151,12 @@ def load_checkpoint(path, class_names=None):
 
 def split_indices(n: int, val_fraction: float, seed: int) -> tuple[list[int], list[int]]:
     """(train, validation) indices of ``n`` items, a seeded random ``val_fraction`` (at least one) for
-    validation, both sorted; raises ValueError when no training item would be left."""
+    validation, both sorted; raises ValueError when fewer than 2 training items would be left (batch
+    normalisation needs two images in a batch)."""
     order = np.random.default_rng(seed).permutation(n)
     n_val = max(1, int(round(n * val_fraction)))
-    if n - n_val < 1:
-        raise ValueError(f"{n} images are too few to split off {val_fraction:.0%} for validation")
+    if n - n_val < 2:
+        raise ValueError(f"{n} images are too few: {n_val} go to validation and training needs at least 2")
     return sorted(order[n_val:].tolist()), sorted(order[:n_val].tolist())
 
 
