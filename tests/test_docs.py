@@ -294,12 +294,12 @@ class PageRunner:
 
         real = experiment.load_experiment
 
-        def load(name_or_path):
+        def load(name_or_path, quick=False):  # a built-in study's --quick is still too slow for a page's test
             if not Path(name_or_path).exists() and (experiment.experiments_dir() / f"{name_or_path}.yaml").exists():
                 study.write_text(TINY_STUDY.format(name=name_or_path))
                 config, _ = real(study)
                 return config, study
-            return real(name_or_path)
+            return real(name_or_path, quick=quick)
 
         patch.setattr(experiment, "load_experiment", load)
 

@@ -289,6 +289,50 @@ def test_npz_and_previews_read_back(written):
     assert json.loads((out / "layers.json").read_text())["known_cells"] == summary["known_cells"] == 399
 
 
+def test_previews_show_each_band_with_its_own_color_bar_or_legend(written):
+    """The previews share one figure: each must show its own colormap on the color bar, class colors in its
+    legend, and nothing left over from the band drawn before it."""
+    import matplotlib
+    from PIL import Image
+
+    from evsemmap_warp.terrain.outputs import PREVIEW_COLORMAPS
+    from evsemmap_warp.terrain.pipeline import class_colors
+
+    out, layers, _ = written
+
+    def pixels(name):
+        with Image.open(out / "previews" / f"{name}.png") as image:
+            return np.asarray(image.convert("RGB")).astype(int)
+
+    def shows(region, color, share=0.0):  # more than ``share`` of the region's pixels of ``color``
+        return float((np.abs(region - np.asarray(color[:3])).max(axis=-1) <= 3).mean()) > share
+
+    def bar(px):  # the color bar's middle column (figure fractions of its axes), top (maximum) to bottom (minimum)
+        h, w, _ = px.shape
+        return px[int(0.15 * h) + 3:int(0.85 * h) - 2, int(0.8125 * w)]
+
+    def map_of(px):  # the map's axes
+        h, w, _ = px.shape
+        return px[int(0.1 * h):int(0.9 * h), int(0.08 * w):int(0.74 * w)]
+
+    for name, cmap in PREVIEW_COLORMAPS.items():
+        column = bar(pixels(name))
+        colormap = matplotlib.colormaps[cmap]
+        assert shows(column[:1], colormap(1.0, bytes=True)) and shows(column[-1:], colormap(0.0, bytes=True)), name
+    cost = map_of(pixels("traversability_cost"))
+    assert shows(cost, (26, 26, 26), 0.005) and shows(cost, (217, 217, 217), 0.001)  # the lethal box over the costs; the empty column
+    colors = class_colors(layers.class_names)
+    for name in ("surface_class", "cover_class", "known", "lethal"):
+        px = pixels(name)
+        column = bar(px)
+        assert (column[:10] == 255).all() and (column[-10:] == 255).all(), name  # no color bar
+        legend = px[:, int(0.745 * px.shape[1]):]
+        present = np.unique(layers.bands[name][np.isfinite(layers.bands[name])]).astype(int)
+        expected = [colors[c] for c in present] if name.endswith("_class") else [(38, 38, 38)]
+        assert all(shows(legend, color) for color in expected), name
+        assert shows(map_of(px), expected[0], 0.005), name
+
+
 def test_bag_reads_back_with_rosbags(written):
     from rosbags.rosbag1 import Reader
 

@@ -72,9 +72,12 @@ def test_too_few_training_frames_is_one_clear_line(tmp_path, capsys):
     assert "networks.summer-25pct@s1: fraction 0.25 of train-summer is 2 frames: 2 images are too few" in err and "Traceback" not in err
 
 
-def test_the_quick_study_runs_with_its_spread_and_diagnostics(tmp_path):
+def test_the_quick_study_runs_with_its_spread_and_diagnostics(tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["experiment", "paper-unseen", "--quick", "--quiet", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "[study] 1 of 24 conditions" in err and "(and the training still to come, not yet timed)" not in err.split("[study] 1 of")[1]
+    assert "[study] 24 of 24 conditions" in err and "about 0 min left" in err
     text = (out / "results.md").read_text()
     assert "over 2 training seeds (1, 2): mean ± sd" in text and "## Uncertainty diagnostics" in text
     assert "| two-other-domains / ebs |" in text and "| subset-10pct |" in text

@@ -303,12 +303,9 @@ class Experiment:
                 raise ConfigError(f"sequences.{name}.path: {path} is neither a folder nor a robot log (.bag, .mcap, .db3)")
             self._sequence_dirs[name] = path
             return path
-        from ..synthetic.preset import load_preset
         from ..synthetic.writer import generate_sequence
 
-        preset = load_preset(spec.world, seed=None if spec.seed < 0 else spec.seed, appearance__domain=spec.domain or None,
-                             trajectory__frames=spec.frames or None, trajectory__spacing_m=spec.spacing_m or None)
-        folder = self.cache / "sequences" / f"{name}-{_digest(dataclasses.asdict(preset), __version__)}"
+        preset, folder = self._synthetic_sequence(name)
         if not (folder / "synth.yaml").exists():  # written last by the generator
             self.log(f"[data] rendering {name} ({preset.name}, seed {preset.seed}, {preset.appearance.domain})")
             started = time.perf_counter()
@@ -316,6 +313,36 @@ class Experiment:
             self.timings[f"render {name}"] = time.perf_counter() - started
         self._sequence_dirs[name] = folder
         return folder
+
+    def _synthetic_sequence(self, name: str):
+        """A synthetic sequence's world preset (with the spec's overrides) and the cache folder it renders into."""
+        from ..synthetic.preset import load_preset
+
+        spec = self.config.sequences[name]
+        preset = load_preset(spec.world, seed=None if spec.seed < 0 else spec.seed, appearance__domain=spec.domain or None,
+                             trajectory__frames=spec.frames or None, trajectory__spacing_m=spec.spacing_m or None)
+        return preset, self.cache / "sequences" / f"{name}-{_digest(dataclasses.asdict(preset), __version__)}"
+
+    def _network_folder(self, name: str, source_names: list[str]) -> Path:
+        spec = self.config.networks[name]
+        described = dataclasses.asdict(spec)
+        if spec.subset == "first":  # the key networks had before subsets could be drawn: their caches stay valid
+            del described["subset"]
+        return self.cache / "networks" / f"{name}-{_digest(described, source_names, __version__)}"
+
+    def training_work(self) -> dict[str, float]:
+        """Per network still to train (not finished in the cache): about how many frame-epochs its training
+        takes, from the specs alone (nothing is rendered); the study's ETA weighs its stages by them."""
+        work = {}
+        for name, spec in self.config.networks.items():
+            if spec.checkpoint or any(self.config.sequences[s].path for s in spec.train_on):
+                continue  # real data: its size is known once read; left out of the estimate
+            folders = [self._synthetic_sequence(s) for s in spec.train_on]
+            finished = self._network_folder(name, [folder.name for _, folder in folders]) / "metrics.json"
+            if finished.exists() and json.loads(finished.read_text()).get("epochs_run", spec.epochs) >= spec.epochs:
+                continue
+            work[name] = sum(max(1, round(preset.trajectory.frames * spec.fraction)) for preset, _ in folders) * spec.epochs
+        return work
 
     def network(self, name: str) -> Path:
         """The trained checkpoint of network ``name`` (trained, resumed or found in the cache once per run)."""
@@ -337,10 +364,7 @@ class Experiment:
         config = TrainConfig(model=ModelConfig(arch=spec.arch, num_classes=len(classes)), input_size=tuple(spec.input_size),
                              epochs=spec.epochs, batch_size=spec.batch_size, lr=spec.lr, seed=spec.seed,
                              time_budget_s=spec.time_budget_s or None)
-        described = dataclasses.asdict(spec)
-        if spec.subset == "first":  # the key networks had before subsets could be drawn: their caches stay valid
-            del described["subset"]
-        folder = self.cache / "networks" / f"{name}-{_digest(described, [s.name for s in sources], __version__)}"
+        folder = self._network_folder(name, [s.name for s in sources])
         if (folder / "metrics.json").exists():  # written last by train()
             summary = json.loads((folder / "metrics.json").read_text())
             if summary.get("epochs_run", spec.epochs) >= spec.epochs:
@@ -371,6 +395,14 @@ class Experiment:
             self._note(f"network {name}: training stopped by its time budget ({spec.time_budget_s:g} s) after "
                        f"{summary['epochs_run']} of {spec.epochs} epochs; its scores depend on this machine's speed")
         return folder / "best.pt"
+
+    def _progress(self, done: int, elapsed: float, work_left: float, work_done: float, training_s: float, other_s: float) -> str:
+        """'[study] 5 of 36 conditions, 12 min, about 40 min left': training time left at this run's seconds per
+        frame-epoch, the other stages at their mean per condition so far."""
+        total = len(self.config.conditions)
+        left = (total - done) * other_s / done + (work_left * training_s / work_done if work_done else 0.0)
+        unknown = " (and the training still to come, not yet timed)" if work_left and not work_done else ""
+        return f"[study] {done} of {total} conditions, {elapsed / 60:.1f} min, about {left / 60:.0f} min left{unknown}"
 
     def _note(self, text: str) -> None:
         """A warning the user must see: on the console now, and in results.md and record.json."""
@@ -561,7 +593,11 @@ class Experiment:
         results: dict[str, dict[str, MapScores]] = {}
         diagnostics: dict = {}
         ablation = self.config.ablation
-        for condition, cond in self.config.conditions.items():
+        to_train = self.training_work()
+        trained_work = trained_seconds = other_seconds = 0.0
+        for done, (condition, cond) in enumerate(self.config.conditions.items()):
+            condition_started = time.perf_counter()
+            training = to_train.pop(cond.network, 0.0)
             methods = list(self.config.methods)
             if condition in self.config.pools.get(ablation.condition, [ablation.condition]):
                 methods += [m for m in ablation.methods if m not in methods]
@@ -577,6 +613,10 @@ class Experiment:
                 diagnostics[condition] = self.diagnose(condition, results[condition], gt)
             self._mappers.clear()  # maps are large; the diagnostics hold what they need
             self.timings[f"map+score {condition}"] = time.perf_counter() - stage
+            training_s = self.timings.get(f"train {cond.network}", 0.0) if training else 0.0
+            trained_work, trained_seconds = trained_work + training, trained_seconds + training_s
+            other_seconds += time.perf_counter() - condition_started - training_s
+            self.log(self._progress(done + 1, time.perf_counter() - started, sum(to_train.values()), trained_work, trained_seconds, other_seconds))
         self.timings["total"] = time.perf_counter() - started
         pooled = {f"pool:{name}": {m: pool_scores([results[c][m] for c in members]) for m in results[members[0]]}
                   for name, members in self.config.pools.items()}

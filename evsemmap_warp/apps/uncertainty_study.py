@@ -49,6 +49,7 @@ class MethodDiagnostics:
     brier: list = field(default_factory=list)  # (min-max, analytic, per query) of each map
 
     def merge(self, other: "MethodDiagnostics") -> "MethodDiagnostics":
+        """Both together: the counts and histograms added, the maps' Brier scores listed."""
         out = MethodDiagnostics(adaptive_length=self.adaptive_length or other.adaptive_length)
         for name in ("points", "right", "dropped", "dropped_right", "kept_short", "kept_reaching_nothing", "kept_reaching_nothing_right"):
             setattr(out, name, getattr(self, name) + getattr(other, name))
@@ -92,6 +93,7 @@ class ConditionDiagnostics:
     methods: dict  # method -> MethodDiagnostics
 
     def merge(self, other: "ConditionDiagnostics") -> "ConditionDiagnostics":
+        """Both conditions together (seeds, drives): the network's metrics and each method's counts added."""
         return ConditionDiagnostics(self.pixels.merged(other.pixels), self.points.merged(other.points),
                                     {m: d.merge(other.methods[m]) for m, d in self.methods.items() if m in other.methods})
 
@@ -115,6 +117,7 @@ class ConditionDiagnostics:
 
     @classmethod
     def from_arrays(cls, data: dict) -> "ConditionDiagnostics":
+        """The diagnostics ``arrays()`` wrote (read back from the cache)."""
         def metrics(d: dict) -> SegmentationMetrics:
             m = SegmentationMetrics(len(d["confusion"]), bins=len(d["bin_count"]))
             for k, v in d.items():
