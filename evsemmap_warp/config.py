@@ -127,9 +127,101 @@ class PayloadType(str, enum.Enum):
     LABEL = "label"  # integer class ids, [N]
 
 
+class ScatterStrategy(str, enum.Enum):
+    """How the radius kernel (clean mode, Bayes fusion) reaches the map (``mapping.clean.scatter_strategy``);
+    sorted and gather sum each voxel in a fixed order (docs/kernel_study.md)."""
+    ATOMIC = "atomic"  # scatter with atomic adds
+    SORTED = "sorted"  # sort-then-reduce
+    GATHER = "gather"  # per voxel, through a hash grid of the points
+
+
+@dataclass(frozen=True)
+class SbkiSettings:
+    """S-BKI's point preparation and blocks (``mapping.sbki``), which the sbki and release compatibility
+    modes and SEE-CSOM share (docs/compatibility.md §1, §3, §4)."""
+
+    block_depth: int = 2  # blocks of 2^(depth - 1) cells a side
+    ds_resolution_m: float = 0.1  # VoxelGrid leaf of the hits (m); the release mode's snapping grid
+    free_resolution_m: float = 4.0  # spacing of the free-space samples along each ray (m); sbki mode only
+    max_range_m: float | None = None  # hits farther from the sensor are dropped (m); null: no range filter
+
+
+@dataclass(frozen=True)
+class ReleaseSettings:
+    """The release compatibility mode (``mapping.release``, docs/compatibility.md §4)."""
+
+    # each 0.4 m block keeps its first ds_multiplier + 1 points per scan;
+    # null: the release's own value, 10 for ebs (Bayes fusion) and 5 for dempster
+    ds_multiplier: int | None = None
+
+
+@dataclass(frozen=True)
+class ConvBkiSettings:
+    """ConvBKI's compound kernel (``mapping.convbki``, docs/compatibility.md §2)."""
+
+    # per-class length scales (a .pt state dict with ell_h / ell_z, or .json / .yaml / .npz with the same
+    # keys); empty: every class at its authors' initial 0.5 m
+    lengths_file: str = ""
+    stencil_half: int = 2  # the stencil is (2h + 1)^3 voxels
+
+
+@dataclass(frozen=True)
+class CleanSettings:
+    """The clean mode's sparse kernel (``mapping.clean``)."""
+
+    scatter_strategy: ScatterStrategy = ScatterStrategy.ATOMIC  # how the radius kernel with Bayes fusion reaches the map
+
+
+# The keys MappingConfig had before its mode sections, as map files, stores and config files may still
+# hold them: old key -> (section, key). Their -1 / <= 0 sentinels now read None (_old_sentinel).
+MOVED_MAPPING_KEYS = {
+    "block_depth": ("sbki", "block_depth"),
+    "ds_resolution_m": ("sbki", "ds_resolution_m"),
+    "free_resolution_m": ("sbki", "free_resolution_m"),
+    "max_range_m": ("sbki", "max_range_m"),
+    "scatter_strategy": ("clean", "scatter_strategy"),
+    "ds_multiplier": ("release", "ds_multiplier"),
+    "convbki_lengths_file": ("convbki", "lengths_file"),
+    "convbki_stencil_half": ("convbki", "stencil_half"),
+}
+
+
+def _old_sentinel(key: str, value: Any) -> Any:
+    """An old flat key's value in the new form: max_range_m <= 0 and ds_multiplier -1 meant "none"."""
+    if key == "max_range_m" and isinstance(value, (int, float)) and not isinstance(value, bool) and value <= 0:
+        return None
+    if key == "ds_multiplier" and isinstance(value, int) and not isinstance(value, bool) and value == -1:
+        return None
+    return value
+
+
+def upgrade_mapping_dict(data: dict, source: str = "", *, tell: bool = False) -> dict:
+    """A ``mapping`` dict with the flat keys of before the mode sections (MOVED_MAPPING_KEYS) moved into
+    their sections, sentinels as None; ``tell``: say so once per key on stderr (config files; map files
+    and stores are read silently). A key given both ways raises."""
+    if not isinstance(data, dict) or not any(key in data for key in MOVED_MAPPING_KEYS):
+        return data
+    out = {k: (dict(v) if k in _MAPPING_SECTIONS and isinstance(v, dict) else v) for k, v in data.items() if k not in MOVED_MAPPING_KEYS}
+    where = f"{source}: " if source else ""
+    for old, value in data.items():
+        if old not in MOVED_MAPPING_KEYS:
+            continue
+        section, key = MOVED_MAPPING_KEYS[old]
+        holder = out.setdefault(section, {})
+        if not isinstance(holder, dict):
+            raise ConfigError(f"{where}mapping.{section} must be a mapping, got {type(holder).__name__}")
+        if key in holder:
+            raise ConfigError(f"{where}mapping.{old} and mapping.{section}.{key} are the same key; give it once, as mapping.{section}.{key}")
+        if tell:
+            warn_deprecated(f"{where}mapping.{old}", f"mapping.{section}.{key}")
+        holder[key] = _old_sentinel(old, value)
+    return out
+
+
 @dataclass(frozen=True)
 class MappingConfig:
-    """Everything the mapper needs. Lengths in metres; see docs/algorithm.md §3."""
+    """Everything the mapper needs. Lengths in metres; see docs/algorithm.md §3. The fields of one mode
+    only live in its section (sbki, release, convbki, clean)."""
 
     method: str = "ebs"  # the method's name, recorded in map files (a method file's method.name)
     kernel: Kernel = Kernel.SPARSE  # how a point spreads its evidence over the voxels around it
@@ -146,32 +238,26 @@ class MappingConfig:
     uncertainty_drop_fraction: float = 0.1  # u~: the most uncertain fraction dropped per insertion
     threshold_scope: ThresholdScope = ThresholdScope.INSERTION  # ... of the whole insertion, or per predicted class
     sigma0: float = 1.0  # kernel amplitude: k'(0) = sigma0 (S-BKI's sf2)
-    # S-BKI compatibility mode only (docs/compatibility.md §1):
-    block_depth: int = 2  # blocks of 2^(depth - 1) cells a side
-    ds_resolution_m: float = 0.1  # VoxelGrid leaf of the hits (m)
-    free_resolution_m: float = 4.0  # spacing of the free-space samples along each ray (m)
-    max_range_m: float = -1.0  # hits farther from the sensor are dropped (m); <= 0 disables the range filter
-    # How the radius kernel (clean mode, Bayes fusion) reaches the map: "atomic" (scatter with atomic
-    # adds), "sorted" (sort-then-reduce) or "gather" (per voxel through a hash grid of the points); the
-    # last two sum each voxel in a fixed order (docs/kernel_study.md).
-    scatter_strategy: str = "atomic"
-    # Release mode only: each 0.4 m block keeps its first ds_multiplier + 1 points per scan;
-    # -1: the release's own value, 10 for ebs (Bayes fusion) and 5 for dempster.
-    ds_multiplier: int = -1
-    # ConvBKI only: per-class length scales (a .pt state dict with ell_h / ell_z, or .json / .yaml /
-    # .npz with the same keys); empty: every class at its authors' initial 0.5 m.
-    convbki_lengths_file: str = ""
-    convbki_stencil_half: int = 2  # ConvBKI only: the stencil is (2h + 1)^3 voxels
+    sbki: SbkiSettings = field(default_factory=SbkiSettings)  # S-BKI's blocks (sbki and release modes, SEE-CSOM)
+    release: ReleaseSettings = field(default_factory=ReleaseSettings)  # the release mode
+    convbki: ConvBkiSettings = field(default_factory=ConvBkiSettings)  # ConvBKI's compound kernel
+    clean: CleanSettings = field(default_factory=CleanSettings)  # the clean mode's sparse kernel
 
     def __post_init__(self) -> None:
+        # every check of the mapping parameters, the sections' included, is here: one place, dotted keys
         def need(ok: bool, name: str, text: str) -> None:
             if not ok:
-                raise ConfigError(f"mapping.{name} = {getattr(self, name)!r}: {text}")
+                value = self
+                for part in name.split("."):
+                    value = getattr(value, part)
+                raise ConfigError(f"mapping.{name} = {value!r}: {text}")
 
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
+        for section, cls in _MAPPING_SECTIONS.items():
+            if not isinstance(getattr(self, section), cls):
+                raise ConfigError(f"mapping.{section} = {getattr(self, section)!r}: must be a {cls.__name__}")
+        for name, value in _dotted_items(self):
             if isinstance(value, float) and not math.isfinite(value):
-                need(False, f.name, "must be a finite number")
+                need(False, name, "must be a finite number")
         need(self.resolution_m > 0, "resolution_m", "must be > 0")
         need(self.prior > 0, "prior", "must be > 0 (a Dirichlet concentration)")
         need(self.length_m > 0, "length_m", "must be > 0")
@@ -179,10 +265,11 @@ class MappingConfig:
         need(self.gamma >= 0, "gamma", "must be >= 0")
         need(0 <= self.uncertainty_drop_fraction < 1, "uncertainty_drop_fraction", "must lie in [0, 1)")
         need(self.sigma0 > 0, "sigma0", "must be > 0")
-        need(1 <= self.block_depth <= 8, "block_depth", "must lie in 1..8")
-        need(self.ds_resolution_m > 0, "ds_resolution_m", "must be > 0")
-        need(self.free_resolution_m > 0, "free_resolution_m", "must be > 0")
-        need(0 <= self.convbki_stencil_half <= 8, "convbki_stencil_half", "must lie in 0..8")
+        need(1 <= self.sbki.block_depth <= 8, "sbki.block_depth", "must lie in 1..8")
+        need(self.sbki.ds_resolution_m > 0, "sbki.ds_resolution_m", "must be > 0")
+        need(self.sbki.free_resolution_m > 0, "sbki.free_resolution_m", "must be > 0")
+        need(self.sbki.max_range_m is None or self.sbki.max_range_m > 0, "sbki.max_range_m", "must be > 0 (or null: no range filter)")
+        need(0 <= self.convbki.stencil_half <= 8, "convbki.stencil_half", "must lie in 0..8")
         visits = self.voxels_per_point()
         if visits > MAX_VOXELS_PER_POINT:
             longest = self.longest_length_m()
@@ -201,11 +288,12 @@ class MappingConfig:
             need(self.media is Media.ONEHOT, "media", "the sbki compatibility mode reproduces S-BKI/S-CSM, which take one-hot labels")
             need(not self.adaptive_length, "adaptive_length", "the original S-BKI has no adaptive length")
             need(not self.uncertainty_threshold, "uncertainty_threshold", "the original S-BKI has no uncertainty threshold")
-        need(self.scatter_strategy in ("atomic", "sorted", "gather"), "scatter_strategy", "must be atomic, sorted or gather")
-        if self.scatter_strategy != "atomic":
-            need(self.kernel is Kernel.SPARSE and self.fusion is Fusion.BAYES and self.compat is Compat.CLEAN, "scatter_strategy",
+        need(isinstance(self.clean.scatter_strategy, ScatterStrategy), "clean.scatter_strategy", "must be atomic, sorted or gather")
+        if self.clean.scatter_strategy is not ScatterStrategy.ATOMIC:
+            need(self.kernel is Kernel.SPARSE and self.fusion is Fusion.BAYES and self.compat is Compat.CLEAN, "clean.scatter_strategy",
                  "the sorted and gather strategies integrate the clean sparse kernel with Bayes fusion (s-bki, ebs, prob*)")
-        need(self.ds_multiplier >= -1, "ds_multiplier", "must be >= 0 (or -1: the release's value for the fusion)")
+        need(self.release.ds_multiplier is None or self.release.ds_multiplier >= 0, "release.ds_multiplier",
+             "must be >= 0 (or null: the release's value for the fusion)")
         if self.compat is Compat.RELEASE:
             need(self.kernel is Kernel.SPARSE, "kernel", "the release mode reproduces the release's ebs and dempster (sparse kernel)")
             need(self.media is Media.SOFT, "media", "the released ebs and dempster read class probabilities (media soft)")
@@ -227,22 +315,22 @@ class MappingConfig:
         if self.kernel is Kernel.COUNT:
             return 1.0
         if self.kernel is Kernel.COMPOUND:
-            return float((2 * self.convbki_stencil_half + 1) ** 3)
+            return float((2 * self.convbki.stencil_half + 1) ** 3)
         if self.kernel is Kernel.TRIANGULAR:
             return 7.0 * 8.0  # a block and its 6 face neighbours, 2x2x2 cells each
         reach = self.longest_length_m() / self.resolution_m
         ball = 4.0 / 3.0 * math.pi * (reach + 0.5) ** 3
         if self.compat is Compat.SBKI:
-            return min(ball, 7.0 * 8.0 ** (self.block_depth - 1))  # the owner block and its 6 face neighbours
+            return min(ball, 7.0 * 8.0 ** (self.sbki.block_depth - 1))  # the owner block and its 6 face neighbours
         if self.compat is Compat.RELEASE:
-            return 25.0 * 8.0 ** (self.block_depth - 1)  # the blocks within L1 distance 2 of the point's block
+            return 25.0 * 8.0 ** (self.sbki.block_depth - 1)  # the blocks within L1 distance 2 of the point's block
         return ball
 
     @property
     def release_block_cap(self) -> int:
         """Points each block keeps per scan in the release mode: ds_multiplier + 1."""
-        if self.ds_multiplier >= 0:
-            return self.ds_multiplier + 1
+        if self.release.ds_multiplier is not None:
+            return self.release.ds_multiplier + 1
         return (5 if self.fusion is Fusion.DEMPSTER else 10) + 1
 
     @property
@@ -251,9 +339,68 @@ class MappingConfig:
         ``uncertainty_drop_fraction``."""
         return 1.0 - self.uncertainty_drop_fraction
 
+    def replace(self, **changes) -> "MappingConfig":
+        """``dataclasses.replace``; a section may also be given as a dict of the keys to change in it
+        (``config.replace(sbki={"block_depth": 3})``)."""
+        for name, value in changes.items():
+            if name in _MAPPING_SECTIONS and isinstance(value, dict):
+                changes[name] = dataclasses.replace(getattr(self, name), **value)
+        return dataclasses.replace(self, **changes)
+
     def as_dict(self) -> dict[str, Any]:
-        """Every field by name, enums as their YAML values (what map files record as ``meta.mapping``)."""
-        return {f.name: (v.value if isinstance(v := getattr(self, f.name), enum.Enum) else v) for f in dataclasses.fields(self)}
+        """Every field by name, sections as dicts, enums as their YAML values (what map files record as
+        ``meta.mapping``)."""
+        return _as_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "mapping") -> "MappingConfig":
+        """The config a map file or store recorded (``as_dict``), flat keys of before the mode sections
+        included (read silently); a ConfigError names ``source`` and the dotted key."""
+        return dataclass_from_dict(cls, upgrade_mapping_dict(data, source), source)
+
+
+_MAPPING_SECTIONS = {"sbki": SbkiSettings, "release": ReleaseSettings, "convbki": ConvBkiSettings, "clean": CleanSettings}
+
+
+def _as_dict(obj) -> dict[str, Any]:
+    out = {}
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        out[f.name] = _as_dict(value) if dataclasses.is_dataclass(value) else value.value if isinstance(value, enum.Enum) else value
+    return out
+
+
+def _dotted_items(obj, prefix: str = ""):
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from _dotted_items(value, f"{prefix}{f.name}.")
+        else:
+            yield f"{prefix}{f.name}", value
+
+
+def flat_items(mapping: dict, prefix: str = "") -> dict[str, Any]:
+    """A nested ``as_dict`` as one level of dotted keys (``sbki.block_depth``), to name what differs."""
+    out = {}
+    for key, value in mapping.items():
+        if isinstance(value, dict):
+            out.update(flat_items(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def legacy_flat_dict(mapping: dict) -> dict[str, Any]:
+    """``MappingConfig.as_dict()`` in the flat form of before the mode sections, sentinels included
+    (max_range_m -1.0, ds_multiplier -1), for keys that must not change with the refactor (cached maps)."""
+    out = {k: v for k, v in mapping.items() if k not in _MAPPING_SECTIONS}
+    for old, (section, key) in MOVED_MAPPING_KEYS.items():
+        out[old] = mapping[section][key]
+    if out["max_range_m"] is None:
+        out["max_range_m"] = -1.0
+    if out["ds_multiplier"] is None:
+        out["ds_multiplier"] = -1
+    return out
 
 
 @dataclass(frozen=True)
@@ -453,11 +600,19 @@ def _read_yaml(path: Path) -> dict[str, Any]:
     return data
 
 
+# an optional field: a value other than null converts as this default would
+_OPTIONAL_KINDS = {"float | None": 0.0, "int | None": 0, "str | None": ""}
+
+
 def _convert(cls, name: str, value: Any, source: str) -> Any:
     ftype = {f.name: f.type for f in dataclasses.fields(cls)}[name]
     default = {f.name: f.default for f in dataclasses.fields(cls)}[name]
     if isinstance(value, float) and not math.isfinite(value):
         raise ConfigError(f"{source}: {name} = {value!r} must be a finite number")
+    if str(ftype) in _OPTIONAL_KINDS:
+        if value is None:
+            return None
+        default = _OPTIONAL_KINDS[str(ftype)]
     try:
         if isinstance(default, enum.Enum):
             return type(default)(value)
@@ -554,6 +709,8 @@ def load_config(config_paths: list[str | Path], method: str | None = None, *, fr
             if not isinstance(values, dict):
                 raise ConfigError(f"{path}: section {section!r} must be a mapping")
             cls = _SECTIONS[section]
+            if section == "mapping":
+                values = upgrade_mapping_dict(values, str(path), tell=True)
             for key, value in values.items():
                 if not isinstance(key, str):
                     raise ConfigError(f"{path}: key {key!r} in section {section!r} is not a name (a {type(key).__name__})")
@@ -577,6 +734,17 @@ def load_config(config_paths: list[str | Path], method: str | None = None, *, fr
                         raise ConfigError(f"{path}: unknown key(s) dataset.bag.{unknown[0]}; known: {sorted(known)}")
                     bag.update(value)
                     continue
+                if section == "mapping" and key in _MAPPING_SECTIONS:
+                    # key by key, so a dataset file can change one of a preset's mode settings
+                    if not isinstance(value, dict):
+                        raise ConfigError(f"{path}: mapping.{key} must be a mapping, got {type(value).__name__}")
+                    sub = _MAPPING_SECTIONS[key]
+                    known = {f.name for f in dataclasses.fields(sub)}
+                    for subkey, subvalue in value.items():
+                        if subkey not in known:
+                            raise ConfigError(f"{path}: unknown key mapping.{key}.{subkey}; known: {sorted(known)}")
+                        mapping.setdefault(key, {})[subkey] = _convert(sub, subkey, subvalue, f"{path}: mapping.{key}")
+                    continue
                 if section == "dataset" and key == "logs" and "logs" in dataset and logs:
                     continue  # logs named on the command line win over a config's
                 converted = _convert(cls, key, value, f"{path}: {section}")
@@ -587,7 +755,7 @@ def load_config(config_paths: list[str | Path], method: str | None = None, *, fr
                 else:
                     mapping[key] = converted
     try:
-        mapping_cfg = MappingConfig(**mapping)
+        mapping_cfg = MappingConfig(**{k: _MAPPING_SECTIONS[k](**v) if k in _MAPPING_SECTIONS else v for k, v in mapping.items()})
     except ConfigError as exc:
         raise ConfigError(f"{' + '.join(sources)}: {exc}") from None
     if bag:

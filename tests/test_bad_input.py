@@ -45,7 +45,9 @@ CONFIG_CASES = {
     "integer-key": ("mapping:\n  1: 2\n", "key 1 .*not a name"),
     "integer-section": ("1:\n  resolution_m: 0.2\n", "not a section name"),
     "string-for-number": ("mapping:\n  resolution_m: fine\n", "resolution_m = 'fine'"),
-    "list-for-string": ("mapping:\n  convbki_lengths_file: [1, 2]\n", "convbki_lengths_file"),
+    "list-for-string": ("mapping:\n  convbki:\n    lengths_file: [1, 2]\n", r"mapping.convbki: lengths_file = \[1, 2\]"),
+    "unknown-section-key": ("mapping:\n  sbki:\n    depth: 3\n", "unknown key mapping.sbki.depth"),
+    "section-not-a-mapping": ("mapping:\n  sbki: 3\n", "mapping.sbki must be a mapping"),
     "bool-for-number": ("mapping:\n  sigma0: true\n", "sigma0"),
     "section-not-mapping": ("mapping: 3\n", "section 'mapping' must be a mapping"),
     "unknown-key": ("mapping:\n  resolution: 0.2\n", "unknown key mapping.resolution"),
@@ -75,13 +77,11 @@ def test_a_kernel_that_would_run_for_hours_is_refused_with_the_estimate():
 
 def test_free_space_rays_from_a_far_sensor_origin_are_refused():
     cfg = load_config([PRESET], method="s-bki").mapping
-    import dataclasses
-
     from evsemmap_warp.config import Compat
 
-    mapper = Mapper(dataclasses.replace(cfg, compat=Compat.SBKI, free_resolution_m=0.5), 3)
+    mapper = Mapper(cfg.replace(compat=Compat.SBKI, sbki={"free_resolution_m": 0.5}), 3)
     pts = np.random.default_rng(0).uniform(-5, 5, (2000, 3))
-    with pytest.raises(ValueError, match=r"free-space rays would place about .* set mapping.max_range_m"):
+    with pytest.raises(ValueError, match=r"free-space rays would place about .* set mapping.sbki.max_range_m"):
         mapper.integrate(pts, np.zeros(2000, np.int64), payload_type="label", sensor_origin=[5e6, 0, 0])
     assert mapper.voxel_count == 0
 
@@ -414,13 +414,11 @@ def test_a_torch_tensor_that_requires_grad_is_read_as_its_values():
 def test_free_space_rays_from_a_far_origin_with_few_points_are_refused_not_run_out_of_memory():
     """Two points 90,000 km from the sensor origin pass the sample estimate (45 M); the float32 step
     list along the ray then never ended (killed by the OOM killer at 23 GB)."""
-    import dataclasses
-
     from evsemmap_warp.config import Compat
 
-    cfg = dataclasses.replace(load_config([PRESET], method="s-bki").mapping, compat=Compat.SBKI, max_range_m=-1.0)
+    cfg = load_config([PRESET], method="s-bki").mapping.replace(compat=Compat.SBKI, sbki={"max_range_m": None})
     mapper = Mapper(cfg, 3, workers=1)
-    with pytest.raises(ValueError, match=r"a ray of [0-9,]+ steps, at most 4,194,304 along one ray.*set mapping.max_range_m"):
+    with pytest.raises(ValueError, match=r"a ray of [0-9,]+ steps, at most 4,194,304 along one ray.*set mapping.sbki.max_range_m"):
         mapper.integrate(np.zeros((2, 3)), np.zeros(2, np.int64), payload_type="label", sensor_origin=[9e7, 0, 0])
     assert mapper.voxel_count == 0 and mapper.scans_integrated == 0
 

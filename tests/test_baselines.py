@@ -91,7 +91,7 @@ def test_length_files_load_and_bad_ones_name_the_problem(tmp_path):
     with pytest.raises(ValueError, match="bad.yaml: expected the keys ell_h and ell_z"):
         convbki.load_lengths(tmp_path / "bad.yaml", 2)
     with pytest.raises(FileNotFoundError, match="missing.pt"):
-        Mapper(dataclasses.replace(offroad("convbki"), convbki_lengths_file=str(tmp_path / "missing.pt")), 9)
+        Mapper(offroad("convbki").replace(convbki={"lengths_file": str(tmp_path / "missing.pt")}), 9)
 
 
 def test_training_moves_lengths_and_lowers_the_loss():
@@ -166,7 +166,7 @@ def test_see_csom_is_dense_but_not_thick():
     x, y = np.meshgrid(np.arange(-1, 1, 0.05), np.arange(-1, 1, 0.05))
     floor = np.stack([x.ravel(), y.ravel(), np.full(x.size, 0.1)], 1)
     floor = floor[~((np.abs(floor[:, 0] - 0.05) < 0.25) & (np.abs(floor[:, 1] - 0.05) < 0.25))]  # a hole of about one block
-    mapper = Mapper(dataclasses.replace(offroad("see-csom"), resolution_m=0.2, ds_resolution_m=0.05), 3, workers=1)
+    mapper = Mapper(offroad("see-csom").replace(resolution_m=0.2, sbki={"ds_resolution_m": 0.05}), 3, workers=1)
     mapper.integrate(floor, np.full(len(floor), 2), payload_type="label", sensor_origin=[0, 0, 5.0])
     arrays, summary = mapper.voxels()
     occupied = arrays.index[summary.state == VoxelState.OCCUPIED]

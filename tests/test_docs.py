@@ -376,7 +376,9 @@ def test_the_configuration_reference_names_every_key():
                 # TerrainConfig holds the layers and costs sections (listed) and the file they came from
                 assert value in listed or value.__name__ == "TerrainConfig", f"{module.__name__}.{value.__name__} is not on the page"
     # and every key of the run config's sections is one the loader accepts
-    all_mapping = {f.name for f in dataclasses.fields(run_config.MappingConfig)}
+    sections = run_config._MAPPING_SECTIONS
+    all_mapping = {f.name for f in dataclasses.fields(run_config.MappingConfig) if f.name not in sections}
+    all_mapping |= {f"{name}.{f.name}" for name, cls in sections.items() for f in dataclasses.fields(cls)}
     assert all(f"| `mapping.{name}` |" in page for name in all_mapping)
 
 

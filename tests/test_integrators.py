@@ -2,7 +2,6 @@
 checks the same way for every method, and production code that never imports a numpy twin."""
 
 import ast
-import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -80,8 +79,8 @@ def test_an_unused_sensor_origin_is_not_handed_on():
 
 def test_the_release_reads_the_sensor_origin_only_for_its_range_filter():
     config = load_config([REPO / "configs/presets/release.yaml"], method="ebs").mapping
-    assert ig.ReleaseCompatIntegrator(config).needs.sensor_origin is (ig.SensorOrigin.REQUIRED if config.max_range_m > 0 else ig.SensorOrigin.OPTIONAL)
-    ranged = dataclasses.replace(config, max_range_m=30.0)
+    assert ig.ReleaseCompatIntegrator(config).needs.sensor_origin is ig.SensorOrigin.OPTIONAL  # the preset sets no range
+    ranged = config.replace(sbki={"max_range_m": 30.0})
     assert ig.ReleaseCompatIntegrator(ranged).needs.sensor_origin is ig.SensorOrigin.REQUIRED
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import REPO
 
-from evsemmap_warp.config import ConfigError, load_config
+from evsemmap_warp.config import CleanSettings, ConfigError, ScatterStrategy, load_config
 from evsemmap_warp.core.mapper import Mapper
 from evsemmap_warp.core.warp_runtime import init_warp
 from evsemmap_warp.kernels import microbench as mb
@@ -38,7 +38,7 @@ def test_sorted_and_gather_strategies_give_the_atomic_map(device, method, n):
     base = load_config([REPO / "configs/presets/rellis3d.yaml"], method=method).mapping
     maps = []
     for strategy in ("atomic", "sorted", "gather"):
-        mapper = Mapper(dataclasses.replace(base, scatter_strategy=strategy), 5, device=device, origin=np.zeros(3), initial_capacity=16)
+        mapper = Mapper(base.replace(clean={"scatter_strategy": ScatterStrategy(strategy)}), 5, device=device, origin=np.zeros(3), initial_capacity=16)
         mapper.integrate(pts, alpha, payload_type="alpha")
         mapper.integrate(pts + 0.05, alpha, payload_type="alpha")  # accumulation and table growth
         maps.append(mapper.voxels()[0])
@@ -51,7 +51,7 @@ def test_sorted_and_gather_strategies_give_the_atomic_map(device, method, n):
 def test_deterministic_strategies_far_from_the_origin_map_as_near_it(strategy):
     rng = np.random.default_rng(3)
     pts, alpha = _cloud(rng, 300)
-    cfg = dataclasses.replace(load_config([REPO / "configs/presets/rellis3d.yaml"], method="s-bki").mapping, scatter_strategy=strategy)
+    cfg = load_config([REPO / "configs/presets/rellis3d.yaml"], method="s-bki").mapping.replace(clean=CleanSettings(ScatterStrategy(strategy)))
     shift = np.array([500_000.0, 4_000_000.0, 100.0])
     near, far = Mapper(cfg, 5), Mapper(cfg, 5)
     near.integrate(pts, alpha, payload_type="alpha")
@@ -105,10 +105,11 @@ def test_row_adds_and_stream_copy_match_their_twins():
 
 
 def test_sorted_strategy_refuses_what_it_does_not_integrate():
-    with pytest.raises(ConfigError, match="scatter_strategy"):
-        dataclasses.replace(load_config([REPO / "configs/presets/rellis3d.yaml"], method="dempster").mapping, scatter_strategy="sorted")
-    with pytest.raises(ConfigError, match="scatter_strategy"):
-        dataclasses.replace(load_config([REPO / "configs/presets/rellis3d.yaml"], method="ebs").mapping, scatter_strategy="fast")
+    with pytest.raises(ConfigError, match="mapping.clean.scatter_strategy"):
+        dataclasses.replace(load_config([REPO / "configs/presets/rellis3d.yaml"], method="dempster").mapping,
+                            clean=CleanSettings(ScatterStrategy.SORTED))
+    with pytest.raises(ConfigError, match="mapping.clean.scatter_strategy = 'fast': must be atomic, sorted or gather"):
+        dataclasses.replace(load_config([REPO / "configs/presets/rellis3d.yaml"], method="ebs").mapping, clean=CleanSettings("fast"))
 
 
 def test_quick_study_runs_and_its_strategies_agree(tmp_path):

@@ -6,7 +6,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from evsemmap_warp.config import load_config
+from evsemmap_warp.config import legacy_flat_dict, load_config
 from evsemmap_warp.core.map_file import FORMAT_VERSION, MapFileError, read_map_arrays
 from evsemmap_warp.core.mapper import Mapper, load_map, save_map
 
@@ -42,6 +42,22 @@ def test_round_trip_is_exact(tmp_path, small_map, device):
     np.testing.assert_array_equal(a.label, b.label)
     np.testing.assert_array_equal(a.variance, b.variance)
 
+
+def test_a_map_written_before_the_mode_sections_loads_silently(tmp_path, small_map, capsys):
+    # map files record MappingConfig.as_dict(); before the sections it was flat, with -1 for "none"
+    path = save_map(tmp_path / "m.npz", small_map)
+    with np.load(path) as arrays:
+        data = dict(arrays)
+    meta = json.loads(str(data["meta"]))
+    assert meta["mapping"]["sbki"]["max_range_m"] is None and "block_depth" not in meta["mapping"]
+    meta["mapping"] = legacy_flat_dict(meta["mapping"])
+    data["meta"] = np.array(json.dumps(meta))
+    np.savez(tmp_path / "old.npz", **data)
+    capsys.readouterr()
+    old = load_map(tmp_path / "old.npz")
+    assert old.config == small_map.config and old.config.sbki.max_range_m is None and old.config.release.ds_multiplier is None
+    assert old.voxels().arrays.rows().tobytes() == small_map.voxels().arrays.rows().tobytes()
+    assert "deprecated" not in capsys.readouterr().err
 
 def test_saving_to_a_name_without_npz_suffix_keeps_the_name(tmp_path, small_map):
     path = save_map(tmp_path / "map.evsem", small_map)

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, load_config
+from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, SbkiSettings, load_config
 from evsemmap_warp.core.integrators import uncertainty_quantile_mask
 from evsemmap_warp.kernels import scatter as sc
 from evsemmap_warp.core.mapper import UNKNOWN_LABEL, Mapper, VoxelState, summarize_dirichlet
@@ -240,7 +240,7 @@ def test_integrate_many_equals_integrate_scan_by_scan(mode):
     scans = [_alpha_scan(rng, n, spread=5.0) for n in (9000, 0, 7000, 1, 8000)]
     if mode == "sbki":
         cfg = MappingConfig(method="s-bki", kernel=Kernel.SPARSE, media=Media.ONEHOT, adaptive_length=False, uncertainty_threshold=False,
-                            compat=Compat.SBKI, free_resolution_m=2.0)
+                            compat=Compat.SBKI, sbki=SbkiSettings(free_resolution_m=2.0))
         scans, payload_type = [(p, np.argmax(a, 1)) for p, a in scans], "label"
     elif mode.startswith("release"):
         cfg = load_config([REPO / "configs/presets/release.yaml"], method=mode.split()[1]).mapping

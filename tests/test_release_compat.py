@@ -1,7 +1,5 @@
 """The release mode (mapping.compat: release, docs/compatibility.md §4): the released EvSemMap C++."""
 
-import dataclasses
-
 import numpy as np
 import pytest
 from conftest import REPO, shared_path
@@ -17,8 +15,7 @@ PRESET = REPO / "configs/presets/release.yaml"
 
 
 def _config(method: str, **overrides):
-    cfg = load_config([PRESET], method=method).mapping
-    return dataclasses.replace(cfg, **overrides)
+    return load_config([PRESET], method=method).mapping.replace(**overrides)
 
 
 @pytest.mark.parametrize("offset", [0.0, 2.5e4])
@@ -91,7 +88,7 @@ def test_gather_kernel_matches_the_literal_block_models(device, method, n):
     rng = np.random.default_rng(n)
     pts, alpha = _scan(rng, max(n, 12))
     pts, alpha = pts[:n] if n < 12 else pts, alpha[:n] if n < 12 else alpha
-    cfg = _config(method, ds_resolution_m=0.01)
+    cfg = _config(method, sbki={"ds_resolution_m": 0.01})
     mapper = Mapper(cfg, 5, device=device, origin=np.zeros(3))
     mapper.integrate(pts, alpha, payload_type="alpha")
     # the twin on the same training points (cut and cap from the integrator's own rule)
@@ -118,7 +115,7 @@ def test_blocks_out_of_the_brick_cache_are_found_cell_by_cell(device):
     # cell order, are never cached; two scans give twice the twin's sums.
     rng = np.random.default_rng(8)
     pts, alpha = _scan(rng, 2000, spread=3.2)
-    cfg = _config("ebs", ds_resolution_m=0.01)
+    cfg = _config("ebs", sbki={"ds_resolution_m": 0.01})
     mapper = Mapper(cfg, 5, device=device, origin=np.zeros(3), workers=1)
     payload = prepare_payload(pts, alpha, "alpha", 5)
     keep, _ = ReleaseCompatIntegrator(cfg).training_points(payload, np.zeros(3))
@@ -209,13 +206,13 @@ def test_refusals_name_the_key():
         _config("s-bki")
     with pytest.raises(ConfigError, match="beta 1, gamma 0"):
         _config("ebs", gamma=10.0)
-    with pytest.raises(ConfigError, match="ds_multiplier"):
-        _config("ebs", ds_multiplier=-2)
+    with pytest.raises(ConfigError, match=r"mapping.release.ds_multiplier = -1: must be >= 0"):
+        _config("ebs", release={"ds_multiplier": -1})
     mapper = Mapper(_config("ebs"), 3)
     with pytest.raises(ValueError, match="evidential alpha"):
         mapper.integrate(np.full((4, 3), 5000.0), np.ones(4, int), payload_type="label")
     assert mapper.origin_index is None and mapper.scans_integrated == 0  # the refused scan left no trace
-    ranged = Mapper(_config("ebs", max_range_m=30.0), 3)
+    ranged = Mapper(_config("ebs", sbki={"max_range_m": 30.0}), 3)
     with pytest.raises(ValueError, match="range filter"):
         ranged.integrate(np.zeros((4, 3)), np.full((4, 3), 2.0), payload_type="alpha")
 
@@ -223,7 +220,7 @@ def test_refusals_name_the_key():
 def test_block_cap_follows_the_fusion_unless_set():
     assert _config("ebs").release_block_cap == 11
     assert _config("dempster").release_block_cap == 6
-    assert _config("ebs", ds_multiplier=0).release_block_cap == 1
+    assert _config("ebs", release={"ds_multiplier": 0}).release_block_cap == 1
 
 
 @pytest.mark.parametrize("method, after_ds, cells", [("ebs", 845_312, 225_872), ("dempster", 638_662, 225_672)])
@@ -286,7 +283,7 @@ def test_dempster_products_fold_before_they_overflow():
     pts = (np.float32(0.1) + rng.uniform(-0.05, 0.05, (300, 3))).astype(np.float32)
     alpha = np.ones((300, 3))
     alpha[:, 1] = 1e7
-    cfg = _config("dempster", uncertainty_drop_fraction=0.0, ds_multiplier=1000)
+    cfg = _config("dempster", uncertainty_drop_fraction=0.0, release={"ds_multiplier": 1000})
     mapper = Mapper(cfg, 3, origin=np.zeros(3))
     mapper.integrate(pts, alpha, payload_type="alpha")
     arrays, summary = mapper.voxels()

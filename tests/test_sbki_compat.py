@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from evsemmap_warp.methods import sbki_compat as sb
-from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, load_config
+from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, SbkiSettings, load_config
 from evsemmap_warp.data.datasets import open_dataset
 from evsemmap_warp.core.mapper import Mapper, VoxelState
 from evsemmap_warp.data.pcd import read_pcd
@@ -212,8 +212,8 @@ def _compat_config(counting: bool, **kw) -> MappingConfig:
 @pytest.mark.parametrize("counting", [False, True])
 def test_compat_insertion_matches_block_centric_brute_force(device, counting):
     rng = np.random.default_rng(int(counting))
-    cfg = _compat_config(counting, resolution_m=0.1, block_depth=3, length_m=0.3, sigma0=10.0, prior=0.001,
-                         ds_resolution_m=0.1, free_resolution_m=0.5, max_range_m=8.0)
+    cfg = _compat_config(counting, resolution_m=0.1, length_m=0.3, sigma0=10.0, prior=0.001,
+                         sbki=SbkiSettings(block_depth=3, ds_resolution_m=0.1, free_resolution_m=0.5, max_range_m=8.0))
     pts = rng.uniform(0, 1.6, (300, 3)).astype(np.float32)
     pts[:5, 0] = np.float32(0.4)  # on block faces (and S-BKI's inclusive-box double counting)
     pts[5:10, 1] = np.float32(0.25) if counting else np.float32(0.8)
@@ -295,8 +295,8 @@ def test_vendored_toy_scans_are_byte_identical_to_shared():
 @pytest.mark.parametrize("counting", [False, True])
 def test_compat_two_workers_give_the_single_worker_map(counting):
     rng = np.random.default_rng(8)
-    cfg = _compat_config(counting, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
-                         ds_resolution_m=0.05, free_resolution_m=4.0)
+    cfg = _compat_config(counting, resolution_m=0.2, length_m=0.3, sigma0=10.0, prior=0.001,
+                         sbki=SbkiSettings(block_depth=2, ds_resolution_m=0.05, free_resolution_m=4.0))
     pts = rng.uniform(0, 8, (30000, 3)).astype(np.float32)  # >= 8192 training points: split in two
     labels = rng.integers(1, 6, len(pts))
     maps = []
@@ -318,8 +318,8 @@ def test_sbki_gather_kernel_matches_its_table_twin(device, n):
     pts = rng.uniform(0, 1.6, (n, 3)).astype(np.float32)
     pts[: max(1, n // 8), 0] = np.float32(0.2)  # on a block face: in two blocks
     labels = rng.integers(0, 4, n)
-    cfg = _compat_config(False, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
-                         ds_resolution_m=0.1, free_resolution_m=100.0)
+    cfg = _compat_config(False, resolution_m=0.2, length_m=0.3, sigma0=10.0, prior=0.001,
+                         sbki=SbkiSettings(block_depth=2, ds_resolution_m=0.1, free_resolution_m=100.0))
     mapper = Mapper(cfg, 4, device=device, origin=np.zeros(3))
     origin = np.array([0.8, 0.8, 1.5])
     mapper.integrate(pts, labels, payload_type="label", sensor_origin=origin)
@@ -331,7 +331,7 @@ def _sbki_gather_twin(pts, labels, origin):
     and the S-BKI gather twin's cells: index -> [K evidence, weight sum, hits]."""
     from evsemmap_warp.reference.block_gather import gather_sbki_blocks
 
-    train, train_labels, _ = sb.training_data(pts, labels, origin, ds_resolution_m=0.1, free_resolution_m=100.0, max_range_m=-1)
+    train, train_labels, _ = sb.training_data(pts, labels, origin, ds_resolution_m=0.1, free_resolution_m=100.0, max_range_m=None)
     ids, owners = sb.block_memberships(train, sb.block_size_m(0.2, 2))
     tables = sb.gather_tables(owners)
     order = ids[tables.pair_order]
@@ -357,8 +357,8 @@ def test_the_brick_cache_holds_blocks_with_consecutive_rows_only(device):
     rng = np.random.default_rng(31)
     pts = rng.uniform(0, 3.2, (3000, 3)).astype(np.float32)  # ~1500 test blocks: the cache grows from 16 slots
     labels = rng.integers(0, 4, len(pts))
-    cfg = _compat_config(False, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
-                         ds_resolution_m=0.1, free_resolution_m=100.0)
+    cfg = _compat_config(False, resolution_m=0.2, length_m=0.3, sigma0=10.0, prior=0.001,
+                         sbki=SbkiSettings(block_depth=2, ds_resolution_m=0.1, free_resolution_m=100.0))
     mapper = Mapper(cfg, 4, device=device, origin=np.zeros(3), workers=1)
     origin = np.array([1.6, 1.6, 3.5])
     tables, expected = _sbki_gather_twin(pts, labels, origin)
@@ -400,8 +400,8 @@ def test_a_maps_first_gather_is_sized_for_its_blocks_and_launched_once(monkeypat
     monkeypatch.setattr(VoxelMap, "_launch_until_done", counted)
     rng = np.random.default_rng(33)
     pts = rng.uniform(0, 12.0, (20000, 3)).astype(np.float32)  # ~20 k test blocks, 160 k cells: 2^16 slots would not do
-    cfg = _compat_config(False, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
-                         ds_resolution_m=0.1, free_resolution_m=100.0)
+    cfg = _compat_config(False, resolution_m=0.2, length_m=0.3, sigma0=10.0, prior=0.001,
+                         sbki=SbkiSettings(block_depth=2, ds_resolution_m=0.1, free_resolution_m=100.0))
     mapper = Mapper(cfg, 4, origin=np.zeros(3), workers=1)
     mapper.integrate(pts, rng.integers(0, 4, len(pts)), payload_type="label", sensor_origin=np.array([6.0, 6.0, 13.0]))
     gathers = [n for kind, n in launches if kind == "sbki_gather"]
@@ -438,8 +438,8 @@ def test_the_float32_sbki_kernel_is_zero_where_the_gather_skips_points():
 def _random_sbki_scan(seed: int, n: int, extent: float, free_resolution_m: float):
     """A bench-like S-BKI config (0.2 m cells, 0.4 m blocks) and n random labelled points in an extent^3 cube."""
     rng = np.random.default_rng(seed)
-    cfg = _compat_config(False, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
-                         ds_resolution_m=0.05, free_resolution_m=free_resolution_m)
+    cfg = _compat_config(False, resolution_m=0.2, length_m=0.3, sigma0=10.0, prior=0.001,
+                         sbki=SbkiSettings(block_depth=2, ds_resolution_m=0.05, free_resolution_m=free_resolution_m))
     pts = rng.uniform(0, extent, (n, 3)).astype(np.float32)
     return cfg, pts, rng.integers(1, 6, n)
 

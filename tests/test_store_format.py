@@ -90,6 +90,9 @@ def test_a_format_1_store_still_reads_as_it_was_written(tmp_path, capsys):
     store = MapStore(V1 / "store")
     assert store.format_version == 1 and store.voxel_count == 1050
     expected = load_map(V1 / "map.npz")
+    # both recorded the flat mapping keys of before the mode sections; the -1 sentinels read None
+    assert "block_depth" in json.loads((V1 / "store" / "store.json").read_text())["mapping"]
+    assert (store.config.sbki.max_range_m, store.config.release.ds_multiplier) == (None, None) and store.config == expected.config
     (a, sa), (b, sb) = store.to_mapper().voxels(), expected.voxels()
     np.testing.assert_array_equal(a.index, b.index)
     assert a.rows().tobytes() == b.rows().tobytes()

@@ -67,9 +67,12 @@ def config_of(method):
         return load_config([preset], method=rest).mapping
     if kind in ("sbki", "sbki-csm"):
         base = load_config([root / "configs/presets/rellis3d.yaml"], method="s-csm" if kind == "sbki-csm" else "s-bki").mapping
-        return dataclasses.replace(base, compat=type(base.compat)("sbki"), media=type(base.media)("onehot"), adaptive_length=False,
-                                   uncertainty_threshold=False, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
-                                   ds_resolution_m=0.1, free_resolution_m=float(rest))
+        sbki = dict(block_depth=2, ds_resolution_m=0.1, free_resolution_m=float(rest))
+        common = dict(compat=type(base.compat)("sbki"), media=type(base.media)("onehot"), adaptive_length=False,
+                      uncertainty_threshold=False, resolution_m=0.2, length_m=0.3, sigma0=10.0, prior=0.001)
+        if hasattr(base, "sbki"):  # a checkout with the mode sections; older ones are flat
+            return base.replace(sbki=sbki, **common)
+        return dataclasses.replace(base, **common, **sbki)
     return load_config([root / "configs/presets/rellis3d.yaml"], method=method).mapping
 for method, workers in runs:
     config = config_of(method)

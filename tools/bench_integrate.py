@@ -53,7 +53,7 @@ from tqdm import tqdm
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, load_config  # noqa: E402
+from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, SbkiSettings, load_config  # noqa: E402
 from evsemmap_warp.data.datasets import open_dataset  # noqa: E402
 from evsemmap_warp.core.integrators import uncertainty_quantile_mask  # noqa: E402
 from evsemmap_warp.kernels import scatter as sc  # noqa: E402
@@ -106,8 +106,8 @@ def read_cpp_figures(path: Path) -> tuple[dict, dict, str]:
 def compat_config(free_resolution: float) -> MappingConfig:
     return MappingConfig(
         method="s-bki", kernel=Kernel.SPARSE, media=Media.ONEHOT, adaptive_length=False, uncertainty_threshold=False,
-        compat=Compat.SBKI, resolution_m=0.2, block_depth=2, length_m=0.3, sigma0=10.0, prior=0.001,
-        ds_resolution_m=0.1, free_resolution_m=free_resolution, max_range_m=-1.0,
+        compat=Compat.SBKI, resolution_m=0.2, length_m=0.3, sigma0=10.0, prior=0.001,
+        sbki=SbkiSettings(block_depth=2, ds_resolution_m=0.1, free_resolution_m=free_resolution, max_range_m=None),
     )
 
 

@@ -52,7 +52,7 @@ def config_files() -> list[ConfigFile]:
     """The config files a user writes, each with the dataclasses that read its sections."""
     from evsemmap_warp.apps.experiment import (AblationSpec, ConditionSpec, ConvBkiTraining, ExperimentConfig, NetworkSpec,
                                                SequenceSpec)
-    from evsemmap_warp.config import _METHOD_KEYS, BagConfig, DatasetConfig, MappingConfig, RunConfig
+    from evsemmap_warp.config import _MAPPING_SECTIONS, _METHOD_KEYS, BagConfig, DatasetConfig, MappingConfig, RunConfig
     from evsemmap_warp.geometry.projection import ProjectionConfig
     from evsemmap_warp.synthetic.preset import (AppearanceParams, CameraParams, LidarParams, SynthPreset, TrajectoryParams,
                                                 WorldParams)
@@ -67,7 +67,8 @@ def config_files() -> list[ConfigFile]:
             "merged in order, later files winning key by key. A method file's `method` section sets the switches "
             "below; every other number lives in `mapping`.",
             (Section("method", MappingConfig, method_keys, renamed=(("method", "name"),)),
-             Section("mapping", MappingConfig),
+             Section("mapping", MappingConfig, tuple(f.name for f in dataclasses.fields(MappingConfig) if f.name not in _MAPPING_SECTIONS)),
+             *(Section(f"mapping.{name}", cls) for name, cls in _MAPPING_SECTIONS.items()),
              Section("dataset", DatasetConfig, tuple(f.name for f in dataclasses.fields(DatasetConfig) if f.name != "config_dir")),
              Section("dataset.bag", BagConfig),
              Section("pipeline", RunConfig, ("bin_frames",)))),
@@ -135,8 +136,11 @@ def _type_text(cls: type, field: dataclasses.Field) -> str:
     if isinstance(default, enum.Enum):
         return "one of " + ", ".join(f"`{member.value}`" for member in type(default))
     text = str(field.type)
-    return {"tuple[str, ...]": "list of str", "tuple[float, ...]": "list of numbers", "tuple": "list", "dict": "mapping",
+    optional = text.endswith(" | None")  # YAML's null is the None
+    text = text.removesuffix(" | None")
+    text = {"tuple[str, ...]": "list of str", "tuple[float, ...]": "list of numbers", "tuple": "list", "dict": "mapping",
             "float": "number", "int": "integer", "bool": "true / false", "str": "string"}.get(text, text)
+    return text + " or null" if optional else text
 
 
 def _default_value(field: dataclasses.Field):
@@ -159,6 +163,8 @@ def _default_text(field: dataclasses.Field) -> str:
         value = list(value)
     if isinstance(value, bool):
         return f"`{str(value).lower()}`"
+    if value is None:
+        return "`null`"
     if value == "":
         return '`""`'
     return f"`{json.dumps(value) if isinstance(value, (list, dict)) else value}`"

@@ -11,7 +11,7 @@ present, else LiDAR-like synthetic scans (rings of points on a ground plane with
 
 1. Integration strategies, each an engine backend with the same map out (the tool checks that and
    exits 1 otherwise): the atomic scatter, sort-then-reduce and the gather through ``wp.HashGrid``
-   (``mapping.scatter_strategy``), and for the release mode its block gather; baselines in the same
+   (``mapping.clean.scatter_strategy``), and for the release mode its block gather; baselines in the same
    run: the numpy twin and torch's ``index_add_`` reduction of the same expanded (voxel,
    contribution) pairs (both one thread).
 2. The compatibility modes' gather kernels form by form (branch-free or per-cell branches, both
@@ -39,7 +39,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tools"))
 
-from evsemmap_warp.config import load_config  # noqa: E402
+from evsemmap_warp.config import CleanSettings, ScatterStrategy, load_config  # noqa: E402
 from evsemmap_warp.core.mapper import Mapper  # noqa: E402
 from evsemmap_warp.core.warp_runtime import init_warp, resolve_device  # noqa: E402
 from evsemmap_warp.reference import scatter as ref  # noqa: E402
@@ -117,7 +117,7 @@ def strategies(scans, device, repeats, workers_list):
     for method in ("s-bki", "prob"):
         base = load_config([PRESET], method=method).mapping
         for strategy in STRATEGIES:
-            cfg = dataclasses.replace(base, scatter_strategy=strategy)
+            cfg = dataclasses.replace(base, clean=CleanSettings(ScatterStrategy(strategy)))
             for workers in workers_list:
                 holder = {}
                 seconds = timed(lambda: holder.update(result=run_mapper(cfg, scans, device, workers)), repeats)
@@ -308,19 +308,19 @@ def scaling(scans, device, quick, repeats):
     sizes = (1000, 4000, len(pts)) if quick else (1000, 5000, 20000, len(pts))
     for n in sizes:
         for strategy in STRATEGIES:
-            cfg = dataclasses.replace(base, scatter_strategy=strategy)
+            cfg = dataclasses.replace(base, clean=CleanSettings(ScatterStrategy(strategy)))
             s = timed(lambda: run_mapper(cfg, [(pts[:n], alpha[:n], origin)], device, 1), repeats)
             out.append({"axis": "points per scan", "x": n, "strategy": strategy, "points_per_s": n / s})
     for k in (3, 9, 20):
         a = np.ones((len(pts), k))
         a[np.arange(len(pts)), np.argmax(alpha, 1) % k] += 10
         for strategy in STRATEGIES:
-            cfg = dataclasses.replace(load_config([PRESET], method="prob").mapping, scatter_strategy=strategy)
+            cfg = dataclasses.replace(load_config([PRESET], method="prob").mapping, clean=CleanSettings(ScatterStrategy(strategy)))
             s = timed(lambda: run_mapper(cfg, [(pts, a, origin)], device, 1, num_classes=k), repeats)
             out.append({"axis": "classes K", "x": k, "strategy": strategy, "points_per_s": len(pts) / s})
     for length in (0.2, 0.3, 0.45) if quick else (0.2, 0.3, 0.45, 0.6):
         for strategy in STRATEGIES:
-            cfg = dataclasses.replace(base, length_m=length, scatter_strategy=strategy)
+            cfg = dataclasses.replace(base, length_m=length, clean=CleanSettings(ScatterStrategy(strategy)))
             s = timed(lambda: run_mapper(cfg, [(pts, alpha, origin)], device, 1), repeats)
             out.append({"axis": "kernel length / resolution", "x": length / base.resolution_m, "strategy": strategy, "points_per_s": len(pts) / s})
     return out

@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import files
-from ..config import ConfigError, MappingConfig, is_robot_log, load_config
+from ..config import ConfigError, MappingConfig, flat_items, is_robot_log, load_config
 from ..core import map_store, tile_codec
 from ..core.mapper import Mapper
 from ..core.voxel_map import EXTRA_COLUMNS, VoxelArrays
@@ -193,7 +193,7 @@ def plan_batch(paths: list[str], options: BatchOptions):
     config = runs[0].mapping
     for text, run, source in zip(inputs, runs, sources):
         if run.mapping != config:
-            mine, theirs = config.as_dict(), run.mapping.as_dict()
+            mine, theirs = flat_items(config.as_dict()), flat_items(run.mapping.as_dict())
             raise ConfigError(f"{text}: its mapping parameters differ from {inputs[0]}'s: "
                               + ", ".join(f"{k} {mine[k]!r} vs {theirs[k]!r}" for k in mine if mine[k] != theirs[k]))
         if source.num_classes != sources[0].num_classes:

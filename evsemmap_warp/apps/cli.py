@@ -796,7 +796,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("sequence", type=Path, help="RELLIS-3D-layout sequence with per-point labels")
     p.add_argument("--alpha-dir", type=Path, metavar="DIR", help="folder of per-frame alpha .npy (evsemmap infer output; required)")
     _renamed_flag(p, "--alpha", "--alpha-dir", type=Path)
-    p.add_argument("--out", type=Path, required=True, help="length-scale file to write (.json; use as mapping.convbki_lengths_file)")
+    p.add_argument("--out", type=Path, required=True, help="length-scale file to write (.json; use as mapping.convbki.lengths_file)")
     p.add_argument("--resolution-m", type=_positive_float, default=0.3, help="voxel size of the map it will be used with (m)")
     _renamed_flag(p, "--resolution", "--resolution-m", type=_positive_float)
     p.add_argument("--epochs", type=_positive, default=15)

@@ -42,8 +42,8 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import __version__, files
-from ..config import (ConfigError, Kernel, PayloadType, dataclass_from_dict, is_robot_log, load_config, preset_path, read_yaml_file,
-                      warn_deprecated)
+from ..config import (ConfigError, Kernel, PayloadType, dataclass_from_dict, is_robot_log, legacy_flat_dict, load_config, preset_path,
+                      read_yaml_file, warn_deprecated)
 from .evaluation import PAPER_SCORED_CLASSES, MapScores, evaluate_map, markdown_table, pool_scores
 from ..classes import class_set
 from ..data.datasets import Scan
@@ -512,10 +512,11 @@ class Experiment:
 
         run = load_config([preset_path(self.config.mapping_preset)], method=method)
         mapping = run.mapping
-        if mapping.kernel is Kernel.COMPOUND and not mapping.convbki_lengths_file:
+        if mapping.kernel is Kernel.COMPOUND and not mapping.convbki.lengths_file:
             lengths = self.convbki_lengths(self.config.conditions[condition].network, mapping.resolution_m)
-            mapping = dataclasses.replace(mapping, convbki_lengths_file=str(lengths))
-        described = mapping.as_dict()
+            mapping = mapping.replace(convbki={"lengths_file": str(lengths)})
+        # the flat form of before the mode sections: maps cached then keep their keys
+        described = legacy_flat_dict(mapping.as_dict())
         if described["threshold_scope"] == "insertion":  # the key maps had before the option: their caches stay valid
             del described["threshold_scope"]
         key = _digest(described, str(self.alpha_dir(condition)), dataclasses.asdict(self.config.projection), bins.frame.as_dict(),
@@ -545,7 +546,8 @@ class Experiment:
         from . import uncertainty_study as us
         from ..geometry.projection import sample_map
 
-        key = _digest(str(self.alpha_dir(condition)), {m: s.extra["map_key"] for m, s in scores.items()}, self.config.scored_classes, __version__)
+        key = _digest(str(self.alpha_dir(condition)), {m: s.extra["map_key"] for m, s in scores.items()}, self.config.scored_classes,
+                      us.DIAGNOSTICS_VERSION, __version__)
         path = self.out / "maps" / condition / "diagnostics.json"
         if path.exists():
             cached = json.loads(path.read_text())

@@ -26,6 +26,8 @@ from ..voxel_keys import voxel_index_of
 
 LENGTH_EDGES_M = np.linspace(0.0, 1.0, 51)  # histogram of kernel lengths (m); the offroad preset's longest is 0.82 m
 DECILES = 10
+# what cached diagnostics hold: raise it when they gain or change a count, so that older caches are recomputed
+DIAGNOSTICS_VERSION = 1
 
 
 @dataclass

@@ -27,7 +27,7 @@ from typing import Callable, Optional, Protocol
 import numpy as np
 import warp as wp
 
-from ..config import Compat, Fusion, Kernel, MappingConfig, Media, PayloadType, ThresholdScope
+from ..config import Compat, Fusion, Kernel, MappingConfig, Media, PayloadType, ScatterStrategy, ThresholdScope
 from ..kernels import block_gather, release
 from ..kernels import scatter as sc
 from ..methods import convbki, release_compat, sbki_compat, see_csom
@@ -186,7 +186,7 @@ class PointKernelIntegrator:
     ablations, Dempster-Shafer) on a true radius search around the point, or the counting model (S-CSM)
     in the point's own voxel (docs/algorithm.md §3). Applies the uncertainty threshold and the adaptive length when the config asks
     for them, then scatters each point into the voxels whose centers lie within its length, through
-    ``mapping.scatter_strategy``."""
+    ``mapping.clean.scatter_strategy``."""
 
     needs = ScanNeeds()
     grid_offset_m = 0.0
@@ -231,9 +231,9 @@ class PointKernelIntegrator:
 
         def job(shard: VoxelMap, part: np.ndarray) -> int:
             kw = {"labels": media[part]} if onehot else {"class_weights": media[part]}
-            if c.scatter_strategy == "sorted" and mode == sc.MODE_RADIUS:
+            if c.clean.scatter_strategy is ScatterStrategy.SORTED and mode == sc.MODE_RADIUS:
                 return shard.scatter_sorted(points[part], lengths[part], unc[part], sigma0=sigma0, **kw)
-            if c.scatter_strategy == "gather" and mode == sc.MODE_RADIUS:
+            if c.clean.scatter_strategy is ScatterStrategy.GATHER and mode == sc.MODE_RADIUS:
                 return shard.scatter_hashgrid(points[part], lengths[part], unc[part], sigma0=sigma0, **kw)
             return shard.scatter(points[part], lengths[part], unc[part], mode=mode, sigma0=sigma0, fusion=fusion, **kw)
 
@@ -251,11 +251,11 @@ class ConvBkiIntegrator:
 
     def __init__(self, config: MappingConfig, num_classes: int):
         self.config = config
-        if config.convbki_lengths_file:
-            self.lengths = convbki.load_lengths(config.convbki_lengths_file, num_classes)
+        if config.convbki.lengths_file:
+            self.lengths = convbki.load_lengths(config.convbki.lengths_file, num_classes)
         else:
             self.lengths = convbki.default_lengths(num_classes)
-        self.weights = convbki.stencil_weights(self.lengths, config.resolution_m, config.convbki_stencil_half)
+        self.weights = convbki.stencil_weights(self.lengths, config.resolution_m, config.convbki.stencil_half)
 
     def prepare(self, scan: ScanPayload, device: str) -> Launch:
         """Nothing worth doing ahead: the launch runs ``integrate``."""
@@ -302,8 +302,8 @@ class SeeCsomIntegrator:
         """Training data and block statistics (host work, no map access); the launch scatters."""
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points))
-        points, labels, _ = sbki_compat.training_data(scan.points, scan.labels, scan.sensor_origin, ds_resolution_m=c.ds_resolution_m,
-                                                      free_resolution_m=1000.0, max_range_m=c.max_range_m)
+        points, labels, _ = sbki_compat.training_data(scan.points, scan.labels, scan.sensor_origin, ds_resolution_m=c.sbki.ds_resolution_m,
+                                                      free_resolution_m=1000.0, max_range_m=c.sbki.max_range_m)
         points = points.astype(np.float64)
         stats.kept_points = len(points)
         if len(points) == 0:
@@ -324,7 +324,7 @@ class SbkiCompatIntegrator:
     def __init__(self, config: MappingConfig, num_classes: int | None = None):
         self.config = config
         self.needs = _free_samples_need(config.method)
-        self.block_depth = 1 if config.kernel is Kernel.COUNT else config.block_depth
+        self.block_depth = 1 if config.kernel is Kernel.COUNT else config.sbki.block_depth
         self.cells_per_block = 2 ** (self.block_depth - 1)
         self.block_size = sbki_compat.block_size_m(config.resolution_m, self.block_depth)
         # S-CSM cells are centered on multiples of r (blocks of one cell), half a cell off the BKI grid.
@@ -339,7 +339,7 @@ class SbkiCompatIntegrator:
         stats = IntegrationStats(input_points=len(scan.points))
         points, labels, _ = sbki_compat.training_data(
             scan.points, scan.labels, scan.sensor_origin,
-            ds_resolution_m=c.ds_resolution_m, free_resolution_m=c.free_resolution_m, max_range_m=c.max_range_m,
+            ds_resolution_m=c.sbki.ds_resolution_m, free_resolution_m=c.sbki.free_resolution_m, max_range_m=c.sbki.max_range_m,
         )
         stats.kept_points = len(points)
         if len(points) == 0:
@@ -394,12 +394,12 @@ class ReleaseCompatIntegrator:
         self.config = config
         # The release reads the sensor origin only for its range filter.
         self.needs = ScanNeeds(
-            SensorOrigin.REQUIRED if config.max_range_m > 0 else SensorOrigin.OPTIONAL,
-            "the release mode's range filter (mapping.max_range_m) measures from the sensor origin",
+            SensorOrigin.REQUIRED if config.sbki.max_range_m is not None else SensorOrigin.OPTIONAL,
+            "the release mode's range filter (mapping.sbki.max_range_m) measures from the sensor origin",
             frozenset({PayloadType.ALPHA}),
             "the release mode reproduces the released EvSemMap, which reads evidential alpha (its uncertainty cut is K / sum(alpha))")
-        self.cells_per_block = 2 ** (config.block_depth - 1)
-        self.block_size = sbki_compat.block_size_m(config.resolution_m, config.block_depth)
+        self.cells_per_block = 2 ** (config.sbki.block_depth - 1)
+        self.block_size = sbki_compat.block_size_m(config.resolution_m, config.sbki.block_depth)
         self.length = release_compat.kernel_length(config.length_m)
         # kernel factory (class count, cells per block) -> the gather kernel; the study swaps in other forms
         self.gather_kernel = release.gather_release_kernel
@@ -408,13 +408,13 @@ class ReleaseCompatIntegrator:
         """Indices of the scan's points the models train on, and how many each step kept."""
         c = self.config
         keep = np.arange(len(scan.points))
-        if c.max_range_m > 0:
-            keep = keep[np.linalg.norm(scan.points.astype(np.float32).astype(np.float64) - sensor_origin, axis=1) <= c.max_range_m]
+        if c.sbki.max_range_m is not None:
+            keep = keep[np.linalg.norm(scan.points.astype(np.float32).astype(np.float64) - sensor_origin, axis=1) <= c.sbki.max_range_m]
         cut, _ = release_compat.uncertainty_cut(scan.uncertainty[keep], c.keep_quantile)
         keep = keep[cut]
         counts = {"after_cut": len(keep)}
         if len(keep):
-            blocks = release_compat.snapped_block_keys(scan.points[keep], c.ds_resolution_m, self.block_size)
+            blocks = release_compat.snapped_block_keys(scan.points[keep], c.sbki.ds_resolution_m, self.block_size)
             keep = keep[release_compat.first_per_block(blocks, c.release_block_cap)]
         counts["after_ds"] = len(keep)
         return keep, counts

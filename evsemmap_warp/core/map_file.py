@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import files
-from ..config import ConfigError, MappingConfig, dataclass_from_dict
+from ..config import ConfigError, MappingConfig
 from ..frames import FrameError, WorldFrame
 from ..voxel_keys import check_index_range
 
@@ -165,9 +165,10 @@ def read_map_arrays(path) -> tuple[dict[str, np.ndarray], dict]:
 
 
 def mapping_config(path, meta: dict) -> MappingConfig:
-    """The map's MappingConfig from meta.mapping, or a MapFileError naming what is wrong."""
+    """The map's MappingConfig from meta.mapping (flat keys of before the mode sections included), or a
+    MapFileError naming what is wrong."""
     try:
-        return dataclass_from_dict(MappingConfig, meta["mapping"], "meta.mapping")
+        return MappingConfig.from_dict(meta["mapping"], "meta.mapping")
     except ConfigError as exc:
         raise MapFileError(f"{path}: field 'meta.mapping' is not a valid mapping config ({exc})") from None
 

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import files
-from ..config import MappingConfig, dataclass_from_dict
+from ..config import MappingConfig, flat_items, upgrade_mapping_dict
 from ..frames import FrameError, WorldFrame, describe_frame
 from ..voxel_keys import pack_voxel_keys, voxel_index_of
 from . import map_file, tile_codec
@@ -249,7 +249,8 @@ class MapStore:
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise StoreError(f"{index_path}: not a readable store index ({exc})") from None
         self._validate()
-        self.config = dataclass_from_dict(MappingConfig, self.index["mapping"], f"{index_path}: mapping")
+        # stores written before the mode sections hold flat keys; their identity stays what they recorded
+        self.config = MappingConfig.from_dict(self.index["mapping"], f"{index_path}: mapping")
         self.class_names = tuple(self.index["classes"])
         self.num_classes = len(self.class_names)
         self.tile_voxels = int(self.index["tile_voxels"])
@@ -415,7 +416,8 @@ class MapStore:
         if header.get("kind") != "tile":
             refuse(f"it is a {header.get('kind')!r} file, not a tile")
         if header.get("store") != self.identity:
-            mine, theirs = self.index["mapping"], header.get("mapping") if isinstance(header.get("mapping"), dict) else {}
+            mine = flat_items(upgrade_mapping_dict(self.index["mapping"]))
+            theirs = flat_items(upgrade_mapping_dict(header["mapping"])) if isinstance(header.get("mapping"), dict) else {}
             differing = [f"{k} {theirs.get(k)!r} vs {mine[k]!r}" for k in mine if theirs.get(k) != mine[k]]
             if header.get("classes") != list(self.class_names):
                 differing.append(f"classes {header.get('classes')} vs {list(self.class_names)}")
@@ -443,7 +445,7 @@ class MapStore:
         if record is not None and not (isinstance(record, dict) and all(isinstance(record.get(k), str) for k in ("store", "name", "checksum"))):
             refuse(f"meta.tile must name its store, tile and checksum, got {str(record)[:80]}")
         if contents.config != self.config or tuple(contents.meta["classes"]) != self.class_names:
-            mine, theirs = self.config.as_dict(), contents.config.as_dict()
+            mine, theirs = flat_items(self.config.as_dict()), flat_items(contents.config.as_dict())
             differing = [f"{k} {theirs[k]!r} vs {mine[k]!r}" for k in mine if mine[k] != theirs[k]]
             refuse("its " + (", ".join(differing) if differing else f"classes {contents.meta['classes']} vs {list(self.class_names)}"))
         if contents.frame != self.frame:

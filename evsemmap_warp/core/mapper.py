@@ -30,7 +30,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .. import __version__
-from ..config import Fusion, MappingConfig, PayloadType
+from ..config import Fusion, MappingConfig, PayloadType, flat_items
 from ..frames import WorldFrame, check_same_frame
 from ..voxel_keys import check_index_range, voxel_index_of
 from . import map_file
@@ -601,7 +601,7 @@ class Mapper:
             raise ValueError(f"merge: the maps have different resolutions ({self.config.resolution_m} m vs {other.config.resolution_m} m)")
         if self.config.method != other.config.method:
             raise ValueError(f"merge: the maps come from different methods ({self.config.method} vs {other.config.method})")
-        mine, theirs = self.config.as_dict(), other.config.as_dict()
+        mine, theirs = flat_items(self.config.as_dict()), flat_items(other.config.as_dict())
         differing = sorted(k for k in mine if mine[k] != theirs[k])
         if differing:
             raise ValueError("merge: the maps' parameters differ: " + ", ".join(f"{k} {mine[k]!r} vs {theirs[k]!r}" for k in differing))

@@ -174,7 +174,7 @@ def free_space_samples(hits: np.ndarray, origin: np.ndarray, free_resolution_m: 
         raise ValueError(
             f"free-space rays would place about {estimate:,.0f} samples in one scan (points up to {float(longest):,.0f} m from "
             f"the sensor origin {origin.tolist()}, one sample per free_resolution_m = {float(f)} m; {limit}): set "
-            f"mapping.max_range_m, a larger free_resolution_m, or check the sensor origin")
+            f"mapping.sbki.max_range_m, a larger mapping.sbki.free_resolution_m, or check the sensor origin")
     steps = [f]
     while steps[-1] < longest:
         steps.append(np.float32(steps[-1] + f))
@@ -201,12 +201,13 @@ def training_data(
     *,
     ds_resolution_m: float,
     free_resolution_m: float,
-    max_range_m: float,
+    max_range_m: float | None,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
-    """S-BKI's get_training_data: downsampled hits, then downsampled free samples (label 0)."""
+    """S-BKI's get_training_data: downsampled hits (those within ``max_range_m`` of the sensor; None: all),
+    then downsampled free samples (label 0)."""
     origin = np.asarray(sensor_origin, dtype=np.float32).reshape(3)
     hits, hit_labels = voxel_grid_downsample(points, labels, ds_resolution_m)
-    if max_range_m > 0 and len(hits):
+    if max_range_m is not None and len(hits):
         d = hits - origin
         keep = np.sqrt(np.sum(d * d, axis=1, dtype=np.float32)) <= np.float32(max_range_m)
         hits, hit_labels = hits[keep], hit_labels[keep]
