@@ -109,6 +109,27 @@ def test_the_ray_executor_on_a_local_instance_it_starts_and_stops(drive, tmp_pat
     _assert_same_bytes(tmp_path / "inline", tmp_path / "ray")
 
 
+def test_ray_workers_start_with_their_share_of_the_math_threads(monkeypatch):
+    """Ray workers import numpy before a task runs: its BLAS pool must be sized when they start (a chunk ran
+    about 20 % slower in a Ray worker than in the pool's, whose workers already started at their share)."""
+    ray = pytest.importorskip("ray")
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    monkeypatch.setenv("MKL_NUM_THREADS", "3")  # a user's own setting is kept
+    executor = batch.RayExecutor(2, context=None, address=None)
+    try:
+        @ray.remote(num_cpus=1)
+        def environment():
+            import os
+
+            return {name: os.environ.get(name) for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+
+        seen = ray.get(environment.remote())
+    finally:
+        executor.close()
+    share = str(max(1, (os.cpu_count() or 1) // 2))
+    assert seen == {"OMP_NUM_THREADS": share, "OPENBLAS_NUM_THREADS": share, "MKL_NUM_THREADS": "3"}
+
+
 @pytest.mark.parametrize("executor", ["local", "ray"])
 def test_a_worker_killed_in_the_middle_of_a_chunk_changes_nothing(drive, tmp_path, executor):
     if executor == "ray":

@@ -688,9 +688,14 @@ class RayExecutor:
         self.started = not ray.is_initialized()
         if self.started:
             env = {k: v for k, v in os.environ.items() if k in ("WARP_CACHE_PATH", "XDG_CACHE_HOME")}
+            # Ray workers import numpy before any task runs, so its BLAS pool is sized by the environment
+            # the worker starts with: at its share of the cores, as the pool's workers (LocalExecutor._submit;
+            # Ray sets OMP_NUM_THREADS alone). A task takes one CPU of a cluster; a local instance splits this
+            # machine. A user's own setting is kept.
+            share = max(1, (os.cpu_count() or 1) // (workers or os.cpu_count() or 1)) if not address else 1
+            env |= {name: os.environ.get(name, str(share)) for name in _MATH_THREAD_VARIABLES}
             kwargs = {"address": address} if address else {"num_cpus": workers or os.cpu_count()}
-            ray.init(**kwargs, include_dashboard=False, logging_level="ERROR", log_to_driver=False,
-                     runtime_env={"env_vars": env} if env else None)
+            ray.init(**kwargs, include_dashboard=False, logging_level="ERROR", log_to_driver=False, runtime_env={"env_vars": env})
         self.workers = workers or int(ray.cluster_resources().get("CPU", 1))
         self.context_ref = ray.put(context)
         self._task = ray.remote(num_cpus=1, max_retries=3)(_ray_task)
