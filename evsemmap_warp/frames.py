@@ -68,8 +68,9 @@ class WorldFrame:
 
 
 def describe_frame(frame: WorldFrame | None) -> str:
-    """``frame.describe()``, or a phrase for maps written before map files recorded their frame (None)."""
-    return "no recorded frame (written before maps recorded their frame)" if frame is None else frame.describe()
+    """``frame.describe()``, or for None a phrase naming both ways a map comes to have no frame: made
+    without one (``Mapper(config, K)`` for points from elsewhere), or written before maps recorded it."""
+    return "no recorded frame (made without one, or written before maps recorded their frame)" if frame is None else frame.describe()
 
 
 def check_same_frame(what: str, first: tuple[str, WorldFrame | None], second: tuple[str, WorldFrame | None]) -> None:
@@ -79,4 +80,6 @@ def check_same_frame(what: str, first: tuple[str, WorldFrame | None], second: tu
     if frame_a != frame_b:
         raise FrameError(f"{what}: {where_a} is in {describe_frame(frame_a)} but {where_b} in {describe_frame(frame_b)}; "
                           f"maps of different frames cannot be combined (map both in one frame: dataset.frame / --frame "
-                          f"names a folder's poses frame, dataset.bag.fixed_frame a log's)")
+                          f"names a folder's poses frame, dataset.bag.fixed_frame a log's"
+                          + ("; in Python, Mapper.for_dataset(dataset, config) makes a dataset's map in its frame"
+                             if None in (frame_a, frame_b) else "") + ")")

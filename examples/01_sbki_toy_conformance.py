@@ -24,8 +24,9 @@ def main() -> None:
     args = parser.parse_args()
     for method, golden in CPP.items():
         run = load_config([REPO / "configs/datasets/sbki_toy.yaml"], method=method)
-        mapper = Mapper(run.mapping, run.dataset.num_classes, class_names=run.dataset.class_names, device=args.device)
-        for scan in open_dataset(run.dataset):
+        dataset = open_dataset(run.dataset)
+        mapper = Mapper.for_dataset(dataset, run.mapping, device=args.device)  # its classes, in its world frame
+        for scan in dataset:
             mapper.integrate(scan.points, scan.payload, payload_type=scan.payload_type, sensor_origin=scan.sensor_origin)
         counts = mapper.state_counts()
         print(f"{method}: {mapper.voxel_count} cells")

@@ -31,7 +31,7 @@ print(check_log([log], run.dataset.bag).text())  # topics, rates, what is missin
 def build_map(sources):
     run = load_config(sources, method="ebs")
     dataset = open_dataset(run.dataset)  # a bag dataset streams clouds, posed by the TF tree at their stamps
-    mapper = Mapper(run.mapping, dataset.num_classes, class_names=dataset.class_names)
+    mapper = Mapper.for_dataset(dataset, run.mapping)  # in the log's fixed frame, or the folder's poses' frame
     for scan in dataset:
         mapper.integrate(scan.points, scan.payload, payload_type=scan.payload_type, sensor_origin=scan.sensor_origin)
     return mapper

@@ -24,7 +24,7 @@ args = parser.parse_args()
 generate_sequence(load_preset(args.world), args.out / "sequence", progress=False, camera=False)
 run = load_config([str(args.out / "sequence")], method="ebs")
 dataset = open_dataset(run.dataset)
-mapper = Mapper(run.mapping, dataset.num_classes, class_names=dataset.class_names, frame=dataset.frame, device=args.device)
+mapper = Mapper.for_dataset(dataset, run.mapping, device=args.device)
 mapper.integrate_many(dataset)
 
 layers = compute_layers(mapper, device=args.device)   # cells of the map's voxel size, the map's world frame

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from evsemmap_warp import load_config
-from evsemmap_warp.apps.scan_sources import mapper_for, open_scan_source
+from evsemmap_warp import Mapper, load_config
+from evsemmap_warp.apps.scan_sources import open_scan_source
 from evsemmap_warp.apps.viewer import MapLayer, MapViewer
 from evsemmap_warp.apps.viewer_live import LiveMap, map_live
 from evsemmap_warp.core.map_file import read_map_arrays
@@ -33,7 +33,7 @@ def main() -> None:
     generate_sequence(load_preset(args.world, trajectory__frames=args.frames), args.out / "sequence", progress=False, camera=False)
     run = load_config([str(args.out / "sequence"), "rellis3d"], method="ebs")
     source = open_scan_source(run)
-    mapper = mapper_for(source, run.mapping)
+    mapper = Mapper.for_dataset(source, run.mapping)
     map_file = args.out / "map.npz"
     viewer = MapViewer([MapLayer.from_mapper("map", map_file, mapper)], port=args.port)   # serving before the first scan
     live = LiveMap(viewer, mapper, name="map", path=map_file, scan_total=len(source))

@@ -593,7 +593,8 @@ def test_map_being_made_updates_in_the_browser_and_ends_as_written(open_page, tm
     written at the end."""
     import threading
 
-    from evsemmap_warp.apps.scan_sources import mapper_for, open_scan_source
+    from evsemmap_warp import Mapper
+    from evsemmap_warp.apps.scan_sources import open_scan_source
     from evsemmap_warp.apps.viewer import MapLayer
     from evsemmap_warp.apps.viewer_live import LiveMap, map_live
     from evsemmap_warp.config import load_config
@@ -604,7 +605,7 @@ def test_map_being_made_updates_in_the_browser_and_ends_as_written(open_page, tm
     generate_sequence(load_preset("tiny", trajectory__frames=8), tmp_path / "seq", progress=False)
     run = load_config([str(tmp_path / "seq"), "rellis3d"], method="ebs")
     source = open_scan_source(run)
-    mapper = mapper_for(source, run.mapping)
+    mapper = Mapper.for_dataset(source, run.mapping)
     out = tmp_path / "live.npz"
     viewer = MapViewer([MapLayer.from_mapper("live", out, mapper)], port=free_port())
     live = LiveMap(viewer, mapper, name="live", path=out, scan_total=len(source))

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from evsemmap_warp.apps.cli import main
-from evsemmap_warp.apps.scan_sources import mapper_for, open_scan_source
+from evsemmap_warp import Mapper
+from evsemmap_warp.apps.scan_sources import open_scan_source
 from evsemmap_warp.apps.viewer import MapViewer, colormap, free_port
 from evsemmap_warp.apps.viewer_drive import DrivePlayback, open_drive, pixel_values
 from evsemmap_warp.config import PayloadType, load_config
@@ -51,7 +52,7 @@ def _mapped(root, scans, **source_options):
     """A Mapper of the drive's first ``scans`` insertions, mapped directly (what the replay must give)."""
     run = load_config([str(root / "seq"), "rellis3d"], method="ebs")
     source = open_scan_source(run, **source_options)
-    mapper = mapper_for(source, run.mapping)
+    mapper = Mapper.for_dataset(source, run.mapping)
     mapper.integrate_many(source.scans(0, scans))
     return mapper
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from evsemmap_warp.apps.cli import main
-from evsemmap_warp.apps.scan_sources import map_scans, mapper_for, open_scan_source
+from evsemmap_warp import Mapper
+from evsemmap_warp.apps.scan_sources import map_scans, open_scan_source
 from evsemmap_warp.apps.viewer import MapLayer, MapViewer, free_port
 from evsemmap_warp.apps.viewer_live import LiveMap, LiveTiles, map_live, reading_template
 from evsemmap_warp.config import load_config
@@ -27,7 +28,7 @@ def sequence(tmp_path_factory):
 def _source_and_mapper(sequence):
     run = load_config([str(sequence), "rellis3d"], method="ebs")
     source = open_scan_source(run)
-    return source, mapper_for(source, run.mapping)
+    return source, Mapper.for_dataset(source, run.mapping)
 
 
 def _empty_viewer(mapper, path):

@@ -5,12 +5,14 @@ stays available; georeferenced poses keep their coordinates; one voxel-index rou
 maps and stores alike, far from the origin too."""
 
 import json
+import re
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import REPO
 from evsemmap_warp.apps.batch import BatchOptions, run_batch
 from evsemmap_warp.apps.cli import main
 from evsemmap_warp.config import ConfigError, load_config
@@ -35,7 +37,7 @@ def drive(tmp_path_factory):
 def _map(sources, method="s-csm", **frame):
     run = load_config([str(s) for s in sources], method=method, **frame)
     dataset = open_dataset(run.dataset)
-    mapper = Mapper(run.mapping, dataset.num_classes, class_names=dataset.class_names or None, frame=dataset.frame)
+    mapper = Mapper.for_dataset(dataset, run.mapping)
     mapper.integrate_many(dataset)
     return mapper
 
@@ -112,6 +114,27 @@ def test_halves_of_a_drive_in_two_folders_of_one_frame_merge_into_the_whole(driv
     store = MapStore(tmp_path / "store")
     assert store.frame == WorldFrame("odom")
     _assert_same_map(whole, store.to_mapper())
+    capsys.readouterr()
+
+
+def test_a_map_made_in_python_as_the_readme_shows_merges_with_the_command_lines(drive, tmp_path, monkeypatch, capsys):
+    """The README's Python block, run as written on the first half of a drive, makes its map in the folder's
+    world frame as `evsemmap map` does (Mapper.for_dataset, the one place both build their mapper): `info`
+    names the frame, and the map merges with the command line's map of the second half into the whole.
+    A Mapper built by hand from the class count records no frame, and the merge refused it."""
+    snippet = re.search(r"```python\n(.*?)```", (REPO / "README.md").read_text(), re.S).group(1)
+    _copy_folder(drive, tmp_path / "data/synth/00000", frames=range(0, 3))
+    second = _copy_folder(drive, tmp_path / "second", frames=range(3, 6))
+    monkeypatch.chdir(tmp_path)
+    exec(compile(snippet, "README.md", "exec"), {})
+    assert main(["map", str(second), "rellis3d", "--method", "ebs", "--out", "second.npz", "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["info", "synth_ebs.npz"]) == 0
+    assert json.loads(capsys.readouterr().out)["frame"] == {"name": "odom", "crs": None}
+    assert main(["merge", "synth_ebs.npz", "second.npz", "--out", "both.npz"]) == 0
+    both = load_map(tmp_path / "both.npz")
+    assert both.frame == WorldFrame("odom")
+    _assert_same_map(both, _map([drive, "rellis3d"], method="ebs"), evidence_tol=1e-6)
     capsys.readouterr()
 
 

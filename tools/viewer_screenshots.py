@@ -125,13 +125,14 @@ def shoot(mode: str, data: SimpleNamespace, browser, out: Path) -> Path:
             playback.close()
             viewer.close()
     if mode == "live":
-        from evsemmap_warp.apps.scan_sources import mapper_for, open_scan_source
+        from evsemmap_warp import Mapper
+        from evsemmap_warp.apps.scan_sources import open_scan_source
         from evsemmap_warp.apps.viewer_live import LiveMap, map_live
         from evsemmap_warp.config import load_config
 
         run = load_config([str(data.sequence), "rellis3d"], method="ebs")
         source = open_scan_source(run)
-        mapper = mapper_for(source, run.mapping)
+        mapper = Mapper.for_dataset(source, run.mapping)
         target = data.ebs.with_name("live.npz")
         viewer = MapViewer([MapLayer.from_mapper("live", target, mapper)], port=free_port())
         live = LiveMap(viewer, mapper, name="live", path=target, scan_total=len(source))

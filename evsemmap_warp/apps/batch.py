@@ -48,7 +48,7 @@ from ..core import map_store, tile_codec
 from ..core.mapper import Mapper
 from ..core.voxel_map import EXTRA_COLUMNS, VoxelArrays
 from ..frames import WorldFrame, check_same_frame
-from .scan_sources import map_scans, mapper_for, open_scan_source
+from .scan_sources import map_scans, open_scan_source
 
 WORKER_OVERHEAD_BYTES = 450 * 2**20  # a worker process with numpy, Warp and its kernels loaded (measured: ~0.4 GB)
 DRIVER_OVERHEAD_BYTES = 450 * 2**20
@@ -234,7 +234,7 @@ def probe(sources, config: MappingConfig) -> tuple[np.ndarray, tuple[str, ...], 
     non-empty scan), and the voxels of the first insertion and of the first two (for the memory
     estimate)."""
     source = sources[0]
-    mapper = mapper_for(source, config, workers=1)
+    mapper = Mapper.for_dataset(source, config, workers=1)
     counts = []
     for i in range(len(source)):
         for scan in source.scans(i, i + 1):
@@ -364,7 +364,7 @@ def map_chunk(chunk: Chunk, context: Context | None = None) -> dict:
     shutil.rmtree(partial, ignore_errors=True)
     _inject_fault(context, chunk, partial)
     source = context.sources[chunk.sequence]
-    mapper = mapper_for(source, context.config, workers=1, origin=context.origin_index * context.config.resolution_m)
+    mapper = Mapper.for_dataset(source, context.config, workers=1, origin=context.origin_index * context.config.resolution_m)
     stats = map_scans(mapper, source.scans(chunk.start, chunk.stop))
     points, scans = sum(s.input_points for s in stats), len(stats)
     voxels, _ = mapper.voxels()

@@ -20,8 +20,8 @@ from ..config import ConfigError, available_methods, load_config, warn_deprecate
 def _cmd_map(args) -> int:
     from tqdm import tqdm
 
-    from ..core.mapper import VoxelState, save_map
-    from .scan_sources import map_scans, mapper_for, open_scan_source
+    from ..core.mapper import Mapper, VoxelState, save_map
+    from .scan_sources import map_scans, open_scan_source
 
     run = load_config(args.configs, method=args.method, frame=args.frame, crs=args.crs)
     if run.dataset is None:
@@ -31,7 +31,7 @@ def _cmd_map(args) -> int:
     data = run.dataset.resolve_logs() if run.dataset.kind == "bag" else [run.dataset.resolve_path()]
     check_not_inside(args.out, data, "map --out")  # never over a log, nor into a sequence folder
     dataset = open_scan_source(run, checkpoint=args.checkpoint, alpha_dir=args.alpha_dir, bin_frames=args.bin_frames, batch_size=args.batch_size)
-    mapper = mapper_for(dataset, run.mapping, device=args.device, workers=args.workers)
+    mapper = Mapper.for_dataset(dataset, run.mapping, device=args.device, workers=args.workers)
     live = None
     if args.view:
         live = _live_viewer(args, mapper, len(dataset))
@@ -128,13 +128,13 @@ def _cmd_batch(args) -> int:
 
 def _live_tiles(args, options):
     """The browser view of a store being made (``batch --view``): its tiles fill in as chunks are folded into them."""
+    from ..core.mapper import Mapper
     from .batch import plan_batch
-    from .scan_sources import mapper_for
     from .viewer import MapLayer, MapViewer
     from .viewer_live import LiveTiles
 
     _, sources, config, _, _ = plan_batch(list(args.configs), options)  # the store's classes, frame and parameters
-    template = mapper_for(sources[0], config, workers=1)
+    template = Mapper.for_dataset(sources[0], config, workers=1)
     viewer = MapViewer([MapLayer.from_mapper(args.out.name, args.out, template)], host=args.host or "127.0.0.1", port=args.port or 8080)
     live = LiveTiles(viewer, template, name=args.out.name, path=args.out, max_voxels=500_000)
     print(f"evsemmap viewer: open {viewer.url} in a browser to watch the store's tiles fill in", file=sys.stderr)

@@ -48,7 +48,8 @@ from .evaluation import PAPER_SCORED_CLASSES, MapScores, evaluate_map, markdown_
 from ..classes import class_set
 from ..data.datasets import Scan
 from ..geometry.projection import ProjectionConfig, bin_frames, label_map_for, project_frames
-from .scan_sources import ScanList, map_scans, mapper_for
+from ..core.mapper import Mapper
+from .scan_sources import ScanList, map_scans
 
 
 @dataclass(frozen=True)
@@ -526,7 +527,7 @@ class Experiment:
         if record_path.exists() and map_path.exists() and json.loads(record_path.read_text()).get("key") == key:
             mapper = load_map(map_path)
         else:
-            mapper = mapper_for(bins, mapping, device=self.device)
+            mapper = Mapper.for_dataset(bins, mapping, device=self.device)
             started = time.perf_counter()
             with tqdm(total=len(bins), unit="bin", disable=not self.progress, desc=f"{condition}/{method}", leave=False) as bar:
                 points = sum(s.input_points for s in map_scans(mapper, bins, progress=lambda scan, _: bar.update(1)))

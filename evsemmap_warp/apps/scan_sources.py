@@ -4,7 +4,8 @@ wrote, projected onto the scans and grouped into bins (docs/algorithm.md §2).
 
 Every source has ``len`` insertions and ``scans(start, stop)``, so ``evsemmap map`` iterates it whole
 and ``evsemmap batch`` maps chunks of it in worker processes (sources pickle; a checkpoint's network
-is loaded in each worker, once)."""
+is loaded in each worker, once). Every source also has ``num_classes``, ``class_names`` and the world
+``frame`` its scans are in, from which ``Mapper.for_dataset`` makes its empty map."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from typing import Iterator
 
 import numpy as np
 
-from ..config import ConfigError, MappingConfig, PayloadType, RunConfig
+from ..config import ConfigError, PayloadType, RunConfig
 from ..core.mapper import Mapper
 from ..frames import WorldFrame
 from ..data.datasets import Scan, open_dataset, open_sequence
@@ -171,13 +172,6 @@ class ScanList:
     def scans(self, start: int, stop: int) -> Iterator[Scan]:
         """Scans ``start`` .. ``stop - 1`` of the list."""
         return iter(self.items[start:stop])
-
-
-def mapper_for(source, config: MappingConfig, *, device: str | None = "cpu", workers: int | None = None, origin=None) -> Mapper:
-    """The one way a source becomes a map (``map``, ``batch``, ``experiment``, the Python API): an
-    empty Mapper with the source's classes, in the source's world frame."""
-    return Mapper(config, source.num_classes, class_names=source.class_names or None, device=device, workers=workers, origin=origin,
-                  frame=source.frame)
 
 
 def map_scans(mapper: Mapper, scans, progress=None) -> list:

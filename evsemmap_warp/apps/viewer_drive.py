@@ -32,7 +32,7 @@ import numpy as np
 
 from ..config import ConfigError, PayloadType
 from ..core.integrators import ScanPayload
-from ..core.mapper import prepare_payload, scan_fingerprint
+from ..core.mapper import Mapper, prepare_payload, scan_fingerprint
 from .viewer import TRAJECTORY_COLOR, MapLayer, colormap
 
 SCAN_COLORINGS = ("label", "input uncertainty")
@@ -141,9 +141,7 @@ class DriveReplay:
         self.last_start = 0  # where the last map_after started from (a snapshot, or the map it carried on)
 
     def _restored(self, scans: int):
-        from .scan_sources import mapper_for
-
-        mapper = mapper_for(self.source, self.config, device=self.device, origin=self.origin_m)
+        mapper = Mapper.for_dataset(self.source, self.config, device=self.device, origin=self.origin_m)
         if self.snapshots[scans] is not None:
             mapper.load_voxels(self.snapshots[scans], origin_index=mapper.origin_index)
         return mapper

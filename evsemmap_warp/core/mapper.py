@@ -563,6 +563,19 @@ class Mapper:
             raise ValueError(f"this map is read-only: {self.read_only}")
 
     @classmethod
+    def for_dataset(cls, dataset, config: MappingConfig, *, device: str | None = "cpu", workers: int | None = None,
+                    origin=None) -> "Mapper":
+        """An empty map for ``dataset`` (what ``open_dataset`` returns, or any scan source with
+        ``num_classes``, ``class_names`` and ``frame``): its classes, in its world frame.
+
+        The one way data becomes a map: ``evsemmap map``, ``batch``, ``experiment`` and the viewer build
+        their mappers here too. Building ``Mapper(config, dataset.num_classes, ...)`` by hand leaves the
+        frame unrecorded, so the map could not be merged with a map the command line made of the same
+        data (``check_same_frame``) and its exports would not say where they are."""
+        return cls(config, dataset.num_classes, class_names=dataset.class_names or None, device=device, workers=workers,
+                   origin=origin, frame=dataset.frame)
+
+    @classmethod
     def load(cls, path, *, device: str | None = "cpu") -> "Mapper":
         """A map file (validated on reading) as a Mapper that can be queried, extended and merged."""
         return cls.from_contents(map_file.read_map_file(path), path, device=device)
