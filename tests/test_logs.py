@@ -5,6 +5,7 @@ cannot be mapped; configs and missing packages fail with one line."""
 
 import json
 import re
+import shutil
 import sys
 from pathlib import Path
 
@@ -275,6 +276,55 @@ def test_ros1_and_ros2_logs_are_not_mixed_and_junk_is_named(drive, tmp_path):
     assert main(["map", str(junk), "--method", "ebs", "--out", str(tmp_path / "x.npz"), "--quiet"]) == 2
 
 
+def test_a_log_still_being_recorded_or_cut_short_is_one_line_naming_it(drive, tmp_path, monkeypatch, capsys):
+    """Issue 31: a log copied while its recorder still writes it (a ROS 1 bag without its index, an MCAP
+    without its summary and footer, a ROS 2 folder without metadata.yaml, a .db3 with nothing committed)
+    or cut short (an interrupted copy) is never mapped in part: `map` says so in one line naming it (exit 2),
+    `check-data` lists it as a problem (exit 1), no traceback, no map written."""
+    folder, logs, _ = drive
+    recording = {}
+    original = _LogOut.close
+
+    def snapshot_then_close(self):  # the files as they lie on disk while the recorder is still writing them
+        storage = self.writer if self.fmt == "rosbag1" else self.writer.storage
+        if self.fmt == "rosbag1":
+            storage.bio.flush()
+            recording["rosbag1"] = Path(shutil.copy(self.out, tmp_path / "recording.bag"))
+        elif self.fmt == "mcap":
+            storage.bio.flush()
+            recording["mcap"] = Path(shutil.copy(storage.path, tmp_path / "recording.mcap"))
+        else:  # nothing committed yet; the folder has no metadata.yaml until the recorder closes it
+            recording["db3"] = Path(shutil.copy(storage.path, tmp_path / "recording.db3"))
+            (tmp_path / "recording_ros2").mkdir()
+            shutil.copy(storage.path, tmp_path / "recording_ros2" / storage.path.name)
+            recording["ros2 folder"] = tmp_path / "recording_ros2"
+        original(self)
+
+    monkeypatch.setattr(_LogOut, "close", snapshot_then_close)
+    for fmt in ("rosbag1", "mcap", "rosbag2"):
+        write_log(folder, tmp_path / f"written_{fmt}", fmt)
+    monkeypatch.setattr(_LogOut, "close", original)
+    assert set(recording) == {"rosbag1", "mcap", "db3", "ros2 folder"}
+    unreadable = "not a readable robot log .*a log still being recorded, or cut short"
+    cases = {recording["rosbag1"]: "Bag is not indexed", recording["mcap"]: unreadable, recording["db3"]: "holds no topic and no message .yet.",
+             recording["ros2 folder"]: "a ROS 2 bag folder without metadata.yaml.*still being recorded.*cut short"}
+    for log in (logs["rosbag1"], logs["mcap"], next(logs["rosbag2"].glob("*.db3"))):
+        for share in (0.3, 0.9, 0.999):
+            data = log.read_bytes()
+            cut = tmp_path / f"cut_{share}{log.suffix}"
+            cut.write_bytes(data[: int(len(data) * share)])
+            cases[cut] = unreadable if log.suffix != ".db3" else f"{unreadable}|the log is damaged .CorruptError"  # (its last pages)
+    out = tmp_path / "map.npz"
+    for log, pattern in cases.items():
+        assert main(["map", str(log), "rellis3d-bag", "--method", "ebs", "--out", str(out), "--quiet"]) == 2, log
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and str(log) in err and re.search(pattern, err), (log, err)
+        assert not out.exists()
+        assert main(["check-data", str(log), "rellis3d-bag"]) == 1, log
+        printed = capsys.readouterr()
+        assert "Traceback" not in printed.err and re.search(f"problem: {re.escape(str(log))}: .*{pattern}", printed.out), (log, printed)
+
+
 def test_without_rosbags_a_log_says_how_to_install_it(drive, monkeypatch):
     _, logs, _ = drive
     monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)
@@ -382,7 +432,8 @@ def test_a_log_damaged_mid_read_is_one_line_naming_it(drive, tmp_path, monkeypat
 def test_a_pose_chain_without_a_moving_transform_is_refused_before_mapping(drive, tmp_path, monkeypatch, capsys):
     """Issue 31: a log whose /tf_static lacks base_link -> os1_sensor (with TF or odometry poses), or whose
     tf_topic is the cloud topic, used to be mapped in the broken subtree's root with one pose for every
-    scan (rc 0). map and batch refuse it, naming the missing link and the time; check-data says the same."""
+    scan (rc 0). map, batch, project and experiment refuse it, naming the missing link and the time; check-data
+    says the same."""
     folder, logs, _ = drive
     original = _LogOut.tf
     monkeypatch.setattr(_LogOut, "tf", lambda self, transforms: original(self, [t for t in transforms if t.child_frame_id != "os1_sensor"]))
@@ -398,13 +449,24 @@ def test_a_pose_chain_without_a_moving_transform_is_refused_before_mapping(drive
              ([broken, "rellis3d-bag"], "to 'os1_sensor' is missing"),  # pose_source: odometry
              ([logs["rosbag1"], tf_on_clouds], r"'/os1_cloud_node/points' \(dataset.bag.tf_topic\) carries sensor_msgs/msg/PointCloud2"),
              ([logs["rosbag1"], no_tf], r"no moving transform at all on '/nope'")]
+    projected = tmp_path / "projected"
     for sources, pattern in cases:
-        batch = [["batch", "--out", tmp_path / "store", "--workers", "1"]] if not str(sources[-1]).endswith(".yaml") else []
-        for command in [["map", "--out", out]] + batch:  # (batch takes a config with a dataset section for an input)
-            assert main([command[0], *map(str, sources), "--method", "ebs", *map(str, command[1:]), "--quiet"]) == 2
+        commands = [["map", *sources, "--method", "ebs", "--out", out, "--quiet"], ["project", *sources, "--out", projected]]
+        if not str(sources[-1]).endswith(".yaml"):  # (batch takes a config with a dataset section for an input)
+            commands.append(["batch", *sources, "--method", "ebs", "--out", tmp_path / "store", "--workers", "1", "--quiet"])
+        for argv in commands:
+            assert main([str(a) for a in argv]) == 2, argv
             err = capsys.readouterr().err.strip()
-            assert len(err.splitlines()) == 1 and re.search(pattern, err), err
-        assert not out.exists() and not (tmp_path / "store" / "store.json").exists()
+            assert len(err.splitlines()) == 1 and re.search(pattern, err), (argv, err)
+        assert not out.exists() and not (tmp_path / "store" / "store.json").exists() and not projected.exists()
+    # a study reading the log (its network trained on it, a condition mapped from it) stops before training
+    study = tmp_path / "study.yaml"
+    study.write_text(f"name: broken\nsequences:\n  d: {{path: '{broken}'}}\nnetworks:\n  n: {{train_on: [d], epochs: 1}}\n"
+                     "conditions:\n  c: {network: n, sequence: d}\nmethods: [ebs]\n")
+    assert main(["experiment", str(study), "--out", str(tmp_path / "study"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and re.search(cases[1][1], err) and "broken.bag" in err, err
+    assert not (tmp_path / "study" / "results.md").exists()
     report = check_log([broken])
     assert any("to 'os1_sensor' is missing" in p for p in report.problems), report.problems
     fixed = tmp_path / "fixed.yaml"  # a sensor that never moves: mapped when the fixed frame is said

@@ -125,11 +125,15 @@ def test_a_tile_that_does_not_belong_is_refused_naming_it(drive, store, tmp_path
     _batch([drive], other, method="s-csm")
     coarse = tmp_path / "coarse"
     _batch([drive], coarse, tile_voxels=128)
+    (tmp_path / "fine.yaml").write_text("mapping:\n  resolution_m: 0.25\n")
+    fine = tmp_path / "fine"
+    _batch([drive, tmp_path / "fine.yaml"], fine)
     names = sorted(p.name for p in (store / "tiles").iterdir())
     cases = {
         "another method": (other / "tiles" / names[0], names[0], "method 's-csm' vs 'ebs'"),
         "another place": (store / "tiles" / names[1], names[0], f"it is tile {names[1][:-4]}, not {names[0][:-4]}"),
         "another tiling": (sorted((coarse / "tiles").iterdir())[0], names[0], "written for another store"),
+        "another resolution": (sorted((fine / "tiles").iterdir())[0], names[0], "its resolution_m 0.25 vs 0.2"),
     }
     for case, (source, name, pattern) in cases.items():
         copy = _copy(store, tmp_path / case.replace(" ", "_"))
@@ -244,6 +248,33 @@ def test_no_write_goes_inside_an_input(drive, store, tmp_path, capsys):
     assert "lies inside the input" in _cli_error(capsys, "map", seq, "--method", "ebs", "--out", seq / "map.npz")
     assert "lies inside the input" in _cli_error(capsys, "batch", seq, "--method", "ebs", "--out", seq / "store", "--quiet")
     assert not (seq / "map.npz").exists() and not (seq / "store").exists()
+    # map --out over a config file, the method file or the checkpoint; map / batch --out inside the alpha files
+    preset = Path(shutil.copy(REPO / "configs/presets/offroad.yaml", tmp_path / "offroad.yaml"))
+    method = Path(shutil.copy(REPO / "configs/methods/ebs.yaml", tmp_path / "ebs.yaml"))
+    checkpoint, alpha = tmp_path / "seg.pt", tmp_path / "alpha"
+    checkpoint.write_bytes(b"a checkpoint")
+    alpha.mkdir()
+    kept = {path: path.read_bytes() for path in (preset, method, checkpoint)}
+    for argv in (["map", seq, preset, "--method", "ebs", "--out", preset],
+                 ["map", seq, "--method", method, "--out", method],
+                 ["map", seq, "--method", "ebs", "--checkpoint", checkpoint, "--out", checkpoint],
+                 ["map", seq, "--method", "ebs", "--alpha-dir", alpha, "--out", alpha / "map.npz"],
+                 ["batch", seq, "--method", "ebs", "--alpha-dir", alpha, "--out", alpha / "store", "--quiet"]):
+        line = _cli_error(capsys, *argv)
+        assert ("is the input" in line or "lies inside the input" in line) and str(argv[argv.index("--out") + 1]) in line, (argv, line)
+    assert {path: path.read_bytes() for path in kept} == kept and not list(alpha.iterdir())
+    # view --export-ply / --export-html over a map given or inside a store
+    from evsemmap_warp.apps.viewer import free_port
+
+    assert main(["export", str(store), "--out", str(tmp_path / "m.npz")]) == 0
+    capsys.readouterr()
+    kept = (tmp_path / "m.npz").read_bytes()
+    for flag, maps, out in (("--export-ply", [tmp_path / "m.npz"], tmp_path / "m.npz"), ("--export-html", [tmp_path / "m.npz"], tmp_path / "m.npz"),
+                            ("--export-ply", [store], store / "store.json"), ("--export-html", [tmp_path / "m.npz", store], store / "view.html")):
+        line = _cli_error(capsys, "view", *maps, flag, out, "--no-serve", "--port", free_port())
+        assert f"view {flag} {out}" in line and ("is the input" in line or "lies inside the input" in line), line
+    assert (tmp_path / "m.npz").read_bytes() == kept and (store / "store.json").read_bytes() == before
+    assert not (store / "view.html").exists()
 
 
 # One semantics --------------------------------------------------------------------------------------

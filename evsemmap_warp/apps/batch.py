@@ -830,6 +830,9 @@ def run_batch(paths: list[str], options: BatchOptions, log=None, *, on_tile=None
     voxels)``: called in this process with each tile's voxels (VoxelArrays, global indices) every time a
     chunk is folded into it (a live view of the store filling in). ``_fault``: the tests' fault injection
     (a _FaultPlan the workers receive in their Context), never used otherwise."""
+    # never over a config, nor inside a sequence folder, the alpha files or a checkpoint (the data that dataset
+    # configs point at is checked once planned); before the lock, which creates the folder
+    files.check_not_inside(options.out, [p for p in (*paths, options.checkpoint, options.alpha) if p is not None], "batch --out")
     with _store_lock(Path(options.out)):
         return _run_batch(paths, options, log, on_tile=on_tile, _fault=_fault)
 

@@ -29,7 +29,9 @@ def _cmd_map(args) -> int:
     from ..files import check_not_inside
 
     data = run.dataset.resolve_logs() if run.dataset.kind == "bag" else [run.dataset.resolve_path()]
-    check_not_inside(args.out, data, "map --out")  # never over a log, nor into a sequence folder
+    # never over a log, a config file or a checkpoint, nor into a sequence folder or the alpha files
+    read = [*run.sources, *data, *(p for p in (args.checkpoint, args.alpha_dir) if p is not None)]
+    check_not_inside(args.out, read, "map --out")
     dataset = open_scan_source(run, checkpoint=args.checkpoint, alpha_dir=args.alpha_dir, bin_frames=args.bin_frames, batch_size=args.batch_size)
     mapper = Mapper.for_dataset(dataset, run.mapping, device=args.device, workers=args.workers)
     live = None
@@ -240,9 +242,15 @@ def _cmd_info(args) -> int:
 
 
 def _cmd_view(args) -> int:
+    from ..files import check_not_inside
     from ..frames import describe_frame
     from .viewer import MapViewer, check_address
 
+    read = [*args.maps, *(args.drive or []), *(p for p in (args.truth, args.trajectory, args.scan, args.costs, args.checkpoint, args.alpha_dir)
+                                               if p is not None)]
+    for flag, path in (("--export-html", args.export_html), ("--export-ply", args.export_ply)):
+        if path is not None:
+            check_not_inside(path, read, f"view {flag}")  # never over a map given, nor inside a store
     drive = None
     if args.drive:
         from ..core.map_store import is_store

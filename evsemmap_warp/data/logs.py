@@ -47,6 +47,10 @@ def open_reader(logs: list[Path]):
     except Exception as exc:  # rosbags raises its own error types per format; all mean "not a readable log"
         raise DataError(f"{', '.join(map(str, logs))}: not a readable robot log ({type(exc).__name__}: {exc}); a log still being "
                         f"recorded, or cut short, has no index or end yet") from None
+    if not reader.connections:  # e.g. a .db3 whose recorder has not committed its first messages yet
+        reader.close()
+        raise DataError(f"{', '.join(map(str, logs))}: the log holds no topic and no message (yet): a log still being recorded "
+                        f"holds none until its recorder writes them; map it once it is recorded")
     return reader
 
 
