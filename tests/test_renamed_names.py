@@ -212,3 +212,12 @@ def test_identifiers_spell_center_and_color():
             found += [f"{name}:{tok.start[0]}: {tok.string}" for tok in tokenize.tokenize(f.readline)
                       if tok.type == tokenize.NAME and re.search(r"colour|centre", tok.string, re.I)]
     assert not found, "identifiers spelled colour/centre (the file schema says centers; use center and color):\n" + "\n".join(found)
+
+
+def test_the_docs_spell_center_and_color():
+    # the prose follows the identifiers (issue 28: one spelling); only the old flag, as an alias, keeps its name
+    pages = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
+    found = [f"{path.relative_to(REPO)}:{number}: {line.strip()}" for path in pages
+             for number, line in enumerate(path.read_text().split("\n"), 1)
+             if re.search(r"colour|centre", re.sub(r"--colour-by", "", line), re.I)]
+    assert not found, "spell color and center, as the code does:\n" + "\n".join(found)

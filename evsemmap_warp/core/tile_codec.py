@@ -13,7 +13,7 @@ is refused before it is used. The payload holds only what cannot be derived:
   is kept because a store must export the map ``evsemmap map`` writes, to float64 rounding;
 * the touched flags, one bit each.
 
-Centres, concentrations, labels, states and variance are derived on reading, as a Mapper does.
+Centers, concentrations, labels, states and variance are derived on reading, as a Mapper does.
 
 Why this and not a library format (measured on 763 k voxels, 300 frames of the ``long`` drive, EBS,
 13 tiles): the map-file npz takes 230 B/voxel; the same minimal arrays in an npz 95 B, deflated
