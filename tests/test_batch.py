@@ -354,3 +354,28 @@ def test_pool_workers_start_with_math_libraries_at_their_share_of_the_cores(driv
         executor.close()
     assert sorted(seen) == [("MKL_NUM_THREADS", "3"), ("OPENBLAS_NUM_THREADS", "1")]
     assert "OPENBLAS_NUM_THREADS" not in os.environ and os.environ["MKL_NUM_THREADS"] == "3"
+
+
+def test_a_workers_time_is_told_by_stage(drive, tmp_path):
+    """map_chunk's stages (open, read, integrate, extract, write_partial) are all there, none negative,
+    and add up to no more than the chunk's seconds; the summary gives their medians and sums, and the
+    pool's hand-off costs (a worker process's start, the result's size and way back)."""
+    options = BatchOptions(method="ebs", out=tmp_path / "inline", executor="inline", chunk_frames=2, progress=False)
+    summary = run_batch([str(drive)], options, log=lambda m: None)
+    assert set(summary["chunk_stage_seconds_median"]) == set(batch.CHUNK_STAGES) == set(summary["chunk_stage_seconds_total"])
+    assert summary["chunk_handoff"] is None  # inline: no process boundary
+    inputs, sources, config, chunks, identity = batch.plan_batch([str(drive)], options)
+    origin_index, class_names, *_ = batch.probe(sources, config)
+    context = batch.Context(tmp_path / "direct", sources, config, sources[0].num_classes, class_names, origin_index, 256, frame=sources[0].frame)
+    (tmp_path / "direct" / "work").mkdir(parents=True)
+    for record in [batch.map_chunk(chunk, context) for chunk in chunks]:
+        stages = record["stage_seconds"]
+        assert list(stages) == list(batch.CHUNK_STAGES)
+        assert all(v >= 0 for v in stages.values()), stages
+        assert sum(stages.values()) <= record["seconds"] + 1e-3, (stages, record["seconds"])
+        assert stages["integrate"] > 0 and stages["write_partial"] > 0
+    pooled = _batch([drive], tmp_path / "pool", executor="local", workers=1, chunk_frames=2)
+    handoff = pooled["chunk_handoff"]
+    assert handoff["worker_start_s_median"] > 0 and handoff["result_kb_median"] > 0 and handoff["return_s_median"] >= 0
+    assert set(pooled["chunk_stage_seconds_median"]) == set(batch.CHUNK_STAGES)
+    _assert_same_bytes(tmp_path / "inline", tmp_path / "pool")  # timing changes nothing in the store

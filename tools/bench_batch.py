@@ -6,7 +6,9 @@ Each configuration runs as the command a user types (a fresh process, start-up i
 warm-up batch on the first 200 frames (kernel cache, page cache). Reported per configuration: wall
 time, frames/s, input points/s, peak memory of a worker and of the driver, the streaming reduction's
 cost (folding partials into tiles, in the driver while the workers map), the store's size (bytes per
-voxel) and the peak disk use during the run (sampled), and the speed-up over ``evsemmap map``. From
+voxel) and the peak disk use during the run (sampled), the speed-up over ``evsemmap map``, and where a
+worker's time goes (the median chunk's stages: open, read, integrate, extract, write_partial; a worker
+process's start, the result's size and its way back to the driver). From
 the measured per-point mapping cost and per-tile fold cost, the tool projects the wall time of a whole
 RELLIS-3D and of a 1,000 km fleet log on a 16-node cluster (the model is printed with the figures).
 The results go to a run record (docs/bench/bench_batch-<UTC>.json, tools/bench_record.py); the last
@@ -101,7 +103,29 @@ def markdown(record_path: Path) -> str:
         lines.append(f"| {name} | {r['wall_s']} s | {r['frames_per_s']} | {r['input_points_per_s'] / 1e3:.0f} k | {r['speedup_vs_map']}x | "
                      f"{r['fold_s']} s | {r['store_mb']} MB ({r['store_bytes_per_voxel']} B/voxel) | {r['peak_disk_mb']} MB | "
                      f"{r['worker_peak_mb']:.0f} MB | {r['driver_peak_mb']:.0f} MB |")
+    staged = {key: runs[key] for key in names if key != "map" and runs.get(key, {}).get("chunk_stage_s_median")}
+    if staged:  # records before the stages were timed have none
+        stages = list(next(iter(staged.values()))["chunk_stage_s_median"])
+        lines += ["", "Where a worker's time goes (the median chunk's stages, s; worker start: a worker process's first task, "
+                  "submission to start):", "",
+                  "| run | chunk | " + " | ".join(stages) + " | worker start | result | return to driver |",
+                  "|---|---|" + "---|" * len(stages) + "---|---|---|"]
+        for key, r in staged.items():
+            handoff = r.get("chunk_handoff") or {}
+            cells = [f"{r['chunk_stage_s_median'].get(stage)}" for stage in stages]
+            lines.append(f"| {names[key]} | {r['chunk_s_median']} | " + " | ".join(cells)
+                         + f" | {handoff.get('worker_start_s_median', '-')} | {handoff.get('result_kb_median', '-')} kB | "
+                         f"{handoff.get('return_s_median', '-')} |")
     return "\n".join(lines)
+
+
+def breakdown(row: dict) -> str:
+    """A batch run's worker time in one line: the median chunk's stages and the hand-off costs."""
+    stages = row.get("chunk_stage_s_median") or {}
+    handoff = row.get("chunk_handoff") or {}
+    return (f"  median chunk {row['chunk_s_median']} s: " + ", ".join(f"{k} {v} s" for k, v in stages.items())
+            + f"; worker start {handoff.get('worker_start_s_median')} s, result {handoff.get('result_kb_median')} kB, "
+              f"return to driver {handoff.get('return_s_median')} s")
 
 
 def main() -> None:
@@ -165,12 +189,16 @@ def main() -> None:
                     "chunks": summary["chunks"], "chunk_frames": summary["chunk_frames"],
                     "worker_peak_mb": summary["peak_rss_mb"]["worker_max"], "driver_peak_mb": summary["peak_rss_mb"]["driver"],
                     "chunk_s_median": summary["chunk_seconds_median"],
+                    "chunk_stage_s_median": summary.get("chunk_stage_seconds_median"),
+                    "chunk_stage_s_total": summary.get("chunk_stage_seconds_total"),
+                    "chunk_handoff": summary.get("chunk_handoff"),
                     "memory_budget_per_worker_mb": summary["memory_budget"]["per_worker_mb"],
                 }
                 results["runs"][f"{executor}x{workers}"] = row
                 print(f"batch {executor} x{workers}: {seconds:.1f} s ({row['speedup_vs_map']:.2f}x map), {row['frames_per_s']} frames/s, "
                       f"fold {row['fold_s']:.1f} s, store {row['store_mb']} MB ({row['store_bytes_per_voxel']} B/voxel) in {row['tiles']} tiles, "
                       f"peak disk {row['peak_disk_mb']} MB, worker peak {row['worker_peak_mb']:.0f} MB, driver {row['driver_peak_mb']:.0f} MB", flush=True)
+                print(breakdown(row), flush=True)
         # Projection: mapping cost per input point (one worker, median chunk) and fold cost per tile,
         # spread over every core of the cluster; tiles grow with the distance driven.
         one = results["runs"].get("localx1") or next(iter(v for k, v in results["runs"].items() if k != "map"))

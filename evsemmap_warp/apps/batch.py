@@ -29,6 +29,7 @@ import contextlib
 import dataclasses
 import json
 import os
+import pickle
 import resource
 import shutil
 import sys
@@ -300,6 +301,7 @@ _CONTEXT: Context | None = None
 
 
 _IN_TASK = False  # a worker process is running a task (map_chunk) now
+_TASKS_STARTED = 0  # tasks this worker process has started (its first one also paid for the process's start)
 
 
 def _worker_interrupt(signum, frame) -> None:
@@ -311,12 +313,34 @@ def _worker_interrupt(signum, frame) -> None:
     os._exit(130)
 
 
-def _as_task(fn, *args):
-    """``fn(*args)`` in a pool worker, marked as a task for _worker_interrupt."""
+def _handoff(submitted: float):
+    """The start of a task submitted at wall-clock time ``submitted`` (time.time(), the driver's): a
+    function that adds the task's hand-off costs to a result that is a dict (a chunk record), as
+    ``handoff``: ``wait_s``, submission to start (for a worker process's first task, ``first_in_process``,
+    that is its start: spawning, imports, the context; for a later one, the queue behind its previous
+    task); ``result_bytes``, the pickled result; ``returned_at``, the wall-clock time it was returned
+    (the driver takes the time to receiving it, ``return_s``). Wall clocks: meaningful on one machine."""
+    global _TASKS_STARTED
+    began, first = time.time(), _TASKS_STARTED == 0
+    _TASKS_STARTED += 1
+
+    def add(result):
+        if not isinstance(result, dict):
+            return result
+        handoff = {"wait_s": began - submitted, "first_in_process": first, "result_bytes": len(pickle.dumps(result))}
+        return result | {"handoff": handoff | {"returned_at": time.time()}}
+
+    return add
+
+
+def _as_task(fn, submitted: float, *args):
+    """``fn(*args)`` in a pool worker, marked as a task for _worker_interrupt; ``submitted``: when the
+    driver submitted it (time.time()), for the hand-off costs (_handoff)."""
     global _IN_TASK
+    handoff = _handoff(submitted)
     _IN_TASK = True
     try:
-        return fn(*args)
+        return handoff(fn(*args))
     finally:
         _IN_TASK = False
 
@@ -353,23 +377,53 @@ def _inject_fault(context: Context, chunk: Chunk, partial_dir: Path) -> None:
             os._exit(137)
 
 
+CHUNK_STAGES = ("open", "read", "integrate", "extract", "write_partial")  # map_chunk's stage_seconds, in the order they run
+
+
+def _timed(scans, clock: dict):
+    """The items of ``scans``; the time spent getting each (reading and preparing it) added to clock["read"]."""
+    iterator = iter(scans)
+    while True:
+        started = time.perf_counter()
+        try:
+            scan = next(iterator)
+        except StopIteration:
+            return
+        finally:
+            clock["read"] += time.perf_counter() - started
+        yield scan
+
+
 def map_chunk(chunk: Chunk, context: Context | None = None) -> dict:
-    """Map one chunk into its partial map, written per tile; returns its counts and costs."""
+    """Map one chunk into its partial map, written per tile; returns its counts and costs: ``seconds``,
+    and ``stage_seconds`` (CHUNK_STAGES), which add up to them: "open", the setup (an empty mapper, the
+    scan source's iterator); "read", getting each next scan from the source (reading and preparing it:
+    files, projection, inference); "integrate", the mapper's work on the scans; "extract", the map's
+    voxels out of the mapper, split by tile; "write_partial", the partials and done.json written (encoded,
+    written, made durable) and the chunk's folder renamed into place."""
     context = context or _CONTEXT
     started = time.perf_counter()
     done = _chunk_dir(context.store, chunk.number)
     if (done / "done.json").is_file():  # a retried task whose first attempt finished after all
-        return _read_done(context.store, chunk) | {"seconds": 0.0, "peak_rss_mb": _peak_rss_mb()}
+        return _read_done(context.store, chunk) | {"seconds": 0.0, "stage_seconds": {}, "peak_rss_mb": _peak_rss_mb()}
     partial = context.store / "work" / f".chunk_{chunk.number:06d}.{os.getpid()}.tmp"
     shutil.rmtree(partial, ignore_errors=True)
     _inject_fault(context, chunk, partial)
     source = context.sources[chunk.sequence]
     mapper = Mapper.for_dataset(source, context.config, workers=1, origin=context.origin_index * context.config.resolution_m)
-    stats = map_scans(mapper, source.scans(chunk.start, chunk.stop))
+    scans_in = source.scans(chunk.start, chunk.stop)
+    clock = dict.fromkeys(CHUNK_STAGES, 0.0)
+    mark = time.perf_counter()
+    clock["open"] = mark - started
+    stats = map_scans(mapper, _timed(scans_in, clock))  # one worker thread: reading and integrating take turns
+    clock["integrate"] = max(0.0, time.perf_counter() - mark - clock["read"])
+    mark = time.perf_counter()
     points, scans = sum(s.input_points for s in stats), len(stats)
     voxels, _ = mapper.voxels()
     parts = map_store.split_by_tile(voxels.index, voxels.rows(), context.tile_voxels)
     identity = context.identity()
+    now = time.perf_counter()
+    clock["extract"], mark = now - mark, now
     try:
         partial.mkdir(parents=True, exist_ok=True)
         for name, (index, rows) in parts.items():
@@ -385,7 +439,9 @@ def map_chunk(chunk: Chunk, context: Context | None = None) -> dict:
         os.rename(partial, done)  # the chunk counts from here on, all of it or nothing
     except OSError:  # another attempt of this chunk got there first: same content
         shutil.rmtree(partial, ignore_errors=True)
-    return record | {"seconds": time.perf_counter() - started, "peak_rss_mb": _peak_rss_mb()}
+    now = time.perf_counter()
+    clock["write_partial"] = now - mark
+    return record | {"seconds": now - started, "stage_seconds": clock, "peak_rss_mb": _peak_rss_mb()}
 
 
 class TileFolder:
@@ -581,7 +637,7 @@ class LocalExecutor:
         for name in _MATH_THREAD_VARIABLES:
             os.environ.setdefault(name, str(self._threads))
         try:
-            return self._pool.submit(_as_task, fn, *item)
+            return self._pool.submit(_as_task, fn, time.time(), *item)
         finally:
             for name, value in saved.items():
                 if value is None:
@@ -659,10 +715,11 @@ class LocalExecutor:
 _RAY_CONTEXTS: dict = {}  # object id -> context, per Ray worker process
 
 
-def _ray_task(fn, threads: int, context_box: list, *args):
+def _ray_task(fn, threads: int, context_box: list, submitted: float, *args):
     """A Ray task. The context (put once by the driver) comes boxed in a list, so Ray does not fetch
     and unpickle it for every task: each worker process fetches it once (unboxed, unpickling the
-    sources for every task made short tasks several times slower, docs/performance.md)."""
+    sources for every task made short tasks several times slower, docs/performance.md). ``submitted``:
+    when the driver submitted it (time.time()), for the hand-off costs (_handoff)."""
     import ray
 
     key = context_box[0].hex()
@@ -670,7 +727,7 @@ def _ray_task(fn, threads: int, context_box: list, *args):
         _RAY_CONTEXTS.clear()
         _RAY_CONTEXTS[key] = ray.get(context_box[0])
         _init_worker(_RAY_CONTEXTS[key], threads)
-    return fn(*args, context=_RAY_CONTEXTS[key])
+    return _handoff(submitted)(fn(*args, context=_RAY_CONTEXTS[key]))
 
 
 class RayExecutor:
@@ -708,7 +765,7 @@ class RayExecutor:
         while queue or flight:
             while queue and len(flight) < 2 * self.workers:
                 item = queue.pop(0)
-                flight[self._task.remote(fn, threads, [self.context_ref], *item)] = item
+                flight[self._task.remote(fn, threads, [self.context_ref], time.time(), *item)] = item
             finished, _ = self.ray.wait(list(flight), num_returns=1)
             for ref in finished:
                 on_done(flight.pop(ref), self.ray.get(ref))
@@ -883,6 +940,8 @@ def _run_batch(paths: list[str], options: BatchOptions, log=None, *, on_tile=Non
         costs = []
 
         def chunk_done(item, result):
+            if "handoff" in result:  # the worker's return to here: pickling, the pipe, and this driver folding an earlier chunk
+                result["handoff"]["return_s"] = time.time() - result["handoff"].pop("returned_at")
             costs.append(result)
             folder.chunk_finished(item[0].number)
             bar.update(item[0].frames)
@@ -918,6 +977,11 @@ def _run_batch(paths: list[str], options: BatchOptions, log=None, *, on_tile=Non
     times["index"] = time.perf_counter() - stage
     times["total"] = time.perf_counter() - started
     chunk_seconds = [r["seconds"] for r in costs]
+    staged = [r["stage_seconds"] for r in costs if r.get("stage_seconds")]  # not a retried task's (it did nothing)
+    handoffs = [r["handoff"] for r in costs if "handoff" in r]  # the local pool's and Ray's tasks, not inline ones
+
+    def median(values):
+        return round(float(np.median(values)), 3) if values else None
     return {
         "store": str(out), "executor": executor.name, "workers": executor.workers, "inputs": len(inputs), "frames": total_frames,
         "chunks": len(chunks), "chunks_resumed": len(finished), "chunk_frames": chunk_frames, "chunk_frames_rule": chunk_rule,
@@ -926,6 +990,18 @@ def _run_batch(paths: list[str], options: BatchOptions, log=None, *, on_tile=Non
         "seconds": {k: round(v, 3) for k, v in times.items()},
         "frames_per_second": round(sum(c.frames for c in todo) / times["map"], 2) if todo and times["map"] > 0 else None,
         "chunk_seconds_median": round(float(np.median(chunk_seconds)), 3) if chunk_seconds else None,
+        # where a worker's time goes (map_chunk's stages, CHUNK_STAGES): the median chunk's, and all chunks' together
+        "chunk_stage_seconds_median": {k: median([s[k] for s in staged]) for k in CHUNK_STAGES} if staged else None,
+        "chunk_stage_seconds_total": {k: round(sum(s[k] for s in staged), 3) for k in CHUNK_STAGES} if staged else None,
+        # around it (_handoff): a worker process's start (submission to its first task starting), the result's size
+        # and its way back to the driver
+        "chunk_handoff": {
+            "worker_start_s_median": median([h["wait_s"] for h in handoffs if h["first_in_process"]]),
+            "worker_start_s_max": round(max(h["wait_s"] for h in handoffs if h["first_in_process"]), 3)
+            if any(h["first_in_process"] for h in handoffs) else None,
+            "result_kb_median": median([h["result_bytes"] / 1024 for h in handoffs]),
+            "return_s_median": median([h["return_s"] for h in handoffs]),
+        } if handoffs else None,
         "peak_rss_mb": {"worker_max": round(max([r["peak_rss_mb"] for r in costs], default=0.0), 1),
                         "driver": round(_peak_rss_mb(), 1)},
         "memory_budget": budget,
