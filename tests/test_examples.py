@@ -3,6 +3,7 @@
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from conftest import REPO
@@ -84,10 +85,40 @@ def test_store_overview(tmp_path):
     assert "tile(s) in full" in out
 
 
+def test_compare_maps(tmp_path):
+    from evsemmap_warp.apps.viewer import free_port
+
+    out = _run(str(REPO / "examples/10_compare_maps.py"), "--no-serve", "--port", str(free_port()), "--out", str(tmp_path / "c"), cwd=tmp_path)
+    differ = int(out.split("labels differ in ")[1].split(";")[0].replace(",", ""))
+    counts = {line.split(": ")[0].strip(): int(line.split(": ")[1].replace(",", "")) for line in out.splitlines()
+              if line.startswith(("  first map", "  second map", "  neither", "  labels differ"))}
+    assert len(counts) == 4 and sum(counts.values()) == differ > 0  # every differing voxel in one category
+    assert counts["first map agrees with the truth"] > 0 and counts["second map agrees with the truth"] > 0
+    assert "the counts checked against numpy: True" in out and "checked against numpy: True" in out.split("variance difference")[1]
+
+
+def test_orientation_and_measuring(tmp_path):
+    from evsemmap_warp.apps.viewer import free_port
+
+    out = _run(str(REPO / "examples/11_orientation_and_measuring.py"), "--no-serve", "--port", str(free_port()), "--out", str(tmp_path / "m"),
+               cwd=tmp_path)
+    assert "lines every 10 m" in out and "x 0 m" in out and "y 0 m" in out
+    meters, pixels = out.split("scale bar at the initial camera: ")[1].split(" px long")[0].split(" m drawn ")
+    assert float(meters) in (1, 2, 5, 10, 20, 50) and 50 <= float(pixels) <= 120
+    points = [np.array([float(v.split("=")[1]) for v in line.split(": ")[1].removesuffix(" m").split(", ")])
+              for line in out.splitlines() if line.startswith("clicked point in")]
+    assert len(points) == 2
+    distance = float(out.split("distance ")[1].split(" m")[0])
+    height = float(out.split("height difference ")[1].split(" m")[0])
+    assert abs(distance - np.linalg.norm(points[1] - points[0])) < 2e-3 and abs(height - (points[1][2] - points[0][2])) < 2e-3
+    assert distance > 10 and "checked against numpy: True" in out
+
+
 def test_examples_are_all_tested():
     names = sorted(p.name for p in (REPO / "examples").glob("*.py"))
     assert names == ["00_quickstart.py", "01_sbki_toy_conformance.py", "02_view_map.py", "03_synthetic_world.py", "04_compare_methods.py",
-                     "05_robot_log.py", "06_terrain_layers.py", "07_drive_playback.py", "08_live_map.py", "09_store_overview.py"], \
+                     "05_robot_log.py", "06_terrain_layers.py", "07_drive_playback.py", "08_live_map.py", "09_store_overview.py",
+                     "10_compare_maps.py", "11_orientation_and_measuring.py"], \
         "add a test for each new example"
 
 

@@ -368,6 +368,14 @@ def test_orientation_grid_and_measuring(viewer):
     g = viewer.ground
     assert g.section in (1.0, 2.0) and g.x0 <= 100.0 and g.x1 >= 106.0 and g.x0 % g.section == 0
     assert "x 100 m" in [t for t, _ in g.labels] and "y 106 m" in [t for t, _ in g.labels]
+    # an even number of sections (viser draws a grid about its center), and every line labelled: the line added
+    # to make the number even had none
+    for lo, hi in ((np.array([0.0, 0.0, 0.0]), np.array([25.0, 31.0, 2.0])), (np.array([-3.0, 1.0, 0.0]), np.array([5.0, 2.5, 1.0]))):
+        grid = vl.ground_grid(lo, hi, 0.0)
+        sections_x, sections_y = round((grid.x1 - grid.x0) / grid.section), round((grid.y1 - grid.y0) / grid.section)
+        assert sections_x % 2 == 0 and sections_y % 2 == 0
+        assert len(grid.labels) == sections_x + 1 + sections_y + 1
+        assert f"y {vl.format_metres(grid.y1, grid.section)}" in [t for t, _ in grid.labels]
     assert vl.nice_length(7.3) == 5.0 and vl.nice_length(0.034) == 0.02 and vl.nice_length(1.0) == 1.0
     html_text, metres, pixels = vl.scale_bar_html(0.05)
     assert metres == 5.0 and pixels == 100.0 and 'data-metres="5"' in html_text

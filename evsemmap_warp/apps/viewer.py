@@ -684,11 +684,8 @@ class MapViewer:
         occupied = np.concatenate(occupied) if occupied else np.zeros(0)
         resolution = min(layer.resolution for layer in self.layers)
         ground = float(np.percentile(occupied, 1.0)) if len(occupied) else float(lo[2])
-        grid = vl.ground_grid(lo, hi, ground - 0.5 * resolution)
-        # the grid is drawn about its center: keep an even number of sections so that its lines stay on the round coordinates
-        x1 = grid.x1 + grid.section * (round((grid.x1 - grid.x0) / grid.section) % 2)
-        y1 = grid.y1 + grid.section * (round((grid.y1 - grid.y0) / grid.section) % 2)
-        self.ground = vl.GroundGrid(grid.x0, grid.y0, x1, y1, grid.z, grid.section, grid.cell, grid.labels)
+        grid = self.ground = vl.ground_grid(lo, hi, ground - 0.5 * resolution)
+        x1, y1 = grid.x1, grid.y1
         for handle in getattr(self, "grid_label_handles", []):  # a grid redrawn for maps that grew
             handle.remove()
         center = np.array([(grid.x0 + x1) / 2, (grid.y0 + y1) / 2, grid.z]) - self.origin

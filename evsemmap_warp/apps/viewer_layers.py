@@ -523,7 +523,8 @@ class GroundGrid:
 
 
 def ground_grid(lo: np.ndarray, hi: np.ndarray, ground_z: float, max_labels: int = 12) -> GroundGrid:
-    """Grid lines and metre labels on the ground plane ``ground_z`` covering the box ``lo``..``hi`` (m), at a round spacing."""
+    """Grid lines and metre labels on the ground plane ``ground_z`` covering the box ``lo``..``hi`` (m), at a round spacing,
+    in an even number of sections along each axis, every line labelled."""
     extent = float(max(hi[0] - lo[0], hi[1] - lo[1], 1.0))
     section = nice_length(extent / 4.0)
     while (hi[0] - lo[0]) / section > max_labels or (hi[1] - lo[1]) / section > max_labels:
@@ -532,6 +533,9 @@ def ground_grid(lo: np.ndarray, hi: np.ndarray, ground_z: float, max_labels: int
     x0, y0 = math.floor(lo[0] / section) * section, math.floor(lo[1] / section) * section
     x1, y1 = math.ceil(hi[0] / section) * section, math.ceil(hi[1] / section) * section
     x1, y1 = max(x1, x0 + section), max(y1, y0 + section)
+    # viser draws a grid about its center: an even number of sections keeps its lines on the round coordinates
+    x1 += section * (round((x1 - x0) / section) % 2)
+    y1 += section * (round((y1 - y0) / section) % 2)
     labels = []
     for x in np.arange(x0, x1 + section / 2, section):
         labels.append((f"x {format_metres(x, section)}", np.array([x, y0 - 0.04 * (y1 - y0), ground_z])))
