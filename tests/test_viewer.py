@@ -403,6 +403,36 @@ def test_orientation_grid_and_measuring(viewer):
     assert viewer.measure_points == [] and viewer.gui_measure_result.content == ""
 
 
+def test_a_long_map_framed_whole_is_inside_the_far_clipping_plane(viewer):
+    """viser clips at 1 km by default: a 1.9 km store, framed whole, drew nothing (its camera 2.2 km away)."""
+    viewer._frame_camera(np.array([-50.0, -50.0, -4.0]), np.array([1837.0, 50.0, 12.0]))
+    position, look_at = viewer._auto_camera
+    farthest = np.linalg.norm(position - look_at) + 1887.0  # to the far end of the map, at most
+    assert viewer.server.initial_camera.far >= 2 * farthest
+    assert viewer.far_plane_m(10.0) == 1000.0  # small maps keep viser's default
+
+
+def test_points_keep_a_visible_size_when_the_camera_is_far(viewer):
+    """viser sizes points in world units with no screen minimum: a long store seen whole (0.2 m voxels over
+    kilometres) drew nothing. Far away, a point is at least MIN_POINT_PX at the orbit center; near, a voxel."""
+
+    class Camera:
+        def __init__(self, distance):
+            self.look_at, self.position = np.zeros(3), np.array([0.0, 0.0, distance])
+            self.fov, self.image_height = 1.0, 800
+
+    layer, handle = viewer.layers[0], viewer.voxel_handles[0]
+    viewer._update_scale_bar(Camera(5.0))
+    assert handle.point_size == pytest.approx(layer.resolution)
+    viewer._update_scale_bar(Camera(2000.0))
+    m_per_px = vl.metres_per_pixel(np.array([0.0, 0.0, 2000.0]), np.zeros(3), 1.0, 800)
+    assert handle.point_size == pytest.approx(viewer.MIN_POINT_PX * m_per_px) and handle.point_size > 10 * layer.resolution
+    viewer._draw_layer(0, viewer.visible_rows[0])  # a layer drawn again (new tiles, a control) keeps the size
+    assert viewer.voxel_handles[0].point_size == pytest.approx(viewer.MIN_POINT_PX * m_per_px)
+    viewer._update_scale_bar(Camera(5.0))
+    assert viewer.voxel_handles[0].point_size == pytest.approx(layer.resolution)
+
+
 def _projection(path, dirt_below_x):
     import json
 

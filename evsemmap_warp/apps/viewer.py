@@ -632,11 +632,21 @@ class MapViewer:
         position = look_at + np.array([0.0, -0.9 * extent, 0.7 * extent])
         previous, self._auto_camera = self._auto_camera, (position, look_at)
         self.server.initial_camera.position, self.server.initial_camera.look_at = tuple(position), tuple(look_at)
-        if previous is not None:
-            for client in self.server.get_clients().values():
-                if self._camera_left_alone(client.camera):
-                    client.camera.position, client.camera.look_at = tuple(position), tuple(look_at)
+        # viser clips at 1 km by default: a long store framed whole (its camera a few km away) drew nothing
+        far = self.far_plane_m(extent)
+        self.server.initial_camera.far = far
+        for client in self.server.get_clients().values():
+            client.camera.far = far  # (its setter sends nothing when unchanged)
+            if previous is not None and self._camera_left_alone(client.camera):
+                client.camera.position, client.camera.look_at = tuple(position), tuple(look_at)
         self._auto_positions.append((position, 1e-3 * max(float(np.linalg.norm(position - look_at)), 1.0)))
+
+    @staticmethod
+    def far_plane_m(extent_m: float) -> float:
+        """The cameras' far clipping plane for maps ``extent_m`` across: the whole of them from the initial
+        camera (about 1.14 extents away) and from a camera pulled back a few times further; never nearer
+        than viser's 1 km."""
+        return max(1000.0, 8.0 * extent_m)
 
     def _camera_left_alone(self, camera) -> bool:
         """Whether a browser's camera is still where the viewer put it, at this or an earlier move (the position
@@ -732,6 +742,27 @@ class MapViewer:
         html_text, metres, pixels = vl.scale_bar_html(m_per_px)
         self.scale_bar = (metres, pixels, m_per_px)
         self.gui_scale_bar.content = html_text
+        self._fit_point_sizes()
+
+    MIN_POINT_PX = 2.0  # a voxel drawn as a point is never smaller than this on screen, at the orbit center
+
+    def _point_size(self, i: int) -> float:
+        """Layer ``i``'s point size (m): its voxel edge, or, when that would be under ``MIN_POINT_PX`` pixels at the
+        last camera's orbit center, that many pixels' worth. viser sizes points in world units (shrinking with
+        distance, with no screen minimum), so a long store seen whole, 0.2 m voxels over kilometres, drew
+        nothing at all."""
+        floor = self.MIN_POINT_PX * self.scale_bar[2] if self.scale_bar is not None else 0.0
+        return max(float(self.layers[i].resolution), floor)
+
+    def _fit_point_sizes(self) -> None:
+        """Resize the drawn point layers to the camera (a size change only: the points are not sent again)."""
+        if self.style != "points":
+            return
+        for i, handle in enumerate(self.voxel_handles):
+            if handle is not None:
+                size = self._point_size(i)
+                if abs(handle.point_size - size) > 0.05 * size:  # not for every small camera move
+                    handle.point_size = size
 
     # ------------------------------------------------------------------ layers shown
     def show_tile(self, choice: str) -> None:
@@ -978,7 +1009,7 @@ class MapViewer:
             positions, colors = np.zeros((1, 3), np.float32), np.zeros((1, 3), np.uint8)
         if self.style == "points":
             self.voxel_handles[i] = self.server.scene.add_point_cloud(
-                name, positions, colors, point_size=layer.resolution, point_shape="square", precision="float32", visible=len(rows) > 0)
+                name, positions, colors, point_size=self._point_size(i), point_shape="square", precision="float32", visible=len(rows) > 0)
         else:
             import trimesh
 
