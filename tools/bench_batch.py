@@ -7,7 +7,7 @@ warm-up batch on the first 200 frames (kernel cache, page cache). Reported per c
 time, frames/s, input points/s, peak memory of a worker and of the driver, the streaming reduction's
 cost (folding partials into tiles, in the driver while the workers map), the store's size (bytes per
 voxel) and the peak disk use during the run (sampled), the speed-up over ``evsemmap map``, and where a
-worker's time goes (the median chunk's stages: open, read, integrate, extract, write_partial; a worker
+worker's time goes (each stage's median over the chunks: open, read, integrate, extract, write_partial; a worker
 process's start, the result's size and its way back to the driver). From
 the measured per-point mapping cost and per-tile fold cost, the tool projects the wall time of a whole
 RELLIS-3D and of a 1,000 km fleet log on a 16-node cluster (the model is printed with the figures).
@@ -106,7 +106,7 @@ def markdown(record_path: Path) -> str:
     staged = {key: runs[key] for key in names if key != "map" and runs.get(key, {}).get("chunk_stage_s_median")}
     if staged:  # records before the stages were timed have none
         stages = list(next(iter(staged.values()))["chunk_stage_s_median"])
-        lines += ["", "Where a worker's time goes (the median chunk's stages, s; worker start: a worker process's first task, "
+        lines += ["", "Where a worker's time goes (each stage's median over the chunks, s; worker start: a worker process's first task, "
                   "submission to start):", "",
                   "| run | chunk | " + " | ".join(stages) + " | worker start | result | return to driver |",
                   "|---|---|" + "---|" * len(stages) + "---|---|---|"]
@@ -120,7 +120,7 @@ def markdown(record_path: Path) -> str:
 
 
 def breakdown(row: dict) -> str:
-    """A batch run's worker time in one line: the median chunk's stages and the hand-off costs."""
+    """A batch run's worker time in one line: the median chunk time, each stage's median and the hand-off costs."""
     stages = row.get("chunk_stage_s_median") or {}
     handoff = row.get("chunk_handoff") or {}
     return (f"  median chunk {row['chunk_s_median']} s: " + ", ".join(f"{k} {v} s" for k, v in stages.items())

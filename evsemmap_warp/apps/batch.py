@@ -722,12 +722,16 @@ def _ray_task(fn, threads: int, context_box: list, submitted: float, *args):
     when the driver submitted it (time.time()), for the hand-off costs (_handoff)."""
     import ray
 
+    global _TASKS_STARTED
     key = context_box[0].hex()
+    if key not in _RAY_CONTEXTS:
+        _TASKS_STARTED = 0  # a cluster's worker that served an earlier run: this run's first task in it
+    handoff = _handoff(submitted)  # before fetching the context: a worker's start includes it
     if key not in _RAY_CONTEXTS:
         _RAY_CONTEXTS.clear()
         _RAY_CONTEXTS[key] = ray.get(context_box[0])
         _init_worker(_RAY_CONTEXTS[key], threads)
-    return _handoff(submitted)(fn(*args, context=_RAY_CONTEXTS[key]))
+    return handoff(fn(*args, context=_RAY_CONTEXTS[key]))
 
 
 class RayExecutor:
@@ -990,7 +994,8 @@ def _run_batch(paths: list[str], options: BatchOptions, log=None, *, on_tile=Non
         "seconds": {k: round(v, 3) for k, v in times.items()},
         "frames_per_second": round(sum(c.frames for c in todo) / times["map"], 2) if todo and times["map"] > 0 else None,
         "chunk_seconds_median": round(float(np.median(chunk_seconds)), 3) if chunk_seconds else None,
-        # where a worker's time goes (map_chunk's stages, CHUNK_STAGES): the median chunk's, and all chunks' together
+        # where a worker's time goes (map_chunk's stages, CHUNK_STAGES): each stage's median over the chunks, and
+        # all chunks' together
         "chunk_stage_seconds_median": {k: median([s[k] for s in staged]) for k in CHUNK_STAGES} if staged else None,
         "chunk_stage_seconds_total": {k: round(sum(s[k] for s in staged), 3) for k in CHUNK_STAGES} if staged else None,
         # around it (_handoff): a worker process's start (submission to its first task starting), the result's size

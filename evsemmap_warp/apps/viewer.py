@@ -755,14 +755,18 @@ class MapViewer:
         return max(float(self.layers[i].resolution), floor)
 
     def _fit_point_sizes(self) -> None:
-        """Resize the drawn point layers to the camera (a size change only: the points are not sent again)."""
+        """Resize the drawn point layers to the camera (a size change only: the points are not sent again). The
+        size is the scene's, shared by every browser: the camera that moved last sets it."""
         if self.style != "points":
             return
-        for i, handle in enumerate(self.voxel_handles):
-            if handle is not None:
-                size = self._point_size(i)
-                if abs(handle.point_size - size) > 0.05 * size:  # not for every small camera move
-                    handle.point_size = size
+        # under the layers' lock: a store loader or a live map may be replacing these handles right now (viser
+        # refuses writes to a removed one), and a layer drawn anew takes its size from _point_size anyway
+        with self._lock:
+            for i, handle in enumerate(self.voxel_handles):
+                if handle is not None:
+                    size = self._point_size(i)
+                    if abs(handle.point_size - size) > 0.05 * size:  # not for every small camera move
+                        handle.point_size = size
 
     # ------------------------------------------------------------------ layers shown
     def show_tile(self, choice: str) -> None:
