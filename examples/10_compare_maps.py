@@ -17,10 +17,8 @@ import numpy as np
 from evsemmap_warp.apps import viewer_layers
 from evsemmap_warp.apps.cli import main as evsemmap
 from evsemmap_warp.apps.viewer import MapViewer
-from evsemmap_warp.classes import remap_ids
-from evsemmap_warp.data.sequences import Rellis3DSequence
 from evsemmap_warp.synthetic.preset import load_preset
-from evsemmap_warp.synthetic.writer import generate_sequence
+from evsemmap_warp.synthetic.writer import generate_sequence, write_stand_in_alpha
 
 
 def main() -> None:
@@ -35,14 +33,7 @@ def main() -> None:
     generate_sequence(load_preset(args.world), sequence, progress=False)
     # Alpha files stand in for a network's (`evsemmap infer`): evidence on each pixel's true class, weak on the
     # left half of the image, so that the camera's map and the LiDAR's differ.
-    images = Rellis3DSequence(sequence)
-    (args.out / "alpha").mkdir(exist_ok=True)
-    for frame in images.frames:
-        labels = remap_ids(images.read_label_ids(frame), "t")[::2, ::2]
-        alpha = np.ones((9, *labels.shape), np.float16)
-        evidence = np.where(np.arange(labels.shape[1]) < labels.shape[1] // 2, 11.0, 201.0)
-        np.put_along_axis(alpha, labels[None], np.broadcast_to(evidence, labels.shape)[None].astype(np.float16), axis=0)
-        np.save(args.out / "alpha" / f"{frame.image.stem}.npy", alpha)
+    write_stand_in_alpha(sequence, args.out / "alpha")
     camera_map, lidar_map = args.out / "camera_ebs.npz", args.out / "lidar_sbki.npz"
     assert evsemmap(["map", str(sequence), "rellis3d", "--method", "ebs", "--alpha-dir", str(args.out / "alpha"), "--bin-frames", "1",
                      "--out", str(camera_map), "--quiet"]) == 0

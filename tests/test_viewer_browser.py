@@ -520,11 +520,11 @@ def alpha_drive(tmp_path_factory):
     from evsemmap_warp.apps.cli import main
     from evsemmap_warp.synthetic.preset import load_preset
     from evsemmap_warp.synthetic.writer import generate_sequence
-    from test_viewer_drive import write_alpha_files
+    from evsemmap_warp.synthetic.writer import write_stand_in_alpha
 
     root = tmp_path_factory.mktemp("alpha_drive")
     generate_sequence(load_preset("tiny"), root / "seq", progress=False)
-    write_alpha_files(root / "seq", root / "alpha")
+    write_stand_in_alpha(root / "seq", root / "alpha")
     assert main(["map", str(root / "seq"), "rellis3d", "--method", "ebs", "--alpha-dir", str(root / "alpha"), "--bin-frames", "1",
                  "--out", str(root / "map.npz"), "--quiet"]) == 0
     return root

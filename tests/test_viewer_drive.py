@@ -13,27 +13,9 @@ from evsemmap_warp.apps.viewer_drive import DrivePlayback, open_drive, pixel_val
 from evsemmap_warp.config import PayloadType, load_config
 from evsemmap_warp.core.map_file import read_map_arrays
 from evsemmap_warp.synthetic.preset import load_preset
-from evsemmap_warp.synthetic.writer import generate_sequence
+from evsemmap_warp.synthetic.writer import generate_sequence, write_stand_in_alpha
 
 from conftest import REPO
-
-
-def write_alpha_files(sequence_folder, folder):
-    """Alpha standing in for a network's, at half resolution: evidence on each pixel's true class, 200 on the right half
-    (K/S 9/208: sure enough for the rellis3d preset's kernel length to reach voxels) and 10 on the left (K/S 0.5: too
-    unsure to update anything)."""
-    from evsemmap_warp.classes import remap_ids
-    from evsemmap_warp.data.sequences import Rellis3DSequence
-
-    seq = Rellis3DSequence(sequence_folder)
-    folder.mkdir()
-    for frame in seq.frames:
-        labels = remap_ids(seq.read_label_ids(frame), "t")[::2, ::2]
-        alpha = np.ones((9, *labels.shape), np.float16)
-        evidence = np.where(np.arange(labels.shape[1]) < labels.shape[1] // 2, 11.0, 201.0)
-        np.put_along_axis(alpha, labels[None], np.broadcast_to(evidence, labels.shape)[None].astype(np.float16), axis=0)
-        np.save(folder / f"{frame.image.stem}.npy", alpha)
-    return folder
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +24,7 @@ def drive(tmp_path_factory):
     root = tmp_path_factory.mktemp("drive")
     generate_sequence(load_preset("tiny"), root / "seq", progress=False)
     assert main(["map", str(root / "seq"), "rellis3d", "--method", "ebs", "--out", str(root / "labels.npz"), "--quiet"]) == 0
-    write_alpha_files(root / "seq", root / "alpha")
+    write_stand_in_alpha(root / "seq", root / "alpha")
     assert main(["map", str(root / "seq"), "rellis3d", "--method", "ebs", "--alpha-dir", str(root / "alpha"), "--bin-frames", "2",
                  "--out", str(root / "alpha.npz"), "--quiet"]) == 0
     return root

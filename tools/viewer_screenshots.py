@@ -32,22 +32,13 @@ CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swi
 def build_data(work: Path, preset: str, frames: int) -> SimpleNamespace:
     """A synthetic drive, alpha files standing in for a network's, two maps of it, its ground truth and a store."""
     from evsemmap_warp.apps.cli import main as evsemmap
-    from evsemmap_warp.classes import remap_ids
-    from evsemmap_warp.data.sequences import Rellis3DSequence
     from evsemmap_warp.synthetic.preset import load_preset
-    from evsemmap_warp.synthetic.writer import generate_sequence
+    from evsemmap_warp.synthetic.writer import generate_sequence, write_stand_in_alpha
 
     data = SimpleNamespace(sequence=work / "sequence", alpha=work / "alpha", ebs=work / "ebs.npz", sbki=work / "s-bki.npz",
                            alpha_map=work / "ebs_alpha.npz", truth=work / "project" / "ground_truth.npz", store=work / "store")
     generate_sequence(load_preset(preset, trajectory__frames=frames), data.sequence, progress=False)
-    images = Rellis3DSequence(data.sequence)
-    data.alpha.mkdir()
-    for frame in images.frames:  # sure on the right half of each image, unsure on the left
-        labels = remap_ids(images.read_label_ids(frame), "t")[::2, ::2]
-        alpha = np.ones((9, *labels.shape), np.float16)
-        evidence = np.where(np.arange(labels.shape[1]) < labels.shape[1] // 2, 11.0, 201.0)
-        np.put_along_axis(alpha, labels[None], np.broadcast_to(evidence, labels.shape)[None].astype(np.float16), axis=0)
-        np.save(data.alpha / f"{frame.image.stem}.npy", alpha)
+    write_stand_in_alpha(data.sequence, data.alpha)  # sure on the right half of each image, unsure on the left
     quiet = ["--quiet"]
     for method, out in (("ebs", data.ebs), ("s-bki", data.sbki)):
         assert evsemmap(["map", str(data.sequence), "rellis3d", "--method", method, "--out", str(out)] + quiet) == 0

@@ -23,9 +23,9 @@ from tqdm import tqdm
 
 from .. import __version__
 from ..geometry.camera import matrix_to_quaternion
-from ..classes import palette
+from ..classes import palette, remap_ids
 from ..data.log_writer import LOG_ROOT_FRAME
-from ..data.sequences import FRAME_FILE
+from ..data.sequences import FRAME_FILE, Rellis3DSequence
 from .preset import SynthPreset
 from .scene import concatenate_worlds, corridor_road, generate_world, poses_along_road, road_trajectory
 from .sensors import RayCaster, camera_model, camera_to_lidar, lidar_directions, render_camera, scan_lidar
@@ -152,3 +152,21 @@ def generate_sequence(preset: SynthPreset, out, *, device: str | None = "cpu", p
     record = {"generator": "evsemmap_warp", "version": __version__, "preset": dataclasses.asdict(preset), "summary": summary}
     (out / "synth.yaml").write_text(yaml.safe_dump(record, sort_keys=False))
     return summary
+
+
+def write_stand_in_alpha(sequence, folder, *, unsure_evidence: float = 11.0, sure_evidence: float = 201.0) -> Path:
+    """Alpha files that stand in for a network's (``evsemmap infer``'s layout: ``FOLDER/<image stem>.npy``,
+    float16 [9, H/2, W/2] at every second pixel) for a synthetic ``sequence`` folder: every pixel's evidence
+    on its true remap-v3 class, ``unsure_evidence`` on the left half of each image and ``sure_evidence`` on
+    the right, so that the uncertainty a map or a scan shows has something to show (with the defaults, u = K/S is
+9/208 on the right, sure enough for the rellis3d preset's kernel length to reach voxels, and 0.5 on the left,
+too unsure to update anything). Returns ``folder``."""
+    images, folder = Rellis3DSequence(sequence), Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for frame in images.frames:
+        labels = remap_ids(images.read_label_ids(frame), "t")[::2, ::2]
+        alpha = np.ones((9, *labels.shape), np.float16)
+        evidence = np.where(np.arange(labels.shape[1]) < labels.shape[1] // 2, unsure_evidence, sure_evidence)
+        np.put_along_axis(alpha, labels[None], np.broadcast_to(evidence, labels.shape)[None].astype(np.float16), axis=0)
+        np.save(folder / f"{frame.image.stem}.npy", alpha)
+    return folder
