@@ -695,13 +695,12 @@ class MapViewer:
         resolution = min(layer.resolution for layer in self.layers)
         ground = float(np.percentile(occupied, 1.0)) if len(occupied) else float(lo[2])
         grid = self.ground = vl.ground_grid(lo, hi, ground - 0.5 * resolution)
-        x1, y1 = grid.x1, grid.y1
         for handle in getattr(self, "grid_label_handles", []):  # a grid redrawn for maps that grew
             handle.remove()
-        center = np.array([(grid.x0 + x1) / 2, (grid.y0 + y1) / 2, grid.z]) - self.origin
-        size = max(x1 - grid.x0, y1 - grid.y0)
+        center = np.array([(grid.x0 + grid.x1) / 2, (grid.y0 + grid.y1) / 2, grid.z]) - self.origin
+        size = max(grid.x1 - grid.x0, grid.y1 - grid.y0)
         self.grid_handle = self.server.scene.add_grid(
-            "/ground_grid", width=x1 - grid.x0, height=y1 - grid.y0, plane="xy", cell_size=grid.cell, section_size=grid.section,
+            "/ground_grid", width=grid.x1 - grid.x0, height=grid.y1 - grid.y0, plane="xy", cell_size=grid.cell, section_size=grid.section,
             cell_color=(215, 215, 215), section_color=(150, 150, 150), section_thickness=1.5, fade_distance=4.0 * size,
             shadow_opacity=0.0, position=tuple(center), visible=self.gui_grid.value)
         self.grid_label_handles = [
