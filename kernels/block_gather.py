@@ -29,7 +29,7 @@ import functools
 import warp as wp
 
 from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, HashTable, block_cell, block_first_cell, find_block_rows, prefetch_brick
-from .scatter import _ONE, _ZERO, sbki_sparse_kernel_scaled, sbki_voxel_center, tally_row
+from .scatter import _ONE, _ZERO, sbki_sparse_kernel_scaled, sbki_voxel_center, tally_row, touch_row
 
 wp.set_module_options({"enable_backward": False})
 
@@ -101,10 +101,11 @@ def block_gather_kernel(Inputs, gather_block, *, cells_per_block: int, prefetch:
     voxel_data, failed, update_count): thread t takes target block b = block_ids[launch_ids[t]] (its index
     ``scan.blocks[b]``), asks for the blocks a few threads ahead (``prefetch_brick``, with ``prefetch``),
     finds or inserts its n^3 cells once (``find_block_rows`` through the brick cache ``bricks``; a block
-    that does not fit adds nothing and is flagged in ``failed`` for a relaunch after the table grew) and
-    hands them to the method's ``gather_block(scan, b, first, rows, voxel_data) -> float64``, which sums
-    the block's source points into its cells' rows and returns how many contributions it added. One Warp
-    module per kernel, its loops not unrolled (a much faster cold compile at the same speed)."""
+    that does not fit adds nothing and is flagged in ``failed`` for a relaunch after the table grew),
+    marks them touched (``touch_row``, before any read of them) and hands them to the method's
+    ``gather_block(scan, b, first, rows, voxel_data) -> float64``, which sums the block's source points
+    into its cells' rows and returns how many contributions it added. One Warp module per kernel, its
+    loops not unrolled (a much faster cold compile at the same speed)."""
     n = cells_per_block
     n3 = n * n * n
     cell_rows = block_rows_type(n3)
@@ -131,6 +132,8 @@ def block_gather_kernel(Inputs, gather_block, *, cells_per_block: int, prefetch:
         if rows[0] < 0:
             failed[t] = 1
             return
+        for j in range(n3):
+            touch_row(voxel_data, rows[j])
         wp.atomic_add(update_count, 0, wp.int64(wp.static(gather_block)(scan, b, first, rows, voxel_data)))
 
     return gather_blocks

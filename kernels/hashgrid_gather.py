@@ -16,7 +16,7 @@ import warp as wp
 
 from .hash_table import HashTable, pack_key, table_find_or_insert, unpack_key
 from .scatter import (_EXTRA, _ZERO, REACH_BALL, MapTarget, ScanPoints, ScatterParams, Span, Visit, add_label_evidence,
-                      add_weighted_evidence, center_offset, count_from_zero, end_nothing, sparse_kernel, tally_row, walk_kernel)
+                      add_weighted_evidence, center_offset, count_from_zero, end_nothing, sparse_kernel, tally_row, touch_row, walk_kernel)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -59,6 +59,7 @@ def _gather_kernel(evidence):
         if row < 0:
             out.failed[s] = 1
             return
+        touch_row(out.voxel_data, row)
         v = unpack_key(key)
         center = wp.vec3d(center_offset(v[0], params.resolution, params.grid_offset, _ZERO),
                           center_offset(v[1], params.resolution, params.grid_offset, _ZERO),

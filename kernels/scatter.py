@@ -282,16 +282,25 @@ class Span:
 
 
 @wp.func
+def touch_row(voxel_data: wp.array2d(dtype=wp.float64), row: int):
+    """Mark a row touched: the first access every kernel makes to a row it will add to. On the CPU a
+    fresh row's page, read first, maps the shared zero page and faults a second time on the write that
+    follows; written first, it faults once. The read-first order doubled the S-BKI gather's faults, and
+    faults of two shards contend (S-BKI mode at free_res 4, 2 threads: 1.6 s read first, 0.9 s written
+    first; docs/performance.md)."""
+    voxel_data[row, voxel_data.shape[1] - _EXTRA + COL_TOUCHED] = _ONE
+
+
+@wp.func
 def tally_row(voxel_data: wp.array2d(dtype=wp.float64), row: int, num_classes: int, weight: wp.float64,
               weighted_uncertainty: wp.float64, hits: wp.float64):
     """A row's bookkeeping: weight sum += weight, weight * uncertainty sum += weighted_uncertainty,
-    contribution count += hits, touched = 1. Every kernel that writes a row goes through here: the
-    scatter once per contribution, the gathers once per voxel with their sums (atomic adds, which on the
-    CPU are the plain adds)."""
+    contribution count += hits (the row was marked touched first, ``touch_row``). Every kernel that
+    writes a row goes through here: the scatter once per contribution, the gathers once per voxel with
+    their sums (atomic adds, which on the CPU are the plain adds)."""
     wp.atomic_add(voxel_data, row, num_classes + COL_WEIGHT, weight)
     wp.atomic_add(voxel_data, row, num_classes + COL_WEIGHTED_UNCERTAINTY, weighted_uncertainty)
     wp.atomic_add(voxel_data, row, num_classes + COL_HITS, hits)
-    voxel_data[row, num_classes + COL_TOUCHED] = _ONE
 
 
 # ---------------------------------------------------------------------------- evidence rules (payload kind, fusion)
@@ -630,6 +639,7 @@ def scatter_visit(rule: WeightRule, evidence, *, inserts: bool) -> Visit:
             # Only reachable in the compat modes, if a target cell was not inserted beforehand.
             out.failed[t] = 1
             return wp.int64(-1)
+        touch_row(out.voxel_data, row)
         tallied = wp.static(evidence)(scan, params, out.voxel_data, row, i, w, stencil_row(cell, span.owner, params.stencil_half))
         tally_row(out.voxel_data, row, out.voxel_data.shape[1] - _EXTRA, tallied, tallied * scan.uncertainty[i], _ONE)
         return counter + wp.int64(1)
@@ -727,6 +737,7 @@ def scatter_block_targets(scan: ScanPoints, target_lengths: wp.array2d(dtype=wp.
                     else:
                         row = table_find(out.table, key)
                         w = see_csom_weight(voxel_center(cell[0], cell[1], cell[2], params.resolution, params.grid_offset), p, ell)
+                        touch_row(out.voxel_data, row)
                         tallied = add_label_evidence(scan, params, out.voxel_data, row, i, w, 0)
                         tally_row(out.voxel_data, row, num_classes, tallied, tallied * u, _ONE)
                         n_updates += wp.int64(1)
@@ -739,7 +750,6 @@ def insert_block_cells(block_ids: wp.array(dtype=int), blocks: wp.array(dtype=wp
     """Insert every cell of blocks[block_ids[t]] (S-BKI/S-CSM test blocks); optionally mark touched."""
     t = wp.tid()
     n = cells_per_block
-    touched_column = voxel_data.shape[1] - _EXTRA + COL_TOUCHED
     first = block_first_cell(blocks[block_ids[t]], n)
     ok = int(1)
     for j in range(n * n * n):
@@ -748,7 +758,7 @@ def insert_block_cells(block_ids: wp.array(dtype=int), blocks: wp.array(dtype=wp
         if voxel_row < 0:
             ok = 0
         elif mark_touched == 1:
-            voxel_data[voxel_row, touched_column] = _ONE
+            touch_row(voxel_data, voxel_row)
     if ok == 0:
         failed[t] = 1
 

@@ -16,7 +16,7 @@ import warp as wp
 
 from .hash_table import pack_key, table_find_or_insert
 from .scatter import (_EXTRA, _ZERO, REACH_BALL, MapTarget, ScanPoints, ScatterParams, Span, Visit, add_label_evidence,
-                      add_weighted_evidence, count_from_zero, end_nothing, sparse_weight, tally_row, walk_kernel)
+                      add_weighted_evidence, count_from_zero, end_nothing, sparse_weight, tally_row, touch_row, walk_kernel)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -120,6 +120,7 @@ def _reduce_kernel(evidence):
         if row < 0:
             out.failed[v] = 1
             return
+        touch_row(out.voxel_data, row)
         weight_sum = _ZERO
         weighted_u = _ZERO
         for j in range(first, last):

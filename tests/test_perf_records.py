@@ -130,6 +130,17 @@ After the table.
     assert doc.read_text() == text
 
 
+def test_the_caption_says_when_the_cpp_was_timed_on_another_day(tmp_path):
+    """Ratios against C++ figures of another day compare two VMs, not two programs side by side: said so."""
+    record = json.loads(_integration_record(tmp_path).read_text())
+    day = record["utc"][:10]
+    record["results"]["cpp"]["summary"] = f"the originals timed on this machine kind on {day}"
+    assert "not beside this run" not in perf_records.bench_integrate_caption(record, "r.json")
+    record["results"]["cpp"]["summary"] = "the originals timed on this machine kind on 2026-12-02"
+    if day != "2026-12-02":
+        assert f"The C++ was timed on 2026-12-02, not beside this run ({day})" in perf_records.bench_integrate_caption(record, "r.json")
+
+
 def test_the_side_by_side_record_states_both_sides_compiler_flags():
     flags = json.loads((REPO / "docs/cpp_side_by_side.json").read_text())["measured"]["compiler_flags"]
     assert "-O3" in flags["originals"] and "no -march" in flags["originals"]

@@ -278,7 +278,7 @@ def bench_integrate_table(record: dict) -> str:
     results = record["results"]
     rows = results["rows"]
     lines = ["| row | input pts/s | voxel updates/s | cells | shard merge + summary (s) | vs vectorised numpy (1 thread) "
-             "| vs original C++, timed beside it |", "|---|---|---|---|---|---|---|"]
+             "| vs original C++ (timed when the caption says) |", "|---|---|---|---|---|---|---|"]
 
     def vs_cpp(row: dict) -> str:
         if row.get("vs_cpp") is None:
@@ -312,7 +312,18 @@ def bench_integrate_caption(record: dict, record_path: str) -> str:
     return (f"*From [`{name}`](bench/{name}): `{command}` at commit `{str(record.get('commit', ''))[:10]}`"
             f"{'' if record.get('tree_clean', True) else ' (modified tree)'}, {record.get('utc', '')}, {machine.get('cpu_model', '')} "
             f"({machine.get('cores', '')} cores), device {results['device']}, {results['workload']['scans']} of the workload's scans, median of "
-            f"{results['repeats']} after a warm-up; C++: {results['cpp']['summary']}.*")
+            f"{results['repeats']} after a warm-up; C++: {results['cpp']['summary']}{_cpp_day_note(record)}.*")
+
+
+def _cpp_day_note(record: dict) -> str:
+    """Said when the C++ figures were timed on another day than the run (a date in their summary): the ratios then
+    compare two days' VMs of one machine kind, not two programs side by side."""
+    cpp_day = re.search(r"\d{4}-\d{2}-\d{2}", record["results"]["cpp"]["summary"])
+    run_day = str(record.get("utc", ""))[:10]
+    if cpp_day is None or not run_day or cpp_day.group(0) == run_day:
+        return ""
+    return (f". The C++ was timed on {cpp_day.group(0)}, not beside this run ({run_day}): its ratios compare two days' VMs of one "
+            "machine kind, not two programs side by side")
 
 
 TABLES = {"bench_integrate": (bench_integrate_table, bench_integrate_caption)}

@@ -1,0 +1,59 @@
+"""Fresh table rows are faulted in once, by a write: on Linux a page of the CPU row reservation that a kernel
+reads first maps the shared zero page and faults again on the write that follows. The S-BKI block gather
+read its rows first (the class sums) and wrote the touched flag last, which doubled its page faults; two
+shards' faults contend in the kernel, so the like-for-like S-BKI mode on two threads took 1.77 s instead
+of 0.97-1.06 s (docs/performance.md). Counted with the launching thread's minor faults (one worker: the
+launches run on the calling thread)."""
+
+from __future__ import annotations
+
+import resource
+import sys
+
+import numpy as np
+import pytest
+
+from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, SbkiSettings
+from evsemmap_warp.core import voxel_map as vm
+from evsemmap_warp.core.mapper import Mapper
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux") or not hasattr(resource, "RUSAGE_THREAD"),
+                                reason="counts Linux's per-thread page faults")
+
+
+def _ground_scan(rng, n, half_width):
+    """Points on a bumpy 2 x half_width m square around the sensor, random labels of 5 classes."""
+    xy = rng.uniform(-half_width, half_width, (n, 2))
+    z = 0.3 * np.sin(xy[:, 0] / 3.0) + rng.normal(0, 0.05, n)
+    return np.c_[xy, z], rng.integers(0, 5, n)
+
+
+def test_the_block_gather_faults_its_fresh_rows_in_once(monkeypatch):
+    config = MappingConfig(method="s-bki", kernel=Kernel.SPARSE, media=Media.ONEHOT, adaptive_length=False, uncertainty_threshold=False,
+                           compat=Compat.SBKI, resolution_m=0.2, length_m=0.3, sigma0=10.0, prior=0.001,
+                           sbki=SbkiSettings(block_depth=2, ds_resolution_m=0.1, free_resolution_m=100.0, max_range_m=None))
+    mapper = Mapper(config, 5, workers=1)
+    faults = {"gather": 0}
+    launch = vm.wp.launch
+
+    def counted(kernel, *args, **kwargs):  # the gather kernels' launches only: growing a table faults its new slots in at once
+        if "gather" not in kernel.key:
+            return launch(kernel, *args, **kwargs)
+        before = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
+        try:
+            return launch(kernel, *args, **kwargs)
+        finally:
+            faults["gather"] += resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - before
+
+    monkeypatch.setattr(vm.wp, "launch", counted)
+    rng = np.random.default_rng(0)
+    mapper.integrate(*_ground_scan(rng, 2000, 5.0), payload_type="label", sensor_origin=np.zeros(3))  # compiles, warms up
+    rows_before, faults["gather"] = mapper.voxel_count, 0
+    for shift in (30.0, 60.0):  # new ground: every row these scans add is fresh memory
+        points, labels = _ground_scan(rng, 60_000, 12.0)
+        mapper.integrate(points + [shift, 0.0, 0.0], labels, payload_type="label", sensor_origin=np.array([shift, 0.0, 1.5]))
+    new_rows = mapper.voxel_count - rows_before
+    row_pages = new_rows * (5 + vm.EXTRA_COLUMNS) * 8 / resource.getpagesize()
+    assert row_pages > 500, "too few new rows to tell one fault per page from two"
+    # read first, each fresh page faults twice (2.0x); written first, once, plus the brick cache's new entries
+    assert faults["gather"] < 1.3 * row_pages, f"{faults['gather']} faults for {row_pages:.0f} pages of new rows"
