@@ -1,6 +1,8 @@
 """Orientation and measuring in the viewer: the ground grid under the map, its lines on round world
 coordinates labelled in meters of the map's frame; the scale bar (meters per pixel at the orbit center
-of each browser's camera); a click reporting the world coordinates of the point it hits; and *Measure*,
+of each browser's camera); what lies under the screen's center, followed as the camera moves (viser sends
+no pointer moves, so this stands in for coordinates on hover); a click reporting the world coordinates
+of the point it hits; and *Measure*,
 two clicks giving the distance, the horizontal distance and the height difference. Maps a synthetic
 drive and opens it; the same as ``evsemmap view MAP`` (the *Orientation and measuring* folder).
 
@@ -8,6 +10,7 @@ drive and opens it; the same as ``evsemmap view MAP`` (the *Orientation and meas
 """
 
 import argparse
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -48,11 +51,19 @@ def main() -> None:
     _, meters, pixels = viewer_layers.scale_bar_html(m_per_px)
     print(f"scale bar at the initial camera: {meters:g} m drawn {pixels:.0f} px long ({m_per_px * 1000:.1f} mm per pixel)")
 
-    # two clicks straight down, as a browser sends them (rays in display coordinates, relative to the local origin):
-    # on the highest voxel, and on the top of the voxel column farthest from it across the map
     layer = viewer.layers[0]
     rows = viewer.visible_rows[0]
     top = rows[np.argmax(layer.centers[rows, 2])]
+    # a browser's camera moved to 20 m above the highest voxel, looking down at it (display coordinates, relative
+    # to the local origin): the legend names what lies under the screen's center, in world coordinates
+    look_at = layer.centers[top] - viewer.origin
+    viewer._on_camera(0, SimpleNamespace(position=look_at + [0.0, -0.1, 20.0], look_at=look_at, fov=camera.fov, image_height=720))
+    while viewer.center_hit is None:  # picked off the camera's callback, on the viewer's own thread
+        time.sleep(0.05)
+    print(viewer.gui_view_center.content)
+
+    # two clicks straight down, as a browser sends them: on the highest voxel, and on the top of the voxel column
+    # farthest from it across the map
     far = rows[np.argmax(np.linalg.norm(layer.centers[rows, :2] - layer.centers[top, :2], axis=1))]
     column = rows[np.all(layer.voxel_index[rows, :2] == layer.voxel_index[far, :2], axis=1)]
     far = column[np.argmax(layer.centers[column, 2])]  # the voxel of that column a ray from above meets first

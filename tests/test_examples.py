@@ -108,6 +108,9 @@ def test_orientation_and_measuring(tmp_path):
     points = [np.array([float(v.split("=")[1]) for v in line.split(": ")[1].removesuffix(" m").split(", ")])
               for line in out.splitlines() if line.startswith("clicked point in")]
     assert len(points) == 2
+    under_center = out.split("under the screen's center (a voxel of map, ")[1].split("\n")[0]
+    center = np.array([float(v.split("=")[1]) for v in under_center.split("): ")[1].split(" m in ")[0].split(", ")])
+    assert np.allclose(center, points[0], atol=0.01)  # the highest voxel's top, as the first click finds it
     distance = float(out.split("distance ")[1].split(" m")[0])
     height = float(out.split("height difference ")[1].split(" m")[0])
     assert abs(distance - np.linalg.norm(points[1] - points[0])) < 2e-3 and abs(height - (points[1][2] - points[0][2])) < 2e-3

@@ -222,6 +222,54 @@ def test_clicked_voxel_is_described_in_world_coordinates_of_its_frame(far_viewer
     assert f"center in frame 'map' (EPSG:32617): x={cx:.3f}, y={cy:.3f}, z={cz:.3f} m" in v.gui_selection.content
 
 
+def test_the_panel_follows_what_lies_under_the_screen_center_as_the_camera_moves(far_viewer):
+    """In place of coordinates on hover (viser 1.1 sends the server no pointer moves): each camera move reports
+    what lies under the screen's center, in world coordinates, and puts the crosshair at the orbit center."""
+    from types import SimpleNamespace
+
+    v = far_viewer
+    layer = v.layers[0]
+    rows = v.visible_rows[0]
+    top = rows[np.argmax(layer.centers[rows, 2])]
+    look_at = layer.centers[top] - v.origin
+
+    def camera(at, height=10.0):
+        return SimpleNamespace(position=at + np.array([0.0, -0.01, height]), look_at=at, fov=1.0, image_height=800)
+
+    v.center_hit = None
+    v._on_camera(1, camera(look_at))
+    assert _wait_for(lambda: v.center_hit is not None and v.center_hit["kind"] == "voxel")
+    assert v.center_hit["row"] == top
+    cx, cy = layer.centers[top][:2]
+    assert f"(a voxel of utm, {layer.classes[layer.label[top]]}): x={cx:.3f}" in v.gui_view_center.content
+    assert "in frame 'map' (EPSG:32617)" in v.gui_view_center.content and cy > 4_000_000
+    assert np.allclose(v.crosshair_handle.position, look_at) and v.crosshair_handle.visible
+    # beside the map, the ground grid's plane, 30 m further east in world coordinates
+    beside = look_at + np.array([30.0, 0.0, 0.0])
+    beside[2] = v.ground.z - v.origin[2] + 1.0
+    v._on_camera(1, camera(beside))
+    assert _wait_for(lambda: v.center_hit is not None and v.center_hit["kind"] == "ground")
+    assert v.center_hit["point"][0] == pytest.approx(beside[0] + v.origin[0], abs=0.05)
+    assert "(the ground grid's plane)" in v.gui_view_center.content
+    # the crosshair keeps a fixed size on screen: 8 pixels' worth of metres at the orbit center
+    near = v.crosshair_handle.scale
+    v.center_hit = None
+    v._on_camera(1, camera(beside, height=100.0))
+    assert v.crosshair_handle.scale == pytest.approx(10 * near, rel=0.01)
+    assert _wait_for(lambda: v.center_hit is not None and v.center_hit["kind"] == "ground")
+
+
+def _wait_for(predicate, timeout=10.0):
+    import time
+
+    end = time.time() + timeout
+    while time.time() < end:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return False
+
+
 def test_ply_export_holds_float64_world_coordinates_and_names_the_frame(far_viewer, tmp_path):
     v = far_viewer
     rows = v.visible_rows[0]

@@ -366,6 +366,20 @@ def test_orientation_grid_scale_bar_world_coordinates_and_measuring(open_page, t
         labels = [t for t, _ in viewer.ground.labels]
         assert any(t.startswith("x 500,") and t.endswith(" m") for t in labels) and any(t.startswith("y 4,000,") for t in labels)
         page.get_by_label("Ground grid", exact=True).click()
+        # in place of coordinates on hover: the panel follows what lies under the screen's center as the camera moves
+        # (here the free patch at the map's middle: the ground grid's plane under it; then a grass voxel 2 m east)
+        assert _wait(lambda: viewer.center_hit is not None and np.hypot(*(viewer.center_hit["point"] - look)[:2]) < 0.3), \
+            (viewer.center_hit, viewer.gui_view_center.content)
+        hit = viewer.center_hit["point"]
+        page.get_by_text(f"x={hit[0]:.3f}, y={hit[1]:.3f}, z={hit[2]:.3f} m in frame 'map' (EPSG:32617)").first.wait_for(timeout=10_000)
+        grass = ground[np.argmin(np.linalg.norm(ground[:, :2] - (look[:2] + [2.0, 0.0]), axis=1))]
+        _top_down(viewer, 9.0, grass - viewer.origin)
+        assert _wait(lambda: viewer.center_hit is not None and viewer.center_hit["kind"] == "voxel"
+                     and np.hypot(*(viewer.center_hit["point"] - grass)[:2]) < 0.3), (viewer.center_hit, viewer.gui_view_center.content)
+        page.get_by_text(f"under the screen's center (a voxel of m, grass): x={viewer.center_hit['point'][0]:.3f}").first.wait_for(timeout=10_000)
+        _top_down(viewer, 9.0, center)
+        assert _wait(lambda: np.hypot(*(viewer.center_hit["point"] - look)[:2]) < 0.3)
+        time.sleep(1.0)
         # a click reports the world coordinates of the point it hits
         cx, cy = 640, 500  # the orbit center is the canvas' center (640, 400); 100 px south of it lies grass
         page.mouse.click(cx - 150, cy + 60)
@@ -583,14 +597,89 @@ def test_drive_playback_scrubs_the_map_and_shows_the_scan_and_the_camera(open_pa
         viewer.server.stop()
 
 
+@pytest.fixture(scope="module")
+def log_drive(tmp_path_factory):
+    """The tiny synthetic drive as a ROS 2 log, an (untrained) segmentation checkpoint, and the map the log makes
+    when the checkpoint labels its scans (one frame per scan; `prob`: no uncertainty cut for an unsure net)."""
+    pytest.importorskip("rosbags")
+    import torch
+
+    from evsemmap_warp.apps.cli import main
+    from evsemmap_warp.classes import class_set
+    from evsemmap_warp.data.log_writer import write_log
+    from evsemmap_warp.segmentation.config import ModelConfig
+    from evsemmap_warp.segmentation.model import build_model
+    from evsemmap_warp.segmentation.train import TrainConfig, save_checkpoint
+    from evsemmap_warp.synthetic.preset import load_preset
+    from evsemmap_warp.synthetic.writer import generate_sequence
+
+    root = tmp_path_factory.mktemp("log_drive")
+    generate_sequence(load_preset("tiny"), root / "seq", progress=False)
+    write_log(root / "seq", root / "drive_ros2", "rosbag2")
+    torch.manual_seed(0)
+    names = class_set().names
+    config = TrainConfig(model=ModelConfig(num_classes=len(names), width=8, aspp_channels=8), input_size=(32, 64))
+    model = build_model(config.model)
+    save_checkpoint(root / "net.pt", model, torch.optim.SGD(model.parameters(), lr=0.1), 1, config, names, [])
+    assert main(["map", str(root / "drive_ros2"), "rellis3d-bag", "--method", "prob", "--checkpoint", str(root / "net.pt"),
+                 "--bin-frames", "1", "--out", str(root / "map.npz"), "--quiet"]) == 0
+    return root
+
+
+def test_drive_playback_of_a_robot_log_labelled_by_a_checkpoint(open_page, log_drive):
+    """Issue 30 item 3 for a log and a network: the log's scans, its camera image and the checkpoint's labels and
+    uncertainty in the panel, the map scrubbed back to the first scan."""
+    from evsemmap_warp.apps.viewer_drive import DrivePlayback, open_drive, pixel_values
+
+    drive, replay = open_drive(log_drive / "map.npz", [log_drive / "drive_ros2", "rellis3d-bag"], checkpoint=log_drive / "net.pt",
+                               bin_frames=1, snapshot_every=2)
+    assert drive.labelled_by == "checkpoint"
+    viewer = MapViewer([log_drive / "map.npz"], port=free_port())
+    playback = DrivePlayback(viewer, drive, replay, precompute=False)
+    try:
+        page = open_page(viewer)
+        assert playback.wait_until_drawn(len(drive) - 1), playback.errors  # the last scan, and the whole map
+        assert _wait(lambda: len(_panel_images(page)) >= 4), _panel_images(page)
+        page.locator("img[src^='blob:']").nth(3).scroll_into_view_if_needed()  # the uncertainty image, the last
+        time.sleep(1.0)
+        legend, camera, labels, uncertainty = _panel_images(page)[:4]
+        img = _image(page.screenshot())
+
+        def inside(box):
+            return img[int(box["top"]):int(box["bottom"]), int(box["left"]):int(box["right"])]
+
+        # the checkpoint labels its 64 x 32 input; its labels and uncertainty are shown at the camera image's size
+        assert camera["width"] > 150 and camera["height"] > 50
+        assert (labels["width"], labels["height"]) == (uncertainty["width"], uncertainty["height"]) == (camera["width"], camera["height"])
+        area = inside(labels).shape[0] * inside(labels).shape[1]
+        assert area == camera["width"] * camera["height"], "the label image is not all in view"
+        in_palette = [int(_near(inside(labels), rgb, 10).sum()) for rgb in playback.palette]
+        assert sum(in_palette) > 0.9 * area, f"not the map's class colors: {in_palette} of {area} pixels"
+        # the net's uncertainty (1 - max p), in the color map's colors
+        _, uncertainty_values = pixel_values(drive.camera(len(drive) - 1)[1], drive.payload_type)
+        expected = colormap(np.array([np.median(uncertainty_values)]), 0.0, 1.0)[0]
+        assert _near(inside(uncertainty), expected, 30).sum() > 0.3 * area, "the uncertainty image is not the net's uncertainty"
+        voxels_at_end = int((viewer.layers[0].state == 2).sum())
+        box = _number_box(page, "Scan")
+        box.fill("0")
+        box.press("Enter")
+        assert _wait(lambda: playback._drawn_map == 1, 60), playback.errors
+        page.get_by_text("as it stood after scan 1").first.wait_for(timeout=20_000)
+        assert 0 < int((viewer.layers[0].state == 2).sum()) < 0.6 * voxels_at_end
+    finally:
+        playback.close()
+        viewer.server.stop()
+
+
 # --- issue 30 item 5: maps watched while they are made -------------------------------------------------------------
 def _visible_count(viewer) -> int:
     return int(viewer.visible_mask(0).sum())
 
 
-def test_map_being_made_updates_in_the_browser_and_ends_as_written(open_page, tmp_path):
+@pytest.mark.parametrize("source_kind", ["folder", "log"])
+def test_map_being_made_updates_in_the_browser_and_ends_as_written(open_page, tmp_path, source_kind):
     """Issue 30 item 5: `map --view` serves while mapping, the map updating every N scans, and shows the map as
-    written at the end."""
+    written at the end; from a sequence folder and from a robot log."""
     import threading
 
     from evsemmap_warp import Mapper
@@ -603,7 +692,14 @@ def test_map_being_made_updates_in_the_browser_and_ends_as_written(open_page, tm
     from evsemmap_warp.synthetic.writer import generate_sequence
 
     generate_sequence(load_preset("tiny", trajectory__frames=8), tmp_path / "seq", progress=False)
-    run = load_config([str(tmp_path / "seq"), "rellis3d"], method="ebs")
+    sources = [str(tmp_path / "seq"), "rellis3d"]
+    if source_kind == "log":
+        pytest.importorskip("rosbags")
+        from evsemmap_warp.data.log_writer import write_log
+
+        write_log(tmp_path / "seq", tmp_path / "drive.bag", "rosbag1")
+        sources = [str(tmp_path / "drive.bag"), "rellis3d-bag"]
+    run = load_config(sources, method="ebs")
     source = open_scan_source(run)
     mapper = Mapper.for_dataset(source, run.mapping)
     out = tmp_path / "live.npz"

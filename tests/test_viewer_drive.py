@@ -9,7 +9,7 @@ from evsemmap_warp.apps.cli import main
 from evsemmap_warp import Mapper
 from evsemmap_warp.apps.scan_sources import open_scan_source
 from evsemmap_warp.apps.viewer import MapViewer, colormap, free_port
-from evsemmap_warp.apps.viewer_drive import DrivePlayback, open_drive, pixel_values
+from evsemmap_warp.apps.viewer_drive import DrivePlayback, at_image_size, open_drive, pixel_values
 from evsemmap_warp.config import PayloadType, load_config
 from evsemmap_warp.core.map_file import read_map_arrays
 from evsemmap_warp.synthetic.preset import load_preset
@@ -107,7 +107,10 @@ def test_playback_of_an_alpha_labelled_map_shows_the_camera_labels_and_uncertain
         frame = drive_.insertions[1][-1]
         alpha = np.load(drive / "alpha" / f"{frame.image.stem}.npy").astype(np.float64)
         labels, uncertainty = pixel_values(alpha, PayloadType.ALPHA)
-        np.testing.assert_array_equal(playback.gui_labels.image, playback.palette[labels])
+        image = drive_.sequence.read_image(frame)
+        assert alpha.shape[1:] != image.shape[:2]  # alpha files at half the image's size: shown at the image's, nearest pixel
+        np.testing.assert_array_equal(playback.gui_labels.image, playback.palette[at_image_size(labels, *image.shape[:2])])
+        assert playback.gui_labels.image.shape == playback.gui_uncertainty.image.shape == image.shape
         assert uncertainty[:, : alpha.shape[2] // 2].mean() > 2 * uncertainty[:, alpha.shape[2] // 2:].mean()  # weaker evidence: less sure
         np.testing.assert_array_equal(playback.gui_camera.image, drive_.sequence.read_image(frame))
         # the scan by input uncertainty: K/S of each point's alpha

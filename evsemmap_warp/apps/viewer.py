@@ -20,8 +20,9 @@ the GUI's button computes ``terrain.compute_layers`` of each map or store), two 
 (labels that differ, colored by which map agrees with a ground truth when ``truth`` gives one, and the
 variance difference), a ground grid labelled in metres of the world frame, a scale bar that follows the
 camera, and a measuring tool. A click reports the world coordinates of the point it hits (a voxel, a
-terrain cell, or the ground grid's plane): viser 1.1 sends clicks, not pointer moves, to the server,
-so there are no coordinates on hover. Lit meshes (boxes, the surface) are drawn under the viewer's own
+terrain cell, or the ground grid's plane). viser 1.1 sends clicks and camera moves, not pointer moves,
+to the server, so in place of coordinates on hover the panel follows the point under the screen's
+center (marked by a crosshair at the orbit center) as the view moves. Lit meshes (boxes, the surface) are drawn under the viewer's own
 lights with compensated colors so that they show the palette's colors.
 """
 
@@ -401,6 +402,9 @@ class MapViewer:
         self.measure_points: list[np.ndarray] = []
         self.scale_bar: tuple[float, float, float] | None = None  # (metres, pixels, metres per pixel)
         self.last_point: np.ndarray | None = None  # world coordinates of the last clicked point
+        self.center_hit: dict | None = None  # what lies under the screen's center (pick_point), for the last camera
+        self._center_camera = None  # (position, look_at) a browser last reported, waiting for _follow_view_center
+        self._center_wake = threading.Condition()
         # Updates of a layer (replace_layer) and the controls' callbacks (viser's threads) take turns.
         self._lock = threading.RLock()
         self._refresh_held_by: int | None = None  # the thread in replace_layer, whose control changes wait for its refresh
@@ -432,6 +436,11 @@ class MapViewer:
         self._build_gui()
         self._add_origin_marker(extent)
         self._add_ground_grid(lo, hi)
+        # the orbit center's crosshair, sized in screen pixels on each camera move (_update_scale_bar)
+        self.crosshair_handle = self.server.scene.add_line_segments(
+            "/view_center", np.array([[[-1, 0, 0], [1, 0, 0]], [[0, -1, 0], [0, 1, 0]], [[0, 0, -1], [0, 0, 1]]], np.float32),
+            colors=(30, 30, 30), thickness=2.0, thickness_units="screen", visible=False)
+        threading.Thread(target=self._follow_view_center, name="evsemmap-view-center", daemon=True).start()
         self.voxel_handles: list = [None] * len(self.layers)
         self.terrain_handles: dict[int, object] = {}
         self._terrain_drawn: dict[int, tuple] = {}  # what each surface was last drawn as (layer, mode, shift)
@@ -486,6 +495,7 @@ class MapViewer:
             # the terrain surface's color bar or class legend, once layers are computed
             self.gui_terrain_legend = gui.add_image(vl.swatch_image([("", (255, 255, 255))]), label=None, visible=False)
             self.gui_scale_bar = gui.add_html('<div id="evsemmap-scale-bar" style="font:12px sans-serif">scale: waiting for the camera</div>')
+            self.gui_view_center = gui.add_markdown("under the screen's center: waiting for the camera")
         # filled by a drive's playback (viewer_drive.DrivePlayback) or a live map (viewer_live): kept next to the legend
         self.gui_drive_folder = gui.add_folder("Drive", visible=False)
         with gui.add_folder("Selected"):
@@ -742,6 +752,46 @@ class MapViewer:
         self.scale_bar = (metres, pixels, m_per_px)
         self.gui_scale_bar.content = html_text
         self._fit_point_sizes()
+        look_at = np.asarray(camera.look_at, np.float64)
+        self.crosshair_handle.position = tuple(look_at)
+        self.crosshair_handle.scale = 8.0 * m_per_px
+        self.crosshair_handle.visible = True
+        with self._center_wake:
+            self._center_camera = (np.asarray(camera.position, np.float64), look_at)
+            self._center_wake.notify_all()
+
+    def _follow_view_center(self) -> None:
+        """The panel's line on what lies under the screen's center, for the camera reported last: picking walks the
+        visible voxels, so it runs here, off viser's callbacks, and skips the cameras a drag passed through."""
+        while not self._closed.is_set():
+            with self._center_wake:
+                while self._center_camera is None and not self._closed.is_set():
+                    self._center_wake.wait(1.0)
+                camera, self._center_camera = self._center_camera, None
+            if camera is None:
+                continue
+            position, look_at = camera
+            try:
+                with self._lock:
+                    hit = self.pick_point(position, look_at - position) if np.linalg.norm(look_at - position) > 0 else None
+                    self.center_hit = hit
+                    self.gui_view_center.content = self._center_text(hit)
+            except Exception:  # noqa: BLE001 - a layer replaced under the pick, or the server stopping: the next camera tries again
+                if self._closed.is_set():
+                    return
+
+    def _center_text(self, hit: dict | None) -> str:
+        if hit is None:
+            return "under the screen's center: nothing (no voxel, surface or ground there)"
+        where = ", ".join(f"{a}={c:.3f}" for a, c in zip("xyz", hit["point"]))
+        if hit["kind"] == "voxel":
+            layer = self.layers[hit["layer"]]
+            what = f"a voxel of {layer.name}, {layer.classes[layer.label[hit['row']]]}"
+        elif hit["kind"] == "cell":
+            what = f"the terrain surface of {self.layers[hit['layer']].name}"
+        else:
+            what = "the ground grid's plane"
+        return f"under the screen's center ({what}): {where} m in {describe_frame(self.frame)}"
 
     MIN_POINT_PX = 2.0  # a voxel drawn as a point is never smaller than this on screen, at the orbit center
 
@@ -833,8 +883,9 @@ class MapViewer:
         """Stop reading stores and serving."""
         with self._lock:  # after a layer update under way, and before any other
             self._closed.set()
-        with self._store_wake:
-            self._store_wake.notify_all()
+        for wake in (self._store_wake, self._center_wake):
+            with wake:
+                wake.notify_all()
         self.server.stop()
 
     def _diff_pair(self) -> tuple[int, int] | None:

@@ -114,6 +114,15 @@ def pixel_values(values: np.ndarray, payload_type: PayloadType) -> tuple[np.ndar
     return labels, values.shape[0] / np.maximum(values.sum(axis=0), 1e-12)
 
 
+def at_image_size(per_pixel: np.ndarray, height: int, width: int) -> np.ndarray:
+    """A per-pixel array [h, w] of the network's output size at the camera image's size [height, width]
+    (nearest pixel): a checkpoint labels its input size, and its labels and uncertainty are shown beside the
+    camera image at the image's scale."""
+    rows = np.arange(height) * per_pixel.shape[0] // height
+    columns = np.arange(width) * per_pixel.shape[1] // width
+    return per_pixel[rows[:, None], columns[None, :]]
+
+
 def rotation_wxyz(rotation: np.ndarray) -> np.ndarray:
     """The unit quaternion (w, x, y, z) of a 3x3 rotation matrix."""
     import viser.transforms as tf
@@ -373,7 +382,7 @@ class DrivePlayback:
         image, values = camera
         self.gui_camera.image = image
         if values is not None:
-            labels, uncertainty = pixel_values(values, self.drive.payload_type)
+            labels, uncertainty = (at_image_size(v, *image.shape[:2]) for v in pixel_values(values, self.drive.payload_type))
             self.gui_labels.image = self.palette[np.clip(labels, 0, len(self.palette) - 1)]
             self.gui_uncertainty.image = colormap(uncertainty.reshape(-1), 0.0, 1.0).reshape(*uncertainty.shape, 3)
             what = "1 - max p" if self.drive.payload_type is PayloadType.PROB else "K/S"
