@@ -484,3 +484,32 @@ def test_a_store_refuses_cells_that_do_not_tile_it(drive_store, tmp_path, capsys
     wide.write_text(default_costs_path().read_text().replace("plane_window_cells: 9 ", "plane_window_cells: 99 "))
     with pytest.raises(ValueError, match="the filters reach 49 cells beyond a cell, more than a tile of the store"):
         compute_layers(MapStore(drive_store), config=load_terrain_config(wide))
+
+
+@pytest.mark.parametrize("stride", [1, 3, 7])
+def test_the_preview_mosaic_is_the_whole_grid_decimated_whatever_the_parts(stride):
+    """A store's previews are drawn from a mosaic filled part by part (tile columns at any offset, on the grid's
+    edges included): it must equal the whole grid's bands taken one cell in ``stride``, with counts and masks 0
+    (not NaN) where no part reached."""
+    from types import SimpleNamespace
+
+    from evsemmap_warp.terrain.layers import LayerGrid
+    from evsemmap_warp.terrain.pipeline import _PreviewMosaic
+
+    grid = LayerGrid(0.2, 0.0, (-13, 40), 50, 23)
+    rng = np.random.default_rng(stride)
+    whole = {"elevation": rng.normal(size=(23, 50)).astype(np.float32), "known": (rng.random((23, 50)) < 0.5).astype(np.float32)}
+    mosaic = _PreviewMosaic(grid, list(whole), stride)
+    reached = np.zeros((23, 50), bool)
+    # parts of 11 x 9 cells from the south-west corner, the last ones cut by the grid's edges; one part left out
+    for k, (i, j) in enumerate((i, j) for i in range(0, 50, 11) for j in range(0, 23, 9)):
+        if k == 4:
+            continue
+        width, height = min(11, 50 - i), min(9, 23 - j)
+        part = LayerGrid(0.2, 0.0, (grid.first_cell[0] + i, grid.first_cell[1] + j), width, height)
+        row, column = part.window_in(grid)
+        mosaic.add(SimpleNamespace(grid=part, bands={n: b[row:row + height, column:column + width] for n, b in whole.items()}))
+        reached[row:row + height, column:column + width] = True
+    expected_elevation = np.where(reached, whole["elevation"], np.nan)[::stride, ::stride]
+    np.testing.assert_array_equal(mosaic.bands["elevation"], expected_elevation)
+    np.testing.assert_array_equal(mosaic.bands["known"], np.where(reached, whole["known"], 0.0)[::stride, ::stride])

@@ -93,6 +93,10 @@ def _rasterio():
     return rasterio
 
 
+# Bands that are counts or masks: 0, not NaN, where no part of a mosaic reached.
+UNREACHED_ZERO_BANDS = ("observations", "known", "lethal")
+
+
 class GeoTiffWriter:
     """One multi-band GeoTIFF over ``grid``, written grid by grid (windows); renamed into place on close."""
 
@@ -145,13 +149,20 @@ class GeoTiffWriter:
         from rasterio.windows import Window
 
         if self._covered is not None and not self._covered.all():
-            # known / lethal / observations are 0 (not NaN) where no tile column reached: each row's runs of such cells
-            for row in np.flatnonzero(~self._covered.all(axis=1)):
-                edges = np.flatnonzero(np.diff(np.concatenate([[0], (~self._covered[row]).astype(np.int8), [0]])))
+            # known / lethal / observations are 0 (not NaN) where no tile column reached. The reached cells are a
+            # union of rectangles, so consecutive rows alike share their runs of unreached cells: one window per
+            # run and such band of rows (row by row, the long drive's store took 1.7 s of writes here).
+            covered = self._covered
+            changes = np.flatnonzero(np.any(covered[1:] != covered[:-1], axis=1)) + 1
+            for top, bottom in zip(np.r_[0, changes], np.r_[changes, len(covered)]):
+                edges = np.flatnonzero(np.diff(np.concatenate([[0], (~covered[top]).astype(np.int8), [0]])))
                 for start, stop in zip(edges[::2], edges[1::2]):
-                    zeros = np.zeros((1, int(stop - start)), np.float32)
-                    for name in ("observations", "known", "lethal"):
-                        self.dataset.write(zeros, self.names.index(name) + 1, window=Window(int(start), int(row), int(stop - start), 1))
+                    width = int(stop - start)
+                    step = max(1, (1 << 22) // width)  # at most 16 MB of zeros at a time
+                    for row in range(int(top), int(bottom), step):
+                        zeros = np.zeros((min(step, int(bottom) - row), width), np.float32)
+                        for name in UNREACHED_ZERO_BANDS:
+                            self.dataset.write(zeros, self.names.index(name) + 1, window=Window(int(start), row, width, len(zeros)))
         self.dataset.close()
         os.replace(self._temporary, self.path)
         return self.path
