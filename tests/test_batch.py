@@ -115,7 +115,7 @@ def test_ray_workers_start_with_their_share_of_the_math_threads(monkeypatch):
     ray = pytest.importorskip("ray")
     monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
     monkeypatch.setenv("MKL_NUM_THREADS", "3")  # a user's own setting is kept
-    executor = batch.RayExecutor(2, context=None, address=None)
+    executor = batch.RayExecutor(2, address=None)
     try:
         @ray.remote(num_cpus=1)
         def environment():
@@ -128,6 +128,15 @@ def test_ray_workers_start_with_their_share_of_the_math_threads(monkeypatch):
         executor.close()
     share = str(max(1, (os.cpu_count() or 1) // 2))
     assert seen == {"OMP_NUM_THREADS": share, "OPENBLAS_NUM_THREADS": share, "MKL_NUM_THREADS": "3"}
+
+
+def test_ray_is_stopped_when_the_run_it_was_started_for_fails_to_plan(tmp_path):
+    """Ray starts while the run is planned: a plan that fails (bad input) must not leave it running."""
+    ray = pytest.importorskip("ray")
+    assert not ray.is_initialized()
+    with pytest.raises((ConfigError, ValueError), match="nowhere"):
+        _batch([tmp_path / "nowhere"], tmp_path / "store", executor="ray", workers=1)
+    assert not ray.is_initialized()
 
 
 @pytest.mark.parametrize("executor", ["local", "ray"])

@@ -36,7 +36,7 @@ import sys
 import threading
 import time
 from collections import OrderedDict
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
@@ -712,6 +712,21 @@ class LocalExecutor:
             self._pool = None
 
 
+@contextlib.contextmanager
+def _environment(values: dict):
+    """``values`` in os.environ while the block runs; what was there before, after."""
+    before = {name: os.environ.get(name) for name in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for name, value in before.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
 _RAY_CONTEXTS: dict = {}  # object id -> context, per Ray worker process
 
 
@@ -740,7 +755,9 @@ class RayExecutor:
 
     name = "ray"
 
-    def __init__(self, workers: int | None, context: Context, address: str | None, log=None):
+    def __init__(self, workers: int | None, address: str | None, log=None):
+        """Start (or join) Ray; ``attach`` gives it the run's context. Apart, so that a run starts Ray while it
+        plans (_run_batch)."""
         try:
             import ray
         except ImportError:
@@ -755,11 +772,23 @@ class RayExecutor:
             # machine. A user's own setting is kept.
             share = max(1, (os.cpu_count() or 1) // (workers or os.cpu_count() or 1)) if not address else 1
             env |= {name: os.environ.get(name, str(share)) for name in _MATH_THREAD_VARIABLES}
-            kwargs = {"address": address} if address else {"num_cpus": workers or os.cpu_count()}
-            ray.init(**kwargs, include_dashboard=False, logging_level="ERROR", log_to_driver=False, runtime_env={"env_vars": env})
+            options = {"include_dashboard": False, "logging_level": "ERROR", "log_to_driver": False}
+            if address:
+                ray.init(address=address, runtime_env={"env_vars": env}, **options)
+            else:
+                # A local instance's processes, and the workers it starts ahead of the first tasks, inherit this
+                # process's environment at ray.init: set for it alone. A runtime_env made Ray start other workers for
+                # the first tasks instead of using those (0.5 s more before the first chunk ran).
+                with _environment(env):
+                    ray.init(num_cpus=workers or os.cpu_count(), **options)
         self.workers = workers or int(ray.cluster_resources().get("CPU", 1))
-        self.context_ref = ray.put(context)
         self._task = ray.remote(num_cpus=1, max_retries=3)(_ray_task)
+        self.context_ref = None
+
+    def attach(self, context: Context) -> "RayExecutor":
+        """Put the run's context in Ray's object store, once for all tasks."""
+        self.context_ref = self.ray.put(context)
+        return self
 
     def run(self, fn, items: list, on_done) -> None:
         """``fn(*item)`` for every item as Ray tasks, at most two per worker in flight; ``on_done(item, result)``."""
@@ -775,8 +804,11 @@ class RayExecutor:
                 on_done(flight.pop(ref), self.ray.get(ref))
 
     def close(self) -> None:
-        """Shut down the Ray instance this executor started (a cluster given by address is left running)."""
+        """Shut down the Ray instance this executor started (a cluster given by address is left running); once.
+        Here, not on a thread while the tiles are written: shutting Ray down while the driver may still release
+        object references ends the process (tried: stopping it as the last result came in)."""
         if self.started:
+            self.started = False
             self.ray.shutdown()
 
 
@@ -905,7 +937,31 @@ def _run_batch(paths: list[str], options: BatchOptions, log=None, *, on_tile=Non
     out = Path(options.out)
     if options.executor not in ("local", "ray", "inline"):
         raise ConfigError(f"--executor {options.executor!r}: local or ray")
-    inputs, sources, config, chunks, identity = plan_batch(paths, options)
+    if options.executor == "ray":
+        # Ray takes seconds to start its processes: the run is planned meanwhile (reading and hashing the inputs)
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="evsemmap-batch-plan") as planner:
+            planning = planner.submit(plan_batch, paths, options)
+            executor = RayExecutor(options.workers, options.ray_address, log)
+            try:
+                inputs, sources, config, chunks, identity = planning.result()
+            except BaseException:
+                executor.close()
+                raise
+    else:
+        inputs, sources, config, chunks, identity = plan_batch(paths, options)
+        executor = None
+    try:
+        return _map_and_write(options, log, on_tile, _fault, times, started, executor, (inputs, sources, config, chunks, identity))
+    finally:
+        if executor is not None:
+            executor.close()  # a run that failed before its chunks (bad input): Ray is stopped all the same
+
+
+def _map_and_write(options: BatchOptions, log, on_tile, _fault, times: dict, started: float, ray_executor, planned) -> dict:
+    """The rest of ``_run_batch``, once the run is planned (and Ray started, for the Ray executor); ``times['plan']``
+    includes Ray's start, which planning overlaps."""
+    out = Path(options.out)
+    inputs, sources, config, chunks, identity = planned
     files.check_not_inside(out, [e["path"] for entry in identity["inputs"] for e in entry if "path" in e], "batch --out")
     _check_store(out, identity)
     origin_index, class_names, first, first_two = probe(sources, config)
@@ -926,8 +982,8 @@ def _run_batch(paths: list[str], options: BatchOptions, log=None, *, on_tile=Non
     total_frames = sum(c.frames for c in chunks)
     if finished:
         log(f"resuming: {len(finished)} of {len(chunks)} chunks are mapped already")
-    if options.executor == "ray":
-        executor = RayExecutor(options.workers, context, options.ray_address, log)
+    if ray_executor is not None:
+        executor = ray_executor.attach(context)
     elif options.executor == "inline":
         executor = InlineExecutor(context)
     else:
