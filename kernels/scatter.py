@@ -286,8 +286,7 @@ def touch_row(voxel_data: wp.array2d(dtype=wp.float64), row: int):
     """Mark a row touched: the first access every kernel makes to a row it will add to. On the CPU a
     fresh row's page, read first, maps the shared zero page and faults a second time on the write that
     follows; written first, it faults once. The read-first order doubled the S-BKI gather's faults, and
-    faults of two shards contend (S-BKI mode at free_res 4, 2 threads: 1.6 s read first, 0.9 s written
-    first; docs/performance.md)."""
+    faults of two shards contend (docs/performance.md measures what it cost; tests/test_page_faults.py)."""
     voxel_data[row, voxel_data.shape[1] - _EXTRA + COL_TOUCHED] = _ONE
 
 

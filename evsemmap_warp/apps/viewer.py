@@ -22,8 +22,8 @@ variance difference), a ground grid labelled in metres of the world frame, a sca
 camera, and a measuring tool. A click reports the world coordinates of the point it hits (a voxel, a
 terrain cell, or the ground grid's plane). viser 1.1 sends clicks and camera moves, not pointer moves,
 to the server, so in place of coordinates on hover the panel follows the point under the screen's
-center (marked by a crosshair at the orbit center) as the view moves. Lit meshes (boxes, the surface) are drawn under the viewer's own
-lights with compensated colors so that they show the palette's colors.
+center (marked by a crosshair at the orbit center) as the view moves. Lit meshes (boxes, the surface)
+are drawn under the viewer's own lights with compensated colors so that they show the palette's colors.
 """
 
 from __future__ import annotations

@@ -45,9 +45,9 @@ def class_colors(class_names) -> np.ndarray:
 class _PreviewMosaic:
     """Every band of a store's layers at preview size (one cell in ``stride`` along each axis, as a map file's
     previews are decimated), filled tile column by tile column as they are computed, so that the previews are
-    drawn from memory, on a second thread while the GeoTIFF and the bag are finished (reading the GeoTIFF back
-    took 1.7 s of the long drive's 17 s). At most MAX_PREVIEW_PIXELS a side: 19 float32 bands of 1600 x 1600
-    cells, 195 MB, for the squarest store."""
+    drawn from memory, on a second thread while the GeoTIFF and the bag are finished, instead of reading the
+    GeoTIFF back (docs/terrain.md §8 says what that cost). At most MAX_PREVIEW_PIXELS a side: 10 MB a band
+    (float32) for the squarest store."""
 
     def __init__(self, grid, names: list[str], stride: int):
         shape = (-(-grid.height // stride), -(-grid.width // stride))
