@@ -513,3 +513,36 @@ def test_the_preview_mosaic_is_the_whole_grid_decimated_whatever_the_parts(strid
     expected_elevation = np.where(reached, whole["elevation"], np.nan)[::stride, ::stride]
     np.testing.assert_array_equal(mosaic.bands["elevation"], expected_elevation)
     np.testing.assert_array_equal(mosaic.bands["known"], np.where(reached, whole["known"], 0.0)[::stride, ::stride])
+
+
+def test_the_geotiff_holds_zero_counts_and_masks_where_no_part_reached():
+    """Cells no part of a mosaic reaches: NaN layers, but 0 observations, known and lethal (written at close in one
+    window per run of such cells and band of alike rows); reached cells keep what was written."""
+    from types import SimpleNamespace
+
+    rasterio = pytest.importorskip("rasterio")
+    from evsemmap_warp.terrain.layers import LayerGrid, band_names
+    from evsemmap_warp.terrain.outputs import GeoTiffWriter
+
+    import tempfile
+    from pathlib import Path
+
+    classes = ["grass", "tree"]
+    grid = LayerGrid(0.5, 0.0, (0, 0), 30, 20)
+    names = band_names(classes)
+    reached = np.zeros((20, 30), bool)
+    with tempfile.TemporaryDirectory() as folder:
+        writer = GeoTiffWriter(Path(folder) / "t.tif", grid, None, classes, costs_file="c.yaml")
+        # an L of two parts: the south-west 10 x 12 cells and a strip along the north edge
+        for first, width, height in (((0, 0), 10, 12), ((5, 17), 25, 3)):
+            part = LayerGrid(0.5, 0.0, first, width, height)
+            writer.write(SimpleNamespace(grid=part, bands={n: np.full((height, width), 2.0, np.float32) for n in names}))
+            row, column = part.window_in(grid)
+            reached[row:row + height, column:column + width] = True
+        path = writer.close()
+        with rasterio.open(path) as tif:
+            bands = {n: tif.read(names.index(n) + 1) for n in ("elevation", "observations", "known", "lethal")}
+    assert 0 < reached.sum() < reached.size
+    assert np.all(np.isnan(bands["elevation"][~reached])) and np.all(bands["elevation"][reached] == 2.0)
+    for name in ("observations", "known", "lethal"):
+        assert np.all(bands[name][~reached] == 0.0) and np.all(bands[name][reached] == 2.0), name

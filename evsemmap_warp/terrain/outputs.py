@@ -149,20 +149,23 @@ class GeoTiffWriter:
         from rasterio.windows import Window
 
         if self._covered is not None and not self._covered.all():
-            # known / lethal / observations are 0 (not NaN) where no tile column reached. The reached cells are a
-            # union of rectangles, so consecutive rows alike share their runs of unreached cells: one window per
-            # run and such band of rows (row by row, the long drive's store took 1.7 s of writes here).
+            # Where no part reached, known / lethal / observations are 0 and every other band NaN. Every band is
+            # written there: the file interleaves bands by pixel, so a block written for one band holds every band,
+            # and the others read 0 there, not the nodata NaN (a store whose tile columns left cells unreached read
+            # elevation 0 in them). The reached cells are a union of rectangles, so consecutive rows alike share
+            # their runs of unreached cells: one window per run and such band of rows.
             covered = self._covered
+            fill = np.array([0.0 if name in UNREACHED_ZERO_BANDS else np.nan for name in self.names], np.float32)
             changes = np.flatnonzero(np.any(covered[1:] != covered[:-1], axis=1)) + 1
             for top, bottom in zip(np.r_[0, changes], np.r_[changes, len(covered)]):
                 edges = np.flatnonzero(np.diff(np.concatenate([[0], (~covered[top]).astype(np.int8), [0]])))
                 for start, stop in zip(edges[::2], edges[1::2]):
                     width = int(stop - start)
-                    step = max(1, (1 << 22) // width)  # at most 16 MB of zeros at a time
+                    step = max(1, (1 << 22) // (width * len(self.names)))  # at most 16 MB at a time
                     for row in range(int(top), int(bottom), step):
-                        zeros = np.zeros((min(step, int(bottom) - row), width), np.float32)
-                        for name in UNREACHED_ZERO_BANDS:
-                            self.dataset.write(zeros, self.names.index(name) + 1, window=Window(int(start), row, width, len(zeros)))
+                        height = min(step, int(bottom) - row)
+                        values = np.broadcast_to(fill[:, None, None], (len(self.names), height, width))
+                        self.dataset.write(np.ascontiguousarray(values), window=Window(int(start), row, width, height))
         self.dataset.close()
         os.replace(self._temporary, self.path)
         return self.path
