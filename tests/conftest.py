@@ -1,6 +1,7 @@
 """Shared test set-up: a predictable Warp kernel cache, the device list, the shared data folder."""
 
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -33,3 +34,14 @@ def shared_path(*parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"{path} is absent: this test needs the project's shared data folder beside the checkout (CI has it)")
     return path
+
+
+def wait_until(predicate, timeout: float, interval: float = 0.05) -> bool:
+    """Whether ``predicate()`` came true within ``timeout`` seconds (asked every ``interval``): the viewer tests wait
+    on threads, servers and browsers this way."""
+    end = time.time() + timeout
+    while time.time() < end:
+        if predicate():
+            return True
+        time.sleep(interval)
+    return False

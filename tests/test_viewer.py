@@ -12,7 +12,7 @@ from evsemmap_warp.core.mapper import Mapper
 from evsemmap_warp.apps.viewer import CLASS_COLORS, MapViewer, colormap, free_port, load_points, load_trajectory
 from evsemmap_warp.frames import WorldFrame
 
-from conftest import REPO
+from conftest import REPO, wait_until
 
 CLASSES = ["void", "sky", "water", "object", "paved", "unpaved", "dirt", "grass", "vegetation"]
 
@@ -238,7 +238,7 @@ def test_the_panel_follows_what_lies_under_the_screen_center_as_the_camera_moves
 
     v.center_hit = None
     v._on_camera(1, camera(look_at))
-    assert _wait_for(lambda: v.center_hit is not None and v.center_hit["kind"] == "voxel")
+    assert wait_until(lambda: v.center_hit is not None and v.center_hit["kind"] == "voxel", 10.0)
     assert v.center_hit["row"] == top
     cx, cy = layer.centers[top][:2]
     assert f"(a voxel of utm, {layer.classes[layer.label[top]]}): x={cx:.3f}" in v.gui_view_center.content
@@ -248,7 +248,7 @@ def test_the_panel_follows_what_lies_under_the_screen_center_as_the_camera_moves
     beside = look_at + np.array([30.0, 0.0, 0.0])
     beside[2] = v.ground.z - v.origin[2] + 1.0
     v._on_camera(1, camera(beside))
-    assert _wait_for(lambda: v.center_hit is not None and v.center_hit["kind"] == "ground")
+    assert wait_until(lambda: v.center_hit is not None and v.center_hit["kind"] == "ground", 10.0)
     assert v.center_hit["point"][0] == pytest.approx(beside[0] + v.origin[0], abs=0.05)
     assert "(the ground grid's plane)" in v.gui_view_center.content
     # the crosshair keeps a fixed size on screen: 8 pixels' worth of metres at the orbit center
@@ -256,18 +256,7 @@ def test_the_panel_follows_what_lies_under_the_screen_center_as_the_camera_moves
     v.center_hit = None
     v._on_camera(1, camera(beside, height=100.0))
     assert v.crosshair_handle.scale == pytest.approx(10 * near, rel=0.01)
-    assert _wait_for(lambda: v.center_hit is not None and v.center_hit["kind"] == "ground")
-
-
-def _wait_for(predicate, timeout=10.0):
-    import time
-
-    end = time.time() + timeout
-    while time.time() < end:
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return False
+    assert wait_until(lambda: v.center_hit is not None and v.center_hit["kind"] == "ground", 10.0)
 
 
 def test_ply_export_holds_float64_world_coordinates_and_names_the_frame(far_viewer, tmp_path):

@@ -13,6 +13,7 @@ import pytest
 
 from evsemmap_warp.apps.viewer import CLASS_COLORS, MapViewer, colormap, free_port
 
+from conftest import REPO, wait_until
 from test_viewer import make_map
 
 sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install playwright)")
@@ -30,12 +31,7 @@ def _pixels_near(png: bytes, rgb, tol=40) -> int:
 
 
 def _wait(predicate, timeout=20.0):
-    end = time.time() + timeout
-    while time.time() < end:
-        if predicate():
-            return True
-        time.sleep(0.1)
-    return False
+    return wait_until(predicate, timeout)  # this module's default wait
 
 
 def test_scene_renders_and_controls_change_it(tmp_path):
@@ -99,7 +95,6 @@ import colorsys
 import re
 
 from evsemmap_warp.apps import viewer_layers as vl
-from conftest import REPO
 
 
 @pytest.fixture(scope="module")
@@ -528,6 +523,21 @@ def _number_box(page, label: str):
                         "//input[contains(@class, 'NumberInput-input')]").first
 
 
+def _drive_images_in_view(page, scroll_to):
+    """The Drive folder's camera, label and uncertainty images (bounding boxes, below the legend), once the page is
+    scrolled to ``scroll_to`` (a locator), and ``inside(box)``: the screenshot's pixels in a box."""
+    assert _wait(lambda: len(_panel_images(page)) >= 4), _panel_images(page)
+    scroll_to.scroll_into_view_if_needed()
+    time.sleep(1.0)
+    _legend, camera, labels, uncertainty = _panel_images(page)[:4]
+    img = _image(page.screenshot())
+
+    def inside(box):
+        return img[int(box["top"]):int(box["bottom"]), int(box["left"]):int(box["right"])]
+
+    return camera, labels, uncertainty, inside
+
+
 @pytest.fixture(scope="module")
 def alpha_drive(tmp_path_factory):
     """A tiny synthetic drive, its alpha files, and its map made from them (one frame per scan)."""
@@ -558,15 +568,7 @@ def test_drive_playback_scrubs_the_map_and_shows_the_scan_and_the_camera(open_pa
         assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000)
         assert playback.wait_until_drawn(5)
         # the camera, its predicted labels and their uncertainty: three images in the Drive folder, below the legend
-        assert _wait(lambda: len(_panel_images(page)) >= 4), _panel_images(page)
-        page.get_by_text("predicted labels (alpha files)").first.scroll_into_view_if_needed()
-        time.sleep(1.0)
-        legend, camera, labels, uncertainty = _panel_images(page)[:4]
-        img = _image(page.screenshot())
-
-        def inside(box):
-            return img[int(box["top"]):int(box["bottom"]), int(box["left"]):int(box["right"])]
-
+        camera, labels, uncertainty, inside = _drive_images_in_view(page, page.get_by_text("predicted labels (alpha files)").first)
         assert camera["width"] > 150 and camera["height"] > 50
         assert _near(inside(labels), CLASS_COLORS["grass"], 10).sum() > 200, "no predicted grass in the label image"
         # uncertainty: the left half of each alpha image has weak evidence (K/S 0.5), the right half strong (0.04)
@@ -639,15 +641,8 @@ def test_drive_playback_of_a_robot_log_labelled_by_a_checkpoint(open_page, log_d
     try:
         page = open_page(viewer)
         assert playback.wait_until_drawn(len(drive) - 1), playback.errors  # the last scan, and the whole map
-        assert _wait(lambda: len(_panel_images(page)) >= 4), _panel_images(page)
-        page.locator("img[src^='blob:']").nth(3).scroll_into_view_if_needed()  # the uncertainty image, the last
-        time.sleep(1.0)
-        legend, camera, labels, uncertainty = _panel_images(page)[:4]
-        img = _image(page.screenshot())
-
-        def inside(box):
-            return img[int(box["top"]):int(box["bottom"]), int(box["left"]):int(box["right"])]
-
+        # scrolled to the uncertainty image, the last
+        camera, labels, uncertainty, inside = _drive_images_in_view(page, page.locator("img[src^='blob:']").nth(3))
         # the checkpoint labels its 64 x 32 input; its labels and uncertainty are shown at the camera image's size
         assert camera["width"] > 150 and camera["height"] > 50
         assert (labels["width"], labels["height"]) == (uncertainty["width"], uncertainty["height"]) == (camera["width"], camera["height"])

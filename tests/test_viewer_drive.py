@@ -15,7 +15,7 @@ from evsemmap_warp.core.map_file import read_map_arrays
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence, write_stand_in_alpha
 
-from conftest import REPO
+from conftest import REPO, wait_until
 
 
 @pytest.fixture(scope="module")
@@ -77,21 +77,10 @@ def test_playback_draws_the_scan_the_pose_and_the_map_as_it_stood(drive):
         assert playback.wait_until_drawn(1)
         assert len(viewer.layers[0].state) == len(file_arrays["state"])
         # idle: the snapshots fill in to the end, and the replay gives the map file back
-        assert _wait(lambda: "give the map file back" in playback.replay_check, 60), playback.replay_check
+        assert wait_until(lambda: "give the map file back" in playback.replay_check, 60), playback.replay_check
     finally:
         playback.close()
         viewer.server.stop()
-
-
-def _wait(predicate, timeout):
-    import time
-
-    end = time.time() + timeout
-    while time.time() < end:
-        if predicate():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def test_playback_of_an_alpha_labelled_map_shows_the_camera_labels_and_uncertainty(drive):
@@ -116,7 +105,7 @@ def test_playback_of_an_alpha_labelled_map_shows_the_camera_labels_and_uncertain
         # the scan by input uncertainty: K/S of each point's alpha
         assert playback.gui_scan_color.options == ("label", "input uncertainty")
         playback.gui_scan_color.value = "input uncertainty"
-        assert _wait(lambda: playback._drawn_scan == (1, "input uncertainty"), 30)
+        assert wait_until(lambda: playback._drawn_scan == (1, "input uncertainty"), 30)
         scan = drive_.scan(1)
         want = colormap(9.0 / scan.payload.sum(axis=1), 0.0, 1.0)
         np.testing.assert_array_equal(playback.scan_handle.colors, want)

@@ -10,6 +10,7 @@ import pytest
 from evsemmap_warp.apps.cli import main
 from evsemmap_warp.apps.viewer import MapViewer, StoreOverview, free_port
 
+from conftest import wait_until
 from test_viewer import make_map
 
 
@@ -23,12 +24,7 @@ def store(tmp_path_factory):
 
 
 def _wait(predicate, timeout=30.0):
-    end = time.time() + timeout
-    while time.time() < end:
-        if predicate():
-            return True
-        time.sleep(0.05)
-    return False
+    return wait_until(predicate, timeout)  # this module's default wait
 
 
 def test_first_frame_from_the_first_tiles_then_the_overview_fills_in(store):

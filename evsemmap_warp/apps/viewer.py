@@ -755,7 +755,8 @@ class MapViewer:
         look_at = np.asarray(camera.look_at, np.float64)
         self.crosshair_handle.position = tuple(look_at)
         self.crosshair_handle.scale = 8.0 * m_per_px
-        self.crosshair_handle.visible = True
+        if not self.crosshair_handle.visible:  # once: each assignment is a message to every browser
+            self.crosshair_handle.visible = True
         with self._center_wake:
             self._center_camera = (np.asarray(camera.position, np.float64), look_at)
             self._center_wake.notify_all()
