@@ -139,6 +139,23 @@ def test_ray_is_stopped_when_the_run_it_was_started_for_fails_to_plan(tmp_path):
     assert not ray.is_initialized()
 
 
+def test_a_ray_instance_that_cannot_be_joined_by_address_is_one_line_naming_the_address_and_the_token(monkeypatch):
+    """Ray authenticates by token by default and joins by address only with RAY_AUTH_MODE=token set; without
+    it the user saw a minute of Ray's retries and then "Failed to connect to Ray cluster"."""
+    ray = pytest.importorskip("ray")
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
+
+    def refused(**options):
+        raise ConnectionError("Failed to connect to Ray cluster at 10.0.0.9:6379")
+
+    monkeypatch.setattr(ray, "init", refused)
+    with pytest.raises(ConfigError, match=r"--ray-address 10\.0\.0\.9:6379: could not join .*RAY_AUTH_MODE=token"):
+        batch.RayExecutor(2, address="10.0.0.9:6379")
+    monkeypatch.setenv("RAY_AUTH_MODE", "token")  # asked for already: no hint, the address and Ray's reason
+    with pytest.raises(ConfigError, match=r"could not join the Ray instance \(Failed to connect .*\)$"):
+        batch.RayExecutor(2, address="10.0.0.9:6379")
+
+
 @pytest.mark.parametrize("executor", ["local", "ray"])
 def test_a_worker_killed_in_the_middle_of_a_chunk_changes_nothing(drive, tmp_path, executor):
     if executor == "ray":

@@ -1,6 +1,9 @@
 """Batch-mapping benchmark on this machine: the long synthetic drive (``evsemmap synth --world long
 --no-camera``: 5,000 LiDAR frames, 2 km) mapped by ``evsemmap map`` and by ``evsemmap batch`` with the
-local process pool and with Ray, at 1 and 2 workers, in one run.
+local process pool and with Ray, at 1 and 2 workers, in one run. Ray is measured twice: the local instance a
+run starts and stops itself (``--executor ray``), and a running Ray instance the runs join (``--ray-address``,
+as on a cluster: the tool starts one with ``ray start --head --block`` for these rows, runs one unrecorded
+warm-up batch in it, and stops it after them).
 
 Each configuration runs as the command a user types (a fresh process, start-up included), after a
 warm-up batch on the first 200 frames (kernel cache, page cache). Reported per configuration: wall
@@ -21,6 +24,7 @@ line printed is its path.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shutil
@@ -45,6 +49,7 @@ RELLIS3D = {"frames": 13_556, "points_per_frame": 131_072 * 0.55, "drive_km": 3.
 FLEET_KM = 1_000.0
 FLEET_FRAME_SPACING_M = 0.5  # 10 Hz at 5 m/s
 CLUSTER = {"nodes": 16, "cores_per_node": 16}
+RAY_CLUSTER_ENV = {"RAY_AUTH_MODE": "token"}
 
 
 def folder_size(path: Path) -> int:
@@ -58,7 +63,41 @@ def folder_size(path: Path) -> int:
     return total
 
 
-def run(args: list[str], watch: Path | None = None) -> tuple[float, dict, int]:
+@contextlib.contextmanager
+def running_ray(cores: int, folder: Path):
+    """A Ray instance of ``cores`` CPUs started for the rows that join one (``ray start --head --block``,
+    in its own temporary folder), its address while the block runs; stopped after, alone (``ray stop`` would
+    stop every Ray instance of this user). It authenticates by token (Ray's default), so a run joining it by
+    address needs RAY_AUTH_MODE=token (RAY_CLUSTER_ENV), as a user's would."""
+    import socket
+
+    with socket.socket() as probe:  # a free port for its GCS
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    ray_cli = Path(sys.executable).with_name("ray")
+    folder.mkdir(parents=True, exist_ok=True)
+    log = folder / "head.log"
+    with open(log, "w") as log_file:
+        head = subprocess.Popen([str(ray_cli), "start", "--head", "--block", "--node-ip-address", "127.0.0.1", "--port", str(port),
+                                 "--num-cpus", str(cores), "--include-dashboard", "false", "--disable-usage-stats", "--temp-dir", str(folder)],
+                                stdout=log_file, stderr=subprocess.STDOUT, cwd=REPO, env=os.environ | RAY_CLUSTER_ENV)
+    address = f"127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 60
+        while "Ray runtime started" not in log.read_text():  # what ray start prints once a driver can join
+            if head.poll() is not None or time.monotonic() > deadline:
+                raise SystemExit(f"ray start --head did not come up at {address}:\n{log.read_text()[-2000:]}")
+            time.sleep(0.2)
+        yield address
+    finally:
+        head.terminate()  # --block: the head stops its instance's processes on SIGTERM
+        try:
+            head.wait(30)
+        except subprocess.TimeoutExpired:
+            head.kill()
+
+
+def run(args: list[str], watch: Path | None = None, env: dict | None = None) -> tuple[float, dict, int]:
     """Wall time, the JSON summary and, with ``watch``, the largest size the folder reached (sampled
     every 0.25 s in a thread of this process: it costs the run a little CPU, the same for every run)."""
     peak = [0]
@@ -72,7 +111,7 @@ def run(args: list[str], watch: Path | None = None) -> tuple[float, dict, int]:
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
     started = time.perf_counter()
-    done = subprocess.run(EVSEMMAP + args, capture_output=True, text=True, cwd=REPO)
+    done = subprocess.run(EVSEMMAP + args, capture_output=True, text=True, cwd=REPO, env=os.environ | (env or {}))
     seconds = time.perf_counter() - started
     stop.set()
     sampler.join()
@@ -89,18 +128,22 @@ def markdown(record_path: Path) -> str:
     results = record["results"]
     runs = results["runs"]
     names = {"map": "`evsemmap map` (2 threads)", "localx1": "`batch`, local, 1 worker", "localx2": "`batch`, local, 2 workers",
-             "rayx1": "`batch`, Ray, 1 worker", "rayx2": "`batch`, Ray, 2 workers"}
+             "rayx1": "`batch`, Ray, 1 worker", "rayx2": "`batch`, Ray, 2 workers",
+             "ray-clusterx1": "`batch`, running Ray, 1 worker", "ray-clusterx2": "`batch`, running Ray, 2 workers"}
     lines = [f"<!-- record: docs/bench/{Path(record_path).name} -->",
-             "| run | wall | frames/s | input points/s | vs `evsemmap map` | driver's folding | store | peak disk | worker peak | driver peak |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| run | wall | frames/s | input points/s | vs `evsemmap map` | behind local | driver's folding | store | peak disk | worker peak "
+             "| driver peak |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for key, name in names.items():
         if key not in runs:
             continue
         r = runs[key]
+        local = runs.get(f"localx{key[-1]}")
+        behind = f"{100 * (r['wall_s'] / local['wall_s'] - 1):+.1f} %" if local and not key.startswith(("local", "map")) else "-"
         if key == "map":
-            lines.append(f"| {name} | {r['wall_s']} s | {r['frames_per_s']} | {r['input_points_per_s'] / 1e3:.0f} k | (itself) | - | - | - | - | - |")
+            lines.append(f"| {name} | {r['wall_s']} s | {r['frames_per_s']} | {r['input_points_per_s'] / 1e3:.0f} k | (itself) | - | - | - | - | - | - |")
             continue
-        lines.append(f"| {name} | {r['wall_s']} s | {r['frames_per_s']} | {r['input_points_per_s'] / 1e3:.0f} k | {r['speedup_vs_map']}x | "
+        lines.append(f"| {name} | {r['wall_s']} s | {r['frames_per_s']} | {r['input_points_per_s'] / 1e3:.0f} k | {r['speedup_vs_map']}x | {behind} | "
                      f"{r['fold_s']} s | {r['store_mb']} MB ({r['store_bytes_per_voxel']} B/voxel) | {r['peak_disk_mb']} MB | "
                      f"{r['worker_peak_mb']:.0f} MB | {r['driver_peak_mb']:.0f} MB |")
     staged = {key: runs[key] for key in names if key != "map" and runs.get(key, {}).get("chunk_stage_s_median")}
@@ -136,7 +179,8 @@ def main() -> None:
     parser.add_argument("--chunk-frames", type=int, help="default: batch's automatic choice")
     parser.add_argument("--data", type=Path, help="render the long drive here (kept and reused), default a temporary folder")
     parser.add_argument("--repeats", type=int, default=1, help="runs per configuration (median reported)")
-    parser.add_argument("--executors", default="local,ray")
+    parser.add_argument("--executors", default="local,ray,ray-cluster",
+                        help="local (the process pool), ray (a local Ray instance per run), ray-cluster (runs joining a running Ray instance)")
     args = parser.parse_args()
     if args.markdown:
         print(markdown(args.markdown))
@@ -157,12 +201,12 @@ def main() -> None:
                                                                    and int(n[:6]) >= 200])
         run(["batch", str(warm_seq), "--method", args.method, "--out", str(warm), "--quiet"])
 
-        def repeat(name: str, command: list[str], out: Path | None):
+        def repeat(name: str, command: list[str], out: Path | None, env: dict | None = None):
             times, summaries, peaks = [], [], []
             for _ in range(args.repeats):
                 if out is not None:
                     shutil.rmtree(out, ignore_errors=True)
-                seconds, summary, peak = run(command, out)
+                seconds, summary, peak = run(command, out, env)
                 times.append(seconds)
                 summaries.append(summary)
                 peaks.append(peak)
@@ -175,32 +219,52 @@ def main() -> None:
         results["runs"]["map"] = {"wall_s": round(map_seconds, 2), "all_wall_s": walls["map"], "frames_per_s": round(args.frames / map_seconds, 1),
                                   "input_points_per_s": round(points / map_seconds), "voxels": map_report["voxels"]}
         print(f"evsemmap map: {map_seconds:.1f} s, {args.frames / map_seconds:.1f} frames/s, {points / map_seconds / 1e3:.0f} k points/s", flush=True)
-        for executor in args.executors.split(","):
-            for workers in (1, 2):
-                out = tmp / f"store_{executor}_{workers}"
-                chunking = ["--chunk-frames", str(args.chunk_frames)] if args.chunk_frames else []
-                seconds, summary, peak_disk = repeat(f"{executor}{workers}", ["batch", str(data), "--method", args.method, "--out", str(out),
-                                                                              "--executor", executor, "--workers", str(workers), *chunking, "--quiet"], out)
-                store_bytes = folder_size(out / "tiles")
-                row = {
-                    "wall_s": round(seconds, 2), "all_wall_s": walls[f"{executor}{workers}"], "frames_per_s": round(args.frames / seconds, 1),
-                    "input_points_per_s": round(points / seconds), "speedup_vs_map": round(map_seconds / seconds, 2), "map_stage_s": summary["seconds"]["map"],
-                    "fold_s": summary["seconds"]["fold"], "index_s": summary["seconds"]["index"], "store_mb": round(store_bytes / 1e6, 1),
-                    "store_bytes_per_voxel": round(store_bytes / max(summary["voxels"], 1), 1), "peak_disk_mb": round(peak_disk / 1e6, 1),
-                    "work_mb_after": round(folder_size(out / "work") / 1e6, 2), "tiles": summary["tiles"], "voxels": summary["voxels"],
-                    "chunks": summary["chunks"], "chunk_frames": summary["chunk_frames"],
-                    "worker_peak_mb": summary["peak_rss_mb"]["worker_max"], "driver_peak_mb": summary["peak_rss_mb"]["driver"],
-                    "chunk_s_median": summary["chunk_seconds_median"],
-                    "chunk_stage_s_median": summary.get("chunk_stage_seconds_median"),
-                    "chunk_stage_s_total": summary.get("chunk_stage_seconds_total"),
-                    "chunk_handoff": summary.get("chunk_handoff"),
-                    "memory_budget_per_worker_mb": summary["memory_budget"]["per_worker_mb"],
-                }
-                results["runs"][f"{executor}x{workers}"] = row
-                print(f"batch {executor} x{workers}: {seconds:.1f} s ({row['speedup_vs_map']:.2f}x map), {row['frames_per_s']} frames/s, "
-                      f"fold {row['fold_s']:.1f} s, store {row['store_mb']} MB ({row['store_bytes_per_voxel']} B/voxel) in {row['tiles']} tiles, "
-                      f"peak disk {row['peak_disk_mb']} MB, worker peak {row['worker_peak_mb']:.0f} MB, driver {row['driver_peak_mb']:.0f} MB", flush=True)
-                print(breakdown(row), flush=True)
+        with contextlib.ExitStack() as cluster:
+            for executor in args.executors.split(","):
+                if executor not in ("local", "ray", "ray-cluster"):
+                    raise SystemExit(f"--executors: {executor!r} is not local, ray or ray-cluster")
+                joining, env = [], None
+                if executor == "ray-cluster":
+                    address = cluster.enter_context(running_ray(os.cpu_count() or 1, tmp / "ray"))
+                    joining, env = ["--ray-address", address], RAY_CLUSTER_ENV
+                    # the instance's first job sets up its runtime_env agent (seconds): a warm-up, as a cluster's user has
+                    warm_seconds = run(["batch", str(warm_seq), "--method", args.method, "--out", str(tmp / "warm_cluster"),
+                                        "--executor", "ray", *joining, "--quiet"], None, env)[0]
+                    results["ray_cluster_warmup_wall_s"] = round(warm_seconds, 3)
+                for workers in (1, 2):
+                    out = tmp / f"store_{executor}_{workers}"
+                    chunking = ["--chunk-frames", str(args.chunk_frames)] if args.chunk_frames else []
+                    seconds, summary, peak_disk = repeat(f"{executor}{workers}", [
+                        "batch", str(data), "--method", args.method, "--out", str(out), "--executor", "local" if executor == "local" else "ray",
+                        *joining, "--workers", str(workers), *chunking, "--quiet"], out, env)
+                    store_bytes = folder_size(out / "tiles")
+                    row = {
+                        "wall_s": round(seconds, 2), "all_wall_s": walls[f"{executor}{workers}"], "frames_per_s": round(args.frames / seconds, 1),
+                        "input_points_per_s": round(points / seconds), "speedup_vs_map": round(map_seconds / seconds, 2),
+                        # the run's own stages (the last repeat's): planning (Ray's start overlaps it), mapping, writing the tiles
+                        "plan_s": summary["seconds"]["plan"], "map_stage_s": summary["seconds"]["map"],
+                        "write_tiles_s": summary["seconds"]["write_tiles"], "run_total_s": summary["seconds"]["total"],
+                        "fold_s": summary["seconds"]["fold"], "index_s": summary["seconds"]["index"], "store_mb": round(store_bytes / 1e6, 1),
+                        "store_bytes_per_voxel": round(store_bytes / max(summary["voxels"], 1), 1), "peak_disk_mb": round(peak_disk / 1e6, 1),
+                        "work_mb_after": round(folder_size(out / "work") / 1e6, 2), "tiles": summary["tiles"], "voxels": summary["voxels"],
+                        "chunks": summary["chunks"], "chunk_frames": summary["chunk_frames"],
+                        "worker_peak_mb": summary["peak_rss_mb"]["worker_max"], "driver_peak_mb": summary["peak_rss_mb"]["driver"],
+                        "chunk_s_median": summary["chunk_seconds_median"],
+                        "chunk_stage_s_median": summary.get("chunk_stage_seconds_median"),
+                        "chunk_stage_s_total": summary.get("chunk_stage_seconds_total"),
+                        "chunk_handoff": summary.get("chunk_handoff"),
+                        "memory_budget_per_worker_mb": summary["memory_budget"]["per_worker_mb"],
+                    }
+                    local = results["runs"].get(f"localx{workers}")
+                    if executor != "local" and local:
+                        row["behind_local_pct"] = round(100 * (seconds / local["wall_s"] - 1), 1)
+                    results["runs"][f"{executor}x{workers}"] = row
+                    print(f"batch {executor} x{workers}: {seconds:.1f} s ({row['speedup_vs_map']:.2f}x map"
+                          + (f", {row['behind_local_pct']} % behind local" if "behind_local_pct" in row else "")
+                          + f"), {row['frames_per_s']} frames/s, fold {row['fold_s']:.1f} s, store {row['store_mb']} MB "
+                          f"({row['store_bytes_per_voxel']} B/voxel) in {row['tiles']} tiles, peak disk {row['peak_disk_mb']} MB, "
+                          f"worker peak {row['worker_peak_mb']:.0f} MB, driver {row['driver_peak_mb']:.0f} MB", flush=True)
+                    print(breakdown(row), flush=True)
         # Projection: mapping cost per input point (one worker, median chunk) and fold cost per tile,
         # spread over every core of the cluster; tiles grow with the distance driven.
         one = results["runs"].get("localx1") or next(iter(v for k, v in results["runs"].items() if k != "map"))

@@ -774,7 +774,14 @@ class RayExecutor:
             env |= {name: os.environ.get(name, str(share)) for name in _MATH_THREAD_VARIABLES}
             options = {"include_dashboard": False, "logging_level": "ERROR", "log_to_driver": False}
             if address:
-                ray.init(address=address, runtime_env={"env_vars": env}, **options)
+                try:
+                    ray.init(address=address, runtime_env={"env_vars": env}, **options)
+                except ConnectionError as exc:
+                    # Ray authenticates by token by default, and joins by address (not "auto") only with it asked for
+                    hint = "" if os.environ.get("RAY_AUTH_MODE") else (
+                        "; a Ray instance that authenticates by token (Ray's default) is joined by address with RAY_AUTH_MODE=token "
+                        "set here (and its token in ~/.ray/auth_token or RAY_AUTH_TOKEN), or with --ray-address auto on its own machine")
+                    raise ConfigError(f"--ray-address {address}: could not join the Ray instance ({exc}){hint}") from None
             else:
                 # A local instance's processes, and the workers it starts ahead of the first tasks, inherit this
                 # process's environment at ray.init: set for it alone. A runtime_env made Ray start other workers for

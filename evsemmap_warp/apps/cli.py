@@ -639,7 +639,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="frames per task, rounded to whole bins (default: automatic, from the inputs' total frames only: "
                         "ceil(frames / 16), at most 100: at least 16 chunks when the frames allow, two per worker up to 8 workers; "
                         "never from the worker count, so stores are the same for any; the JSON summary gives the value and rule)")
-    p.add_argument("--ray-address", default=None, help="an existing Ray cluster: auto, or ray://host:port (default: a local Ray instance)")
+    p.add_argument("--ray-address", default=None, help="an existing Ray cluster: auto, ray://host:port, or its head's host:port (with RAY_AUTH_MODE=token for token authentication, Ray's default; default: a local Ray instance)")
     p.add_argument("--checkpoint", type=Path, help="label the scans from the camera with this segmentation checkpoint (inference in each task)")
     p.add_argument("--alpha-dir", type=Path, metavar="DIR", help="label the scans from the camera with the alpha files of `evsemmap infer` "
                                                                    "in this folder")
