@@ -10,9 +10,12 @@ For each log format:
 3. map: ``evsemmap map LOG rellis3d-bag --method ebs`` as the library runs it (read + integrate),
    input points/s, against the same drive from its folder in the same run.
 
-Warm-up pass first, then the median of ``--repeats``. The last line printed is one JSON object.
+Warm-up pass first, then the median of ``--repeats``. The figures go to a run record
+(docs/bench/bench_logs-<UTC>.json, tools/bench_record.py): the last line printed is its path, the line
+before it the figures as one JSON object.
 
     python tools/bench_logs.py [--world default] [--frames 30] [--repeats 3]
+    python tools/bench_logs.py --markdown docs/bench/bench_logs-<UTC>.json   # a record's table, for the docs
 """
 
 from __future__ import annotations
@@ -28,6 +31,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench_record import write_record  # noqa: E402
+
 from evsemmap_warp.config import load_config  # noqa: E402
 from evsemmap_warp.core.mapper import Mapper  # noqa: E402
 from evsemmap_warp.data.datasets import open_dataset  # noqa: E402
@@ -37,6 +42,21 @@ from evsemmap_warp.synthetic.preset import load_preset  # noqa: E402
 from evsemmap_warp.synthetic.writer import generate_sequence  # noqa: E402
 
 SUFFIX = {"rosbag1": "drive.bag", "rosbag2": "drive_ros2", "mcap": "drive.mcap"}
+FORMAT_NAMES = {"rosbag1": "ROS 1 bag", "rosbag2": "ROS 2 sqlite3", "mcap": "MCAP"}
+
+
+def markdown(record_path: Path) -> str:
+    """The docs' table of a run record (docs/performance.md shows it as printed here)."""
+    results = json.loads(Path(record_path).read_text())["results"]
+    lines = [f"<!-- record: docs/bench/{Path(record_path).name} -->",
+             "| log format | size | index | read + decode (clouds and raw images) | `rosbags` iterating the same messages | `map --method ebs` "
+             "| vs the folder |",
+             "|---|---|---|---|---|---|---|"]
+    for fmt, row in results["formats"].items():
+        lines.append(f"| {FORMAT_NAMES.get(fmt, fmt)} | {row['log_mb']} MB | {row['index_s']} s | {row['read_messages_per_s']} msgs/s, "
+                     f"{row['read_mb_per_s']} MB/s | {row['rosbags_floor_mb_per_s']} MB/s | {row['map_input_points_per_s'] / 1e3:.0f} k points/s "
+                     f"| {row['map_vs_folder']}x |")
+    return "\n".join(lines)
 
 
 def median_time(fn, repeats: int) -> tuple[float, object]:
@@ -93,7 +113,11 @@ def main() -> None:
     parser.add_argument("--world", default="default")
     parser.add_argument("--frames", type=int, default=30)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--markdown", type=Path, metavar="RECORD", help="print the docs' table of a run record and exit")
     args = parser.parse_args()
+    if args.markdown:
+        print(markdown(args.markdown))
+        return
     results = {"preset": args.world, "frames": args.frames, "repeats": args.repeats, "formats": {}}
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "folder"
@@ -118,12 +142,15 @@ def main() -> None:
                 "read_messages_per_s": round(messages / read_s), "read_mb_per_s": round(raw_bytes / read_s / 1e6, 1),
                 "rosbags_floor_messages_per_s": round(messages / raw_s), "rosbags_floor_mb_per_s": round(raw_bytes / raw_s / 1e6, 1),
                 "map_input_points_per_s": round(points / map_s), "map_vs_folder": round(folder_map_s / map_s, 3),
+                # per frame (a cloud and an image): reading it against mapping it
+                "read_ms_per_frame": round(1e3 * read_s / args.frames, 1), "map_ms_per_frame": round(1e3 * map_s / args.frames, 1),
             }
             results["formats"][fmt] = row
             print(f"{fmt:8s}: {row['log_mb']} MB, index {index_s:.2f} s, read+decode {row['read_messages_per_s']} msg/s "
                   f"{row['read_mb_per_s']} MB/s (rosbags alone {row['rosbags_floor_mb_per_s']} MB/s), map "
                   f"{points / map_s / 1e3:.0f} k points/s ({row['map_vs_folder']:.2f}x the folder)")
     print(json.dumps(results))
+    print(write_record("bench_logs", results))
 
 
 if __name__ == "__main__":

@@ -6,8 +6,9 @@
    (default 600): the time at which validation mIoU first reaches 0.8, the final metrics, and how
    well the evidential uncertainty u flags errors (mean u on right and wrong pixels, AUROC).
 
-Writes history, metrics and the reliability / uncertainty plots to --out; the last line printed is one
-JSON object of the figures.
+Writes history, metrics and the reliability / uncertainty plots to --out; the figures go to a run record
+(docs/bench/bench_segmentation-<UTC>.json, tools/bench_record.py): the last line printed is its path, the
+line before it the figures as one JSON object.
 
     python tools/bench_segmentation.py [--budget 600] [--frames 400] [--out bench_seg]
 """
@@ -24,6 +25,8 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from bench_record import write_record  # noqa: E402
 
 from evsemmap_warp.classes import class_set  # noqa: E402
 from evsemmap_warp.segmentation.config import ModelConfig  # noqa: E402
@@ -86,6 +89,7 @@ def main() -> int:
         "iou": summary["iou"], "plots": [str(args.out / "reliability.png"), str(args.out / "uncertainty.png")],
     }
     print(json.dumps(result))
+    print(write_record("bench_segmentation", result | {"budget_s": args.budget, "frames": args.frames, "epochs_asked": args.epochs}))
     return 0
 
 

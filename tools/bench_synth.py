@@ -6,7 +6,8 @@
    the brute-force numpy twin on a sample of the same rays in the same run (the ratio is the point;
    the twin is not meant to be fast).
 
-The last line printed is one JSON object of the figures.
+The figures go to a run record (docs/bench/bench_synth-<UTC>.json, tools/bench_record.py); the last line
+printed is its path, the line before it the figures as one JSON object.
 
     python tools/bench_synth.py [--world default] [--repeats 3]
 """
@@ -24,6 +25,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from bench_record import write_record  # noqa: E402
 
 from evsemmap_warp.reference.raycast import cast_rays as numpy_cast_rays  # noqa: E402
 from evsemmap_warp.synthetic.preset import load_preset  # noqa: E402
@@ -70,6 +73,7 @@ def main() -> None:
         "speedup_vs_numpy_twin": round(warp_rate / numpy_rate, 1), "device": caster.device,
     }
     print(json.dumps(result))
+    print(write_record("bench_synth", result | {"repeats": args.repeats, "world": args.world}))
 
 
 if __name__ == "__main__":
