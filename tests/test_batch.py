@@ -139,6 +139,39 @@ def test_ray_is_stopped_when_the_run_it_was_started_for_fails_to_plan(tmp_path):
     assert not ray.is_initialized()
 
 
+@pytest.mark.parametrize("own_instance, most", [(True, 4), (False, 2)])
+def test_ray_keeps_at_most_workers_tasks_running_on_an_instance_it_joins(own_instance, most):
+    """--workers bounds what a run takes of a running Ray instance or cluster: two tasks per worker in flight
+    ran a 1-worker run on both CPUs of a 2-CPU instance (bench_batch-20261203T222614Z: "1 worker" as fast as 2).
+    A local instance the run starts has exactly ``workers`` CPUs, so there the next tasks may wait in Ray."""
+    executor = object.__new__(batch.RayExecutor)
+    in_flight, seen = [], []
+
+    class FakeTask:
+        @staticmethod
+        def remote(fn, threads, context, submitted, item):
+            in_flight.append(item)
+            return item
+
+    class FakeRay:
+        @staticmethod
+        def wait(refs, num_returns):
+            seen.append(len(in_flight))
+            in_flight.remove(refs[0])
+            return [refs[0]], refs[1:]
+
+        @staticmethod
+        def get(ref):
+            return ref * 10
+
+    executor.ray, executor._task, executor.context_ref = FakeRay, FakeTask, None
+    executor.workers, executor.own_instance = 2, own_instance
+    done = {}
+    executor.run(None, [(i,) for i in range(9)], lambda item, result: done.__setitem__(item[0], result))
+    assert done == {i: 10 * i for i in range(9)}
+    assert max(seen) == most
+
+
 def test_a_ray_instance_that_cannot_be_joined_by_address_is_one_line_naming_the_address_and_the_token(monkeypatch):
     """Ray authenticates by token by default and joins by address only with RAY_AUTH_MODE=token set; without
     it the user saw a minute of Ray's retries and then "Failed to connect to Ray cluster"."""

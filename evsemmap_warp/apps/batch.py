@@ -764,6 +764,7 @@ class RayExecutor:
             raise ConfigError('--executor ray needs Ray: pip install "evsemmap_warp[ray]"') from None
         self.ray, self.log = ray, log or (lambda m: None)
         self.started = not ray.is_initialized()
+        self.own_instance = self.started and not address  # a local instance of exactly ``workers`` CPUs
         if self.started:
             env = {k: v for k, v in os.environ.items() if k in ("WARP_CACHE_PATH", "XDG_CACHE_HOME")}
             # Ray workers import numpy before any task runs, so its BLAS pool is sized by the environment
@@ -798,12 +799,16 @@ class RayExecutor:
         return self
 
     def run(self, fn, items: list, on_done) -> None:
-        """``fn(*item)`` for every item as Ray tasks, at most two per worker in flight; ``on_done(item, result)``."""
+        """``fn(*item)`` for every item as Ray tasks; ``on_done(item, result)``. A local instance has as many
+        CPUs as workers, so two tasks per worker are in flight (the next one waits in Ray, not in this loop);
+        on a running instance or a cluster, which may have more CPUs, one per worker, so that ``workers``
+        bounds what the run takes of it (two per worker ran a 1-worker run on both CPUs of a 2-CPU instance)."""
         queue = list(items)
         flight = {}
         threads = max(1, (os.cpu_count() or 1) // self.workers)
+        most_in_flight = (2 if self.own_instance else 1) * self.workers
         while queue or flight:
-            while queue and len(flight) < 2 * self.workers:
+            while queue and len(flight) < most_in_flight:
                 item = queue.pop(0)
                 flight[self._task.remote(fn, threads, [self.context_ref], time.time(), *item)] = item
             finished, _ = self.ray.wait(list(flight), num_returns=1)
