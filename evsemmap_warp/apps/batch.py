@@ -802,18 +802,26 @@ class RayExecutor:
         """``fn(*item)`` for every item as Ray tasks; ``on_done(item, result)``. A local instance has as many
         CPUs as workers, so two tasks per worker are in flight (the next one waits in Ray, not in this loop);
         on a running instance or a cluster, which may have more CPUs, one per worker, so that ``workers``
-        bounds what the run takes of it (two per worker ran a 1-worker run on both CPUs of a 2-CPU instance)."""
+        bounds what the run takes of it (two per worker ran a 1-worker run on both CPUs of a 2-CPU instance).
+        A finished task's successor is submitted before ``on_done`` folds its result, so that no worker waits for
+        the driver's fold (with one task per worker in flight a worker idled through every fold: 17 % slower)."""
         queue = list(items)
         flight = {}
         threads = max(1, (os.cpu_count() or 1) // self.workers)
         most_in_flight = (2 if self.own_instance else 1) * self.workers
-        while queue or flight:
+
+        def submit():
             while queue and len(flight) < most_in_flight:
                 item = queue.pop(0)
                 flight[self._task.remote(fn, threads, [self.context_ref], time.time(), *item)] = item
+
+        submit()
+        while flight:
             finished, _ = self.ray.wait(list(flight), num_returns=1)
-            for ref in finished:
-                on_done(flight.pop(ref), self.ray.get(ref))
+            results = [(flight.pop(ref), self.ray.get(ref)) for ref in finished]
+            submit()
+            for item, result in results:
+                on_done(item, result)
 
     def close(self) -> None:
         """Shut down the Ray instance this executor started (a cluster given by address is left running); once.
