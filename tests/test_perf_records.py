@@ -2,14 +2,13 @@
 and is in it (the rule: tools/perf_records.py), the integration table is generated from a record, and
 the side-by-side record states both sides' compiler flags.
 
-Blocks marked "none" (measured before the tools kept records) pass, but are listed in a warning, one line
-each with the tool that would measure them again, until a record replaces them."""
+Blocks marked "none" (measured before the tools kept records) fail here: every figure of the pages comes
+from a committed record, or is not a measurement ("n/a")."""
 
 from __future__ import annotations
 
 import json
 import sys
-import warnings
 
 import pytest
 from conftest import REPO
@@ -21,9 +20,8 @@ import perf_records  # noqa: E402
 def test_every_speed_figure_in_the_readme_and_docs_is_on_record():
     report = perf_records.check(perf_records.documents())
     assert not report.problems, "speed figures not traceable to a record:\n" + "\n".join(report.problems)
-    if report.unrecorded:
-        warnings.warn(f"{len(report.unrecorded)} blocks of speed figures were measured before records were kept:\n" + "\n".join(
-            f"{block.path.relative_to(REPO)}:{block.start}: {block.target}" for block in report.unrecorded), stacklevel=1)
+    assert not report.unrecorded, "speed figures measured before records were kept (rerun them for a record, or drop them):\n" + "\n".join(
+        f"{block.path.relative_to(REPO)}:{block.start}: {block.target}" for block in report.unrecorded)
 
 
 def _write(tmp_path, name, text):

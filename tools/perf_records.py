@@ -13,7 +13,7 @@ where it comes from, in an HTML comment on the line before it:
   block must be a number of that record's JSON, at the precision printed: 9.29 M matches
   9,291,234 (the unit's scale: k, M, G, ms, µs, ns, min, %, MB, GB), 0.9 s matches 0.89;
 * ``<!-- record: none (WHY; rerun TOOL) -->``: measured before records were kept; the check lists
-  these blocks, so that they are rerun, instead of letting them pass silently;
+  these blocks, and the pages' test refuses them (a figure there is rerun for a record, or dropped);
 * ``<!-- record: n/a (WHY) -->``: the numbers only look like speeds (a setting's default, a stamp);
 * ``<!-- page-record: ... -->`` (anywhere in a file): the same for every block of the file that has no
   marker of its own (a page a tool writes whole, as tools/kernel_study.py writes docs/kernel_study.md).
