@@ -250,5 +250,88 @@ def extended_block_tables(blocks: wp.array(dtype=wp.vec3i), grid: wp.array3d(dty
     test_count[0] = count
 
 
+# ------------------------------------------------------------------ the scan's tables built in parallel
+# ``methods.sbki_compat.gather_tables`` on a device (``methods.sbki_device``): the pairs sorted by their
+# block's position in the blocks' bounding box (a stable radix sort), the distinct blocks entered in a
+# dense grid, the test blocks marked around them and listed in grid order by a scan of the marks.
+
+
+@wp.kernel
+def block_bounds(blocks: wp.array2d(dtype=wp.int64), lowest: wp.array(dtype=wp.int64), highest: wp.array(dtype=wp.int64)):
+    """lowest/highest (3 values, starting at the int64 extremes) = the blocks' per-axis bounds."""
+    k = wp.tid()
+    for axis in range(3):
+        wp.atomic_min(lowest, axis, blocks[k, axis])
+        wp.atomic_max(highest, axis, blocks[k, axis])
+
+
+@wp.kernel
+def box_positions(blocks: wp.array2d(dtype=wp.int64), lowest: wp.vec3l, span_y: wp.int64, span_z: wp.int64,
+                  positions: wp.array(dtype=wp.int64), pair_index: wp.array(dtype=wp.int64)):
+    """positions[k] = block k's row-major position in the box from ``lowest`` (x, then y, then z: the
+    packed keys' order); pair_index[k] = k."""
+    k = wp.tid()
+    positions[k] = ((blocks[k, 0] - lowest[0]) * span_y + (blocks[k, 1] - lowest[1])) * span_z + (blocks[k, 2] - lowest[2])
+    pair_index[k] = wp.int64(k)
+
+
+@wp.kernel
+def distinct_blocks(member_blocks: wp.array2d(dtype=wp.int64), order: wp.array(dtype=wp.int64), starts: wp.array(dtype=wp.int64),
+                    grid_lowest: wp.vec3l, grid_blocks: wp.array(dtype=wp.vec3i), grid: wp.array3d(dtype=int)):
+    """Block b (the pairs' b-th distinct block, its first pair order[starts[b]]) in grid coordinates, and
+    grid[it] = b."""
+    b = wp.tid()
+    k = int(order[int(starts[b])])
+    c = wp.vec3i(int(member_blocks[k, 0] - grid_lowest[0]), int(member_blocks[k, 1] - grid_lowest[1]), int(member_blocks[k, 2] - grid_lowest[2]))
+    grid_blocks[b] = c
+    grid[c[0], c[1], c[2]] = b
+
+
+@wp.kernel
+def mark_test_blocks(grid_blocks: wp.array(dtype=wp.vec3i), offsets: wp.array(dtype=wp.vec3i), grid: wp.array3d(dtype=int),
+                     marked: wp.array(dtype=int)):
+    """marked[cell] = 1 (flat, row-major over the grid) for every block + offset: the test blocks."""
+    b, f = wp.tid()
+    c = grid_blocks[b] + offsets[f]
+    marked[(c[0] * grid.shape[1] + c[1]) * grid.shape[2] + c[2]] = 1
+
+
+@wp.kernel
+def list_test_blocks(marked: wp.array(dtype=int), slot: wp.array(dtype=int), grid: wp.array3d(dtype=int), offsets: wp.array(dtype=wp.vec3i),
+                     grid_lowest: wp.vec3l, tests: wp.array(dtype=wp.vec3i), sources: wp.array2d(dtype=int)):
+    """Each marked cell's test block at slot[cell] - 1 (slot: the inclusive scan of the marks, so grid
+    order), in map coordinates (grid + grid_lowest), and its sources[t, f] = grid[cell + offsets[f]]."""
+    cell = wp.tid()
+    if marked[cell] == 0:
+        return
+    t = slot[cell] - 1
+    z = cell % grid.shape[2]
+    y = (cell / grid.shape[2]) % grid.shape[1]
+    x = cell / (grid.shape[1] * grid.shape[2])
+    tests[t] = wp.vec3i(int(wp.int64(x) + grid_lowest[0]), int(wp.int64(y) + grid_lowest[1]), int(wp.int64(z) + grid_lowest[2]))
+    for f in range(offsets.shape[0]):
+        c = wp.vec3i(x, y, z) + offsets[f]
+        sources[t, f] = grid[c[0], c[1], c[2]]
+
+
+@wp.kernel
+def sorted_block_points(points: wp.array(dtype=wp.vec3), labels: wp.array(dtype=wp.int64), point_ids: wp.array(dtype=wp.int64),
+                        order: wp.array(dtype=wp.int64), length: wp.float32, scaled_points: wp.array(dtype=wp.vec3),
+                        sorted_labels: wp.array(dtype=int)):
+    """The pairs' points in block order as the gather kernel reads them: divided by ell in float32
+    (``scale_points``), and their labels."""
+    k = wp.tid()
+    i = int(point_ids[int(order[k])])
+    scaled_points[k] = points[i] / length
+    sorted_labels[k] = int(labels[i])
+
+
+@wp.kernel
+def narrow_starts(wide: wp.array(dtype=wp.int64), narrow: wp.array(dtype=int)):
+    """narrow[i] = wide[i] as the gather kernel's int point starts."""
+    i = wp.tid()
+    narrow[i] = int(wide[i])
+
+
 # Kernels made by factories, by name (tests/test_twins.py looks their twins up by these names).
 KERNEL_FACTORIES = {"gather_sbki_blocks": gather_sbki_kernel}

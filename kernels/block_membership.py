@@ -7,6 +7,10 @@ per-scan preprocessing runs one scan per worker. ``membership_counts`` and ``mem
 the (point, block) pairs in the order the block gathers sum them, in place of numpy's 27 selection passes
 (both faster than their numpy forms: docs/performance.md).
 
+The parallel forms (``membership_masks_parallel`` to ``membership_blocks``) list the same pairs in the same
+order on a device: each point writes its pairs, bit by bit, after the exclusive scan of the points' pair
+counts, and a stable radix sort by bit puts them shift by shift (``methods.sbki_device``).
+
 numpy twin: ``evsemmap_warp/reference/block_membership.py``.
 """
 
@@ -33,26 +37,32 @@ def _nearest(p: float, size: wp.float64) -> wp.int64:
     return wp.int64(wp.floor(wp.float64(p) / size + wp.float64(0.5)))
 
 
+@wp.func
+def _membership(points: wp.array(dtype=wp.vec3), i: int, size: float, nearest: wp.array2d(dtype=wp.int64)) -> int:
+    """Writes point i's nearest block to nearest[i]; returns the 27-bit mask of its blocks."""
+    half = size / 2.0
+    size64 = wp.float64(size)
+    p = points[i]
+    kx = _nearest(p[0], size64)
+    ky = _nearest(p[1], size64)
+    kz = _nearest(p[2], size64)
+    nearest[i, 0] = kx
+    nearest[i, 1] = ky
+    nearest[i, 2] = kz
+    x = _axis_bits(p[0], kx, size, half)
+    y = _axis_bits(p[1], ky, size, half)
+    z = _axis_bits(p[2], kz, size, half)
+    # bit sy * 3 + sz of yz: in y's block sy and z's block sz; then the same with x above it
+    yz = (y & 1) * z | ((y >> 1) & 1) * (z << 3) | ((y >> 2) & 1) * (z << 6)
+    return (x & 1) * yz | ((x >> 1) & 1) * (yz << 9) | ((x >> 2) & 1) * (yz << 18)
+
+
 @wp.kernel
 def block_membership_masks(points: wp.array(dtype=wp.vec3), size: float, nearest: wp.array2d(dtype=wp.int64), masks: wp.array(dtype=int)):
     """nearest[i] = round(points[i] / size) per axis (in float64), masks[i] = the 27-bit mask of the
     blocks nearest[i] + (-1..1)^3 whose closed float32 box holds the point."""
-    half = size / 2.0
-    size64 = wp.float64(size)
     for i in range(points.shape[0]):
-        p = points[i]
-        kx = _nearest(p[0], size64)
-        ky = _nearest(p[1], size64)
-        kz = _nearest(p[2], size64)
-        nearest[i, 0] = kx
-        nearest[i, 1] = ky
-        nearest[i, 2] = kz
-        x = _axis_bits(p[0], kx, size, half)
-        y = _axis_bits(p[1], ky, size, half)
-        z = _axis_bits(p[2], kz, size, half)
-        # bit sy * 3 + sz of yz: in y's block sy and z's block sz; then the same with x above it
-        yz = (y & 1) * z | ((y >> 1) & 1) * (z << 3) | ((y >> 2) & 1) * (z << 6)
-        masks[i] = (x & 1) * yz | ((x >> 1) & 1) * (yz << 9) | ((x >> 2) & 1) * (yz << 18)
+        masks[i] = _membership(points, i, size, nearest)
 
 
 @wp.func
@@ -100,3 +110,45 @@ def membership_pairs(masks: wp.array(dtype=int), nearest: wp.array2d(dtype=wp.in
                 blocks[pair, 0] = nearest[i, 0] + shift[0]
                 blocks[pair, 1] = nearest[i, 1] + shift[1]
                 blocks[pair, 2] = nearest[i, 2] + shift[2]
+
+
+# ------------------------------------------------------------------ parallel forms (one thread per point or pair)
+
+
+@wp.kernel
+def membership_masks_parallel(points: wp.array(dtype=wp.vec3), size: float, nearest: wp.array2d(dtype=wp.int64), masks: wp.array(dtype=int),
+                              pair_counts: wp.array(dtype=int)):
+    """``block_membership_masks``, one thread per point; pair_counts[i] = the blocks holding point i."""
+    i = wp.tid()
+    mask = _membership(points, i, size, nearest)
+    masks[i] = mask
+    count = int(0)
+    for bit in range(27):
+        count += (mask >> bit) & 1
+    pair_counts[i] = count
+
+
+@wp.kernel
+def membership_pairs_by_point(masks: wp.array(dtype=int), first_pair: wp.array(dtype=int), bits: wp.array(dtype=wp.int64),
+                              point_ids: wp.array(dtype=wp.int64)):
+    """Point i's pairs at first_pair[i] on (an exclusive scan of the pair counts), in bit order: their
+    bits and the point. A stable sort by bit then lists them as ``membership_pairs`` does."""
+    i = wp.tid()
+    mask = masks[i]
+    pair = first_pair[i]
+    for bit in range(27):
+        if (mask >> bit) & 1 == 1:
+            bits[pair] = wp.int64(bit)
+            point_ids[pair] = wp.int64(i)
+            pair += 1
+
+
+@wp.kernel
+def membership_blocks(bits: wp.array(dtype=wp.int64), point_ids: wp.array(dtype=wp.int64), nearest: wp.array2d(dtype=wp.int64),
+                      blocks: wp.array2d(dtype=wp.int64)):
+    """blocks[k] = the nearest block of pair k's point + its bit's shift."""
+    k = wp.tid()
+    i = int(point_ids[k])
+    shift = _shift_of_bit(int(bits[k]))
+    for axis in range(3):
+        blocks[k, axis] = nearest[i, axis] + shift[axis]

@@ -6,6 +6,10 @@ the host, as the C++ loop does), then one at range - f when the range exceeds f.
 a float32 multiply then add, as in the C++ (no fused multiply-add: each operation is its own
 statement).
 
+``ray_geometry`` and ``samples_per_ray`` compute on a device what the host path computes
+with numpy before ``ray_samples`` (``methods.sbki_device``; its tests hold them to the host path bit for
+bit).
+
 numpy twin: ``evsemmap_warp/reference/free_space.py``.
 """
 
@@ -36,3 +40,63 @@ def ray_samples(
         out[row + 1 + k] = origin + d * steps[k]
     if ray_length[h] > free_resolution:
         out[row + 1 + count] = origin + d * (ray_length[h] - free_resolution)
+
+
+@wp.kernel
+def ray_geometry(hits: wp.array(dtype=wp.vec3), origin: wp.vec3, direction: wp.array(dtype=wp.vec3), ray_length: wp.array(dtype=wp.float32)):
+    """Each hit's float32 ray from the origin: its length, sqrt((dx*dx + dy*dy) + dz*dz) (numpy's order
+    over three columns), and its direction, the difference over the length."""
+    h = wp.tid()
+    d = hits[h] - origin
+    length = wp.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    ray_length[h] = length
+    direction[h] = d / length
+
+
+@wp.kernel
+def samples_per_ray(ray_length: wp.array(dtype=wp.float32), steps: wp.array(dtype=wp.float32), free_resolution: wp.float32,
+                    samples_per_hit: wp.array(dtype=int), rows_per_hit: wp.array(dtype=int)):
+    """samples_per_hit[h] = how many steps lie below the hit's range (a binary search of the ascending
+    steps, as numpy's searchsorted side="left"); rows_per_hit[h] = the origin, those samples and the one
+    at range - free_resolution when the range exceeds free_resolution."""
+    h = wp.tid()
+    length = ray_length[h]
+    low = int(0)
+    high = steps.shape[0]
+    while low < high:
+        middle = (low + high) // 2
+        if steps[middle] < length:
+            low = middle + 1
+        else:
+            high = middle
+    samples_per_hit[h] = low
+    rows_per_hit[h] = 1 + low + wp.where(length > free_resolution, 1, 0)
+
+
+
+@wp.kernel
+def within_range(ray_length: wp.array(dtype=wp.float32), max_range: wp.float32, keep: wp.array(dtype=int)):
+    """keep[h] = 1 where the hit's range is at most max_range (the range filter, in float32)."""
+    h = wp.tid()
+    keep[h] = wp.where(ray_length[h] <= max_range, 1, 0)
+
+
+@wp.kernel
+def compact_rays(keep: wp.array(dtype=int), slot: wp.array(dtype=int), hits: wp.array(dtype=wp.vec3), labels: wp.array(dtype=wp.int64),
+                 direction: wp.array(dtype=wp.vec3), ray_length: wp.array(dtype=wp.float32), kept_hits: wp.array(dtype=wp.vec3),
+                 kept_labels: wp.array(dtype=wp.int64), kept_direction: wp.array(dtype=wp.vec3), kept_length: wp.array(dtype=wp.float32)):
+    """The kept hits and their rays, in input order: hit h goes to slot[h] - 1 (slot: the inclusive scan
+    of keep)."""
+    h = wp.tid()
+    if keep[h] == 1:
+        row = slot[h] - 1
+        kept_hits[row] = hits[h]
+        kept_labels[row] = labels[h]
+        kept_direction[row] = direction[h]
+        kept_length[row] = ray_length[h]
+
+
+@wp.kernel
+def longest_ray(ray_length: wp.array(dtype=wp.float32), longest: wp.array(dtype=wp.float32)):
+    """longest[0] (starting at 0) = the largest ray length."""
+    wp.atomic_max(longest, 0, ray_length[wp.tid()])

@@ -13,6 +13,10 @@ this moves). One thread walks all leaves (launch with dim=1): the per-scan prepr
 one scan per worker, and the points are read in place, where numpy's row gather ``points[order]`` alone
 took a third of the free samples' VoxelGrid.
 
+The parallel forms below (``leaf_runs`` to ``leaf_majority_labels``) do the same on a device, one
+thread per point or per leaf, after a stable radix sort of the leaf indices (``wp.utils.radix_sort_pairs``):
+``methods.sbki_device`` chains them, and its tests hold them to the one-thread forms bit for bit.
+
 numpy twins: ``evsemmap_warp/reference/voxel_grid.py``.
 """
 
@@ -54,6 +58,15 @@ __builtin_prefetch(&points.data[index]);
 def _prefetch_point(points: wp.array(dtype=wp.vec3), index: int): ...
 
 
+@wp.func
+def _leaf_centroid(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int64), start: int, n: int) -> wp.vec3:
+    """The float32 mean of points[order[start:start + n]]: their float32 sum in that order, from zero, over n."""
+    total = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(n):
+        total = total + points[int(order[start + k])]
+    return total / float(n)
+
+
 @wp.kernel
 def leaf_centroids(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int64), starts: wp.array(dtype=wp.int64),
                    counts: wp.array(dtype=wp.int64), centroids: wp.array(dtype=wp.vec3)):
@@ -67,7 +80,95 @@ def leaf_centroids(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int
         # positions ahead while this leaf sums (a hint, compiled out on CUDA).
         for k in range(n):
             _prefetch_point(points, int(order[wp.min(start + k + POINTS_AHEAD, last)]))
-        total = wp.vec3(0.0, 0.0, 0.0)
-        for k in range(n):
-            total = total + points[int(order[start + k])]
-        centroids[leaf] = total / float(n)
+        centroids[leaf] = _leaf_centroid(points, order, start, n)
+
+
+# ------------------------------------------------------------------ parallel forms (one thread per point or leaf)
+
+
+@wp.kernel
+def point_bounds(points: wp.array(dtype=wp.vec3), lowest: wp.array(dtype=wp.float32), highest: wp.array(dtype=wp.float32)):
+    """lowest/highest (3 values each, starting at +/-inf) = the points' per-axis minimum and maximum."""
+    i = wp.tid()
+    p = points[i]
+    for axis in range(3):
+        wp.atomic_min(lowest, axis, p[axis])
+        wp.atomic_max(highest, axis, p[axis])
+
+
+@wp.kernel
+def positions(values: wp.array(dtype=wp.int64)):
+    """values[i] = i: the input order the stable sort carries along."""
+    i = wp.tid()
+    values[i] = wp.int64(i)
+
+
+@wp.kernel
+def leaf_runs(sorted_leaf: wp.array(dtype=wp.int64), leaf_of: wp.array(dtype=int)):
+    """leaf_of[k] = 1 where sorted position k starts a new leaf, else 0 (an inclusive scan of it, minus
+    one, is position k's leaf number)."""
+    k = wp.tid()
+    head = 1
+    if k > 0:
+        if sorted_leaf[k] == sorted_leaf[k - 1]:
+            head = 0
+    leaf_of[k] = head
+
+
+@wp.kernel
+def leaf_starts(leaf_rank: wp.array(dtype=int), starts: wp.array(dtype=wp.int64)):
+    """starts[leaf] = the first sorted position of each leaf; leaf_rank is the inclusive scan of
+    ``leaf_runs`` (leaf numbers from 1). starts[leaf count] = the point count."""
+    k = wp.tid()
+    n = leaf_rank.shape[0]
+    if k == 0 or leaf_rank[k] != leaf_rank[wp.max(k - 1, 0)]:
+        starts[leaf_rank[k] - 1] = wp.int64(k)
+    if k == n - 1:
+        starts[leaf_rank[k]] = wp.int64(n)
+
+
+@wp.kernel
+def leaf_centroids_parallel(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int64), starts: wp.array(dtype=wp.int64),
+                            leaf_count: int, centroids: wp.array(dtype=wp.vec3)):
+    """``leaf_centroids``, one thread per leaf (leaf l owns sorted positions starts[l]:starts[l + 1])."""
+    leaf = wp.tid()
+    if leaf >= leaf_count:
+        return
+    start = int(starts[leaf])
+    centroids[leaf] = _leaf_centroid(points, order, start, int(starts[leaf + 1]) - start)
+
+
+@wp.kernel
+def leaf_label_keys(order: wp.array(dtype=wp.int64), leaf_rank: wp.array(dtype=int), labels: wp.array(dtype=wp.int64),
+                    label_min: wp.int64, label_span: wp.int64, keys: wp.array(dtype=wp.int64), positions: wp.array(dtype=wp.int64)):
+    """keys[k] = (leaf number of sorted position k) * label_span + its point's label - label_min: sorted,
+    each leaf's labels in ascending order."""
+    k = wp.tid()
+    keys[k] = wp.int64(leaf_rank[k] - 1) * label_span + labels[int(order[k])] - label_min
+    positions[k] = wp.int64(k)
+
+
+@wp.kernel
+def leaf_majority_labels(sorted_keys: wp.array(dtype=wp.int64), starts: wp.array(dtype=wp.int64), leaf_count: int,
+                         label_min: wp.int64, label_span: wp.int64, majority: wp.array(dtype=wp.int64)):
+    """majority[l] = leaf l's most frequent label, the smallest on ties: its labels ascending in
+    sorted_keys[starts[l]:starts[l + 1]] (from ``leaf_label_keys``), counted run by run."""
+    leaf = wp.tid()
+    if leaf >= leaf_count:
+        return
+    start = int(starts[leaf])
+    end = int(starts[leaf + 1])
+    best_label = sorted_keys[start] % label_span
+    best_count = int(0)
+    run_label = best_label
+    run_count = int(0)
+    for k in range(start, end):
+        label = sorted_keys[k] % label_span
+        if label != run_label:
+            run_label = label
+            run_count = 0
+        run_count += 1
+        if run_count > best_count:  # strictly more: on ties the smaller label, met first, stays
+            best_count = run_count
+            best_label = run_label
+    majority[leaf] = best_label + label_min

@@ -34,6 +34,21 @@ def block_size_m(resolution_m: float, block_depth: int) -> np.float32:
     return np.float32(np.float32(2 ** (block_depth - 1)) * np.float32(resolution_m))
 
 
+def leaf_grid(lo: np.ndarray, hi: np.ndarray, leaf_m: float) -> tuple[np.float32, np.ndarray, np.ndarray] | None:
+    """PCL VoxelGrid's leaf grid over a cloud's float32 bounds: 1 / leaf in float32, the lowest leaf per
+    axis and the leaves per axis; None (with a warning) for a grid PCL refuses, which leaves the cloud
+    unchanged."""
+    inverse_leaf = np.float32(1.0) / np.float32(leaf_m)
+    extent = ((hi - lo) * inverse_leaf).astype(np.int64) + 1
+    if int(np.prod(extent)) > _INT32_MAX:
+        # PCL refuses such grids and returns the cloud unchanged; so do we, loudly.
+        warnings.warn(f"VoxelGrid leaf {leaf_m} m is too small for a {hi - lo} m cloud; returning it unchanged, as PCL does")
+        return None
+    # floor(p / leaf) is monotonic in p, so its extremes are those of the extreme coordinates.
+    ijk_lo = np.floor(lo * inverse_leaf).astype(np.int64)
+    return inverse_leaf, ijk_lo, np.floor(hi * inverse_leaf).astype(np.int64) - ijk_lo + 1
+
+
 def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float) -> tuple[np.ndarray, np.ndarray]:
     """pcl::VoxelGrid with downsample_all_data: one point per occupied leaf at the float32 centroid
     (``kernels.voxel_grid.leaf_centroids``: summed point by point from zero, as PCL's CentroidPoint),
@@ -42,16 +57,10 @@ def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float)
     labels = np.asarray(labels, dtype=np.int64)
     if len(points) == 0:
         return points.reshape(0, 3), labels
-    inverse_leaf = np.float32(1.0) / np.float32(leaf_m)
-    lo, hi = column_bounds(points)
-    extent = ((hi - lo) * inverse_leaf).astype(np.int64) + 1
-    if int(np.prod(extent)) > _INT32_MAX:
-        # PCL refuses such grids and returns the cloud unchanged; so do we, loudly.
-        warnings.warn(f"VoxelGrid leaf {leaf_m} m is too small for a {hi - lo} m cloud; returning it unchanged, as PCL does")
+    grid = leaf_grid(*column_bounds(points), leaf_m)
+    if grid is None:
         return points, labels
-    # floor(p / leaf) is monotonic in p, so its extremes are those of the extreme coordinates.
-    ijk_lo = np.floor(lo * inverse_leaf).astype(np.int64)
-    dims = np.floor(hi * inverse_leaf).astype(np.int64) - ijk_lo + 1
+    inverse_leaf, ijk_lo, dims = grid
     # The leaf indices come from a kernel (``kernels.voxel_grid``): numpy's floor passes took a third
     # of this function (0.34 of 0.97 s over 4 M free samples).
     leaf_index = wp.empty(len(points), dtype=wp.int64, device="cpu")
@@ -150,6 +159,28 @@ def _count_pairs(cells: np.ndarray, labels: np.ndarray):
     return pairs // span, pairs % span + label_min, counts
 
 
+def check_free_samples(samples: float, longest: float, f: np.float32, origin: np.ndarray) -> None:
+    """Refuse a scan whose free-space rays would place more than MAX_FREE_SAMPLES_PER_SCAN samples (about
+    ``samples``), or whose longest ray (``longest`` m) takes 2^22 steps or more: there the float32
+    distance d + f stops growing (f below half its spacing) and the step list would grow without end."""
+    if samples > MAX_FREE_SAMPLES_PER_SCAN or longest / float(f) >= 2**22:
+        limit = (f"at most {MAX_FREE_SAMPLES_PER_SCAN:,}" if samples > MAX_FREE_SAMPLES_PER_SCAN
+                 else f"and a ray of {longest / float(f):,.0f} steps, at most {2**22:,} along one ray")
+        raise ValueError(
+            f"free-space rays would place about {samples:,.0f} samples in one scan (points up to {longest:,.0f} m from "
+            f"the sensor origin {origin.tolist()}, one sample per free_resolution_m = {float(f)} m; {limit}): set "
+            f"mapping.sbki.max_range_m, a larger mapping.sbki.free_resolution_m, or check the sensor origin")
+
+
+def ray_steps(f: np.float32, longest: np.float32) -> np.ndarray:
+    """The sample distances f, 2f, ... along a ray, accumulated in float32 as the C++ loop does, up to the
+    first at or beyond ``longest``."""
+    steps = [f]
+    while steps[-1] < longest:
+        steps.append(np.float32(steps[-1] + f))
+    return np.array(steps, dtype=np.float32)
+
+
 def free_space_samples(hits: np.ndarray, origin: np.ndarray, free_resolution_m: float) -> np.ndarray:
     """S-BKI's beam_sample for every hit, each preceded by the sensor origin itself.
 
@@ -165,20 +196,8 @@ def free_space_samples(hits: np.ndarray, origin: np.ndarray, free_resolution_m: 
     with np.errstate(invalid="ignore", divide="ignore"):
         direction = diff / ray_length[:, None]
     longest = ray_length.max()
-    estimate = float(np.sum(ray_length, dtype=np.float64) / float(f)) + 2 * len(hits)
-    # A ray longer than 2^22 steps: the float32 distance d + f stops growing (f below half its spacing)
-    # and the step list below would grow without end; few points from a far origin pass the estimate.
-    if estimate > MAX_FREE_SAMPLES_PER_SCAN or float(longest) / float(f) >= 2**22:
-        limit = (f"at most {MAX_FREE_SAMPLES_PER_SCAN:,}" if estimate > MAX_FREE_SAMPLES_PER_SCAN
-                 else f"and a ray of {float(longest) / float(f):,.0f} steps, at most {2**22:,} along one ray")
-        raise ValueError(
-            f"free-space rays would place about {estimate:,.0f} samples in one scan (points up to {float(longest):,.0f} m from "
-            f"the sensor origin {origin.tolist()}, one sample per free_resolution_m = {float(f)} m; {limit}): set "
-            f"mapping.sbki.max_range_m, a larger mapping.sbki.free_resolution_m, or check the sensor origin")
-    steps = [f]
-    while steps[-1] < longest:
-        steps.append(np.float32(steps[-1] + f))
-    steps = np.array(steps, dtype=np.float32)
+    check_free_samples(float(np.sum(ray_length, dtype=np.float64) / float(f)) + 2 * len(hits), float(longest), f, origin)
+    steps = ray_steps(f, longest)
     per_hit = np.searchsorted(steps, ray_length, side="left")  # how many d_k < l
     rows_per_hit = 1 + per_hit + (ray_length > f)  # origin + samples + the one at l - f
     first_row = np.r_[0, np.cumsum(rows_per_hit)[:-1]]

@@ -1,4 +1,4 @@
-"""numpy twin of ``evsemmap_warp.kernels.voxel_grid``."""
+"""numpy twins of ``evsemmap_warp.kernels.voxel_grid``."""
 
 from __future__ import annotations
 
@@ -20,3 +20,14 @@ def leaf_centroids(points, order, starts, counts) -> np.ndarray:
     for leaf, (start, count) in enumerate(zip(np.asarray(starts, np.int64), np.asarray(counts, np.int64))):
         sums[leaf] = np.add.accumulate(np.vstack([np.zeros((1, 3), np.float32), points[start:start + count]]), axis=0, dtype=np.float32)[-1]
     return (sums / np.asarray(counts)[:, None].astype(np.float32)).astype(np.float32)
+
+
+def leaf_majority_labels(sorted_labels, starts, counts) -> np.ndarray:
+    """Twin of ``kernels.voxel_grid.leaf_majority_labels``: each leaf's most frequent label among
+    sorted_labels[start:start + count], the smallest on ties [L] int64."""
+    sorted_labels = np.asarray(sorted_labels, np.int64)
+    majority = np.empty(len(starts), np.int64)
+    for leaf, (start, count) in enumerate(zip(np.asarray(starts, np.int64), np.asarray(counts, np.int64))):
+        values, votes = np.unique(sorted_labels[start:start + count], return_counts=True)
+        majority[leaf] = values[np.argmax(votes)]  # unique sorts ascending; argmax takes the first maximum
+    return majority

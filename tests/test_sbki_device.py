@@ -1,0 +1,196 @@
+"""S-BKI's training data built by the parallel kernels (``methods.sbki_device``) is the host path's
+(``methods.sbki_compat.training_data``) bit for bit, on Warp's CPU backend (and on CUDA where Warp sees
+a GPU): random clouds and the edge cases, and each parallel kernel against its numpy twin."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import warp as wp
+
+from evsemmap_warp.kernels import voxel_grid
+from evsemmap_warp.methods import sbki_compat as sb
+from evsemmap_warp.methods import sbki_device
+from evsemmap_warp.reference import voxel_grid as twin
+
+
+def _both(points, labels, origin, device, **kw):
+    host = sb.training_data(points, labels, origin, **kw)
+    on_device = sbki_device.training_data_on_device(points, labels, origin, device=device, **kw)
+    return host, on_device
+
+
+def _assert_same(host, on_device):
+    (hp, hl, hi), (dp, dl, di) = host, on_device
+    assert hp.dtype == dp.dtype == np.float32 and hl.dtype == dl.dtype == np.int64
+    np.testing.assert_array_equal(dp, hp)
+    np.testing.assert_array_equal(dl, hl)
+    assert di == hi
+
+
+def _cloud(rng, n, origin, spread=6.0, classes=5):
+    points = (origin + rng.normal(size=(n, 3)) * rng.uniform(0.1, spread, (n, 1))).astype(np.float32)
+    return points, rng.integers(0, classes, n)
+
+
+@pytest.mark.parametrize("free_res, max_range", [(0.5, None), (0.5, 8.0), (4.0, 12.0), (100.0, None), (0.37, 30.0)])
+def test_training_data_matches_the_host_path(device, free_res, max_range):
+    rng = np.random.default_rng(int(free_res * 100))
+    origin = np.array([3.25, -1.5, 1.2], np.float32)
+    points, labels = _cloud(rng, 20_000, origin)
+    # Points on leaf faces and block faces, several copies of one point (ties between labels), the origin.
+    points[:50] = np.round(points[:50] * 10) / 10
+    points[50:60] = points[60]
+    labels[50:60] = [1, 2, 1, 2, 3, 3, 4, 4, 0, 0]
+    points[70] = origin
+    _assert_same(*_both(points, labels, origin, device, ds_resolution_m=0.1, free_resolution_m=free_res, max_range_m=max_range))
+
+
+def test_training_data_edge_cases(device):
+    origin = np.array([0.5, 0.25, -0.1], np.float32)
+    kw = dict(ds_resolution_m=0.1, free_resolution_m=0.5, max_range_m=None)
+    empty = np.zeros((0, 3), np.float32)
+    _assert_same(*_both(empty, np.zeros(0, np.int64), origin, device, **kw))
+    _assert_same(*_both(np.array([[2.0, 1.0, 0.5]], np.float32), np.array([3]), origin, device, **kw))
+    # Every hit beyond the range: no hits, no free samples.
+    _assert_same(*_both(np.array([[20.0, 1.0, 0.5], [30, 0, 0]], np.float32), np.array([3, 1]), origin, device,
+                        ds_resolution_m=0.1, free_resolution_m=0.5, max_range_m=5.0))
+    # One label everywhere; negative labels.
+    rng = np.random.default_rng(3)
+    points, _ = _cloud(rng, 3000, origin, spread=5.0)
+    _assert_same(*_both(points, np.full(3000, 7), origin, device, **kw))
+    _assert_same(*_both(points, rng.integers(-3, 2, 3000), origin, device, **kw))
+
+
+def test_training_data_far_from_the_origin(device):
+    # A cloud 80 km out (float32 spacing 8 mm): the leaf indices and the sums as the host forms them.
+    rng = np.random.default_rng(5)
+    origin = np.array([80_000.0, -40_000.0, 12.0], np.float32)
+    points, labels = _cloud(rng, 5000, origin, spread=15.0)
+    _assert_same(*_both(points, labels, origin, device, ds_resolution_m=0.1, free_resolution_m=0.5, max_range_m=None))
+
+
+def test_thousands_of_copies_in_one_leaf_drift_as_the_host_sums(device):
+    # The sensor origin's leaf of the free samples: one copy per hit, summed in float32 one by one.
+    origin = np.array([1234.567, -89.012, 3.3], np.float32)
+    copies = np.repeat(origin[None], 20_000, axis=0)
+    host = sb.voxel_grid_downsample(copies, np.zeros(len(copies), np.int64), 0.1)
+    centroids, labels = sbki_device.voxel_grid_on_device(
+        wp.array(copies, dtype=wp.vec3, device=device), wp.array(np.zeros(len(copies), np.int64), dtype=wp.int64, device=device), (0, 0),
+        (copies.min(axis=0), copies.max(axis=0)), 0.1)
+    np.testing.assert_array_equal(centroids.numpy(), host[0])
+    np.testing.assert_array_equal(labels.numpy(), host[1])
+
+
+def test_a_grid_pcl_refuses_leaves_the_cloud_unchanged(device):
+    points = np.array([[0, 0, 0], [1e6, 1e6, 1e3]], np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        centroids, labels = sbki_device.voxel_grid_on_device(
+            wp.array(points, dtype=wp.vec3, device=device), wp.array(np.array([1, 2]), dtype=wp.int64, device=device), (1, 2),
+            (points.min(axis=0), points.max(axis=0)), 0.01)
+    np.testing.assert_array_equal(centroids.numpy(), points)
+    np.testing.assert_array_equal(labels.numpy(), [1, 2])
+
+
+def test_too_many_free_samples_are_refused_as_on_the_host(device):
+    origin = np.zeros(3, np.float32)
+    far = np.array([[3e6, 0, 0]], np.float32)  # 6 M steps of 0.5 m along one ray
+    for build in (sb.training_data, lambda *a, **kw: sbki_device.training_data_on_device(*a, device=device, **kw)):
+        with pytest.raises(ValueError, match="free_resolution_m"):
+            build(far, np.array([1]), origin, ds_resolution_m=0.1, free_resolution_m=0.5, max_range_m=None)
+
+
+def test_parallel_centroids_and_majority_labels_match_their_twins(device):
+    rng = np.random.default_rng(11)
+    n = 4000
+    points = rng.normal(size=(n, 3)).astype(np.float32) * 3
+    labels = rng.integers(0, 4, n)
+    inverse_leaf, lowest, dims = sb.leaf_grid(points.min(axis=0), points.max(axis=0), 0.1)
+    leaf = twin.leaf_indices(points, inverse_leaf, lowest, dims[0], dims[1])
+    order = np.argsort(leaf, kind="stable")
+    sorted_leaf = leaf[order]
+    starts = np.flatnonzero(np.r_[True, sorted_leaf[1:] != sorted_leaf[:-1]])
+    counts = np.diff(np.r_[starts, n])
+    centroids, majority = sbki_device.voxel_grid_on_device(
+        wp.array(points, dtype=wp.vec3, device=device), wp.array(labels, dtype=wp.int64, device=device), (0, 3),
+        (points.min(axis=0), points.max(axis=0)), 0.1)
+    np.testing.assert_array_equal(centroids.numpy(), twin.leaf_centroids(points, order, starts, counts))
+    np.testing.assert_array_equal(majority.numpy(), twin.leaf_majority_labels(labels[order], starts, counts))
+    assert len(starts) < n  # leaves that hold several points, so the sums and the votes are tested
+
+
+def test_leaf_runs_and_starts_on_one_point_and_on_one_leaf(device):
+    for sorted_leaf in ([5], [2, 2, 2], [0, 1, 1, 4, 4, 4, 9]):
+        keys = wp.array(np.array(sorted_leaf, np.int64), dtype=wp.int64, device=device)
+        heads = wp.empty(len(sorted_leaf), dtype=int, device=device)
+        wp.launch(voxel_grid.leaf_runs, dim=len(sorted_leaf), device=device, inputs=[keys, heads])
+        rank = wp.empty_like(heads)
+        wp.utils.array_scan(heads, rank, inclusive=True)
+        leaves = int(rank.numpy()[-1])
+        starts = wp.empty(leaves + 1, dtype=wp.int64, device=device)
+        wp.launch(voxel_grid.leaf_starts, dim=len(sorted_leaf), device=device, inputs=[rank, starts])
+        s = np.asarray(sorted_leaf)
+        np.testing.assert_array_equal(starts.numpy(), np.r_[np.flatnonzero(np.r_[True, s[1:] != s[:-1]]), len(s)])
+
+
+@pytest.mark.parametrize("free_res", [0.5, 4.0])
+def test_training_data_of_bench_scans_matches_the_host_path(device, free_res):
+    # Real scans of the shared benchmark workload (60 k points each; at free_res 0.5 ~0.7 M free samples).
+    from conftest import shared_path
+
+    data = np.load(shared_path("data", "bench", "rellis_like_30scans.npz"))
+    offsets = data["scan_offsets"]
+    for i in (0, 17):
+        points = data["xyz_mm"][offsets[i]:offsets[i + 1]].astype(np.float32) / np.float32(1000)
+        labels = data["label"][offsets[i]:offsets[i + 1]].astype(np.int64)
+        origin = data["origins_mm"][i].astype(np.float32) / np.float32(1000)
+        _assert_same(*_both(points, labels, origin, device, ds_resolution_m=0.1, free_resolution_m=free_res, max_range_m=None))
+
+
+def _memberships_and_tables(points, block_size, length, device):
+    labels = np.arange(len(points), dtype=np.int64) % 7
+    ids, owners = sb.block_memberships(points, block_size)
+    host = sb.gather_tables(owners)
+    on_device = wp.array(points, dtype=wp.vec3, device=device)
+    device_ids, device_owners = sbki_device.block_memberships_on_device(on_device, block_size)
+    np.testing.assert_array_equal(device_ids.numpy(), ids)
+    np.testing.assert_array_equal(device_owners.numpy(), owners)
+    tables = sbki_device.gather_tables_on_device(on_device, wp.array(labels, dtype=wp.int64, device=device), block_size, length)
+    return ids, labels, host, tables
+
+
+@pytest.mark.parametrize("block_depth", [1, 2, 3])
+def test_memberships_and_gather_tables_match_the_host_path(device, block_depth):
+    rng = np.random.default_rng(block_depth)
+    block_size = sb.block_size_m(0.2, block_depth)
+    points = (rng.normal(size=(5000, 3)) * 4).astype(np.float32)
+    # On block faces and edges (members of 2, 4 and 8 blocks), and far from the origin.
+    points[:30] = np.round(points[:30] / block_size) * block_size + block_size / np.float32(2)
+    points[30:40, :2] = np.round(points[30:40, :2] / block_size) * block_size + block_size / np.float32(2)
+    points[40:60] += np.float32(60_000.0)
+    points = points[np.abs(points).max(axis=1) < 100] if block_depth == 1 else points  # a grid small enough for a dense lookup
+    ids, labels, host, tables = _memberships_and_tables(points, block_size, 0.3, device)
+    if tables is None:  # blocks 60 km apart: no dense grid, on the host as on the device
+        assert sb.dense_block_grid(host.blocks)[0] is None
+        points = points[np.abs(points).max(axis=1) < 100]
+        ids, labels, host, tables = _memberships_and_tables(points, block_size, 0.3, device)
+    np.testing.assert_array_equal(tables.test_blocks, host.test_blocks)
+    np.testing.assert_array_equal(tables.tests.numpy(), host.test_blocks.astype(np.int32))
+    np.testing.assert_array_equal(tables.sources.numpy(), host.sources)
+    np.testing.assert_array_equal(tables.point_start.numpy(), host.point_start)
+    sorted_points = ids[host.pair_order]
+    from evsemmap_warp.kernels.block_gather import scale_points
+    np.testing.assert_array_equal(tables.scaled_points.numpy(), scale_points(points[sorted_points], 0.3))
+    np.testing.assert_array_equal(tables.labels.numpy(), labels[sorted_points])
+
+
+def test_memberships_of_one_point_and_of_none(device):
+    block_size = sb.block_size_m(0.2, 2)
+    for points in (np.zeros((0, 3), np.float32), np.array([[0.2, 0.2, 0.2]], np.float32), np.array([[0.05, 1.0, -2.0]], np.float32)):
+        ids, owners = sb.block_memberships(points, block_size)
+        device_ids, device_owners = sbki_device.block_memberships_on_device(wp.array(points, dtype=wp.vec3, device=device), block_size)
+        np.testing.assert_array_equal(device_ids.numpy(), ids)
+        np.testing.assert_array_equal(device_owners.numpy().reshape(-1, 3), owners.reshape(-1, 3))
