@@ -194,3 +194,30 @@ def test_memberships_of_one_point_and_of_none(device):
         device_ids, device_owners = sbki_device.block_memberships_on_device(wp.array(points, dtype=wp.vec3, device=device), block_size)
         np.testing.assert_array_equal(device_ids.numpy(), ids)
         np.testing.assert_array_equal(device_owners.numpy().reshape(-1, 3), owners.reshape(-1, 3))
+
+
+@pytest.mark.parametrize("workers, free_res", [(1, 0.5), (2, 4.0)])
+def test_a_map_from_the_device_preprocessing_is_the_host_paths_bit_for_bit(device, workers, free_res):
+    # The sbki mode of the benchmark (tools/bench_integrate.py) over bench scans, through the Mapper.
+    from conftest import shared_path
+
+    from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, SbkiSettings
+    from evsemmap_warp.core.mapper import Mapper
+
+    data = np.load(shared_path("data", "bench", "rellis_like_30scans.npz"))
+    offsets = data["scan_offsets"]
+    config = MappingConfig(method="s-bki", kernel=Kernel.SPARSE, media=Media.ONEHOT, adaptive_length=False, uncertainty_threshold=False,
+                           compat=Compat.SBKI, resolution_m=0.2, length_m=0.3, sigma0=10.0, prior=0.001,
+                           sbki=SbkiSettings(block_depth=2, ds_resolution_m=0.1, free_resolution_m=free_res, max_range_m=None))
+    maps = []
+    for on_device in (False, True):
+        mapper = Mapper(config, 9, workers=workers, device=device)
+        mapper.integrator.preprocess_on_device = on_device
+        for i in (0, 1, 2):
+            points = (data["xyz_mm"][offsets[i]:offsets[i + 1]] / 1000.0).astype(np.float32)
+            mapper.integrate(points, data["label"][offsets[i]:offsets[i + 1]].astype(np.int64), payload_type="label",
+                             sensor_origin=data["origins_mm"][i] / 1000.0)
+        maps.append(mapper.voxels()[0])
+    assert len(maps[0].index) > 10_000
+    np.testing.assert_array_equal(maps[1].index, maps[0].index)
+    np.testing.assert_array_equal(maps[1].rows(), maps[0].rows())

@@ -30,7 +30,7 @@ import warp as wp
 from ..config import Compat, Fusion, Kernel, MappingConfig, Media, PayloadType, ScatterStrategy, ThresholdScope
 from ..kernels import block_gather, release
 from ..kernels import scatter as sc
-from ..methods import convbki, release_compat, sbki_compat, see_csom
+from ..methods import convbki, release_compat, sbki_compat, sbki_device, see_csom
 from ..voxel_keys import column_bounds, take_rows
 from ._shards import PendingUpdates, ShardLanes, block_shard, for_each_shard, split_over_shards, total_updates
 from .voxel_map import VoxelMap
@@ -331,11 +331,19 @@ class SbkiCompatIntegrator:
         self.grid_offset_m = -0.5 * config.resolution_m if config.kernel is Kernel.COUNT else 0.0
         # kernel factory (class count, cells per block) -> the S-BKI gather kernel; the study swaps in other forms
         self.gather_kernel = block_gather.gather_sbki_kernel
+        # Where the S-BKI kernel's preprocessing runs: True, on the map's device by parallel kernels
+        # (methods.sbki_device); False, on the host by one-thread kernels, one scan per worker, which is
+        # faster on a CPU, where a launch runs on one core whatever its form; None, on the device for a
+        # GPU map. The same map either way (tests/test_sbki_device.py sets True on the CPU).
+        self.preprocess_on_device: bool | None = None
 
     def prepare(self, scan: ScanPayload, device: str) -> Launch:
-        """Training data, block memberships and the gather tables (host work, no map access); the
-        launch runs the kernels."""
+        """Training data, block memberships and the gather tables (host work, no map access; on the
+        map's device for the S-BKI kernel on a GPU); the launch runs the kernels."""
         c = self.config
+        on_device = self.preprocess_on_device if self.preprocess_on_device is not None else wp.get_device(device).is_cuda
+        if on_device and c.kernel is Kernel.SPARSE:
+            return self._prepare_on_device(scan, device)
         stats = IntegrationStats(input_points=len(scan.points))
         points, labels, _ = sbki_compat.training_data(
             scan.points, scan.labels, scan.sensor_origin,
@@ -348,6 +356,28 @@ class SbkiCompatIntegrator:
         if c.kernel is Kernel.COUNT:
             return launch_step(stats, lambda shards, lanes: self._scatter_counts(shards, points, labels, point_ids, owners, lanes))
         return launch_step(stats, self._gather_sparse(points, labels, point_ids, owners, device))
+
+    def _prepare_on_device(self, scan: ScanPayload, device: str) -> Launch:
+        """``prepare`` for the S-BKI kernel with the preprocessing on the map's device: the gather kernel's
+        inputs never leave it (the test blocks are read back for the key-range check and the shards'
+        split). Blocks too spread for the dense grid take the host path from the training set."""
+        c = self.config
+        stats = IntegrationStats(input_points=len(scan.points))
+        points, labels = sbki_device.training_set(*sbki_device.training_arrays(
+            scan.points, scan.labels, scan.sensor_origin, ds_resolution_m=c.sbki.ds_resolution_m,
+            free_resolution_m=c.sbki.free_resolution_m, max_range_m=c.sbki.max_range_m, device=device))
+        stats.kept_points = points.shape[0]
+        if points.shape[0] == 0:
+            return launch_step(stats)
+        tables = sbki_device.gather_tables_on_device(points, labels, self.block_size, c.length_m)
+        if tables is None:
+            host_points, host_labels = points.numpy(), labels.numpy()
+            point_ids, owners = sbki_compat.block_memberships(host_points, self.block_size)
+            return launch_step(stats, self._gather_sparse(host_points, host_labels, point_ids, owners, device))
+        inputs = block_gather.sbki_blocks(blocks=tables.tests, sources=tables.sources, point_start=tables.point_start,
+                                          scaled_points=tables.scaled_points, labels=tables.labels, length=c.length_m,
+                                          sigma0=c.sigma0, resolution=c.resolution_m, grid_offset=self.grid_offset_m)
+        return launch_step(stats, block_gather_run(tables.test_blocks, self.cells_per_block, self.gather_kernel, inputs, "sbki_gather"))
 
     def _scatter_counts(self, shards, points, labels, point_ids, owners, lanes) -> int | PendingUpdates:
         """S-CSM: each (point, block) pair adds 1 to its block's single cell."""
