@@ -277,11 +277,12 @@ def box_positions(blocks: wp.array2d(dtype=wp.int64), lowest: wp.vec3l, span_y: 
 
 @wp.kernel
 def distinct_blocks(member_blocks: wp.array2d(dtype=wp.int64), order: wp.array(dtype=wp.int64), starts: wp.array(dtype=wp.int64),
-                    grid_lowest: wp.vec3l, grid_blocks: wp.array(dtype=wp.vec3i), grid: wp.array3d(dtype=int)):
-    """Block b (the pairs' b-th distinct block, its first pair order[starts[b]]) in grid coordinates, and
-    grid[it] = b."""
+                    grid_lowest: wp.vec3l, blocks: wp.array(dtype=wp.vec3i), grid_blocks: wp.array(dtype=wp.vec3i), grid: wp.array3d(dtype=int)):
+    """Block b (the pairs' b-th distinct block, its first pair order[starts[b]]), in map and in grid
+    coordinates, and grid[it] = b."""
     b = wp.tid()
     k = int(order[int(starts[b])])
+    blocks[b] = wp.vec3i(int(member_blocks[k, 0]), int(member_blocks[k, 1]), int(member_blocks[k, 2]))
     c = wp.vec3i(int(member_blocks[k, 0] - grid_lowest[0]), int(member_blocks[k, 1] - grid_lowest[1]), int(member_blocks[k, 2] - grid_lowest[2]))
     grid_blocks[b] = c
     grid[c[0], c[1], c[2]] = b

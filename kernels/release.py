@@ -345,15 +345,19 @@ def _snap(p: float, lo: float, hi: float, ds: float, last: wp.int64) -> float:
     return line
 
 
+@wp.func
+def _snap_point(p: wp.vec3, lo: wp.vec3, hi: wp.vec3, ds: float) -> wp.vec3:
+    last = wp.vec3l(wp.int64((hi[0] - lo[0]) / ds), wp.int64((hi[1] - lo[1]) / ds), wp.int64((hi[2] - lo[2]) / ds))
+    return wp.vec3(_snap(p[0], lo[0], hi[0], ds, last[0]), _snap(p[1], lo[1], hi[1], ds, last[1]), _snap(p[2], lo[2], hi[2], ds, last[2]))
+
+
 @wp.kernel
 def snap_to_lines(points: wp.array(dtype=wp.vec3), lo: wp.vec3, hi: wp.vec3, ds: float, snapped: wp.array(dtype=wp.vec3)):
     """The release's coord_to_voxel_center_coord per axis, in float32 as its loop runs: from
     i = trunc((p - lo) / ds) - 1 up to trunc((hi - lo) / ds), the first line lo + i ds with
     p - line < next line - p; none: hi. One thread walks all points (launch with dim=1)."""
-    last = wp.vec3l(wp.int64((hi[0] - lo[0]) / ds), wp.int64((hi[1] - lo[1]) / ds), wp.int64((hi[2] - lo[2]) / ds))
     for n in range(points.shape[0]):
-        p = points[n]
-        snapped[n] = wp.vec3(_snap(p[0], lo[0], hi[0], ds, last[0]), _snap(p[1], lo[1], hi[1], ds, last[1]), _snap(p[2], lo[2], hi[2], ds, last[2]))
+        snapped[n] = _snap_point(points[n], lo, hi, ds)
 
 
 @wp.kernel
@@ -368,8 +372,78 @@ def keep_first_per_block(cells: wp.array(dtype=int), cap: int, counts: wp.array(
         counts[c] = seen + 1
 
 
+# ------------------------------------------------------------------ parallel forms of the "ds" step and the rows
+# (``methods.release_device``: the host path's results on a device, bit for bit)
+
+# The C++'s block key shift (``methods.release_compat``): int64(x / size + BLOCK_KEY_SHIFT) - BLOCK_KEY_OFFSET.
+BLOCK_KEY_SHIFT = wp.constant(wp.float64(524288.5))
+BLOCK_KEY_OFFSET = wp.constant(wp.int64(524288))
+
+
+@wp.kernel
+def snapped_block_keys(points: wp.array(dtype=wp.vec3), lo: wp.vec3, hi: wp.vec3, ds: float, block_size: wp.float64,
+                       keys: wp.array2d(dtype=wp.int64)):
+    """keys[n] = the block point n is counted in by the "ds" step: its snapped point (``snap_to_lines``)
+    hashed as the C++ hashes it, one thread per point."""
+    n = wp.tid()
+    s = _snap_point(points[n], lo, hi, ds)
+    for axis in range(3):
+        keys[n, axis] = wp.int64(wp.float64(s[axis]) / block_size + BLOCK_KEY_SHIFT) - BLOCK_KEY_OFFSET
+
+
+@wp.kernel
+def keep_first_sorted(order: wp.array(dtype=wp.int64), run_rank: wp.array(dtype=int), starts: wp.array(dtype=wp.int64), cap: int,
+                      keep: wp.array(dtype=int)):
+    """``keep_first_per_block`` from the points stably sorted by block (``order``; sorted position k in run
+    run_rank[k] - 1, which starts at ``starts``): keep[point] = 1 for the first ``cap`` of each run."""
+    k = wp.tid()
+    keep[int(order[k])] = wp.where(wp.int64(k) - starts[run_rank[k] - 1] < wp.int64(cap), 1, 0)
+
+
+@wp.kernel
+def compact_indices(keep: wp.array(dtype=int), slot: wp.array(dtype=int), kept: wp.array(dtype=int)):
+    """kept[slot[i] - 1] = i for every kept i (slot: the inclusive scan of keep): the kept, in order."""
+    i = wp.tid()
+    if keep[i] == 1:
+        kept[slot[i] - 1] = i
+
+
+@wp.kernel
+def take_points(points: wp.array(dtype=wp.vec3), index: wp.array(dtype=int), taken: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    taken[i] = points[index[i]]
+
+
+@functools.cache
+def sorted_rows_kernel(num_classes: int, dempster: bool):
+    """rows(points, probabilities [N, K], uncertainty, kept, point_ids, order, sorted points, class weights,
+    sorted uncertainty): the gather kernel's rows in block order, row k of kept point
+    kept[point_ids[order[k]]]; its class weights the probabilities or, for ``dempster``, the belief masses
+    clip(p - u / K, 0, 1) (``core.integrators.dirichlet_beliefs``)."""
+    vec_k = vector_type(num_classes)
+
+    @wp.kernel(module="unique")
+    def sorted_rows(points: wp.array(dtype=wp.vec3), probabilities: wp.array2d(dtype=wp.float64), uncertainty: wp.array(dtype=wp.float64),
+                    kept: wp.array(dtype=int), point_ids: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int64),
+                    sorted_points: wp.array(dtype=wp.vec3), class_weights: wp.array(dtype=vec_k), sorted_uncertainty: wp.array(dtype=wp.float64)):
+        k = wp.tid()
+        i = kept[int(point_ids[int(order[k])])]
+        u = uncertainty[i]
+        w = vec_k()
+        for c in range(wp.static(num_classes)):
+            p = probabilities[i, c]
+            if wp.static(dempster):
+                p = wp.clamp(p - u / wp.float64(wp.static(num_classes)), wp.float64(0.0), wp.float64(1.0))
+            w[c] = p
+        sorted_points[k] = points[i]
+        class_weights[k] = w
+        sorted_uncertainty[k] = u
+
+    return sorted_rows
+
+
 # Kernels made by factories, by name (tests/test_twins.py looks their twins up by these names).
-KERNEL_FACTORIES = {"gather_release_blocks": gather_release_kernel, "block_models": block_models_kernel}
+KERNEL_FACTORIES = {"gather_release_blocks": gather_release_kernel, "block_models": block_models_kernel, "sorted_rows": sorted_rows_kernel}
 
 
 def vector_type(num_classes: int):

@@ -118,7 +118,8 @@ def test_parallel_centroids_and_majority_labels_match_their_twins(device):
         wp.array(points, dtype=wp.vec3, device=device), wp.array(labels, dtype=wp.int64, device=device), (0, 3),
         (points.min(axis=0), points.max(axis=0)), 0.1)
     np.testing.assert_array_equal(centroids.numpy(), twin.leaf_centroids(points, order, starts, counts))
-    np.testing.assert_array_equal(majority.numpy(), twin.leaf_majority_labels(labels[order], starts, counts))
+    label_keys, _ = twin.leaf_label_keys(order, np.repeat(np.arange(1, len(starts) + 1), counts), labels, 0, 4)
+    np.testing.assert_array_equal(majority.numpy(), twin.leaf_majority_labels(np.sort(label_keys), np.r_[starts, n], len(starts), 0, 4))
     assert len(starts) < n  # leaves that hold several points, so the sums and the votes are tested
 
 

@@ -30,7 +30,7 @@ import warp as wp
 from ..config import Compat, Fusion, Kernel, MappingConfig, Media, PayloadType, ScatterStrategy, ThresholdScope
 from ..kernels import block_gather, release
 from ..kernels import scatter as sc
-from ..methods import convbki, release_compat, sbki_compat, sbki_device, see_csom
+from ..methods import convbki, release_compat, release_device, sbki_compat, sbki_device, see_csom
 from ..voxel_keys import column_bounds, take_rows
 from ._shards import PendingUpdates, ShardLanes, block_shard, for_each_shard, split_over_shards, total_updates
 from .voxel_map import VoxelMap
@@ -433,15 +433,22 @@ class ReleaseCompatIntegrator:
         self.length = release_compat.kernel_length(config.length_m)
         # kernel factory (class count, cells per block) -> the gather kernel; the study swaps in other forms
         self.gather_kernel = release.gather_release_kernel
+        # Where the preprocessing after the cut runs (methods.release_device): as SbkiCompatIntegrator's.
+        self.preprocess_on_device: bool | None = None
 
-    def training_points(self, scan: ScanPayload, sensor_origin: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
-        """Indices of the scan's points the models train on, and how many each step kept."""
+    def cut_points(self, scan: ScanPayload, sensor_origin: np.ndarray) -> np.ndarray:
+        """Indices of the scan's points within range that the uncertainty cut keeps."""
         c = self.config
         keep = np.arange(len(scan.points))
         if c.sbki.max_range_m is not None:
             keep = keep[np.linalg.norm(scan.points.astype(np.float32).astype(np.float64) - sensor_origin, axis=1) <= c.sbki.max_range_m]
         cut, _ = release_compat.uncertainty_cut(scan.uncertainty[keep], c.keep_quantile)
-        keep = keep[cut]
+        return keep[cut]
+
+    def training_points(self, scan: ScanPayload, sensor_origin: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
+        """Indices of the scan's points the models train on, and how many each step kept."""
+        c = self.config
+        keep = self.cut_points(scan, sensor_origin)
         counts = {"after_cut": len(keep)}
         if len(keep):
             blocks = release_compat.snapped_block_keys(scan.points[keep], c.sbki.ds_resolution_m, self.block_size)
@@ -450,9 +457,14 @@ class ReleaseCompatIntegrator:
         return keep, counts
 
     def prepare(self, scan: ScanPayload, device: str) -> Launch:
-        """The cut, the cap, memberships and the block models' tables (no map access); the launch runs
-        the gather kernel."""
+        """The cut, the cap, memberships and the block models' tables (no map access; after the cut on the
+        map's device for a GPU map); the launch runs the gather kernel."""
         c = self.config
+        on_device = self.preprocess_on_device if self.preprocess_on_device is not None else wp.get_device(device).is_cuda
+        if on_device:
+            launch = self._prepare_on_device(scan, device)
+            if launch is not None:
+                return launch
         stats = IntegrationStats(input_points=len(scan.points))
         keep, _ = self.training_points(scan, scan.sensor_origin)
         stats.kept_points = len(keep)
@@ -479,6 +491,28 @@ class ReleaseCompatIntegrator:
             length=self.length, sigma0=c.sigma0, resolution=c.resolution_m)
         kernel_factory = functools.partial(self.gather_kernel, fusion=fusion)
         return launch_step(stats, block_gather_run(models.blocks, self.cells_per_block, kernel_factory, scan, "release_gather"))
+
+    def _prepare_on_device(self, scan: ScanPayload, device: str) -> Launch | None:
+        """``prepare`` with the work after the cut on the map's device (``methods.release_device``); None
+        where the blocks are too spread for its dense grid (``prepare`` then takes the host path)."""
+        c = self.config
+        stats = IntegrationStats(input_points=len(scan.points))
+        keep = self.cut_points(scan, scan.sensor_origin)
+        if len(keep) == 0:
+            return launch_step(stats)
+        fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
+        inputs = release_device.release_inputs_on_device(
+            scan.points[keep], scan.probabilities[keep], scan.uncertainty[keep], ds_resolution_m=c.sbki.ds_resolution_m,
+            block_size=self.block_size, cap=c.release_block_cap, dempster=fusion == sc.FUSION_DEMPSTER, device=device)
+        if inputs is None:
+            return None
+        stats.kept_points = inputs.kept_points
+        blocks = release.release_blocks(
+            blocks=inputs.device_blocks, source_blocks=inputs.source_blocks, source_mult=inputs.source_mult, point_start=inputs.point_start,
+            points=inputs.points, class_weights=inputs.class_weights, uncertainty=inputs.uncertainty, length=self.length, sigma0=c.sigma0,
+            resolution=c.resolution_m)
+        kernel_factory = functools.partial(self.gather_kernel, fusion=fusion)
+        return launch_step(stats, block_gather_run(inputs.blocks, self.cells_per_block, kernel_factory, blocks, "release_gather"))
 
 
 def block_gather_run(blocks: np.ndarray, cells_per_block: int, kernel_factory, scan, kind: str):

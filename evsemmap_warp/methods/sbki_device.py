@@ -26,13 +26,14 @@ from ..voxel_keys import column_bounds
 from . import sbki_compat
 
 
-def _inclusive_scan(values: wp.array) -> wp.array:
+def inclusive_scan(values: wp.array) -> wp.array:
+    """The inclusive prefix sums of a device array, on its device."""
     out = wp.empty_like(values)
     wp.utils.array_scan(values, out, inclusive=True)
     return out
 
 
-def _last(values: wp.array) -> int:
+def last_value(values: wp.array) -> int:
     """The last value of a device array (one small read back)."""
     return int(values[values.shape[0] - 1:].numpy()[0])
 
@@ -59,8 +60,8 @@ def voxel_grid_on_device(points: wp.array, labels: wp.array | None, label_range:
     wp.utils.radix_sort_pairs(keys, order, n, end_bit=key_bits)
     heads = wp.empty(n, dtype=int, device=device)
     wp.launch(voxel_grid.leaf_runs, dim=n, device=device, inputs=[keys, heads])
-    leaf_rank = _inclusive_scan(heads)
-    leaf_count = _last(leaf_rank)
+    leaf_rank = inclusive_scan(heads)
+    leaf_count = last_value(leaf_rank)
     starts = wp.empty(leaf_count + 1, dtype=wp.int64, device=device)
     wp.launch(voxel_grid.leaf_starts, dim=n, device=device, inputs=[leaf_rank, starts])
     centroids = wp.empty(leaf_count, dtype=wp.vec3, device=device)
@@ -97,7 +98,7 @@ def _free_space_samples(hits: wp.array, direction: wp.array, ray_length: wp.arra
     wp.launch(free_space.samples_per_ray, dim=n, device=device, inputs=[ray_length, steps, float(f), per_hit, rows_per_hit])
     first_row = wp.empty(n, dtype=int, device=device)
     wp.utils.array_scan(rows_per_hit, first_row, inclusive=False)
-    rows = _last(first_row) + _last(rows_per_hit)
+    rows = last_value(first_row) + last_value(rows_per_hit)
     sbki_compat.check_free_samples(float(rows), float(longest), f, origin)
     out = wp.empty(rows, dtype=wp.vec3, device=device)
     wp.launch(free_space.ray_samples, dim=n, device=device, inputs=[
@@ -153,8 +154,8 @@ def training_arrays(
     if max_range_m is not None:
         keep = wp.empty(n, dtype=int, device=device)
         wp.launch(free_space.within_range, dim=n, device=device, inputs=[ray_length, float(np.float32(max_range_m)), keep])
-        slot = _inclusive_scan(keep)
-        kept = _last(slot)
+        slot = inclusive_scan(keep)
+        kept = last_value(slot)
         arrays = [wp.empty(kept, dtype=a.dtype, device=device) for a in (hits, hit_labels, direction, ray_length)]
         wp.launch(free_space.compact_rays, dim=n, device=device, inputs=[keep, slot, hits, hit_labels, direction, ray_length, *arrays])
         hits, hit_labels, direction, ray_length = arrays
@@ -194,7 +195,7 @@ def block_memberships_on_device(points: wp.array, block_size: np.float32) -> tup
         points, float(np.float32(block_size)), nearest, masks, pair_counts])
     first_pair = wp.empty(n, dtype=int, device=device)
     wp.utils.array_scan(pair_counts, first_pair, inclusive=False)
-    pairs = _last(first_pair) + _last(pair_counts) if n else 0
+    pairs = last_value(first_pair) + last_value(pair_counts) if n else 0
     bits = wp.empty(2 * pairs, dtype=wp.int64, device=device)
     point_ids = wp.empty(2 * pairs, dtype=wp.int64, device=device)
     wp.launch(block_membership.membership_pairs_by_point, dim=n, device=device, inputs=[masks, first_pair, bits, point_ids])
@@ -202,6 +203,81 @@ def block_memberships_on_device(points: wp.array, block_size: np.float32) -> tup
     blocks = wp.empty((pairs, 3), dtype=wp.int64, device=device)
     wp.launch(block_membership.membership_blocks, dim=pairs, device=device, inputs=[bits, point_ids, nearest, blocks])
     return (point_ids[:pairs] if pairs else wp.empty(0, dtype=wp.int64, device=device)), blocks
+
+
+@dataclass
+class BlockGroups:
+    """(point, block) pairs grouped by block on their device, as ``sbki_compat.group_by_block`` and
+    ``sbki_compat.dense_block_grid`` group them on the host: the pair order (stable, by the blocks' packed
+    keys; its first ``pairs`` entries), block b's pairs at order[starts[b]:starts[b + 1]], the ``count``
+    distinct blocks [B] (vec3i), and the dense grid of their indices (-1 elsewhere) over their bounding box
+    widened by 3 from ``grid_corner`` (block b at ``grid_blocks[b]`` in it)."""
+
+    order: wp.array
+    starts: wp.array
+    count: int
+    blocks: wp.array
+    grid: wp.array
+    grid_blocks: wp.array
+    grid_corner: np.ndarray
+
+
+def block_bounds_on_device(blocks: wp.array) -> tuple[np.ndarray, np.ndarray]:
+    """The per-axis (min, max) of blocks [P, 3] (int64, P > 0), read back."""
+    device = blocks.device
+    lowest = wp.full(3, np.iinfo(np.int64).max, dtype=wp.int64, device=device)
+    highest = wp.full(3, np.iinfo(np.int64).min, dtype=wp.int64, device=device)
+    wp.launch(block_gather.block_bounds, dim=blocks.shape[0], device=device, inputs=[blocks, lowest, highest])
+    return lowest.numpy(), highest.numpy()
+
+
+def sort_by_block(blocks: wp.array, lo: np.ndarray, hi: np.ndarray) -> tuple[wp.array, wp.array, wp.array, int]:
+    """Rows of blocks [P, 3] (int64, within lo..hi) stably sorted by the blocks' packed-key order: the
+    order (its first P entries), each sorted row's run number from 1 (an inclusive scan of run heads),
+    the runs' starts [R + 1] and the run count R."""
+    device = blocks.device
+    rows = blocks.shape[0]
+    span = hi - lo + 1
+    positions = wp.empty(2 * rows, dtype=wp.int64, device=device)
+    order = wp.empty(2 * rows, dtype=wp.int64, device=device)
+    wp.launch(block_gather.box_positions, dim=rows, device=device, inputs=[
+        blocks, wp.vec3l(*[int(x) for x in lo]), int(span[1]), int(span[2]), positions, order])
+    wp.utils.radix_sort_pairs(positions, order, rows, end_bit=max(1, int(int(np.prod(span)) - 1).bit_length()))
+    heads = wp.empty(rows, dtype=int, device=device)
+    wp.launch(voxel_grid.leaf_runs, dim=rows, device=device, inputs=[positions, heads])
+    run_rank = inclusive_scan(heads)
+    count = last_value(run_rank)
+    starts = wp.empty(count + 1, dtype=wp.int64, device=device)
+    wp.launch(voxel_grid.leaf_starts, dim=rows, device=device, inputs=[run_rank, starts])
+    return order, run_rank, starts, count
+
+
+def group_blocks_on_device(member_blocks: wp.array) -> BlockGroups | None:
+    """``BlockGroups`` of pairs' blocks [P, 3] (int64) on their device; None where the host path would not
+    use a dense grid (blocks spread wider than ``sbki_compat.MAX_DENSE_LOOKUP_CELLS``, or no pairs): the
+    caller takes the host path then."""
+    device = member_blocks.device
+    if member_blocks.shape[0] == 0:
+        return None
+    lo, hi = block_bounds_on_device(member_blocks)
+    grid_corner = lo - 3
+    shape = hi + 4 - grid_corner
+    if float(np.prod(shape.astype(np.float64))) > sbki_compat.MAX_DENSE_LOOKUP_CELLS:
+        return None
+    order, _, starts, count = sort_by_block(member_blocks, lo, hi)
+    grid = wp.full(tuple(int(x) for x in shape), -1, dtype=int, device=device)
+    blocks = wp.empty(count, dtype=wp.vec3i, device=device)
+    grid_blocks = wp.empty(count, dtype=wp.vec3i, device=device)
+    wp.launch(block_gather.distinct_blocks, dim=count, device=device, inputs=[
+        member_blocks, order, starts, wp.vec3l(*[int(x) for x in grid_corner]), blocks, grid_blocks, grid])
+    return BlockGroups(order, starts, count, blocks, grid, grid_blocks, grid_corner)
+
+
+def narrow_starts(groups: BlockGroups) -> wp.array:
+    """The groups' starts as the gather kernels' int point starts [B + 1]."""
+    point_start = wp.empty(groups.count + 1, dtype=int, device=groups.starts.device)
+    wp.launch(block_gather.narrow_starts, dim=groups.count + 1, device=groups.starts.device, inputs=[groups.starts, point_start])
+    return point_start
 
 
 @dataclass
@@ -220,50 +296,25 @@ class DeviceGatherTables:
 def gather_tables_on_device(points: wp.array, labels: wp.array, block_size: np.float32, length_m: float) -> DeviceGatherTables | None:
     """``sbki_compat.block_memberships`` and ``sbki_compat.gather_tables`` of a training set on its device,
     and the points and labels sorted as the gather kernel reads them; None where the host path would not
-    use a dense grid (blocks spread wider than ``sbki_compat.MAX_DENSE_LOOKUP_CELLS``): the caller takes
-    the host path then."""
+    use a dense grid (``group_blocks_on_device``)."""
     device = points.device
     point_ids, member_blocks = block_memberships_on_device(points, block_size)
-    pairs = member_blocks.shape[0]
-    if pairs == 0:
+    groups = group_blocks_on_device(member_blocks)
+    if groups is None:
         return None
-    lowest = wp.full(3, np.iinfo(np.int64).max, dtype=wp.int64, device=device)
-    highest = wp.full(3, np.iinfo(np.int64).min, dtype=wp.int64, device=device)
-    wp.launch(block_gather.block_bounds, dim=pairs, device=device, inputs=[member_blocks, lowest, highest])
-    lo, hi = lowest.numpy(), highest.numpy()
-    grid_lo = lo - 3
-    shape = hi + 4 - grid_lo
-    if int(np.prod(shape.astype(np.float64))) > sbki_compat.MAX_DENSE_LOOKUP_CELLS:
-        return None
-    span = hi - lo + 1
-    positions = wp.empty(2 * pairs, dtype=wp.int64, device=device)
-    order = wp.empty(2 * pairs, dtype=wp.int64, device=device)
-    wp.launch(block_gather.box_positions, dim=pairs, device=device, inputs=[
-        member_blocks, wp.vec3l(*[int(x) for x in lo]), int(span[1]), int(span[2]), positions, order])
-    wp.utils.radix_sort_pairs(positions, order, pairs, end_bit=max(1, int(int(np.prod(span)) - 1).bit_length()))
-    heads = wp.empty(pairs, dtype=int, device=device)
-    wp.launch(voxel_grid.leaf_runs, dim=pairs, device=device, inputs=[positions, heads])
-    block_rank = _inclusive_scan(heads)
-    block_count = _last(block_rank)
-    starts = wp.empty(block_count + 1, dtype=wp.int64, device=device)
-    wp.launch(voxel_grid.leaf_starts, dim=pairs, device=device, inputs=[block_rank, starts])
-    grid = wp.full(tuple(int(x) for x in shape), -1, dtype=int, device=device)
-    grid_blocks = wp.empty(block_count, dtype=wp.vec3i, device=device)
-    grid_corner = wp.vec3l(*[int(x) for x in grid_lo])
-    wp.launch(block_gather.distinct_blocks, dim=block_count, device=device, inputs=[member_blocks, order, starts, grid_corner, grid_blocks, grid])
     offsets = wp.array(sbki_compat.EXTENDED_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device)
-    marked = wp.zeros(grid.size, dtype=int, device=device)
-    wp.launch(block_gather.mark_test_blocks, dim=(block_count, offsets.shape[0]), device=device, inputs=[grid_blocks, offsets, grid, marked])
-    slot = _inclusive_scan(marked)
-    test_count = _last(slot)
+    marked = wp.zeros(groups.grid.size, dtype=int, device=device)
+    wp.launch(block_gather.mark_test_blocks, dim=(groups.count, offsets.shape[0]), device=device, inputs=[
+        groups.grid_blocks, offsets, groups.grid, marked])
+    slot = inclusive_scan(marked)
+    test_count = last_value(slot)
     tests = wp.empty(test_count, dtype=wp.vec3i, device=device)
     sources = wp.empty((test_count, offsets.shape[0]), dtype=int, device=device)
-    wp.launch(block_gather.list_test_blocks, dim=grid.size, device=device, inputs=[marked, slot, grid, offsets, grid_corner, tests, sources])
-    point_start = wp.empty(block_count + 1, dtype=int, device=device)
-    wp.launch(block_gather.narrow_starts, dim=block_count + 1, device=device, inputs=[starts, point_start])
+    wp.launch(block_gather.list_test_blocks, dim=groups.grid.size, device=device, inputs=[
+        marked, slot, groups.grid, offsets, wp.vec3l(*[int(x) for x in groups.grid_corner]), tests, sources])
+    pairs = member_blocks.shape[0]
     scaled_points = wp.empty(pairs, dtype=wp.vec3, device=device)
     sorted_labels = wp.empty(pairs, dtype=int, device=device)
     wp.launch(block_gather.sorted_block_points, dim=pairs, device=device, inputs=[
-        points, labels, point_ids, order, float(np.float32(length_m)), scaled_points, sorted_labels])
-    return DeviceGatherTables(tests.numpy().astype(np.int64), tests, sources, point_start, scaled_points, sorted_labels)
-
+        points, labels, point_ids, groups.order, float(np.float32(length_m)), scaled_points, sorted_labels])
+    return DeviceGatherTables(tests.numpy().astype(np.int64), tests, sources, narrow_starts(groups), scaled_points, sorted_labels)

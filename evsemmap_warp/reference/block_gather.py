@@ -41,3 +41,55 @@ def extended_block_tables(blocks: np.ndarray, grid: np.ndarray, offsets: np.ndar
     tests = np.argwhere(marked)
     sources = np.stack([grid[tuple((tests + offset).T)] for offset in offsets], axis=1) if len(tests) else np.zeros((0, len(offsets)), np.int64)
     return tests, sources
+
+
+def block_bounds(blocks) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``block_bounds``: the blocks' per-axis minimum and maximum [3], [3] (int64)."""
+    blocks = np.asarray(blocks, np.int64).reshape(-1, 3)
+    return blocks.min(axis=0), blocks.max(axis=0)
+
+
+def box_positions(blocks, lowest, span_y: int, span_z: int) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``box_positions``: row-major positions in the box from ``lowest`` [P] and 0 .. P - 1."""
+    relative = np.asarray(blocks, np.int64).reshape(-1, 3) - np.asarray(lowest, np.int64)
+    return (relative[:, 0] * span_y + relative[:, 1]) * span_z + relative[:, 2], np.arange(len(relative), dtype=np.int64)
+
+
+def distinct_blocks(member_blocks, order, starts, grid_lowest, grid_shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Twin of ``distinct_blocks``: each run's block in map and grid coordinates [B, 3] (int32) and the grid
+    [grid_shape] of block indices (-1 elsewhere)."""
+    firsts = np.asarray(order, np.int64)[np.asarray(starts, np.int64)[:-1]]
+    blocks = np.asarray(member_blocks, np.int64)[firsts]
+    grid_blocks = blocks - np.asarray(grid_lowest, np.int64)
+    grid = np.full(tuple(grid_shape), -1, np.int32)
+    grid[tuple(grid_blocks.T)] = np.arange(len(blocks))
+    return blocks.astype(np.int32), grid_blocks.astype(np.int32), grid
+
+
+def mark_test_blocks(grid_blocks, offsets, grid_shape) -> np.ndarray:
+    """Twin of ``mark_test_blocks``: 1 (flat, row-major) at every block + offset [prod(grid_shape)] (int32)."""
+    marked = np.zeros(tuple(grid_shape), np.int32)
+    cells = (np.asarray(grid_blocks, np.int64)[:, None, :] + np.asarray(offsets, np.int64)[None]).reshape(-1, 3)
+    marked[tuple(cells.T)] = 1
+    return marked.reshape(-1)
+
+
+def list_test_blocks(marked, grid, offsets, grid_lowest) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``list_test_blocks``: the marked cells in grid order, in map coordinates [T, 3], and their
+    sources grid[cell + offset] [T, F]."""
+    grid = np.asarray(grid)
+    cells = np.stack(np.unravel_index(np.flatnonzero(np.asarray(marked)), grid.shape), axis=1)
+    sources = np.stack([grid[tuple((cells + np.asarray(f)).T)] for f in np.asarray(offsets, np.int64)], axis=1) if len(cells) else np.zeros((0, len(offsets)), np.int32)
+    return (cells + np.asarray(grid_lowest, np.int64)).astype(np.int32), sources
+
+
+def sorted_block_points(points, labels, point_ids, order, length) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``sorted_block_points``: the pairs' points in block order divided by ell in float32, and
+    their labels (int32)."""
+    ids = np.asarray(point_ids, np.int64)[np.asarray(order, np.int64)]
+    return np.asarray(points, np.float32)[ids] / np.float32(length), np.asarray(labels)[ids].astype(np.int32)
+
+
+def narrow_starts(wide) -> np.ndarray:
+    """Twin of ``narrow_starts``: the starts as int32."""
+    return np.asarray(wide, np.int64).astype(np.int32)

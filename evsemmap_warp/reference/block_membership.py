@@ -37,3 +37,23 @@ def membership_pairs(nearest: np.ndarray, masks: np.ndarray) -> tuple[np.ndarray
         point_ids.append(ids)
         blocks.append(nearest[ids] + np.array(shift))
     return np.concatenate(point_ids), np.concatenate(blocks).reshape(-1, 3)
+
+
+def membership_masks_parallel(points, size) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Twin of ``membership_masks_parallel``: ``block_membership_masks`` and each point's pair count."""
+    nearest, masks = block_membership_masks(points, size)
+    return nearest, masks, np.array([bin(int(m)).count("1") for m in masks], np.int32)
+
+
+def membership_pairs_by_point(masks, first_pair) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``membership_pairs_by_point``: (bit, point) of every set bit, point by point, bits ascending."""
+    pairs = [(bit, i) for i, mask in enumerate(np.asarray(masks, np.int64)) for bit in range(27) if (int(mask) >> bit) & 1]
+    assert len(pairs) == (int(first_pair[-1]) + bin(int(masks[-1])).count("1") if len(masks) else 0)
+    return np.array([b for b, _ in pairs], np.int64), np.array([i for _, i in pairs], np.int64)
+
+
+def membership_blocks(bits, point_ids, nearest) -> np.ndarray:
+    """Twin of ``membership_blocks``: each pair's block, its point's nearest block + its bit's shift [M, 3]."""
+    bits = np.asarray(bits, np.int64)
+    shifts = np.stack([bits // 9 - 1, (bits // 3) % 3 - 1, bits % 3 - 1], axis=1)
+    return np.asarray(nearest, np.int64)[np.asarray(point_ids, np.int64)] + shifts

@@ -20,3 +20,34 @@ def ray_samples(direction, ray_length, origin, free_resolution, steps, samples_p
         if ray_length[h] > f:
             out[row + 1 + int(samples_per_hit[h])] = origin + direction[h] * np.float32(ray_length[h] - f)
     return out
+
+
+def ray_geometry(hits, origin) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``ray_geometry``: each hit's float32 direction [N, 3] and range [N] from the origin."""
+    diff = np.asarray(hits, np.float32) - np.asarray(origin, np.float32)
+    ray_length = np.sqrt(np.sum(diff * diff, axis=1, dtype=np.float32), dtype=np.float32)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return diff / ray_length[:, None], ray_length
+
+
+def samples_per_ray(ray_length, steps, free_resolution) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``samples_per_ray``: (steps below each range, rows per hit) [N], [N] (int32)."""
+    ray_length = np.asarray(ray_length, np.float32)
+    per_hit = np.searchsorted(np.asarray(steps, np.float32), ray_length, side="left")
+    return per_hit.astype(np.int32), (1 + per_hit + (ray_length > np.float32(free_resolution))).astype(np.int32)
+
+
+def within_range(ray_length, max_range) -> np.ndarray:
+    """Twin of ``within_range``: 1 where the range is at most max_range (float32) [N] (int32)."""
+    return (np.asarray(ray_length, np.float32) <= np.float32(max_range)).astype(np.int32)
+
+
+def compact_rays(keep, slot, hits, labels, direction, ray_length):
+    """Twin of ``compact_rays``: the kept hits, labels, directions and ranges, in input order."""
+    kept = np.asarray(keep) == 1
+    return np.asarray(hits)[kept], np.asarray(labels)[kept], np.asarray(direction)[kept], np.asarray(ray_length)[kept]
+
+
+def longest_ray(ray_length) -> np.float32:
+    """Twin of ``longest_ray``: the largest range, 0 for none."""
+    return np.float32(max(0.0, float(np.max(ray_length, initial=0.0))))

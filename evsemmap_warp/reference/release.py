@@ -152,3 +152,40 @@ def keep_first_per_block(cells: np.ndarray, cap: int) -> np.ndarray:
     keep = np.zeros(n, bool)
     keep[order[rank < cap]] = True
     return keep
+
+
+def snapped_block_keys(points, lo, hi, ds, block_size) -> np.ndarray:
+    """Twin of ``snapped_block_keys``: the block of each ``snap_to_lines`` point, as the C++ hashes it
+    [N, 3] (int64)."""
+    snapped = snap_to_lines(points, lo, hi, np.float32(ds))
+    return (snapped.astype(np.float64) / np.float64(block_size) + 524288.5).astype(np.int64) - 524288
+
+
+def keep_first_sorted(order, run_rank, starts, cap: int) -> np.ndarray:
+    """Twin of ``keep_first_sorted``: 1 for the first ``cap`` sorted points of each run, at their input
+    positions [N] (int32)."""
+    order, run_rank, starts = np.asarray(order, np.int64), np.asarray(run_rank, np.int64), np.asarray(starts, np.int64)
+    keep = np.zeros(len(order), np.int32)
+    keep[order] = (np.arange(len(order)) - starts[run_rank - 1] < cap).astype(np.int32)
+    return keep
+
+
+def compact_indices(keep) -> np.ndarray:
+    """Twin of ``compact_indices``: the kept indices, ascending (int32)."""
+    return np.flatnonzero(np.asarray(keep) == 1).astype(np.int32)
+
+
+def take_points(points, index) -> np.ndarray:
+    """Twin of ``take_points``: points[index]."""
+    return np.asarray(points, np.float32)[np.asarray(index, np.int64)]
+
+
+def sorted_rows(points, probabilities, uncertainty, kept, point_ids, order, *, dempster: bool):
+    """Twin of ``sorted_rows_kernel(K, dempster)``: the rows in block order (points, class weights, and
+    uncertainty), the weights the probabilities or clip(p - u / K, 0, 1)."""
+    i = np.asarray(kept, np.int64)[np.asarray(point_ids, np.int64)[np.asarray(order, np.int64)]]
+    p = np.asarray(probabilities, np.float64)[i]
+    u = np.asarray(uncertainty, np.float64)[i]
+    if dempster:
+        p = np.clip(p - u[:, None] / p.shape[1], 0.0, 1.0)
+    return np.asarray(points, np.float32)[i], p, u

@@ -22,12 +22,51 @@ def leaf_centroids(points, order, starts, counts) -> np.ndarray:
     return (sums / np.asarray(counts)[:, None].astype(np.float32)).astype(np.float32)
 
 
-def leaf_majority_labels(sorted_labels, starts, counts) -> np.ndarray:
-    """Twin of ``kernels.voxel_grid.leaf_majority_labels``: each leaf's most frequent label among
-    sorted_labels[start:start + count], the smallest on ties [L] int64."""
-    sorted_labels = np.asarray(sorted_labels, np.int64)
-    majority = np.empty(len(starts), np.int64)
-    for leaf, (start, count) in enumerate(zip(np.asarray(starts, np.int64), np.asarray(counts, np.int64))):
-        values, votes = np.unique(sorted_labels[start:start + count], return_counts=True)
+def point_bounds(points) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``point_bounds``: the per-axis float32 minimum and maximum [3], [3]."""
+    points = np.asarray(points, np.float32).reshape(-1, 3)
+    return points.min(axis=0), points.max(axis=0)
+
+
+def positions(n: int) -> np.ndarray:
+    """Twin of ``positions``: 0 .. n - 1 (int64)."""
+    return np.arange(n, dtype=np.int64)
+
+
+def leaf_runs(sorted_leaf) -> np.ndarray:
+    """Twin of ``leaf_runs``: 1 where a sorted position starts a new leaf [N] (int32)."""
+    sorted_leaf = np.asarray(sorted_leaf, np.int64)
+    return np.r_[True, sorted_leaf[1:] != sorted_leaf[:-1]].astype(np.int32)[:len(sorted_leaf)]
+
+
+def leaf_starts(leaf_rank) -> np.ndarray:
+    """Twin of ``leaf_starts``: each leaf's first sorted position, then the point count [L + 1] (int64),
+    from the inclusive scan of ``leaf_runs``."""
+    leaf_rank = np.asarray(leaf_rank, np.int64)
+    return np.r_[np.flatnonzero(np.diff(np.r_[0, leaf_rank]) != 0), len(leaf_rank)].astype(np.int64)
+
+
+def leaf_centroids_parallel(points, order, starts, leaf_count: int) -> np.ndarray:
+    """Twin of ``leaf_centroids_parallel``: ``leaf_centroids`` of the leaves starts[:leaf_count + 1] bound."""
+    starts = np.asarray(starts, np.int64)[:leaf_count + 1]
+    return leaf_centroids(points, order, starts[:-1], np.diff(starts))
+
+
+def leaf_label_keys(order, leaf_rank, labels, label_min: int, label_span: int) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``leaf_label_keys``: (leaf number * label_span + label - label_min of each sorted position,
+    the positions) [N], [N] (int64)."""
+    labels = np.asarray(labels, np.int64)[np.asarray(order, np.int64)]
+    keys = (np.asarray(leaf_rank, np.int64) - 1) * label_span + labels - label_min
+    return keys, np.arange(len(keys), dtype=np.int64)
+
+
+def leaf_majority_labels(sorted_keys, starts, leaf_count: int, label_min: int, label_span: int) -> np.ndarray:
+    """Twin of ``leaf_majority_labels``: each leaf's most frequent label among its sorted keys'
+    labels (key % label_span + label_min), the smallest on ties [L] (int64)."""
+    labels = np.asarray(sorted_keys, np.int64) % label_span + label_min
+    starts = np.asarray(starts, np.int64)
+    majority = np.empty(leaf_count, np.int64)
+    for leaf in range(leaf_count):
+        values, votes = np.unique(labels[starts[leaf]:starts[leaf + 1]], return_counts=True)
         majority[leaf] = values[np.argmax(votes)]  # unique sorts ascending; argmax takes the first maximum
     return majority
