@@ -410,6 +410,7 @@ def compact_indices(keep: wp.array(dtype=int), slot: wp.array(dtype=int), kept: 
 
 @wp.kernel
 def take_points(points: wp.array(dtype=wp.vec3), index: wp.array(dtype=int), taken: wp.array(dtype=wp.vec3)):
+    """taken[i] = points[index[i]]."""
     i = wp.tid()
     taken[i] = points[index[i]]
 

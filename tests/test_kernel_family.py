@@ -30,6 +30,7 @@ def _every_kernel():
         "gather_sbki_blocks": [block_gather.gather_sbki_kernel(9, 2)],
         "gather_release_blocks": [release.gather_release_kernel(9, 2, fusion=f) for f in (sc.FUSION_BAYES, sc.FUSION_DEMPSTER)],
         "block_models": [release.block_models_kernel(dense) for dense in (True, False)],
+        "sorted_rows": [release.sorted_rows_kernel(9, dempster) for dempster in (False, True)],
     }
     out = []
     for module_name in MAPPING_MODULES:
