@@ -14,7 +14,8 @@ adaptive/threshold policy of the release's ``ebs`` and ``dempster`` configs):
 
 The models and their updates (each block holding points trains on its own and its 6 face neighbours'
 points and predicts for those of its face neighbours that hold points) are the gather kernel
-``kernels.release``; ``release_blocks`` prepares its tables.
+``kernels.release``; ``release_blocks`` prepares its tables. This is the host path a CPU map takes; for a
+GPU map the steps after the cut run as parallel kernels on the device (``methods.release_device``).
 """
 
 from __future__ import annotations

@@ -8,6 +8,9 @@ range filter, free samples along each ray plus the sensor origin once per hit, a
 over the free samples, and block membership by inclusive float32 box tests (a point exactly on a
 block face belongs to both blocks). The mapping itself then runs on the Warp gather (S-BKI) or
 scatter (S-CSM) kernel.
+
+This is the host path, one scan per worker thread, which a CPU map takes; for a GPU map the S-BKI
+kernel's steps run as parallel kernels on the device (``methods.sbki_device``, the same results).
 """
 
 from __future__ import annotations
@@ -232,6 +235,12 @@ def training_data(
         hits, hit_labels = hits[keep], hit_labels[keep]
     frees = free_space_samples(hits, origin, free_resolution_m)
     free_points, _ = voxel_grid_downsample(frees, np.zeros(len(frees), np.int64), ds_resolution_m)
+    return joined_training_set(hits, hit_labels, free_points)
+
+
+def joined_training_set(hits: np.ndarray, hit_labels: np.ndarray, free_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    """The training set from its parts: the hits, then the free samples (label ``FREE_LABEL``), and the
+    count of each."""
     train_points = np.concatenate([hits, free_points]).astype(np.float32)
     train_labels = np.concatenate([hit_labels, np.full(len(free_points), FREE_LABEL, np.int64)])
     return train_points, train_labels, {"hits": len(hits), "free_samples": len(free_points)}

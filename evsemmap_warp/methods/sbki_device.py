@@ -119,10 +119,7 @@ def training_data_on_device(
     """``sbki_compat.training_data`` built on ``device``: the same points, labels and counts (read back)."""
     hits, hit_labels, free_points = training_arrays(points, labels, sensor_origin, ds_resolution_m=ds_resolution_m,
                                                     free_resolution_m=free_resolution_m, max_range_m=max_range_m, device=device)
-    hits, hit_labels, free_points = hits.numpy(), hit_labels.numpy(), free_points.numpy()
-    train_points = np.concatenate([hits, free_points]).astype(np.float32)
-    train_labels = np.concatenate([hit_labels, np.full(len(free_points), sbki_compat.FREE_LABEL, np.int64)])
-    return train_points, train_labels, {"hits": len(hits), "free_samples": len(free_points)}
+    return sbki_compat.joined_training_set(hits.numpy(), hit_labels.numpy(), free_points.numpy())
 
 
 def training_arrays(
