@@ -3,8 +3,8 @@ back to the host, new device allocations, and host arrays handed to kernels, for
 
 A read is what waits for the device and copies to the host on a GPU (``wp.array.numpy``, ``.list``, a
 ``wp.copy`` into a CPU array); an allocation is a call to Warp's allocator or a ``wp.HashGrid``; a
-host array is a ``wp.array`` made over host data (free on the CPU, an allocation and an upload on a
-GPU, until scans are staged through reused buffers). The budget is per shard and scan: one read (the
+host array is a ``wp.array`` made over host data (free on the CPU; on a GPU the scan's inputs go
+through the shard's reused, pinned staging buffers instead, ``core._staging``, tests/test_staging.py). The budget is per shard and scan: one read (the
 launch's counters together), no allocation, and the scan's own inputs (points, lengths, uncertainty,
 payload). A scan that finds the table full reads its failure flags too and relaunches; the scans
 counted here (the same scan again, the map warm) never do.

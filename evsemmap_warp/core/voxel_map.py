@@ -27,6 +27,7 @@ import numpy as np
 
 from ..voxel_keys import check_index_range, column_bounds, pack_voxel_keys, unpack_voxel_keys
 from . import _host_memory
+from ._staging import Staging
 from .warp_runtime import init_warp, resolve_device
 
 wp = init_warp()
@@ -122,6 +123,8 @@ class VoxelMap:
         self._updates = wp.zeros(1, dtype=wp.int64, device=self.device)
         self._counters = wp.zeros(2, dtype=wp.int64, device=self.device)
         self._counted_updates = 0
+        # The scans' inputs reach the device through buffers kept from scan to scan (pinned, on a GPU).
+        self.staging = Staging(self.device)
         self._allocate(max(MIN_CAPACITY, _next_pow2(initial_capacity)))
 
     # ------------------------------------------------------------------ storage
@@ -373,12 +376,12 @@ class VoxelMap:
                 reach = (stencil_half + 1) * self.resolution_m
             self._check_reach(points, reach)
         d = self.device
-        scan = sc.scan_points(
-            points=_points_array(points, d), lengths=_float_array(lengths, d), uncertainty=_float_array(point_uncertainty, d),
-            labels=None if labels is None else _int_array(labels, d), class_weights=None if class_weights is None else _float_array(class_weights, d),
-            owner_blocks=None if owner_blocks is None else wp.array(np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d, copy=False))
+        scan = self._radius_scan(points, lengths, point_uncertainty, labels, class_weights)
+        if owner_blocks is not None:
+            scan.owner_blocks = self.staging.upload("owner_blocks", owner_blocks, wp.vec3i, np.int32)
         params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, sigma0=sigma0, cells_per_block=cells_per_block,
-                                   stencil_weights=None if stencil_weights is None else _float_array(stencil_weights, d), stencil_half=stencil_half)
+                                   stencil_weights=None if stencil_weights is None else self.staging.upload("stencil_weights", stencil_weights, wp.float64, np.float64),
+                                   stencil_half=stencil_half)
 
         def launch(ids, failed):
             scan.point_ids = ids
@@ -389,10 +392,12 @@ class VoxelMap:
         return self._counted_updates
 
     def _radius_scan(self, points, lengths, point_uncertainty, labels, class_weights) -> sc.ScanPoints:
-        d = self.device
-        return sc.scan_points(points=_points_array(points, d), lengths=_float_array(lengths, d), uncertainty=_float_array(point_uncertainty, d),
-                              labels=None if labels is None else _int_array(labels, d),
-                              class_weights=None if class_weights is None else _float_array(class_weights, d))
+        """A scan's points and payload on the device, through the shard's staging buffers."""
+        upload = self.staging.upload
+        return sc.scan_points(points=upload("points", np.reshape(points, (-1, 3)), wp.vec3d, np.float64), lengths=upload("lengths", lengths, wp.float64, np.float64),
+                              uncertainty=upload("uncertainty", point_uncertainty, wp.float64, np.float64),
+                              labels=None if labels is None else upload("labels", labels, wp.int32, np.int32),
+                              class_weights=None if class_weights is None else upload("class_weights", class_weights, wp.float64, np.float64))
 
     def scatter_sorted(self, points: np.ndarray, lengths: np.ndarray, point_uncertainty: np.ndarray, *, sigma0: float,
                        labels: np.ndarray | None = None, class_weights: np.ndarray | None = None) -> int:
@@ -483,9 +488,11 @@ class VoxelMap:
         first = owner_blocks.astype(np.int64) * cells_per_block - cells_per_block // 2
         self._check_index_range(first.min(axis=0) - cells_per_block, first.max(axis=0) + 2 * cells_per_block - 1)
         d = self.device
-        scan = sc.scan_points(points=_points_array(points, d), labels=_int_array(labels, d), uncertainty=_float_array(point_uncertainty, d),
-                              owner_blocks=wp.array(np.ascontiguousarray(owner_blocks, dtype=np.int32), dtype=wp.vec3i, device=d, copy=False))
-        lengths = _float_array(target_lengths, d)
+        upload = self.staging.upload
+        scan = sc.scan_points(points=upload("points", np.reshape(points, (-1, 3)), wp.vec3d, np.float64), labels=upload("labels", labels, wp.int32, np.int32),
+                              uncertainty=upload("uncertainty", point_uncertainty, wp.float64, np.float64),
+                              owner_blocks=upload("owner_blocks", owner_blocks, wp.vec3i, np.int32))
+        lengths = upload("target_lengths", target_lengths, wp.float64, np.float64)
         params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, cells_per_block=cells_per_block)
 
         def launch(ids, failed):
@@ -607,14 +614,6 @@ class VoxelMap:
 
 def _points_array(points: np.ndarray, device: str):
     return wp.array(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3), dtype=wp.vec3d, device=device, copy=False)
-
-
-def _float_array(values: np.ndarray, device: str):
-    return wp.array(np.ascontiguousarray(values, dtype=np.float64), dtype=wp.float64, device=device, copy=False)
-
-
-def _int_array(values: np.ndarray, device: str):
-    return wp.array(np.ascontiguousarray(values, dtype=np.int32), dtype=int, device=device, copy=False)
 
 
 _loaded_devices: set = set()  # devices, and (device, module) of kernels made on demand

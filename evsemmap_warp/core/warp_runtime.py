@@ -2,7 +2,8 @@
 
 Kernel inputs are made from numpy with ``wp.array(..., copy=False)`` throughout: on the CPU the kernels then
 read numpy's memory in place (Warp keeps a reference to it) instead of a copy per launch; on a GPU Warp copies
-them, as it must.
+them, as it must, except a scan's inputs to the clean-mode kernels, which a shard stages through pinned
+buffers it keeps (``core._staging``).
 """
 
 from __future__ import annotations

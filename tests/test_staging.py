@@ -1,0 +1,54 @@
+"""Scan inputs reach the device through buffers a shard keeps (``core._staging``): on the CPU numpy's memory
+is read in place; the GPU's path (device buffers reused from scan to scan, grown by half again when
+outgrown) is checked on the CPU backend with ``reuse_on_cpu``, and a map made through it is the map
+made without it, bit for bit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+from conftest import REPO
+
+from evsemmap_warp.config import load_config
+from evsemmap_warp.core._staging import Staging
+from evsemmap_warp.core.mapper import Mapper
+
+
+def test_the_cpu_reads_numpys_memory_in_place():
+    values = np.arange(12.0).reshape(4, 3)
+    uploaded = Staging("cpu").upload("points", values, wp.vec3d, np.float64)
+    assert uploaded.ptr == values.ctypes.data
+    np.testing.assert_array_equal(uploaded.numpy(), values)
+
+
+def test_reused_buffers_hold_each_scans_values_and_grow_when_outgrown():
+    staging = Staging("cpu", reuse_on_cpu=True)
+    first = staging.upload("points", np.ones((100, 3)), wp.vec3d, np.float64)
+    second = staging.upload("points", np.full((80, 3), 2.0), wp.vec3d, np.float64)
+    assert second.ptr == first.ptr and second.shape == (80,)  # the same buffer, this scan's length
+    np.testing.assert_array_equal(second.numpy(), np.full((80, 3), 2.0))
+    grown = staging.upload("points", np.arange(303.0).reshape(101, 3), wp.vec3d, np.float64)
+    assert grown.ptr != first.ptr and grown.shape == (101,)
+    np.testing.assert_array_equal(grown.numpy(), np.arange(303.0).reshape(101, 3))
+    labels = staging.upload("labels", np.array([3, 1, 2]), wp.int32, np.int32)  # its own buffer, converted
+    np.testing.assert_array_equal(labels.numpy(), [3, 1, 2])
+    assert staging.upload("labels", np.zeros(0), wp.int32, np.int32).shape == (0,)
+
+
+@pytest.mark.parametrize("method", ["ebs", "s-bki", "convbki", "see-csom"])
+def test_a_map_made_through_reused_buffers_is_the_same(method):
+    rng = np.random.default_rng(4)
+    config = load_config([REPO / "configs/presets/rellis3d.yaml"], method=method).mapping
+    scans = [(rng.uniform(-6, 6, (n, 3)), rng.gamma(2.0, 2.0, (n, 5)) + 1.0) for n in (3000, 2000, 4000)]
+    maps = []
+    for reuse in (False, True):
+        mapper = Mapper(config, 5, workers=1)
+        for shard in mapper.shards:
+            shard.staging = Staging("cpu", reuse_on_cpu=reuse)
+        for points, alpha in scans:
+            mapper.integrate(points, alpha, payload_type="alpha", sensor_origin=np.zeros(3))
+        maps.append(mapper.voxels()[0])
+    assert len(maps[0].index) > 100
+    np.testing.assert_array_equal(maps[1].index, maps[0].index)
+    np.testing.assert_array_equal(maps[1].rows(), maps[0].rows())
