@@ -1,7 +1,7 @@
-"""S-BKI's per-scan training data (``sbki_compat.training_data``) built on the map's device by parallel
-kernels, for maps on a GPU: the VoxelGrid of the hits and of their free samples, the range filter and
-the free samples along each ray, the same points bit for bit as the host path (tests/test_sbki_device.py
-holds the two together on Warp's CPU backend).
+"""S-BKI's per-scan preprocessing (``sbki_compat``) built on the map's device by parallel kernels, for maps
+on a GPU: the training data (the VoxelGrid of the hits and of their free samples, the range filter, the
+free samples along each ray), the block memberships and the gather kernel's tables, the same arrays bit
+for bit as the host path (tests/test_sbki_device.py holds the two together on Warp's CPU backend).
 
 The host path runs the same steps as one-thread host kernels, one scan per worker thread, which is faster
 on a CPU, where a launch runs on one core whatever its form; the forms here sort with Warp's stable radix
@@ -9,9 +9,10 @@ sort (``wp.utils.radix_sort_pairs``) and give each leaf, hit and point its own t
 orders its points by leaf stably and so keeps PCL's float32 summation order within a leaf.
 
 What still reads back from the device per scan: the leaf counts of both VoxelGrids, the kept hits'
-count, the longest ray and the free samples' count and bounds (small counters that size the next
-arrays), and the training set itself, which the block memberships and the gather tables still build on
-the host.
+count, the longest ray, the free samples' count and bounds, the pairs' count and their blocks' bounds,
+the block and test-block counts (small values that size the next arrays), and the test blocks, for the
+key-range check and the shards' split; every array is allocated per scan. Blocks spread wider than a
+dense grid (``sbki_compat.MAX_DENSE_LOOKUP_CELLS``) take the host path from the training set.
 """
 
 from __future__ import annotations
