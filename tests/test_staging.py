@@ -1,7 +1,8 @@
-"""Scan inputs reach the device through buffers a shard keeps (``core._staging``): on the CPU numpy's memory
-is read in place; the GPU's path (device buffers reused from scan to scan, grown by half again when
-outgrown) is checked on the CPU backend with ``reuse_on_cpu``, and a map made through it is the map
-made without it, bit for bit."""
+"""What lets a GPU map's host work overlap its kernels, checked on the CPU backend. Scan inputs reach the
+device through buffers a shard keeps (``core._staging``): on the CPU numpy's memory is read in place;
+the GPU's path (device buffers reused from scan to scan, grown by half again when outgrown) runs on the
+CPU with ``reuse_on_cpu``, and a map made through it is the map made without it, bit for bit. A GPU map
+prepares the next scans on a thread while this one launches (``Mapper.prepare_ahead``): the same map."""
 
 from __future__ import annotations
 
@@ -52,3 +53,26 @@ def test_a_map_made_through_reused_buffers_is_the_same(method):
     assert len(maps[0].index) > 100
     np.testing.assert_array_equal(maps[1].index, maps[0].index)
     np.testing.assert_array_equal(maps[1].rows(), maps[0].rows())
+
+
+@pytest.mark.parametrize("preset, method, on_device", [("rellis3d", "ebs", False), ("release", "dempster", True)])
+def test_preparing_ahead_with_one_worker_gives_the_same_map(preset, method, on_device):
+    # What a GPU map does (Mapper.prepare_ahead): the next scans prepared on a thread while this one launches.
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(8)
+    config = load_config([REPO / f"configs/presets/{preset}.yaml"], method=method).mapping
+    scans = [SimpleNamespace(points=rng.uniform(-6, 6, (n, 3)), payload=rng.gamma(2.0, 2.0, (n, 9)) + 1.0, payload_type="alpha",
+                             sensor_origin=np.zeros(3)) for n in (3000, 2000, 4000, 2500)]
+    maps = []
+    for ahead in (False, True):
+        mapper = Mapper(config, 9, workers=1)
+        mapper.prepare_ahead = ahead
+        if hasattr(mapper.integrator, "preprocess_on_device"):
+            mapper.integrator.preprocess_on_device = on_device
+        stats = mapper.integrate_many(scans)
+        maps.append(([s.voxel_updates for s in stats], mapper.voxels()[0]))
+    (updates, first), (ahead_updates, ahead_map) = maps
+    assert updates == ahead_updates and len(first.index) > 100
+    np.testing.assert_array_equal(ahead_map.index, first.index)
+    np.testing.assert_array_equal(ahead_map.rows(), first.rows())

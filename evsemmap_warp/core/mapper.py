@@ -295,6 +295,10 @@ class Mapper:
             raise ValueError(f"workers must be >= 1, and 1 on a CUDA device; got {workers} on {self.device}")
         self.shards = [first] + [self._new_shard(self.device) for _ in range(workers - 1)]
         self._lanes = ShardLanes(workers) if workers > 1 else None
+        # integrate_many prepares the next scans on threads while this scan's kernels run: with several
+        # CPU workers, and on a GPU, where the one worker's launches return before the kernels end. A
+        # CPU map with one worker prepares scan by scan (its rows are the one-thread figures).
+        self.prepare_ahead = self._lanes is not None or self.device != "cpu"
         self.origin_index: np.ndarray | None = None  # [3] int64, global index of the origin voxel corner
         if origin is not None:
             self.origin_index = self._snap_origin(_validate_point(origin, "origin"))
@@ -346,10 +350,11 @@ class Mapper:
         """Add scans in order, each an object with ``points``, ``payload``, ``payload_type`` and
         ``sensor_origin`` (the datasets' ``Scan``; a ``name``, when it has one, prefixes errors).
 
-        The map is the one ``integrate`` gives scan by scan. With more than one worker, the next scans
-        are read from ``scans`` (in order, one at a time) and get their host work (validation and, in
-        the S-BKI and release modes, training data and block tables) on as many threads as there are
-        workers, up to twice as many scans ahead, while this scan's kernels run; until the first
+        The map is the one ``integrate`` gives scan by scan. With more than one worker, or on a GPU
+        (``prepare_ahead``), the next scans are read from ``scans`` (in order, one at a time) and get
+        their preparation (validation and, in the S-BKI and release modes, training data and block
+        tables) on as many threads as there are workers, up to twice as many scans ahead, while this
+        scan's kernels run; until the first
         non-empty scan has set the map origin, one scan ahead at most. Each shard works through the
         scans on its own thread (``ShardLanes``), up to LAUNCHES_IN_FLIGHT scans apart from the others.
         ``progress(scan, stats)`` is called after each scan, in order, once all its shards are done.
@@ -358,7 +363,7 @@ class Mapper:
         the next scan and part of the failing one (a shard can be a scan ahead). No shard job is left
         running when the error is raised."""
         results = []
-        if self._lanes is None:
+        if not self.prepare_ahead:
             for scan in scans:
                 results.append(self._named(scan, lambda scan=scan: self._launch(self._prepare_scan(scan))))
                 if progress:
