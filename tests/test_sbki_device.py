@@ -16,10 +16,12 @@ from evsemmap_warp.methods import sbki_device
 from evsemmap_warp.reference import voxel_grid as twin
 
 
+def _on_device(points, labels, origin, device, **kw):
+    return sb.joined_training_set(*[part.numpy() for part in sbki_device.training_arrays(points, labels, origin, device=device, **kw)])
+
+
 def _both(points, labels, origin, device, **kw):
-    host = sb.training_data(points, labels, origin, **kw)
-    on_device = sbki_device.training_data_on_device(points, labels, origin, device=device, **kw)
-    return host, on_device
+    return sb.training_data(points, labels, origin, **kw), _on_device(points, labels, origin, device, **kw)
 
 
 def _assert_same(host, on_device):
@@ -98,7 +100,7 @@ def test_a_grid_pcl_refuses_leaves_the_cloud_unchanged(device):
 def test_too_many_free_samples_are_refused_as_on_the_host(device):
     origin = np.zeros(3, np.float32)
     far = np.array([[3e6, 0, 0]], np.float32)  # 6 M steps of 0.5 m along one ray
-    for build in (sb.training_data, lambda *a, **kw: sbki_device.training_data_on_device(*a, device=device, **kw)):
+    for build in (sb.training_data, lambda *a, **kw: _on_device(*a, device, **kw)):
         with pytest.raises(ValueError, match="free_resolution_m"):
             build(far, np.array([1]), origin, ds_resolution_m=0.1, free_resolution_m=0.5, max_range_m=None)
 

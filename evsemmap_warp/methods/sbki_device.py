@@ -107,22 +107,6 @@ def _free_space_samples(hits: wp.array, direction: wp.array, ray_length: wp.arra
     return out
 
 
-def training_data_on_device(
-    points: np.ndarray,
-    labels: np.ndarray,
-    sensor_origin: np.ndarray,
-    *,
-    ds_resolution_m: float,
-    free_resolution_m: float,
-    max_range_m: float | None,
-    device: str,
-) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
-    """``sbki_compat.training_data`` built on ``device``: the same points, labels and counts (read back)."""
-    hits, hit_labels, free_points = training_arrays(points, labels, sensor_origin, ds_resolution_m=ds_resolution_m,
-                                                    free_resolution_m=free_resolution_m, max_range_m=max_range_m, device=device)
-    return sbki_compat.joined_training_set(hits.numpy(), hit_labels.numpy(), free_points.numpy())
-
-
 def training_arrays(
     points: np.ndarray,
     labels: np.ndarray,
@@ -135,7 +119,7 @@ def training_arrays(
 ) -> tuple[wp.array, wp.array, wp.array]:
     """The training set of ``sbki_compat.training_data`` on ``device``, in its two parts: the downsampled
     hits within range [H] (vec3), their labels [H] (int64) and the downsampled free samples [F] (vec3,
-    label ``FREE_LABEL``)."""
+    label ``FREE_LABEL``); ``sbki_compat.joined_training_set`` of their values is ``training_data``'s result."""
     points = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3)
     labels = np.asarray(labels, dtype=np.int64)
     origin = np.asarray(sensor_origin, dtype=np.float32).reshape(3)
