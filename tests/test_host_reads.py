@@ -190,3 +190,36 @@ def test_the_counters_kernel_matches_its_twin():
     wp.launch(ht.read_counters, dim=1, inputs=[wp.array(key_count, dtype=int, device="cpu"), wp.array(updates, dtype=wp.int64, device="cpu"), out],
               device="cpu")
     np.testing.assert_array_equal(out.numpy(), ht_ref.read_counters(key_count, updates))
+
+
+@pytest.mark.parametrize("method", ["sbki", "release-ebs"])
+def test_the_compat_modes_device_preprocessing_allocates_nothing_once_warm(method):
+    # The like-for-like modes' preprocessing on the map's device (what a GPU map runs; forced here on the
+    # CPU backend) keeps its arrays in a pool of scratch sets (methods.device_scratch), each held by one
+    # scan until its launch is done: a warm scan allocates nothing. It still reads back the counts that
+    # size its next arrays.
+    from conftest import shared_path
+
+    from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, SbkiSettings
+
+    data = np.load(shared_path("data", "bench", "rellis_like_30scans.npz"))
+    offsets = data["scan_offsets"]
+    points = (data["xyz_mm"][offsets[0]:offsets[1]] / 1000.0).astype(np.float32)
+    origin = data["origins_mm"][0] / 1000.0
+    if method == "sbki":
+        config = MappingConfig(method="s-bki", kernel=Kernel.SPARSE, media=Media.ONEHOT, adaptive_length=False, uncertainty_threshold=False,
+                               compat=Compat.SBKI, resolution_m=0.2, length_m=0.3, sigma0=10.0, prior=0.001,
+                               sbki=SbkiSettings(block_depth=2, ds_resolution_m=0.1, free_resolution_m=4.0, max_range_m=None))
+        payload, payload_type = data["label"][offsets[0]:offsets[1]].astype(np.int64), "label"
+    else:
+        config = load_config([REPO / "configs/presets/release.yaml"], method="ebs").mapping
+        payload, payload_type = np.random.default_rng(0).gamma(2.0, 3.0, (len(points), 9)) + 1.0, "alpha"
+    mapper = Mapper(config, 9, workers=1)
+    mapper.integrator.preprocess_on_device = True
+    for _ in range(2):
+        mapper.integrate(points, payload, payload_type=payload_type, sensor_origin=origin)
+    with counting() as counts:
+        stats = mapper.integrate(points, payload, payload_type=payload_type, sensor_origin=origin)
+    assert stats.voxel_updates > 0
+    assert counts.allocations == 0, f"{method}: {counts}"
+    assert mapper.integrator._scratch.sets(mapper.device) == 1  # scan by scan, each scan gave its set back

@@ -76,3 +76,30 @@ def test_preparing_ahead_with_one_worker_gives_the_same_map(preset, method, on_d
     assert updates == ahead_updates and len(first.index) > 100
     np.testing.assert_array_equal(ahead_map.index, first.index)
     np.testing.assert_array_equal(ahead_map.rows(), first.rows())
+
+
+def test_scratch_sets_keep_each_requests_buffer_and_the_pool_hands_out_free_sets():
+    # The compat modes' device preprocessing keeps its arrays in scratch sets (methods.device_scratch).
+    from evsemmap_warp.methods.device_scratch import ScratchPool
+
+    pool = ScratchPool()
+
+    def scan(scratch, n):  # one line asked twice per scan (as the VoxelGrid runs twice), one line once
+        pair = [scratch.empty(n, wp.float64) for _ in range(2)]
+        return pair + [scratch.full((n, 3), 7, wp.int32)]
+
+    first = pool.take("cpu")
+    arrays = scan(first, 100)
+    assert len({a.ptr for a in arrays}) == 3 and arrays[2].numpy().tolist() == [[7, 7, 7]] * 100
+    assert pool.take("cpu") is not first and pool.sets("cpu") == 2  # held: a second set
+    first.release()
+    again = pool.take("cpu")
+    assert again is first
+    smaller = scan(again, 60)
+    assert [a.ptr for a in smaller] == [a.ptr for a in arrays] and smaller[0].shape == (60,)
+    grown = scan(pool.take("cpu"), 60)  # the other set is still held: a third one
+    assert pool.sets("cpu") == 3 and not {a.ptr for a in grown} & {a.ptr for a in arrays}
+    again.release()
+    bigger = scan(pool.take("cpu"), 1000)
+    assert bigger[0].ptr != arrays[0].ptr and bigger[0].shape == (1000,) and bigger[2].numpy().shape == (1000, 3)
+    assert scan(pool.take("cpu"), 0)[0].shape == (0,)

@@ -7,6 +7,7 @@ shard (``split_over_shards``); the block gathers put each block in the shard its
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -51,6 +52,27 @@ class PendingUpdates:
         """Waits for every part (all of them, even after one failed), then adds them up or raises."""
         self.wait()
         return sum(part.result() if isinstance(part, Future) else part for part in self.parts)
+
+
+def when_done(updates, callback) -> None:
+    """callback() once ``updates`` are final: now for an int, else when every job of the PendingUpdates has
+    finished (failed or not)."""
+    futures = [part for part in updates.parts if isinstance(part, Future)] if isinstance(updates, PendingUpdates) else []
+    if not futures:
+        callback()
+        return
+    remaining = [len(futures)]
+    lock = threading.Lock()
+
+    def one_done(_future):
+        with lock:
+            remaining[0] -= 1
+            last = remaining[0] == 0
+        if last:
+            callback()
+
+    for future in futures:
+        future.add_done_callback(one_done)
 
 
 def total_updates(parts: list):

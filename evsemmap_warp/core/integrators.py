@@ -31,8 +31,9 @@ from ..config import Compat, Fusion, Kernel, MappingConfig, Media, PayloadType, 
 from ..kernels import block_gather, release
 from ..kernels import scatter as sc
 from ..methods import convbki, release_compat, release_device, sbki_compat, sbki_device, see_csom
+from ..methods.device_scratch import DeviceScratch, ScratchPool
 from ..voxel_keys import column_bounds, take_rows
-from ._shards import PendingUpdates, ShardLanes, block_shard, for_each_shard, split_over_shards, total_updates
+from ._shards import PendingUpdates, ShardLanes, block_shard, for_each_shard, split_over_shards, total_updates, when_done
 from .voxel_map import VoxelMap
 
 @dataclass
@@ -336,6 +337,7 @@ class SbkiCompatIntegrator:
         # faster on a CPU, where a launch runs on one core whatever its form; None, on the device for a
         # GPU map. The same map either way (tests/test_sbki_device.py sets True on the CPU).
         self.preprocess_on_device: bool | None = None
+        self._scratch = ScratchPool()  # the device path's arrays, kept from scan to scan
 
     def prepare(self, scan: ScanPayload, device: str) -> Launch:
         """Training data, block memberships and the gather tables (host work, no map access; on the
@@ -344,40 +346,49 @@ class SbkiCompatIntegrator:
         on_device = self.preprocess_on_device if self.preprocess_on_device is not None else wp.get_device(device).is_cuda
         if on_device and c.kernel is Kernel.SPARSE:
             return self._prepare_on_device(scan, device)
-        stats = IntegrationStats(input_points=len(scan.points))
         points, labels, _ = sbki_compat.training_data(
             scan.points, scan.labels, scan.sensor_origin,
             ds_resolution_m=c.sbki.ds_resolution_m, free_resolution_m=c.sbki.free_resolution_m, max_range_m=c.sbki.max_range_m,
         )
+        return self._launch_from_training_set(IntegrationStats(input_points=len(scan.points)), points, labels, device)
+
+    def _launch_from_training_set(self, stats: IntegrationStats, points: np.ndarray, labels: np.ndarray, device: str) -> Launch:
+        """The host path from the training set on: block memberships, then the gather tables or the counts."""
         stats.kept_points = len(points)
         if len(points) == 0:
             return launch_step(stats)
         point_ids, owners = sbki_compat.block_memberships(points, self.block_size)
-        if c.kernel is Kernel.COUNT:
+        if self.config.kernel is Kernel.COUNT:
             return launch_step(stats, lambda shards, lanes: self._scatter_counts(shards, points, labels, point_ids, owners, lanes))
         return launch_step(stats, self._gather_sparse(points, labels, point_ids, owners, device))
 
     def _prepare_on_device(self, scan: ScanPayload, device: str) -> Launch:
         """``prepare`` for the S-BKI kernel with the preprocessing on the map's device: the gather kernel's
         inputs never leave it (the test blocks are read back for the key-range check and the shards'
-        split). Blocks too spread for the dense grid take the host path from the training set."""
+        split). No training points, or blocks too spread for the dense grid: the host path from the
+        training set. The arrays are a set of the integrator's scratch pool, held until the launch is done."""
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points))
-        points, labels = sbki_device.training_set(*sbki_device.training_arrays(
-            scan.points, scan.labels, scan.sensor_origin, ds_resolution_m=c.sbki.ds_resolution_m,
-            free_resolution_m=c.sbki.free_resolution_m, max_range_m=c.sbki.max_range_m, device=device))
-        stats.kept_points = points.shape[0]
-        if points.shape[0] == 0:
-            return launch_step(stats)
-        tables = sbki_device.gather_tables_on_device(points, labels, self.block_size, c.length_m)
+        scratch = self._scratch.take(device)
+        try:
+            points, labels = sbki_device.training_set(*sbki_device.training_arrays(
+                scan.points, scan.labels, scan.sensor_origin, ds_resolution_m=c.sbki.ds_resolution_m,
+                free_resolution_m=c.sbki.free_resolution_m, max_range_m=c.sbki.max_range_m, device=device, scratch=scratch), scratch)
+            tables = sbki_device.gather_tables_on_device(points, labels, self.block_size, c.length_m, scratch) if points.shape[0] else None
+            if tables is None:
+                training_set = points.numpy(), labels.numpy()
+        except BaseException:
+            scratch.release()
+            raise
         if tables is None:
-            host_points, host_labels = points.numpy(), labels.numpy()
-            point_ids, owners = sbki_compat.block_memberships(host_points, self.block_size)
-            return launch_step(stats, self._gather_sparse(host_points, host_labels, point_ids, owners, device))
+            scratch.release()
+            return self._launch_from_training_set(stats, *training_set, device)
+        stats.kept_points = points.shape[0]
         inputs = block_gather.sbki_blocks(blocks=tables.tests, sources=tables.sources, point_start=tables.point_start,
                                           scaled_points=tables.scaled_points, labels=tables.labels, length=c.length_m,
                                           sigma0=c.sigma0, resolution=c.resolution_m, grid_offset=self.grid_offset_m)
-        return launch_step(stats, block_gather_run(tables.test_blocks, self.cells_per_block, self.gather_kernel, inputs, "sbki_gather"))
+        return launch_step(stats, releasing(block_gather_run(tables.test_blocks, self.cells_per_block, self.gather_kernel, inputs, "sbki_gather"),
+                                            scratch))
 
     def _scatter_counts(self, shards, points, labels, point_ids, owners, lanes) -> int | PendingUpdates:
         """S-CSM: each (point, block) pair adds 1 to its block's single cell."""
@@ -435,6 +446,7 @@ class ReleaseCompatIntegrator:
         self.gather_kernel = release.gather_release_kernel
         # Where the preprocessing after the cut runs (methods.release_device): as SbkiCompatIntegrator's.
         self.preprocess_on_device: bool | None = None
+        self._scratch = ScratchPool()
 
     def cut_points(self, scan: ScanPayload, sensor_origin: np.ndarray) -> np.ndarray:
         """Indices of the scan's points within range that the uncertainty cut keeps."""
@@ -501,10 +513,16 @@ class ReleaseCompatIntegrator:
         if len(keep) == 0:
             return launch_step(stats)
         fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
-        inputs = release_device.release_inputs_on_device(
-            scan.points[keep], scan.probabilities[keep], scan.uncertainty[keep], ds_resolution_m=c.sbki.ds_resolution_m,
-            block_size=self.block_size, cap=c.release_block_cap, dempster=fusion == sc.FUSION_DEMPSTER, device=device)
+        scratch = self._scratch.take(device)
+        try:
+            inputs = release_device.release_inputs_on_device(
+                scan.points[keep], scan.probabilities[keep], scan.uncertainty[keep], ds_resolution_m=c.sbki.ds_resolution_m,
+                block_size=self.block_size, cap=c.release_block_cap, dempster=fusion == sc.FUSION_DEMPSTER, device=device, scratch=scratch)
+        except BaseException:
+            scratch.release()
+            raise
         if inputs is None:
+            scratch.release()
             return None
         stats.kept_points = inputs.kept_points
         blocks = release.release_blocks(
@@ -512,7 +530,23 @@ class ReleaseCompatIntegrator:
             points=inputs.points, class_weights=inputs.class_weights, uncertainty=inputs.uncertainty, length=self.length, sigma0=c.sigma0,
             resolution=c.resolution_m)
         kernel_factory = functools.partial(self.gather_kernel, fusion=fusion)
-        return launch_step(stats, block_gather_run(inputs.blocks, self.cells_per_block, kernel_factory, blocks, "release_gather"))
+        return launch_step(stats, releasing(block_gather_run(inputs.blocks, self.cells_per_block, kernel_factory, blocks, "release_gather"), scratch))
+
+
+def releasing(run, scratch: DeviceScratch):
+    """``run`` (shards, lanes) -> updates, releasing ``scratch`` once its kernels are done: when it returns,
+    or when its shard jobs have (``when_done``); also when it fails."""
+
+    def run_then_release(shards: list[VoxelMap], lanes: ShardLanes | None):
+        try:
+            updates = run(shards, lanes)
+        except BaseException:
+            scratch.release()
+            raise
+        when_done(updates, scratch.release)
+        return updates
+
+    return run_then_release
 
 
 def block_gather_run(blocks: np.ndarray, cells_per_block: int, kernel_factory, scan, kind: str):

@@ -6,7 +6,7 @@ device by parallel kernels for maps on a GPU: the same inputs bit for bit as the
 
 What still reads back per scan: the bounds of the snapped keys and of the memberships' blocks, the
 kept and the block counts (small values that size the next arrays), and the blocks, for the key-range
-check and the shards' split.
+check and the shards' split. The arrays are a scratch set's (``device_scratch``), kept from scan to scan.
 """
 
 from __future__ import annotations
@@ -19,24 +19,27 @@ import warp as wp
 from ..kernels import release
 from ..voxel_keys import column_bounds
 from . import release_compat, sbki_device
+from .device_scratch import DeviceScratch
 from .sbki_device import inclusive_scan, last_value
 
 
 def capped_points_on_device(points: wp.array, lo: np.ndarray, hi: np.ndarray, ds_resolution_m: float, block_size: np.float32,
-                            cap: int) -> wp.array:
+                            cap: int, scratch: DeviceScratch | None = None) -> wp.array:
     """``release_compat.snapped_block_keys`` then ``release_compat.first_per_block`` on the points' device:
-    the indices [M] (int, ascending) of the points [N] (float32 bounds lo, hi) each block keeps."""
+    the indices [M] (int, ascending) of the points [N] (float32 bounds lo, hi) each block keeps.
+    ``scratch``: where the arrays are kept (None: new ones)."""
     device = points.device
+    scratch = scratch or DeviceScratch(device)
     n = points.shape[0]
-    keys = wp.empty((n, 3), dtype=wp.int64, device=device)
+    keys = scratch.empty((n, 3), wp.int64)
     wp.launch(release.snapped_block_keys, dim=n, device=device, inputs=[
         points, wp.vec3(*[float(v) for v in lo]), wp.vec3(*[float(v) for v in hi]), float(np.float32(ds_resolution_m)),
         float(np.float64(np.float32(block_size))), keys])
-    order, run_rank, starts, _ = sbki_device.sort_by_block(keys, *sbki_device.block_bounds_on_device(keys))
-    keep = wp.empty(n, dtype=int, device=device)
+    order, run_rank, starts, _ = sbki_device.sort_by_block(keys, *sbki_device.block_bounds_on_device(keys, scratch), scratch)
+    keep = scratch.empty(n, int)
     wp.launch(release.keep_first_sorted, dim=n, device=device, inputs=[order, run_rank, starts, int(cap), keep])
-    slot = inclusive_scan(keep)
-    kept = wp.empty(last_value(slot), dtype=int, device=device)
+    slot = inclusive_scan(keep, scratch)
+    kept = scratch.empty(last_value(slot), int)
     wp.launch(release.compact_indices, dim=n, device=device, inputs=[keep, slot, kept])
     return kept
 
@@ -58,35 +61,38 @@ class DeviceReleaseInputs:
 
 
 def release_inputs_on_device(points: np.ndarray, probabilities: np.ndarray, uncertainty: np.ndarray, *, ds_resolution_m: float,
-                             block_size: np.float32, cap: int, dempster: bool, device: str) -> DeviceReleaseInputs | None:
+                             block_size: np.float32, cap: int, dempster: bool, device: str,
+                             scratch: DeviceScratch | None = None) -> DeviceReleaseInputs | None:
     """The release's inputs from the points its cut keeps (float32 [N, 3], their probabilities [N, K] and
     uncertainty [N], float64): the capped points, their memberships, the block models and the rows
-    sorted by block; None where the host path would not use a dense grid (the caller takes the host path)."""
+    sorted by block; None where the host path would not use a dense grid (the caller takes the host path).
+    ``scratch``: where the arrays are kept (None: new ones)."""
+    scratch = scratch or DeviceScratch(device)
     points = np.ascontiguousarray(points, dtype=np.float32)
-    on_device = wp.array(points, dtype=wp.vec3, device=device)
-    kept = capped_points_on_device(on_device, *column_bounds(points), ds_resolution_m, block_size, cap)
-    kept_points = wp.empty(kept.shape[0], dtype=wp.vec3, device=device)
+    on_device = scratch.upload(points, wp.vec3)
+    kept = capped_points_on_device(on_device, *column_bounds(points), ds_resolution_m, block_size, cap, scratch)
+    kept_points = scratch.empty(kept.shape[0], wp.vec3)
     wp.launch(release.take_points, dim=kept.shape[0], device=device, inputs=[on_device, kept, kept_points])
-    point_ids, member_blocks = sbki_device.block_memberships_on_device(kept_points, block_size)
-    groups = sbki_device.group_blocks_on_device(member_blocks)
+    point_ids, member_blocks = sbki_device.block_memberships_on_device(kept_points, block_size, scratch)
+    groups = sbki_device.group_blocks_on_device(member_blocks, scratch)
     if groups is None:
         return None
     m = len(release_compat.TARGET_BLOCK_OFFSETS)
-    source = wp.empty((groups.count, m), dtype=int, device=device)
-    mult = wp.empty((groups.count, m), dtype=int, device=device)
+    source = scratch.empty((groups.count, m), int)
+    mult = scratch.empty((groups.count, m), int)
     lookup = release.block_lookup(grid=groups.grid, lo=groups.grid_corner)
     wp.launch(release.block_models_kernel(True), dim=groups.count, device=device, inputs=[
-        groups.blocks, lookup, wp.array(release_compat.TARGET_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device),
-        wp.array(release_compat.FACE_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device),
-        wp.array(release_compat.MODELS_BY_MASK, dtype=int, device=device), source, mult])
+        groups.blocks, lookup, scratch.upload(release_compat.TARGET_BLOCK_OFFSETS.astype(np.int32), wp.vec3i),
+        scratch.upload(release_compat.FACE_OFFSETS.astype(np.int32), wp.vec3i),
+        scratch.upload(release_compat.MODELS_BY_MASK, int), source, mult])
     pairs = member_blocks.shape[0]
     num_classes = probabilities.shape[1]
-    sorted_points = wp.empty(pairs, dtype=wp.vec3, device=device)
-    class_weights = wp.empty(pairs, dtype=release.vector_type(num_classes), device=device)
-    sorted_uncertainty = wp.empty(pairs, dtype=wp.float64, device=device)
+    sorted_points = scratch.empty(pairs, wp.vec3)
+    class_weights = scratch.empty(pairs, release.vector_type(num_classes))
+    sorted_uncertainty = scratch.empty(pairs, wp.float64)
     wp.launch(release.sorted_rows_kernel(num_classes, dempster), dim=pairs, device=device, inputs=[
-        on_device, wp.array(np.ascontiguousarray(probabilities, dtype=np.float64), dtype=wp.float64, device=device),
-        wp.array(np.ascontiguousarray(uncertainty, dtype=np.float64), dtype=wp.float64, device=device),
+        on_device, scratch.upload(np.ascontiguousarray(probabilities, dtype=np.float64), wp.float64),
+        scratch.upload(np.ascontiguousarray(uncertainty, dtype=np.float64), wp.float64),
         kept, point_ids, groups.order, sorted_points, class_weights, sorted_uncertainty])
-    return DeviceReleaseInputs(groups.blocks.numpy().astype(np.int64), groups.blocks, source, mult, sbki_device.narrow_starts(groups),
+    return DeviceReleaseInputs(groups.blocks.numpy().astype(np.int64), groups.blocks, source, mult, sbki_device.narrow_starts(groups, scratch),
                                sorted_points, class_weights, sorted_uncertainty, kept.shape[0])

@@ -11,8 +11,9 @@ orders its points by leaf stably and so keeps PCL's float32 summation order with
 What still reads back from the device per scan: the leaf counts of both VoxelGrids, the kept hits'
 count, the longest ray, the free samples' count and bounds, the pairs' count and their blocks' bounds,
 the block and test-block counts (small values that size the next arrays), and the test blocks, for the
-key-range check and the shards' split; every array is allocated per scan. Blocks spread wider than a
-dense grid (``sbki_compat.MAX_DENSE_LOOKUP_CELLS``) take the host path from the training set.
+key-range check and the shards' split. The arrays are a scratch set's (``device_scratch``), kept from
+scan to scan. Blocks spread wider than a dense grid (``sbki_compat.MAX_DENSE_LOOKUP_CELLS``) take the
+host path from the training set.
 """
 
 from __future__ import annotations
@@ -25,11 +26,12 @@ import warp as wp
 from ..kernels import block_gather, block_membership, free_space, voxel_grid
 from ..voxel_keys import column_bounds
 from . import sbki_compat
+from .device_scratch import DeviceScratch
 
 
-def inclusive_scan(values: wp.array) -> wp.array:
+def inclusive_scan(values: wp.array, scratch: DeviceScratch) -> wp.array:
     """The inclusive prefix sums of a device array, on its device."""
-    out = wp.empty_like(values)
+    out = scratch.empty(values.shape, values.dtype)
     wp.utils.array_scan(values, out, inclusive=True)
     return out
 
@@ -40,68 +42,70 @@ def last_value(values: wp.array) -> int:
 
 
 def voxel_grid_on_device(points: wp.array, labels: wp.array | None, label_range: tuple[int, int] | None,
-                         bounds: tuple[np.ndarray, np.ndarray], leaf_m: float) -> tuple[wp.array, wp.array | None]:
+                         bounds: tuple[np.ndarray, np.ndarray], leaf_m: float, scratch: DeviceScratch | None = None) -> tuple[wp.array, wp.array | None]:
     """``sbki_compat.voxel_grid_downsample`` on the points' device: the centroids of the occupied leaves in
     ascending leaf order and, when ``labels`` are given (their (min, max) in ``label_range``), each leaf's
     majority label; ``bounds`` are the points' float32 per-axis (min, max). A grid PCL refuses leaves
-    the points as they are."""
+    the points as they are. ``scratch``: where the arrays are kept (None: new ones)."""
     n = points.shape[0]
     device = points.device
+    scratch = scratch or DeviceScratch(device)
     grid = sbki_compat.leaf_grid(*bounds, leaf_m) if n else None
     if grid is None:
         return points, labels
     inverse_leaf, lowest, dims = grid
     # The radix sort takes room for 2n keys and values: the second half is its scratch.
-    keys = wp.empty(2 * n, dtype=wp.int64, device=device)
-    order = wp.empty(2 * n, dtype=wp.int64, device=device)
+    keys = scratch.empty(2 * n, wp.int64)
+    order = scratch.empty(2 * n, wp.int64)
     wp.launch(voxel_grid.leaf_indices, dim=n, device=device, inputs=[
         points, float(inverse_leaf), *[int(x) for x in lowest], int(dims[0]), int(dims[1]), keys])
     wp.launch(voxel_grid.positions, dim=n, device=device, inputs=[order])
     key_bits = max(1, int(int(np.prod(dims)) - 1).bit_length())
     wp.utils.radix_sort_pairs(keys, order, n, end_bit=key_bits)
-    heads = wp.empty(n, dtype=int, device=device)
+    heads = scratch.empty(n, int)
     wp.launch(voxel_grid.leaf_runs, dim=n, device=device, inputs=[keys, heads])
-    leaf_rank = inclusive_scan(heads)
+    leaf_rank = inclusive_scan(heads, scratch)
     leaf_count = last_value(leaf_rank)
-    starts = wp.empty(leaf_count + 1, dtype=wp.int64, device=device)
+    starts = scratch.empty(leaf_count + 1, wp.int64)
     wp.launch(voxel_grid.leaf_starts, dim=n, device=device, inputs=[leaf_rank, starts])
-    centroids = wp.empty(leaf_count, dtype=wp.vec3, device=device)
+    centroids = scratch.empty(leaf_count, wp.vec3)
     wp.launch(voxel_grid.leaf_centroids_parallel, dim=leaf_count, device=device, inputs=[points, order, starts, leaf_count, centroids])
     if labels is None:
         return centroids, None
     label_min, label_max = label_range
     if label_min == label_max:  # one label (the free samples): it is every leaf's majority
-        majority = wp.full(leaf_count, label_min, dtype=wp.int64, device=device)
+        majority = scratch.full(leaf_count, label_min, wp.int64)
         return centroids, majority
     span = label_max - label_min + 1
-    label_keys = wp.empty(2 * n, dtype=wp.int64, device=device)
-    positions = wp.empty(2 * n, dtype=wp.int64, device=device)
+    label_keys = scratch.empty(2 * n, wp.int64)
+    positions = scratch.empty(2 * n, wp.int64)
     wp.launch(voxel_grid.leaf_label_keys, dim=n, device=device, inputs=[order, leaf_rank, labels, label_min, span, label_keys, positions])
     wp.utils.radix_sort_pairs(label_keys, positions, n, end_bit=max(1, int(leaf_count * span - 1).bit_length()))
-    majority = wp.empty(leaf_count, dtype=wp.int64, device=device)
+    majority = scratch.empty(leaf_count, wp.int64)
     wp.launch(voxel_grid.leaf_majority_labels, dim=leaf_count, device=device, inputs=[label_keys, starts, leaf_count, label_min, span, majority])
     return centroids, majority
 
 
-def _free_space_samples(hits: wp.array, direction: wp.array, ray_length: wp.array, origin: np.ndarray, f: np.float32) -> wp.array:
+def _free_space_samples(hits: wp.array, direction: wp.array, ray_length: wp.array, origin: np.ndarray, f: np.float32,
+                        scratch: DeviceScratch) -> wp.array:
     """``sbki_compat.free_space_samples`` of hits whose rays are computed (``kernels.free_space.ray_geometry``)."""
     device = hits.device
     n = hits.shape[0]
     if n == 0:
-        return wp.empty(0, dtype=wp.vec3, device=device)
-    longest = wp.zeros(1, dtype=wp.float32, device=device)
+        return scratch.empty(0, wp.vec3)
+    longest = scratch.zeros(1, wp.float32)
     wp.launch(free_space.longest_ray, dim=n, device=device, inputs=[ray_length, longest])
     longest = np.float32(longest.numpy()[0])
     sbki_compat.check_free_samples(0.0, float(longest), f, origin)  # the steps' bound, before they are listed
-    steps = wp.array(sbki_compat.ray_steps(f, longest), dtype=wp.float32, device=device)
-    per_hit = wp.empty(n, dtype=int, device=device)
-    rows_per_hit = wp.empty(n, dtype=int, device=device)
+    steps = scratch.upload(sbki_compat.ray_steps(f, longest), wp.float32)
+    per_hit = scratch.empty(n, int)
+    rows_per_hit = scratch.empty(n, int)
     wp.launch(free_space.samples_per_ray, dim=n, device=device, inputs=[ray_length, steps, float(f), per_hit, rows_per_hit])
-    first_row = wp.empty(n, dtype=int, device=device)
+    first_row = scratch.empty(n, int)
     wp.utils.array_scan(rows_per_hit, first_row, inclusive=False)
     rows = last_value(first_row) + last_value(rows_per_hit)
     sbki_compat.check_free_samples(float(rows), float(longest), f, origin)
-    out = wp.empty(rows, dtype=wp.vec3, device=device)
+    out = scratch.empty(rows, wp.vec3)
     wp.launch(free_space.ray_samples, dim=n, device=device, inputs=[
         direction, ray_length, wp.vec3(*origin.tolist()), float(f), steps, per_hit, first_row, out])
     return out
@@ -116,47 +120,49 @@ def training_arrays(
     free_resolution_m: float,
     max_range_m: float | None,
     device: str,
+    scratch: DeviceScratch | None = None,
 ) -> tuple[wp.array, wp.array, wp.array]:
     """The training set of ``sbki_compat.training_data`` on ``device``, in its two parts: the downsampled
     hits within range [H] (vec3), their labels [H] (int64) and the downsampled free samples [F] (vec3,
-    label ``FREE_LABEL``); ``sbki_compat.joined_training_set`` of their values is ``training_data``'s result."""
+    label ``FREE_LABEL``); ``sbki_compat.joined_training_set`` of their values is ``training_data``'s result.
+    ``scratch``: where the arrays are kept (None: new ones)."""
+    scratch = scratch or DeviceScratch(device)
     points = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3)
     labels = np.asarray(labels, dtype=np.int64)
     origin = np.asarray(sensor_origin, dtype=np.float32).reshape(3)
     if len(points) == 0:
-        empty = wp.empty(0, dtype=wp.vec3, device=device)
-        return empty, wp.empty(0, dtype=wp.int64, device=device), empty
+        empty = scratch.empty(0, wp.vec3)
+        return empty, scratch.empty(0, wp.int64), empty
     hits, hit_labels = voxel_grid_on_device(
-        wp.array(points, dtype=wp.vec3, device=device), wp.array(labels, dtype=wp.int64, device=device),
-        (int(labels.min()), int(labels.max())), column_bounds(points), ds_resolution_m)
+        scratch.upload(points, wp.vec3), scratch.upload(labels, wp.int64),
+        (int(labels.min()), int(labels.max())), column_bounds(points), ds_resolution_m, scratch)
     n = hits.shape[0]
-    direction = wp.empty(n, dtype=wp.vec3, device=device)
-    ray_length = wp.empty(n, dtype=wp.float32, device=device)
+    direction = scratch.empty(n, wp.vec3)
+    ray_length = scratch.empty(n, wp.float32)
     wp.launch(free_space.ray_geometry, dim=n, device=device, inputs=[hits, wp.vec3(*origin.tolist()), direction, ray_length])
     if max_range_m is not None:
-        keep = wp.empty(n, dtype=int, device=device)
+        keep = scratch.empty(n, int)
         wp.launch(free_space.within_range, dim=n, device=device, inputs=[ray_length, float(np.float32(max_range_m)), keep])
-        slot = inclusive_scan(keep)
+        slot = inclusive_scan(keep, scratch)
         kept = last_value(slot)
-        arrays = [wp.empty(kept, dtype=a.dtype, device=device) for a in (hits, hit_labels, direction, ray_length)]
+        arrays = [scratch.empty(kept, a.dtype) for a in (hits, hit_labels, direction, ray_length)]
         wp.launch(free_space.compact_rays, dim=n, device=device, inputs=[keep, slot, hits, hit_labels, direction, ray_length, *arrays])
         hits, hit_labels, direction, ray_length = arrays
-    frees = _free_space_samples(hits, direction, ray_length, origin, np.float32(free_resolution_m))
+    frees = _free_space_samples(hits, direction, ray_length, origin, np.float32(free_resolution_m), scratch)
     free_points = frees
     if frees.shape[0]:
-        lowest = wp.full(3, np.inf, dtype=wp.float32, device=device)
-        highest = wp.full(3, -np.inf, dtype=wp.float32, device=device)
+        lowest = scratch.full(3, np.inf, wp.float32)
+        highest = scratch.full(3, -np.inf, wp.float32)
         wp.launch(voxel_grid.point_bounds, dim=frees.shape[0], device=device, inputs=[frees, lowest, highest])
-        free_points, _ = voxel_grid_on_device(frees, None, None, (lowest.numpy(), highest.numpy()), ds_resolution_m)
+        free_points, _ = voxel_grid_on_device(frees, None, None, (lowest.numpy(), highest.numpy()), ds_resolution_m, scratch)
     return hits, hit_labels, free_points
 
 
-def training_set(hits: wp.array, hit_labels: wp.array, free_points: wp.array) -> tuple[wp.array, wp.array]:
+def training_set(hits: wp.array, hit_labels: wp.array, free_points: wp.array, scratch: DeviceScratch) -> tuple[wp.array, wp.array]:
     """The training points [H + F] and labels of ``training_arrays``' parts, hits first, on their device."""
-    device = hits.device
     h, f = hits.shape[0], free_points.shape[0]
-    points = wp.empty(h + f, dtype=wp.vec3, device=device)
-    labels = wp.full(h + f, sbki_compat.FREE_LABEL, dtype=wp.int64, device=device)
+    points = scratch.empty(h + f, wp.vec3)
+    labels = scratch.full(h + f, sbki_compat.FREE_LABEL, wp.int64)
     if h:
         wp.copy(points, hits, count=h)
         wp.copy(labels, hit_labels, count=h)
@@ -165,26 +171,28 @@ def training_set(hits: wp.array, hit_labels: wp.array, free_points: wp.array) ->
     return points, labels
 
 
-def block_memberships_on_device(points: wp.array, block_size: np.float32) -> tuple[wp.array, wp.array]:
+def block_memberships_on_device(points: wp.array, block_size: np.float32, scratch: DeviceScratch | None = None) -> tuple[wp.array, wp.array]:
     """``sbki_compat.block_memberships`` on the points' device: point ids [M] (int64) and blocks [M, 3]
-    (int64), shift by shift, points ascending within a shift."""
+    (int64), shift by shift, points ascending within a shift. ``scratch``: where the arrays are kept
+    (None: new ones)."""
     device = points.device
+    scratch = scratch or DeviceScratch(device)
     n = points.shape[0]
-    nearest = wp.empty((n, 3), dtype=wp.int64, device=device)
-    masks = wp.empty(n, dtype=int, device=device)
-    pair_counts = wp.empty(n, dtype=int, device=device)
+    nearest = scratch.empty((n, 3), wp.int64)
+    masks = scratch.empty(n, int)
+    pair_counts = scratch.empty(n, int)
     wp.launch(block_membership.membership_masks_parallel, dim=n, device=device, inputs=[
         points, float(np.float32(block_size)), nearest, masks, pair_counts])
-    first_pair = wp.empty(n, dtype=int, device=device)
+    first_pair = scratch.empty(n, int)
     wp.utils.array_scan(pair_counts, first_pair, inclusive=False)
     pairs = last_value(first_pair) + last_value(pair_counts) if n else 0
-    bits = wp.empty(2 * pairs, dtype=wp.int64, device=device)
-    point_ids = wp.empty(2 * pairs, dtype=wp.int64, device=device)
+    bits = scratch.empty(2 * pairs, wp.int64)
+    point_ids = scratch.empty(2 * pairs, wp.int64)
     wp.launch(block_membership.membership_pairs_by_point, dim=n, device=device, inputs=[masks, first_pair, bits, point_ids])
     wp.utils.radix_sort_pairs(bits, point_ids, pairs, end_bit=5)
-    blocks = wp.empty((pairs, 3), dtype=wp.int64, device=device)
+    blocks = scratch.empty((pairs, 3), wp.int64)
     wp.launch(block_membership.membership_blocks, dim=pairs, device=device, inputs=[bits, point_ids, nearest, blocks])
-    return (point_ids[:pairs] if pairs else wp.empty(0, dtype=wp.int64, device=device)), blocks
+    return (point_ids[:pairs] if pairs else scratch.empty(0, wp.int64)), blocks
 
 
 @dataclass
@@ -204,60 +212,60 @@ class BlockGroups:
     grid_corner: np.ndarray
 
 
-def block_bounds_on_device(blocks: wp.array) -> tuple[np.ndarray, np.ndarray]:
+def block_bounds_on_device(blocks: wp.array, scratch: DeviceScratch) -> tuple[np.ndarray, np.ndarray]:
     """The per-axis (min, max) of blocks [P, 3] (int64, P > 0), read back."""
     device = blocks.device
-    lowest = wp.full(3, np.iinfo(np.int64).max, dtype=wp.int64, device=device)
-    highest = wp.full(3, np.iinfo(np.int64).min, dtype=wp.int64, device=device)
+    lowest = scratch.full(3, np.iinfo(np.int64).max, wp.int64)
+    highest = scratch.full(3, np.iinfo(np.int64).min, wp.int64)
     wp.launch(block_gather.block_bounds, dim=blocks.shape[0], device=device, inputs=[blocks, lowest, highest])
     return lowest.numpy(), highest.numpy()
 
 
-def sort_by_block(blocks: wp.array, lo: np.ndarray, hi: np.ndarray) -> tuple[wp.array, wp.array, wp.array, int]:
+def sort_by_block(blocks: wp.array, lo: np.ndarray, hi: np.ndarray, scratch: DeviceScratch) -> tuple[wp.array, wp.array, wp.array, int]:
     """Rows of blocks [P, 3] (int64, within lo..hi) stably sorted by the blocks' packed-key order: the
     order (its first P entries), each sorted row's run number from 1 (an inclusive scan of run heads),
     the runs' starts [R + 1] and the run count R."""
     device = blocks.device
     rows = blocks.shape[0]
     span = hi - lo + 1
-    positions = wp.empty(2 * rows, dtype=wp.int64, device=device)
-    order = wp.empty(2 * rows, dtype=wp.int64, device=device)
+    positions = scratch.empty(2 * rows, wp.int64)
+    order = scratch.empty(2 * rows, wp.int64)
     wp.launch(block_gather.box_positions, dim=rows, device=device, inputs=[
         blocks, wp.vec3l(*[int(x) for x in lo]), int(span[1]), int(span[2]), positions, order])
     wp.utils.radix_sort_pairs(positions, order, rows, end_bit=max(1, int(int(np.prod(span)) - 1).bit_length()))
-    heads = wp.empty(rows, dtype=int, device=device)
+    heads = scratch.empty(rows, int)
     wp.launch(voxel_grid.leaf_runs, dim=rows, device=device, inputs=[positions, heads])
-    run_rank = inclusive_scan(heads)
+    run_rank = inclusive_scan(heads, scratch)
     count = last_value(run_rank)
-    starts = wp.empty(count + 1, dtype=wp.int64, device=device)
+    starts = scratch.empty(count + 1, wp.int64)
     wp.launch(voxel_grid.leaf_starts, dim=rows, device=device, inputs=[run_rank, starts])
     return order, run_rank, starts, count
 
 
-def group_blocks_on_device(member_blocks: wp.array) -> BlockGroups | None:
+def group_blocks_on_device(member_blocks: wp.array, scratch: DeviceScratch) -> BlockGroups | None:
     """``BlockGroups`` of pairs' blocks [P, 3] (int64) on their device; None where the host path would not
     use a dense grid (blocks spread wider than ``sbki_compat.MAX_DENSE_LOOKUP_CELLS``, or no pairs): the
     caller takes the host path then."""
     device = member_blocks.device
     if member_blocks.shape[0] == 0:
         return None
-    lo, hi = block_bounds_on_device(member_blocks)
+    lo, hi = block_bounds_on_device(member_blocks, scratch)
     grid_corner = lo - 3
     shape = hi + 4 - grid_corner
     if float(np.prod(shape.astype(np.float64))) > sbki_compat.MAX_DENSE_LOOKUP_CELLS:
         return None
-    order, _, starts, count = sort_by_block(member_blocks, lo, hi)
-    grid = wp.full(tuple(int(x) for x in shape), -1, dtype=int, device=device)
-    blocks = wp.empty(count, dtype=wp.vec3i, device=device)
-    grid_blocks = wp.empty(count, dtype=wp.vec3i, device=device)
+    order, _, starts, count = sort_by_block(member_blocks, lo, hi, scratch)
+    grid = scratch.full(tuple(int(x) for x in shape), -1, int)
+    blocks = scratch.empty(count, wp.vec3i)
+    grid_blocks = scratch.empty(count, wp.vec3i)
     wp.launch(block_gather.distinct_blocks, dim=count, device=device, inputs=[
         member_blocks, order, starts, wp.vec3l(*[int(x) for x in grid_corner]), blocks, grid_blocks, grid])
     return BlockGroups(order, starts, count, blocks, grid, grid_blocks, grid_corner)
 
 
-def narrow_starts(groups: BlockGroups) -> wp.array:
+def narrow_starts(groups: BlockGroups, scratch: DeviceScratch) -> wp.array:
     """The groups' starts as the gather kernels' int point starts [B + 1]."""
-    point_start = wp.empty(groups.count + 1, dtype=int, device=groups.starts.device)
+    point_start = scratch.empty(groups.count + 1, int)
     wp.launch(block_gather.narrow_starts, dim=groups.count + 1, device=groups.starts.device, inputs=[groups.starts, point_start])
     return point_start
 
@@ -275,28 +283,30 @@ class DeviceGatherTables:
     labels: wp.array
 
 
-def gather_tables_on_device(points: wp.array, labels: wp.array, block_size: np.float32, length_m: float) -> DeviceGatherTables | None:
+def gather_tables_on_device(points: wp.array, labels: wp.array, block_size: np.float32, length_m: float,
+                            scratch: DeviceScratch | None = None) -> DeviceGatherTables | None:
     """``sbki_compat.block_memberships`` and ``sbki_compat.gather_tables`` of a training set on its device,
     and the points and labels sorted as the gather kernel reads them; None where the host path would not
-    use a dense grid (``group_blocks_on_device``)."""
+    use a dense grid (``group_blocks_on_device``). ``scratch``: where the arrays are kept (None: new ones)."""
     device = points.device
-    point_ids, member_blocks = block_memberships_on_device(points, block_size)
-    groups = group_blocks_on_device(member_blocks)
+    scratch = scratch or DeviceScratch(device)
+    point_ids, member_blocks = block_memberships_on_device(points, block_size, scratch)
+    groups = group_blocks_on_device(member_blocks, scratch)
     if groups is None:
         return None
-    offsets = wp.array(sbki_compat.EXTENDED_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device)
-    marked = wp.zeros(groups.grid.size, dtype=int, device=device)
+    offsets = scratch.upload(sbki_compat.EXTENDED_BLOCK_OFFSETS.astype(np.int32), wp.vec3i)
+    marked = scratch.zeros(groups.grid.size, int)
     wp.launch(block_gather.mark_test_blocks, dim=(groups.count, offsets.shape[0]), device=device, inputs=[
         groups.grid_blocks, offsets, groups.grid, marked])
-    slot = inclusive_scan(marked)
+    slot = inclusive_scan(marked, scratch)
     test_count = last_value(slot)
-    tests = wp.empty(test_count, dtype=wp.vec3i, device=device)
-    sources = wp.empty((test_count, offsets.shape[0]), dtype=int, device=device)
+    tests = scratch.empty(test_count, wp.vec3i)
+    sources = scratch.empty((test_count, offsets.shape[0]), int)
     wp.launch(block_gather.list_test_blocks, dim=groups.grid.size, device=device, inputs=[
         marked, slot, groups.grid, offsets, wp.vec3l(*[int(x) for x in groups.grid_corner]), tests, sources])
     pairs = member_blocks.shape[0]
-    scaled_points = wp.empty(pairs, dtype=wp.vec3, device=device)
-    sorted_labels = wp.empty(pairs, dtype=int, device=device)
+    scaled_points = scratch.empty(pairs, wp.vec3)
+    sorted_labels = scratch.empty(pairs, int)
     wp.launch(block_gather.sorted_block_points, dim=pairs, device=device, inputs=[
         points, labels, point_ids, groups.order, float(np.float32(length_m)), scaled_points, sorted_labels])
-    return DeviceGatherTables(tests.numpy().astype(np.int64), tests, sources, narrow_starts(groups), scaled_points, sorted_labels)
+    return DeviceGatherTables(tests.numpy().astype(np.int64), tests, sources, narrow_starts(groups, scratch), scaled_points, sorted_labels)

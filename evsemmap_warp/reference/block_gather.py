@@ -76,7 +76,7 @@ def mark_test_blocks(grid_blocks, offsets, grid_shape) -> np.ndarray:
 
 def list_test_blocks(marked, grid, offsets, grid_lowest) -> tuple[np.ndarray, np.ndarray]:
     """Twin of ``list_test_blocks``: the marked cells in grid order, in map coordinates [T, 3], and their
-    sources grid[cell + offset] [T, F]."""
+    sources, the grid at cell + offset, [T, F]."""
     grid = np.asarray(grid)
     cells = np.stack(np.unravel_index(np.flatnonzero(np.asarray(marked)), grid.shape), axis=1)
     sources = np.stack([grid[tuple((cells + np.asarray(f)).T)] for f in np.asarray(offsets, np.int64)], axis=1) if len(cells) else np.zeros((0, len(offsets)), np.int32)
