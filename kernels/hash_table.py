@@ -351,11 +351,13 @@ def rehash(
 
 
 @wp.kernel
-def read_counters(key_count: wp.array(dtype=int), update_count: wp.array(dtype=wp.int64), out: wp.array(dtype=wp.int64)):
-    """Kernel, one thread: out = (a table's key count, a launch's update count), so that the host reads
-    a launch's outcome back in one copy."""
+def read_counters(key_count: wp.array(dtype=int), update_count: wp.array(dtype=wp.int64), brick_count: wp.array(dtype=int),
+                  out: wp.array(dtype=wp.int64)):
+    """Kernel, one thread: out = (a table's key count, a launch's update count, its brick cache's key
+    count), so that the host reads a launch's outcome back in one copy."""
     out[0] = wp.int64(key_count[0])
     out[1] = update_count[0]
+    out[2] = wp.int64(brick_count[0])
 
 
 @wp.kernel

@@ -185,19 +185,26 @@ def test_the_counters_kernel_matches_its_twin():
     from evsemmap_warp.kernels import hash_table as ht
     from evsemmap_warp.reference import hash_table as ht_ref
 
-    key_count, updates = np.array([12345], np.int32), np.array([1 << 40], np.int64)
-    out = wp.zeros(2, dtype=wp.int64, device="cpu")
-    wp.launch(ht.read_counters, dim=1, inputs=[wp.array(key_count, dtype=int, device="cpu"), wp.array(updates, dtype=wp.int64, device="cpu"), out],
-              device="cpu")
-    np.testing.assert_array_equal(out.numpy(), ht_ref.read_counters(key_count, updates))
+    key_count, updates, bricks = np.array([12345], np.int32), np.array([1 << 40], np.int64), np.array([(1 << 31) - 1], np.int32)
+    out = wp.zeros(3, dtype=wp.int64, device="cpu")
+    wp.launch(ht.read_counters, dim=1, inputs=[wp.array(key_count, dtype=int, device="cpu"), wp.array(updates, dtype=wp.int64, device="cpu"),
+                                               wp.array(bricks, dtype=int, device="cpu"), out], device="cpu")
+    np.testing.assert_array_equal(out.numpy(), ht_ref.read_counters(key_count, updates, bricks))
+
+
+# Reads per warm scan of the like-for-like modes' device preprocessing, as counted on the CPU backend
+# (where the S-BKI training set's 3 device-to-device copies count as reads too): the counts and bounds that
+# size its next arrays, one read each, the blocks for the shards' split and the launch's counters. Not yet
+# the clean modes' budget of one; reading each count with the value beside it (offsets and their total,
+# both bounds) and the brick cache's count with the launch's counters took them from 20 and 10 to these.
+COMPAT_DEVICE_READS = {"sbki": 14, "release-ebs": 8}
 
 
 @pytest.mark.parametrize("method", ["sbki", "release-ebs"])
 def test_the_compat_modes_device_preprocessing_allocates_nothing_once_warm(method):
     # The like-for-like modes' preprocessing on the map's device (what a GPU map runs; forced here on the
     # CPU backend) keeps its arrays in a pool of scratch sets (methods.device_scratch), each held by one
-    # scan until its launch is done: a warm scan allocates nothing. It still reads back the counts that
-    # size its next arrays.
+    # scan until its launch is done: a warm scan allocates nothing, and reads no more than it does now.
     from conftest import shared_path
 
     from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, SbkiSettings
@@ -222,4 +229,5 @@ def test_the_compat_modes_device_preprocessing_allocates_nothing_once_warm(metho
         stats = mapper.integrate(points, payload, payload_type=payload_type, sensor_origin=origin)
     assert stats.voxel_updates > 0
     assert counts.allocations == 0, f"{method}: {counts}"
+    assert counts.reads <= COMPAT_DEVICE_READS[method], f"{method}: {counts}"
     assert mapper.integrator._scratch.sets(mapper.device) == 1  # scan by scan, each scan gave its set back

@@ -117,11 +117,11 @@ class VoxelMap:
         _load_kernels(self.device)
         # Reused by every launch, so that a warm scan allocates nothing: the failure flags (all zero between
         # launches), the thread ids 0..n-1 (both grown to powers of two), the launch's update count, and the
-        # counters read back after it (key count, update count) in one copy.
+        # counters read back after it (key count, update count, brick count) in one copy.
         self._failure_flags = None
         self._thread_ids = None
         self._updates = wp.zeros(1, dtype=wp.int64, device=self.device)
-        self._counters = wp.zeros(2, dtype=wp.int64, device=self.device)
+        self._counters = wp.zeros(3, dtype=wp.int64, device=self.device)
         self._counted_updates = 0
         # The scans' inputs reach the device through buffers kept from scan to scan (pinned, on a GPU).
         self.staging = Staging(self.device)
@@ -162,12 +162,15 @@ class VoxelMap:
         self.brick_keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
         self.brick_rows = self._filled(capacity, 0, wp.int32)
         self.brick_count = wp.zeros(1, dtype=int, device=self.device)
+        # The brick cache's key count as last read back (``_read_counters``): only the block gathers insert
+        # into it, and each reads its counters after its launch, so the count is known before the next.
+        self._known_bricks = 0
 
     def _grow_brick_cache(self, new_blocks: int = 0) -> None:
         """Rehash the brick cache into a larger table: before a launch, until ``new_blocks`` more fit
         under LAUNCH_FILL_LIMIT (where the kernels stop caching; a block not cached is found by its
         cells), after one until it is at or below max_load."""
-        count = int(self.brick_count.numpy()[0])
+        count = self._known_bricks
         capacity = self.brick_capacity
         while count + new_blocks > (LAUNCH_FILL_LIMIT if new_blocks else self.max_load) * capacity:
             capacity *= 2
@@ -291,9 +294,10 @@ class VoxelMap:
         return self._thread_ids[:n]
 
     def _read_counters(self) -> int:
-        """The key count and the last launches' update count, read back in one copy; returns the key count."""
-        wp.launch(ht.read_counters, dim=1, inputs=[self.key_count, self._updates, self._counters], device=self.device)
-        key_count, self._counted_updates = (int(value) for value in self._counters.numpy())
+        """The key count, the last launches' update count and the brick cache's key count, read back in
+        one copy; returns the key count."""
+        wp.launch(ht.read_counters, dim=1, inputs=[self.key_count, self._updates, self.brick_count, self._counters], device=self.device)
+        key_count, self._counted_updates, self._known_bricks = (int(value) for value in self._counters.numpy())
         self._known_count = key_count
         return key_count
 
@@ -520,7 +524,7 @@ class VoxelMap:
         if len(block_ids) == 0:
             return 0
         d = self.device
-        ids = wp.array(np.ascontiguousarray(block_ids, dtype=np.int32), dtype=int, device=d, copy=False)
+        ids = self.staging.upload("block_ids", block_ids, int, np.int32)
 
         def launch(pending, failed):
             wp.launch(kernel, dim=len(pending), device=d, inputs=[pending, ids, scan, self.table(), self.brick_table(), self.data, failed,

@@ -10,7 +10,8 @@ orders its points by leaf stably and so keeps PCL's float32 summation order with
 
 What still reads back from the device per scan: the leaf counts of both VoxelGrids, the kept hits'
 count, the longest ray, the free samples' count and bounds, the pairs' count and their blocks' bounds,
-the block and test-block counts (small values that size the next arrays), and the test blocks, for the
+the block and test-block counts (small values that size the next arrays; a count is read with the
+offsets it ends, ``offsets_and_total``, and both ends of a bound together), and the test blocks, for the
 key-range check and the shards' split. The arrays are a scratch set's (``device_scratch``), kept from
 scan to scan. Blocks spread wider than a dense grid (``sbki_compat.MAX_DENSE_LOOKUP_CELLS``) take the
 host path from the training set.
@@ -39,6 +40,32 @@ def inclusive_scan(values: wp.array, scratch: DeviceScratch) -> wp.array:
 def last_value(values: wp.array) -> int:
     """The last value of a device array (one small read back)."""
     return int(values[values.shape[0] - 1:].numpy()[0])
+
+
+def counts_with_room(n: int, scratch: DeviceScratch) -> wp.array:
+    """An int array for n counts and a trailing 0 (kernels write the first n): its ``offsets_and_total``
+    are n offsets and their total in one read."""
+    counts = scratch.empty(n + 1, int)
+    counts[n:].fill_(0)
+    return counts
+
+
+def offsets_and_total(counts: wp.array, scratch: DeviceScratch) -> tuple[wp.array, int]:
+    """The exclusive prefix sums of ``counts_with_room``'s counts [n + 1] (offsets[i] is where item i's
+    rows start) and their total, read back once (offsets[n])."""
+    offsets = scratch.empty(counts.shape, counts.dtype)
+    wp.utils.array_scan(counts, offsets, inclusive=False)
+    return offsets, last_value(offsets)
+
+
+def float_bounds_on_device(points: wp.array, scratch: DeviceScratch) -> tuple[np.ndarray, np.ndarray]:
+    """The per-axis float32 (min, max) of points [P] (vec3, P > 0), read back once."""
+    bounds = scratch.empty((2, 3), wp.float32)
+    bounds[0].fill_(np.inf)
+    bounds[1].fill_(-np.inf)
+    wp.launch(voxel_grid.point_bounds, dim=points.shape[0], device=points.device, inputs=[points, bounds[0], bounds[1]])
+    lowest, highest = bounds.numpy()
+    return lowest, highest
 
 
 def voxel_grid_on_device(points: wp.array, labels: wp.array | None, label_range: tuple[int, int] | None,
@@ -99,11 +126,9 @@ def _free_space_samples(hits: wp.array, direction: wp.array, ray_length: wp.arra
     sbki_compat.check_free_samples(0.0, float(longest), f, origin)  # the steps' bound, before they are listed
     steps = scratch.upload(sbki_compat.ray_steps(f, longest), wp.float32)
     per_hit = scratch.empty(n, int)
-    rows_per_hit = scratch.empty(n, int)
+    rows_per_hit = counts_with_room(n, scratch)
     wp.launch(free_space.samples_per_ray, dim=n, device=device, inputs=[ray_length, steps, float(f), per_hit, rows_per_hit])
-    first_row = scratch.empty(n, int)
-    wp.utils.array_scan(rows_per_hit, first_row, inclusive=False)
-    rows = last_value(first_row) + last_value(rows_per_hit)
+    first_row, rows = offsets_and_total(rows_per_hit, scratch)
     sbki_compat.check_free_samples(float(rows), float(longest), f, origin)
     out = scratch.empty(rows, wp.vec3)
     wp.launch(free_space.ray_samples, dim=n, device=device, inputs=[
@@ -151,10 +176,7 @@ def training_arrays(
     frees = _free_space_samples(hits, direction, ray_length, origin, np.float32(free_resolution_m), scratch)
     free_points = frees
     if frees.shape[0]:
-        lowest = scratch.full(3, np.inf, wp.float32)
-        highest = scratch.full(3, -np.inf, wp.float32)
-        wp.launch(voxel_grid.point_bounds, dim=frees.shape[0], device=device, inputs=[frees, lowest, highest])
-        free_points, _ = voxel_grid_on_device(frees, None, None, (lowest.numpy(), highest.numpy()), ds_resolution_m, scratch)
+        free_points, _ = voxel_grid_on_device(frees, None, None, float_bounds_on_device(frees, scratch), ds_resolution_m, scratch)
     return hits, hit_labels, free_points
 
 
@@ -180,12 +202,10 @@ def block_memberships_on_device(points: wp.array, block_size: np.float32, scratc
     n = points.shape[0]
     nearest = scratch.empty((n, 3), wp.int64)
     masks = scratch.empty(n, int)
-    pair_counts = scratch.empty(n, int)
+    pair_counts = counts_with_room(n, scratch)
     wp.launch(block_membership.membership_masks_parallel, dim=n, device=device, inputs=[
         points, float(np.float32(block_size)), nearest, masks, pair_counts])
-    first_pair = scratch.empty(n, int)
-    wp.utils.array_scan(pair_counts, first_pair, inclusive=False)
-    pairs = last_value(first_pair) + last_value(pair_counts) if n else 0
+    first_pair, pairs = offsets_and_total(pair_counts, scratch)
     bits = scratch.empty(2 * pairs, wp.int64)
     point_ids = scratch.empty(2 * pairs, wp.int64)
     wp.launch(block_membership.membership_pairs_by_point, dim=n, device=device, inputs=[masks, first_pair, bits, point_ids])
@@ -213,12 +233,13 @@ class BlockGroups:
 
 
 def block_bounds_on_device(blocks: wp.array, scratch: DeviceScratch) -> tuple[np.ndarray, np.ndarray]:
-    """The per-axis (min, max) of blocks [P, 3] (int64, P > 0), read back."""
-    device = blocks.device
-    lowest = scratch.full(3, np.iinfo(np.int64).max, wp.int64)
-    highest = scratch.full(3, np.iinfo(np.int64).min, wp.int64)
-    wp.launch(block_gather.block_bounds, dim=blocks.shape[0], device=device, inputs=[blocks, lowest, highest])
-    return lowest.numpy(), highest.numpy()
+    """The per-axis (min, max) of blocks [P, 3] (int64, P > 0), read back once."""
+    bounds = scratch.empty((2, 3), wp.int64)
+    bounds[0].fill_(np.iinfo(np.int64).max)
+    bounds[1].fill_(np.iinfo(np.int64).min)
+    wp.launch(block_gather.block_bounds, dim=blocks.shape[0], device=blocks.device, inputs=[blocks, bounds[0], bounds[1]])
+    lowest, highest = bounds.numpy()
+    return lowest, highest
 
 
 def sort_by_block(blocks: wp.array, lo: np.ndarray, hi: np.ndarray, scratch: DeviceScratch) -> tuple[wp.array, wp.array, wp.array, int]:
