@@ -32,6 +32,11 @@ def _git(*args: str) -> str:
         return ""
 
 
+# Whether the tracked files were as committed when the tool started (this module is imported then): what
+# the run itself writes under docs/ (a plot) does not make its record one of a modified tree.
+TREE_CLEAN_AT_START = _git("status", "--porcelain", "--untracked-files=no") == ""
+
+
 def machine() -> dict:
     """What the figures depend on: CPU model and flags, cores, memory, load, OS."""
     info = {"platform": platform.platform(), "cores": os.cpu_count(), "load_average_1_5_15": list(os.getloadavg())}
@@ -93,7 +98,7 @@ def write_record(tool: str, results: dict, *, started: float | None = None, fold
     now = datetime.datetime.now(datetime.timezone.utc)
     record = {
         "tool": tool, "command": [Path(sys.executable).name, *sys.argv], "utc": now.isoformat(timespec="seconds"),
-        "commit": _git("rev-parse", "HEAD"), "tree_clean": _git("status", "--porcelain", "--untracked-files=no") == "",
+        "commit": _git("rev-parse", "HEAD"), "tree_clean": TREE_CLEAN_AT_START,
         "machine": machine(), "versions": versions(), "warp_build": warp_build(), "results": results,
     }
     if started is not None:

@@ -42,6 +42,19 @@ def last_value(values: wp.array) -> int:
     return int(values[values.shape[0] - 1:].numpy()[0])
 
 
+def runs_of_sorted(keys: wp.array, n: int, scratch: DeviceScratch) -> tuple[wp.array, wp.array, int]:
+    """The runs of equal values among the first n sorted ``keys``: each key's run number from 1 (an
+    inclusive scan of the run heads), the runs' starts [R + 1] (int64) and the run count R."""
+    device = keys.device
+    heads = scratch.empty(n, int)
+    wp.launch(voxel_grid.leaf_runs, dim=n, device=device, inputs=[keys, heads])
+    run_rank = inclusive_scan(heads, scratch)
+    count = last_value(run_rank)
+    starts = scratch.empty(count + 1, wp.int64)
+    wp.launch(voxel_grid.leaf_starts, dim=n, device=device, inputs=[run_rank, starts])
+    return run_rank, starts, count
+
+
 def counts_with_room(n: int, scratch: DeviceScratch) -> wp.array:
     """An int array for n counts and a trailing 0 (kernels write the first n): its ``offsets_and_total``
     are n offsets and their total in one read."""
@@ -89,12 +102,7 @@ def voxel_grid_on_device(points: wp.array, labels: wp.array | None, label_range:
     wp.launch(voxel_grid.positions, dim=n, device=device, inputs=[order])
     key_bits = max(1, int(int(np.prod(dims)) - 1).bit_length())
     wp.utils.radix_sort_pairs(keys, order, n, end_bit=key_bits)
-    heads = scratch.empty(n, int)
-    wp.launch(voxel_grid.leaf_runs, dim=n, device=device, inputs=[keys, heads])
-    leaf_rank = inclusive_scan(heads, scratch)
-    leaf_count = last_value(leaf_rank)
-    starts = scratch.empty(leaf_count + 1, wp.int64)
-    wp.launch(voxel_grid.leaf_starts, dim=n, device=device, inputs=[leaf_rank, starts])
+    leaf_rank, starts, leaf_count = runs_of_sorted(keys, n, scratch)
     centroids = scratch.empty(leaf_count, wp.vec3)
     wp.launch(voxel_grid.leaf_centroids_parallel, dim=leaf_count, device=device, inputs=[points, order, starts, leaf_count, centroids])
     if labels is None:
@@ -254,12 +262,7 @@ def sort_by_block(blocks: wp.array, lo: np.ndarray, hi: np.ndarray, scratch: Dev
     wp.launch(block_gather.box_positions, dim=rows, device=device, inputs=[
         blocks, wp.vec3l(*[int(x) for x in lo]), int(span[1]), int(span[2]), positions, order])
     wp.utils.radix_sort_pairs(positions, order, rows, end_bit=max(1, int(int(np.prod(span)) - 1).bit_length()))
-    heads = scratch.empty(rows, int)
-    wp.launch(voxel_grid.leaf_runs, dim=rows, device=device, inputs=[positions, heads])
-    run_rank = inclusive_scan(heads, scratch)
-    count = last_value(run_rank)
-    starts = scratch.empty(count + 1, wp.int64)
-    wp.launch(voxel_grid.leaf_starts, dim=rows, device=device, inputs=[run_rank, starts])
+    run_rank, starts, count = runs_of_sorted(positions, rows, scratch)
     return order, run_rank, starts, count
 
 
