@@ -152,6 +152,29 @@ def test_a_warm_scan_reads_once_per_shard_and_allocates_nothing(method, workers)
                 f"{per_shard} per shard (all counts: {counts})")
 
 
+# Reads per shard and warm scan of the radius kernel's deterministic strategies (``mapping.clean.
+# scatter_strategy``): the sorted one reads its pair count and its distinct voxels' count, which size its
+# next arrays, the hash-grid one its reached voxels' count (with the key set's failure flag), and both
+# their launch's counters. They allocated 11 and 5 device arrays per scan (and the hash grid) and read 5.
+STRATEGY_READS = {"sorted": 3, "gather": 2}
+
+
+@pytest.mark.parametrize("strategy", ["sorted", "gather"])
+@pytest.mark.parametrize("method", ["ebs", "s-bki"])
+def test_the_deterministic_strategies_allocate_nothing_once_warm(method, strategy):
+    from evsemmap_warp.config import CleanSettings, ScatterStrategy
+
+    points, alpha = _scan()
+    config = load_config([PRESET], method=method).mapping.replace(clean=CleanSettings(ScatterStrategy(strategy)))
+    mapper = Mapper(config, alpha.shape[1], workers=1)
+    for _ in range(3):
+        mapper.integrate(points, alpha, payload_type="alpha")
+    with counting() as counts:
+        stats = mapper.integrate(points, alpha, payload_type="alpha")
+    assert stats.voxel_updates > 0
+    assert counts.allocations == 0 and counts.reads <= STRATEGY_READS[strategy], f"{method}, {strategy}: {counts}"
+
+
 def test_the_counters_see_what_they_count():
     # Each kind of event, once, so that a Warp release renaming what is patched fails here, not silently.
     host = np.arange(4.0)

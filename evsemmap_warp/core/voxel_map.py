@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..methods.device_scratch import DeviceScratch, counts_with_room, inclusive_scan, last_value, offsets_and_total
 from ..voxel_keys import check_index_range, column_bounds, pack_voxel_keys, unpack_voxel_keys
 from . import _host_memory
 from ._staging import Staging
@@ -125,6 +126,10 @@ class VoxelMap:
         self._counted_updates = 0
         # The scans' inputs reach the device through buffers kept from scan to scan (pinned, on a GPU).
         self.staging = Staging(self.device)
+        # The sorted and hash-grid strategies' arrays and hash grid, kept from scan to scan (the shard's
+        # scans run one after another on its thread, and a GPU runs a scan's kernels in stream order).
+        self._scratch = DeviceScratch(self.device)
+        self._hash_grid = None
         self._allocate(max(MIN_CAPACITY, _next_pow2(initial_capacity)))
 
     # ------------------------------------------------------------------ storage
@@ -414,36 +419,44 @@ class VoxelMap:
         d = self.device
         scan = self._radius_scan(points, lengths, point_uncertainty, labels, class_weights)
         params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, sigma0=sigma0)
-        counts = wp.empty(n, dtype=int, device=d)
+        scratch = self._scratch.begin()
+        counts = counts_with_room(n, scratch)
         wp.launch(ss.count_pairs, dim=n, device=d, inputs=[scan, params, ss.pair_counts(counts)])
-        offsets = wp.empty(n, dtype=int, device=d)
-        wp.utils.array_scan(counts, offsets, inclusive=False)
-        pairs = int(offsets.numpy()[-1] + counts.numpy()[-1]) if d == "cpu" else int((offsets[n - 1:n].numpy() + counts[n - 1:n].numpy())[0])
+        offsets, pairs = offsets_and_total(counts, scratch)
         if pairs == 0:
             return 0
-        keys = wp.empty(2 * pairs, dtype=wp.int64, device=d)  # radix_sort_pairs needs room for 2x
-        ids = wp.empty(2 * pairs, dtype=int, device=d)
-        pair_point = wp.empty(pairs, dtype=int, device=d)
-        pair_weight = wp.empty(pairs, dtype=wp.float64, device=d)
+        keys = scratch.empty(2 * pairs, wp.int64)  # radix_sort_pairs needs room for 2x
+        ids = scratch.empty(2 * pairs, int)
+        pair_point = scratch.empty(pairs, int)
+        pair_weight = scratch.empty(pairs, wp.float64)
         wp.launch(ss.expand_pairs, dim=n, device=d, inputs=[scan, params, ss.pair_list(offsets=offsets, keys=keys, ids=ids, point=pair_point,
                                                                                          weight=pair_weight)])
         wp.utils.radix_sort_pairs(keys, ids, pairs)
-        heads = wp.empty(pairs, dtype=int, device=d)
+        heads = scratch.empty(pairs, int)
         wp.launch(ss.mark_heads, dim=pairs, device=d, inputs=[keys, heads])
-        rank = wp.empty(pairs, dtype=int, device=d)
-        wp.utils.array_scan(heads, rank, inclusive=True)
-        distinct = int(rank[pairs - 1:pairs].numpy()[0])
-        starts = wp.empty(distinct, dtype=int, device=d)
+        rank = inclusive_scan(heads, scratch)
+        distinct = last_value(rank)
+        starts = scratch.empty(distinct, int)
         wp.launch(ss.segment_starts, dim=pairs, device=d, inputs=[heads, rank, starts])
         self.reserve(distinct)  # every distinct voxel fits: the reduction never fails for room
-        failed = wp.zeros(distinct, dtype=int, device=d)
         sorted_pairs = ss.sorted_pairs(starts=starts, count=pairs, keys=keys, ids=ids, point=pair_point, weight=pair_weight)
-        wp.launch(ss.reduce_voxels_kernel(labels is not None), dim=distinct, device=d, inputs=[
-            sorted_pairs, scan, params, self._target(failed, wp.zeros(1, dtype=wp.int64, device=d))])
-        if failed.numpy().any():
-            raise RuntimeError("the sorted reduction ran out of table room after reserving it (a bug)")
-        self.reserve(0)
+        self._launch_reserved(distinct, lambda failed: wp.launch(ss.reduce_voxels_kernel(labels is not None), dim=distinct, device=d, inputs=[
+            sorted_pairs, scan, params, self._target(failed, self._updates)]), "the sorted reduction")
         return pairs
+
+    def _launch_reserved(self, n: int, launch, what: str) -> None:
+        """launch(failed) over n items after the table was reserved for every voxel they may insert, then
+        its counters read back once (the update count in ``_counted_updates``); its failure flags only
+        when the key count reached the launch's fill limit, the one case where an insertion can fail (one
+        that did is a bug)."""
+        limit = self._launch_fill_limit()
+        failed = self._failure_flags_for(n)
+        self._updates.zero_()
+        launch(failed)
+        if self._read_counters() >= limit and failed.numpy().any():
+            self._failure_flags = None  # its flags are never read as a later launch's
+            raise RuntimeError(f"{what} ran out of table room after reserving it (a bug)")
+        self.reserve(0)
 
     def scatter_hashgrid(self, points: np.ndarray, lengths: np.ndarray, point_uncertainty: np.ndarray, *, sigma0: float,
                          labels: np.ndarray | None = None, class_weights: np.ndarray | None = None) -> int:
@@ -459,29 +472,26 @@ class VoxelMap:
         scan = self._radius_scan(points, lengths, point_uncertainty, labels, class_weights)
         params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, sigma0=sigma0)
         # The scan's reached voxels, in a key set sized for a voxel per point and grown when it is not enough.
+        scratch = self._scratch.begin()
         capacity = _next_pow2(4 * n + 16)
         while True:
-            scan_keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
-            scan_rows = self._filled(capacity, 0, wp.int32)
-            scan_count = wp.zeros(1, dtype=int, device=d)
-            failed = wp.zeros(1, dtype=int, device=d)
-            reached = hg.reached_keys(ht.hash_table(scan_keys, scan_rows, scan_count, self._launch_fill_limit(capacity)), failed)
+            scan_keys = scratch.full(capacity, ht.EMPTY_KEY, wp.int64)
+            scan_rows = scratch.zeros(capacity, wp.int32)
+            count_and_failed = scratch.zeros(2, int)  # the key set's count and its failure flag, read together
+            reached = hg.reached_keys(ht.hash_table(scan_keys, scan_rows, count_and_failed[0:1], self._launch_fill_limit(capacity)),
+                                      count_and_failed[1:2])
             wp.launch(hg.mark_reached, dim=n, device=d, inputs=[scan, params, reached])
-            if not failed.numpy()[0]:
+            reached_count, key_set_failed = (int(value) for value in count_and_failed.numpy())
+            if not key_set_failed:
                 break
             capacity *= 4
-        reached = int(scan_count.numpy()[0])
-        grid = wp.HashGrid(128, 128, 128, device=d, dtype=wp.float64)
-        grid.build(scan.points, longest)
-        self.reserve(reached)  # every reached voxel fits: the gather never fails for room
-        failed = wp.zeros(capacity, dtype=int, device=d)
-        update_count = wp.zeros(1, dtype=wp.int64, device=d)
-        wp.launch(hg.gather_voxels_kernel(labels is not None), dim=capacity, device=d, inputs=[
-            scan_keys, grid.id, wp.float64(longest), scan, params, self._target(failed, update_count)])
-        if failed.numpy().any():
-            raise RuntimeError("the hash-grid gather ran out of table room after reserving it (a bug)")
-        self.reserve(0)
-        return int(update_count.numpy()[0])
+        if self._hash_grid is None:
+            self._hash_grid = wp.HashGrid(128, 128, 128, device=d, dtype=wp.float64)
+        self._hash_grid.build(scan.points, longest)
+        self.reserve(reached_count)  # every reached voxel fits: the gather never fails for room
+        self._launch_reserved(capacity, lambda failed: wp.launch(hg.gather_voxels_kernel(labels is not None), dim=capacity, device=d, inputs=[
+            scan_keys, self._hash_grid.id, wp.float64(longest), scan, params, self._target(failed, self._updates)]), "the hash-grid gather")
+        return self._counted_updates
 
     def scatter_block_targets(self, points: np.ndarray, labels: np.ndarray, point_uncertainty: np.ndarray,
                               owner_blocks: np.ndarray, target_lengths: np.ndarray, cells_per_block: int) -> int:

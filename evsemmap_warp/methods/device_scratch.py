@@ -1,5 +1,7 @@
-"""Device arrays that the compatibility modes' device preprocessing (``sbki_device``, ``release_device``)
-keeps from scan to scan, so that a warm map allocates nothing per scan.
+"""Device arrays kept from scan to scan, so that a warm map allocates nothing per scan (the compatibility
+modes' device preprocessing, ``sbki_device`` and ``release_device``, and the clean mode's sorted and
+hash-grid strategies, ``core.voxel_map``), and the prefix sums over them that size the next arrays with
+one read each.
 
 A ``DeviceScratch`` holds one prepared scan's arrays: each array a view of a flat buffer kept for the
 line of code that asks for it (and its n-th request from that line in this scan, since the VoxelGrid runs
@@ -110,3 +112,31 @@ class ScratchPool:
     def sets(self, device: str) -> int:
         """How many sets ``device`` has: the most scans that held one at once."""
         return len(self._sets.get(str(device), []))
+
+
+def inclusive_scan(values: wp.array, scratch: DeviceScratch) -> wp.array:
+    """The inclusive prefix sums of a device array, on its device."""
+    out = scratch.empty(values.shape, values.dtype)
+    wp.utils.array_scan(values, out, inclusive=True)
+    return out
+
+
+def last_value(values: wp.array) -> int:
+    """The last value of a device array (one small read back)."""
+    return int(values[values.shape[0] - 1:].numpy()[0])
+
+
+def counts_with_room(n: int, scratch: DeviceScratch) -> wp.array:
+    """An int array for n counts and a trailing 0 (kernels write the first n): its ``offsets_and_total``
+    are n offsets and their total in one read."""
+    counts = scratch.empty(n + 1, int)
+    counts[n:].fill_(0)
+    return counts
+
+
+def offsets_and_total(counts: wp.array, scratch: DeviceScratch) -> tuple[wp.array, int]:
+    """The exclusive prefix sums of ``counts_with_room``'s counts [n + 1] (offsets[i] is where item i's
+    rows start) and their total, read back once (offsets[n])."""
+    offsets = scratch.empty(counts.shape, counts.dtype)
+    wp.utils.array_scan(counts, offsets, inclusive=False)
+    return offsets, last_value(offsets)

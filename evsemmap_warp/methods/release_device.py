@@ -19,8 +19,7 @@ import warp as wp
 from ..kernels import release
 from ..voxel_keys import column_bounds
 from . import release_compat, sbki_device
-from .device_scratch import DeviceScratch
-from .sbki_device import inclusive_scan, last_value
+from .device_scratch import DeviceScratch, inclusive_scan, last_value
 
 
 def capped_points_on_device(points: wp.array, lo: np.ndarray, hi: np.ndarray, ds_resolution_m: float, block_size: np.float32,

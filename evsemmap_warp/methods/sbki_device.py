@@ -27,19 +27,7 @@ import warp as wp
 from ..kernels import block_gather, block_membership, free_space, voxel_grid
 from ..voxel_keys import column_bounds
 from . import sbki_compat
-from .device_scratch import DeviceScratch
-
-
-def inclusive_scan(values: wp.array, scratch: DeviceScratch) -> wp.array:
-    """The inclusive prefix sums of a device array, on its device."""
-    out = scratch.empty(values.shape, values.dtype)
-    wp.utils.array_scan(values, out, inclusive=True)
-    return out
-
-
-def last_value(values: wp.array) -> int:
-    """The last value of a device array (one small read back)."""
-    return int(values[values.shape[0] - 1:].numpy()[0])
+from .device_scratch import DeviceScratch, counts_with_room, inclusive_scan, last_value, offsets_and_total
 
 
 def runs_of_sorted(keys: wp.array, n: int, scratch: DeviceScratch) -> tuple[wp.array, wp.array, int]:
@@ -53,22 +41,6 @@ def runs_of_sorted(keys: wp.array, n: int, scratch: DeviceScratch) -> tuple[wp.a
     starts = scratch.empty(count + 1, wp.int64)
     wp.launch(voxel_grid.leaf_starts, dim=n, device=device, inputs=[run_rank, starts])
     return run_rank, starts, count
-
-
-def counts_with_room(n: int, scratch: DeviceScratch) -> wp.array:
-    """An int array for n counts and a trailing 0 (kernels write the first n): its ``offsets_and_total``
-    are n offsets and their total in one read."""
-    counts = scratch.empty(n + 1, int)
-    counts[n:].fill_(0)
-    return counts
-
-
-def offsets_and_total(counts: wp.array, scratch: DeviceScratch) -> tuple[wp.array, int]:
-    """The exclusive prefix sums of ``counts_with_room``'s counts [n + 1] (offsets[i] is where item i's
-    rows start) and their total, read back once (offsets[n])."""
-    offsets = scratch.empty(counts.shape, counts.dtype)
-    wp.utils.array_scan(counts, offsets, inclusive=False)
-    return offsets, last_value(offsets)
 
 
 def float_bounds_on_device(points: wp.array, scratch: DeviceScratch) -> tuple[np.ndarray, np.ndarray]:
