@@ -139,6 +139,18 @@ def test_the_caption_says_when_the_cpp_was_timed_on_another_day(tmp_path):
         assert f"The C++ was timed on 2026-12-02, not beside this run ({day})" in perf_records.bench_integrate_caption(record, "r.json")
 
 
+def test_the_caption_says_whether_the_cpp_ran_on_the_same_cpu_model(tmp_path):
+    # VMs of the project's machine kind have come with an AMD EPYC or an Intel Xeon: a ratio against the
+    # C++ timed on the other one compares two CPUs as well, and the caption says which case it is.
+    (tmp_path / "cpp.json").write_text(json.dumps({"measured": {"machine": "2 vCPU AMD EPYC (Firecracker VM), 24 GB, Debian 12"}}))
+    record = {"machine": {"cpu_model": "AMD EPYC"}, "results": {"cpp": {"file": "cpp.json"}}}
+    assert "is the one the C++ was timed on" in perf_records._cpp_cpu_note(record, repo=tmp_path)
+    record["machine"]["cpu_model"] = "Intel(R) Xeon(R) Processor"
+    assert "compare two CPUs as well" in perf_records._cpp_cpu_note(record, repo=tmp_path)
+    record["results"]["cpp"]["file"] = "absent.json"
+    assert perf_records._cpp_cpu_note(record, repo=tmp_path) == ""
+
+
 def test_the_side_by_side_record_states_both_sides_compiler_flags():
     flags = json.loads((REPO / "docs/cpp_side_by_side.json").read_text())["measured"]["compiler_flags"]
     assert "-O3" in flags["originals"] and "no -march" in flags["originals"]

@@ -312,7 +312,7 @@ def bench_integrate_caption(record: dict, record_path: str) -> str:
     return (f"*From [`{name}`](bench/{name}): `{command}` at commit `{str(record.get('commit', ''))[:10]}`"
             f"{'' if record.get('tree_clean', True) else ' (modified tree)'}, {record.get('utc', '')}, {machine.get('cpu_model', '')} "
             f"({machine.get('cores', '')} cores), device {results['device']}, {results['workload']['scans']} of the workload's scans, median of "
-            f"{results['repeats']} after a warm-up; C++: {results['cpp']['summary']}{_cpp_day_note(record)}.*")
+            f"{results['repeats']} after a warm-up; C++: {results['cpp']['summary']}{_cpp_day_note(record)}{_cpp_cpu_note(record)}.*")
 
 
 def _cpp_day_note(record: dict) -> str:
@@ -324,6 +324,21 @@ def _cpp_day_note(record: dict) -> str:
         return ""
     return (f". The C++ was timed on {cpp_day.group(0)}, not beside this run ({run_day}): its ratios compare two days' VMs of one "
             "machine kind, not two programs side by side")
+
+
+def _cpp_cpu_note(record: dict, repo: Path = REPO) -> str:
+    """Whether the run's CPU model is the one the C++ figures were timed on (their file's ``measured.machine``):
+    VMs of one machine kind have come with either of two CPU models, so a ratio may compare two CPUs too."""
+    cpu = record.get("machine", {}).get("cpu_model", "")
+    try:
+        cpp_machine = json.loads((repo / record["results"]["cpp"]["file"]).read_text())["measured"]["machine"]
+    except (OSError, KeyError, TypeError, ValueError):
+        return ""
+    if not cpu or not isinstance(cpp_machine, str):
+        return ""
+    if cpu in cpp_machine:
+        return f"; this run's CPU model ({cpu}) is the one the C++ was timed on"
+    return f"; the C++ was timed on another CPU model ({cpp_machine}) than this run's ({cpu}), so its ratios compare two CPUs as well"
 
 
 TABLES = {"bench_integrate": (bench_integrate_table, bench_integrate_caption)}
