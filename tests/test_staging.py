@@ -103,3 +103,17 @@ def test_scratch_sets_keep_each_requests_buffer_and_the_pool_hands_out_free_sets
     bigger = scan(pool.take("cpu"), 1000)
     assert bigger[0].ptr != arrays[0].ptr and bigger[0].shape == (1000,) and bigger[2].numpy().shape == (1000, 3)
     assert scan(pool.take("cpu"), 0)[0].shape == (0,)
+
+
+def test_a_scratch_set_taken_for_a_scan_that_fails_is_given_back():
+    # A scan whose preparation raises never reaches its launch, which would have released its set.
+    from evsemmap_warp.methods.device_scratch import ScratchPool
+
+    pool = ScratchPool()
+    with pytest.raises(ValueError):
+        with pool.taken("cpu") as failed:
+            raise ValueError("a bad scan")
+    assert not failed.in_use
+    with pool.taken("cpu") as held:
+        pass
+    assert held is failed and held.in_use  # a scan that prepared holds its set until its launch releases it

@@ -369,17 +369,13 @@ class SbkiCompatIntegrator:
         training set. The arrays are a set of the integrator's scratch pool, held until the launch is done."""
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points))
-        scratch = self._scratch.take(device)
-        try:
+        with self._scratch.taken(device) as scratch:
             points, labels = sbki_device.training_set(*sbki_device.training_arrays(
                 scan.points, scan.labels, scan.sensor_origin, ds_resolution_m=c.sbki.ds_resolution_m,
                 free_resolution_m=c.sbki.free_resolution_m, max_range_m=c.sbki.max_range_m, device=device, scratch=scratch), scratch)
             tables = sbki_device.gather_tables_on_device(points, labels, self.block_size, c.length_m, scratch) if points.shape[0] else None
             if tables is None:
                 training_set = points.numpy(), labels.numpy()
-        except BaseException:
-            scratch.release()
-            raise
         if tables is None:
             scratch.release()
             return self._launch_from_training_set(stats, *training_set, device)
@@ -513,14 +509,10 @@ class ReleaseCompatIntegrator:
         if len(keep) == 0:
             return launch_step(stats)
         fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
-        scratch = self._scratch.take(device)
-        try:
+        with self._scratch.taken(device) as scratch:
             inputs = release_device.release_inputs_on_device(
                 scan.points[keep], scan.probabilities[keep], scan.uncertainty[keep], ds_resolution_m=c.sbki.ds_resolution_m,
                 block_size=self.block_size, cap=c.release_block_cap, dempster=fusion == sc.FUSION_DEMPSTER, device=device, scratch=scratch)
-        except BaseException:
-            scratch.release()
-            raise
         if inputs is None:
             scratch.release()
             return None

@@ -17,6 +17,7 @@ from __future__ import annotations
 import sys
 import threading
 from collections import Counter
+from contextlib import contextmanager
 
 import numpy as np
 import warp as wp
@@ -108,6 +109,17 @@ class ScratchPool:
                 sets.append(scratch)
             scratch.in_use = True
         return scratch.begin()
+
+    @contextmanager
+    def taken(self, device: str):
+        """``take`` for the block: the set is released if the block raises; otherwise the caller hands it
+        on (to the launch that releases it once its kernels are done, or releases it itself)."""
+        scratch = self.take(device)
+        try:
+            yield scratch
+        except BaseException:
+            scratch.release()
+            raise
 
     def sets(self, device: str) -> int:
         """How many sets ``device`` has: the most scans that held one at once."""
