@@ -2,7 +2,9 @@
 and caches it (``WARP_CACHE_PATH``). For each method, ``evsemmap map`` on a tiny synthetic drive runs once
 with an empty kernel cache (cold: compiling included) and then ``--repeats`` times with the cache it filled
 (warm); the difference is the compile time a new user waits once per Warp version. Also: how many
-modules were compiled and what the cache holds.
+modules were compiled and what the cache holds. The compatibility modes' gather kernels, each a module of
+its own built per class count and form, are then compiled alone (``module.load``), each ``--repeats``
+times into an empty cache in a fresh process: what the first S-BKI or release map adds.
 
 The figures go to a run record (docs/bench/bench_compile-<UTC>.json, tools/bench_record.py); the last line
 printed is its path.
@@ -38,12 +40,37 @@ def timed(args: list[str], cache: Path) -> float:
     return seconds
 
 
+# The compatibility modes' gather kernels as their integrators make them for the bench workload (K = 9,
+# 2^3 cells per block): name -> the statement that makes ``kernel``.
+GATHER_KERNELS = {
+    "S-BKI gather": "from evsemmap_warp.kernels import block_gather; kernel = block_gather.gather_sbki_kernel(9, 2)",
+    "release gather (Bayes)": "from evsemmap_warp.kernels import release; kernel = release.gather_release_kernel(9, 2, fusion=0)",
+    "release gather (Dempster)": "from evsemmap_warp.kernels import release; kernel = release.gather_release_kernel(9, 2, fusion=1)",
+}
+
+
+def kernel_compile_seconds(make_kernel: str, cache: Path) -> float:
+    """Seconds to compile one kernel's module for the CPU into the empty ``cache``, in a fresh process."""
+    # A one-line kernel is compiled first: a process's first compile also pays once for setting up Warp's
+    # compiler, which is not this kernel's. (Warp reads a kernel's source: the script is a file.)
+    script = cache.with_suffix(".py")
+    script.write_text("import time\nfrom evsemmap_warp.core.warp_runtime import init_warp\nwp = init_warp()\n\n\n"
+                      "@wp.kernel(module='unique')\ndef first(a: wp.array(dtype=float)):\n    a[wp.tid()] = 1.0\n\n\n"
+                      f"first.module.load('cpu')\n{make_kernel}\nstarted = time.perf_counter()\nkernel.module.load('cpu')\n"
+                      "print(time.perf_counter() - started)\n")
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, cwd=REPO,
+                          env=os.environ | {"WARP_CACHE_PATH": str(cache), "PYTHONPATH": str(REPO)})
+    if done.returncode != 0:
+        raise SystemExit(f"compiling {make_kernel!r} failed:\n{done.stderr[-3000:]}")
+    return float(done.stdout.strip().splitlines()[-1])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--methods", default="ebs,s-bki,s-csm")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
-    results = {"repeats": args.repeats, "methods": {}}
+    results = {"repeats": args.repeats, "methods": {}, "gather_kernels": {}}
     with tempfile.TemporaryDirectory(prefix="bench_compile_") as tmp:
         drive = Path(tmp) / "drive"
         subprocess.run(EVSEMMAP + ["synth", "--world", "tiny", "--no-camera", "--frames", "3", "--out", str(drive), "--quiet"],
@@ -60,6 +87,11 @@ def main() -> None:
             results["methods"][method] = row
             print(f"{method}: cold {row['cold_s']} s, warm {row['warm_s']} s: compiling {row['compile_s']} s for {row['compiled_modules']} modules "
                   f"({row['compile_s_per_module']} s each), cache {row['cache_mb']} MB", flush=True)
+        for name, make_kernel in GATHER_KERNELS.items():
+            runs = [kernel_compile_seconds(make_kernel, Path(tmp) / f"kernel_cache_{len(results['gather_kernels'])}_{repeat}")
+                    for repeat in range(args.repeats)]
+            results["gather_kernels"][name] = {"compile_s": round(statistics.median(runs), 2), "all_compile_s": [round(r, 2) for r in runs]}
+            print(f"{name}: compiled alone in {statistics.median(runs):.2f} s (median of {args.repeats})", flush=True)
     print(write_record("bench_compile", results))
 
 
