@@ -105,12 +105,13 @@ def block_gather_kernel(Inputs, gather_block, *, cells_per_block: int, prefetch:
     marks them touched (``touch_row``, before any read of them) and hands them to the method's
     ``gather_block(scan, b, first, rows, voxel_data) -> float64``, which sums the block's source points
     into its cells' rows and returns how many contributions it added. One Warp module per kernel, its
-    loops not unrolled (a much faster cold compile at the same speed)."""
+    loops not unrolled (a much faster cold compile at the same speed) and without an adjoint (a module of
+    its own does not take this file's module options; tools/bench_compile.py times the compile)."""
     n = cells_per_block
     n3 = n * n * n
     cell_rows = block_rows_type(n3)
 
-    @wp.kernel(module="unique", module_options={"max_unroll": 1})
+    @wp.kernel(module="unique", module_options={"max_unroll": 1}, enable_backward=False)
     def gather_blocks(
         launch_ids: wp.array(dtype=int),
         block_ids: wp.array(dtype=int),

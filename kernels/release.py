@@ -423,7 +423,7 @@ def sorted_rows_kernel(num_classes: int, dempster: bool):
     clip(p - u / K, 0, 1) (``core.integrators.dirichlet_beliefs``)."""
     vec_k = vector_type(num_classes)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def sorted_rows(points: wp.array(dtype=wp.vec3), probabilities: wp.array2d(dtype=wp.float64), uncertainty: wp.array(dtype=wp.float64),
                     kept: wp.array(dtype=int), point_ids: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int64),
                     sorted_points: wp.array(dtype=wp.vec3), class_weights: wp.array(dtype=vec_k), sorted_uncertainty: wp.array(dtype=wp.float64)):

@@ -770,7 +770,7 @@ def weight_rule_kernel(mode: int):
     reach, rule, _ = SCATTER_MODES[mode]
     span_of = _SPAN_OF[reach]
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def weight_rule_values(scan: ScanPoints, params: ScatterParams, pair_point: wp.array(dtype=int), pair_cell: wp.array(dtype=wp.vec3i),
                            out: wp.array(dtype=wp.float64)):
         k = wp.tid()

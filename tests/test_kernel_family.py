@@ -52,6 +52,14 @@ def test_no_kernel_takes_a_method_switch_or_loose_state():
         assert not switches, f"{name} branches at run time on {switches}: specialise it when it is built"
 
 
+def test_no_kernel_compiles_a_backward_pass():
+    # Nothing here is differentiated. A kernel in a module of its own (module="unique") does not take its
+    # file's wp.set_module_options: the block gathers and the rows kernels compiled their adjoints, which
+    # cost the S-BKI gather a third of its first-use compile and the release gathers more than half.
+    for name, kernel in _every_kernel():
+        assert not (kernel.module.options | kernel.options)["enable_backward"], f"{name} compiles a backward pass"
+
+
 def test_every_valid_scatter_combination_is_built_once_and_the_others_are_refused():
     assert len(sc._SCATTER_KERNELS) == 10
     assert len({id(k) for k in sc._SCATTER_KERNELS.values()}) == 10

@@ -418,7 +418,7 @@ def test_the_float32_sbki_kernel_is_zero_where_the_gather_skips_points():
     from evsemmap_warp.kernels.block_gather import SBKI_ZERO_BEYOND
     from evsemmap_warp.kernels.scatter import sbki_sparse_kernel_scaled
 
-    @wp.kernel
+    @wp.kernel(enable_backward=False)
     def kernel_at(distance: wp.array(dtype=float), value: wp.array(dtype=float)):
         i = wp.tid()
         value[i] = sbki_sparse_kernel_scaled(wp.vec3(distance[i], 0.0, 0.0), wp.vec3(0.0, 0.0, 0.0), 10.0)

@@ -190,7 +190,7 @@ def test_sbki_modes_match_reference_on_random_owners(device):
 def test_sincos_float32_is_the_correctly_rounded_sine_and_cosine(device):
     import warp as wp
 
-    @wp.kernel
+    @wp.kernel(enable_backward=False)
     def evaluate(a: wp.array(dtype=float), out: wp.array(dtype=wp.vec2)):
         t = wp.tid()
         out[t] = sc.sincos_float32(a[t])
