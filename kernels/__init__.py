@@ -5,3 +5,28 @@ Every kernel module here has a plain numpy twin in ``evsemmap_warp/reference/`` 
 function names, and the tests hold the two against each other. Importing this package compiles
 nothing: Warp builds a module on its first launch.
 """
+
+import threading
+
+# (device, id of the module) -> the module, kept so that its id is never reused.
+_loaded: dict = {}
+_loading = threading.Lock()
+
+
+def load_once(module, device: str) -> None:
+    """Compile, or load from the kernel cache, a module of kernels (a Python module of this package, or
+    the Warp module of a kernel a factory made) for ``device``, once per process and under one lock: the
+    thread that first launches a module's kernels never races another one loading it, and a command
+    compiles only the modules it launches (a clean-mode map needs two of them, a map file's queries one)."""
+    key = (device, id(module))
+    if key in _loaded:
+        return
+    with _loading:
+        if key not in _loaded:
+            import warp as wp
+
+            # wp.load_module builds the variant a launch uses (on the CPU, blocks of one thread); a Warp
+            # module's own load() builds its default block size of 256, which no CPU launch runs: the
+            # launch then compiled the module a second time.
+            wp.load_module(module, device=device)
+            _loaded[key] = module

@@ -543,7 +543,7 @@ def walk_kernel(reach: int, visit: Visit, *, module: str):
     """The one traversal: a kernel over points (scan: ScanPoints, params: ScatterParams, out:
     visit.Out) that calls ``visit`` for every voxel the point reaches (``reach``: REACH_*), x, then y,
     then z ascending; a ball's rows and columns outside the reach are skipped whole. ``module``: the Warp
-    module the kernel belongs to (the module that builds it)."""
+    module the kernel belongs to (the module that builds it), or "unique" for a module of its own."""
     by_distance = reach in (REACH_BALL, REACH_BLOCK_BALL)
     by_block = reach == REACH_BLOCK_BALL
     span_of = _SPAN_OF[reach]
@@ -568,7 +568,7 @@ def walk_kernel(reach: int, visit: Visit, *, module: str):
             near = partial_d2 < span.reach2 and steps <= 1
         return near
 
-    @wp.kernel(module=module)
+    @wp.kernel(module=module, module_options={"enable_backward": False} if module == "unique" else None)
     def walk(scan: ScanPoints, params: ScatterParams, out: Out):
         t = wp.tid()
         i = t
@@ -668,13 +668,15 @@ def _evidence_rule(mode: int, fusion: int, use_labels: bool):
 
 
 def _scatter_kernels() -> dict:
+    # Each combination is a module of its own: a map compiles the one scatter it launches, not all ten
+    # (tools/bench_compile.py).
     kernels = {}
     for mode, (reach, rule, inserts) in SCATTER_MODES.items():
         for fusion in (FUSION_BAYES, FUSION_DEMPSTER):
             for use_labels in (True, False):
                 evidence = _evidence_rule(mode, fusion, use_labels)
                 if evidence is not None:
-                    kernels[mode, fusion, use_labels] = walk_kernel(reach, scatter_visit(rule, evidence, inserts=inserts), module=__name__)
+                    kernels[mode, fusion, use_labels] = walk_kernel(reach, scatter_visit(rule, evidence, inserts=inserts), module="unique")
     return kernels
 
 

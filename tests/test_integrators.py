@@ -51,6 +51,9 @@ class _Recorder:
         _Recorder.seen.append(scan)
         return ig.launch_step(ig.IntegrationStats(input_points=len(scan.points)))
 
+    def kernel_modules(self, device):
+        return []
+
 
 def test_the_mapper_checks_declared_needs_and_hands_prepare_the_scan_alone(monkeypatch):
     monkeypatch.setitem(ig.INTEGRATORS, (Compat.CLEAN, Kernel.SPARSE), _Recorder)

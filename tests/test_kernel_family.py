@@ -102,3 +102,66 @@ def test_each_weight_rule_matches_its_twin(mode):
     else:
         # float64: the twin's distance (a norm) and the kernel's (squared offsets summed) differ by an ulp or two
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+
+
+def _integrator_config(case: str):
+    """The mapping config of an integrator test case: METHOD, METHOD@sbki or METHOD@release (the compat
+    modes; +device: their preprocessing on the map's device, as on a GPU), or ebs/STRATEGY (the radius
+    kernel's other scatter strategies)."""
+    import dataclasses
+
+    from conftest import REPO
+
+    from evsemmap_warp.config import Compat, ScatterStrategy, load_config
+
+    method, _, variant = case.replace("/", "@").removesuffix("+device").partition("@")
+    if variant == "release":
+        return load_config([REPO / "configs/presets/release.yaml"], method=method).mapping
+    config = load_config([REPO / "configs/presets/rellis3d.yaml"], method=method).mapping
+    if variant == "sbki":
+        return dataclasses.replace(config, compat=Compat.SBKI)
+    if variant:
+        return dataclasses.replace(config, clean=dataclasses.replace(config.clean, scatter_strategy=ScatterStrategy(variant)))
+    return config
+
+
+@pytest.mark.parametrize("case", ["ebs", "ebs/sorted", "ebs/gather", "s-csm", "dempster", "convbki", "see-csom", "s-bki@sbki", "s-csm@sbki",
+                                  "ebs@release", "dempster@release", "s-bki@sbki+device", "ebs@release+device"])
+def test_a_mapper_loads_every_kernel_module_it_launches_before_its_first_scan(case, monkeypatch):
+    # The Mapper compiles its integrator's modules up front, in the calling thread (Warp's compiler keeps
+    # its precompiled headers per thread; a module a prepare or shard thread compiled first built them
+    # again), and only those: a clean-mode map needs the hash table and its one scatter.
+    from warp._src.context import get_module
+
+    from evsemmap_warp.core.mapper import Mapper
+    from evsemmap_warp.kernels import hash_table
+
+    def warp_module(module):
+        return module if isinstance(module, wp.Module) else get_module(module.__name__)
+
+    mapper = Mapper(_integrator_config(case), 9, workers=2)
+    if case.endswith("+device"):
+        mapper.integrator.preprocess_on_device = True
+    declared = {warp_module(m) for m in mapper.integrator.kernel_modules(mapper.device)} | {warp_module(hash_table)}
+    launched = set()
+    original = wp.launch
+
+    def launch(kernel, *args, **kwargs):
+        launched.add(kernel.module)
+        return original(kernel, *args, **kwargs)
+
+    monkeypatch.setattr(wp, "launch", launch)
+    rng = np.random.default_rng(4)
+    scans = []
+    for i in range(3):
+        points = rng.uniform(-6.0, 6.0, (3000, 3)) * [1.0, 1.0, 0.2] + [i * 0.5, 0.0, 0.0]
+        alpha = np.ones((3000, 9))
+        alpha[np.arange(3000), rng.integers(1, 9, 3000)] += rng.gamma(2.0, 50.0, 3000)
+        scans.append(type("Scan", (), {"points": points, "payload": alpha, "payload_type": "alpha", "sensor_origin": np.array([i * 0.5, 0.0, 1.5])}))
+    stats = mapper.integrate_many(scans)
+    assert sum(s.voxel_updates for s in stats) > 0
+    assert launched, "nothing was launched"
+    missing = sorted(m.name for m in launched - declared)
+    assert not missing, f"{case}: launched kernels of modules its integrator does not declare: {missing}"
+    if "@" not in case and "/" not in case and case != "see-csom":
+        assert len(declared) == 2  # the hash table and the scatter: nothing else compiles for a clean-mode map

@@ -28,8 +28,10 @@ import numpy as np
 import warp as wp
 
 from ..config import Compat, Fusion, Kernel, MappingConfig, Media, PayloadType, ScatterStrategy, ThresholdScope
-from ..kernels import block_gather, release
+from ..kernels import block_gather, block_membership, free_space, radix_sort, release, voxel_grid
+from ..kernels import hashgrid_gather as hg
 from ..kernels import scatter as sc
+from ..kernels import sorted_scatter as ss
 from ..methods import convbki, release_compat, release_device, sbki_compat, sbki_device, see_csom
 from ..methods.device_scratch import DeviceScratch, ScratchPool
 from ..voxel_keys import column_bounds, take_rows
@@ -143,6 +145,11 @@ class Integrator(Protocol):
         """Host work on a validated scan in map coordinates, without touching the map; returns the launch
         that updates the shards."""
 
+    def kernel_modules(self, device: str) -> list:
+        """The kernel modules its preparation and launches run for a map on ``device`` (modules of
+        ``kernels``, or the Warp modules of the kernels its factories make): the Mapper compiles or loads
+        them before its first scan, in the calling thread (``Mapper._load_kernels``)."""
+
 
 # (compat, kernel) -> the integrator class of that integration method (``register_integrator``).
 INTEGRATORS: dict[tuple[Compat, Kernel], type] = {}
@@ -159,6 +166,14 @@ def register_integrator(compat: Compat, *kernels: Kernel):
         return cls
 
     return register
+
+
+def preprocesses_on_device(integrator, device: str) -> bool:
+    """Whether a compat integrator's preparation runs on the map's ``device`` (its
+    ``preprocess_on_device``; None: on a GPU) rather than on the host."""
+    if integrator.preprocess_on_device is not None:
+        return integrator.preprocess_on_device
+    return wp.get_device(device).is_cuda
 
 
 def make_integrator(config: MappingConfig, num_classes: int) -> Integrator:
@@ -207,6 +222,19 @@ class PointKernelIntegrator:
         """Nothing worth doing ahead: the launch runs ``integrate``."""
         return lambda shards, lanes=None: self.integrate(shards, scan, lanes)
 
+    def _scatter_form(self) -> tuple[int, int, ScatterStrategy]:
+        """(scatter mode, fusion, strategy): the strategy applies to the radius kernel only."""
+        c = self.config
+        mode = sc.MODE_OWN_VOXEL if c.kernel is Kernel.COUNT else sc.MODE_RADIUS
+        fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
+        return mode, fusion, c.clean.scatter_strategy if mode == sc.MODE_RADIUS else ScatterStrategy.ATOMIC
+
+    def kernel_modules(self, device: str) -> list:
+        """The module of its one scatter kernel, or of its scatter strategy's kernels."""
+        mode, fusion, strategy = self._scatter_form()
+        by_strategy = {ScatterStrategy.SORTED: ss, ScatterStrategy.GATHER: hg}
+        return [by_strategy[strategy] if strategy in by_strategy else sc.scatter_kernel(mode, fusion, self.config.media is Media.ONEHOT).module]
+
     def integrate(self, shards: list[VoxelMap], scan: ScanPayload, lanes: ShardLanes | None = None) -> IntegrationStats:
         """Threshold, lengths and media of one scan, then its scatter into ``shards`` (the points split over
         them, on ``lanes`` when given); returns the insertion's stats. Raises ValueError, before anything
@@ -220,21 +248,21 @@ class PointKernelIntegrator:
         stats.kept_points = len(points)
         onehot = c.media is Media.ONEHOT
         media = scan.labels[keep] if onehot else scan.probabilities[keep]
-        fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
+        mode, fusion, strategy = self._scatter_form()
         if fusion == sc.FUSION_DEMPSTER:
             media = dirichlet_beliefs(media, unc)
-        if c.kernel is Kernel.COUNT:
-            mode, sigma0, lengths = sc.MODE_OWN_VOXEL, 1.0, np.full(len(points), c.resolution_m)
+        if mode == sc.MODE_OWN_VOXEL:
+            sigma0, lengths = 1.0, np.full(len(points), c.resolution_m)
         else:
-            mode, sigma0, lengths = sc.MODE_RADIUS, c.sigma0, self.kernel_lengths(unc)
+            sigma0, lengths = c.sigma0, self.kernel_lengths(unc)
         if lanes is not None and len(points):  # each shard checks its own part: the whole scan first, so a refusal writes nothing
             shards[0]._check_reach(points, float(np.max(lengths)))
 
         def job(shard: VoxelMap, part: np.ndarray) -> int:
             kw = {"labels": media[part]} if onehot else {"class_weights": media[part]}
-            if c.clean.scatter_strategy is ScatterStrategy.SORTED and mode == sc.MODE_RADIUS:
+            if strategy is ScatterStrategy.SORTED:
                 return shard.scatter_sorted(points[part], lengths[part], unc[part], sigma0=sigma0, **kw)
-            if c.clean.scatter_strategy is ScatterStrategy.GATHER and mode == sc.MODE_RADIUS:
+            if strategy is ScatterStrategy.GATHER:
                 return shard.scatter_hashgrid(points[part], lengths[part], unc[part], sigma0=sigma0, **kw)
             return shard.scatter(points[part], lengths[part], unc[part], mode=mode, sigma0=sigma0, fusion=fusion, **kw)
 
@@ -261,6 +289,10 @@ class ConvBkiIntegrator:
     def prepare(self, scan: ScanPayload, device: str) -> Launch:
         """Nothing worth doing ahead: the launch runs ``integrate``."""
         return lambda shards, lanes=None: self.integrate(shards, scan, lanes)
+
+    def kernel_modules(self, device: str) -> list:
+        """The stencil scatter's module."""
+        return [sc.scatter_kernel(sc.MODE_STENCIL, sc.FUSION_BAYES, False).module]
 
     def integrate(self, shards: list[VoxelMap], scan: ScanPayload, lanes: ShardLanes | None = None) -> IntegrationStats:
         """Voxelise one scan (evidence, uncertainty and counts summed per voxel) and scatter each occupied
@@ -298,6 +330,10 @@ class SeeCsomIntegrator:
         self.config = config
         self.num_classes = num_classes
         self.needs = _free_samples_need(config.method)
+
+    def kernel_modules(self, device: str) -> list:
+        """The training data's modules, then the block-targets scatter's."""
+        return [voxel_grid, radix_sort, free_space, sc]
 
     def prepare(self, scan: ScanPayload, device: str) -> Launch:
         """Training data and block statistics (host work, no map access); the launch scatters."""
@@ -338,12 +374,22 @@ class SbkiCompatIntegrator:
         # GPU map. The same map either way (tests/test_sbki_device.py sets True on the CPU).
         self.preprocess_on_device: bool | None = None
         self._scratch = ScratchPool()  # the device path's arrays, kept from scan to scan
+        self.num_classes = num_classes
+
+    def kernel_modules(self, device: str) -> list:
+        """The training data's and memberships' modules, then the gather tables' and gather kernel's (S-BKI)
+        or the block cells' insertion and the own-block scatter (S-CSM)."""
+        training = [voxel_grid, radix_sort, free_space, block_membership]
+        if self.config.kernel is Kernel.COUNT:
+            return training + [sc, sc.scatter_kernel(sc.MODE_SBKI_OWN_BLOCK, sc.FUSION_BAYES, True).module]
+        gather = [] if self.num_classes is None else [self.gather_kernel(self.num_classes, self.cells_per_block).module]
+        return training + [block_gather] + gather
 
     def prepare(self, scan: ScanPayload, device: str) -> Launch:
         """Training data, block memberships and the gather tables (host work, no map access; on the
         map's device for the S-BKI kernel on a GPU); the launch runs the kernels."""
         c = self.config
-        on_device = self.preprocess_on_device if self.preprocess_on_device is not None else wp.get_device(device).is_cuda
+        on_device = preprocesses_on_device(self, device)
         if on_device and c.kernel is Kernel.SPARSE:
             return self._prepare_on_device(scan, device)
         points, labels, _ = sbki_compat.training_data(
@@ -443,6 +489,18 @@ class ReleaseCompatIntegrator:
         # Where the preprocessing after the cut runs (methods.release_device): as SbkiCompatIntegrator's.
         self.preprocess_on_device: bool | None = None
         self._scratch = ScratchPool()
+        self.num_classes = num_classes
+
+    def kernel_modules(self, device: str) -> list:
+        """The cut's and cap's modules and the memberships' (on the device also the block grouping's and
+        the sorted rows'), and the gather kernel's of its fusion."""
+        fusion = sc.FUSION_DEMPSTER if self.config.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
+        if self.num_classes is None:
+            return [release, radix_sort, block_membership]
+        gather = self.gather_kernel(self.num_classes, self.cells_per_block, fusion=fusion).module
+        if preprocesses_on_device(self, device):
+            return [release, voxel_grid, block_membership, block_gather, release.sorted_rows_kernel(self.num_classes, fusion == sc.FUSION_DEMPSTER).module, gather]
+        return [release, radix_sort, block_membership, gather]
 
     def cut_points(self, scan: ScanPayload, sensor_origin: np.ndarray) -> np.ndarray:
         """Indices of the scan's points within range that the uncertainty cut keeps."""
@@ -468,7 +526,7 @@ class ReleaseCompatIntegrator:
         """The cut, the cap, memberships and the block models' tables (no map access; after the cut on the
         map's device for a GPU map); the launch runs the gather kernel."""
         c = self.config
-        on_device = self.preprocess_on_device if self.preprocess_on_device is not None else wp.get_device(device).is_cuda
+        on_device = preprocesses_on_device(self, device)
         if on_device:
             launch = self._prepare_on_device(scan, device)
             if launch is not None:

@@ -32,6 +32,7 @@ import numpy as np
 from .. import __version__
 from ..config import Fusion, MappingConfig, PayloadType, flat_items
 from ..frames import WorldFrame, check_same_frame
+from ..kernels import load_once
 from ..voxel_keys import check_index_range, voxel_index_of
 from . import map_file
 from .integrators import IntegrationStats, Launch, ScanPayload, SensorOrigin, make_integrator
@@ -285,6 +286,7 @@ class Mapper:
             raise ValueError(f"class_names has {len(class_names)} names for {self.num_classes} classes")
         self.class_names = tuple(class_names) if class_names else tuple(f"class_{i}" for i in range(self.num_classes))
         self.integrator = make_integrator(config, self.num_classes)
+        self._kernels_loaded = False
         self.grid_offset_m = self.integrator.grid_offset_m
         self._initial_capacity = initial_capacity
         first = self._new_shard(device)
@@ -344,7 +346,17 @@ class Mapper:
         """Add one scan or bin. points [N, 3] world frame (m); payload [N, K] alpha or
         probabilities, or [N] integer labels, as ``payload_type`` says. An empty scan is a no-op.
         ``sensor_origin`` [3] is needed by the sbki mode (free-space rays)."""
+        self._load_kernels()
         return self._launch(self._prepare(points, payload, payload_type, sensor_origin))
+
+    def _load_kernels(self) -> None:
+        """Compile or load the integrator's kernel modules once, in the calling thread, before its first
+        scan: Warp's compiler keeps its precompiled headers per thread, so a first compile on each prepare
+        and shard thread built them again; and a map that is only read compiles nothing of them."""
+        if not self._kernels_loaded:
+            for module in self.integrator.kernel_modules(self.device):
+                load_once(module, self.device)
+            self._kernels_loaded = True
 
     def integrate_many(self, scans: Iterable, progress=None) -> list[IntegrationStats]:
         """Add scans in order, each an object with ``points``, ``payload``, ``payload_type`` and
@@ -362,6 +374,7 @@ class Mapper:
         A scan that fails is named in the error; the map then holds the scans before it, and may hold
         the next scan and part of the failing one (a shard can be a scan ahead). No shard job is left
         running when the error is raised."""
+        self._load_kernels()
         results = []
         if not self.prepare_ahead:
             for scan in scans:

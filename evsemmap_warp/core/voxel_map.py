@@ -33,13 +33,9 @@ from .warp_runtime import init_warp, resolve_device
 
 wp = init_warp()
 
-from ..kernels import block_gather  # noqa: E402
-from ..kernels import free_space  # noqa: E402
-from ..kernels import voxel_grid  # noqa: E402
-from ..kernels import radix_sort  # noqa: E402
 from ..kernels import hash_table as ht  # noqa: E402
 from ..kernels import hashgrid_gather as hg  # noqa: E402
-from ..kernels import release  # noqa: E402
+from ..kernels import load_once  # noqa: E402
 from ..kernels import scatter as sc  # noqa: E402
 from ..kernels import sorted_scatter as ss  # noqa: E402
 
@@ -115,7 +111,7 @@ class VoxelMap:
         self.device = resolve_device(device)
         self.grow_count = 0
         self._last_new_voxels: dict[str, int] = {}  # per kind of launch: how many voxels the last one made
-        _load_kernels(self.device)
+        load_once(ht, self.device)  # every launch reads its counters back through it
         # Reused by every launch, so that a warm scan allocates nothing: the failure flags (all zero between
         # launches), the thread ids 0..n-1 (both grown to powers of two), the launch's update count, and the
         # counters read back after it (key count, update count, brick count) in one copy.
@@ -373,6 +369,7 @@ class VoxelMap:
         if (mode == sc.MODE_STENCIL or fusion == sc.FUSION_DEMPSTER) and class_weights is None:
             raise ValueError("the stencil mode and Dempster fusion read per-class weights: pass class_weights, not labels")
         kernel = sc.scatter_kernel(mode, fusion, labels is not None)
+        load_once(kernel.module, self.device)
         stencil_half = 0
         if mode == sc.MODE_STENCIL:
             side = round(len(stencil_weights) ** (1 / 3))
@@ -416,6 +413,7 @@ class VoxelMap:
         if n == 0:
             return 0
         self._check_reach(points, float(np.max(lengths)))
+        load_once(ss, self.device)
         d = self.device
         scan = self._radius_scan(points, lengths, point_uncertainty, labels, class_weights)
         params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, sigma0=sigma0)
@@ -468,6 +466,7 @@ class VoxelMap:
             return 0
         longest = float(np.max(lengths))
         self._check_reach(points, longest)
+        load_once(hg, self.device)
         d = self.device
         scan = self._radius_scan(points, lengths, point_uncertainty, labels, class_weights)
         params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, sigma0=sigma0)
@@ -501,6 +500,7 @@ class VoxelMap:
             return 0
         first = owner_blocks.astype(np.int64) * cells_per_block - cells_per_block // 2
         self._check_index_range(first.min(axis=0) - cells_per_block, first.max(axis=0) + 2 * cells_per_block - 1)
+        load_once(sc, self.device)
         d = self.device
         upload = self.staging.upload
         scan = sc.scan_points(points=upload("points", np.reshape(points, (-1, 3)), wp.vec3d, np.float64), labels=upload("labels", labels, wp.int32, np.int32),
@@ -519,11 +519,8 @@ class VoxelMap:
 
     def load_kernel(self, kernel) -> None:
         """Compile/load a kernel made on demand (a block-gather kernel for this class count and block
-        size) before worker threads launch it: a module load must not race between threads."""
-        key = (self.device, id(kernel.module))  # the factories cache their kernels: the modules live on
-        if key not in _loaded_devices:
-            kernel.module.load(self.device)
-            _loaded_devices.add(key)
+        size) before worker threads launch it (``kernels.load_once``)."""
+        load_once(kernel.module, self.device)
 
     def gather_blocks(self, kernel, scan, block_ids: np.ndarray, *, cells_per_block: int, kind: str) -> int:
         """A block-gather kernel (``kernels.block_gather`` or ``kernels.release``, made for this class
@@ -553,6 +550,7 @@ class VoxelMap:
             return
         blocks = np.ascontiguousarray(blocks, dtype=np.int32)
         self.check_block_range(blocks, cells_per_block)
+        load_once(sc, self.device)
         d = self.device
         blocks_wp = wp.array(blocks, dtype=wp.vec3i, device=d, copy=False)
 
@@ -628,24 +626,6 @@ class VoxelMap:
 
 def _points_array(points: np.ndarray, device: str):
     return wp.array(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3), dtype=wp.vec3d, device=device, copy=False)
-
-
-_loaded_devices: set = set()  # devices, and (device, module) of kernels made on demand
-
-
-def _load_kernels(device: str) -> None:
-    """Compile/load the kernel modules up front: worker threads then only launch, and a module
-    load never races between threads."""
-    if device not in _loaded_devices:
-        wp.load_module(ht, device=device)
-        wp.load_module(sc, device=device)
-        wp.load_module(ss, device=device)
-        wp.load_module(hg, device=device)
-        wp.load_module(release, device=device)
-        wp.load_module(free_space, device="cpu")  # host preprocessing (sbki_compat), on prepare threads
-        wp.load_module(voxel_grid, device="cpu")
-        wp.load_module(radix_sort, device="cpu")
-        _loaded_devices.add(device)
 
 
 def sum_voxel_arrays(parts: list[VoxelArrays]) -> VoxelArrays:
