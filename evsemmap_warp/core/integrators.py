@@ -1,8 +1,9 @@
 """Integrators: one job each, the map handed in, all behind one protocol (``Integrator``): made from
 (config, num_classes) through the registry (``make_integrator``, keyed by the integration method: the
 compatibility mode and the kernel), each declares what it needs of a scan (``ScanNeeds``: the sensor
-origin, the payload kinds) and turns a validated scan into its launch with ``prepare(scan, device)``
-(host work only, no map access); the launch runs the kernels on the shards.
+origin, the payload kinds) and the kernel modules it runs (``kernel_modules(device)``: the Mapper compiles
+those, and only those, before its first scan), and turns a validated scan into its launch with
+``prepare(scan, device)`` (host work only, no map access); the launch runs the kernels on the shards.
 
 * ``PointKernelIntegrator``: the paper's clean algorithm (docs/algorithm.md §3) for S-CSM, S-BKI, EBS and the
   ablations: optional per-insertion uncertainty threshold, optional adaptive length, one scatter.
