@@ -54,8 +54,8 @@ def test_no_kernel_takes_a_method_switch_or_loose_state():
 
 def test_no_kernel_compiles_a_backward_pass():
     # Nothing here is differentiated. A kernel in a module of its own (module="unique") does not take its
-    # file's wp.set_module_options: the block gathers and the rows kernels compiled their adjoints, which
-    # cost the S-BKI gather a third of its first-use compile and the release gathers more than half.
+    # file's wp.set_module_options: the block gathers and the rows kernels compiled their adjoints, more
+    # than half of the gathers' first-use compile (docs/performance.md).
     for name, kernel in _every_kernel():
         assert not (kernel.module.options | kernel.options)["enable_backward"], f"{name} compiles a backward pass"
 
