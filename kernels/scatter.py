@@ -568,7 +568,7 @@ def walk_kernel(reach: int, visit: Visit, *, module: str):
             near = partial_d2 < span.reach2 and steps <= 1
         return near
 
-    @wp.kernel(module=module, module_options={"enable_backward": False} if module == "unique" else None)
+    @wp.kernel(module=module, enable_backward=False)
     def walk(scan: ScanPoints, params: ScatterParams, out: Out):
         t = wp.tid()
         i = t
