@@ -169,6 +169,11 @@ def register_integrator(compat: Compat, *kernels: Kernel):
     return register
 
 
+def scatter_fusion(config: MappingConfig) -> int:
+    """The kernels' fusion constant (``kernels.scatter.FUSION_*``) of the config's ``fusion``."""
+    return sc.FUSION_DEMPSTER if config.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
+
+
 def preprocesses_on_device(integrator, device: str) -> bool:
     """Whether a compat integrator's preparation runs on the map's ``device`` (its
     ``preprocess_on_device``; None: on a GPU) rather than on the host."""
@@ -227,7 +232,7 @@ class PointKernelIntegrator:
         """(scatter mode, fusion, strategy): the strategy applies to the radius kernel only."""
         c = self.config
         mode = sc.MODE_OWN_VOXEL if c.kernel is Kernel.COUNT else sc.MODE_RADIUS
-        fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
+        fusion = scatter_fusion(c)
         return mode, fusion, c.clean.scatter_strategy if mode == sc.MODE_RADIUS else ScatterStrategy.ATOMIC
 
     def kernel_modules(self, device: str) -> list:
@@ -495,7 +500,7 @@ class ReleaseCompatIntegrator:
     def kernel_modules(self, device: str) -> list:
         """The cut's and cap's modules and the memberships' (on the device also the block grouping's and
         the sorted rows'), and the gather kernel's of its fusion."""
-        fusion = sc.FUSION_DEMPSTER if self.config.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
+        fusion = scatter_fusion(self.config)
         if self.num_classes is None:
             return [release, radix_sort, block_membership]
         gather = self.gather_kernel(self.num_classes, self.cells_per_block, fusion=fusion).module
@@ -540,7 +545,7 @@ class ReleaseCompatIntegrator:
         points = scan.points[keep].astype(np.float32)
         pair_points, member_blocks = sbki_compat.block_memberships(points, self.block_size)
         models = release_compat.release_blocks(member_blocks, device=device)
-        fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
+        fusion = scatter_fusion(c)
         sorted_points = pair_points[models.pair_order]
         weights = take_rows(scan.probabilities[keep], sorted_points)
         unc = scan.uncertainty[keep][sorted_points]
@@ -567,7 +572,7 @@ class ReleaseCompatIntegrator:
         keep = self.cut_points(scan, scan.sensor_origin)
         if len(keep) == 0:
             return launch_step(stats)
-        fusion = sc.FUSION_DEMPSTER if c.fusion is Fusion.DEMPSTER else sc.FUSION_BAYES
+        fusion = scatter_fusion(c)
         with self._scratch.taken(device) as scratch:
             inputs = release_device.release_inputs_on_device(
                 scan.points[keep], scan.probabilities[keep], scan.uncertainty[keep], ds_resolution_m=c.sbki.ds_resolution_m,
