@@ -333,3 +333,45 @@ def test_integrate_many_reads_in_order_and_sets_the_origin_from_the_first_non_em
     assert seen == [f"scan{i}" for i in range(len(scans))]
     np.testing.assert_array_equal(many.origin_index, one_by_one.origin_index)
     np.testing.assert_array_equal(many.voxels()[0].rows(), one_by_one.voxels()[0].rows())
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("k", [1, 2, 7, 8, 9, 15, 16, 17, 24, 129])
+def test_row_sums_are_numpys_row_sums_bit_for_bit(k, dtype):
+    # row_sums reproduces numpy's pairwise order column by column; a different order changes the last bits
+    # of S, and with them the uncertainty cut of the release mode and every map built from alpha.
+    from evsemmap_warp.core.mapper import row_sums
+
+    rng = np.random.default_rng(k)
+    values = (rng.gamma(0.3, 1e3, (4000, k)) * rng.choice([1e-8, 1.0, 1e8], (4000, k)) + 1.0).astype(dtype)
+    values[0] = -0.0  # a row of negative zeros sums to +0.0 in numpy
+    want = np.asarray(values, np.float64).sum(axis=1)
+    got = row_sums(values)
+    assert got.dtype == np.float64 and np.array_equal(got.view(np.int64), want.view(np.int64))
+    assert row_sums(values[:0]).shape == (0,)
+
+
+@pytest.mark.parametrize("payload_type", ["alpha", "prob", "label"])
+def test_probabilities_derived_on_demand_are_those_of_the_whole_payload(payload_type):
+    # The probabilities are derived for the rows an integrator asks for; they must be those rows of the
+    # whole payload's probabilities, in any order, from a float32 payload as from its float64 copy.
+    from evsemmap_warp.core.mapper import prepare_payload
+
+    rng = np.random.default_rng(3)
+    n = 500
+    points = rng.uniform(-5, 5, (n, 3))
+    alpha = (rng.gamma(0.7, 6.0, (n, K)) + 1.0).astype(np.float32)
+    payload = {"alpha": alpha, "prob": alpha / alpha.sum(axis=1, keepdims=True), "label": rng.integers(0, K, n)}[payload_type]
+    scan = prepare_payload(points, payload, payload_type, K)
+    whole = np.asarray(payload, np.float64)
+    want = np.eye(K)[payload] if payload_type == "label" else whole / whole.sum(axis=1)[:, None]
+    rows = rng.permutation(n)[:200]
+    np.testing.assert_array_equal(scan.probability_rows(rows), want[rows])
+    np.testing.assert_array_equal(scan.probability_rows(want[:, 0] > 0.2), want[want[:, 0] > 0.2])
+    np.testing.assert_array_equal(scan.probabilities, want)
+    np.testing.assert_array_equal(scan.probability_rows(rows), want[rows])  # from the cached whole
+    if payload_type == "alpha":
+        np.testing.assert_array_equal(scan.uncertainty, K / whole.sum(axis=1))
+    elif payload_type == "prob":
+        np.testing.assert_array_equal(scan.uncertainty, 1.0 - want.max(axis=1))
+    assert scan.num_classes == K

@@ -42,17 +42,32 @@ from .voxel_map import VoxelMap
 @dataclass
 class ScanPayload:
     """A validated scan: points [N, 3] float64 (m, relative to the map origin when an integrator gets them),
-    class probabilities [N, K], input uncertainty [N] (K / S for alpha, 1 - max p for probabilities, 0 for
-    labels), the ``payload`` as given ([N] labels, or [N, K] alpha or probabilities), and ``labels`` [N]:
-    the payload itself when it is [N], else its row argmax, computed when first asked for (the release
-    mode never asks). ``sensor_origin`` [3] (m, float64, same frame as the
-    points): set for the integrators whose ``needs`` read it, None for the others."""
+    input uncertainty [N] (K / S for alpha, 1 - max p for probabilities, 0 for labels), the ``payload``
+    as given ([N] labels, or [N, K] alpha or probabilities, float32 or float64), the class count K, the
+    payload rows' sums [N] (float64, None for labels) and ``sensor_origin`` [3] (m, float64, same frame as the points): set
+    for the integrators whose ``needs`` read it, None for the others. ``probabilities`` [N, K] and
+    ``labels`` [N] are derived when first asked for (the release mode asks for the rows it keeps only,
+    ``probability_rows``, and never for labels)."""
 
     points: np.ndarray
-    probabilities: np.ndarray
     uncertainty: np.ndarray
     payload: np.ndarray
+    num_classes: int
+    row_sums: np.ndarray | None = None
     sensor_origin: np.ndarray | None = None
+
+    @functools.cached_property
+    def probabilities(self) -> np.ndarray:
+        """[N, K] float64 class probabilities: alpha / S, the probabilities normalised, or one-hot labels."""
+        return self.probability_rows(slice(None))
+
+    def probability_rows(self, rows) -> np.ndarray:
+        """``probabilities[rows]`` (an index array, a mask or a slice), computed for those rows only."""
+        if "probabilities" in self.__dict__:
+            return self.probabilities[rows]
+        if self.row_sums is None:
+            return np.eye(self.num_classes)[self.payload[rows]]
+        return np.asarray(self.payload[rows], dtype=np.float64) / self.row_sums[rows][:, None]
 
     @functools.cached_property
     def labels(self) -> np.ndarray:
@@ -253,7 +268,7 @@ class PointKernelIntegrator:
         points, unc = scan.points[keep], scan.uncertainty[keep]
         stats.kept_points = len(points)
         onehot = c.media is Media.ONEHOT
-        media = scan.labels[keep] if onehot else scan.probabilities[keep]
+        media = scan.labels[keep] if onehot else scan.probability_rows(keep)
         mode, fusion, strategy = self._scatter_form()
         if fusion == sc.FUSION_DEMPSTER:
             media = dirichlet_beliefs(media, unc)
@@ -307,7 +322,7 @@ class ConvBkiIntegrator:
         stats = IntegrationStats(input_points=len(scan.points), kept_points=len(scan.points))
         if len(scan.points) == 0:
             return stats
-        k = scan.probabilities.shape[1]
+        k = scan.num_classes
         evidence = np.eye(k)[scan.labels] if c.media is Media.ONEHOT else scan.probabilities
         voxels, summed = convbki.voxelise(scan.points, np.column_stack([evidence, scan.uncertainty, np.ones(len(evidence))]), c.resolution_m)
         centers = (voxels + 0.5) * c.resolution_m
@@ -547,8 +562,9 @@ class ReleaseCompatIntegrator:
         models = release_compat.release_blocks(member_blocks, device=device)
         fusion = scatter_fusion(c)
         sorted_points = pair_points[models.pair_order]
-        weights = take_rows(scan.probabilities[keep], sorted_points)
-        unc = scan.uncertainty[keep][sorted_points]
+        sorted_rows = keep[sorted_points]
+        weights = scan.probability_rows(sorted_rows)
+        unc = scan.uncertainty[sorted_rows]
         if fusion == sc.FUSION_DEMPSTER:
             weights = dirichlet_beliefs(weights, unc)
         d = device
@@ -575,7 +591,7 @@ class ReleaseCompatIntegrator:
         fusion = scatter_fusion(c)
         with self._scratch.taken(device) as scratch:
             inputs = release_device.release_inputs_on_device(
-                scan.points[keep], scan.probabilities[keep], scan.uncertainty[keep], ds_resolution_m=c.sbki.ds_resolution_m,
+                scan.points[keep], scan.probability_rows(keep), scan.uncertainty[keep], ds_resolution_m=c.sbki.ds_resolution_m,
                 block_size=self.block_size, cap=c.release_block_cap, dempster=fusion == sc.FUSION_DEMPSTER, device=device, scratch=scratch)
         if inputs is None:
             scratch.release()

@@ -209,8 +209,35 @@ def _validate_point(point, what: str) -> np.ndarray:
     return _validate_points(values.reshape(1, 3), what)[0]
 
 
+def row_sums(values: np.ndarray) -> np.ndarray:
+    """[N] float64 sums of the rows of values [N, K] (float32 or float64), bit for bit numpy's
+    ``values.astype(np.float64).sum(axis=1)``: its pairwise order (eight running sums over the columns, then
+    the rest) computed column by column, which costs a fraction of numpy's reduction over short rows and the
+    float64 copy it needs (docs/performance.md; tests/test_mapping.py holds the two equal)."""
+    k = values.shape[1]
+    if k > 128:  # numpy splits longer rows in halves first
+        return np.asarray(values, dtype=np.float64).sum(axis=1)
+    column = lambda j: values[:, j].astype(np.float64)  # noqa: E731
+    if k < 8:
+        total = np.zeros(len(values))
+        for j in range(k):
+            total += column(j)
+        return total
+    partial = [column(j) for j in range(8)]
+    j = 8
+    while j + 8 <= k:
+        for lane in range(8):
+            partial[lane] += column(j + lane)
+        j += 8
+    total = ((partial[0] + partial[1]) + (partial[2] + partial[3])) + ((partial[4] + partial[5]) + (partial[6] + partial[7]))
+    for rest in range(j, k):
+        total += column(rest)
+    return 0.0 + total  # numpy adds the rows' sum to a zero: -0.0 becomes 0.0
+
+
 def prepare_payload(points, payload, payload_type: PayloadType | str, num_classes: int) -> ScanPayload:
-    """Validate a scan and derive probabilities, uncertainty and labels from its payload."""
+    """Validate a scan and derive its uncertainty from its payload (its probabilities and labels when an
+    integrator asks for them)."""
     payload_type = PayloadType(payload_type)
     points = _validate_points(points)
     n, k = len(points), num_classes
@@ -224,34 +251,31 @@ def prepare_payload(points, payload, payload_type: PayloadType | str, num_classe
         labels = payload.astype(np.int64)
         if n and (labels.min() < 0 or labels.max() >= k):
             raise ValueError(f"payload: label values must lie in [0, {k - 1}] for {k} classes, got {labels.min()}..{labels.max()}")
-        probabilities = np.zeros((n, k))
-        probabilities[np.arange(n), labels] = 1.0
-        return ScanPayload(points, probabilities, np.zeros(n), labels)
+        return ScanPayload(points, np.zeros(n), labels, k)
 
     if payload.ndim != 2 or payload.shape[0] != n:
         raise ValueError(f"payload: {payload_type.value} must have shape [{n}, {k}], got {list(payload.shape)}")
     if payload.shape[1] != k:
         raise ValueError(f"payload: {payload.shape[1]} class columns, but the map has {k} classes")
-    payload = np.asarray(payload, dtype=np.float64)  # read only: no copy of a float64 payload
+    if payload.dtype not in (np.float32, np.float64):  # float32 stays as it is: each use converts the rows it reads
+        payload = payload.astype(np.float64)
     if not np.isfinite(payload).all():
         raise ValueError(f"payload: {int((~np.isfinite(payload)).sum())} NaN/inf values in the {payload_type.value} array")
     if payload_type is PayloadType.ALPHA:
         if n and payload.min() < 1.0:
             row = int(np.argmin(payload.min(axis=1)))
             raise ValueError(f"payload: negative evidence: alpha must be >= 1 (alpha = evidence + 1), row {row} has {payload[row].min()}")
-        total = payload.sum(axis=1)
-        probabilities = payload / total[:, None]
-        uncertainty = k / total
-    else:
-        if n and payload.min() < 0:
-            raise ValueError(f"payload: probabilities must be >= 0, got {payload.min()}")
-        sums = payload.sum(axis=1)
-        if n and np.abs(sums - 1.0).max() > 1e-3:
-            row = int(np.argmax(np.abs(sums - 1.0)))
-            raise ValueError(f"payload: probability rows must sum to 1, row {row} sums to {sums[row]}")
-        probabilities = payload / sums[:, None] if n else payload
-        uncertainty = 1.0 - probabilities.max(axis=1) if n else np.zeros(0)
-    return ScanPayload(points, probabilities, uncertainty, payload)
+        total = row_sums(payload)
+        return ScanPayload(points, k / total, payload, k, total)
+    if n and payload.min() < 0:
+        raise ValueError(f"payload: probabilities must be >= 0, got {payload.min()}")
+    sums = row_sums(payload)
+    if n and np.abs(sums - 1.0).max() > 1e-3:
+        row = int(np.argmax(np.abs(sums - 1.0)))
+        raise ValueError(f"payload: probability rows must sum to 1, row {row} sums to {sums[row]}")
+    scan = ScanPayload(points, np.zeros(0), payload, k, sums)
+    scan.uncertainty = 1.0 - scan.probabilities.max(axis=1) if n else np.zeros(0)
+    return scan
 
 
 class Mapper:
