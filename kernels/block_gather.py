@@ -222,33 +222,75 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
     return block_gather_kernel(SbkiBlocks, gather_sbki_block, cells_per_block=n, prefetch=prefetch)
 
 
+# A block and its 6 face neighbours: the blocks of S-BKI's extended block (``methods.sbki_compat``).
+EXTENDED_BLOCK_COUNT = 7
+
+
 @wp.kernel
-def extended_block_tables(blocks: wp.array(dtype=wp.vec3i), grid: wp.array3d(dtype=int), offsets: wp.array(dtype=wp.vec3i),
-                          marked: wp.array3d(dtype=wp.uint8), marked_columns: wp.array2d(dtype=wp.uint8), tests: wp.array(dtype=wp.vec3i),
+def extended_block_tables(keys: wp.array(dtype=wp.int64), shifts: wp.array(dtype=wp.int64), last: wp.int64, tests: wp.array(dtype=wp.int64),
                           sources: wp.array2d(dtype=int), test_count: wp.array(dtype=int)):
-    """The test blocks (every block within ``offsets`` of one of ``blocks``) and their sources, on a dense
-    grid: blocks[b] are grid coordinates with grid[blocks[b]] == b (-1 elsewhere, ``marked`` and
-    ``marked_columns`` (per x, y) zero, all at least one cell wider than the blocks on every side). Lists
-    the test blocks in grid order (x, then y, then z: packed-key order) in tests[:test_count[0]], with
-    sources[t, f] = grid[tests[t] + offsets[f]]. One thread (launch with dim=1), in place of numpy's
-    marking and argwhere; only the z columns holding a test block are walked, not the whole grid."""
-    for b in range(blocks.shape[0]):
-        for f in range(offsets.shape[0]):
-            c = blocks[b] + offsets[f]
-            marked[c[0], c[1], c[2]] = wp.uint8(1)
-            marked_columns[c[0], c[1]] = wp.uint8(1)
+    """The test blocks t (those with a block at t + shifts[f] for some f) in key order in
+    tests[:test_count[0]], and sources[t, f] = the index of the block at t + shifts[f] (-1: none), from
+    the distinct blocks' keys ascending, packed in a box one block wider than them on every side (so that
+    a neighbour's key is the key plus a constant shift), followed by one key above ``last`` + every shift
+    (``last``: the largest key a test block can have). For each f, keys[b] - shifts[f] ascends too: the
+    test blocks are the merge of those runs without repeats, and the runs whose next key is the test
+    block name its sources. One thread (launch with dim=1), no branch but the loop's end, and no grid
+    over the blocks' bounding box to clear, fill and walk."""
+    cursor = wp.vector(length=wp.static(EXTENDED_BLOCK_COUNT), dtype=int)
     count = int(0)
-    for x in range(grid.shape[0]):
-        for y in range(grid.shape[1]):
-            if marked_columns[x, y] != wp.uint8(0):
-                for z in range(grid.shape[2]):
-                    if marked[x, y, z] != wp.uint8(0):
-                        tests[count] = wp.vec3i(x, y, z)
-                        for f in range(offsets.shape[0]):
-                            c = wp.vec3i(x, y, z) + offsets[f]
-                            sources[count, f] = grid[c[0], c[1], c[2]]
-                        count += 1
+    while True:
+        t = last + wp.int64(1)
+        for f in range(wp.static(EXTENDED_BLOCK_COUNT)):
+            t = wp.min(t, keys[cursor[f]] - shifts[f])
+        if t > last:
+            break
+        tests[count] = t
+        for f in range(wp.static(EXTENDED_BLOCK_COUNT)):
+            source = wp.where(keys[cursor[f]] - shifts[f] == t, cursor[f], -1)
+            sources[count, f] = source
+            cursor[f] = cursor[f] + wp.where(source >= 0, 1, 0)
+        count += 1
     test_count[0] = count
+
+
+@wp.func
+def _key_less(a: wp.vec3l, b: wp.vec3l) -> bool:
+    """a before b in key order: x, then y, then z."""
+    if a[0] != b[0]:
+        return a[0] < b[0]
+    if a[1] != b[1]:
+        return a[1] < b[1]
+    return a[2] < b[2]
+
+
+@wp.kernel
+def extended_block_tables_wide(blocks: wp.array(dtype=wp.vec3l), offsets: wp.array(dtype=wp.vec3l), cursor: wp.array(dtype=int),
+                               tests: wp.array(dtype=wp.vec3l), sources: wp.array2d(dtype=int), test_count: wp.array(dtype=int)):
+    """``extended_block_tables`` for blocks whose box is too large to pack (blocks spread over the whole
+    key range, or beyond it): the same merge over the blocks themselves, distinct and in key order,
+    compared axis by axis; ``cursor`` holds a zero per offset."""
+    for _ in range(blocks.shape[0] * offsets.shape[0]):  # a test block per round; at most every (block, offset)
+        t = wp.vec3l()
+        found = int(0)
+        for f in range(offsets.shape[0]):
+            if cursor[f] < blocks.shape[0]:
+                candidate = blocks[cursor[f]] - offsets[f]
+                if found == 0 or _key_less(candidate, t):
+                    t = candidate
+                    found = 1
+        if found == 0:
+            break
+        count = test_count[0]
+        tests[count] = t
+        for f in range(offsets.shape[0]):
+            source = int(-1)
+            if cursor[f] < blocks.shape[0]:
+                if blocks[cursor[f]] - offsets[f] == t:
+                    source = cursor[f]
+                    cursor[f] = source + 1
+            sources[count, f] = source
+        test_count[0] = count + 1
 
 
 # ------------------------------------------------------------------ the scan's tables built in parallel

@@ -538,15 +538,16 @@ def test_group_by_block_matches_the_unique_form_near_and_across_the_key_range():
         np.testing.assert_array_equal(start, np.r_[0, np.cumsum(np.bincount(inverse.reshape(-1), minlength=len(want_keys)))])
 
 
-def test_gather_tables_from_the_dense_grid_and_without_it(monkeypatch):
+def test_gather_tables_hold_every_test_block_and_its_sources():
+    # Blocks spread over the whole key range (no dense grid could hold them) and clustered ones.
     rng = np.random.default_rng(5)
-    members = rng.integers(-9, 9, (2000, 3))
-    dense = sb.gather_tables(members)
-    np.testing.assert_array_equal(dense.test_blocks, sb.test_blocks(members))
-    monkeypatch.setattr(sb, "MAX_DENSE_LOOKUP_CELLS", 0)
-    searched = sb.gather_tables(members)
-    for field in ("blocks", "pair_order", "point_start", "test_blocks", "sources"):
-        np.testing.assert_array_equal(getattr(dense, field), getattr(searched, field))
+    for members in (rng.integers(-9, 9, (2000, 3)), rng.integers(-(1 << 19), 1 << 19, (300, 3))):
+        tables = sb.gather_tables(members)
+        np.testing.assert_array_equal(tables.test_blocks, sb.test_blocks(members))
+        index_of = {tuple(b): i for i, b in enumerate(tables.blocks.tolist())}
+        want = [[index_of.get(tuple(t + o), -1) for o in sb.EXTENDED_BLOCK_OFFSETS.tolist()] for t in tables.test_blocks]
+        np.testing.assert_array_equal(tables.sources, want)
+        assert tables.sources.dtype == np.int32
 
 
 @pytest.mark.parametrize("offset", [0.0, -7.3, 2.5e4])
@@ -611,34 +612,63 @@ def test_membership_pair_kernels_match_their_twin(offset):
     assert memberships[2] and memberships[4] and memberships[8]  # faces, edges and corners all occur
 
 
-@pytest.mark.parametrize("count", [0, 1, 2, 500])
-def test_extended_block_table_kernel_matches_its_twin(count):
-    # Random blocks in a grid two cells wider than them (as wide as the sources' lookups reach; test
-    # blocks on its inner border), neighbours that share test blocks, one block, and none.
+@pytest.mark.parametrize("case", ["none", "one", "two", "random", "neighbours", "key range", "far"])
+def test_extended_block_table_kernels_match_their_twins(case):
+    # The merge of the shifted runs against the twins' block-by-block lookups: no block, one, two,
+    # random blocks, a dense cluster whose test blocks are shared by many blocks, blocks at the key
+    # range's far corners (their box packs in 62 bits at block depth 2) and blocks beyond it, whose box
+    # does not pack (the host takes the wide kernel); no grid over the box in either.
     import warp as wp
 
     from evsemmap_warp.kernels import block_gather
-    from evsemmap_warp.reference.block_gather import extended_block_tables
+    from evsemmap_warp.reference.block_gather import extended_block_tables, extended_block_tables_wide
 
-    rng = np.random.default_rng(count)
-    shape = (14, 12, 16)
-    cells = rng.choice(np.prod(np.subtract(shape, 4)), size=count, replace=False)
-    blocks = np.stack(np.unravel_index(cells, np.subtract(shape, 4)), axis=1) + 2
-    grid = np.full(shape, -1, np.int32)
-    grid[tuple(blocks.T)] = np.arange(count)
+    assert block_gather.EXTENDED_BLOCK_COUNT == len(sb.EXTENDED_BLOCK_OFFSETS)
+    rng = np.random.default_rng(len(case))
+    edge = 1 << 19
+    blocks = {
+        "none": np.zeros((0, 3)), "one": np.array([[3, -2, 7]]), "two": np.array([[0, 0, 0], [0, 0, 2]]),
+        "random": rng.integers(-40, 40, (500, 3)), "neighbours": rng.integers(-3, 3, (300, 3)),
+        "key range": np.array([[-edge, -edge, -edge], [edge - 1, 5, -edge], [edge - 1, edge - 1, edge - 1]]),
+        "far": np.array([[-edge, -edge, -edge], [1 << 40, -(1 << 40), 3]]),
+    }[case].astype(np.int64)
+    blocks = np.unique(blocks, axis=0).reshape(-1, 3)  # distinct, in key order
     offsets = sb.EXTENDED_BLOCK_OFFSETS
-    tests = wp.empty(max(1, count * len(offsets)), dtype=wp.vec3i, device="cpu")
-    sources = wp.empty((max(1, count * len(offsets)), len(offsets)), dtype=int, device="cpu")
+    most = max(1, len(blocks) * len(offsets))
+    want_tests, want_sources = extended_block_tables_wide(blocks, offsets)
+    assert len(blocks) == 0 or len(want_tests) > len(blocks)
+
+    tests = wp.empty(most, dtype=wp.vec3l, device="cpu")
+    sources = wp.empty((most, len(offsets)), dtype=int, device="cpu")
     n = wp.zeros(1, dtype=int, device="cpu")
-    wp.launch(block_gather.extended_block_tables, dim=1, device="cpu", inputs=[
-        wp.array(blocks.astype(np.int32).reshape(-1, 3), dtype=wp.vec3i, device="cpu"), wp.array(grid, dtype=int, device="cpu"),
-        wp.array(offsets.astype(np.int32), dtype=wp.vec3i, device="cpu"), wp.zeros(shape, dtype=wp.uint8, device="cpu"),
-        wp.zeros(shape[:2], dtype=wp.uint8, device="cpu"), tests, sources, n])
-    want_tests, want_sources = extended_block_tables(blocks, grid, offsets)
+    wp.launch(block_gather.extended_block_tables_wide, dim=1, device="cpu", inputs=[
+        wp.array(blocks, dtype=wp.vec3l, device="cpu"), wp.array(offsets, dtype=wp.vec3l, device="cpu"),
+        wp.zeros(len(offsets), dtype=int, device="cpu"), tests, sources, n])
     got = int(n.numpy()[0])
-    np.testing.assert_array_equal(tests.numpy()[:got], want_tests)
+    np.testing.assert_array_equal(tests.numpy()[:got].reshape(-1, 3), want_tests)
     np.testing.assert_array_equal(sources.numpy()[:got], want_sources)
-    assert got == len(want_tests) and (count == 0 or got > count)
+
+    if case != "far" and len(blocks):  # packed in the box widened by one
+        lo = blocks.min(axis=0) - 1
+        span = blocks.max(axis=0) + 2 - lo
+        keys = ((blocks[:, 0] - lo[0]) * span[1] + blocks[:, 1] - lo[1]) * span[2] + blocks[:, 2] - lo[2]
+        shifts = (offsets[:, 0] * span[1] + offsets[:, 1]) * span[2] + offsets[:, 2]
+        last = int(keys[-1] + np.abs(shifts).max())
+        packed = wp.empty(most, dtype=wp.int64, device="cpu")
+        n.zero_()
+        wp.launch(block_gather.extended_block_tables, dim=1, device="cpu", inputs=[
+            wp.array(np.append(keys, last + 2 * np.abs(shifts).max() + 1), dtype=wp.int64, device="cpu"),
+            wp.array(shifts, dtype=wp.int64, device="cpu"), last, packed, sources, n])
+        got = int(n.numpy()[0])
+        want_keys, want_packed_sources = extended_block_tables(keys, shifts)
+        np.testing.assert_array_equal(packed.numpy()[:got], want_keys)
+        np.testing.assert_array_equal(sources.numpy()[:got], want_packed_sources)
+        np.testing.assert_array_equal(want_packed_sources, want_sources)
+
+    host_tests, host_sources = sb._extended_block_tables(blocks)  # the host picks its kernel by the box
+    np.testing.assert_array_equal(host_tests, want_tests)
+    np.testing.assert_array_equal(host_sources, want_sources)
+    assert host_sources.dtype == np.int32
 
 
 def test_block_memberships_match_the_27_box_tests():

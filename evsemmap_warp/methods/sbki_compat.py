@@ -306,34 +306,47 @@ class GatherTables:
 
 def gather_tables(owner_blocks: np.ndarray) -> GatherTables:
     """The ``GatherTables`` of one scan from each point's owner block [N, 3]: the blocks holding points, the
-    points sorted by block, the test blocks and their sources (dense grid in a Warp kernel where the
-    blocks fit one, else sorted keys)."""
-    blocks, keys, order, point_start = group_by_block(owner_blocks)
-    grid, lo = dense_block_grid(blocks)
-    if grid is not None:
-        tests, sources = _extended_block_tables(blocks - lo, grid)
-        tests = tests + lo
-    else:
-        tests = unique_rows((blocks[:, None, :] + EXTENDED_BLOCK_OFFSETS[None]).reshape(-1, 3))
-        index_of = block_index(blocks, keys, grid, lo)
-        sources = np.stack([index_of(tests + f) for f in EXTENDED_BLOCK_OFFSETS], axis=1) if len(tests) else np.zeros((0, 7), np.int64)
-    return GatherTables(blocks, order, point_start, tests, sources.astype(np.int32))
+    points sorted by block, the test blocks and their sources (``kernels.block_gather.extended_block_tables``)."""
+    blocks, _, order, point_start = group_by_block(owner_blocks)
+    tests, sources = _extended_block_tables(blocks)
+    return GatherTables(blocks, order, point_start, tests, sources)
 
 
-def _extended_block_tables(grid_blocks: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``kernels.block_gather.extended_block_tables`` on the host: test blocks [T, 3] (grid coordinates,
-    key order) and their sources [T, 7]."""
-    most = len(grid_blocks) * len(EXTENDED_BLOCK_OFFSETS)
-    tests = wp.empty(most, dtype=wp.vec3i, device="cpu")
-    sources = wp.empty((most, len(EXTENDED_BLOCK_OFFSETS)), dtype=int, device="cpu")
+def _extended_block_tables(blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``kernels.block_gather.extended_block_tables`` on the host: test blocks [T, 3] (int64, key order) and
+    their sources [T, 7] (int32) of distinct blocks [B, 3] in key order; the blocks are packed in their
+    box widened by one, or, where that box does not pack in 62 bits, merged axis by axis
+    (``extended_block_tables_wide``)."""
+    f = len(EXTENDED_BLOCK_OFFSETS)
+    most = len(blocks) * f
+    if most == 0:
+        return np.zeros((0, 3), np.int64), np.zeros((0, f), np.int32)
+    blocks = np.ascontiguousarray(blocks, dtype=np.int64)
+    lo, hi = column_bounds(blocks)
+    lo = lo - 1
+    span = hi + 2 - lo
+    sources = wp.empty((most, f), dtype=int, device="cpu")
     count = wp.zeros(1, dtype=int, device="cpu")
-    wp.launch(block_gather.extended_block_tables, dim=1, device="cpu", inputs=[
-        wp.array(np.ascontiguousarray(grid_blocks, dtype=np.int32), dtype=wp.vec3i, device="cpu", copy=False),
-        wp.array(grid, dtype=int, device="cpu", copy=False),
-        wp.array(EXTENDED_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device="cpu", copy=False),
-        wp.zeros(grid.shape, dtype=wp.uint8, device="cpu"), wp.zeros(grid.shape[:2], dtype=wp.uint8, device="cpu"), tests, sources, count])
+    if float(np.prod(span.astype(np.float64))) < 2.0**62:
+        relative = blocks - lo
+        keys = (relative[:, 0] * span[1] + relative[:, 1]) * span[2] + relative[:, 2]
+        shifts = (EXTENDED_BLOCK_OFFSETS[:, 0] * span[1] + EXTENDED_BLOCK_OFFSETS[:, 1]) * span[2] + EXTENDED_BLOCK_OFFSETS[:, 2]
+        widest = int(np.abs(shifts).max())
+        last = int(keys[-1]) + widest
+        tests = wp.empty(most, dtype=wp.int64, device="cpu")
+        wp.launch(block_gather.extended_block_tables, dim=1, device="cpu", inputs=[
+            wp.array(np.append(keys, last + 2 * widest + 1), dtype=wp.int64, device="cpu", copy=False),
+            wp.array(shifts, dtype=wp.int64, device="cpu", copy=False), last, tests, sources, count])
+        n = int(count.numpy()[0])
+        packed = tests.numpy()[:n]
+        z, yz = packed % span[2], packed // span[2]
+        return np.stack([yz // span[1], yz % span[1], z], axis=1) + lo, sources.numpy()[:n]
+    tests = wp.empty(most, dtype=wp.vec3l, device="cpu")
+    wp.launch(block_gather.extended_block_tables_wide, dim=1, device="cpu", inputs=[
+        wp.array(blocks, dtype=wp.vec3l, device="cpu", copy=False), wp.array(EXTENDED_BLOCK_OFFSETS, dtype=wp.vec3l, device="cpu", copy=False),
+        wp.zeros(f, dtype=int, device="cpu"), tests, sources, count])
     n = int(count.numpy()[0])
-    return tests.numpy()[:n].astype(np.int64), sources.numpy()[:n]
+    return tests.numpy()[:n].reshape(-1, 3), sources.numpy()[:n]
 
 
 def group_by_block(member_blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -358,8 +371,9 @@ def group_by_block(member_blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     return blocks, pack_voxel_keys(blocks), order, np.r_[starts, len(order)]
 
 
-# Above this many cells the block lookup falls back from a dense grid over the scan's blocks to a
-# binary search (the grid is int32: 64 MB at this size).
+# Above this many cells the release's block models look their blocks up by a binary search instead of a
+# dense grid over the scan's blocks, and the device paths take the host path (the grid is int32: 64 MB at
+# this size).
 MAX_DENSE_LOOKUP_CELLS = 1 << 24
 
 
@@ -376,21 +390,3 @@ def dense_block_grid(blocks: np.ndarray):
     grid = np.full(tuple(shape), -1, np.int32)
     grid[tuple((blocks - lo).T)] = np.arange(len(blocks), dtype=np.int32)
     return grid, lo
-
-
-def block_index(blocks: np.ndarray, keys: np.ndarray, grid=None, lo=None):
-    """index_of(int3 [M, 3]) -> position in ``blocks`` (packed ``keys``, ascending) or -1, for indices
-    within 3 of the blocks' bounding box: a dense grid when small enough, else a binary search."""
-    if grid is None and lo is None and len(blocks):
-        grid, lo = dense_block_grid(blocks)
-    if grid is not None:
-        return lambda index: grid[tuple((index - lo).T)].astype(np.int64)
-
-    def search(index):
-        if len(keys) == 0:
-            return np.full(len(index), -1, np.int64)
-        packed = pack_voxel_keys(index)
-        pos = np.minimum(np.searchsorted(keys, packed), len(keys) - 1)
-        return np.where(keys[pos] == packed, pos, -1)
-
-    return search

@@ -239,9 +239,9 @@ def sort_by_block(blocks: wp.array, lo: np.ndarray, hi: np.ndarray, scratch: Dev
 
 
 def group_blocks_on_device(member_blocks: wp.array, scratch: DeviceScratch) -> BlockGroups | None:
-    """``BlockGroups`` of pairs' blocks [P, 3] (int64) on their device; None where the host path would not
-    use a dense grid (blocks spread wider than ``sbki_compat.MAX_DENSE_LOOKUP_CELLS``, or no pairs): the
-    caller takes the host path then."""
+    """``BlockGroups`` of pairs' blocks [P, 3] (int64) on their device; None where their dense grid would
+    exceed ``sbki_compat.MAX_DENSE_LOOKUP_CELLS``, or there are no pairs: the caller takes the host path
+    then."""
     device = member_blocks.device
     if member_blocks.shape[0] == 0:
         return None
@@ -282,8 +282,8 @@ class DeviceGatherTables:
 def gather_tables_on_device(points: wp.array, labels: wp.array, block_size: np.float32, length_m: float,
                             scratch: DeviceScratch | None = None) -> DeviceGatherTables | None:
     """``sbki_compat.block_memberships`` and ``sbki_compat.gather_tables`` of a training set on its device,
-    and the points and labels sorted as the gather kernel reads them; None where the host path would not
-    use a dense grid (``group_blocks_on_device``). ``scratch``: where the arrays are kept (None: new ones)."""
+    and the points and labels sorted as the gather kernel reads them; None where the blocks are too spread
+    for its dense grid (``group_blocks_on_device``). ``scratch``: where the arrays are kept (None: new ones)."""
     device = points.device
     scratch = scratch or DeviceScratch(device)
     point_ids, member_blocks = block_memberships_on_device(points, block_size, scratch)

@@ -32,14 +32,25 @@ def gather_sbki_blocks(test_blocks, sources, point_start, points, labels, *, len
     return out
 
 
-def extended_block_tables(blocks: np.ndarray, grid: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(test blocks [T, 3] in grid order, sources [T, F]) for grid coordinates ``blocks`` (see the kernel)."""
+def extended_block_tables(keys: np.ndarray, shifts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(test block keys [T] ascending, sources [T, F]) of distinct block ``keys`` [B] packed so that the
+    block at offset f of key k has key k + shifts[f]: every t with a block at t + shifts[f] for some f,
+    and the index of that block (-1: none), looked up block by block."""
+    keys = np.asarray(keys, np.int64)
+    index_of = {int(k): b for b, k in enumerate(keys)}
+    tests = np.unique((keys[:, None] - np.asarray(shifts, np.int64)[None]).reshape(-1))
+    sources = np.array([[index_of.get(int(t + s), -1) for s in shifts] for t in tests], np.int64).reshape(-1, len(shifts))
+    return tests, sources
+
+
+def extended_block_tables_wide(blocks: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(test blocks [T, 3] in key order, sources [T, F]) of distinct ``blocks`` [B, 3]: every t with a block
+    at t + offsets[f] for some f, and the index of that block (-1: none), looked up block by block."""
     blocks = np.asarray(blocks, np.int64).reshape(-1, 3)
-    marked = np.zeros(grid.shape, bool)
-    for offset in offsets:
-        marked[tuple((blocks + offset).T)] = True
-    tests = np.argwhere(marked)
-    sources = np.stack([grid[tuple((tests + offset).T)] for offset in offsets], axis=1) if len(tests) else np.zeros((0, len(offsets)), np.int64)
+    offsets = np.asarray(offsets, np.int64).reshape(-1, 3)
+    index_of = {tuple(block): b for b, block in enumerate(blocks.tolist())}
+    tests = np.unique((blocks[:, None, :] - offsets[None]).reshape(-1, 3), axis=0)
+    sources = np.array([[index_of.get(tuple(t + o), -1) for o in offsets.tolist()] for t in tests], np.int64).reshape(-1, len(offsets))
     return tests, sources
 
 
