@@ -44,10 +44,10 @@ class ScanPayload:
     """A validated scan: points [N, 3] float64 (m, relative to the map origin when an integrator gets them),
     input uncertainty [N] (K / S for alpha, 1 - max p for probabilities, 0 for labels), the ``payload``
     as given ([N] labels, or [N, K] alpha or probabilities, float32 or float64), the class count K, the
-    payload rows' sums [N] (float64, None for labels) and ``sensor_origin`` [3] (m, float64, same frame as the points): set
-    for the integrators whose ``needs`` read it, None for the others. ``probabilities`` [N, K] and
-    ``labels`` [N] are derived when first asked for (the release mode asks for the rows it keeps only,
-    ``probability_rows``, and never for labels)."""
+    payload rows' sums [N] (float64, None for labels) and ``sensor_origin`` [3] (m, float64, same frame
+    as the points): set for the integrators whose ``needs`` read it, None for the others.
+    ``probabilities`` [N, K] and ``labels`` [N] are derived when first asked for (the release mode asks
+    for the probabilities of the rows it keeps only, ``probability_rows``, and never for labels)."""
 
     points: np.ndarray
     uncertainty: np.ndarray
