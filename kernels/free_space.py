@@ -100,3 +100,17 @@ def compact_rays(keep: wp.array(dtype=int), slot: wp.array(dtype=int), hits: wp.
 def longest_ray(ray_length: wp.array(dtype=wp.float32), longest: wp.array(dtype=wp.float32)):
     """longest[0] (starting at 0) = the largest ray length."""
     wp.atomic_max(longest, 0, ray_length[wp.tid()])
+
+
+@wp.kernel
+def join_training_set(hits: wp.array(dtype=wp.vec3), hit_labels: wp.array(dtype=wp.int64), free_points: wp.array(dtype=wp.vec3),
+                      free_label: wp.int64, points: wp.array(dtype=wp.vec3), labels: wp.array(dtype=wp.int64)):
+    """The training set, row i: the hits, then the free points labelled ``free_label`` (one thread per row)."""
+    i = wp.tid()
+    h = hits.shape[0]
+    if i < h:
+        points[i] = hits[i]
+        labels[i] = hit_labels[i]
+    else:
+        points[i] = free_points[i - h]
+        labels[i] = free_label

@@ -741,3 +741,14 @@ def test_the_benchmark_workload_maps_as_the_original_cpp_does():
         kept += mapper.integrate(scan.points, scan.payload, payload_type="alpha", sensor_origin=scan.sensor_origin).kept_points
     want = cpp["evsemmap"]["results"]["ebs_t1"]
     assert (kept, mapper.voxel_count, mapper.state_counts()["OCCUPIED"]) == (want["after_ds"], want["cells"], want["occupied"])
+
+
+def test_boxes_whose_cell_count_passes_int64_are_refused_not_wrapped():
+    # 9e6 leaves per axis: 7.3e20 cells, which numpy's int64 product wrapped to a count small enough to
+    # pass; a leaf grid that large is refused (PCL leaves the cloud unchanged), and so is a dense lookup
+    # grid over blocks spread over the whole key range.
+    with pytest.warns(UserWarning, match="too small"):
+        assert sb.leaf_grid(np.full(3, -10.0, np.float32), np.full(3, 9e5, np.float32), 0.1) is None
+    spread = np.array([[-(1 << 20), -(1 << 20), -(1 << 20)], [(1 << 20) - 1, (1 << 20) - 1, (1 << 20) - 1]])
+    grid, lo = sb.dense_block_grid(spread)
+    assert grid is None and lo.tolist() == [-(1 << 20) - 3] * 3

@@ -106,6 +106,82 @@ def test_too_many_free_samples_are_refused_as_on_the_host(device):
             build(far, np.array([1]), origin, ds_resolution_m=0.1, free_resolution_m=0.5, max_range_m=None)
 
 
+def test_the_boxes_known_on_the_host_hold_what_they_stand_in_for():
+    # training_box and member_block_box stand in for the bounds the device path would otherwise read back
+    # (the free samples' leaf grid, the longest ray, the memberships' blocks); they must hold every training
+    # point and block: an origin outside the cloud, points on leaf and block faces, a cloud far out, a range cut.
+    rng = np.random.default_rng(21)
+    block_size = sb.block_size_m(0.2, 2)
+    for origin, spread, max_range in (([0.3, -0.2, 1.1], 6.0, None), ([40.0, 3.0, -2.0], 3.0, None), ([80_000.0, -40_000.0, 12.0], 15.0, None),
+                                      ([1.0, 1.0, 0.0], 20.0, 5.0)):
+        origin = np.array(origin, np.float32)
+        points, labels = _cloud(rng, 4000, origin + np.float32(spread), spread=spread)
+        points[:40] = (np.round(points[:40] / block_size) + np.float32(0.5)) * block_size
+        train, _, _ = sb.training_data(points, labels, origin, ds_resolution_m=0.1, free_resolution_m=0.5, max_range_m=max_range)
+        lo, hi = sbki_device.training_box(points, origin, 0.1)
+        assert (train >= lo).all() and (train <= hi).all()
+        _, blocks = sb.block_memberships(train, block_size)
+        block_lo, block_hi = sbki_device.member_block_box(lo, hi, block_size)
+        assert (blocks >= block_lo).all() and (blocks <= block_hi).all()
+        hits, _ = sb.voxel_grid_downsample(points, labels, 0.1)
+        reach = np.linalg.norm(hits.astype(np.float64) - origin, axis=1).max()
+        corners = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(-1, 3)
+        assert np.linalg.norm(corners - origin.astype(np.float64), axis=1).max() >= reach
+
+
+@pytest.mark.parametrize("case", ["leaf grid", "steps"])
+def test_training_data_where_the_host_box_is_refused_reads_the_bounds(device, case, monkeypatch):
+    # The box the host knows is wider than the free samples' bounds: its leaf grid (a cloud whose own grid is
+    # 1290 leaves a side, just under PCL's limit, widened by a leaf) or its steps (the far hits are cut by
+    # the range, at a fine free resolution) can be refused where the free samples' own are not. The device
+    # path then reads the bounds back, and builds the host path's training set.
+    rng = np.random.default_rng(22)
+    if case == "leaf grid":
+        origin = np.full(3, 64.0, np.float32)
+        points = rng.uniform(0.0, 128.95, (3000, 3)).astype(np.float32)
+        points[:2] = [[0.0, 0.0, 0.0], [128.95, 128.95, 128.95]]
+        points[2:200] = origin + rng.normal(size=(198, 3)).astype(np.float32)
+        free_res, max_range = 0.5, 8.0
+    else:
+        origin = np.array([0.5, -0.5, 0.2], np.float32)
+        points = np.concatenate([origin + rng.uniform(-0.5, 0.5, (20, 3)), 60.0 + rng.uniform(0, 1, (50, 3))]).astype(np.float32)
+        free_res, max_range = 1e-5, 1.0
+    labels = rng.integers(0, 5, len(points))
+    lo, hi = sbki_device.training_box(points, origin, 0.1)
+    assert sb.leaf_grid(*sb.column_bounds(points), 0.1, warn=False) is not None
+    if case == "leaf grid":
+        assert sb.leaf_grid(lo, hi, 0.1, warn=False) is None
+    else:
+        with pytest.raises(ValueError, match="free_resolution_m"):
+            sb.check_free_samples(0.0, float(np.linalg.norm(np.maximum(np.abs(lo - origin), np.abs(hi - origin)))), np.float32(free_res), origin)
+    read = []
+    for name in ("float_bounds_on_device", "_longest_ray"):
+        monkeypatch.setattr(sbki_device, name, lambda *a, _f=getattr(sbki_device, name), _n=name: read.append(_n) or _f(*a))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no grid is refused on either path
+        _assert_same(*_both(points, labels, origin, device, ds_resolution_m=0.1, free_resolution_m=free_res, max_range_m=max_range))
+    assert read == ["float_bounds_on_device" if case == "leaf grid" else "_longest_ray"]
+
+
+def test_the_training_set_join_matches_its_twin(device):
+    from evsemmap_warp.kernels import free_space
+    from evsemmap_warp.reference.free_space import join_training_set
+
+    rng = np.random.default_rng(23)
+    for h, f in ((0, 0), (3, 0), (0, 4), (50, 70)):
+        hits, frees = rng.normal(size=(h, 3)).astype(np.float32), rng.normal(size=(f, 3)).astype(np.float32)
+        hit_labels = rng.integers(0, 9, h)
+        points = wp.empty(h + f, dtype=wp.vec3, device=device)
+        labels = wp.empty(h + f, dtype=wp.int64, device=device)
+        if h + f:
+            wp.launch(free_space.join_training_set, dim=h + f, device=device, inputs=[
+                wp.array(hits, dtype=wp.vec3, device=device), wp.array(hit_labels, dtype=wp.int64, device=device),
+                wp.array(frees, dtype=wp.vec3, device=device), sb.FREE_LABEL, points, labels])
+        want_points, want_labels = join_training_set(hits, hit_labels, frees, sb.FREE_LABEL)
+        np.testing.assert_array_equal(points.numpy().reshape(-1, 3), want_points)
+        np.testing.assert_array_equal(labels.numpy(), want_labels)
+
+
 def test_parallel_centroids_and_majority_labels_match_their_twins(device):
     rng = np.random.default_rng(11)
     n = 4000

@@ -440,7 +440,8 @@ class SbkiCompatIntegrator:
             points, labels = sbki_device.training_set(*sbki_device.training_arrays(
                 scan.points, scan.labels, scan.sensor_origin, ds_resolution_m=c.sbki.ds_resolution_m,
                 free_resolution_m=c.sbki.free_resolution_m, max_range_m=c.sbki.max_range_m, device=device, scratch=scratch), scratch)
-            tables = sbki_device.gather_tables_on_device(points, labels, self.block_size, c.length_m, scratch) if points.shape[0] else None
+            box = sbki_device.training_box(scan.points, scan.sensor_origin, c.sbki.ds_resolution_m) if len(scan.points) else None
+            tables = sbki_device.gather_tables_on_device(points, labels, self.block_size, c.length_m, scratch, box) if points.shape[0] else None
             if tables is None:
                 training_set = points.numpy(), labels.numpy()
         if tables is None:

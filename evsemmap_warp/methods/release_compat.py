@@ -83,9 +83,14 @@ def snapped_block_keys(points: np.ndarray, ds_resolution_m: float, block_size: n
     """The block each point is counted in by the "ds" step: [N, 3] int64 (C++ key fields, offset removed)."""
     points = np.asarray(points, dtype=np.float32)
     lo, hi = column_bounds(points)
-    snapped = snapped_points(points, lo, hi, np.float32(ds_resolution_m))
+    return block_hash(snapped_points(points, lo, hi, np.float32(ds_resolution_m)), block_size)
+
+
+def block_hash(points: np.ndarray, block_size: np.float32) -> np.ndarray:
+    """The block [N, 3] (int64) the C++ hashes each float32 point [N, 3] into: int64(x / size + 524288.5) in
+    double, the offset removed."""
     size = np.float64(np.float32(block_size))
-    return (snapped.astype(np.float64) / size + _BLOCK_KEY_SHIFT).astype(np.int64) - int(_BLOCK_KEY_SHIFT)
+    return (np.asarray(points, np.float32).astype(np.float64) / size + _BLOCK_KEY_SHIFT).astype(np.int64) - int(_BLOCK_KEY_SHIFT)
 
 
 # Above this many cells the blocks' bounding box is too large for a dense count: the keys are ranked by

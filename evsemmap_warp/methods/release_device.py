@@ -4,9 +4,10 @@ device by parallel kernels for maps on a GPU: the same inputs bit for bit as the
 (tests/test_release_device.py holds them together on Warp's CPU backend). The range filter and the cut
 (a quantile of the scan's uncertainty) stay on the host, so that only the points they keep are sent.
 
-What still reads back per scan: the bounds of the snapped keys and of the memberships' blocks, the
-kept and the block counts (small values that size the next arrays), and the blocks, for the key-range
-check and the shards' split. The arrays are a scratch set's (``device_scratch``), kept from scan to scan.
+What still reads back per scan: the kept, the memberships' and the block counts (small values that size
+the next arrays), and the blocks, for the key-range check and the shards' split. The bounds of the
+snapped keys and of the memberships' blocks come from the points' bounds on the host. The arrays are a
+scratch set's (``device_scratch``), kept from scan to scan.
 """
 
 from __future__ import annotations
@@ -34,7 +35,10 @@ def capped_points_on_device(points: wp.array, lo: np.ndarray, hi: np.ndarray, ds
     wp.launch(release.snapped_block_keys, dim=n, device=device, inputs=[
         points, wp.vec3(*[float(v) for v in lo]), wp.vec3(*[float(v) for v in hi]), float(np.float32(ds_resolution_m)),
         float(np.float64(np.float32(block_size))), keys])
-    order, run_rank, starts, _ = sbki_device.sort_by_block(keys, *sbki_device.block_bounds_on_device(keys, scratch), scratch)
+    # A snapped point stays within lo..hi (up to rounding): the keys lie within the hashes of lo and hi widened
+    # by one, a box for the sort known without reading the keys' bounds back.
+    key_lo, key_hi = release_compat.block_hash(np.stack([lo, hi]).astype(np.float32), block_size) + [[-1], [1]]
+    order, run_rank, starts, _ = sbki_device.sort_by_block(keys, key_lo, key_hi, scratch, count=False)
     keep = scratch.empty(n, int)
     wp.launch(release.keep_first_sorted, dim=n, device=device, inputs=[order, run_rank, starts, int(cap), keep])
     slot = inclusive_scan(keep, scratch)
@@ -69,11 +73,12 @@ def release_inputs_on_device(points: np.ndarray, probabilities: np.ndarray, unce
     scratch = scratch or DeviceScratch(device)
     points = np.ascontiguousarray(points, dtype=np.float32)
     on_device = scratch.upload(points, wp.vec3)
-    kept = capped_points_on_device(on_device, *column_bounds(points), ds_resolution_m, block_size, cap, scratch)
+    lo, hi = column_bounds(points)
+    kept = capped_points_on_device(on_device, lo, hi, ds_resolution_m, block_size, cap, scratch)
     kept_points = scratch.empty(kept.shape[0], wp.vec3)
     wp.launch(release.take_points, dim=kept.shape[0], device=device, inputs=[on_device, kept, kept_points])
     point_ids, member_blocks = sbki_device.block_memberships_on_device(kept_points, block_size, scratch)
-    groups = sbki_device.group_blocks_on_device(member_blocks, scratch)
+    groups = sbki_device.group_blocks_on_device(member_blocks, scratch, sbki_device.member_block_box(lo, hi, block_size))
     if groups is None:
         return None
     m = len(release_compat.TARGET_BLOCK_OFFSETS)

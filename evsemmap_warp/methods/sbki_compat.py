@@ -37,13 +37,24 @@ def block_size_m(resolution_m: float, block_depth: int) -> np.float32:
     return np.float32(np.float32(2 ** (block_depth - 1)) * np.float32(resolution_m))
 
 
-def leaf_grid(lo: np.ndarray, hi: np.ndarray, leaf_m: float) -> tuple[np.float32, np.ndarray, np.ndarray] | None:
+def _cells(shape: np.ndarray) -> int:
+    """The cells of a box of ``shape`` (per axis), exactly: numpy's int64 product wraps past 2^63, and a
+    wrapped count of a huge box can look small."""
+    cells = 1
+    for length in shape:
+        cells *= int(length)
+    return cells
+
+
+def leaf_grid(lo: np.ndarray, hi: np.ndarray, leaf_m: float, *, warn: bool = True) -> tuple[np.float32, np.ndarray, np.ndarray] | None:
     """PCL VoxelGrid's leaf grid over a cloud's float32 bounds: 1 / leaf in float32, the lowest leaf per
-    axis and the leaves per axis; None (with a warning) for a grid PCL refuses, which leaves the cloud
-    unchanged."""
+    axis and the leaves per axis; None (with a warning, unless not ``warn``) for a grid PCL refuses, which
+    leaves the cloud unchanged."""
     inverse_leaf = np.float32(1.0) / np.float32(leaf_m)
     extent = ((hi - lo) * inverse_leaf).astype(np.int64) + 1
-    if int(np.prod(extent)) > _INT32_MAX:
+    if _cells(extent) > _INT32_MAX:
+        if not warn:
+            return None
         # PCL refuses such grids and returns the cloud unchanged; so do we, loudly.
         warnings.warn(f"VoxelGrid leaf {leaf_m} m is too small for a {hi - lo} m cloud; returning it unchanged, as PCL does")
         return None
@@ -385,7 +396,7 @@ def dense_block_grid(blocks: np.ndarray):
     lo, hi = column_bounds(blocks)
     lo = lo - 3
     shape = hi + 4 - lo
-    if int(np.prod(shape)) > MAX_DENSE_LOOKUP_CELLS:
+    if _cells(shape) > MAX_DENSE_LOOKUP_CELLS:
         return None, lo
     grid = np.full(tuple(shape), -1, np.int32)
     grid[tuple((blocks - lo).T)] = np.arange(len(blocks), dtype=np.int32)

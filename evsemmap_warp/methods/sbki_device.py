@@ -9,10 +9,12 @@ sort (``wp.utils.radix_sort_pairs``) and give each leaf, hit and point its own t
 orders its points by leaf stably and so keeps PCL's float32 summation order within a leaf.
 
 What still reads back from the device per scan: the leaf counts of both VoxelGrids, the kept hits'
-count, the longest ray, the free samples' count and bounds, the pairs' count and their blocks' bounds,
-the block and test-block counts (small values that size the next arrays; a count is read with the
-offsets it ends, ``offsets_and_total``, and both ends of a bound together), and the test blocks, for the
-key-range check and the shards' split. The arrays are a scratch set's (``device_scratch``), kept from
+count (with a range limit), the free samples' count, the pairs' count, the block and test-block counts
+(small values that size the next arrays; a count is read with the offsets it ends, ``offsets_and_total``),
+and the test blocks, for the key-range check and the shards' split. The bounds it needs besides (of the
+longest ray, of the free samples' leaf grid, of the memberships' blocks) come from a box the host knows,
+the scan's points and sensor origin (``training_box``); they are read only where that box's leaf grid or
+steps would be refused and the samples' own would not. The arrays are a scratch set's (``device_scratch``), kept from
 scan to scan. Blocks spread wider than a dense grid (``sbki_compat.MAX_DENSE_LOOKUP_CELLS``) take the
 host path from the training set.
 """
@@ -30,17 +32,18 @@ from . import sbki_compat
 from .device_scratch import DeviceScratch, counts_with_room, inclusive_scan, last_value, offsets_and_total
 
 
-def runs_of_sorted(keys: wp.array, n: int, scratch: DeviceScratch) -> tuple[wp.array, wp.array, int]:
+def runs_of_sorted(keys: wp.array, n: int, scratch: DeviceScratch, *, count: bool = True) -> tuple[wp.array, wp.array, int | None]:
     """The runs of equal values among the first n sorted ``keys``: each key's run number from 1 (an
-    inclusive scan of the run heads), the runs' starts [R + 1] (int64) and the run count R."""
+    inclusive scan of the run heads), the runs' starts [R + 1] (int64) and the run count R, read back;
+    without ``count``, starts with room for n runs (its first R + 1 set) and no count, and no read."""
     device = keys.device
     heads = scratch.empty(n, int)
     wp.launch(voxel_grid.leaf_runs, dim=n, device=device, inputs=[keys, heads])
     run_rank = inclusive_scan(heads, scratch)
-    count = last_value(run_rank)
-    starts = scratch.empty(count + 1, wp.int64)
+    runs = last_value(run_rank) if count else None
+    starts = scratch.empty((n if runs is None else runs) + 1, wp.int64)
     wp.launch(voxel_grid.leaf_starts, dim=n, device=device, inputs=[run_rank, starts])
-    return run_rank, starts, count
+    return run_rank, starts, runs
 
 
 def float_bounds_on_device(points: wp.array, scratch: DeviceScratch) -> tuple[np.ndarray, np.ndarray]:
@@ -93,23 +96,47 @@ def voxel_grid_on_device(points: wp.array, labels: wp.array | None, label_range:
     return centroids, majority
 
 
+def training_box(points: np.ndarray, sensor_origin: np.ndarray, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """float32 (lowest, highest) per axis of a scan's points [N, 3] (N > 0) and its sensor origin, widened
+    by ``margin_m``: a box holding its training points (the hits' centroids, and the free samples on the
+    rays between the origin and them, and their centroids), known on the host before they are computed."""
+    lo, hi = column_bounds(np.asarray(points, np.float32).reshape(-1, 3))
+    origin = np.asarray(sensor_origin, np.float32).reshape(3)
+    margin = np.float32(margin_m)
+    return np.minimum(lo, origin) - margin, np.maximum(hi, origin) + margin
+
+
+def _longest_ray(ray_length: wp.array, scratch: DeviceScratch) -> np.float32:
+    """The longest ray, read back."""
+    longest = scratch.zeros(1, wp.float32)
+    wp.launch(free_space.longest_ray, dim=ray_length.shape[0], device=ray_length.device, inputs=[ray_length, longest])
+    return np.float32(longest.numpy()[0])
+
+
 def _free_space_samples(hits: wp.array, direction: wp.array, ray_length: wp.array, origin: np.ndarray, f: np.float32,
-                        scratch: DeviceScratch) -> wp.array:
-    """``sbki_compat.free_space_samples`` of hits whose rays are computed (``kernels.free_space.ray_geometry``)."""
+                        box: tuple[np.ndarray, np.ndarray], scratch: DeviceScratch) -> wp.array:
+    """``sbki_compat.free_space_samples`` of hits whose rays are computed (``kernels.free_space.ray_geometry``),
+    within ``box`` (``training_box``): the steps go as far as its farthest corner from the origin, a bound
+    of the longest ray known without reading it back (extra steps lie beyond every ray and are never
+    taken); only where that bound would be refused is the longest ray itself read."""
     device = hits.device
     n = hits.shape[0]
     if n == 0:
         return scratch.empty(0, wp.vec3)
-    longest = scratch.zeros(1, wp.float32)
-    wp.launch(free_space.longest_ray, dim=n, device=device, inputs=[ray_length, longest])
-    longest = np.float32(longest.numpy()[0])
-    sbki_compat.check_free_samples(0.0, float(longest), f, origin)  # the steps' bound, before they are listed
+    corners = np.stack(np.meshgrid(*zip(*box), indexing="ij"), axis=-1).reshape(-1, 3).astype(np.float64)
+    longest = np.float32(np.linalg.norm(corners - origin.astype(np.float64), axis=1).max())
+    try:
+        sbki_compat.check_free_samples(0.0, float(longest), f, origin)  # the steps' bound, before they are listed
+    except ValueError:
+        longest = _longest_ray(ray_length, scratch)
+        sbki_compat.check_free_samples(0.0, float(longest), f, origin)
     steps = scratch.upload(sbki_compat.ray_steps(f, longest), wp.float32)
     per_hit = scratch.empty(n, int)
     rows_per_hit = counts_with_room(n, scratch)
     wp.launch(free_space.samples_per_ray, dim=n, device=device, inputs=[ray_length, steps, float(f), per_hit, rows_per_hit])
     first_row, rows = offsets_and_total(rows_per_hit, scratch)
-    sbki_compat.check_free_samples(float(rows), float(longest), f, origin)
+    if rows > sbki_compat.MAX_FREE_SAMPLES_PER_SCAN:  # refused: the message names the longest ray itself
+        sbki_compat.check_free_samples(float(rows), float(_longest_ray(ray_length, scratch)), f, origin)
     out = scratch.empty(rows, wp.vec3)
     wp.launch(free_space.ray_samples, dim=n, device=device, inputs=[
         direction, ray_length, wp.vec3(*origin.tolist()), float(f), steps, per_hit, first_row, out])
@@ -138,6 +165,7 @@ def training_arrays(
     if len(points) == 0:
         empty = scratch.empty(0, wp.vec3)
         return empty, scratch.empty(0, wp.int64), empty
+    box = training_box(points, origin, ds_resolution_m)
     hits, hit_labels = voxel_grid_on_device(
         scratch.upload(points, wp.vec3), scratch.upload(labels, wp.int64),
         (int(labels.min()), int(labels.max())), column_bounds(points), ds_resolution_m, scratch)
@@ -153,10 +181,14 @@ def training_arrays(
         arrays = [scratch.empty(kept, a.dtype) for a in (hits, hit_labels, direction, ray_length)]
         wp.launch(free_space.compact_rays, dim=n, device=device, inputs=[keep, slot, hits, hit_labels, direction, ray_length, *arrays])
         hits, hit_labels, direction, ray_length = arrays
-    frees = _free_space_samples(hits, direction, ray_length, origin, np.float32(free_resolution_m), scratch)
+    frees = _free_space_samples(hits, direction, ray_length, origin, np.float32(free_resolution_m), box, scratch)
     free_points = frees
     if frees.shape[0]:
-        free_points, _ = voxel_grid_on_device(frees, None, None, float_bounds_on_device(frees, scratch), ds_resolution_m, scratch)
+        # The box holds the free samples: their leaves, and the leaves' order (by z, y, x), are those of a grid
+        # over their own bounds, unless PCL would refuse the box's grid but not theirs (then they are read).
+        if sbki_compat.leaf_grid(*box, ds_resolution_m, warn=False) is None:
+            box = float_bounds_on_device(frees, scratch)
+        free_points, _ = voxel_grid_on_device(frees, None, None, box, ds_resolution_m, scratch)
     return hits, hit_labels, free_points
 
 
@@ -164,12 +196,10 @@ def training_set(hits: wp.array, hit_labels: wp.array, free_points: wp.array, sc
     """The training points [H + F] and labels of ``training_arrays``' parts, hits first, on their device."""
     h, f = hits.shape[0], free_points.shape[0]
     points = scratch.empty(h + f, wp.vec3)
-    labels = scratch.full(h + f, sbki_compat.FREE_LABEL, wp.int64)
-    if h:
-        wp.copy(points, hits, count=h)
-        wp.copy(labels, hit_labels, count=h)
-    if f:
-        wp.copy(points, free_points, dest_offset=h, count=f)
+    labels = scratch.empty(h + f, wp.int64)
+    if h + f:
+        wp.launch(free_space.join_training_set, dim=h + f, device=points.device, inputs=[
+            hits, hit_labels, free_points, sbki_compat.FREE_LABEL, points, labels])
     return points, labels
 
 
@@ -222,10 +252,11 @@ def block_bounds_on_device(blocks: wp.array, scratch: DeviceScratch) -> tuple[np
     return lowest, highest
 
 
-def sort_by_block(blocks: wp.array, lo: np.ndarray, hi: np.ndarray, scratch: DeviceScratch) -> tuple[wp.array, wp.array, wp.array, int]:
+def sort_by_block(blocks: wp.array, lo: np.ndarray, hi: np.ndarray, scratch: DeviceScratch, *, count: bool = True
+                  ) -> tuple[wp.array, wp.array, wp.array, int | None]:
     """Rows of blocks [P, 3] (int64, within lo..hi) stably sorted by the blocks' packed-key order: the
     order (its first P entries), each sorted row's run number from 1 (an inclusive scan of run heads),
-    the runs' starts [R + 1] and the run count R."""
+    the runs' starts [R + 1] and the run count R (``runs_of_sorted``: without ``count``, none and no read)."""
     device = blocks.device
     rows = blocks.shape[0]
     span = hi - lo + 1
@@ -234,18 +265,28 @@ def sort_by_block(blocks: wp.array, lo: np.ndarray, hi: np.ndarray, scratch: Dev
     wp.launch(block_gather.box_positions, dim=rows, device=device, inputs=[
         blocks, wp.vec3l(*[int(x) for x in lo]), int(span[1]), int(span[2]), positions, order])
     wp.utils.radix_sort_pairs(positions, order, rows, end_bit=max(1, int(int(np.prod(span)) - 1).bit_length()))
-    run_rank, starts, count = runs_of_sorted(positions, rows, scratch)
-    return order, run_rank, starts, count
+    run_rank, starts, runs = runs_of_sorted(positions, rows, scratch, count=count)
+    return order, run_rank, starts, runs
 
 
-def group_blocks_on_device(member_blocks: wp.array, scratch: DeviceScratch) -> BlockGroups | None:
+def member_block_box(points_lo: np.ndarray, points_hi: np.ndarray, block_size: np.float32) -> tuple[np.ndarray, np.ndarray]:
+    """A box (lowest, highest block per axis) holding every block a point within points_lo..points_hi
+    (float, m) belongs to: its nearest block and the face neighbours its box tests reach, widened by one
+    block for the rounding of points computed on the device (centroids, free samples) near the bounds."""
+    size = float(np.float32(block_size))
+    return (np.floor(np.asarray(points_lo, np.float64) / size).astype(np.int64) - 2,
+            np.floor(np.asarray(points_hi, np.float64) / size).astype(np.int64) + 2)
+
+
+def group_blocks_on_device(member_blocks: wp.array, scratch: DeviceScratch, box: tuple[np.ndarray, np.ndarray] | None = None) -> BlockGroups | None:
     """``BlockGroups`` of pairs' blocks [P, 3] (int64) on their device; None where their dense grid would
     exceed ``sbki_compat.MAX_DENSE_LOOKUP_CELLS``, or there are no pairs: the caller takes the host path
-    then."""
+    then. ``box``: (lowest, highest) blocks known to hold them all (``member_block_box``), the grid's box
+    without reading their bounds back; the groups are the same for any box that holds them."""
     device = member_blocks.device
     if member_blocks.shape[0] == 0:
         return None
-    lo, hi = block_bounds_on_device(member_blocks, scratch)
+    lo, hi = box if box is not None else block_bounds_on_device(member_blocks, scratch)
     grid_corner = lo - 3
     shape = hi + 4 - grid_corner
     if float(np.prod(shape.astype(np.float64))) > sbki_compat.MAX_DENSE_LOOKUP_CELLS:
@@ -280,14 +321,15 @@ class DeviceGatherTables:
 
 
 def gather_tables_on_device(points: wp.array, labels: wp.array, block_size: np.float32, length_m: float,
-                            scratch: DeviceScratch | None = None) -> DeviceGatherTables | None:
+                            scratch: DeviceScratch | None = None, box: tuple[np.ndarray, np.ndarray] | None = None) -> DeviceGatherTables | None:
     """``sbki_compat.block_memberships`` and ``sbki_compat.gather_tables`` of a training set on its device,
     and the points and labels sorted as the gather kernel reads them; None where the blocks are too spread
-    for its dense grid (``group_blocks_on_device``). ``scratch``: where the arrays are kept (None: new ones)."""
+    for its dense grid (``group_blocks_on_device``). ``scratch``: where the arrays are kept (None: new ones);
+    ``box``: a float box holding the points (``training_box``), which spares reading their blocks' bounds."""
     device = points.device
     scratch = scratch or DeviceScratch(device)
     point_ids, member_blocks = block_memberships_on_device(points, block_size, scratch)
-    groups = group_blocks_on_device(member_blocks, scratch)
+    groups = group_blocks_on_device(member_blocks, scratch, None if box is None else member_block_box(*box, block_size))
     if groups is None:
         return None
     offsets = scratch.upload(sbki_compat.EXTENDED_BLOCK_OFFSETS.astype(np.int32), wp.vec3i)

@@ -51,3 +51,9 @@ def compact_rays(keep, slot, hits, labels, direction, ray_length):
 def longest_ray(ray_length) -> np.float32:
     """Twin of ``longest_ray``: the largest range, 0 for none."""
     return np.float32(max(0.0, float(np.max(ray_length, initial=0.0))))
+
+
+def join_training_set(hits, hit_labels, free_points, free_label: int) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``join_training_set``: the hits then the free points, and their labels (``free_label`` for the free)."""
+    points = np.concatenate([np.asarray(hits, np.float32).reshape(-1, 3), np.asarray(free_points, np.float32).reshape(-1, 3)])
+    return points, np.concatenate([np.asarray(hit_labels, np.int64), np.full(len(free_points), free_label, np.int64)])
