@@ -23,10 +23,16 @@ def take_rows(values: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return np.take(values, rows, axis=0)
 
 
+def within_index_range(index: np.ndarray) -> bool:
+    """Whether every index [..., 3] lies in [-INDEX_LIMIT, INDEX_LIMIT)."""
+    index = np.asarray(index)
+    return not index.size or (int(index.min()) >= -INDEX_LIMIT and int(index.max()) < INDEX_LIMIT)
+
+
 def check_index_range(index: np.ndarray, what: str = "voxel indices", resolution_m: float | None = None) -> None:
     """Raise ValueError when any index [..., 3] lies outside [-INDEX_LIMIT, INDEX_LIMIT)."""
     index = np.asarray(index)
-    if index.size and (int(index.min()) < -INDEX_LIMIT or int(index.max()) >= INDEX_LIMIT):
+    if not within_index_range(index):
         span = "" if resolution_m is None else (f": one map spans at most +-{INDEX_LIMIT * resolution_m:.0f} m around its origin "
                                                 f"at {resolution_m} m voxels (split the data into maps of separate areas)")
         raise ValueError(f"{what} reach {int(index.min())}..{int(index.max())}, outside the key range "

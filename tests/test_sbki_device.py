@@ -301,3 +301,38 @@ def test_a_map_from_the_device_preprocessing_is_the_host_paths_bit_for_bit(devic
     assert len(maps[0].index) > 10_000
     np.testing.assert_array_equal(maps[1].index, maps[0].index)
     np.testing.assert_array_equal(maps[1].rows(), maps[0].rows())
+
+
+def test_blocks_whose_box_reaches_past_the_key_range_are_read_back_and_checked(device):
+    # A far outlier that the range filter drops widens the box the host knows past the key range (+-209 km
+    # at 0.2 m): the test blocks are then read back and checked themselves, and the map is the host path's.
+    # A scan whose blocks do lie past it is refused on both paths, before anything is written.
+    from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, SbkiSettings
+    from evsemmap_warp.core.mapper import Mapper
+
+    rng = np.random.default_rng(31)
+    origin = np.array([1.0, 2.0, 0.5])
+    points = origin + rng.normal(size=(3000, 3)) * 4.0
+    points[0] = [300_000.0, 5.0, 1.0]
+    labels = rng.integers(0, 5, len(points))
+    config = MappingConfig(method="s-bki", kernel=Kernel.SPARSE, media=Media.ONEHOT, adaptive_length=False, uncertainty_threshold=False,
+                           compat=Compat.SBKI, resolution_m=0.2, length_m=0.3, sigma0=10.0, prior=0.001,
+                           sbki=SbkiSettings(block_depth=2, ds_resolution_m=0.1, free_resolution_m=0.5, max_range_m=20.0))
+    maps = []
+    for on_device in (False, True):
+        mapper = Mapper(config, 5, device=device, workers=1, origin=origin)
+        mapper.integrator.preprocess_on_device = on_device
+        read = []
+        host = sbki_device.DeviceBlocks.host
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(sbki_device.DeviceBlocks, "host", lambda self: read.append(1) or host(self))
+            with pytest.warns(UserWarning, match="returning it unchanged"):  # the hits' leaf grid spans 300 km: PCL leaves the cloud as it is
+                mapper.integrate(points, labels, payload_type="label", sensor_origin=origin)
+        assert read == ([1] if on_device else [])
+        maps.append(mapper.voxels()[0])
+        with pytest.raises(ValueError, match="outside the key range"), pytest.warns(UserWarning, match="returning it unchanged"):
+            mapper.integrate(points + [250_000.0, 0.0, 0.0], labels, payload_type="label", sensor_origin=origin + [250_000.0, 0.0, 0.0])
+        assert len(mapper.voxels()[0].index) == len(maps[-1].index)
+    assert len(maps[0].index) > 1000
+    np.testing.assert_array_equal(maps[1].index, maps[0].index)
+    np.testing.assert_array_equal(maps[1].rows(), maps[0].rows())

@@ -451,7 +451,7 @@ class SbkiCompatIntegrator:
         inputs = block_gather.sbki_blocks(blocks=tables.tests, sources=tables.sources, point_start=tables.point_start,
                                           scaled_points=tables.scaled_points, labels=tables.labels, length=c.length_m,
                                           sigma0=c.sigma0, resolution=c.resolution_m, grid_offset=self.grid_offset_m)
-        return launch_step(stats, releasing(block_gather_run(tables.test_blocks, self.cells_per_block, self.gather_kernel, inputs, "sbki_gather"),
+        return launch_step(stats, releasing(block_gather_run(tables.targets, self.cells_per_block, self.gather_kernel, inputs, "sbki_gather"),
                                             scratch))
 
     def _scatter_counts(self, shards, points, labels, point_ids, owners, lanes) -> int | PendingUpdates:
@@ -599,11 +599,11 @@ class ReleaseCompatIntegrator:
             return None
         stats.kept_points = inputs.kept_points
         blocks = release.release_blocks(
-            blocks=inputs.device_blocks, source_blocks=inputs.source_blocks, source_mult=inputs.source_mult, point_start=inputs.point_start,
+            blocks=inputs.targets.blocks, source_blocks=inputs.source_blocks, source_mult=inputs.source_mult, point_start=inputs.point_start,
             points=inputs.points, class_weights=inputs.class_weights, uncertainty=inputs.uncertainty, length=self.length, sigma0=c.sigma0,
             resolution=c.resolution_m)
         kernel_factory = functools.partial(self.gather_kernel, fusion=fusion)
-        return launch_step(stats, releasing(block_gather_run(inputs.blocks, self.cells_per_block, kernel_factory, blocks, "release_gather"), scratch))
+        return launch_step(stats, releasing(block_gather_run(inputs.targets, self.cells_per_block, kernel_factory, blocks, "release_gather"), scratch))
 
 
 def releasing(run, scratch: DeviceScratch):
@@ -622,18 +622,23 @@ def releasing(run, scratch: DeviceScratch):
     return run_then_release
 
 
-def block_gather_run(blocks: np.ndarray, cells_per_block: int, kernel_factory, scan, kind: str):
+def block_gather_run(blocks: np.ndarray | sbki_device.DeviceBlocks, cells_per_block: int, kernel_factory, scan, kind: str):
     """run(shards, lanes) -> updates for a block-gather kernel (``kernel_factory(K, cells per block)``)
-    over target ``blocks`` [B, 3] (the blocks of ``scan``, its inputs struct): the key range is checked
-    before any launch, and each block is gathered in the shard its index picks, so a cell is always
-    summed in the same shard in the same order and the map is bit for bit the same for any number of
-    workers."""
+    over target ``blocks`` [B, 3] (the blocks of ``scan``, its inputs struct), or blocks on the device
+    (``DeviceBlocks``): the key range is checked before any launch, and each block is gathered in the
+    shard its index picks, so a cell is always summed in the same shard in the same order and the map is
+    bit for bit the same for any number of workers. Blocks on the device that a map of one shard gathers
+    all of, in a box within the key range, are not read back."""
 
     def run(shards: list[VoxelMap], lanes: ShardLanes | None) -> int | PendingUpdates:
-        shards[0].check_block_range(blocks, cells_per_block)
-        owner = block_shard(blocks, len(shards))
         kernel = kernel_factory(shards[0].num_classes, cells_per_block)
         shards[0].load_kernel(kernel)
+        on_device = isinstance(blocks, sbki_device.DeviceBlocks)
+        if on_device and len(shards) == 1 and blocks.box is not None and VoxelMap.block_range_holds(np.stack(blocks.box), cells_per_block):
+            return shards[0].gather_blocks(kernel, scan, np.arange(blocks.count), cells_per_block=cells_per_block, kind=kind)
+        targets = blocks.host() if on_device else blocks
+        shards[0].check_block_range(targets, cells_per_block)
+        owner = block_shard(targets, len(shards))
 
         def job(shard: VoxelMap, index: int) -> int:
             return shard.gather_blocks(kernel, scan, np.flatnonzero(owner == index), cells_per_block=cells_per_block, kind=kind)

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..methods.device_scratch import DeviceScratch, counts_with_room, inclusive_scan, last_value, offsets_and_total
-from ..voxel_keys import check_index_range, column_bounds, pack_voxel_keys, unpack_voxel_keys
+from ..voxel_keys import check_index_range, column_bounds, pack_voxel_keys, unpack_voxel_keys, within_index_range
 from . import _host_memory
 from ._staging import Staging
 from .warp_runtime import init_warp, resolve_device
@@ -76,6 +76,13 @@ class VoxelArrays:
 
 def _next_pow2(n: int) -> int:
     return 1 << max(int(n) - 1, 0).bit_length()
+
+
+def _block_cells_bounds(blocks: np.ndarray, cells_per_block: int) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest and highest voxel index per axis of the cells of blocks [B, 3] (B > 0)."""
+    lo, hi = column_bounds(np.asarray(blocks, np.int64))
+    first_lo, first_hi = (b * cells_per_block - cells_per_block // 2 for b in (lo, hi))
+    return first_lo, first_hi + cells_per_block - 1
 
 
 class VoxelMap:
@@ -272,9 +279,12 @@ class VoxelMap:
         """Refuse blocks [B, 3] (block b holds voxels b n - n/2 ... b n + n/2 - 1) whose cells lie outside the key range."""
         if len(blocks) == 0:
             return
-        lo, hi = column_bounds(blocks)
-        first_lo, first_hi = (np.asarray(b, dtype=np.int64) * cells_per_block - cells_per_block // 2 for b in (lo, hi))
-        self._check_index_range(first_lo, first_hi + cells_per_block - 1)
+        self._check_index_range(*_block_cells_bounds(blocks, cells_per_block))
+
+    @staticmethod
+    def block_range_holds(blocks: np.ndarray, cells_per_block: int) -> bool:
+        """Whether every cell of blocks [B, 3] (or of the box their bounds span) lies in the key range."""
+        return not len(blocks) or within_index_range(np.stack(_block_cells_bounds(blocks, cells_per_block)))
 
     def _check_reach(self, points: np.ndarray, reach: float) -> None:
         """Refuse points whose kernels, reaching ``reach`` metres, would touch voxels outside the key range."""

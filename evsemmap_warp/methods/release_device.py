@@ -5,8 +5,9 @@ device by parallel kernels for maps on a GPU: the same inputs bit for bit as the
 (a quantile of the scan's uncertainty) stay on the host, so that only the points they keep are sent.
 
 What still reads back per scan: the kept, the memberships' and the block counts (small values that size
-the next arrays), and the blocks, for the key-range check and the shards' split. The bounds of the
-snapped keys and of the memberships' blocks come from the points' bounds on the host. The arrays are a
+the next arrays). The bounds of the snapped keys and of the memberships' blocks come from the points'
+bounds on the host, and so does the key-range check of the blocks; the blocks themselves are read back
+only for a map of several shards (their split) or where that box reaches past the key range. The arrays are a
 scratch set's (``device_scratch``), kept from scan to scan.
 """
 
@@ -49,11 +50,10 @@ def capped_points_on_device(points: wp.array, lo: np.ndarray, hi: np.ndarray, ds
 
 @dataclass
 class DeviceReleaseInputs:
-    """One scan's gather-kernel arrays on the device (``kernels.release.release_blocks``' fields) and its
-    blocks on the host ([B, 3] int64)."""
+    """One scan's gather-kernel arrays on the device (``kernels.release.release_blocks``' fields), its
+    blocks among them (``sbki_device.DeviceBlocks``)."""
 
-    blocks: np.ndarray
-    device_blocks: wp.array
+    targets: sbki_device.DeviceBlocks
     source_blocks: wp.array
     source_mult: wp.array
     point_start: wp.array
@@ -78,7 +78,8 @@ def release_inputs_on_device(points: np.ndarray, probabilities: np.ndarray, unce
     kept_points = scratch.empty(kept.shape[0], wp.vec3)
     wp.launch(release.take_points, dim=kept.shape[0], device=device, inputs=[on_device, kept, kept_points])
     point_ids, member_blocks = sbki_device.block_memberships_on_device(kept_points, block_size, scratch)
-    groups = sbki_device.group_blocks_on_device(member_blocks, scratch, sbki_device.member_block_box(lo, hi, block_size))
+    member_box = sbki_device.member_block_box(lo, hi, block_size)
+    groups = sbki_device.group_blocks_on_device(member_blocks, scratch, member_box)
     if groups is None:
         return None
     m = len(release_compat.TARGET_BLOCK_OFFSETS)
@@ -98,5 +99,5 @@ def release_inputs_on_device(points: np.ndarray, probabilities: np.ndarray, unce
         on_device, scratch.upload(np.ascontiguousarray(probabilities, dtype=np.float64), wp.float64),
         scratch.upload(np.ascontiguousarray(uncertainty, dtype=np.float64), wp.float64),
         kept, point_ids, groups.order, sorted_points, class_weights, sorted_uncertainty])
-    return DeviceReleaseInputs(groups.blocks.numpy().astype(np.int64), groups.blocks, source, mult, sbki_device.narrow_starts(groups, scratch),
-                               sorted_points, class_weights, sorted_uncertainty, kept.shape[0])
+    return DeviceReleaseInputs(sbki_device.DeviceBlocks(groups.blocks, groups.count, member_box), source, mult,
+                               sbki_device.narrow_starts(groups, scratch), sorted_points, class_weights, sorted_uncertainty, kept.shape[0])

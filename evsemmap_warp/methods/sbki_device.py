@@ -10,11 +10,12 @@ orders its points by leaf stably and so keeps PCL's float32 summation order with
 
 What still reads back from the device per scan: the leaf counts of both VoxelGrids, the kept hits'
 count (with a range limit), the free samples' count, the pairs' count, the block and test-block counts
-(small values that size the next arrays; a count is read with the offsets it ends, ``offsets_and_total``),
-and the test blocks, for the key-range check and the shards' split. The bounds it needs besides (of the
-longest ray, of the free samples' leaf grid, of the memberships' blocks) come from a box the host knows,
-the scan's points and sensor origin (``training_box``); they are read only where that box's leaf grid or
-steps would be refused and the samples' own would not. The arrays are a scratch set's (``device_scratch``), kept from
+(small values that size the next arrays; a count is read with the offsets it ends, ``offsets_and_total``).
+The bounds it needs besides (of the longest ray, of the free samples' leaf grid, of the memberships' and
+the test blocks, for their grid and the key-range check) come from a box the host knows, the scan's
+points and sensor origin (``training_box``); they are read only where that box's leaf grid, steps or
+block grid would be refused (or it reaches past the key range) and their own would not. The test blocks
+are read back for a map of several shards, for their split (``DeviceBlocks``). The arrays are a scratch set's (``device_scratch``), kept from
 scan to scan. Blocks spread wider than a dense grid (``sbki_compat.MAX_DENSE_LOOKUP_CELLS``) take the
 host path from the training set.
 """
@@ -282,15 +283,21 @@ def group_blocks_on_device(member_blocks: wp.array, scratch: DeviceScratch, box:
     """``BlockGroups`` of pairs' blocks [P, 3] (int64) on their device; None where their dense grid would
     exceed ``sbki_compat.MAX_DENSE_LOOKUP_CELLS``, or there are no pairs: the caller takes the host path
     then. ``box``: (lowest, highest) blocks known to hold them all (``member_block_box``), the grid's box
-    without reading their bounds back; the groups are the same for any box that holds them."""
+    without reading their bounds back (they are read where its grid would be too large); the groups are
+    the same for any box that holds them."""
     device = member_blocks.device
     if member_blocks.shape[0] == 0:
         return None
-    lo, hi = box if box is not None else block_bounds_on_device(member_blocks, scratch)
+    def grid_cells(lo, hi):
+        return float(np.prod((hi + 7 - lo).astype(np.float64)))
+
+    if box is None or grid_cells(*box) > sbki_compat.MAX_DENSE_LOOKUP_CELLS:  # no box, or one too wide: their own bounds
+        box = block_bounds_on_device(member_blocks, scratch)
+    lo, hi = box
+    if grid_cells(lo, hi) > sbki_compat.MAX_DENSE_LOOKUP_CELLS:
+        return None
     grid_corner = lo - 3
     shape = hi + 4 - grid_corner
-    if float(np.prod(shape.astype(np.float64))) > sbki_compat.MAX_DENSE_LOOKUP_CELLS:
-        return None
     order, _, starts, count = sort_by_block(member_blocks, lo, hi, scratch)
     grid = scratch.full(tuple(int(x) for x in shape), -1, int)
     blocks = scratch.empty(count, wp.vec3i)
@@ -308,16 +315,43 @@ def narrow_starts(groups: BlockGroups, scratch: DeviceScratch) -> wp.array:
 
 
 @dataclass
-class DeviceGatherTables:
-    """One scan's inputs of the S-BKI gather kernel on the device (``block_gather.sbki_blocks``'s arrays) and
-    its test blocks on the host ([T, 3] int64, for the key-range check and the shards' split)."""
+class DeviceBlocks:
+    """A block gather's target blocks on the device: ``blocks`` [B] (vec3i), their ``count`` B, and ``box``,
+    (lowest, highest) blocks per axis known on the host to hold them all (None: not known). ``host()`` reads
+    the blocks back, once, for what the box cannot settle (a box reaching past the key range, the shards'
+    split)."""
 
-    test_blocks: np.ndarray
-    tests: wp.array
+    blocks: wp.array
+    count: int
+    box: tuple[np.ndarray, np.ndarray] | None
+
+    def host(self) -> np.ndarray:
+        """The blocks [B, 3] (int64), read back on the first call."""
+        if not hasattr(self, "_host"):
+            self._host = self.blocks.numpy().reshape(-1, 3).astype(np.int64)
+        return self._host
+
+
+@dataclass
+class DeviceGatherTables:
+    """One scan's inputs of the S-BKI gather kernel on the device (``block_gather.sbki_blocks``'s arrays):
+    its test blocks (``DeviceBlocks``), their sources, the points' starts and the sorted points and labels."""
+
+    targets: DeviceBlocks
     sources: wp.array
     point_start: wp.array
     scaled_points: wp.array
     labels: wp.array
+
+    @property
+    def tests(self) -> wp.array:
+        """The test blocks [T] (vec3i) on the device."""
+        return self.targets.blocks
+
+    @property
+    def test_blocks(self) -> np.ndarray:
+        """The test blocks [T, 3] (int64), read back."""
+        return self.targets.host()
 
 
 def gather_tables_on_device(points: wp.array, labels: wp.array, block_size: np.float32, length_m: float,
@@ -329,7 +363,8 @@ def gather_tables_on_device(points: wp.array, labels: wp.array, block_size: np.f
     device = points.device
     scratch = scratch or DeviceScratch(device)
     point_ids, member_blocks = block_memberships_on_device(points, block_size, scratch)
-    groups = group_blocks_on_device(member_blocks, scratch, None if box is None else member_block_box(*box, block_size))
+    member_box = None if box is None else member_block_box(*box, block_size)
+    groups = group_blocks_on_device(member_blocks, scratch, member_box)
     if groups is None:
         return None
     offsets = scratch.upload(sbki_compat.EXTENDED_BLOCK_OFFSETS.astype(np.int32), wp.vec3i)
@@ -347,4 +382,5 @@ def gather_tables_on_device(points: wp.array, labels: wp.array, block_size: np.f
     sorted_labels = scratch.empty(pairs, int)
     wp.launch(block_gather.sorted_block_points, dim=pairs, device=device, inputs=[
         points, labels, point_ids, groups.order, float(np.float32(length_m)), scaled_points, sorted_labels])
-    return DeviceGatherTables(tests.numpy().astype(np.int64), tests, sources, narrow_starts(groups, scratch), scaled_points, sorted_labels)
+    test_box = None if member_box is None else (member_box[0] - 1, member_box[1] + 1)  # a test block is a face neighbour of a block
+    return DeviceGatherTables(DeviceBlocks(tests, test_count, test_box), sources, narrow_starts(groups, scratch), scaled_points, sorted_labels)
