@@ -7,8 +7,8 @@ device by parallel kernels for maps on a GPU: the same inputs bit for bit as the
 What still reads back per scan: the kept, the memberships' and the block counts (small values that size
 the next arrays). The bounds of the snapped keys and of the memberships' blocks come from the points'
 bounds on the host, and so does the key-range check of the blocks; the blocks themselves are read back
-only for a map of several shards (their split) or where that box reaches past the key range. The arrays are a
-scratch set's (``device_scratch``), kept from scan to scan.
+only for a map of several shards (their split) or where that box reaches past the key range. The arrays
+are a scratch set's (``device_scratch``), kept from scan to scan.
 """
 
 from __future__ import annotations

@@ -15,9 +15,9 @@ The bounds it needs besides (of the longest ray, of the free samples' leaf grid,
 the test blocks, for their grid and the key-range check) come from a box the host knows, the scan's
 points and sensor origin (``training_box``); they are read only where that box's leaf grid, steps or
 block grid would be refused (or it reaches past the key range) and their own would not. The test blocks
-are read back for a map of several shards, for their split (``DeviceBlocks``). The arrays are a scratch set's (``device_scratch``), kept from
-scan to scan. Blocks spread wider than a dense grid (``sbki_compat.MAX_DENSE_LOOKUP_CELLS``) take the
-host path from the training set.
+are read back for a map of several shards, for their split (``DeviceBlocks``). The arrays are a scratch
+set's (``device_scratch``), kept from scan to scan. Blocks spread wider than a dense grid
+(``sbki_compat.MAX_DENSE_LOOKUP_CELLS``) take the host path from the training set.
 """
 
 from __future__ import annotations
@@ -125,7 +125,7 @@ def _free_space_samples(hits: wp.array, direction: wp.array, ray_length: wp.arra
     if n == 0:
         return scratch.empty(0, wp.vec3)
     corners = np.stack(np.meshgrid(*zip(*box), indexing="ij"), axis=-1).reshape(-1, 3).astype(np.float64)
-    longest = np.float32(np.linalg.norm(corners - origin.astype(np.float64), axis=1).max())
+    longest = np.float32(np.linalg.norm(corners - origin.astype(np.float64), axis=1).max() + float(f))  # + f: past any rounding
     try:
         sbki_compat.check_free_samples(0.0, float(longest), f, origin)  # the steps' bound, before they are listed
     except ValueError:
@@ -288,6 +288,7 @@ def group_blocks_on_device(member_blocks: wp.array, scratch: DeviceScratch, box:
     device = member_blocks.device
     if member_blocks.shape[0] == 0:
         return None
+
     def grid_cells(lo, hi):
         return float(np.prod((hi + 7 - lo).astype(np.float64)))
 
