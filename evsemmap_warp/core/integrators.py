@@ -240,7 +240,10 @@ class PointKernelIntegrator:
         return np.full(len(uncertainty), c.length_m)
 
     def prepare(self, scan: ScanPayload, device: str) -> Launch:
-        """Nothing worth doing ahead: the launch runs ``integrate``."""
+        """The scan's class probabilities for soft media, derived here, on the preparing thread (off the
+        launch's path when scans are prepared ahead); the launch runs ``integrate``."""
+        if self.config.media is not Media.ONEHOT:
+            _ = scan.probabilities
         return lambda shards, lanes=None: self.integrate(shards, scan, lanes)
 
     def _scatter_form(self) -> tuple[int, int, ScatterStrategy]:
@@ -308,7 +311,10 @@ class ConvBkiIntegrator:
         self.weights = convbki.stencil_weights(self.lengths, config.resolution_m, config.convbki.stencil_half)
 
     def prepare(self, scan: ScanPayload, device: str) -> Launch:
-        """Nothing worth doing ahead: the launch runs ``integrate``."""
+        """The scan's class probabilities for soft media, derived here, on the preparing thread (off the
+        launch's path when scans are prepared ahead); the launch runs ``integrate``."""
+        if self.config.media is not Media.ONEHOT:
+            _ = scan.probabilities
         return lambda shards, lanes=None: self.integrate(shards, scan, lanes)
 
     def kernel_modules(self, device: str) -> list:
