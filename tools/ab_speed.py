@@ -2,9 +2,10 @@
 reference commit), ``tools/bench_integrate.py`` of each checkout run in its own process, the two sides
 alternating round by round on the same machine, so that both see the same load and the same day's VM.
 
-Writes docs/bench/ab_speed-<UTC>.json: both commits, every round's seconds per row on both sides, each row's
-median over the rounds and ours / reference (below 1: this checkout is faster), and whether both sides
-mapped the same voxel counts. Prints one line per row.
+The sides take turns going first, round by round. Writes docs/bench/ab_speed-<UTC>.json: both commits,
+every round's seconds per row on both sides, each row's median over the rounds and ours / reference
+(below 1: this checkout is faster), and whether both sides mapped the same voxel counts. Prints one line
+per row.
 
     git worktree add --detach /tmp/ref COMMIT
     python tools/ab_speed.py /tmp/ref [--rounds 2] [--repeats 3] [--free-resolutions 0.5 4]
@@ -68,7 +69,8 @@ def main() -> int:
     runs: dict[str, list[dict]] = {side: [] for side in sides}
     with tempfile.TemporaryDirectory() as tmp:
         for round_ in range(args.rounds):
-            for side, root in sides.items():
+            # Each round swaps which side runs first: a VM's speed drifts within a round too.
+            for side, root in (list(sides.items()) if round_ % 2 == 0 else list(sides.items())[::-1]):
                 out = Path(tmp) / f"{side}-{round_}"
                 out.mkdir()
                 runs[side].append(bench(root, args, out))
