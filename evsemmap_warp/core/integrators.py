@@ -197,6 +197,15 @@ def preprocesses_on_device(integrator, device: str) -> bool:
     return wp.get_device(device).is_cuda
 
 
+def integrate_at_launch(integrator, scan: ScanPayload) -> Launch:
+    """The launch of an integrator whose host work runs with its kernels (``integrate``): only the scan's
+    class probabilities for soft media are derived ahead, here, on the preparing thread (off the launch's
+    path when scans are prepared ahead)."""
+    if integrator.config.media is not Media.ONEHOT:
+        _ = scan.probabilities
+    return lambda shards, lanes=None: integrator.integrate(shards, scan, lanes)
+
+
 def make_integrator(config: MappingConfig, num_classes: int) -> Integrator:
     """The integrator of ``config``'s method (its compatibility mode and kernel) for K = num_classes."""
     try:
@@ -240,11 +249,8 @@ class PointKernelIntegrator:
         return np.full(len(uncertainty), c.length_m)
 
     def prepare(self, scan: ScanPayload, device: str) -> Launch:
-        """The scan's class probabilities for soft media, derived here, on the preparing thread (off the
-        launch's path when scans are prepared ahead); the launch runs ``integrate``."""
-        if self.config.media is not Media.ONEHOT:
-            _ = scan.probabilities
-        return lambda shards, lanes=None: self.integrate(shards, scan, lanes)
+        """``integrate_at_launch``."""
+        return integrate_at_launch(self, scan)
 
     def _scatter_form(self) -> tuple[int, int, ScatterStrategy]:
         """(scatter mode, fusion, strategy): the strategy applies to the radius kernel only."""
@@ -311,11 +317,8 @@ class ConvBkiIntegrator:
         self.weights = convbki.stencil_weights(self.lengths, config.resolution_m, config.convbki.stencil_half)
 
     def prepare(self, scan: ScanPayload, device: str) -> Launch:
-        """The scan's class probabilities for soft media, derived here, on the preparing thread (off the
-        launch's path when scans are prepared ahead); the launch runs ``integrate``."""
-        if self.config.media is not Media.ONEHOT:
-            _ = scan.probabilities
-        return lambda shards, lanes=None: self.integrate(shards, scan, lanes)
+        """``integrate_at_launch``."""
+        return integrate_at_launch(self, scan)
 
     def kernel_modules(self, device: str) -> list:
         """The stencil scatter's module."""
@@ -443,10 +446,10 @@ class SbkiCompatIntegrator:
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points))
         with self._scratch.taken(device) as scratch:
+            box = sbki_device.training_box(scan.points, scan.sensor_origin, c.sbki.ds_resolution_m) if len(scan.points) else None
             points, labels = sbki_device.training_set(*sbki_device.training_arrays(
                 scan.points, scan.labels, scan.sensor_origin, ds_resolution_m=c.sbki.ds_resolution_m,
-                free_resolution_m=c.sbki.free_resolution_m, max_range_m=c.sbki.max_range_m, device=device, scratch=scratch), scratch)
-            box = sbki_device.training_box(scan.points, scan.sensor_origin, c.sbki.ds_resolution_m) if len(scan.points) else None
+                free_resolution_m=c.sbki.free_resolution_m, max_range_m=c.sbki.max_range_m, device=device, scratch=scratch, box=box), scratch)
             tables = sbki_device.gather_tables_on_device(points, labels, self.block_size, c.length_m, scratch, box) if points.shape[0] else None
             if tables is None:
                 training_set = points.numpy(), labels.numpy()

@@ -37,7 +37,7 @@ def block_size_m(resolution_m: float, block_depth: int) -> np.float32:
     return np.float32(np.float32(2 ** (block_depth - 1)) * np.float32(resolution_m))
 
 
-def _cells(shape: np.ndarray) -> int:
+def box_cells(shape: np.ndarray) -> int:
     """The cells of a box of ``shape`` (per axis), exactly: numpy's int64 product wraps past 2^63, and a
     wrapped count of a huge box can look small."""
     cells = 1
@@ -52,7 +52,7 @@ def leaf_grid(lo: np.ndarray, hi: np.ndarray, leaf_m: float, *, warn: bool = Tru
     leaves the cloud unchanged."""
     inverse_leaf = np.float32(1.0) / np.float32(leaf_m)
     extent = ((hi - lo) * inverse_leaf).astype(np.int64) + 1
-    if _cells(extent) > _INT32_MAX:
+    if box_cells(extent) > _INT32_MAX:
         if not warn:
             return None
         # PCL refuses such grids and returns the cloud unchanged; so do we, loudly.
@@ -338,7 +338,7 @@ def _extended_block_tables(blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     span = hi + 2 - lo
     sources = wp.empty((most, f), dtype=int, device="cpu")
     count = wp.zeros(1, dtype=int, device="cpu")
-    if float(np.prod(span.astype(np.float64))) < 2.0**62:
+    if box_cells(span) < 1 << 62:
         relative = blocks - lo
         keys = (relative[:, 0] * span[1] + relative[:, 1]) * span[2] + relative[:, 2]
         shifts = (EXTENDED_BLOCK_OFFSETS[:, 0] * span[1] + EXTENDED_BLOCK_OFFSETS[:, 1]) * span[2] + EXTENDED_BLOCK_OFFSETS[:, 2]
@@ -370,13 +370,13 @@ def group_by_block(member_blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     # Row-major positions in the blocks' bounding box sort as the packed keys do (x, then y, then z).
     lo, hi = column_bounds(member_blocks)
     span = [int(x) for x in hi - lo + 1]
-    box_cells = span[0] * span[1] * span[2]
-    if box_cells < 1 << 62:
+    cells = box_cells(span)
+    if cells < 1 << 62:
         relative = member_blocks - lo
         position = (relative[:, 0] * span[1] + relative[:, 1]) * span[2] + relative[:, 2]
     else:  # blocks spread over the whole key range: their packed keys (63 bits) sort alike
-        position, box_cells = pack_voxel_keys(member_blocks), 1 << 63
-    sorted_position, order = stable_sort(position, box_cells)
+        position, cells = pack_voxel_keys(member_blocks), 1 << 63
+    sorted_position, order = stable_sort(position, cells)
     starts = np.flatnonzero(np.r_[True, sorted_position[1:] != sorted_position[:-1]])
     blocks = take_rows(member_blocks, order[starts])
     return blocks, pack_voxel_keys(blocks), order, np.r_[starts, len(order)]
@@ -396,7 +396,7 @@ def dense_block_grid(blocks: np.ndarray):
     lo, hi = column_bounds(blocks)
     lo = lo - 3
     shape = hi + 4 - lo
-    if _cells(shape) > MAX_DENSE_LOOKUP_CELLS:
+    if box_cells(shape) > MAX_DENSE_LOOKUP_CELLS:
         return None, lo
     grid = np.full(tuple(shape), -1, np.int32)
     grid[tuple((blocks - lo).T)] = np.arange(len(blocks), dtype=np.int32)

@@ -154,11 +154,13 @@ def training_arrays(
     max_range_m: float | None,
     device: str,
     scratch: DeviceScratch | None = None,
+    box: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[wp.array, wp.array, wp.array]:
     """The training set of ``sbki_compat.training_data`` on ``device``, in its two parts: the downsampled
     hits within range [H] (vec3), their labels [H] (int64) and the downsampled free samples [F] (vec3,
     label ``FREE_LABEL``); ``sbki_compat.joined_training_set`` of their values is ``training_data``'s result.
-    ``scratch``: where the arrays are kept (None: new ones)."""
+    ``scratch``: where the arrays are kept (None: new ones); ``box``: the scan's ``training_box`` with
+    ds_resolution_m as its margin, when the caller has it already (None: computed here)."""
     scratch = scratch or DeviceScratch(device)
     points = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3)
     labels = np.asarray(labels, dtype=np.int64)
@@ -166,7 +168,8 @@ def training_arrays(
     if len(points) == 0:
         empty = scratch.empty(0, wp.vec3)
         return empty, scratch.empty(0, wp.int64), empty
-    box = training_box(points, origin, ds_resolution_m)
+    if box is None:
+        box = training_box(points, origin, ds_resolution_m)
     hits, hit_labels = voxel_grid_on_device(
         scratch.upload(points, wp.vec3), scratch.upload(labels, wp.int64),
         (int(labels.min()), int(labels.max())), column_bounds(points), ds_resolution_m, scratch)
@@ -289,16 +292,16 @@ def group_blocks_on_device(member_blocks: wp.array, scratch: DeviceScratch, box:
     if member_blocks.shape[0] == 0:
         return None
 
-    def grid_cells(lo, hi):
-        return float(np.prod((hi + 7 - lo).astype(np.float64)))
+    def grid_shape(lo, hi):  # the grid is the box widened by 3 on every side
+        return hi + 7 - lo
 
-    if box is None or grid_cells(*box) > sbki_compat.MAX_DENSE_LOOKUP_CELLS:  # no box, or one too wide: their own bounds
+    if box is None or sbki_compat.box_cells(grid_shape(*box)) > sbki_compat.MAX_DENSE_LOOKUP_CELLS:  # none, or too wide: read theirs
         box = block_bounds_on_device(member_blocks, scratch)
     lo, hi = box
-    if grid_cells(lo, hi) > sbki_compat.MAX_DENSE_LOOKUP_CELLS:
+    shape = grid_shape(lo, hi)
+    if sbki_compat.box_cells(shape) > sbki_compat.MAX_DENSE_LOOKUP_CELLS:
         return None
     grid_corner = lo - 3
-    shape = hi + 4 - grid_corner
     order, _, starts, count = sort_by_block(member_blocks, lo, hi, scratch)
     grid = scratch.full(tuple(int(x) for x in shape), -1, int)
     blocks = scratch.empty(count, wp.vec3i)
