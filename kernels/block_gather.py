@@ -28,6 +28,7 @@ import functools
 
 import warp as wp
 
+from .device_counts import PAST_COUNT_KEY
 from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, HashTable, block_cell, block_first_cell, find_block_rows, prefetch_brick
 from .scatter import _ONE, _ZERO, sbki_sparse_kernel_scaled, sbki_voxel_center, tally_row, touch_row
 
@@ -97,9 +98,9 @@ def block_rows_type(cells: int):
 
 
 def block_gather_kernel(Inputs, gather_block, *, cells_per_block: int, prefetch: bool):
-    """The block gathers' one traversal, a kernel (launch_ids, block_ids, scan: Inputs, table, bricks,
-    voxel_data, failed, update_count): thread t takes target block b = block_ids[launch_ids[t]] (its index
-    ``scan.blocks[b]``), asks for the blocks a few threads ahead (``prefetch_brick``, with ``prefetch``),
+    """The block gathers' one traversal, a kernel (launch_ids, block_ids, block_count, scan: Inputs, table,
+    bricks, voxel_data, failed, update_count): thread t takes target block b = block_ids[launch_ids[t]] (its
+    index ``scan.blocks[b]``; none where b is not below block_count[0], the blocks a device counted), asks for the blocks a few threads ahead (``prefetch_brick``, with ``prefetch``),
     finds or inserts its n^3 cells once (``find_block_rows`` through the brick cache ``bricks``; a block
     that does not fit adds nothing and is flagged in ``failed`` for a relaunch after the table grew),
     marks them touched (``touch_row``, before any read of them) and hands them to the method's
@@ -115,6 +116,7 @@ def block_gather_kernel(Inputs, gather_block, *, cells_per_block: int, prefetch:
     def gather_blocks(
         launch_ids: wp.array(dtype=int),
         block_ids: wp.array(dtype=int),
+        block_count: wp.array(dtype=int),
         scan: Inputs,
         table: HashTable,
         bricks: HashTable,
@@ -128,6 +130,8 @@ def block_gather_kernel(Inputs, gather_block, *, cells_per_block: int, prefetch:
             prefetch_brick(table, bricks, voxel_data, block_first_cell(scan.blocks[block_ids[launch_ids[wp.min(t + PREFETCH_AHEAD, last)]]], n),
                            block_first_cell(scan.blocks[block_ids[launch_ids[wp.min(t + PREFETCH_NEARER, last)]]], n), n3)
         b = block_ids[launch_ids[t]]
+        if b >= block_count[0]:
+            return
         first = block_first_cell(scan.blocks[b], n)
         rows = find_block_rows(cell_rows(), table, bricks, first, n)
         if rows[0] < 0:
@@ -300,30 +304,38 @@ def extended_block_tables_wide(blocks: wp.array(dtype=wp.vec3l), offsets: wp.arr
 
 
 @wp.kernel
-def block_bounds(blocks: wp.array2d(dtype=wp.int64), lowest: wp.array(dtype=wp.int64), highest: wp.array(dtype=wp.int64)):
-    """lowest/highest (3 values, starting at the int64 extremes) = the blocks' per-axis bounds."""
+def block_bounds(blocks: wp.array2d(dtype=wp.int64), count: wp.array(dtype=int), lowest: wp.array(dtype=wp.int64), highest: wp.array(dtype=wp.int64)):
+    """lowest/highest (3 values, starting at the int64 extremes) = the first count[0] blocks' per-axis bounds."""
     k = wp.tid()
+    if k >= count[0]:
+        return
     for axis in range(3):
         wp.atomic_min(lowest, axis, blocks[k, axis])
         wp.atomic_max(highest, axis, blocks[k, axis])
 
 
 @wp.kernel
-def box_positions(blocks: wp.array2d(dtype=wp.int64), lowest: wp.vec3l, span_y: wp.int64, span_z: wp.int64,
+def box_positions(blocks: wp.array2d(dtype=wp.int64), count: wp.array(dtype=int), lowest: wp.vec3l, span_y: wp.int64, span_z: wp.int64,
                   positions: wp.array(dtype=wp.int64), pair_index: wp.array(dtype=wp.int64)):
     """positions[k] = block k's row-major position in the box from ``lowest`` (x, then y, then z: the
-    packed keys' order); pair_index[k] = k."""
+    packed keys' order), ``device_counts.PAST_COUNT_KEY`` past the first count[0]; pair_index[k] = k."""
     k = wp.tid()
-    positions[k] = ((blocks[k, 0] - lowest[0]) * span_y + (blocks[k, 1] - lowest[1])) * span_z + (blocks[k, 2] - lowest[2])
     pair_index[k] = wp.int64(k)
+    if k >= count[0]:
+        positions[k] = PAST_COUNT_KEY
+        return
+    positions[k] = ((blocks[k, 0] - lowest[0]) * span_y + (blocks[k, 1] - lowest[1])) * span_z + (blocks[k, 2] - lowest[2])
 
 
 @wp.kernel
 def distinct_blocks(member_blocks: wp.array2d(dtype=wp.int64), order: wp.array(dtype=wp.int64), starts: wp.array(dtype=wp.int64),
-                    grid_lowest: wp.vec3l, blocks: wp.array(dtype=wp.vec3i), grid_blocks: wp.array(dtype=wp.vec3i), grid: wp.array3d(dtype=int)):
-    """Block b (the pairs' b-th distinct block, its first pair order[starts[b]]), in map and in grid
-    coordinates, and grid[it] = b."""
+                    block_count: wp.array(dtype=int), grid_lowest: wp.vec3l, blocks: wp.array(dtype=wp.vec3i), grid_blocks: wp.array(dtype=wp.vec3i),
+                    grid: wp.array3d(dtype=int)):
+    """Block b of block_count[0] (the pairs' b-th distinct block, its first pair order[starts[b]]), in map
+    and in grid coordinates, and grid[it] = b."""
     b = wp.tid()
+    if b >= block_count[0]:
+        return
     k = int(order[int(starts[b])])
     blocks[b] = wp.vec3i(int(member_blocks[k, 0]), int(member_blocks[k, 1]), int(member_blocks[k, 2]))
     c = wp.vec3i(int(member_blocks[k, 0] - grid_lowest[0]), int(member_blocks[k, 1] - grid_lowest[1]), int(member_blocks[k, 2] - grid_lowest[2]))
@@ -332,10 +344,12 @@ def distinct_blocks(member_blocks: wp.array2d(dtype=wp.int64), order: wp.array(d
 
 
 @wp.kernel
-def mark_test_blocks(grid_blocks: wp.array(dtype=wp.vec3i), offsets: wp.array(dtype=wp.vec3i), grid: wp.array3d(dtype=int),
-                     marked: wp.array(dtype=int)):
-    """marked[cell] = 1 (flat, row-major over the grid) for every block + offset: the test blocks."""
+def mark_test_blocks(grid_blocks: wp.array(dtype=wp.vec3i), block_count: wp.array(dtype=int), offsets: wp.array(dtype=wp.vec3i),
+                     grid: wp.array3d(dtype=int), marked: wp.array(dtype=int)):
+    """marked[cell] = 1 (flat, row-major over the grid) for every block (of block_count[0]) + offset: the test blocks."""
     b, f = wp.tid()
+    if b >= block_count[0]:
+        return
     c = grid_blocks[b] + offsets[f]
     marked[(c[0] * grid.shape[1] + c[1]) * grid.shape[2] + c[2]] = 1
 
@@ -360,20 +374,24 @@ def list_test_blocks(marked: wp.array(dtype=int), slot: wp.array(dtype=int), gri
 
 @wp.kernel
 def sorted_block_points(points: wp.array(dtype=wp.vec3), labels: wp.array(dtype=wp.int64), point_ids: wp.array(dtype=wp.int64),
-                        order: wp.array(dtype=wp.int64), length: wp.float32, scaled_points: wp.array(dtype=wp.vec3),
+                        order: wp.array(dtype=wp.int64), pair_count: wp.array(dtype=int), length: wp.float32, scaled_points: wp.array(dtype=wp.vec3),
                         sorted_labels: wp.array(dtype=int)):
-    """The pairs' points in block order as the gather kernel reads them: divided by ell in float32
-    (``scale_points``), and their labels."""
+    """The pair_count[0] pairs' points in block order as the gather kernel reads them: divided by ell in
+    float32 (``scale_points``), and their labels."""
     k = wp.tid()
+    if k >= pair_count[0]:
+        return
     i = int(point_ids[int(order[k])])
     scaled_points[k] = points[i] / length
     sorted_labels[k] = int(labels[i])
 
 
 @wp.kernel
-def narrow_starts(wide: wp.array(dtype=wp.int64), narrow: wp.array(dtype=int)):
-    """narrow[i] = wide[i] as the gather kernel's int point starts."""
+def narrow_starts(wide: wp.array(dtype=wp.int64), block_count: wp.array(dtype=int), narrow: wp.array(dtype=int)):
+    """narrow[i] = wide[i] as the gather kernel's int point starts, for the block_count[0] + 1 of them."""
     i = wp.tid()
+    if i > block_count[0]:
+        return
     narrow[i] = int(wide[i])
 
 

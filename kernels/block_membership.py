@@ -116,10 +116,14 @@ def membership_pairs(masks: wp.array(dtype=int), nearest: wp.array2d(dtype=wp.in
 
 
 @wp.kernel
-def membership_masks_parallel(points: wp.array(dtype=wp.vec3), size: float, nearest: wp.array2d(dtype=wp.int64), masks: wp.array(dtype=int),
-                              pair_counts: wp.array(dtype=int)):
-    """``block_membership_masks``, one thread per point; pair_counts[i] = the blocks holding point i."""
+def membership_masks_parallel(points: wp.array(dtype=wp.vec3), point_count: wp.array(dtype=int), size: float, nearest: wp.array2d(dtype=wp.int64),
+                              masks: wp.array(dtype=int), pair_counts: wp.array(dtype=int)):
+    """``block_membership_masks``, one thread per point of point_count[0]; pair_counts[i] = the blocks
+    holding point i, 0 past the count."""
     i = wp.tid()
+    if i >= point_count[0]:
+        pair_counts[i] = 0
+        return
     mask = _membership(points, i, size, nearest)
     masks[i] = mask
     count = int(0)
@@ -129,25 +133,30 @@ def membership_masks_parallel(points: wp.array(dtype=wp.vec3), size: float, near
 
 
 @wp.kernel
-def membership_pairs_by_point(masks: wp.array(dtype=int), first_pair: wp.array(dtype=int), bits: wp.array(dtype=wp.int64),
-                              point_ids: wp.array(dtype=wp.int64)):
+def membership_pairs_by_point(masks: wp.array(dtype=int), point_count: wp.array(dtype=int), first_pair: wp.array(dtype=int),
+                              pair_capacity: int, bits: wp.array(dtype=wp.int64), point_ids: wp.array(dtype=wp.int64)):
     """Point i's pairs at first_pair[i] on (an exclusive scan of the pair counts), in bit order: their
-    bits and the point. A stable sort by bit then lists them as ``membership_pairs`` does."""
+    bits and the point, for the point_count[0] points; pairs from pair_capacity on are not written (the
+    caller sees their count). A stable sort by bit then lists them as ``membership_pairs`` does."""
     i = wp.tid()
+    if i >= point_count[0]:
+        return
     mask = masks[i]
     pair = first_pair[i]
     for bit in range(27):
-        if (mask >> bit) & 1 == 1:
+        if (mask >> bit) & 1 == 1 and pair < pair_capacity:
             bits[pair] = wp.int64(bit)
             point_ids[pair] = wp.int64(i)
             pair += 1
 
 
 @wp.kernel
-def membership_blocks(bits: wp.array(dtype=wp.int64), point_ids: wp.array(dtype=wp.int64), nearest: wp.array2d(dtype=wp.int64),
-                      blocks: wp.array2d(dtype=wp.int64)):
-    """blocks[k] = the nearest block of pair k's point + its bit's shift."""
+def membership_blocks(bits: wp.array(dtype=wp.int64), point_ids: wp.array(dtype=wp.int64), pair_count: wp.array(dtype=int),
+                      nearest: wp.array2d(dtype=wp.int64), blocks: wp.array2d(dtype=wp.int64)):
+    """blocks[k] = the nearest block of pair k's point + its bit's shift, for the pair_count[0] pairs."""
     k = wp.tid()
+    if k >= pair_count[0]:
+        return
     i = int(point_ids[k])
     shift = _shift_of_bit(int(bits[k]))
     for axis in range(3):

@@ -22,6 +22,7 @@ wp.set_module_options({"enable_backward": False})
 def ray_samples(
     direction: wp.array(dtype=wp.vec3),
     ray_length: wp.array(dtype=wp.float32),
+    hit_count: wp.array(dtype=int),
     origin: wp.vec3,
     free_resolution: wp.float32,
     steps: wp.array(dtype=wp.float32),
@@ -29,24 +30,33 @@ def ray_samples(
     first_row: wp.array(dtype=int),
     out: wp.array(dtype=wp.vec3),
 ):
-    """Hit h's rows out[first_row[h]:]: the origin, samples_per_hit[h] samples at steps[k], and the
-    sample at ray_length[h] - free_resolution when ray_length[h] > free_resolution."""
+    """Hit h's rows out[first_row[h]:] (h below hit_count[0]; rows past out's end are not written, the
+    caller sees their count): the origin, samples_per_hit[h] samples at steps[k], and the sample at
+    ray_length[h] - free_resolution when ray_length[h] > free_resolution."""
     h = wp.tid()
+    if h >= hit_count[0]:
+        return
     row = first_row[h]
+    count = samples_per_hit[h]
+    last_sample = ray_length[h] > free_resolution
+    if row + 1 + count + wp.where(last_sample, 1, 0) > out.shape[0]:
+        return
     out[row] = origin
     d = direction[h]
-    count = samples_per_hit[h]
     for k in range(count):
         out[row + 1 + k] = origin + d * steps[k]
-    if ray_length[h] > free_resolution:
+    if last_sample:
         out[row + 1 + count] = origin + d * (ray_length[h] - free_resolution)
 
 
 @wp.kernel
-def ray_geometry(hits: wp.array(dtype=wp.vec3), origin: wp.vec3, direction: wp.array(dtype=wp.vec3), ray_length: wp.array(dtype=wp.float32)):
-    """Each hit's float32 ray from the origin: its length, sqrt((dx*dx + dy*dy) + dz*dz) (numpy's order
-    over three columns), and its direction, the difference over the length."""
+def ray_geometry(hits: wp.array(dtype=wp.vec3), hit_count: wp.array(dtype=int), origin: wp.vec3, direction: wp.array(dtype=wp.vec3),
+                 ray_length: wp.array(dtype=wp.float32)):
+    """Each of the hit_count[0] hits' float32 ray from the origin: its length, sqrt((dx*dx + dy*dy) + dz*dz)
+    (numpy's order over three columns), and its direction, the difference over the length."""
     h = wp.tid()
+    if h >= hit_count[0]:
+        return
     d = hits[h] - origin
     length = wp.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
     ray_length[h] = length
@@ -54,12 +64,15 @@ def ray_geometry(hits: wp.array(dtype=wp.vec3), origin: wp.vec3, direction: wp.a
 
 
 @wp.kernel
-def samples_per_ray(ray_length: wp.array(dtype=wp.float32), steps: wp.array(dtype=wp.float32), free_resolution: wp.float32,
-                    samples_per_hit: wp.array(dtype=int), rows_per_hit: wp.array(dtype=int)):
+def samples_per_ray(ray_length: wp.array(dtype=wp.float32), hit_count: wp.array(dtype=int), steps: wp.array(dtype=wp.float32),
+                    free_resolution: wp.float32, samples_per_hit: wp.array(dtype=int), rows_per_hit: wp.array(dtype=int)):
     """samples_per_hit[h] = how many steps lie below the hit's range (a binary search of the ascending
     steps, as numpy's searchsorted side="left"); rows_per_hit[h] = the origin, those samples and the one
-    at range - free_resolution when the range exceeds free_resolution."""
+    at range - free_resolution when the range exceeds free_resolution; 0 past the hit_count[0] hits."""
     h = wp.tid()
+    if h >= hit_count[0]:
+        rows_per_hit[h] = 0
+        return
     length = ray_length[h]
     low = int(0)
     high = steps.shape[0]
@@ -75,10 +88,11 @@ def samples_per_ray(ray_length: wp.array(dtype=wp.float32), steps: wp.array(dtyp
 
 
 @wp.kernel
-def within_range(ray_length: wp.array(dtype=wp.float32), max_range: wp.float32, keep: wp.array(dtype=int)):
-    """keep[h] = 1 where the hit's range is at most max_range (the range filter, in float32)."""
+def within_range(ray_length: wp.array(dtype=wp.float32), hit_count: wp.array(dtype=int), max_range: wp.float32, keep: wp.array(dtype=int)):
+    """keep[h] = 1 where the hit's range is at most max_range (the range filter, in float32); 0 past the
+    hit_count[0] hits."""
     h = wp.tid()
-    keep[h] = wp.where(ray_length[h] <= max_range, 1, 0)
+    keep[h] = wp.where(h < hit_count[0] and ray_length[h] <= max_range, 1, 0)
 
 
 @wp.kernel
@@ -97,20 +111,26 @@ def compact_rays(keep: wp.array(dtype=int), slot: wp.array(dtype=int), hits: wp.
 
 
 @wp.kernel
-def longest_ray(ray_length: wp.array(dtype=wp.float32), longest: wp.array(dtype=wp.float32)):
-    """longest[0] (starting at 0) = the largest ray length."""
-    wp.atomic_max(longest, 0, ray_length[wp.tid()])
+def longest_ray(ray_length: wp.array(dtype=wp.float32), hit_count: wp.array(dtype=int), longest: wp.array(dtype=wp.float32)):
+    """longest[0] (starting at 0) = the largest of the hit_count[0] ray lengths."""
+    h = wp.tid()
+    if h < hit_count[0]:
+        wp.atomic_max(longest, 0, ray_length[h])
 
 
 @wp.kernel
-def join_training_set(hits: wp.array(dtype=wp.vec3), hit_labels: wp.array(dtype=wp.int64), free_points: wp.array(dtype=wp.vec3),
-                      free_label: wp.int64, points: wp.array(dtype=wp.vec3), labels: wp.array(dtype=wp.int64)):
-    """The training set, row i: the hits, then the free points labelled ``free_label`` (one thread per row)."""
+def join_training_set(hits: wp.array(dtype=wp.vec3), hit_labels: wp.array(dtype=wp.int64), hit_count: wp.array(dtype=int),
+                      free_points: wp.array(dtype=wp.vec3), free_count: wp.array(dtype=int), free_label: wp.int64,
+                      points: wp.array(dtype=wp.vec3), labels: wp.array(dtype=wp.int64), count: wp.array(dtype=int)):
+    """The training set, row i: the hit_count[0] hits, then the free_count[0] free points labelled
+    ``free_label`` (one thread per row of its capacity); count[0] = their total."""
     i = wp.tid()
-    h = hits.shape[0]
+    h = hit_count[0]
+    if i == 0:
+        count[0] = h + free_count[0]
     if i < h:
         points[i] = hits[i]
         labels[i] = hit_labels[i]
-    else:
+    elif i < h + free_count[0]:
         points[i] = free_points[i - h]
         labels[i] = free_label

@@ -352,12 +352,15 @@ def rehash(
 
 @wp.kernel
 def read_counters(key_count: wp.array(dtype=int), update_count: wp.array(dtype=wp.int64), brick_count: wp.array(dtype=int),
-                  out: wp.array(dtype=wp.int64)):
+                  scan_status: wp.array(dtype=int), out: wp.array(dtype=wp.int64)):
     """Kernel, one thread: out = (a table's key count, a launch's update count, its brick cache's key
-    count), so that the host reads a launch's outcome back in one copy."""
+    count, then the values of ``scan_status``, what the scan's preprocessing counted on the device), so
+    that the host reads a launch's outcome back in one copy."""
     out[0] = wp.int64(key_count[0])
     out[1] = update_count[0]
     out[2] = wp.int64(brick_count[0])
+    for i in range(scan_status.shape[0]):
+        out[3 + i] = wp.int64(scan_status[i])
 
 
 @wp.kernel

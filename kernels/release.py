@@ -270,16 +270,18 @@ def searched_block_index(lookup: BlockLookup, b: wp.vec3i) -> int:
 
 def _block_models_kernel(block_index):
     @wp.kernel(module=__name__)
-    def block_models(blocks: wp.array(dtype=wp.vec3i), lookup: BlockLookup, target_offsets: wp.array(dtype=wp.vec3i),
+    def block_models(blocks: wp.array(dtype=wp.vec3i), block_count: wp.array(dtype=int), lookup: BlockLookup, target_offsets: wp.array(dtype=wp.vec3i),
                      face_offsets: wp.array(dtype=wp.vec3i), models_by_mask: wp.array2d(dtype=int), source_blocks: wp.array2d(dtype=int),
                      source_mult: wp.array2d(dtype=int)):
         """For block b and every target offset o: the block at blocks[b] + o (its index through ``lookup``;
         -1 none) and the number of its models that predict for blocks[b]. Those models are the occupied
         blocks blocks[b] + f (f a face offset or 0) that also lie in the source's extended block, so the
         count is models_by_mask[o, mask of the occupied f]: 7 lookups per block where testing every (o, f)
-        took 25 x 7. One thread per block, not per block and offset: on the CPU each thread has a fixed
-        cost."""
+        took 25 x 7. One thread per block (of block_count[0]), not per block and offset: on the CPU each
+        thread has a fixed cost."""
         b = wp.tid()
+        if b >= block_count[0]:
+            return
         occupied = int(0)
         for f in range(face_offsets.shape[0]):
             if wp.static(block_index)(lookup, blocks[b] + face_offsets[f]) >= 0:
@@ -296,7 +298,7 @@ _BLOCK_MODELS = {True: _block_models_kernel(grid_block_index), False: _block_mod
 
 
 def block_models_kernel(dense: bool):
-    """``block_models`` (blocks, lookup: BlockLookup, target_offsets, face_offsets, models_by_mask,
+    """``block_models`` (blocks, block_count, lookup: BlockLookup, target_offsets, face_offsets, models_by_mask,
     source_blocks, source_mult) through a dense grid or a binary search over the packed keys."""
     return _BLOCK_MODELS[bool(dense)]
 
@@ -409,25 +411,29 @@ def compact_indices(keep: wp.array(dtype=int), slot: wp.array(dtype=int), kept: 
 
 
 @wp.kernel
-def take_points(points: wp.array(dtype=wp.vec3), index: wp.array(dtype=int), taken: wp.array(dtype=wp.vec3)):
-    """taken[i] = points[index[i]]."""
+def take_points(points: wp.array(dtype=wp.vec3), index: wp.array(dtype=int), count: wp.array(dtype=int), taken: wp.array(dtype=wp.vec3)):
+    """taken[i] = points[index[i]] for the first count[0] indices."""
     i = wp.tid()
+    if i >= count[0]:
+        return
     taken[i] = points[index[i]]
 
 
 @functools.cache
 def sorted_rows_kernel(num_classes: int, dempster: bool):
-    """rows(points, probabilities [N, K], uncertainty, kept, point_ids, order, sorted points, class weights,
-    sorted uncertainty): the gather kernel's rows in block order, row k of kept point
+    """rows(points, probabilities [N, K], uncertainty, kept, point_ids, order, pair_count, sorted points, class
+    weights, sorted uncertainty): the gather kernel's rows in block order (the first pair_count[0]), row k of kept point
     kept[point_ids[order[k]]]; its class weights the probabilities or, for ``dempster``, the belief masses
     clip(p - u / K, 0, 1) (``core.integrators.dirichlet_beliefs``)."""
     vec_k = vector_type(num_classes)
 
     @wp.kernel(module="unique", enable_backward=False)
     def sorted_rows(points: wp.array(dtype=wp.vec3), probabilities: wp.array2d(dtype=wp.float64), uncertainty: wp.array(dtype=wp.float64),
-                    kept: wp.array(dtype=int), point_ids: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int64),
+                    kept: wp.array(dtype=int), point_ids: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int64), pair_count: wp.array(dtype=int),
                     sorted_points: wp.array(dtype=wp.vec3), class_weights: wp.array(dtype=vec_k), sorted_uncertainty: wp.array(dtype=wp.float64)):
         k = wp.tid()
+        if k >= pair_count[0]:
+            return
         i = kept[int(point_ids[int(order[k])])]
         u = uncertainty[i]
         w = vec_k()

@@ -22,12 +22,15 @@ numpy twins: ``evsemmap_warp/reference/voxel_grid.py``.
 
 import warp as wp
 
+from .device_counts import PAST_COUNT_KEY
+
 wp.set_module_options({"enable_backward": False})
 
 
 @wp.kernel
 def leaf_indices(
     points: wp.array(dtype=wp.vec3),
+    count: wp.array(dtype=int),
     inverse_leaf: wp.float32,
     lowest_x: wp.int64,
     lowest_y: wp.int64,
@@ -36,8 +39,12 @@ def leaf_indices(
     leaves_y: wp.int64,
     leaf: wp.array(dtype=wp.int64),
 ):
-    """leaf[i] = point i's leaf index: floor(p * inverse_leaf) - lowest per axis, x fastest."""
+    """leaf[i] = point i's leaf index: floor(p * inverse_leaf) - lowest per axis, x fastest, for the first
+    count[0] points; ``device_counts.PAST_COUNT_KEY`` past them."""
     i = wp.tid()
+    if i >= count[0]:
+        leaf[i] = PAST_COUNT_KEY
+        return
     p = points[i]
     rx = wp.int64(wp.floor(p[0] * inverse_leaf)) - lowest_x
     ry = wp.int64(wp.floor(p[1] * inverse_leaf)) - lowest_y
@@ -87,9 +94,11 @@ def leaf_centroids(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int
 
 
 @wp.kernel
-def point_bounds(points: wp.array(dtype=wp.vec3), lowest: wp.array(dtype=wp.float32), highest: wp.array(dtype=wp.float32)):
-    """lowest/highest (3 values each, starting at +/-inf) = the points' per-axis minimum and maximum."""
+def point_bounds(points: wp.array(dtype=wp.vec3), count: wp.array(dtype=int), lowest: wp.array(dtype=wp.float32), highest: wp.array(dtype=wp.float32)):
+    """lowest/highest (3 values each, starting at +/-inf) = the first count[0] points' per-axis minimum and maximum."""
     i = wp.tid()
+    if i >= count[0]:
+        return
     p = points[i]
     for axis in range(3):
         wp.atomic_min(lowest, axis, p[axis])
@@ -104,23 +113,29 @@ def positions(values: wp.array(dtype=wp.int64)):
 
 
 @wp.kernel
-def leaf_runs(sorted_leaf: wp.array(dtype=wp.int64), leaf_of: wp.array(dtype=int)):
-    """leaf_of[k] = 1 where sorted position k starts a new leaf, else 0 (an inclusive scan of it, minus
-    one, is position k's leaf number)."""
+def leaf_runs(sorted_leaf: wp.array(dtype=wp.int64), count: wp.array(dtype=int), leaf_of: wp.array(dtype=int)):
+    """leaf_of[k] = 1 where sorted position k (of the first count[0]) starts a new leaf, else 0, and 0 past
+    the count (an inclusive scan of it, minus one, is position k's leaf number; its last value the leaf count)."""
     k = wp.tid()
     head = 1
-    if k > 0:
+    if k >= count[0]:
+        head = 0
+    elif k > 0:
         if sorted_leaf[k] == sorted_leaf[k - 1]:
             head = 0
     leaf_of[k] = head
 
 
 @wp.kernel
-def leaf_starts(leaf_rank: wp.array(dtype=int), starts: wp.array(dtype=wp.int64)):
-    """starts[leaf] = the first sorted position of each leaf; leaf_rank is the inclusive scan of
-    ``leaf_runs`` (leaf numbers from 1). starts[leaf count] = the point count."""
+def leaf_starts(leaf_rank: wp.array(dtype=int), count: wp.array(dtype=int), starts: wp.array(dtype=wp.int64)):
+    """starts[leaf] = the first sorted position of each leaf among the first count[0]; leaf_rank is the
+    inclusive scan of ``leaf_runs`` (leaf numbers from 1). starts[leaf count] = the point count (0 for none)."""
     k = wp.tid()
-    n = leaf_rank.shape[0]
+    n = count[0]
+    if k >= n:
+        if k == 0:
+            starts[0] = wp.int64(0)
+        return
     if k == 0 or leaf_rank[k] != leaf_rank[wp.max(k - 1, 0)]:
         starts[leaf_rank[k] - 1] = wp.int64(k)
     if k == n - 1:
@@ -129,32 +144,35 @@ def leaf_starts(leaf_rank: wp.array(dtype=int), starts: wp.array(dtype=wp.int64)
 
 @wp.kernel
 def leaf_centroids_parallel(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int64), starts: wp.array(dtype=wp.int64),
-                            leaf_count: int, centroids: wp.array(dtype=wp.vec3)):
-    """``leaf_centroids``, one thread per leaf (leaf l owns sorted positions starts[l]:starts[l + 1])."""
+                            leaf_count: wp.array(dtype=int), centroids: wp.array(dtype=wp.vec3)):
+    """``leaf_centroids``, one thread per leaf of leaf_count[0] (leaf l owns sorted positions starts[l]:starts[l + 1])."""
     leaf = wp.tid()
-    if leaf >= leaf_count:
+    if leaf >= leaf_count[0]:
         return
     start = int(starts[leaf])
     centroids[leaf] = _leaf_centroid(points, order, start, int(starts[leaf + 1]) - start)
 
 
 @wp.kernel
-def leaf_label_keys(order: wp.array(dtype=wp.int64), leaf_rank: wp.array(dtype=int), labels: wp.array(dtype=wp.int64),
+def leaf_label_keys(order: wp.array(dtype=wp.int64), leaf_rank: wp.array(dtype=int), labels: wp.array(dtype=wp.int64), count: wp.array(dtype=int),
                     label_min: wp.int64, label_span: wp.int64, keys: wp.array(dtype=wp.int64), positions: wp.array(dtype=wp.int64)):
     """keys[k] = (leaf number of sorted position k) * label_span + its point's label - label_min: sorted,
-    each leaf's labels in ascending order."""
+    each leaf's labels in ascending order; ``device_counts.PAST_COUNT_KEY`` past the first count[0]. positions[k] = k."""
     k = wp.tid()
-    keys[k] = wp.int64(leaf_rank[k] - 1) * label_span + labels[int(order[k])] - label_min
     positions[k] = wp.int64(k)
+    if k >= count[0]:
+        keys[k] = PAST_COUNT_KEY
+        return
+    keys[k] = wp.int64(leaf_rank[k] - 1) * label_span + labels[int(order[k])] - label_min
 
 
 @wp.kernel
-def leaf_majority_labels(sorted_keys: wp.array(dtype=wp.int64), starts: wp.array(dtype=wp.int64), leaf_count: int,
+def leaf_majority_labels(sorted_keys: wp.array(dtype=wp.int64), starts: wp.array(dtype=wp.int64), leaf_count: wp.array(dtype=int),
                          label_min: wp.int64, label_span: wp.int64, majority: wp.array(dtype=wp.int64)):
     """majority[l] = leaf l's most frequent label, the smallest on ties: its labels ascending in
-    sorted_keys[starts[l]:starts[l + 1]] (from ``leaf_label_keys``), counted run by run."""
+    sorted_keys[starts[l]:starts[l + 1]] (from ``leaf_label_keys``), counted run by run, for the leaf_count[0] leaves."""
     leaf = wp.tid()
-    if leaf >= leaf_count:
+    if leaf >= leaf_count[0]:
         return
     start = int(starts[leaf])
     end = int(starts[leaf + 1])

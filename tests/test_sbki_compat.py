@@ -56,7 +56,8 @@ def test_leaf_index_kernel_matches_its_twin(offset):
         leaves = np.floor(cloud.max(axis=0) * inverse_leaf).astype(np.int64) - lowest + 1 if len(cloud) else np.ones(3, np.int64)
         out = wp.empty(len(cloud), dtype=wp.int64, device="cpu")
         wp.launch(voxel_grid.leaf_indices, dim=len(cloud), device="cpu", inputs=[
-            wp.array(cloud, dtype=wp.vec3, device="cpu"), float(inverse_leaf), *[int(x) for x in lowest], int(leaves[0]), int(leaves[1]), out])
+            wp.array(cloud, dtype=wp.vec3, device="cpu"), wp.array([len(cloud)], dtype=int, device="cpu"), float(inverse_leaf), *[int(x) for x in lowest],
+            int(leaves[0]), int(leaves[1]), out])
         want = leaf_indices(cloud, inverse_leaf, lowest, int(leaves[0]), int(leaves[1]))
         np.testing.assert_array_equal(out.numpy(), want)
         assert len(cloud) == 0 or (want.min() >= 0 and want.max() < np.prod(leaves))

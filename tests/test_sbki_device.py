@@ -14,11 +14,30 @@ import warp as wp
 from evsemmap_warp.kernels import voxel_grid
 from evsemmap_warp.methods import sbki_compat as sb
 from evsemmap_warp.methods import sbki_device
+from evsemmap_warp.methods.device_scratch import STATUS_FREE_ROWS, STATUS_OVERFLOW, DeviceScratch, Rows
 from evsemmap_warp.reference import voxel_grid as twin
 
 
-def _on_device(points, labels, origin, device, **kw):
-    return sb.joined_training_set(*[part.numpy() for part in sbki_device.training_arrays(points, labels, origin, device=device, **kw)])
+def _rows(values, dtype, device) -> Rows:
+    """Rows over all of ``values``."""
+    return Rows(wp.array(values, dtype=dtype, device=device), wp.array([len(values)], dtype=int, device=device))
+
+
+def _on_device(points, labels, origin, device, scratch=None, **kw):
+    # As the launch runs it (core.integrators.counted_gather_launch): redone with room for what a run that
+    # ran out of room counted.
+    if len(points) == 0:
+        return np.zeros((0, 3), np.float32), np.zeros(0, np.int64), {"hits": 0, "free_samples": 0}
+    scratch = scratch or DeviceScratch(device).begin()
+    while True:
+        hits, hit_labels, frees = sbki_device.training_arrays(points, labels, origin, device=device, scratch=scratch, **kw)
+        status = scratch.status.numpy()
+        if not status[STATUS_OVERFLOW]:
+            break
+        scratch.learn(status)
+        scratch.begin()
+    hits = hits.numpy()
+    return sb.joined_training_set(hits, hit_labels.numpy()[:len(hits)], frees.numpy())
 
 
 def _both(points, labels, origin, device, **kw):
@@ -81,10 +100,10 @@ def test_thousands_of_copies_in_one_leaf_drift_as_the_host_sums(device):
     copies = np.repeat(origin[None], 20_000, axis=0)
     host = sb.voxel_grid_downsample(copies, np.zeros(len(copies), np.int64), 0.1)
     centroids, labels = sbki_device.voxel_grid_on_device(
-        wp.array(copies, dtype=wp.vec3, device=device), wp.array(np.zeros(len(copies), np.int64), dtype=wp.int64, device=device), (0, 0),
+        _rows(copies, wp.vec3, device), wp.array(np.zeros(len(copies), np.int64), dtype=wp.int64, device=device), (0, 0),
         (copies.min(axis=0), copies.max(axis=0)), 0.1)
     np.testing.assert_array_equal(centroids.numpy(), host[0])
-    np.testing.assert_array_equal(labels.numpy(), host[1])
+    np.testing.assert_array_equal(labels.numpy()[:len(host[1])], host[1])
 
 
 def test_a_grid_pcl_refuses_leaves_the_cloud_unchanged(device):
@@ -92,7 +111,7 @@ def test_a_grid_pcl_refuses_leaves_the_cloud_unchanged(device):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         centroids, labels = sbki_device.voxel_grid_on_device(
-            wp.array(points, dtype=wp.vec3, device=device), wp.array(np.array([1, 2]), dtype=wp.int64, device=device), (1, 2),
+            _rows(points, wp.vec3, device), wp.array(np.array([1, 2]), dtype=wp.int64, device=device), (1, 2),
             (points.min(axis=0), points.max(axis=0)), 0.01)
     np.testing.assert_array_equal(centroids.numpy(), points)
     np.testing.assert_array_equal(labels.numpy(), [1, 2])
@@ -160,7 +179,7 @@ def test_training_data_where_the_host_box_is_refused_reads_the_bounds(device, ca
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no grid is refused on either path
         _assert_same(*_both(points, labels, origin, device, ds_resolution_m=0.1, free_resolution_m=free_res, max_range_m=max_range))
-    assert read == ["float_bounds_on_device" if case == "leaf grid" else "_longest_ray"]
+    assert set(read) == {"float_bounds_on_device" if case == "leaf grid" else "_longest_ray"}  # once per run (a scan out of room runs again)
 
 
 def test_the_training_set_join_matches_its_twin(device):
@@ -171,15 +190,21 @@ def test_the_training_set_join_matches_its_twin(device):
     for h, f in ((0, 0), (3, 0), (0, 4), (50, 70)):
         hits, frees = rng.normal(size=(h, 3)).astype(np.float32), rng.normal(size=(f, 3)).astype(np.float32)
         hit_labels = rng.integers(0, 9, h)
-        points = wp.empty(h + f, dtype=wp.vec3, device=device)
-        labels = wp.empty(h + f, dtype=wp.int64, device=device)
-        if h + f:
-            wp.launch(free_space.join_training_set, dim=h + f, device=device, inputs=[
-                wp.array(hits, dtype=wp.vec3, device=device), wp.array(hit_labels, dtype=wp.int64, device=device),
-                wp.array(frees, dtype=wp.vec3, device=device), sb.FREE_LABEL, points, labels])
+        # Each part with room for 5 more rows than it counts: the rows past the counts are not joined.
+        hit_room = np.concatenate([hits, np.full((5, 3), np.nan, np.float32)])
+        free_room = np.concatenate([frees, np.full((5, 3), np.nan, np.float32)])
+        capacity = h + f + 10
+        points = wp.empty(capacity, dtype=wp.vec3, device=device)
+        labels = wp.empty(capacity, dtype=wp.int64, device=device)
+        total = wp.empty(1, dtype=int, device=device)
+        wp.launch(free_space.join_training_set, dim=capacity, device=device, inputs=[
+            wp.array(hit_room, dtype=wp.vec3, device=device), wp.array(np.r_[hit_labels, np.full(5, -7)], dtype=wp.int64, device=device),
+            wp.array([h], dtype=int, device=device), wp.array(free_room, dtype=wp.vec3, device=device), wp.array([f], dtype=int, device=device),
+            sb.FREE_LABEL, points, labels, total])
         want_points, want_labels = join_training_set(hits, hit_labels, frees, sb.FREE_LABEL)
-        np.testing.assert_array_equal(points.numpy().reshape(-1, 3), want_points)
-        np.testing.assert_array_equal(labels.numpy(), want_labels)
+        assert total.numpy()[0] == h + f
+        np.testing.assert_array_equal(points.numpy()[:h + f].reshape(-1, 3), want_points)
+        np.testing.assert_array_equal(labels.numpy()[:h + f], want_labels)
 
 
 def test_parallel_centroids_and_majority_labels_match_their_twins(device):
@@ -193,27 +218,29 @@ def test_parallel_centroids_and_majority_labels_match_their_twins(device):
     sorted_leaf = leaf[order]
     starts = np.flatnonzero(np.r_[True, sorted_leaf[1:] != sorted_leaf[:-1]])
     counts = np.diff(np.r_[starts, n])
+    # Room for 100 more points than are counted: what lies past the count changes nothing.
+    room = np.concatenate([points, rng.normal(size=(100, 3)).astype(np.float32)])
     centroids, majority = sbki_device.voxel_grid_on_device(
-        wp.array(points, dtype=wp.vec3, device=device), wp.array(labels, dtype=wp.int64, device=device), (0, 3),
-        (points.min(axis=0), points.max(axis=0)), 0.1)
+        Rows(wp.array(room, dtype=wp.vec3, device=device), wp.array([n], dtype=int, device=device)),
+        wp.array(np.r_[labels, np.full(100, 3)], dtype=wp.int64, device=device), (0, 3), (room.min(axis=0), room.max(axis=0)), 0.1)
     np.testing.assert_array_equal(centroids.numpy(), twin.leaf_centroids(points, order, starts, counts))
     label_keys, _ = twin.leaf_label_keys(order, np.repeat(np.arange(1, len(starts) + 1), counts), labels, 0, 4)
-    np.testing.assert_array_equal(majority.numpy(), twin.leaf_majority_labels(np.sort(label_keys), np.r_[starts, n], len(starts), 0, 4))
+    np.testing.assert_array_equal(majority.numpy()[:len(starts)], twin.leaf_majority_labels(np.sort(label_keys), np.r_[starts, n], len(starts), 0, 4))
     assert len(starts) < n  # leaves that hold several points, so the sums and the votes are tested
 
 
 def test_leaf_runs_and_starts_on_one_point_and_on_one_leaf(device):
-    for sorted_leaf in ([5], [2, 2, 2], [0, 1, 1, 4, 4, 4, 9]):
-        keys = wp.array(np.array(sorted_leaf, np.int64), dtype=wp.int64, device=device)
-        heads = wp.empty(len(sorted_leaf), dtype=int, device=device)
-        wp.launch(voxel_grid.leaf_runs, dim=len(sorted_leaf), device=device, inputs=[keys, heads])
-        rank = wp.empty_like(heads)
-        wp.utils.array_scan(heads, rank, inclusive=True)
-        leaves = int(rank.numpy()[-1])
-        starts = wp.empty(leaves + 1, dtype=wp.int64, device=device)
-        wp.launch(voxel_grid.leaf_starts, dim=len(sorted_leaf), device=device, inputs=[rank, starts])
+    # Over room for 3 more keys than are counted (keys past the count: the largest), and none counted.
+    for sorted_leaf in ([5], [2, 2, 2], [0, 1, 1, 4, 4, 4, 9], []):
+        room = np.r_[np.array(sorted_leaf, np.int64), np.full(3, np.iinfo(np.int64).max)]
+        keys = wp.array(room, dtype=wp.int64, device=device)
+        count = wp.array([len(sorted_leaf)], dtype=int, device=device)
+        run_rank, starts, runs = sbki_device.runs_of_sorted(keys, len(room), count, DeviceScratch(device).begin())
+        leaves = int(runs.numpy()[0])
         s = np.asarray(sorted_leaf)
-        np.testing.assert_array_equal(starts.numpy(), np.r_[np.flatnonzero(np.r_[True, s[1:] != s[:-1]]), len(s)])
+        want = np.r_[np.flatnonzero(np.r_[True, s[1:] != s[:-1]]), len(s)] if len(s) else [0]
+        np.testing.assert_array_equal(starts.numpy()[:leaves + 1], want)
+        np.testing.assert_array_equal(run_rank.numpy()[len(s):], leaves)  # no run starts past the count
 
 
 @pytest.mark.parametrize("free_res", [0.5, 4.0])
@@ -234,10 +261,11 @@ def _memberships_and_tables(points, block_size, length, device):
     labels = np.arange(len(points), dtype=np.int64) % 7
     ids, owners = sb.block_memberships(points, block_size)
     host = sb.gather_tables(owners)
-    on_device = wp.array(points, dtype=wp.vec3, device=device)
+    on_device = _rows(points, wp.vec3, device)
     device_ids, device_owners = sbki_device.block_memberships_on_device(on_device, block_size)
-    np.testing.assert_array_equal(device_ids.numpy(), ids)
-    np.testing.assert_array_equal(device_owners.numpy(), owners)
+    owners_on_device = device_owners.numpy()
+    np.testing.assert_array_equal(device_ids.numpy()[:len(owners_on_device)], ids)
+    np.testing.assert_array_equal(owners_on_device, owners)
     tables = sbki_device.gather_tables_on_device(on_device, wp.array(labels, dtype=wp.int64, device=device), block_size, length)
     return ids, labels, host, tables
 
@@ -257,22 +285,23 @@ def test_memberships_and_gather_tables_match_the_host_path(device, block_depth):
         assert sb.dense_block_grid(host.blocks)[0] is None
         points = points[np.abs(points).max(axis=1) < 100]
         ids, labels, host, tables = _memberships_and_tables(points, block_size, 0.3, device)
+    tests, blocks, pairs = len(host.test_blocks), len(host.point_start) - 1, len(host.pair_order)
     np.testing.assert_array_equal(tables.test_blocks, host.test_blocks)
-    np.testing.assert_array_equal(tables.tests.numpy(), host.test_blocks.astype(np.int32))
-    np.testing.assert_array_equal(tables.sources.numpy(), host.sources)
-    np.testing.assert_array_equal(tables.point_start.numpy(), host.point_start)
+    np.testing.assert_array_equal(tables.tests.numpy()[:tests], host.test_blocks.astype(np.int32))
+    np.testing.assert_array_equal(tables.sources.numpy()[:tests], host.sources)
+    np.testing.assert_array_equal(tables.point_start.numpy()[:blocks + 1], host.point_start)
     sorted_points = ids[host.pair_order]
     from evsemmap_warp.kernels.block_gather import scale_points
-    np.testing.assert_array_equal(tables.scaled_points.numpy(), scale_points(points[sorted_points], 0.3))
-    np.testing.assert_array_equal(tables.labels.numpy(), labels[sorted_points])
+    np.testing.assert_array_equal(tables.scaled_points.numpy()[:pairs], scale_points(points[sorted_points], 0.3))
+    np.testing.assert_array_equal(tables.labels.numpy()[:pairs], labels[sorted_points])
 
 
 def test_memberships_of_one_point_and_of_none(device):
     block_size = sb.block_size_m(0.2, 2)
     for points in (np.zeros((0, 3), np.float32), np.array([[0.2, 0.2, 0.2]], np.float32), np.array([[0.05, 1.0, -2.0]], np.float32)):
         ids, owners = sb.block_memberships(points, block_size)
-        device_ids, device_owners = sbki_device.block_memberships_on_device(wp.array(points, dtype=wp.vec3, device=device), block_size)
-        np.testing.assert_array_equal(device_ids.numpy(), ids)
+        device_ids, device_owners = sbki_device.block_memberships_on_device(_rows(points, wp.vec3, device), block_size)
+        np.testing.assert_array_equal(device_ids.numpy()[:len(ids)], ids)
         np.testing.assert_array_equal(device_owners.numpy().reshape(-1, 3), owners.reshape(-1, 3))
 
 
@@ -336,3 +365,49 @@ def test_blocks_whose_box_reaches_past_the_key_range_are_read_back_and_checked(d
     assert len(maps[0].index) > 1000
     np.testing.assert_array_equal(maps[1].index, maps[0].index)
     np.testing.assert_array_equal(maps[1].rows(), maps[0].rows())
+
+
+def _bench_sbki(free_res):
+    from conftest import shared_path
+
+    from evsemmap_warp.config import Compat, Kernel, MappingConfig, Media, SbkiSettings
+
+    data = np.load(shared_path("data", "bench", "rellis_like_30scans.npz"))
+    offsets = data["scan_offsets"]
+    config = MappingConfig(method="s-bki", kernel=Kernel.SPARSE, media=Media.ONEHOT, adaptive_length=False, uncertainty_threshold=False,
+                           compat=Compat.SBKI, resolution_m=0.2, length_m=0.3, sigma0=10.0, prior=0.001,
+                           sbki=SbkiSettings(block_depth=2, ds_resolution_m=0.1, free_resolution_m=free_res, max_range_m=None))
+    scans = [SimpleNamespace(points=(data["xyz_mm"][offsets[i]:offsets[i + 1]] / 1000.0).astype(np.float32),
+                             payload=data["label"][offsets[i]:offsets[i + 1]].astype(np.int64), payload_type="label",
+                             sensor_origin=data["origins_mm"][i] / 1000.0) for i in range(2)]
+    return config, scans
+
+
+def test_a_scan_that_outgrows_its_reserved_room_is_redone_to_the_same_map(device):
+    # Room for 100 free samples and 100 pairs: the first scan outgrows both, gathers nothing, is built again
+    # (twice where the pairs of its truncated training set fitted) and gathered; the map is the host path's,
+    # and a later scan reads once.
+    from test_host_reads import assert_outgrown_room_is_redone_to_the_host_map
+
+    from evsemmap_warp.methods.device_scratch import STATUS_PAIRS
+
+    config, scans = _bench_sbki(4.0)
+    assert_outgrown_room_is_redone_to_the_host_map(config, scans, device, {STATUS_FREE_ROWS: 100, STATUS_PAIRS: 100})
+
+
+def test_a_scan_with_too_many_free_samples_is_refused_on_both_paths_and_writes_nothing(device, monkeypatch):
+    # The limit lowered under the scan's free samples: the device path learns their count from its status
+    # (the gather saw no block), and refuses the scan on its redo, as the host path refuses it up front.
+    from evsemmap_warp.core.mapper import Mapper
+
+    config, scans = _bench_sbki(4.0)
+    for on_device in (False, True):
+        mapper = Mapper(config, 9, workers=1, device=device)
+        mapper.integrator.preprocess_on_device = on_device
+        mapper.integrate_many(scans[1:])
+        before = len(mapper.voxels()[0].index)
+        monkeypatch.setattr(sb, "MAX_FREE_SAMPLES_PER_SCAN", 20_000)
+        with pytest.raises(ValueError, match="free_resolution_m"):
+            mapper.integrate_many(scans[:1])
+        monkeypatch.undo()
+        assert len(mapper.voxels()[0].index) == before

@@ -117,3 +117,23 @@ def test_a_scratch_set_taken_for_a_scan_that_fails_is_given_back():
     with pool.taken("cpu") as held:
         pass
     assert held is failed and held.in_use  # a scan that prepared holds its set until its launch releases it
+
+
+def test_scratch_uploads_go_through_kept_buffers_on_the_gpu_path():
+    # On a GPU a scratch set's uploads are copied from a kept (pinned) host buffer into a kept device buffer;
+    # the CPU backend takes that path here: the values arrive, and the next scan that takes the set reuses both.
+    from evsemmap_warp.methods.device_scratch import ScratchPool
+
+    pool = ScratchPool()
+
+    def scan(values):  # the same line uploads in every scan, as the preprocessing's lines do
+        scratch = pool.take("cpu")
+        scratch.copies_uploads = True
+        uploaded = scratch.upload(values, wp.vec3)
+        np.testing.assert_array_equal(uploaded.numpy(), values)
+        assert uploaded.ptr != values.ctypes.data  # a copy, not numpy's memory
+        scratch.release()
+        return uploaded.ptr, {key: buffer.ptr for key, buffer in scratch._pinned.items()}
+
+    first = np.arange(12, dtype=np.float32).reshape(4, 3)
+    assert scan(first) == scan(first[:3] * 2)

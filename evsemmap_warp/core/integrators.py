@@ -29,12 +29,12 @@ import numpy as np
 import warp as wp
 
 from ..config import Compat, Fusion, Kernel, MappingConfig, Media, PayloadType, ScatterStrategy, ThresholdScope
-from ..kernels import block_gather, block_membership, free_space, radix_sort, release, voxel_grid
+from ..kernels import block_gather, block_membership, device_counts, free_space, radix_sort, release, voxel_grid
 from ..kernels import hashgrid_gather as hg
 from ..kernels import scatter as sc
 from ..kernels import sorted_scatter as ss
 from ..methods import convbki, release_compat, release_device, sbki_compat, sbki_device, see_csom
-from ..methods.device_scratch import DeviceScratch, ScratchPool
+from ..methods.device_scratch import STATUS_KEPT_POINTS, STATUS_OVERFLOW, DeviceScratch, ScratchPool
 from ..voxel_keys import column_bounds, take_rows
 from ._shards import PendingUpdates, ShardLanes, block_shard, for_each_shard, split_over_shards, total_updates, when_done
 from .voxel_map import VoxelMap
@@ -409,7 +409,7 @@ class SbkiCompatIntegrator:
     def kernel_modules(self, device: str) -> list:
         """The training data's and memberships' modules, then the gather tables' and gather kernel's (S-BKI)
         or the block cells' insertion and the own-block scatter (S-CSM)."""
-        training = [voxel_grid, radix_sort, free_space, block_membership]
+        training = [voxel_grid, radix_sort, free_space, block_membership, device_counts]
         if self.config.kernel is Kernel.COUNT:
             return training + [sc, sc.scatter_kernel(sc.MODE_SBKI_OWN_BLOCK, sc.FUSION_BAYES, True).module]
         gather = [] if self.num_classes is None else [self.gather_kernel(self.num_classes, self.cells_per_block).module]
@@ -440,28 +440,30 @@ class SbkiCompatIntegrator:
 
     def _prepare_on_device(self, scan: ScanPayload, device: str) -> Launch:
         """``prepare`` for the S-BKI kernel with the preprocessing on the map's device: the gather kernel's
-        inputs never leave it (the test blocks are read back for the key-range check and the shards'
-        split). No training points, or blocks too spread for the dense grid: the host path from the
-        training set. The arrays are a set of the integrator's scratch pool, held until the launch is done."""
+        inputs never leave it, and no count is read back (``counted_gather_launch``). Blocks too spread for the
+        dense grid: the host path from the training set. The arrays are a set of the integrator's scratch
+        pool, held until the launch is done."""
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points))
-        with self._scratch.taken(device) as scratch:
-            box = sbki_device.training_box(scan.points, scan.sensor_origin, c.sbki.ds_resolution_m) if len(scan.points) else None
+        if len(scan.points) == 0:
+            stats.kept_points = 0
+            return launch_step(stats)
+        box = sbki_device.training_box(scan.points, scan.sensor_origin, c.sbki.ds_resolution_m)
+
+        def build(scratch: DeviceScratch):
             points, labels = sbki_device.training_set(*sbki_device.training_arrays(
                 scan.points, scan.labels, scan.sensor_origin, ds_resolution_m=c.sbki.ds_resolution_m,
                 free_resolution_m=c.sbki.free_resolution_m, max_range_m=c.sbki.max_range_m, device=device, scratch=scratch, box=box), scratch)
-            tables = sbki_device.gather_tables_on_device(points, labels, self.block_size, c.length_m, scratch, box) if points.shape[0] else None
+            tables = sbki_device.gather_tables_on_device(points, labels, self.block_size, c.length_m, scratch, box)
             if tables is None:
-                training_set = points.numpy(), labels.numpy()
-        if tables is None:
-            scratch.release()
-            return self._launch_from_training_set(stats, *training_set, device)
-        stats.kept_points = points.shape[0]
-        inputs = block_gather.sbki_blocks(blocks=tables.tests, sources=tables.sources, point_start=tables.point_start,
-                                          scaled_points=tables.scaled_points, labels=tables.labels, length=c.length_m,
-                                          sigma0=c.sigma0, resolution=c.resolution_m, grid_offset=self.grid_offset_m)
-        return launch_step(stats, releasing(block_gather_run(tables.targets, self.cells_per_block, self.gather_kernel, inputs, "sbki_gather"),
-                                            scratch))
+                training_points = points.numpy()
+                return self._launch_from_training_set(stats, training_points, labels.numpy()[:len(training_points)], device)
+            inputs = block_gather.sbki_blocks(blocks=tables.tests, sources=tables.sources, point_start=tables.point_start,
+                                              scaled_points=tables.scaled_points, labels=tables.labels, length=c.length_m,
+                                              sigma0=c.sigma0, resolution=c.resolution_m, grid_offset=self.grid_offset_m)
+            return inputs, tables.targets
+
+        return counted_gather_launch(stats, self._scratch, device, build, self.cells_per_block, self.gather_kernel, "sbki_gather")
 
     def _scatter_counts(self, shards, points, labels, point_ids, owners, lanes) -> int | PendingUpdates:
         """S-CSM: each (point, block) pair adds 1 to its block's single cell."""
@@ -530,7 +532,7 @@ class ReleaseCompatIntegrator:
             return [release, radix_sort, block_membership]
         gather = self.gather_kernel(self.num_classes, self.cells_per_block, fusion=fusion).module
         if preprocesses_on_device(self, device):
-            return [release, voxel_grid, block_membership, block_gather, release.sorted_rows_kernel(self.num_classes, fusion == sc.FUSION_DEMPSTER).module, gather]
+            return [release, voxel_grid, block_membership, block_gather, device_counts, release.sorted_rows_kernel(self.num_classes, fusion == sc.FUSION_DEMPSTER).module, gather]
         return [release, radix_sort, block_membership, gather]
 
     def cut_points(self, scan: ScanPayload, sensor_origin: np.ndarray) -> np.ndarray:
@@ -556,12 +558,12 @@ class ReleaseCompatIntegrator:
     def prepare(self, scan: ScanPayload, device: str) -> Launch:
         """The cut, the cap, memberships and the block models' tables (no map access; after the cut on the
         map's device for a GPU map); the launch runs the gather kernel."""
+        if preprocesses_on_device(self, device):
+            return self._prepare_on_device(scan, device)
+        return self._prepare_on_host(scan, device)
+
+    def _prepare_on_host(self, scan: ScanPayload, device: str) -> Launch:
         c = self.config
-        on_device = preprocesses_on_device(self, device)
-        if on_device:
-            launch = self._prepare_on_device(scan, device)
-            if launch is not None:
-                return launch
         stats = IntegrationStats(input_points=len(scan.points))
         keep, _ = self.training_points(scan, scan.sensor_origin)
         stats.kept_points = len(keep)
@@ -590,29 +592,32 @@ class ReleaseCompatIntegrator:
         kernel_factory = functools.partial(self.gather_kernel, fusion=fusion)
         return launch_step(stats, block_gather_run(models.blocks, self.cells_per_block, kernel_factory, scan, "release_gather"))
 
-    def _prepare_on_device(self, scan: ScanPayload, device: str) -> Launch | None:
-        """``prepare`` with the work after the cut on the map's device (``methods.release_device``); None
-        where the blocks are too spread for its dense grid (``prepare`` then takes the host path)."""
+    def _prepare_on_device(self, scan: ScanPayload, device: str) -> Launch:
+        """``prepare`` with the work after the cut on the map's device (``methods.release_device``), no count
+        read back (``counted_gather_launch``); the host path where the blocks are too spread for its dense grid."""
         c = self.config
         stats = IntegrationStats(input_points=len(scan.points))
         keep = self.cut_points(scan, scan.sensor_origin)
         if len(keep) == 0:
+            stats.kept_points = 0
             return launch_step(stats)
         fusion = scatter_fusion(c)
-        with self._scratch.taken(device) as scratch:
+        points, probabilities, uncertainty = scan.points[keep], scan.probability_rows(keep), scan.uncertainty[keep]
+
+        def build(scratch: DeviceScratch):
             inputs = release_device.release_inputs_on_device(
-                scan.points[keep], scan.probability_rows(keep), scan.uncertainty[keep], ds_resolution_m=c.sbki.ds_resolution_m,
-                block_size=self.block_size, cap=c.release_block_cap, dempster=fusion == sc.FUSION_DEMPSTER, device=device, scratch=scratch)
-        if inputs is None:
-            scratch.release()
-            return None
-        stats.kept_points = inputs.kept_points
-        blocks = release.release_blocks(
-            blocks=inputs.targets.blocks, source_blocks=inputs.source_blocks, source_mult=inputs.source_mult, point_start=inputs.point_start,
-            points=inputs.points, class_weights=inputs.class_weights, uncertainty=inputs.uncertainty, length=self.length, sigma0=c.sigma0,
-            resolution=c.resolution_m)
+                points, probabilities, uncertainty, ds_resolution_m=c.sbki.ds_resolution_m, block_size=self.block_size,
+                cap=c.release_block_cap, dempster=fusion == sc.FUSION_DEMPSTER, device=device, scratch=scratch)
+            if inputs is None:
+                return self._prepare_on_host(scan, device)
+            blocks = release.release_blocks(
+                blocks=inputs.targets.blocks, source_blocks=inputs.source_blocks, source_mult=inputs.source_mult, point_start=inputs.point_start,
+                points=inputs.points, class_weights=inputs.class_weights, uncertainty=inputs.uncertainty, length=self.length, sigma0=c.sigma0,
+                resolution=c.resolution_m)
+            return blocks, inputs.targets
+
         kernel_factory = functools.partial(self.gather_kernel, fusion=fusion)
-        return launch_step(stats, releasing(block_gather_run(inputs.targets, self.cells_per_block, kernel_factory, blocks, "release_gather"), scratch))
+        return counted_gather_launch(stats, self._scratch, device, build, self.cells_per_block, kernel_factory, "release_gather")
 
 
 def releasing(run, scratch: DeviceScratch):
@@ -631,27 +636,67 @@ def releasing(run, scratch: DeviceScratch):
     return run_then_release
 
 
-def block_gather_run(blocks: np.ndarray | sbki_device.DeviceBlocks, cells_per_block: int, kernel_factory, scan, kind: str):
+def block_gather_run(blocks: np.ndarray, cells_per_block: int, kernel_factory, scan, kind: str):
     """run(shards, lanes) -> updates for a block-gather kernel (``kernel_factory(K, cells per block)``)
-    over target ``blocks`` [B, 3] (the blocks of ``scan``, its inputs struct), or blocks on the device
-    (``DeviceBlocks``): the key range is checked before any launch, and each block is gathered in the
-    shard its index picks, so a cell is always summed in the same shard in the same order and the map is
-    bit for bit the same for any number of workers. Blocks on the device that a map of one shard gathers
-    all of, in a box within the key range, are not read back."""
+    over target ``blocks`` [B, 3] (the blocks of ``scan``, its inputs struct): the key range is checked
+    before any launch, and each block is gathered in the shard its index picks, so a cell is always summed
+    in the same shard in the same order and the map is bit for bit the same for any number of workers."""
 
     def run(shards: list[VoxelMap], lanes: ShardLanes | None) -> int | PendingUpdates:
         kernel = kernel_factory(shards[0].num_classes, cells_per_block)
         shards[0].load_kernel(kernel)
-        on_device = isinstance(blocks, sbki_device.DeviceBlocks)
-        if on_device and len(shards) == 1 and blocks.box is not None and VoxelMap.block_range_holds(np.stack(blocks.box), cells_per_block):
-            return shards[0].gather_blocks(kernel, scan, np.arange(blocks.count), cells_per_block=cells_per_block, kind=kind)
-        targets = blocks.host() if on_device else blocks
-        shards[0].check_block_range(targets, cells_per_block)
-        owner = block_shard(targets, len(shards))
-
-        def job(shard: VoxelMap, index: int) -> int:
-            return shard.gather_blocks(kernel, scan, np.flatnonzero(owner == index), cells_per_block=cells_per_block, kind=kind)
-
-        return total_updates(for_each_shard(shards, lanes, job))
+        return _gather_over_shards(shards, lanes, kernel, scan, blocks, cells_per_block, kind)
 
     return run
+
+
+def _gather_over_shards(shards, lanes, kernel, scan, blocks: np.ndarray, cells_per_block: int, kind: str) -> int | PendingUpdates:
+    shards[0].check_block_range(blocks, cells_per_block)
+    owner = block_shard(blocks, len(shards))
+
+    def job(shard: VoxelMap, index: int) -> int:
+        return shard.gather_blocks(kernel, scan, np.flatnonzero(owner == index), block_count=len(blocks), cells_per_block=cells_per_block, kind=kind)
+
+    return total_updates(for_each_shard(shards, lanes, job))
+
+
+def counted_gather_launch(stats: IntegrationStats, pool: ScratchPool, device: str, build, cells_per_block: int, kernel_factory, kind: str) -> Launch:
+    """The launch of a block gather whose inputs the map's device prepared without reading a count back:
+    ``build(scratch)`` -> (the kernel's inputs struct, their ``sbki_device.DeviceBlocks``), or the Launch of
+    the host path where the device path does not apply, run with a set of ``pool``'s scratch.
+
+    The gather reads the scan's status back with its counters, the scan's one read (a map of one shard
+    whose blocks' box lies within the key range; otherwise the status and the blocks are read for the key
+    range check and the shards' split). A scan whose status says it ran out of room gathered nothing: it is
+    built again with room for what it counted and gathered again, in the launch. ``stats.kept_points``
+    comes from the status."""
+    with pool.taken(device) as scratch:
+        built = build(scratch)
+    if not isinstance(built, tuple):  # the host path
+        scratch.release()
+        return built
+
+    def run(shards: list[VoxelMap], lanes: ShardLanes | None) -> int | PendingUpdates:
+        kernel = kernel_factory(shards[0].num_classes, cells_per_block)
+        shards[0].load_kernel(kernel)
+        scan, targets = built
+        while True:
+            if len(shards) == 1 and targets.box is not None and VoxelMap.block_range_holds(np.stack(targets.box), cells_per_block):
+                updates = shards[0].gather_counted_blocks(kernel, scan, targets.capacity, targets.count, targets.status,
+                                                          cells_per_block=cells_per_block, kind=kind)
+                status = shards[0].scan_status
+            else:
+                status = targets.status.numpy()
+                updates = 0 if status[STATUS_OVERFLOW] else _gather_over_shards(shards, lanes, kernel, scan, targets.host(), cells_per_block, kind)
+            if not status[STATUS_OVERFLOW]:
+                stats.kept_points = int(status[STATUS_KEPT_POINTS])
+                return updates
+            scratch.learn(status)
+            rebuilt = build(scratch.begin())
+            if not isinstance(rebuilt, tuple):  # with all its rows, the scan takes the host path (its blocks are too spread)
+                host = rebuilt(shards, lanes)
+                stats.kept_points = host.kept_points
+                return host.voxel_updates
+            scan, targets = rebuilt
+
+    return launch_step(stats, releasing(run, scratch))

@@ -45,6 +45,8 @@ MIN_CAPACITY = 16
 # Inside one launch the table may fill up to this fraction before insertions fail and it grows;
 # between launches it is kept at or below max_load.
 LAUNCH_FILL_LIMIT = 0.75
+# The most values of a scan status read back with a launch's counters (``gather_counted_blocks``).
+MAX_SCAN_STATUS = 8
 
 
 @dataclass
@@ -121,11 +123,16 @@ class VoxelMap:
         load_once(ht, self.device)  # every launch reads its counters back through it
         # Reused by every launch, so that a warm scan allocates nothing: the failure flags (all zero between
         # launches), the thread ids 0..n-1 (both grown to powers of two), the launch's update count, and the
-        # counters read back after it (key count, update count, brick count) in one copy.
+        # counters read back after it (key count, update count, brick count, and the status of the scan a
+        # block gather's inputs were counted in on the device) in one copy.
         self._failure_flags = None
         self._thread_ids = None
         self._updates = wp.zeros(1, dtype=wp.int64, device=self.device)
-        self._counters = wp.zeros(3, dtype=wp.int64, device=self.device)
+        self._counters = wp.zeros(3 + MAX_SCAN_STATUS, dtype=wp.int64, device=self.device)
+        self._no_scan_status = wp.zeros(0, dtype=int, device=self.device)
+        self._scan_status = self._no_scan_status
+        # The status read back with the last launch's counters (``gather_counted_blocks``).
+        self.scan_status = np.zeros(0, np.int64)
         self._counted_updates = 0
         # The scans' inputs reach the device through buffers kept from scan to scan (pinned, on a GPU).
         self.staging = Staging(self.device)
@@ -305,10 +312,13 @@ class VoxelMap:
         return self._thread_ids[:n]
 
     def _read_counters(self) -> int:
-        """The key count, the last launches' update count and the brick cache's key count, read back in
-        one copy; returns the key count."""
-        wp.launch(ht.read_counters, dim=1, inputs=[self.key_count, self._updates, self.brick_count, self._counters], device=self.device)
-        key_count, self._counted_updates, self._known_bricks = (int(value) for value in self._counters.numpy())
+        """The key count, the last launches' update count and the brick cache's key count (and the scan
+        status of a ``gather_counted_blocks``), read back in one copy; returns the key count."""
+        wp.launch(ht.read_counters, dim=1, inputs=[self.key_count, self._updates, self.brick_count, self._scan_status, self._counters],
+                  device=self.device)
+        counters = self._counters.numpy()
+        key_count, self._counted_updates, self._known_bricks = (int(value) for value in counters[:3])
+        self.scan_status = counters[3:3 + self._scan_status.shape[0]].copy()
         self._known_count = key_count
         return key_count
 
@@ -532,24 +542,46 @@ class VoxelMap:
         size) before worker threads launch it (``kernels.load_once``)."""
         load_once(kernel.module, self.device)
 
-    def gather_blocks(self, kernel, scan, block_ids: np.ndarray, *, cells_per_block: int, kind: str) -> int:
+    def gather_blocks(self, kernel, scan, block_ids: np.ndarray, *, block_count: int, cells_per_block: int, kind: str) -> int:
         """A block-gather kernel (``kernels.block_gather`` or ``kernels.release``, made for this class
-        count and block size) over the target blocks ``block_ids``: each block finds or inserts its cells
-        and adds its sums once; blocks that did not fit are relaunched after the table grew. ``scan``:
-        the kernel's inputs struct (``block_gather.SbkiBlocks``, ``release.release_blocks_struct``; device
-        arrays shared by the shards). Returns updates."""
+        count and block size) over the target blocks ``block_ids`` (of the ``block_count`` blocks of
+        ``scan``): each block finds or inserts its cells and adds its sums once; blocks that did not fit
+        are relaunched after the table grew. ``scan``: the kernel's inputs struct (``block_gather.SbkiBlocks``,
+        ``release.release_blocks_struct``; device arrays shared by the shards). Returns updates."""
         if len(block_ids) == 0:
             return 0
-        d = self.device
         ids = self.staging.upload("block_ids", block_ids, int, np.int32)
+        count = self.staging.upload("block_count", np.array([block_count]), int, np.int32)
+        return self._gather(kernel, scan, len(block_ids), ids, count, cells_per_block=cells_per_block, kind=kind, exact_most=True)
+
+    def gather_counted_blocks(self, kernel, scan, capacity: int, block_count: wp.array, scan_status: wp.array, *, cells_per_block: int,
+                              kind: str) -> int:
+        """``gather_blocks`` over every target block of ``scan`` when a device counted them: block_count
+        (a [1] int array on the device) of at most ``capacity``. ``scan_status`` (an int array on the
+        device, what the scan's preprocessing counted) is read back with the launch's counters, in
+        ``scan_status``. Returns updates."""
+        if scan_status.shape[0] > MAX_SCAN_STATUS:
+            raise ValueError(f"a scan status of {scan_status.shape[0]} values; at most {MAX_SCAN_STATUS} are read back")
+        self._scan_status = scan_status
+        try:
+            # The table grows for as many new voxels as the last such launch made (the capacity is a bound,
+            # far above the count on most scans).
+            return self._gather(kernel, scan, capacity, self._thread_ids_for(capacity), block_count, cells_per_block=cells_per_block, kind=kind,
+                                exact_most=False)
+        finally:
+            self._scan_status = self._no_scan_status
+
+    def _gather(self, kernel, scan, n: int, ids: wp.array, block_count: wp.array, *, cells_per_block: int, kind: str, exact_most: bool) -> int:
+        """The block gather over n launch ids (block ids[launch id]), growing the table and brick cache for it."""
+        d = self.device
 
         def launch(pending, failed):
-            wp.launch(kernel, dim=len(pending), device=d, inputs=[pending, ids, scan, self.table(), self.brick_table(), self.data, failed,
-                                                                  self._updates])
+            wp.launch(kernel, dim=len(pending), device=d, inputs=[pending, ids, block_count, scan, self.table(), self.brick_table(), self.data,
+                                                                  failed, self._updates])
 
-        self._grow_brick_cache(len(block_ids))
-        self._launch_until_done(len(block_ids), launch, may_insert=True, kind=kind, most_new=len(block_ids) * cells_per_block**3,
-                                exact_most=True, fails_only_when_full=True)
+        self._grow_brick_cache(n if exact_most else self._last_new_voxels.get(kind, 0) // cells_per_block**3)
+        self._launch_until_done(n, launch, may_insert=True, kind=kind, most_new=n * cells_per_block**3, exact_most=exact_most,
+                                fails_only_when_full=True)
         updates = self._counted_updates
         self._grow_brick_cache()
         return updates

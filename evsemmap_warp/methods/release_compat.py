@@ -158,7 +158,7 @@ def block_model_tables(blocks: np.ndarray, keys: np.ndarray, grid: np.ndarray | 
     else:
         lookup = release.block_lookup(keys=wp.array(np.ascontiguousarray(keys, dtype=np.int64), dtype=wp.int64, device=device, copy=False))
     wp.launch(release.block_models_kernel(grid is not None), dim=n, device=device, inputs=[
-        wp.array(blocks.astype(np.int32), dtype=wp.vec3i, device=device, copy=False), lookup,
+        wp.array(blocks.astype(np.int32), dtype=wp.vec3i, device=device, copy=False), wp.array([n], dtype=int, device=device), lookup,
         wp.array(TARGET_BLOCK_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device, copy=False),
         wp.array(FACE_OFFSETS.astype(np.int32), dtype=wp.vec3i, device=device, copy=False),
         wp.array(MODELS_BY_MASK, dtype=int, device=device, copy=False), source, mult])

@@ -80,7 +80,7 @@ def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float)
     leaf_index = wp.empty(len(points), dtype=wp.int64, device="cpu")
     points_wp = wp.array(np.ascontiguousarray(points), dtype=wp.vec3, device="cpu", copy=False)
     wp.launch(voxel_grid.leaf_indices, dim=len(points), device="cpu", inputs=[
-        points_wp, float(inverse_leaf), *[int(x) for x in ijk_lo], int(dims[0]), int(dims[1]), leaf_index])
+        points_wp, wp.array([len(points)], dtype=int, device="cpu"), float(inverse_leaf), *[int(x) for x in ijk_lo], int(dims[0]), int(dims[1]), leaf_index])
     sorted_index, order = stable_sort(leaf_index.numpy(), int(np.prod(dims)))
     starts = np.flatnonzero(np.r_[True, sorted_index[1:] != sorted_index[:-1]])
     counts = np.diff(np.r_[starts, len(order)])
@@ -220,7 +220,7 @@ def free_space_samples(hits: np.ndarray, origin: np.ndarray, free_resolution_m: 
     out = wp.empty(int(rows_per_hit.sum()), dtype=wp.vec3, device="cpu")
     wp.launch(free_space.ray_samples, dim=len(hits), device="cpu", inputs=[
         wp.array(np.ascontiguousarray(direction), dtype=wp.vec3, device="cpu", copy=False),
-        wp.array(ray_length, dtype=wp.float32, device="cpu", copy=False),
+        wp.array(ray_length, dtype=wp.float32, device="cpu", copy=False), wp.array([len(hits)], dtype=int, device="cpu"),
         wp.vec3(*origin.tolist()), float(f), wp.array(steps, dtype=wp.float32, device="cpu", copy=False),
         wp.array(per_hit.astype(np.int32), dtype=int, device="cpu", copy=False),
         wp.array(first_row.astype(np.int32), dtype=int, device="cpu", copy=False), out])

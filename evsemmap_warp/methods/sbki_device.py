@@ -8,16 +8,18 @@ on a CPU, where a launch runs on one core whatever its form; the forms here sort
 sort (``wp.utils.radix_sort_pairs``) and give each leaf, hit and point its own thread. Each VoxelGrid
 orders its points by leaf stably and so keeps PCL's float32 summation order within a leaf.
 
-What still reads back from the device per scan: the leaf counts of both VoxelGrids, the kept hits'
-count (with a range limit), the free samples' count, the pairs' count, the block and test-block counts
-(small values that size the next arrays; a count is read with the offsets it ends, ``offsets_and_total``).
-The bounds it needs besides (of the longest ray, of the free samples' leaf grid, of the memberships' and
-the test blocks, for their grid and the key-range check) come from a box the host knows, the scan's
-points and sensor origin (``training_box``); they are read only where that box's leaf grid, steps or
-block grid would be refused (or it reaches past the key range) and their own would not. The test blocks
-are read back for a map of several shards, for their split (``DeviceBlocks``). The arrays are a scratch
-set's (``device_scratch``), kept from scan to scan. Blocks spread wider than a dense grid
-(``sbki_compat.MAX_DENSE_LOOKUP_CELLS``) take the host path from the training set.
+No count is read back: each stage's arrays have room the host knows, the count they hold stays on the
+device, and every kernel runs over the room (``device_scratch``). The hits and their leaves have room for
+the scan's points, the free samples and the (point, block) pairs room reserved from what earlier scans
+needed (their bounds, every step of the longest ray per hit and 27 blocks per point, lie far above what
+scans count), the blocks room for the pairs, the test blocks for 7 per block. The scan's status (the
+reserved stages' totals, whether one ran out of room, the training set's count) is read back with the
+gather's counters. The bounds it needs (of the longest ray, of the free samples' leaf grid, of the
+memberships' and the test blocks, for their grid and the key-range check) come from a box the host knows,
+the scan's points and sensor origin (``training_box``); they are read only where that box's leaf grid,
+steps or block grid would be refused (or it reaches past the key range) and their own would not. The test
+blocks are read back for a map of several shards, for their split (``DeviceBlocks``). Blocks spread wider
+than a dense grid (``sbki_compat.MAX_DENSE_LOOKUP_CELLS``) take the host path from the training set.
 """
 
 from __future__ import annotations
@@ -27,46 +29,50 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..kernels import block_gather, block_membership, free_space, voxel_grid
+from ..kernels import block_gather, block_membership, device_counts, free_space, voxel_grid
 from ..voxel_keys import column_bounds
 from . import sbki_compat
-from .device_scratch import DeviceScratch, counts_with_room, inclusive_scan, last_value, offsets_and_total
+from .device_scratch import (STATUS_FREE_ROWS, STATUS_KEPT_POINTS, STATUS_PAIRS, DeviceScratch, Rows, counts_with_room, inclusive_scan, last_of)
+
+# The rows reserved per hit for its free samples before a scan ran out of room (the bound, the longest ray's
+# steps for every hit, is far above what most scans count).
+FREE_ROWS_GUESS_PER_HIT = 16
 
 
-def runs_of_sorted(keys: wp.array, n: int, scratch: DeviceScratch, *, count: bool = True) -> tuple[wp.array, wp.array, int | None]:
-    """The runs of equal values among the first n sorted ``keys``: each key's run number from 1 (an
-    inclusive scan of the run heads), the runs' starts [R + 1] (int64) and the run count R, read back;
-    without ``count``, starts with room for n runs (its first R + 1 set) and no count, and no read."""
+def runs_of_sorted(keys: wp.array, capacity: int, count: wp.array, scratch: DeviceScratch) -> tuple[wp.array, wp.array, wp.array]:
+    """The runs of equal values among the first count[0] (on the device) of ``capacity`` sorted ``keys``:
+    each key's run number from 1 (an inclusive scan of the run heads, 0 past the count), the runs' starts
+    [capacity + 1] (int64; the first R + 1 set) and the run count R (a [1] view on the device)."""
     device = keys.device
-    heads = scratch.empty(n, int)
-    wp.launch(voxel_grid.leaf_runs, dim=n, device=device, inputs=[keys, heads])
+    heads = scratch.empty(capacity, int)
+    wp.launch(voxel_grid.leaf_runs, dim=capacity, device=device, inputs=[keys, count, heads])
     run_rank = inclusive_scan(heads, scratch)
-    runs = last_value(run_rank) if count else None
-    starts = scratch.empty((n if runs is None else runs) + 1, wp.int64)
-    wp.launch(voxel_grid.leaf_starts, dim=n, device=device, inputs=[run_rank, starts])
-    return run_rank, starts, runs
+    starts = scratch.empty(capacity + 1, wp.int64)
+    wp.launch(voxel_grid.leaf_starts, dim=capacity, device=device, inputs=[run_rank, count, starts])
+    return run_rank, starts, last_of(run_rank)
 
 
-def float_bounds_on_device(points: wp.array, scratch: DeviceScratch) -> tuple[np.ndarray, np.ndarray]:
-    """The per-axis float32 (min, max) of points [P] (vec3, P > 0), read back once."""
+def float_bounds_on_device(points: Rows, scratch: DeviceScratch) -> tuple[np.ndarray, np.ndarray]:
+    """The per-axis float32 (min, max) of the counted points (vec3; +inf, -inf for none), read back once."""
     bounds = scratch.empty((2, 3), wp.float32)
     bounds[0].fill_(np.inf)
     bounds[1].fill_(-np.inf)
-    wp.launch(voxel_grid.point_bounds, dim=points.shape[0], device=points.device, inputs=[points, bounds[0], bounds[1]])
+    wp.launch(voxel_grid.point_bounds, dim=points.capacity, device=points.array.device, inputs=[points.array, points.count, bounds[0], bounds[1]])
     lowest, highest = bounds.numpy()
     return lowest, highest
 
 
-def voxel_grid_on_device(points: wp.array, labels: wp.array | None, label_range: tuple[int, int] | None,
-                         bounds: tuple[np.ndarray, np.ndarray], leaf_m: float, scratch: DeviceScratch | None = None) -> tuple[wp.array, wp.array | None]:
+def voxel_grid_on_device(points: Rows, labels: wp.array | None, label_range: tuple[int, int] | None,
+                         bounds: tuple[np.ndarray, np.ndarray], leaf_m: float, scratch: DeviceScratch | None = None) -> tuple[Rows, wp.array | None]:
     """``sbki_compat.voxel_grid_downsample`` on the points' device: the centroids of the occupied leaves in
-    ascending leaf order and, when ``labels`` are given (their (min, max) in ``label_range``), each leaf's
-    majority label; ``bounds`` are the points' float32 per-axis (min, max). A grid PCL refuses leaves
-    the points as they are. ``scratch``: where the arrays are kept (None: new ones)."""
-    n = points.shape[0]
-    device = points.device
-    scratch = scratch or DeviceScratch(device)
-    grid = sbki_compat.leaf_grid(*bounds, leaf_m) if n else None
+    ascending leaf order (as many rows as the points have room for, their count on the device) and, when
+    ``labels`` are given (their (min, max) in ``label_range``), each leaf's majority label; ``bounds`` are
+    float32 per-axis (min, max) of a box holding the points. A grid PCL refuses leaves the points as they
+    are. ``scratch``: where the arrays are kept (None: new ones)."""
+    n = points.capacity
+    device = points.array.device
+    scratch = scratch or DeviceScratch(device).begin()
+    grid = sbki_compat.leaf_grid(*bounds, leaf_m) if n and np.all(np.isfinite(bounds)) else None
     if grid is None:
         return points, labels
     inverse_leaf, lowest, dims = grid
@@ -74,27 +80,26 @@ def voxel_grid_on_device(points: wp.array, labels: wp.array | None, label_range:
     keys = scratch.empty(2 * n, wp.int64)
     order = scratch.empty(2 * n, wp.int64)
     wp.launch(voxel_grid.leaf_indices, dim=n, device=device, inputs=[
-        points, float(inverse_leaf), *[int(x) for x in lowest], int(dims[0]), int(dims[1]), keys])
+        points.array, points.count, float(inverse_leaf), *[int(x) for x in lowest], int(dims[0]), int(dims[1]), keys])
     wp.launch(voxel_grid.positions, dim=n, device=device, inputs=[order])
-    key_bits = max(1, int(int(np.prod(dims)) - 1).bit_length())
+    key_bits = max(1, int(sbki_compat.box_cells(dims) - 1).bit_length())
     wp.utils.radix_sort_pairs(keys, order, n, end_bit=key_bits)
-    leaf_rank, starts, leaf_count = runs_of_sorted(keys, n, scratch)
-    centroids = scratch.empty(leaf_count, wp.vec3)
-    wp.launch(voxel_grid.leaf_centroids_parallel, dim=leaf_count, device=device, inputs=[points, order, starts, leaf_count, centroids])
+    leaf_rank, starts, leaf_count = runs_of_sorted(keys, n, points.count, scratch)
+    centroids = scratch.empty(n, wp.vec3)
+    wp.launch(voxel_grid.leaf_centroids_parallel, dim=n, device=device, inputs=[points.array, order, starts, leaf_count, centroids])
     if labels is None:
-        return centroids, None
+        return Rows(centroids, leaf_count), None
     label_min, label_max = label_range
-    if label_min == label_max:  # one label (the free samples): it is every leaf's majority
-        majority = scratch.full(leaf_count, label_min, wp.int64)
-        return centroids, majority
+    if label_min == label_max:  # one label: it is every leaf's majority
+        return Rows(centroids, leaf_count), scratch.full(n, label_min, wp.int64)
     span = label_max - label_min + 1
     label_keys = scratch.empty(2 * n, wp.int64)
     positions = scratch.empty(2 * n, wp.int64)
-    wp.launch(voxel_grid.leaf_label_keys, dim=n, device=device, inputs=[order, leaf_rank, labels, label_min, span, label_keys, positions])
-    wp.utils.radix_sort_pairs(label_keys, positions, n, end_bit=max(1, int(leaf_count * span - 1).bit_length()))
-    majority = scratch.empty(leaf_count, wp.int64)
-    wp.launch(voxel_grid.leaf_majority_labels, dim=leaf_count, device=device, inputs=[label_keys, starts, leaf_count, label_min, span, majority])
-    return centroids, majority
+    wp.launch(voxel_grid.leaf_label_keys, dim=n, device=device, inputs=[order, leaf_rank, labels, points.count, label_min, span, label_keys, positions])
+    wp.utils.radix_sort_pairs(label_keys, positions, n, end_bit=max(1, int(n * span - 1).bit_length()))
+    majority = scratch.empty(n, wp.int64)
+    wp.launch(voxel_grid.leaf_majority_labels, dim=n, device=device, inputs=[label_keys, starts, leaf_count, label_min, span, majority])
+    return Rows(centroids, leaf_count), majority
 
 
 def training_box(points: np.ndarray, sensor_origin: np.ndarray, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -107,41 +112,46 @@ def training_box(points: np.ndarray, sensor_origin: np.ndarray, margin_m: float)
     return np.minimum(lo, origin) - margin, np.maximum(hi, origin) + margin
 
 
-def _longest_ray(ray_length: wp.array, scratch: DeviceScratch) -> np.float32:
-    """The longest ray, read back."""
+def _longest_ray(ray_length: wp.array, hit_count: wp.array, scratch: DeviceScratch) -> np.float32:
+    """The longest of the counted rays, read back."""
     longest = scratch.zeros(1, wp.float32)
-    wp.launch(free_space.longest_ray, dim=ray_length.shape[0], device=ray_length.device, inputs=[ray_length, longest])
+    wp.launch(free_space.longest_ray, dim=ray_length.shape[0], device=ray_length.device, inputs=[ray_length, hit_count, longest])
     return np.float32(longest.numpy()[0])
 
 
-def _free_space_samples(hits: wp.array, direction: wp.array, ray_length: wp.array, origin: np.ndarray, f: np.float32,
-                        box: tuple[np.ndarray, np.ndarray], scratch: DeviceScratch) -> wp.array:
+def _free_space_samples(hits: Rows, direction: wp.array, ray_length: wp.array, origin: np.ndarray, f: np.float32,
+                        box: tuple[np.ndarray, np.ndarray], scratch: DeviceScratch) -> Rows:
     """``sbki_compat.free_space_samples`` of hits whose rays are computed (``kernels.free_space.ray_geometry``),
     within ``box`` (``training_box``): the steps go as far as its farthest corner from the origin, a bound
     of the longest ray known without reading it back (extra steps lie beyond every ray and are never
-    taken); only where that bound would be refused is the longest ray itself read."""
-    device = hits.device
-    n = hits.shape[0]
-    if n == 0:
-        return scratch.empty(0, wp.vec3)
+    taken); only where that bound would be refused is the longest ray itself read. The rows are the room
+    reserved for them (``DeviceScratch.room``); their total goes to the scan's status, and a scan with
+    more than ``sbki_compat.MAX_FREE_SAMPLES_PER_SCAN`` is refused on its redo, as the host path refuses it."""
+    device = hits.array.device
+    n = hits.capacity
     corners = np.stack(np.meshgrid(*zip(*box), indexing="ij"), axis=-1).reshape(-1, 3).astype(np.float64)
     longest = np.float32(np.linalg.norm(corners - origin.astype(np.float64), axis=1).max() + float(f))  # + f: past any rounding
     try:
         sbki_compat.check_free_samples(0.0, float(longest), f, origin)  # the steps' bound, before they are listed
     except ValueError:
-        longest = _longest_ray(ray_length, scratch)
+        longest = _longest_ray(ray_length, hits.count, scratch)
         sbki_compat.check_free_samples(0.0, float(longest), f, origin)
+    redo = scratch.redo_status
+    if redo is not None and int(redo[STATUS_FREE_ROWS]) > sbki_compat.MAX_FREE_SAMPLES_PER_SCAN:  # refused: the message names the longest ray
+        sbki_compat.check_free_samples(float(redo[STATUS_FREE_ROWS]), float(_longest_ray(ray_length, hits.count, scratch)), f, origin)
     steps = scratch.upload(sbki_compat.ray_steps(f, longest), wp.float32)
     per_hit = scratch.empty(n, int)
     rows_per_hit = counts_with_room(n, scratch)
-    wp.launch(free_space.samples_per_ray, dim=n, device=device, inputs=[ray_length, steps, float(f), per_hit, rows_per_hit])
-    first_row, rows = offsets_and_total(rows_per_hit, scratch)
-    if rows > sbki_compat.MAX_FREE_SAMPLES_PER_SCAN:  # refused: the message names the longest ray itself
-        sbki_compat.check_free_samples(float(rows), float(_longest_ray(ray_length, scratch)), f, origin)
-    out = scratch.empty(rows, wp.vec3)
+    wp.launch(free_space.samples_per_ray, dim=n, device=device, inputs=[ray_length, hits.count, steps, float(f), per_hit, rows_per_hit])
+    first_row = scratch.empty(n + 1, int)
+    wp.utils.array_scan(rows_per_hit, first_row, inclusive=False)
+    bound = min(n * (steps.shape[0] + 2), sbki_compat.MAX_FREE_SAMPLES_PER_SCAN)
+    room = scratch.room(STATUS_FREE_ROWS, FREE_ROWS_GUESS_PER_HIT * n, bound)
+    out = scratch.empty(room, wp.vec3)
+    count = scratch.bounded(last_of(first_row), room, STATUS_FREE_ROWS)
     wp.launch(free_space.ray_samples, dim=n, device=device, inputs=[
-        direction, ray_length, wp.vec3(*origin.tolist()), float(f), steps, per_hit, first_row, out])
-    return out
+        direction, ray_length, hits.count, wp.vec3(*origin.tolist()), float(f), steps, per_hit, first_row, out])
+    return Rows(out, count)
 
 
 def training_arrays(
@@ -155,121 +165,129 @@ def training_arrays(
     device: str,
     scratch: DeviceScratch | None = None,
     box: tuple[np.ndarray, np.ndarray] | None = None,
-) -> tuple[wp.array, wp.array, wp.array]:
+) -> tuple[Rows, wp.array, Rows]:
     """The training set of ``sbki_compat.training_data`` on ``device``, in its two parts: the downsampled
-    hits within range [H] (vec3), their labels [H] (int64) and the downsampled free samples [F] (vec3,
-    label ``FREE_LABEL``); ``sbki_compat.joined_training_set`` of their values is ``training_data``'s result.
-    ``scratch``: where the arrays are kept (None: new ones); ``box``: the scan's ``training_box`` with
-    ds_resolution_m as its margin, when the caller has it already (None: computed here)."""
-    scratch = scratch or DeviceScratch(device)
+    hits within range (vec3), their labels (int64) and the downsampled free samples (vec3, label
+    ``FREE_LABEL``), their counts on the device; ``sbki_compat.joined_training_set`` of their values is
+    ``training_data``'s result. The points are at least one. ``scratch``: where the arrays are kept (None:
+    new ones); ``box``: the scan's ``training_box`` with ds_resolution_m as its margin, when the caller has
+    it already (None: computed here)."""
+    scratch = scratch or DeviceScratch(device).begin()
     points = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3)
     labels = np.asarray(labels, dtype=np.int64)
     origin = np.asarray(sensor_origin, dtype=np.float32).reshape(3)
     if len(points) == 0:
-        empty = scratch.empty(0, wp.vec3)
-        return empty, scratch.empty(0, wp.int64), empty
+        raise ValueError("training_arrays needs at least one point")
     if box is None:
         box = training_box(points, origin, ds_resolution_m)
     hits, hit_labels = voxel_grid_on_device(
-        scratch.upload(points, wp.vec3), scratch.upload(labels, wp.int64),
+        Rows(scratch.upload(points, wp.vec3), scratch.count(len(points))), scratch.upload(labels, wp.int64),
         (int(labels.min()), int(labels.max())), column_bounds(points), ds_resolution_m, scratch)
-    n = hits.shape[0]
+    n = hits.capacity
     direction = scratch.empty(n, wp.vec3)
     ray_length = scratch.empty(n, wp.float32)
-    wp.launch(free_space.ray_geometry, dim=n, device=device, inputs=[hits, wp.vec3(*origin.tolist()), direction, ray_length])
+    wp.launch(free_space.ray_geometry, dim=n, device=device, inputs=[hits.array, hits.count, wp.vec3(*origin.tolist()), direction, ray_length])
     if max_range_m is not None:
         keep = scratch.empty(n, int)
-        wp.launch(free_space.within_range, dim=n, device=device, inputs=[ray_length, float(np.float32(max_range_m)), keep])
+        wp.launch(free_space.within_range, dim=n, device=device, inputs=[ray_length, hits.count, float(np.float32(max_range_m)), keep])
         slot = inclusive_scan(keep, scratch)
-        kept = last_value(slot)
-        arrays = [scratch.empty(kept, a.dtype) for a in (hits, hit_labels, direction, ray_length)]
-        wp.launch(free_space.compact_rays, dim=n, device=device, inputs=[keep, slot, hits, hit_labels, direction, ray_length, *arrays])
-        hits, hit_labels, direction, ray_length = arrays
+        arrays = [scratch.empty(n, a.dtype) for a in (hits.array, hit_labels, direction, ray_length)]
+        wp.launch(free_space.compact_rays, dim=n, device=device, inputs=[keep, slot, hits.array, hit_labels, direction, ray_length, *arrays])
+        kept_hits, hit_labels, direction, ray_length = arrays
+        hits = Rows(kept_hits, last_of(slot))
     frees = _free_space_samples(hits, direction, ray_length, origin, np.float32(free_resolution_m), box, scratch)
-    free_points = frees
-    if frees.shape[0]:
-        # The box holds the free samples: their leaves, and the leaves' order (by z, y, x), are those of a grid
-        # over their own bounds, unless PCL would refuse the box's grid but not theirs (then they are read).
-        if sbki_compat.leaf_grid(*box, ds_resolution_m, warn=False) is None:
-            box = float_bounds_on_device(frees, scratch)
-        free_points, _ = voxel_grid_on_device(frees, None, None, box, ds_resolution_m, scratch)
+    # The box holds the free samples: their leaves, and the leaves' order (by z, y, x), are those of a grid
+    # over their own bounds, unless PCL would refuse the box's grid but not theirs (then they are read).
+    if sbki_compat.leaf_grid(*box, ds_resolution_m, warn=False) is None:
+        box = float_bounds_on_device(frees, scratch)
+    free_points, _ = voxel_grid_on_device(frees, None, None, box, ds_resolution_m, scratch)
     return hits, hit_labels, free_points
 
 
-def training_set(hits: wp.array, hit_labels: wp.array, free_points: wp.array, scratch: DeviceScratch) -> tuple[wp.array, wp.array]:
-    """The training points [H + F] and labels of ``training_arrays``' parts, hits first, on their device."""
-    h, f = hits.shape[0], free_points.shape[0]
-    points = scratch.empty(h + f, wp.vec3)
-    labels = scratch.empty(h + f, wp.int64)
-    if h + f:
-        wp.launch(free_space.join_training_set, dim=h + f, device=points.device, inputs=[
-            hits, hit_labels, free_points, sbki_compat.FREE_LABEL, points, labels])
-    return points, labels
+def training_set(hits: Rows, hit_labels: wp.array, free_points: Rows, scratch: DeviceScratch) -> tuple[Rows, wp.array]:
+    """The training points and labels of ``training_arrays``' parts, hits first, on their device; their
+    count also goes to the scan's status (``STATUS_KEPT_POINTS``)."""
+    capacity = hits.capacity + free_points.capacity
+    device = hits.array.device
+    points = scratch.empty(capacity, wp.vec3)
+    labels = scratch.empty(capacity, wp.int64)
+    total = scratch.empty(1, int)
+    wp.launch(free_space.join_training_set, dim=capacity, device=device, inputs=[
+        hits.array, hit_labels, hits.count, free_points.array, free_points.count, sbki_compat.FREE_LABEL, points, labels, total])
+    return Rows(points, scratch.bounded(total, capacity, STATUS_KEPT_POINTS)), labels
 
 
-def block_memberships_on_device(points: wp.array, block_size: np.float32, scratch: DeviceScratch | None = None) -> tuple[wp.array, wp.array]:
-    """``sbki_compat.block_memberships`` on the points' device: point ids [M] (int64) and blocks [M, 3]
-    (int64), shift by shift, points ascending within a shift. ``scratch``: where the arrays are kept
-    (None: new ones)."""
-    device = points.device
-    scratch = scratch or DeviceScratch(device)
-    n = points.shape[0]
+def block_memberships_on_device(points: Rows, block_size: np.float32, scratch: DeviceScratch | None = None) -> tuple[wp.array, Rows]:
+    """``sbki_compat.block_memberships`` on the points' device: point ids (int64) and blocks [P, 3] (int64)
+    of the (point, block) pairs, shift by shift, points ascending within a shift; P, their count, on the
+    device, within the room reserved for them (``DeviceScratch.room``; their total goes to the scan's
+    status). ``scratch``: where the arrays are kept (None: new ones)."""
+    device = points.array.device
+    scratch = scratch or DeviceScratch(device).begin()
+    n = points.capacity
     nearest = scratch.empty((n, 3), wp.int64)
     masks = scratch.empty(n, int)
     pair_counts = counts_with_room(n, scratch)
     wp.launch(block_membership.membership_masks_parallel, dim=n, device=device, inputs=[
-        points, float(np.float32(block_size)), nearest, masks, pair_counts])
-    first_pair, pairs = offsets_and_total(pair_counts, scratch)
-    bits = scratch.empty(2 * pairs, wp.int64)
-    point_ids = scratch.empty(2 * pairs, wp.int64)
-    wp.launch(block_membership.membership_pairs_by_point, dim=n, device=device, inputs=[masks, first_pair, bits, point_ids])
-    wp.utils.radix_sort_pairs(bits, point_ids, pairs, end_bit=5)
-    blocks = scratch.empty((pairs, 3), wp.int64)
-    wp.launch(block_membership.membership_blocks, dim=pairs, device=device, inputs=[bits, point_ids, nearest, blocks])
-    return (point_ids[:pairs] if pairs else scratch.empty(0, wp.int64)), blocks
+        points.array, points.count, float(np.float32(block_size)), nearest, masks, pair_counts])
+    first_pair = scratch.empty(n + 1, int)
+    wp.utils.array_scan(pair_counts, first_pair, inclusive=False)
+    # A point lies in at most 2 blocks per axis (27 bits is the masks' bound); most lie in one.
+    room = scratch.room(STATUS_PAIRS, n + n // 4 + 16, 27 * n)
+    count = scratch.bounded(last_of(first_pair), room, STATUS_PAIRS)
+    bits = scratch.empty(2 * room, wp.int64)
+    bits[:room].fill_(int(device_counts.PAST_COUNT_KEY))  # the rows past the count sort last
+    point_ids = scratch.empty(2 * room, wp.int64)
+    wp.launch(block_membership.membership_pairs_by_point, dim=n, device=device, inputs=[masks, points.count, first_pair, room, bits, point_ids])
+    wp.utils.radix_sort_pairs(bits, point_ids, room, end_bit=5)
+    blocks = scratch.empty((room, 3), wp.int64)
+    wp.launch(block_membership.membership_blocks, dim=room, device=device, inputs=[bits, point_ids, count, nearest, blocks])
+    return point_ids[:room], Rows(blocks, count)
 
 
 @dataclass
 class BlockGroups:
     """(point, block) pairs grouped by block on their device, as ``sbki_compat.group_by_block`` and
     ``sbki_compat.dense_block_grid`` group them on the host: the pair order (stable, by the blocks' packed
-    keys; its first ``pairs`` entries), block b's pairs at order[starts[b]:starts[b + 1]], the ``count``
-    distinct blocks [B] (vec3i), and the dense grid of their indices (-1 elsewhere) over their bounding box
-    widened by 3 from ``grid_corner`` (block b at ``grid_blocks[b]`` in it)."""
+    keys; its first P entries), block b's pairs at order[starts[b]:starts[b + 1]], the ``count`` of
+    distinct blocks (a [1] int array on the device) in ``blocks`` (vec3i, room for ``capacity``), and the
+    dense grid of their indices (-1 elsewhere) over their bounding box widened by 3 from ``grid_corner``
+    (block b at ``grid_blocks[b]`` in it)."""
 
     order: wp.array
     starts: wp.array
-    count: int
+    count: wp.array
+    capacity: int
     blocks: wp.array
     grid: wp.array
     grid_blocks: wp.array
     grid_corner: np.ndarray
 
 
-def block_bounds_on_device(blocks: wp.array, scratch: DeviceScratch) -> tuple[np.ndarray, np.ndarray]:
-    """The per-axis (min, max) of blocks [P, 3] (int64, P > 0), read back once."""
+def block_bounds_on_device(blocks: Rows, scratch: DeviceScratch) -> tuple[np.ndarray, np.ndarray]:
+    """The per-axis (min, max) of the counted blocks [P, 3] (int64; the int64 extremes, max then min, for
+    none), read back once."""
     bounds = scratch.empty((2, 3), wp.int64)
     bounds[0].fill_(np.iinfo(np.int64).max)
     bounds[1].fill_(np.iinfo(np.int64).min)
-    wp.launch(block_gather.block_bounds, dim=blocks.shape[0], device=blocks.device, inputs=[blocks, bounds[0], bounds[1]])
+    wp.launch(block_gather.block_bounds, dim=blocks.capacity, device=blocks.array.device, inputs=[blocks.array, blocks.count, bounds[0], bounds[1]])
     lowest, highest = bounds.numpy()
     return lowest, highest
 
 
-def sort_by_block(blocks: wp.array, lo: np.ndarray, hi: np.ndarray, scratch: DeviceScratch, *, count: bool = True
-                  ) -> tuple[wp.array, wp.array, wp.array, int | None]:
-    """Rows of blocks [P, 3] (int64, within lo..hi) stably sorted by the blocks' packed-key order: the
-    order (its first P entries), each sorted row's run number from 1 (an inclusive scan of run heads),
-    the runs' starts [R + 1] and the run count R (``runs_of_sorted``: without ``count``, none and no read)."""
-    device = blocks.device
-    rows = blocks.shape[0]
+def sort_by_block(blocks: Rows, lo: np.ndarray, hi: np.ndarray, scratch: DeviceScratch) -> tuple[wp.array, wp.array, wp.array, wp.array]:
+    """The counted rows of blocks [P, 3] (int64, within lo..hi) stably sorted by the blocks' packed-key
+    order: the order (its first P entries), each sorted row's run number from 1 (an inclusive scan of run
+    heads), the runs' starts and the run count R on the device (``runs_of_sorted``)."""
+    device = blocks.array.device
+    rows = blocks.capacity
     span = hi - lo + 1
     positions = scratch.empty(2 * rows, wp.int64)
     order = scratch.empty(2 * rows, wp.int64)
     wp.launch(block_gather.box_positions, dim=rows, device=device, inputs=[
-        blocks, wp.vec3l(*[int(x) for x in lo]), int(span[1]), int(span[2]), positions, order])
-    wp.utils.radix_sort_pairs(positions, order, rows, end_bit=max(1, int(int(np.prod(span)) - 1).bit_length()))
-    run_rank, starts, runs = runs_of_sorted(positions, rows, scratch, count=count)
+        blocks.array, blocks.count, wp.vec3l(*[int(x) for x in lo]), int(span[1]), int(span[2]), positions, order])
+    wp.utils.radix_sort_pairs(positions, order, rows, end_bit=max(1, int(sbki_compat.box_cells(span) - 1).bit_length()))
+    run_rank, starts, runs = runs_of_sorted(positions, rows, blocks.count, scratch)
     return order, run_rank, starts, runs
 
 
@@ -282,58 +300,74 @@ def member_block_box(points_lo: np.ndarray, points_hi: np.ndarray, block_size: n
             np.floor(np.asarray(points_hi, np.float64) / size).astype(np.int64) + 2)
 
 
-def group_blocks_on_device(member_blocks: wp.array, scratch: DeviceScratch, box: tuple[np.ndarray, np.ndarray] | None = None) -> BlockGroups | None:
+def group_blocks_on_device(member_blocks: Rows, scratch: DeviceScratch, box: tuple[np.ndarray, np.ndarray] | None = None) -> BlockGroups | None:
     """``BlockGroups`` of pairs' blocks [P, 3] (int64) on their device; None where their dense grid would
-    exceed ``sbki_compat.MAX_DENSE_LOOKUP_CELLS``, or there are no pairs: the caller takes the host path
-    then. ``box``: (lowest, highest) blocks known to hold them all (``member_block_box``), the grid's box
+    exceed ``sbki_compat.MAX_DENSE_LOOKUP_CELLS``, or no box holds them (no pairs): the caller takes the host
+    path then. ``box``: (lowest, highest) blocks known to hold them all (``member_block_box``), the grid's box
     without reading their bounds back (they are read where its grid would be too large); the groups are
     the same for any box that holds them."""
-    device = member_blocks.device
-    if member_blocks.shape[0] == 0:
-        return None
+    device = member_blocks.array.device
 
     def grid_shape(lo, hi):  # the grid is the box widened by 3 on every side
         return hi + 7 - lo
 
     if box is None or sbki_compat.box_cells(grid_shape(*box)) > sbki_compat.MAX_DENSE_LOOKUP_CELLS:  # none, or too wide: read theirs
         box = block_bounds_on_device(member_blocks, scratch)
+        if np.any(box[0] > box[1]):
+            return None
     lo, hi = box
     shape = grid_shape(lo, hi)
     if sbki_compat.box_cells(shape) > sbki_compat.MAX_DENSE_LOOKUP_CELLS:
         return None
     grid_corner = lo - 3
     order, _, starts, count = sort_by_block(member_blocks, lo, hi, scratch)
+    capacity = member_blocks.capacity
     grid = scratch.full(tuple(int(x) for x in shape), -1, int)
-    blocks = scratch.empty(count, wp.vec3i)
-    grid_blocks = scratch.empty(count, wp.vec3i)
-    wp.launch(block_gather.distinct_blocks, dim=count, device=device, inputs=[
-        member_blocks, order, starts, wp.vec3l(*[int(x) for x in grid_corner]), blocks, grid_blocks, grid])
-    return BlockGroups(order, starts, count, blocks, grid, grid_blocks, grid_corner)
+    blocks = scratch.empty(capacity, wp.vec3i)
+    grid_blocks = scratch.empty(capacity, wp.vec3i)
+    wp.launch(block_gather.distinct_blocks, dim=capacity, device=device, inputs=[
+        member_blocks.array, order, starts, count, wp.vec3l(*[int(x) for x in grid_corner]), blocks, grid_blocks, grid])
+    return BlockGroups(order, starts, count, capacity, blocks, grid, grid_blocks, grid_corner)
 
 
 def narrow_starts(groups: BlockGroups, scratch: DeviceScratch) -> wp.array:
-    """The groups' starts as the gather kernels' int point starts [B + 1]."""
-    point_start = scratch.empty(groups.count + 1, int)
-    wp.launch(block_gather.narrow_starts, dim=groups.count + 1, device=groups.starts.device, inputs=[groups.starts, point_start])
+    """The groups' starts as the gather kernels' int point starts [capacity + 1] (the first count + 1 set)."""
+    point_start = scratch.empty(groups.capacity + 1, int)
+    wp.launch(block_gather.narrow_starts, dim=groups.capacity + 1, device=groups.starts.device, inputs=[groups.starts, groups.count, point_start])
     return point_start
 
 
 @dataclass
 class DeviceBlocks:
-    """A block gather's target blocks on the device: ``blocks`` [B] (vec3i), their ``count`` B, and ``box``,
-    (lowest, highest) blocks per axis known on the host to hold them all (None: not known). ``host()`` reads
-    the blocks back, once, for what the box cannot settle (a box reaching past the key range, the shards'
-    split)."""
+    """A block gather's target blocks on the device: ``blocks`` (vec3i, room for ``capacity``), their
+    ``count`` (a [1] int array on the device; 0 where the scan ran out of room), ``box``, (lowest, highest)
+    blocks per axis known on the host to hold them all (None: not known), and the scan's ``status``
+    (``device_scratch``), which the gather reads back with its counters. ``host()`` reads the blocks back,
+    once, for what the box cannot settle (a box reaching past the key range, the shards' split)."""
 
     blocks: wp.array
-    count: int
+    count: wp.array
     box: tuple[np.ndarray, np.ndarray] | None
+    status: wp.array
+
+    @property
+    def capacity(self) -> int:
+        """The blocks there is room for."""
+        return self.blocks.shape[0]
 
     def host(self) -> np.ndarray:
         """The blocks [B, 3] (int64), read back on the first call."""
         if not hasattr(self, "_host"):
-            self._host = self.blocks.numpy().reshape(-1, 3).astype(np.int64)
+            self._host = Rows(self.blocks, self.count).numpy().reshape(-1, 3).astype(np.int64)
         return self._host
+
+
+def gated_targets(blocks: wp.array, total: wp.array, box, scratch: DeviceScratch) -> DeviceBlocks:
+    """``DeviceBlocks`` of the ``total`` blocks (a [1] view on the device), or of none where the scan ran
+    out of room, so that such a scan changes no voxel."""
+    count = scratch.empty(1, int)
+    wp.launch(device_counts.gated_count, dim=1, device=blocks.device, inputs=[total, scratch.status, count])
+    return DeviceBlocks(blocks, count, box, scratch.status)
 
 
 @dataclass
@@ -349,7 +383,7 @@ class DeviceGatherTables:
 
     @property
     def tests(self) -> wp.array:
-        """The test blocks [T] (vec3i) on the device."""
+        """The test blocks (vec3i, room for the targets' capacity) on the device."""
         return self.targets.blocks
 
     @property
@@ -358,14 +392,14 @@ class DeviceGatherTables:
         return self.targets.host()
 
 
-def gather_tables_on_device(points: wp.array, labels: wp.array, block_size: np.float32, length_m: float,
+def gather_tables_on_device(points: Rows, labels: wp.array, block_size: np.float32, length_m: float,
                             scratch: DeviceScratch | None = None, box: tuple[np.ndarray, np.ndarray] | None = None) -> DeviceGatherTables | None:
     """``sbki_compat.block_memberships`` and ``sbki_compat.gather_tables`` of a training set on its device,
     and the points and labels sorted as the gather kernel reads them; None where the blocks are too spread
     for its dense grid (``group_blocks_on_device``). ``scratch``: where the arrays are kept (None: new ones);
     ``box``: a float box holding the points (``training_box``), which spares reading their blocks' bounds."""
-    device = points.device
-    scratch = scratch or DeviceScratch(device)
+    device = points.array.device
+    scratch = scratch or DeviceScratch(device).begin()
     point_ids, member_blocks = block_memberships_on_device(points, block_size, scratch)
     member_box = None if box is None else member_block_box(*box, block_size)
     groups = group_blocks_on_device(member_blocks, scratch, member_box)
@@ -373,18 +407,19 @@ def gather_tables_on_device(points: wp.array, labels: wp.array, block_size: np.f
         return None
     offsets = scratch.upload(sbki_compat.EXTENDED_BLOCK_OFFSETS.astype(np.int32), wp.vec3i)
     marked = scratch.zeros(groups.grid.size, int)
-    wp.launch(block_gather.mark_test_blocks, dim=(groups.count, offsets.shape[0]), device=device, inputs=[
-        groups.grid_blocks, offsets, groups.grid, marked])
+    wp.launch(block_gather.mark_test_blocks, dim=(groups.capacity, offsets.shape[0]), device=device, inputs=[
+        groups.grid_blocks, groups.count, offsets, groups.grid, marked])
     slot = inclusive_scan(marked, scratch)
-    test_count = last_value(slot)
-    tests = scratch.empty(test_count, wp.vec3i)
-    sources = scratch.empty((test_count, offsets.shape[0]), int)
+    test_capacity = min(groups.grid.size, offsets.shape[0] * groups.capacity)
+    tests = scratch.empty(test_capacity, wp.vec3i)
+    sources = scratch.empty((test_capacity, offsets.shape[0]), int)
     wp.launch(block_gather.list_test_blocks, dim=groups.grid.size, device=device, inputs=[
         marked, slot, groups.grid, offsets, wp.vec3l(*[int(x) for x in groups.grid_corner]), tests, sources])
-    pairs = member_blocks.shape[0]
+    pairs = member_blocks.capacity
     scaled_points = scratch.empty(pairs, wp.vec3)
     sorted_labels = scratch.empty(pairs, int)
     wp.launch(block_gather.sorted_block_points, dim=pairs, device=device, inputs=[
-        points, labels, point_ids, groups.order, float(np.float32(length_m)), scaled_points, sorted_labels])
+        points.array, labels, point_ids, groups.order, member_blocks.count, float(np.float32(length_m)), scaled_points, sorted_labels])
     test_box = None if member_box is None else (member_box[0] - 1, member_box[1] + 1)  # a test block is a face neighbour of a block
-    return DeviceGatherTables(DeviceBlocks(tests, test_count, test_box), sources, narrow_starts(groups, scratch), scaled_points, sorted_labels)
+    return DeviceGatherTables(gated_targets(tests, last_of(slot), test_box, scratch), sources, narrow_starts(groups, scratch), scaled_points,
+                              sorted_labels)

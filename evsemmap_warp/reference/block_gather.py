@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .device_counts import PAST_COUNT_KEY
 from .scatter import SBKI_REACH_FACTOR, sbki_sparse_kernel
 
 
@@ -60,10 +61,14 @@ def block_bounds(blocks) -> tuple[np.ndarray, np.ndarray]:
     return blocks.min(axis=0), blocks.max(axis=0)
 
 
-def box_positions(blocks, lowest, span_y: int, span_z: int) -> tuple[np.ndarray, np.ndarray]:
-    """Twin of ``box_positions``: row-major positions in the box from ``lowest`` [P] and 0 .. P - 1."""
-    relative = np.asarray(blocks, np.int64).reshape(-1, 3) - np.asarray(lowest, np.int64)
-    return (relative[:, 0] * span_y + relative[:, 1]) * span_z + relative[:, 2], np.arange(len(relative), dtype=np.int64)
+def box_positions(blocks, lowest, span_y: int, span_z: int, count: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``box_positions``: row-major positions in the box from ``lowest`` of the first ``count`` blocks
+    (None: all), then ``PAST_COUNT_KEY`` [P], and 0 .. P - 1."""
+    blocks = np.asarray(blocks, np.int64).reshape(-1, 3)
+    count = len(blocks) if count is None else count
+    relative = blocks[:count] - np.asarray(lowest, np.int64)
+    positions = (relative[:, 0] * span_y + relative[:, 1]) * span_z + relative[:, 2]
+    return np.r_[positions, np.full(len(blocks) - count, PAST_COUNT_KEY, np.int64)], np.arange(len(blocks), dtype=np.int64)
 
 
 def distinct_blocks(member_blocks, order, starts, grid_lowest, grid_shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

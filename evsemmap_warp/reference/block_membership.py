@@ -39,16 +39,22 @@ def membership_pairs(nearest: np.ndarray, masks: np.ndarray) -> tuple[np.ndarray
     return np.concatenate(point_ids), np.concatenate(blocks).reshape(-1, 3)
 
 
-def membership_masks_parallel(points, size) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Twin of ``membership_masks_parallel``: ``block_membership_masks`` and each point's pair count."""
-    nearest, masks = block_membership_masks(points, size)
-    return nearest, masks, np.array([bin(int(m)).count("1") for m in masks], np.int32)
+def membership_masks_parallel(points, size, count: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Twin of ``membership_masks_parallel``: ``block_membership_masks`` of the first ``count`` points (None:
+    all) and each point's pair count, 0 past them."""
+    points = np.asarray(points)
+    count = len(points) if count is None else count
+    nearest, masks = block_membership_masks(points[:count], size)
+    pair_counts = np.array([bin(int(m)).count("1") for m in masks], np.int32)
+    return nearest, masks, np.r_[pair_counts, np.zeros(len(points) - count, np.int32)]
 
 
-def membership_pairs_by_point(masks, first_pair) -> tuple[np.ndarray, np.ndarray]:
-    """Twin of ``membership_pairs_by_point``: (bit, point) of every set bit, point by point, bits ascending."""
+def membership_pairs_by_point(masks, first_pair, capacity: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``membership_pairs_by_point``: (bit, point) of every set bit, point by point, bits ascending,
+    the first ``capacity`` of them (None: all)."""
     pairs = [(bit, i) for i, mask in enumerate(np.asarray(masks, np.int64)) for bit in range(27) if (int(mask) >> bit) & 1]
-    assert len(pairs) == (int(first_pair[-1]) + bin(int(masks[-1])).count("1") if len(masks) else 0)
+    assert len(pairs) == (int(first_pair[len(masks) - 1]) + bin(int(masks[-1])).count("1") if len(masks) else 0)
+    pairs = pairs[:capacity]
     return np.array([b for b, _ in pairs], np.int64), np.array([i for _, i in pairs], np.int64)
 
 

@@ -8,12 +8,15 @@ import numpy as np
 def ray_samples(direction, ray_length, origin, free_resolution, steps, samples_per_hit, first_row, total_rows: int) -> np.ndarray:
     """Twin of ``kernels.free_space.ray_samples``: per hit h, rows first_row[h]... of the [total_rows, 3]
     float32 output: the sensor origin, samples_per_hit[h] samples at ``steps`` along the ray, and one at
-    ray_length[h] - free_resolution when the ray is longer than that (m, the scan's frame)."""
+    ray_length[h] - free_resolution when the ray is longer than that (m, the scan's frame); zero rows for
+    a hit whose rows do not all fit."""
     out = np.zeros((total_rows, 3), np.float32)
     origin = np.asarray(origin, np.float32)
     f = np.float32(free_resolution)
     for h in range(len(direction)):
         row = int(first_row[h])
+        if row + 1 + int(samples_per_hit[h]) + int(ray_length[h] > f) > total_rows:
+            continue
         out[row] = origin
         for k in range(int(samples_per_hit[h])):
             out[row + 1 + k] = origin + direction[h] * steps[k]
@@ -30,16 +33,23 @@ def ray_geometry(hits, origin) -> tuple[np.ndarray, np.ndarray]:
         return diff / ray_length[:, None], ray_length
 
 
-def samples_per_ray(ray_length, steps, free_resolution) -> tuple[np.ndarray, np.ndarray]:
-    """Twin of ``samples_per_ray``: (steps below each range, rows per hit) [N], [N] (int32)."""
+def samples_per_ray(ray_length, steps, free_resolution, count: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``samples_per_ray``: (steps below each range, rows per hit, 0 past the first ``count`` hits
+    (None: all)) [count], [N] (int32)."""
     ray_length = np.asarray(ray_length, np.float32)
-    per_hit = np.searchsorted(np.asarray(steps, np.float32), ray_length, side="left")
-    return per_hit.astype(np.int32), (1 + per_hit + (ray_length > np.float32(free_resolution))).astype(np.int32)
+    count = len(ray_length) if count is None else count
+    per_hit = np.searchsorted(np.asarray(steps, np.float32), ray_length[:count], side="left")
+    rows = 1 + per_hit + (ray_length[:count] > np.float32(free_resolution))
+    return per_hit.astype(np.int32), np.r_[rows, np.zeros(len(ray_length) - count, np.int64)].astype(np.int32)
 
 
-def within_range(ray_length, max_range) -> np.ndarray:
-    """Twin of ``within_range``: 1 where the range is at most max_range (float32) [N] (int32)."""
-    return (np.asarray(ray_length, np.float32) <= np.float32(max_range)).astype(np.int32)
+def within_range(ray_length, max_range, count: int | None = None) -> np.ndarray:
+    """Twin of ``within_range``: 1 where one of the first ``count`` (None: all) ranges is at most max_range
+    (float32), else 0 [N] (int32)."""
+    ray_length = np.asarray(ray_length, np.float32)
+    keep = (ray_length <= np.float32(max_range)).astype(np.int32)
+    keep[len(ray_length) if count is None else count:] = 0
+    return keep
 
 
 def compact_rays(keep, slot, hits, labels, direction, ray_length):

@@ -118,6 +118,6 @@ def gather_rows(src: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return np.asarray(src)[np.asarray(rows, dtype=np.int64)]
 
 
-def read_counters(key_count: np.ndarray, update_count: np.ndarray, brick_count: np.ndarray) -> np.ndarray:
-    """Twin of ``kernels.hash_table.read_counters``: [key count, update count, brick count] as int64."""
-    return np.array([key_count[0], update_count[0], brick_count[0]], dtype=np.int64)
+def read_counters(key_count: np.ndarray, update_count: np.ndarray, brick_count: np.ndarray, scan_status: np.ndarray) -> np.ndarray:
+    """Twin of ``kernels.hash_table.read_counters``: [key count, update count, brick count, *scan status] as int64."""
+    return np.array([key_count[0], update_count[0], brick_count[0], *scan_status], dtype=np.int64)

@@ -4,12 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from .device_counts import PAST_COUNT_KEY
 
-def leaf_indices(points, inverse_leaf, lowest, leaves_x, leaves_y) -> np.ndarray:
-    """Twin of ``kernels.voxel_grid.leaf_indices``: each point's VoxelGrid leaf index, floor(p *
-    inverse_leaf) - lowest per axis in float32, x fastest [N] int64."""
-    rel = np.floor(np.asarray(points, np.float32) * np.float32(inverse_leaf)).astype(np.int64) - np.asarray(lowest, np.int64)
-    return rel[:, 0] + rel[:, 1] * leaves_x + rel[:, 2] * (leaves_x * leaves_y)
+
+def leaf_indices(points, inverse_leaf, lowest, leaves_x, leaves_y, count: int | None = None) -> np.ndarray:
+    """Twin of ``kernels.voxel_grid.leaf_indices``: each of the first ``count`` points' (None: all) VoxelGrid
+    leaf index, floor(p * inverse_leaf) - lowest per axis in float32, x fastest, then ``PAST_COUNT_KEY`` [N] int64."""
+    points = np.asarray(points, np.float32)
+    count = len(points) if count is None else count
+    rel = np.floor(points[:count] * np.float32(inverse_leaf)).astype(np.int64) - np.asarray(lowest, np.int64)
+    leaf = rel[:, 0] + rel[:, 1] * leaves_x + rel[:, 2] * (leaves_x * leaves_y)
+    return np.r_[leaf, np.full(len(points) - count, PAST_COUNT_KEY, np.int64)]
 
 
 def leaf_centroids(points, order, starts, counts) -> np.ndarray:
@@ -22,10 +27,11 @@ def leaf_centroids(points, order, starts, counts) -> np.ndarray:
     return (sums / np.asarray(counts)[:, None].astype(np.float32)).astype(np.float32)
 
 
-def point_bounds(points) -> tuple[np.ndarray, np.ndarray]:
-    """Twin of ``point_bounds``: the per-axis float32 minimum and maximum [3], [3]."""
-    points = np.asarray(points, np.float32).reshape(-1, 3)
-    return points.min(axis=0), points.max(axis=0)
+def point_bounds(points, count: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``point_bounds``: the first ``count`` points' (None: all) per-axis float32 minimum and maximum
+    [3], [3] (+inf, -inf for none)."""
+    points = np.asarray(points, np.float32).reshape(-1, 3)[:count]
+    return points.min(axis=0, initial=np.inf), points.max(axis=0, initial=-np.inf)
 
 
 def positions(n: int) -> np.ndarray:
@@ -33,16 +39,20 @@ def positions(n: int) -> np.ndarray:
     return np.arange(n, dtype=np.int64)
 
 
-def leaf_runs(sorted_leaf) -> np.ndarray:
-    """Twin of ``leaf_runs``: 1 where a sorted position starts a new leaf [N] (int32)."""
+def leaf_runs(sorted_leaf, count: int | None = None) -> np.ndarray:
+    """Twin of ``leaf_runs``: 1 where one of the first ``count`` (None: all) sorted positions starts a new
+    leaf, 0 elsewhere [N] (int32)."""
     sorted_leaf = np.asarray(sorted_leaf, np.int64)
-    return np.r_[True, sorted_leaf[1:] != sorted_leaf[:-1]].astype(np.int32)[:len(sorted_leaf)]
+    count = len(sorted_leaf) if count is None else count
+    counted = sorted_leaf[:count]
+    heads = np.r_[True, counted[1:] != counted[:-1]].astype(np.int32)[:count]
+    return np.r_[heads, np.zeros(len(sorted_leaf) - count, np.int32)]
 
 
-def leaf_starts(leaf_rank) -> np.ndarray:
-    """Twin of ``leaf_starts``: each leaf's first sorted position, then the point count [L + 1] (int64),
-    from the inclusive scan of ``leaf_runs``."""
-    leaf_rank = np.asarray(leaf_rank, np.int64)
+def leaf_starts(leaf_rank, count: int | None = None) -> np.ndarray:
+    """Twin of ``leaf_starts``: each leaf's first sorted position among the first ``count`` (None: all), then
+    that count [L + 1] (int64), from the inclusive scan of ``leaf_runs``."""
+    leaf_rank = np.asarray(leaf_rank, np.int64)[:count]
     return np.r_[np.flatnonzero(np.diff(np.r_[0, leaf_rank]) != 0), len(leaf_rank)].astype(np.int64)
 
 
@@ -52,12 +62,14 @@ def leaf_centroids_parallel(points, order, starts, leaf_count: int) -> np.ndarra
     return leaf_centroids(points, order, starts[:-1], np.diff(starts))
 
 
-def leaf_label_keys(order, leaf_rank, labels, label_min: int, label_span: int) -> tuple[np.ndarray, np.ndarray]:
-    """Twin of ``leaf_label_keys``: (leaf number * label_span + label - label_min of each sorted position,
-    the positions) [N], [N] (int64)."""
-    labels = np.asarray(labels, np.int64)[np.asarray(order, np.int64)]
-    keys = (np.asarray(leaf_rank, np.int64) - 1) * label_span + labels - label_min
-    return keys, np.arange(len(keys), dtype=np.int64)
+def leaf_label_keys(order, leaf_rank, labels, label_min: int, label_span: int, count: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``leaf_label_keys``: (leaf number * label_span + label - label_min of each of the first ``count``
+    (None: all) sorted positions, then ``PAST_COUNT_KEY``; the positions) [N], [N] (int64)."""
+    order = np.asarray(order, np.int64)
+    count = len(order) if count is None else count
+    labels = np.asarray(labels, np.int64)[order[:count]]
+    keys = (np.asarray(leaf_rank, np.int64)[:count] - 1) * label_span + labels - label_min
+    return np.r_[keys, np.full(len(order) - count, PAST_COUNT_KEY, np.int64)], np.arange(len(order), dtype=np.int64)
 
 
 def leaf_majority_labels(sorted_keys, starts, leaf_count: int, label_min: int, label_span: int) -> np.ndarray:
