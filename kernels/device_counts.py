@@ -22,15 +22,25 @@ PAST_COUNT_KEY = wp.constant(wp.int64(0x7FFFFFFFFFFFFFFF))
 STATUS_OVERFLOW = wp.constant(0)
 
 
-@wp.kernel
-def bounded_count(total: wp.array(dtype=int), capacity: int, slot: int, status: wp.array(dtype=int), count: wp.array(dtype=int)):
-    """One thread: status[slot] = total[0]; count[0] = min(total[0], capacity); status[STATUS_OVERFLOW] = 1
-    where the total exceeds the capacity."""
-    value = total[0]
-    status[slot] = value
-    count[0] = wp.min(value, capacity)
-    if value > capacity:
-        status[STATUS_OVERFLOW] = 1
+def _bounded_count_kernel(total_type):
+    @wp.kernel(module=__name__)
+    def bounded_count(total: wp.array(dtype=total_type), capacity: int, slot: int, status: wp.array(dtype=int), count: wp.array(dtype=int)):
+        """One thread: status[slot] = total[0] (at most the largest int); count[0] = min(total[0], capacity);
+        status[STATUS_OVERFLOW] = 1 where the total exceeds the capacity."""
+        value = wp.int64(total[0])
+        status[slot] = int(wp.min(value, wp.int64(2147483647)))
+        count[0] = int(wp.min(value, wp.int64(capacity)))
+        if value > wp.int64(capacity):
+            status[STATUS_OVERFLOW] = 1
+
+    return bounded_count
+
+
+# Concrete types only (a generic kernel would be built at its first launch, maybe on a worker thread): an
+# int total (a prefix sum's last value), and an int64 one for a sum that can outgrow an int (the free
+# samples of far rays).
+bounded_count = _bounded_count_kernel(wp.int32)
+bounded_wide_count = _bounded_count_kernel(wp.int64)
 
 
 @wp.kernel

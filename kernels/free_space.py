@@ -30,22 +30,23 @@ def ray_samples(
     first_row: wp.array(dtype=int),
     out: wp.array(dtype=wp.vec3),
 ):
-    """Hit h's rows out[first_row[h]:] (h below hit_count[0]; rows past out's end are not written, the
-    caller sees their count): the origin, samples_per_hit[h] samples at steps[k], and the sample at
-    ray_length[h] - free_resolution when ray_length[h] > free_resolution."""
+    """Hit h's rows out[first_row[h]:] (h below hit_count[0]): the origin, samples_per_hit[h] samples at
+    steps[k], and the sample at ray_length[h] - free_resolution when ray_length[h] > free_resolution. Only
+    rows within out are written (a scan whose rows outgrow it, its total seen by the caller, still has
+    every row below out's end written: the rows are the hits' in order)."""
     h = wp.tid()
     if h >= hit_count[0]:
         return
     row = first_row[h]
     count = samples_per_hit[h]
-    last_sample = ray_length[h] > free_resolution
-    if row + 1 + count + wp.where(last_sample, 1, 0) > out.shape[0]:
+    room = out.shape[0]
+    if row < 0 or row >= room:  # past the room (or past an int's range, the total then seen as too large)
         return
     out[row] = origin
     d = direction[h]
-    for k in range(count):
+    for k in range(wp.min(count, room - row - 1)):
         out[row + 1 + k] = origin + d * steps[k]
-    if last_sample:
+    if ray_length[h] > free_resolution and row + 1 + count < room:
         out[row + 1 + count] = origin + d * (ray_length[h] - free_resolution)
 
 
@@ -65,10 +66,12 @@ def ray_geometry(hits: wp.array(dtype=wp.vec3), hit_count: wp.array(dtype=int), 
 
 @wp.kernel
 def samples_per_ray(ray_length: wp.array(dtype=wp.float32), hit_count: wp.array(dtype=int), steps: wp.array(dtype=wp.float32),
-                    free_resolution: wp.float32, samples_per_hit: wp.array(dtype=int), rows_per_hit: wp.array(dtype=int)):
+                    free_resolution: wp.float32, samples_per_hit: wp.array(dtype=int), rows_per_hit: wp.array(dtype=int),
+                    total_rows: wp.array(dtype=wp.int64)):
     """samples_per_hit[h] = how many steps lie below the hit's range (a binary search of the ascending
     steps, as numpy's searchsorted side="left"); rows_per_hit[h] = the origin, those samples and the one
-    at range - free_resolution when the range exceeds free_resolution; 0 past the hit_count[0] hits."""
+    at range - free_resolution when the range exceeds free_resolution; 0 past the hit_count[0] hits.
+    total_rows[0] (from 0) = their sum in int64, which the int prefix sum of rows_per_hit can outgrow."""
     h = wp.tid()
     if h >= hit_count[0]:
         rows_per_hit[h] = 0
@@ -83,7 +86,9 @@ def samples_per_ray(ray_length: wp.array(dtype=wp.float32), hit_count: wp.array(
         else:
             high = middle
     samples_per_hit[h] = low
-    rows_per_hit[h] = 1 + low + wp.where(length > free_resolution, 1, 0)
+    rows = 1 + low + wp.where(length > free_resolution, 1, 0)
+    rows_per_hit[h] = rows
+    wp.atomic_add(total_rows, 0, wp.int64(rows))
 
 
 

@@ -218,7 +218,7 @@ def test_the_counters_kernel_matches_its_twin():
 
 # Reads per warm scan of the like-for-like modes' device preprocessing, as counted on the CPU backend: the
 # scan's status, read with the gather's counters. Each count that sized the next arrays was read back
-# (14 reads per S-BKI scan of this workload, 8 per release scan); the stages now run over room the host
+# (7 reads per S-BKI scan of this workload, 4 per release scan); the stages now run over room the host
 # knows, with their counts on the device (methods.device_scratch).
 COMPAT_DEVICE_READS = {"sbki": 1, "release-ebs": 1}
 
@@ -256,17 +256,16 @@ def test_the_compat_modes_device_preprocessing_allocates_nothing_once_warm(metho
     assert mapper.integrator._scratch.sets(mapper.device) == 1  # scan by scan, each scan gave its set back
 
 
-def assert_outgrown_room_is_redone_to_the_host_map(mapping, scans, device, reservations: dict) -> None:
-    """Maps ``scans`` (two or more) with the compat mode's preprocessing on the host and on the device, the
-    device's pool starting with ``reservations`` (status slot -> rows, too few for the first scan): the first
-    scan reads more than once (the status that says it ran out of room, then its redo's), the later ones
-    once, and the kept counts and the map are the host path's."""
+def assert_outgrown_room_is_redone_to_the_host_map(mapping, scans, device) -> None:
+    """Maps ``scans`` (two or more) with the compat mode's preprocessing on the host and on the device, where
+    the caller made the device's first room too small (``methods.sbki_device``'s guesses): the first scan
+    reads more than once (the status that says it ran out of room, then its redo's), the later ones once,
+    and the kept counts and the map are the host path's."""
     maps = []
     for on_device in (False, True):
         mapper = Mapper(mapping, 9, workers=1, device=device)
         mapper.integrator.preprocess_on_device = on_device
         if on_device:
-            mapper.integrator._scratch._reservations[str(mapper.device)] = dict(reservations)
             with counting() as first:
                 kept = [stats.kept_points for stats in mapper.integrate_many(scans[:1])]
             with counting() as later:

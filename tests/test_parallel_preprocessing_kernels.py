@@ -94,15 +94,16 @@ def test_ray_kernels(device, n):
     np.testing.assert_array_equal(ray_length.numpy()[:n], want_length)
     assert not ray_length.numpy()[n:].any()  # nothing past the count
     steps = np.cumsum(np.full(int(want_length.max(initial=0) / 0.5) + 2, np.float32(0.5)), dtype=np.float32)
-    per_hit, rows = wp.empty(room, dtype=int, device=device), wp.empty(room, dtype=int, device=device)
-    _launch(free_space.samples_per_ray, room, [ray_length, count, _a(steps, wp.float32, device), 0.5, per_hit, rows], device)
-    want_per_hit, want_rows = free_space_twin.samples_per_ray(ray_length.numpy(), steps, 0.5, n)
+    per_hit, rows, total_rows = wp.empty(room, dtype=int, device=device), wp.empty(room, dtype=int, device=device), wp.zeros(1, dtype=wp.int64, device=device)
+    _launch(free_space.samples_per_ray, room, [ray_length, count, _a(steps, wp.float32, device), 0.5, per_hit, rows, total_rows], device)
+    want_per_hit, want_rows, want_total = free_space_twin.samples_per_ray(ray_length.numpy(), steps, 0.5, n)
     np.testing.assert_array_equal(per_hit.numpy()[:n], want_per_hit)
     np.testing.assert_array_equal(rows.numpy(), want_rows)
+    assert total_rows.numpy()[0] == want_total
     first_row = np.r_[0, np.cumsum(want_rows)].astype(np.int32)
     total = int(first_row[room])
-    for capacity in (total, max(total - 3, 0)):  # room for every row, and for all but the last hit's
-        out = wp.zeros(capacity, dtype=wp.vec3, device=device)
+    for capacity in (total, max(total - 3, 0), max(total - 1, 0)):  # room for every row, for all but 3, all but 1
+        out = _a(np.full((capacity, 3), 1e30, np.float32), wp.vec3, device)  # every row below the room is written
         _launch(free_space.ray_samples, room, [direction, ray_length, count, wp.vec3(*origin.tolist()), 0.5, _a(steps, wp.float32, device), per_hit,
                                                _a(first_row, wp.int32, device), out], device)
         np.testing.assert_array_equal(out.numpy().reshape(-1, 3), free_space_twin.ray_samples(
@@ -227,15 +228,22 @@ def test_count_kernels(device):
 
     for total, capacity, overflowed in ((0, 4, 0), (4, 4, 0), (5, 4, 0), (5, 4, 1), (3, 4, 1)):
         status = np.array([overflowed, 0, 0, 0], np.int32)
-        status_on_device, count = _a(status, wp.int32, device), wp.zeros(1, dtype=int, device=device)
-        _launch(device_counts.bounded_count, 1, [_count(total, device), capacity, 2, status_on_device, count], device)
-        want_status, want_count = counts_twin.bounded_count(total, capacity, 2, status)
-        np.testing.assert_array_equal(status_on_device.numpy(), want_status)
-        assert count.numpy()[0] == want_count
+        for kernel, total_type in ((device_counts.bounded_count, wp.int32), (device_counts.bounded_wide_count, wp.int64)):
+            status_on_device, count = _a(status, wp.int32, device), wp.zeros(1, dtype=int, device=device)
+            _launch(kernel, 1, [wp.array([total], dtype=total_type, device=device), capacity, 2, status_on_device, count], device)
+            want_status, want_count = counts_twin.bounded_count(total, capacity, 2, status)
+            np.testing.assert_array_equal(status_on_device.numpy(), want_status)
+            assert count.numpy()[0] == want_count
         gated = wp.zeros(1, dtype=int, device=device)
         _launch(device_counts.gated_count, 1, [_count(total, device), status_on_device, gated], device)
         assert gated.numpy()[0] == counts_twin.gated_count(total, want_status)
     assert counts_twin.gated_count(7, [1, 0]) == 0 and counts_twin.gated_count(7, [0, 0]) == 7
+    # An int64 total past an int's range: the status holds the largest int, and the count the capacity.
+    status_on_device, count = wp.zeros(4, dtype=int, device=device), wp.zeros(1, dtype=int, device=device)
+    _launch(device_counts.bounded_wide_count, 1, [wp.array([5 << 31], dtype=wp.int64, device=device), 9, 3, status_on_device, count], device)
+    want_status, want_count = counts_twin.bounded_wide_count(5 << 31, 9, 3, np.zeros(4, np.int32))
+    np.testing.assert_array_equal(status_on_device.numpy(), want_status)
+    assert count.numpy()[0] == want_count == 9
 
 
 @pytest.mark.parametrize("dempster", [False, True])

@@ -53,14 +53,15 @@ def test_a_map_from_the_device_preprocessing_is_the_host_paths_bit_for_bit(devic
     np.testing.assert_array_equal(device_map.rows(), host_map.rows())
 
 
-def test_a_scan_that_outgrows_its_reserved_room_is_redone_to_the_same_map(device):
-    # Room for 5 (point, block) pairs: the first scan outgrows it, gathers nothing, is built again with room
+def test_a_scan_that_outgrows_its_reserved_room_is_redone_to_the_same_map(device, monkeypatch):
+    # Room for 16 (point, block) pairs: the first scan outgrows it, gathers nothing, is built again with room
     # for what it counted and gathered; the map is the host path's, and a later scan reads once.
     from test_host_reads import assert_outgrown_room_is_redone_to_the_host_map
 
     from evsemmap_warp.data.datasets import open_dataset
-    from evsemmap_warp.methods.device_scratch import STATUS_PAIRS
+    from evsemmap_warp.methods import sbki_device
 
     run = load_config([PRESET, REPO / "configs/datasets/bench_rellis_like.yaml"], method="ebs")
     scans = [scan for _, scan in zip(range(2), open_dataset(run.dataset))]
-    assert_outgrown_room_is_redone_to_the_host_map(run.mapping, scans, device, {STATUS_PAIRS: 5})
+    monkeypatch.setattr(sbki_device, "PAIRS_GUESS_PER_POINT", 0.0)
+    assert_outgrown_room_is_redone_to_the_host_map(run.mapping, scans, device)

@@ -383,16 +383,36 @@ def _bench_sbki(free_res):
     return config, scans
 
 
-def test_a_scan_that_outgrows_its_reserved_room_is_redone_to_the_same_map(device):
-    # Room for 100 free samples and 100 pairs: the first scan outgrows both, gathers nothing, is built again
-    # (twice where the pairs of its truncated training set fitted) and gathered; the map is the host path's,
-    # and a later scan reads once.
+@pytest.mark.parametrize("starved", [("FREE_ROWS_GUESS_PER_HIT",), ("PAIRS_GUESS_PER_POINT",), ("FREE_ROWS_GUESS_PER_HIT", "PAIRS_GUESS_PER_POINT")])
+def test_a_scan_that_outgrows_its_reserved_room_is_redone_to_the_same_map(device, starved, monkeypatch):
+    # Room for one free sample, or 16 pairs, or both: the first scan outgrows it, gathers nothing (its later
+    # stages ran on what fitted), is built again (twice where the pairs of its cut training set fitted) and
+    # gathered; the map is the host path's, and a later scan reads once.
     from test_host_reads import assert_outgrown_room_is_redone_to_the_host_map
 
-    from evsemmap_warp.methods.device_scratch import STATUS_PAIRS
-
+    for name in starved:
+        monkeypatch.setattr(sbki_device, name, 0)
     config, scans = _bench_sbki(4.0)
-    assert_outgrown_room_is_redone_to_the_host_map(config, scans, device, {STATUS_FREE_ROWS: 100, STATUS_PAIRS: 100})
+    assert_outgrown_room_is_redone_to_the_host_map(config, scans, device)
+
+
+def test_a_scan_that_outgrows_its_room_and_takes_the_host_path_is_redone_first(device, monkeypatch):
+    # Blocks too spread for the dense grid take the host path from the training set, read back: a training
+    # set cut short by a stage that ran out of room is built again whole first.
+    from evsemmap_warp.core.mapper import Mapper
+
+    monkeypatch.setattr(sbki_device, "FREE_ROWS_GUESS_PER_HIT", 0)
+    monkeypatch.setattr(sb, "MAX_DENSE_LOOKUP_CELLS", 10)
+    config, scans = _bench_sbki(4.0)
+    maps = []
+    for on_device in (False, True):
+        mapper = Mapper(config, 9, workers=1, device=device)
+        mapper.integrator.preprocess_on_device = on_device
+        kept = [stats.kept_points for stats in mapper.integrate_many(scans[:1])]
+        maps.append((kept, mapper.voxels()[0]))
+    assert maps[1][0] == maps[0][0]
+    np.testing.assert_array_equal(maps[1][1].index, maps[0][1].index)
+    np.testing.assert_array_equal(maps[1][1].rows(), maps[0][1].rows())
 
 
 def test_a_scan_with_too_many_free_samples_is_refused_on_both_paths_and_writes_nothing(device, monkeypatch):
@@ -411,3 +431,20 @@ def test_a_scan_with_too_many_free_samples_is_refused_on_both_paths_and_writes_n
             mapper.integrate_many(scans[:1])
         monkeypatch.undo()
         assert len(mapper.voxels()[0].index) == before
+
+
+def test_free_samples_past_an_ints_range_are_counted_and_refused(device):
+    # 600 hits 2,000 km out at free_res 0.5: 4 M samples each, 2.4 G in all, past an int's range (the
+    # rows' prefix sum wraps); their total is summed in int64 too, so the scan is refused as on the host.
+    from evsemmap_warp.core.mapper import Mapper
+
+    config, _ = _bench_sbki(0.5)
+    rng = np.random.default_rng(41)
+    points = np.column_stack([2.0e6 + rng.uniform(0, 10, 600), rng.uniform(0, 10, (600, 2))]).astype(np.float32)
+    labels = rng.integers(0, 5, 600)
+    for on_device in (False, True):
+        mapper = Mapper(config, 9, workers=1, device=device)
+        mapper.integrator.preprocess_on_device = on_device
+        with pytest.raises(ValueError, match="free_resolution_m"):
+            mapper.integrate(points, labels, payload_type="label", sensor_origin=np.zeros(3))
+        assert len(mapper.voxels()[0].index) == 0

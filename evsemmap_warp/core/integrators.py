@@ -455,7 +455,11 @@ class SbkiCompatIntegrator:
                 scan.points, scan.labels, scan.sensor_origin, ds_resolution_m=c.sbki.ds_resolution_m,
                 free_resolution_m=c.sbki.free_resolution_m, max_range_m=c.sbki.max_range_m, device=device, scratch=scratch, box=box), scratch)
             tables = sbki_device.gather_tables_on_device(points, labels, self.block_size, c.length_m, scratch, box)
-            if tables is None:
+            if tables is None:  # the host path from the training set, read back whole
+                status = scratch.status.numpy()
+                if status[STATUS_OVERFLOW]:
+                    scratch.learn(status)
+                    return build(scratch.begin())
                 training_points = points.numpy()
                 return self._launch_from_training_set(stats, training_points, labels.numpy()[:len(training_points)], device)
             inputs = block_gather.sbki_blocks(blocks=tables.tests, sources=tables.sources, point_start=tables.point_start,
@@ -682,9 +686,8 @@ def counted_gather_launch(stats: IntegrationStats, pool: ScratchPool, device: st
         scan, targets = built
         while True:
             if len(shards) == 1 and targets.box is not None and VoxelMap.block_range_holds(np.stack(targets.box), cells_per_block):
-                updates = shards[0].gather_counted_blocks(kernel, scan, targets.capacity, targets.count, targets.status,
-                                                          cells_per_block=cells_per_block, kind=kind)
-                status = shards[0].scan_status
+                updates, status = shards[0].gather_counted_blocks(kernel, scan, targets.capacity, targets.count, targets.status,
+                                                                  cells_per_block=cells_per_block, kind=kind)
             else:
                 status = targets.status.numpy()
                 updates = 0 if status[STATUS_OVERFLOW] else _gather_over_shards(shards, lanes, kernel, scan, targets.host(), cells_per_block, kind)

@@ -131,8 +131,7 @@ class VoxelMap:
         self._counters = wp.zeros(3 + MAX_SCAN_STATUS, dtype=wp.int64, device=self.device)
         self._no_scan_status = wp.zeros(0, dtype=int, device=self.device)
         self._scan_status = self._no_scan_status
-        # The status read back with the last launch's counters (``gather_counted_blocks``).
-        self.scan_status = np.zeros(0, np.int64)
+        self._counted_status = np.zeros(0, np.int64)
         self._counted_updates = 0
         # The scans' inputs reach the device through buffers kept from scan to scan (pinned, on a GPU).
         self.staging = Staging(self.device)
@@ -318,7 +317,7 @@ class VoxelMap:
                   device=self.device)
         counters = self._counters.numpy()
         key_count, self._counted_updates, self._known_bricks = (int(value) for value in counters[:3])
-        self.scan_status = counters[3:3 + self._scan_status.shape[0]].copy()
+        self._counted_status = counters[3:3 + self._scan_status.shape[0]].copy()
         self._known_count = key_count
         return key_count
 
@@ -555,19 +554,19 @@ class VoxelMap:
         return self._gather(kernel, scan, len(block_ids), ids, count, cells_per_block=cells_per_block, kind=kind, exact_most=True)
 
     def gather_counted_blocks(self, kernel, scan, capacity: int, block_count: wp.array, scan_status: wp.array, *, cells_per_block: int,
-                              kind: str) -> int:
+                              kind: str) -> tuple[int, np.ndarray]:
         """``gather_blocks`` over every target block of ``scan`` when a device counted them: block_count
-        (a [1] int array on the device) of at most ``capacity``. ``scan_status`` (an int array on the
-        device, what the scan's preprocessing counted) is read back with the launch's counters, in
-        ``scan_status``. Returns updates."""
+        (a [1] int array on the device) of at most ``capacity``. Returns updates and ``scan_status`` (an int
+        array on the device, what the scan's preprocessing counted), read back with the launch's counters."""
         if scan_status.shape[0] > MAX_SCAN_STATUS:
             raise ValueError(f"a scan status of {scan_status.shape[0]} values; at most {MAX_SCAN_STATUS} are read back")
         self._scan_status = scan_status
         try:
             # The table grows for as many new voxels as the last such launch made (the capacity is a bound,
             # far above the count on most scans).
-            return self._gather(kernel, scan, capacity, self._thread_ids_for(capacity), block_count, cells_per_block=cells_per_block, kind=kind,
-                                exact_most=False)
+            updates = self._gather(kernel, scan, capacity, self._thread_ids_for(capacity), block_count, cells_per_block=cells_per_block,
+                                   kind=kind, exact_most=False)
+            return updates, self._counted_status
         finally:
             self._scan_status = self._no_scan_status
 

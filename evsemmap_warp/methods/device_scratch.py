@@ -120,16 +120,18 @@ class DeviceScratch:
         return out
 
     def room(self, slot: int, guess: int, bound: int) -> int:
-        """The rows reserved for the stage whose total the status keeps in ``slot``: what scans that ran
-        out of room asked for (``learn``), else ``guess``; at least 1, at most ``bound``."""
-        return max(1, min(int(bound), self._reservations.get(slot, int(guess))))
+        """The rows reserved for the stage whose total the status keeps in ``slot``: ``guess`` (from the
+        scan's size), or more where scans that ran out of room asked for more (``learn``); at least 1, at
+        most ``bound``."""
+        return max(1, min(int(bound), max(int(guess), self._reservations.get(slot, 0))))
 
     def bounded(self, total: wp.array, capacity: int, slot: int) -> wp.array:
-        """The count of a stage's rows, ``total`` (a [1] int array on the device) up to ``capacity``; the
-        total goes to the status's ``slot``, and the overflow flag is raised where it exceeds the capacity."""
+        """The count of a stage's rows, ``total`` (a [1] int or int64 array on the device) up to ``capacity``;
+        the total goes to the status's ``slot``, and the overflow flag is raised where it exceeds the capacity."""
         caller = sys._getframe(1)
         count = self._view((caller.f_code.co_filename, caller.f_lineno), 1, int)
-        wp.launch(device_counts.bounded_count, dim=1, device=self.device, inputs=[total, int(capacity), int(slot), self.status, count])
+        kernel = device_counts.bounded_wide_count if total.dtype == wp.int64 else device_counts.bounded_count
+        wp.launch(kernel, dim=1, device=self.device, inputs=[total, int(capacity), int(slot), self.status, count])
         return count
 
     def learn(self, status: np.ndarray) -> None:

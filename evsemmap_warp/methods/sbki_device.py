@@ -32,11 +32,13 @@ import warp as wp
 from ..kernels import block_gather, block_membership, device_counts, free_space, voxel_grid
 from ..voxel_keys import column_bounds
 from . import sbki_compat
-from .device_scratch import (STATUS_FREE_ROWS, STATUS_KEPT_POINTS, STATUS_PAIRS, DeviceScratch, Rows, counts_with_room, inclusive_scan, last_of)
+from .device_scratch import STATUS_FREE_ROWS, STATUS_KEPT_POINTS, STATUS_PAIRS, DeviceScratch, Rows, counts_with_room, inclusive_scan, last_of
 
-# The rows reserved per hit for its free samples before a scan ran out of room (the bound, the longest ray's
-# steps for every hit, is far above what most scans count).
+# The rows reserved per hit for its free samples, and per point for its (point, block) pairs, unless scans
+# ran out of room (their bounds, every step of the longest ray per hit and 27 blocks per point, lie far
+# above what scans count; most points lie in one block).
 FREE_ROWS_GUESS_PER_HIT = 16
+PAIRS_GUESS_PER_POINT = 1.25
 
 
 def runs_of_sorted(keys: wp.array, capacity: int, count: wp.array, scratch: DeviceScratch) -> tuple[wp.array, wp.array, wp.array]:
@@ -141,14 +143,15 @@ def _free_space_samples(hits: Rows, direction: wp.array, ray_length: wp.array, o
         sbki_compat.check_free_samples(float(redo[STATUS_FREE_ROWS]), float(_longest_ray(ray_length, hits.count, scratch)), f, origin)
     steps = scratch.upload(sbki_compat.ray_steps(f, longest), wp.float32)
     per_hit = scratch.empty(n, int)
-    rows_per_hit = counts_with_room(n, scratch)
-    wp.launch(free_space.samples_per_ray, dim=n, device=device, inputs=[ray_length, hits.count, steps, float(f), per_hit, rows_per_hit])
-    first_row = scratch.empty(n + 1, int)
+    rows_per_hit = scratch.empty(n, int)
+    total = scratch.zeros(1, wp.int64)  # the int prefix sum below wraps past 2^31 rows (far rays): the total is summed in int64 too
+    wp.launch(free_space.samples_per_ray, dim=n, device=device, inputs=[ray_length, hits.count, steps, float(f), per_hit, rows_per_hit, total])
+    first_row = scratch.empty(n, int)
     wp.utils.array_scan(rows_per_hit, first_row, inclusive=False)
     bound = min(n * (steps.shape[0] + 2), sbki_compat.MAX_FREE_SAMPLES_PER_SCAN)
     room = scratch.room(STATUS_FREE_ROWS, FREE_ROWS_GUESS_PER_HIT * n, bound)
     out = scratch.empty(room, wp.vec3)
-    count = scratch.bounded(last_of(first_row), room, STATUS_FREE_ROWS)
+    count = scratch.bounded(total, room, STATUS_FREE_ROWS)
     wp.launch(free_space.ray_samples, dim=n, device=device, inputs=[
         direction, ray_length, hits.count, wp.vec3(*origin.tolist()), float(f), steps, per_hit, first_row, out])
     return Rows(out, count)
@@ -232,8 +235,7 @@ def block_memberships_on_device(points: Rows, block_size: np.float32, scratch: D
         points.array, points.count, float(np.float32(block_size)), nearest, masks, pair_counts])
     first_pair = scratch.empty(n + 1, int)
     wp.utils.array_scan(pair_counts, first_pair, inclusive=False)
-    # A point lies in at most 2 blocks per axis (27 bits is the masks' bound); most lie in one.
-    room = scratch.room(STATUS_PAIRS, n + n // 4 + 16, 27 * n)
+    room = scratch.room(STATUS_PAIRS, int(PAIRS_GUESS_PER_POINT * n) + 16, 27 * n)
     count = scratch.bounded(last_of(first_pair), room, STATUS_PAIRS)
     bits = scratch.empty(2 * room, wp.int64)
     bits[:room].fill_(int(device_counts.PAST_COUNT_KEY))  # the rows past the count sort last

@@ -8,21 +8,19 @@ import numpy as np
 def ray_samples(direction, ray_length, origin, free_resolution, steps, samples_per_hit, first_row, total_rows: int) -> np.ndarray:
     """Twin of ``kernels.free_space.ray_samples``: per hit h, rows first_row[h]... of the [total_rows, 3]
     float32 output: the sensor origin, samples_per_hit[h] samples at ``steps`` along the ray, and one at
-    ray_length[h] - free_resolution when the ray is longer than that (m, the scan's frame); zero rows for
-    a hit whose rows do not all fit."""
-    out = np.zeros((total_rows, 3), np.float32)
+    ray_length[h] - free_resolution when the ray is longer than that (m, the scan's frame); the rows of all
+    hits listed in order and cut at total_rows."""
     origin = np.asarray(origin, np.float32)
     f = np.float32(free_resolution)
+    rows = []
     for h in range(len(direction)):
-        row = int(first_row[h])
-        if row + 1 + int(samples_per_hit[h]) + int(ray_length[h] > f) > total_rows:
-            continue
-        out[row] = origin
+        assert int(first_row[h]) == len(rows) or len(rows) >= total_rows
+        rows.append(origin)
         for k in range(int(samples_per_hit[h])):
-            out[row + 1 + k] = origin + direction[h] * steps[k]
+            rows.append(origin + direction[h] * steps[k])
         if ray_length[h] > f:
-            out[row + 1 + int(samples_per_hit[h])] = origin + direction[h] * np.float32(ray_length[h] - f)
-    return out
+            rows.append(origin + direction[h] * np.float32(ray_length[h] - f))
+    return np.array(rows[:total_rows], np.float32).reshape(-1, 3)
 
 
 def ray_geometry(hits, origin) -> tuple[np.ndarray, np.ndarray]:
@@ -33,14 +31,14 @@ def ray_geometry(hits, origin) -> tuple[np.ndarray, np.ndarray]:
         return diff / ray_length[:, None], ray_length
 
 
-def samples_per_ray(ray_length, steps, free_resolution, count: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def samples_per_ray(ray_length, steps, free_resolution, count: int | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """Twin of ``samples_per_ray``: (steps below each range, rows per hit, 0 past the first ``count`` hits
-    (None: all)) [count], [N] (int32)."""
+    (None: all), their total) [count], [N] (int32), int."""
     ray_length = np.asarray(ray_length, np.float32)
     count = len(ray_length) if count is None else count
     per_hit = np.searchsorted(np.asarray(steps, np.float32), ray_length[:count], side="left")
     rows = 1 + per_hit + (ray_length[:count] > np.float32(free_resolution))
-    return per_hit.astype(np.int32), np.r_[rows, np.zeros(len(ray_length) - count, np.int64)].astype(np.int32)
+    return per_hit.astype(np.int32), np.r_[rows, np.zeros(len(ray_length) - count, np.int64)].astype(np.int32), int(rows.sum())
 
 
 def within_range(ray_length, max_range, count: int | None = None) -> np.ndarray:
