@@ -314,6 +314,11 @@ def block_bounds(blocks: wp.array2d(dtype=wp.int64), count: wp.array(dtype=int),
         wp.atomic_max(highest, axis, blocks[k, axis])
 
 
+@wp.func
+def _box_position(blocks: wp.array2d(dtype=wp.int64), k: int, lowest: wp.vec3l, span_y: wp.int64, span_z: wp.int64) -> wp.int64:
+    return ((blocks[k, 0] - lowest[0]) * span_y + (blocks[k, 1] - lowest[1])) * span_z + (blocks[k, 2] - lowest[2])
+
+
 @wp.kernel
 def box_positions(blocks: wp.array2d(dtype=wp.int64), count: wp.array(dtype=int), lowest: wp.vec3l, span_y: wp.int64, span_z: wp.int64,
                   positions: wp.array(dtype=wp.int64), pair_index: wp.array(dtype=wp.int64)):
@@ -324,7 +329,16 @@ def box_positions(blocks: wp.array2d(dtype=wp.int64), count: wp.array(dtype=int)
     if k >= count[0]:
         positions[k] = PAST_COUNT_KEY
         return
-    positions[k] = ((blocks[k, 0] - lowest[0]) * span_y + (blocks[k, 1] - lowest[1])) * span_z + (blocks[k, 2] - lowest[2])
+    positions[k] = _box_position(blocks, k, lowest, span_y, span_z)
+
+
+@wp.kernel
+def packed_box_positions(blocks: wp.array2d(dtype=wp.int64), lowest: wp.vec3l, span_y: wp.int64, span_z: wp.int64, position_bits: int,
+                         packed: wp.array(dtype=wp.int64)):
+    """packed[k] = block k's position in the box (``box_positions``) << position_bits | k: the host path's
+    sort values (``methods.sbki_compat.group_by_block``), packed in the pass that computes them."""
+    k = wp.tid()
+    packed[k] = (_box_position(blocks, k, lowest, span_y, span_z) << wp.int64(position_bits)) | wp.int64(k)
 
 
 @wp.kernel

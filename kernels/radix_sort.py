@@ -5,8 +5,8 @@ key bits only. Each kernel runs as one thread (launch with dim=1 on the CPU): th
 already runs one scan per worker thread, and a sequential pass streams through memory in order. The digit
 histograms come from one read per three passes (``digit_histograms``); each pass then moves the values
 into their digit's range (``radix_scatter``) in input order, which is what makes the sort stable. Digits
-of up to 10 bits keep the write streams within the TLB. Against numpy's sort, which is scalar on the CPU:
-docs/performance.md.
+of up to 13 bits (``methods.sbki_compat.MAX_RADIX_DIGIT_BITS``): a pass over more write streams costs more
+per value, but fewer passes gain more. Against numpy's sort, which is scalar on the CPU: docs/performance.md.
 
 numpy twin: ``evsemmap_warp/reference/radix_sort.py``.
 """
@@ -54,3 +54,26 @@ def radix_scatter(values_in: wp.array(dtype=wp.int64), shift: int, digit_bits: i
         slot = next_slot[digit]
         next_slot[digit] = slot + 1
         values_out[slot] = value
+
+
+@wp.kernel
+def sorted_runs(packed: wp.array(dtype=wp.int64), position_bits: int, order: wp.array(dtype=wp.int64), starts: wp.array(dtype=wp.int64),
+                run_count: wp.array(dtype=int)):
+    """One thread over values packed as key << position_bits | position and sorted: order[k] = value k's
+    position; starts[r] = where run r of equal keys begins, starts[R] = the value count; run_count[0] = R.
+    One pass where numpy's unpacking and run search took five."""
+    shift = wp.int64(position_bits)
+    mask = (wp.int64(1) << shift) - wp.int64(1)
+    n = packed.shape[0]
+    runs = int(0)
+    previous = wp.int64(0)
+    for k in range(n):
+        value = packed[k]
+        key = value >> shift
+        order[k] = value & mask
+        if k == 0 or key != previous:
+            starts[runs] = wp.int64(k)
+            runs += 1
+            previous = key
+    starts[runs] = wp.int64(n)
+    run_count[0] = runs

@@ -481,7 +481,7 @@ def test_every_form_of_the_sbki_gather_kernel_gives_the_same_map_bit_for_bit():
                                       (sb.MIN_RADIX_SORT_KEYS, 1), (sb.MIN_RADIX_SORT_KEYS, 2), (sb.MIN_RADIX_SORT_KEYS, 1000),
                                       (sb.MIN_RADIX_SORT_KEYS + 1, 1 << 26), (70_000, 1 << 45)])
 def test_stable_sort_is_a_stable_argsort(n, limit):
-    # numpy's sort for few keys, the radix kernels from MIN_RADIX_SORT_KEYS on (one to five passes, a
+    # numpy's sort for few keys, the radix kernels from MIN_RADIX_SORT_KEYS on (one to four passes, a
     # single key value, digits that skip passes), numpy's stable argsort where keys and positions do not fit.
     rng = np.random.default_rng(n + limit)
     keys = rng.integers(0, limit, n, dtype=np.int64)
@@ -524,6 +524,80 @@ def test_radix_kernels_match_their_twins(n, digit_bits):
     # The twin's sort is numpy's stable sort by the same bits.
     by_bits = (values >> lowest_bit) & ((1 << (digit_bits * passes)) - 1)
     np.testing.assert_array_equal(twin.radix_sort(values, lowest_bit, digit_bits, passes), values[np.argsort(by_bits, kind="stable")])
+
+
+@pytest.mark.parametrize("n, limit", [(0, 10), (1, 10), (7, 1), (5000, 7), (sb.MIN_RADIX_SORT_KEYS + 1, 1 << 26)])
+def test_sorted_runs_match_a_stable_argsort_and_their_twin(n, limit):
+    # The host path's sort into runs (sbki_compat.sorted_runs: numpy's sort or the radix kernels, then one
+    # pass for the order and the runs' starts): no values, one, one key for all, many ties, a wide key.
+    import warp as wp
+
+    from evsemmap_warp.kernels import radix_sort as kernels
+    from evsemmap_warp.reference import radix_sort as twin
+
+    rng = np.random.default_rng(n + limit)
+    keys = rng.integers(0, limit, n, dtype=np.int64)
+    position_bits, key_bits = sb._packing_bits(n, limit)
+    packed = (keys << position_bits) | np.arange(n, dtype=np.int64)
+    order, starts = sb.sorted_runs(packed, position_bits, key_bits)
+    want = np.argsort(keys, kind="stable")
+    np.testing.assert_array_equal(order, want)
+    sorted_keys = keys[want]
+    np.testing.assert_array_equal(starts, np.r_[np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])[:n], n])
+    out_order, out_starts, runs = wp.empty(n, dtype=wp.int64, device="cpu"), wp.empty(n + 1, dtype=wp.int64, device="cpu"), wp.zeros(1, dtype=int, device="cpu")
+    sorted_packed = np.sort(packed)
+    wp.launch(kernels.sorted_runs, dim=1, device="cpu", inputs=[wp.array(sorted_packed, dtype=wp.int64, device="cpu"), position_bits, out_order, out_starts, runs])
+    want_order, want_starts = twin.sorted_runs(sorted_packed, position_bits)
+    np.testing.assert_array_equal(out_order.numpy(), want_order)
+    np.testing.assert_array_equal(out_starts.numpy()[:runs.numpy()[0] + 1], want_starts)
+
+
+def test_packed_key_kernels_match_their_twins():
+    import warp as wp
+
+    from evsemmap_warp.kernels import block_gather, voxel_grid
+    from evsemmap_warp.reference import block_gather as gather_twin
+    from evsemmap_warp.reference import voxel_grid as grid_twin
+
+    rng = np.random.default_rng(12)
+    for n in (1, 3000):
+        points = (rng.uniform(-5, 5, (n, 3)) + 150_000.0).astype(np.float32)  # far out: float32 leaves of 1.5 cm spacing
+        inverse_leaf = np.float32(1) / np.float32(0.1)
+        lowest = np.floor(points.min(axis=0) * inverse_leaf).astype(np.int64)
+        dims = np.floor(points.max(axis=0) * inverse_leaf).astype(np.int64) - lowest + 1
+        position_bits = max(1, int(n - 1).bit_length())
+        packed = wp.empty(n, dtype=wp.int64, device="cpu")
+        wp.launch(voxel_grid.packed_leaf_indices, dim=n, device="cpu", inputs=[
+            wp.array(points, dtype=wp.vec3, device="cpu"), float(inverse_leaf), wp.vec3l(*lowest.tolist()), int(dims[0]), int(dims[1]), position_bits, packed])
+        np.testing.assert_array_equal(packed.numpy(), grid_twin.packed_leaf_indices(points, inverse_leaf, lowest, dims[0], dims[1], position_bits))
+        blocks = rng.integers(-300, 300, (n, 3)).astype(np.int64)
+        lo, span = blocks.min(axis=0), blocks.max(axis=0) - blocks.min(axis=0) + 1
+        wp.launch(block_gather.packed_box_positions, dim=n, device="cpu", inputs=[
+            wp.array(blocks, dtype=wp.int64, device="cpu"), wp.vec3l(*lo.tolist()), int(span[1]), int(span[2]), position_bits, packed])
+        np.testing.assert_array_equal(packed.numpy(), gather_twin.packed_box_positions(blocks, lo, int(span[1]), int(span[2]), position_bits))
+
+
+@pytest.mark.parametrize("n", [0, 1, 3000])
+def test_centroids_of_sorted_packed_leaves_match_their_twin(n):
+    # Long leaves (one point many times, far out: float32 drift as PCL sums), one-point leaves, none.
+    import warp as wp
+
+    from evsemmap_warp.kernels import voxel_grid
+    from evsemmap_warp.reference import voxel_grid as twin
+
+    rng = np.random.default_rng(n + 3)
+    points = (rng.normal(size=(n, 3)) * 3 + 80_000.0).astype(np.float32)
+    points[: n // 3] = points[0] if n else points[: n // 3]
+    leaf = rng.integers(0, max(1, n // 5), n).astype(np.int64)
+    leaf[: n // 3] = 7
+    position_bits = max(1, int(n - 1).bit_length())
+    packed = np.sort((leaf << position_bits) | np.arange(n, dtype=np.int64))
+    centroids, leaves = wp.empty(n, dtype=wp.vec3, device="cpu"), wp.zeros(1, dtype=int, device="cpu")
+    wp.launch(voxel_grid.leaf_centroids_of_sorted, dim=1, device="cpu", inputs=[
+        wp.array(points, dtype=wp.vec3, device="cpu"), wp.array(packed, dtype=wp.int64, device="cpu"), position_bits, centroids, leaves])
+    want = twin.leaf_centroids_of_sorted(points, packed, position_bits)
+    assert leaves.numpy()[0] == len(want) == len(np.unique(leaf))
+    np.testing.assert_array_equal(centroids.numpy()[:len(want)], want)
 
 
 def test_group_by_block_matches_the_unique_form_near_and_across_the_key_range():

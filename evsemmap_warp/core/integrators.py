@@ -529,15 +529,15 @@ class ReleaseCompatIntegrator:
         self.num_classes = num_classes
 
     def kernel_modules(self, device: str) -> list:
-        """The cut's and cap's modules and the memberships' (on the device also the block grouping's and
-        the sorted rows'), and the gather kernel's of its fusion."""
+        """The cut's and cap's modules, the memberships' and the block grouping's (on the device also the
+        sorted rows'), and the gather kernel's of its fusion."""
         fusion = scatter_fusion(self.config)
         if self.num_classes is None:
-            return [release, radix_sort, block_membership]
+            return [release, radix_sort, block_membership, block_gather]
         gather = self.gather_kernel(self.num_classes, self.cells_per_block, fusion=fusion).module
         if preprocesses_on_device(self, device):
             return [release, voxel_grid, block_membership, block_gather, device_counts, release.sorted_rows_kernel(self.num_classes, fusion == sc.FUSION_DEMPSTER).module, gather]
-        return [release, radix_sort, block_membership, gather]
+        return [release, radix_sort, block_membership, block_gather, gather]
 
     def cut_points(self, scan: ScanPayload, sensor_origin: np.ndarray) -> np.ndarray:
         """Indices of the scan's points within range that the uncertainty cut keeps."""

@@ -77,19 +77,37 @@ def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float)
     inverse_leaf, ijk_lo, dims = grid
     # The leaf indices come from a kernel (``kernels.voxel_grid``): numpy's floor passes took a third
     # of this function (0.34 of 0.97 s over 4 M free samples).
-    leaf_index = wp.empty(len(points), dtype=wp.int64, device="cpu")
+    n = len(points)
     points_wp = wp.array(np.ascontiguousarray(points), dtype=wp.vec3, device="cpu", copy=False)
-    wp.launch(voxel_grid.leaf_indices, dim=len(points), device="cpu", inputs=[
-        points_wp, wp.array([len(points)], dtype=int, device="cpu"), float(inverse_leaf), *[int(x) for x in ijk_lo], int(dims[0]), int(dims[1]), leaf_index])
-    sorted_index, order = stable_sort(leaf_index.numpy(), int(np.prod(dims)))
-    starts = np.flatnonzero(np.r_[True, sorted_index[1:] != sorted_index[:-1]])
-    counts = np.diff(np.r_[starts, len(order)])
+    position_bits, key_bits = _packing_bits(n, box_cells(dims))
+    one_label = labels.min() == labels.max()  # (the free samples): it is every leaf's majority
+    if position_bits + key_bits <= 62:  # the leaf indices packed with their positions as the kernel computes them
+        packed = wp.empty(n, dtype=wp.int64, device="cpu")
+        wp.launch(voxel_grid.packed_leaf_indices, dim=n, device="cpu", inputs=[
+            points_wp, float(inverse_leaf), wp.vec3l(*[int(x) for x in ijk_lo]), int(dims[0]), int(dims[1]), position_bits, packed])
+        if one_label:  # no order or runs to list: the centroids straight from the sorted values
+            centroids = wp.empty(n, dtype=wp.vec3, device="cpu")
+            leaves = wp.zeros(1, dtype=int, device="cpu")
+            wp.launch(voxel_grid.leaf_centroids_of_sorted, dim=1, device="cpu", inputs=[
+                points_wp, wp.array(_sort_packed(packed.numpy(), position_bits, key_bits), dtype=wp.int64, device="cpu", copy=False), position_bits,
+                centroids, leaves])
+            leaf_count = int(leaves.numpy()[0])
+            return centroids.numpy()[:leaf_count], np.full(leaf_count, labels[0], np.int64)
+        order, starts = sorted_runs(packed.numpy(), position_bits, key_bits)
+    else:
+        leaf_index = wp.empty(n, dtype=wp.int64, device="cpu")
+        wp.launch(voxel_grid.leaf_indices, dim=n, device="cpu", inputs=[
+            points_wp, wp.array([n], dtype=int, device="cpu"), float(inverse_leaf), *[int(x) for x in ijk_lo], int(dims[0]), int(dims[1]), leaf_index])
+        sorted_index, order = stable_sort(leaf_index.numpy(), box_cells(dims))
+        starts = np.r_[np.flatnonzero(np.r_[True, sorted_index[1:] != sorted_index[:-1]]), n]
+    counts = np.diff(starts)
+    starts = starts[:-1]
     centroids = wp.empty(len(starts), dtype=wp.vec3, device="cpu")
     wp.launch(voxel_grid.leaf_centroids, dim=1, device="cpu", inputs=[
         points_wp, wp.array(order, dtype=wp.int64, device="cpu", copy=False), wp.array(starts, dtype=wp.int64, device="cpu", copy=False),
         wp.array(counts, dtype=wp.int64, device="cpu", copy=False), centroids])
     centroids = centroids.numpy()
-    if labels.min() == labels.max():  # one label (the free samples): it is every leaf's majority
+    if one_label:
         return centroids, np.full(len(starts), labels[0], np.int64)
 
     cell_of_point = np.repeat(np.arange(len(starts)), counts)
@@ -115,11 +133,38 @@ def _majority_labels(cells: np.ndarray, labels: np.ndarray, n_cells: int) -> np.
     return pair_label[first_of_cell]
 
 
-# Digits of at most this many bits per radix pass: beyond ~2^10 write streams a pass slows down
-# (kernels.radix_sort). Below this many keys numpy's sort is faster: the radix sort's launches cost
-# ~0.5 ms (26-bit keys, measured: 20 k keys 1.0 against 0.7 ms, 50 k 2.0 against 2.1 ms).
-MAX_RADIX_DIGIT_BITS = 10
+# Digits of at most this many bits per radix pass: a pass over more write streams is slower per value, but
+# one pass fewer gains more (the free samples' 25-bit leaf keys at free_res 0.5, 30 bench scans: 3 passes
+# of at most 10 bits 0.31 s, 2 passes of 13 bits 0.25 s; at most 14 bits 0.24 s, 16 bits 0.25 s). Below
+# this many keys numpy's sort is faster: the radix sort's launches cost ~0.5 ms (26-bit keys, measured:
+# 20 k keys 1.0 against 0.7 ms, 50 k 2.0 against 2.1 ms).
+MAX_RADIX_DIGIT_BITS = 13
 MIN_RADIX_SORT_KEYS = 50_000
+
+
+def _packing_bits(n: int, key_limit: int) -> tuple[int, int]:
+    """The bits of a position among n values, and of a key below ``key_limit`` (``stable_sort``'s packing)."""
+    return max(1, int(n - 1).bit_length()), int(max(key_limit, 1) - 1).bit_length()
+
+
+def _sort_packed(packed: np.ndarray, position_bits: int, key_bits: int) -> np.ndarray:
+    """Values packed as key << position_bits | position, sorted by the key bits (so stably): the radix sort
+    for large inputs, numpy's for small ones."""
+    if len(packed) < MIN_RADIX_SORT_KEYS or key_bits == 0:
+        return np.sort(packed)
+    return _radix_sort(packed, position_bits, key_bits)
+
+
+def sorted_runs(packed: np.ndarray, position_bits: int, key_bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """(the stable order, the starts of its runs of equal keys [R + 1], the last the value count) of values
+    packed as key << position_bits | position (``_packing_bits``; keys below 2^key_bits)."""
+    packed = _sort_packed(packed, position_bits, key_bits)
+    order = wp.empty(len(packed), dtype=wp.int64, device="cpu")
+    starts = wp.empty(len(packed) + 1, dtype=wp.int64, device="cpu")
+    runs = wp.zeros(1, dtype=int, device="cpu")
+    wp.launch(radix_sort.sorted_runs, dim=1, device="cpu", inputs=[wp.array(packed, dtype=wp.int64, device="cpu", copy=False), position_bits, order, starts,
+                                                                   runs])
+    return order.numpy(), starts.numpy()[:int(runs.numpy()[0]) + 1]
 
 
 def stable_sort(keys: np.ndarray, key_limit: int) -> tuple[np.ndarray, np.ndarray]:
@@ -131,16 +176,11 @@ def stable_sort(keys: np.ndarray, key_limit: int) -> tuple[np.ndarray, np.ndarra
     passes), by numpy's sort for small ones. Keys too wide to pack take numpy's stable argsort."""
     keys = np.asarray(keys, dtype=np.int64)
     n = len(keys)
-    position_bits = max(1, int(n - 1).bit_length())
-    key_bits = int(max(key_limit, 1) - 1).bit_length()
+    position_bits, key_bits = _packing_bits(n, key_limit)
     if key_bits + position_bits > 62:
         order = np.argsort(keys, kind="stable")
         return keys[order], order
-    packed = (keys << position_bits) | np.arange(n, dtype=np.int64)
-    if n < MIN_RADIX_SORT_KEYS or key_bits == 0:
-        packed = np.sort(packed)
-    else:
-        packed = _radix_sort(packed, position_bits, key_bits)
+    packed = _sort_packed((keys << position_bits) | np.arange(n, dtype=np.int64), position_bits, key_bits)
     return packed >> position_bits, packed & ((1 << position_bits) - 1)
 
 
@@ -364,22 +404,30 @@ def group_by_block(member_blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     """The distinct blocks of (point, block) memberships [P, 3], in packed-key order, their keys, the
     pair order that groups the pairs by block (stable: input order within a block) and the CSR starts
     (block s owns sorted pairs point_start[s]:point_start[s + 1])."""
-    member_blocks = np.asarray(member_blocks, dtype=np.int64).reshape(-1, 3)
+    member_blocks = np.ascontiguousarray(np.asarray(member_blocks, dtype=np.int64).reshape(-1, 3))
     if len(member_blocks) == 0:
         return np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(1, np.int64)
     # Row-major positions in the blocks' bounding box sort as the packed keys do (x, then y, then z).
     lo, hi = column_bounds(member_blocks)
     span = [int(x) for x in hi - lo + 1]
     cells = box_cells(span)
-    if cells < 1 << 62:
-        relative = member_blocks - lo
-        position = (relative[:, 0] * span[1] + relative[:, 1]) * span[2] + relative[:, 2]
-    else:  # blocks spread over the whole key range: their packed keys (63 bits) sort alike
-        position, cells = pack_voxel_keys(member_blocks), 1 << 63
-    sorted_position, order = stable_sort(position, cells)
-    starts = np.flatnonzero(np.r_[True, sorted_position[1:] != sorted_position[:-1]])
-    blocks = take_rows(member_blocks, order[starts])
-    return blocks, pack_voxel_keys(blocks), order, np.r_[starts, len(order)]
+    n = len(member_blocks)
+    position_bits, key_bits = _packing_bits(n, cells)
+    if position_bits + key_bits <= 62:  # the positions packed with their rows as the kernel computes them
+        packed = wp.empty(n, dtype=wp.int64, device="cpu")
+        wp.launch(block_gather.packed_box_positions, dim=n, device="cpu", inputs=[
+            wp.array(member_blocks, dtype=wp.int64, device="cpu", copy=False), wp.vec3l(*[int(x) for x in lo]), span[1], span[2], position_bits, packed])
+        order, starts = sorted_runs(packed.numpy(), position_bits, key_bits)
+    else:
+        if cells < 1 << 62:
+            relative = member_blocks - lo
+            position = (relative[:, 0] * span[1] + relative[:, 1]) * span[2] + relative[:, 2]
+        else:  # blocks spread over the whole key range: their packed keys (63 bits) sort alike
+            position, cells = pack_voxel_keys(member_blocks), 1 << 63
+        sorted_position, order = stable_sort(position, cells)
+        starts = np.r_[np.flatnonzero(np.r_[True, sorted_position[1:] != sorted_position[:-1]]), n]
+    blocks = take_rows(member_blocks, order[starts[:-1]])
+    return blocks, pack_voxel_keys(blocks), order, starts
 
 
 # Above this many cells the release's block models look their blocks up by a binary search instead of a

@@ -71,6 +71,12 @@ def box_positions(blocks, lowest, span_y: int, span_z: int, count: int | None = 
     return np.r_[positions, np.full(len(blocks) - count, PAST_COUNT_KEY, np.int64)], np.arange(len(blocks), dtype=np.int64)
 
 
+def packed_box_positions(blocks, lowest, span_y: int, span_z: int, position_bits: int) -> np.ndarray:
+    """Twin of ``packed_box_positions``: each block's position in the box << position_bits | its row [P] int64."""
+    positions, rows = box_positions(blocks, lowest, span_y, span_z)
+    return (positions << position_bits) | rows
+
+
 def distinct_blocks(member_blocks, order, starts, grid_lowest, grid_shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Twin of ``distinct_blocks``: each run's block in map and grid coordinates [B, 3] (int32) and the grid
     [grid_shape] of block indices (-1 elsewhere)."""

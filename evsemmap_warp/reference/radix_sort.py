@@ -31,3 +31,12 @@ def radix_sort(values: np.ndarray, lowest_bit: int, digit_bits: int, passes: int
     for p in range(passes):
         values = values[np.argsort(_digits(values, lowest_bit + p * digit_bits, digit_bits), kind="stable")]
     return values
+
+
+def sorted_runs(packed: np.ndarray, position_bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of ``sorted_runs``: the positions of sorted packed values (key << position_bits | position) and
+    the starts of their runs of equal keys, then the value count [R + 1] (int64)."""
+    packed = np.asarray(packed, np.int64)
+    keys = packed >> position_bits
+    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])[:len(packed)] if len(packed) else np.zeros(0, np.int64)
+    return packed & ((1 << position_bits) - 1), np.r_[starts, len(packed)].astype(np.int64)

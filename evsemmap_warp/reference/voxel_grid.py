@@ -17,6 +17,11 @@ def leaf_indices(points, inverse_leaf, lowest, leaves_x, leaves_y, count: int | 
     return np.r_[leaf, np.full(len(points) - count, PAST_COUNT_KEY, np.int64)]
 
 
+def packed_leaf_indices(points, inverse_leaf, lowest, leaves_x, leaves_y, position_bits: int) -> np.ndarray:
+    """Twin of ``packed_leaf_indices``: each point's leaf index << position_bits | its position [N] int64."""
+    return (leaf_indices(points, inverse_leaf, lowest, leaves_x, leaves_y) << position_bits) | np.arange(len(points), dtype=np.int64)
+
+
 def leaf_centroids(points, order, starts, counts) -> np.ndarray:
     """Each leaf's float32 centroid: its points in leaf order added one by one in float32 (from zero, as
     PCL's CentroidPoint does; np.add.accumulate is sequential, np.add.reduce pairwise), over the count."""
@@ -25,6 +30,15 @@ def leaf_centroids(points, order, starts, counts) -> np.ndarray:
     for leaf, (start, count) in enumerate(zip(np.asarray(starts, np.int64), np.asarray(counts, np.int64))):
         sums[leaf] = np.add.accumulate(np.vstack([np.zeros((1, 3), np.float32), points[start:start + count]]), axis=0, dtype=np.float32)[-1]
     return (sums / np.asarray(counts)[:, None].astype(np.float32)).astype(np.float32)
+
+
+def leaf_centroids_of_sorted(points, packed, position_bits: int) -> np.ndarray:
+    """Twin of ``leaf_centroids_of_sorted``: ``leaf_centroids`` of the runs of equal leaves among sorted
+    packed values (leaf << position_bits | position) [L, 3]."""
+    packed = np.asarray(packed, np.int64)
+    keys = packed >> position_bits
+    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])[:len(packed)]
+    return leaf_centroids(points, packed & ((1 << position_bits) - 1), starts, np.diff(np.r_[starts, len(packed)]))
 
 
 def point_bounds(points, count: int | None = None) -> tuple[np.ndarray, np.ndarray]:
