@@ -172,8 +172,10 @@ def stable_sort(keys: np.ndarray, key_limit: int) -> tuple[np.ndarray, np.ndarra
 
     Each key is packed with its position into one int64 (the packed values are unique, so any sort of them is
     stable) and the packed values are sorted by the key bits alone: by the LSD radix sort of
-    ``kernels.radix_sort`` for large inputs (free_res 0.5 scans sort 0.5-0.8 M leaf indices of ~26 bits in 3
-    passes), by numpy's sort for small ones. Keys too wide to pack take numpy's stable argsort."""
+    ``kernels.radix_sort`` for large inputs (free_res 0.5 scans sort 0.5-0.8 M leaf indices of ~26 bits in 2
+    passes), by numpy's sort for small ones (``_sort_packed``). Keys too wide to pack take numpy's stable
+    argsort. The VoxelGrid and ``group_by_block`` pack their keys in the kernel that computes them and list
+    the order with its runs (``sorted_runs``)."""
     keys = np.asarray(keys, dtype=np.int64)
     n = len(keys)
     position_bits, key_bits = _packing_bits(n, key_limit)
