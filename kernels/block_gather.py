@@ -9,7 +9,10 @@ MODE_SBKI_BLOCKS): no atomics, and a fixed order for every sum. The points arriv
 float32, as the C++ scales them (``scale_points``), and the cells' centers are scaled once per block. That
 float32 kernel is zero from d = 0.984 ell on (every float32 distance from 0.95 to 8 ell checked,
 tests/test_sbki_compat.py), so no reach test is needed beyond the kernel's own sign, and a point at 0.99
-ell or more from the box of the block's cell centers is skipped with one test. Each thread prefetches the
+ell or more from the box of the block's cell centers is skipped with one test. A face neighbour's points
+are read through the scan's near-face masks (``near_face_masks``: per 64 sorted points and face, those
+that may lie nearer than that), so the half of them beyond reach is never visited and the skip test
+rarely fails. Each thread prefetches the
 cells of the block a few threads ahead. The cell loop is written cell by cell, with a branch on the
 kernel's sign: the compiler turns it into AVX-512 code over a block's 8 cells (the kernel in 8 lanes, then
 masked adds). A form without the branch, which adds every cell's value and counts the positive ones,
@@ -55,32 +58,123 @@ def box_distance2(lo: wp.vec3, hi: wp.vec3, p: wp.vec3):
     return dx * dx + dy * dy + dz * dz
 
 
+# The sorted points in words of PAIRS_PER_WORD: bit i of a word's mask stands for point word * 64 + i.
+PAIRS_PER_WORD = wp.constant(64)
+ALL_PAIRS = wp.constant(wp.int64(-1))
+# The face neighbours of a block in the order of the sources after the block itself (the 6 faces of
+# ``methods.sbki_compat.EXTENDED_BLOCK_OFFSETS``, tested): +x, -x, +y, -y, +z, -z.
+FACE_COUNT = 6
+# A near-face mask's reach (squared, over ell) along the face's axis: above the gather's own test
+# (BOX_SKIP_DISTANCE2), which decides; the mask only has to keep every point that test keeps, with room
+# for any device's rounding of the box.
+NEAR_FACE_DISTANCE2 = 1.0
+
+
 @wp.struct
 class SbkiBlocks:
     """One scan's S-BKI gather inputs: the test ``blocks`` [T], their 7 ``sources`` [T, 7] (indices of
     blocks holding points, -1 for none), the points of block s at ``point_start[s]:point_start[s + 1]``
-    (``scaled_points``: float32 and divided by ell, as ``scale_points`` makes them; ``labels``), and the
-    kernel's ``length`` ell (m), ``sigma0`` (sf2) and the lattice (``resolution``, ``grid_offset``, m)."""
+    (``scaled_points``: float32 and divided by ell, as ``scale_points`` makes them; ``labels``), the
+    points' ``near_faces`` masks (``near_face_masks``) and the kernel's ``length`` ell (m), ``sigma0``
+    (sf2) and the lattice (``resolution``, ``grid_offset``, m)."""
 
     blocks: wp.array(dtype=wp.vec3i)
     sources: wp.array2d(dtype=int)
     point_start: wp.array(dtype=int)
     scaled_points: wp.array(dtype=wp.vec3)
     labels: wp.array(dtype=int)
+    near_faces: wp.array2d(dtype=wp.int64)
     length: wp.float64
     sigma0: wp.float64
     resolution: wp.float64
     grid_offset: wp.float64
 
 
-def sbki_blocks(*, blocks, sources, point_start, scaled_points, labels, length: float, sigma0: float, resolution: float,
+def sbki_blocks(*, blocks, sources, point_start, scaled_points, labels, near_faces, length: float, sigma0: float, resolution: float,
                 grid_offset: float) -> SbkiBlocks:
     """An ``SbkiBlocks`` over device arrays."""
     inputs = SbkiBlocks()
     inputs.blocks, inputs.sources, inputs.point_start, inputs.scaled_points, inputs.labels = blocks, sources, point_start, scaled_points, labels
+    inputs.near_faces = near_faces
     inputs.length, inputs.sigma0 = wp.float64(length), wp.float64(sigma0)
     inputs.resolution, inputs.grid_offset = wp.float64(resolution), wp.float64(grid_offset)
     return inputs
+
+
+def near_face_words(pairs: int) -> int:
+    """The rows of the near-face masks of ``pairs`` sorted points."""
+    return (pairs + PAIRS_PER_WORD - 1) // PAIRS_PER_WORD
+
+
+@wp.func
+def pair_bits_between(lowest: int, end: int) -> wp.int64:
+    """The bits i of a word with lowest <= i < end (either may lie outside 0..64)."""
+    bits = ALL_PAIRS
+    if lowest > 0:
+        bits = bits & ~((wp.int64(1) << wp.int64(lowest)) - wp.int64(1))
+    if end < PAIRS_PER_WORD:
+        bits = bits & ((wp.int64(1) << wp.int64(wp.max(end, 0))) - wp.int64(1))
+    return bits
+
+
+@wp.func
+def scaled_cell_coordinate(index: int, resolution: float, grid_offset: float, length: float) -> float:
+    """A cell center's coordinate along one axis in float32, divided by ell (``sbki_voxel_center``)."""
+    return ((float(index) + 0.5) * resolution + grid_offset) / length
+
+
+face_bounds = wp.types.vector(length=FACE_COUNT, dtype=wp.float32)
+face_words = wp.types.vector(length=FACE_COUNT, dtype=wp.int64)
+
+
+@wp.kernel
+def near_face_masks(scaled_points: wp.array(dtype=wp.vec3), pair_count: wp.array(dtype=int), point_start: wp.array(dtype=int),
+                    block_count: wp.array(dtype=int), blocks: wp.array(dtype=wp.vec3i), cells_per_block: int, resolution: float,
+                    grid_offset: float, length: float, near: wp.array2d(dtype=wp.int64)):
+    """One thread per word of 64 of the pair_count[0] sorted points (block s, blocks[s], owns
+    point_start[s]:point_start[s + 1] of block_count[0] blocks): near[word, f] has bit i set where point
+    64 word + i lies less than sqrt(NEAR_FACE_DISTANCE2) ell, along face f's axis, from the box of the
+    scaled cell centers of the test block whose f-th face neighbour is the point's block. A point the
+    gather's box test keeps lies within that reach, so the gather visits only a word's set bits for a
+    neighbour's points: about half of them, and no mispredicted skips."""
+    word = wp.tid()
+    first_pair = word * PAIRS_PER_WORD
+    end = wp.min(first_pair + PAIRS_PER_WORD, pair_count[0])
+    masks = face_words()
+    if first_pair < end:
+        # the block of the word's first point: the last s with point_start[s] <= first_pair
+        s = int(0)
+        top = block_count[0] - 1
+        while s < top:
+            middle = (s + top + 1) / 2
+            if point_start[middle] <= first_pair:
+                s = middle
+            else:
+                top = middle - 1
+        lo = face_bounds()
+        hi = face_bounds()
+        n = cells_per_block
+        q = first_pair
+        while q < end and s < block_count[0]:  # the word's part of block s, block by block
+            block = blocks[s]
+            for f in range(FACE_COUNT):
+                # the test block is this block less the face's offset (+1 along the axis for even f)
+                test_first = (block[f / 2] - (1 - 2 * (f % 2))) * n - n / 2
+                lo[f] = scaled_cell_coordinate(test_first, resolution, grid_offset, length)
+                hi[f] = scaled_cell_coordinate(test_first + n - 1, resolution, grid_offset, length)
+            block_end = wp.min(point_start[s + 1], end)
+            for p in range(q, block_end):
+                point = scaled_points[p]
+                bit = wp.int64(1) << wp.int64(p - first_pair)
+                for f in range(FACE_COUNT):
+                    x = point[f / 2]
+                    d = wp.max(wp.max(lo[f] - x, x - hi[f]), 0.0)
+                    if d * d < wp.static(NEAR_FACE_DISTANCE2):
+                        masks[f] = masks[f] | bit
+            q = wp.max(q, block_end)
+            s += 1
+    for f in range(FACE_COUNT):
+        near[word, f] = masks[f]
 
 
 def scale_points(points, length_m: float):
@@ -165,7 +259,9 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
         """Test block b (first cell ``first``, its cells' ``rows``): for each of its 7 source blocks
         scan.sources[b, :] (-1: holds no points; block s owns points point_start[s]:point_start[s + 1],
         given as ``scale_points`` makes them), each point adds the S-BKI kernel, where positive, for its
-        label to every cell; every cell is marked touched. Returns the contributions."""
+        label to every cell; every cell is marked touched. The block's own points are all visited, a face
+        neighbour's through their near-face mask, then the box test (only a skip: a point beyond it adds
+        nothing). Returns the contributions."""
         length32 = float(scan.length)
         sigma32 = float(scan.sigma0)
         resolution32 = float(scan.resolution)
@@ -191,29 +287,38 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
         for f in range(scan.sources.shape[1]):
             s = scan.sources[b, f]
             if s >= 0:
-                for q in range(scan.point_start[s], scan.point_start[s + 1]):
-                    scaled_point = scan.scaled_points[q]
-                    if box_distance2(box_lo, box_hi, scaled_point) >= wp.static(BOX_SKIP_DISTANCE2):
-                        continue
-                    label = scan.labels[q]
-                    if wp.static(branch_free):
-                        # Kernel values for all cells without branches (zeros where the kernel is not
-                        # positive; the C++ adds only positive ones), then added in: adding 0 leaves a sum
-                        # as it was.
-                        weights = cell_scalars()
-                        for j in range(n3):
-                            weights[j] = f64(sbki_sparse_kernel_scaled(wp.vec3(scaled_x[j], scaled_y[j], scaled_z[j]), scaled_point, sigma32))
-                        for j in range(n3):
-                            evidence[label, j] = evidence[label, j] + weights[j]
-                            weight_sum[j] = weight_sum[j] + weights[j]
-                            hits[j] = hits[j] + wp.where(weights[j] > _ZERO, _ONE, _ZERO)
-                    else:
-                        for j in range(n3):
-                            w = f64(sbki_sparse_kernel_scaled(wp.vec3(scaled_x[j], scaled_y[j], scaled_z[j]), scaled_point, sigma32))
-                            if w > _ZERO:
-                                evidence[label, j] = evidence[label, j] + w
-                                weight_sum[j] = weight_sum[j] + w
-                                hits[j] = hits[j] + _ONE
+                start = scan.point_start[s]
+                end = scan.point_start[s + 1]
+                for word in range(start / PAIRS_PER_WORD, (end + PAIRS_PER_WORD - 1) / PAIRS_PER_WORD):
+                    base = word * PAIRS_PER_WORD
+                    # all of the block's own points; of a neighbour's, those near the shared face
+                    pending = wp.where(f == 0, ALL_PAIRS, scan.near_faces[word, wp.max(f - 1, 0)]) & pair_bits_between(start - base, end - base)
+                    while pending != wp.int64(0):
+                        lowest = pending & (-pending)
+                        pending = pending ^ lowest
+                        q = base + wp.bit_count(lowest - wp.int64(1))
+                        scaled_point = scan.scaled_points[q]
+                        if f != 0 and box_distance2(box_lo, box_hi, scaled_point) >= wp.static(BOX_SKIP_DISTANCE2):
+                            continue
+                        label = scan.labels[q]
+                        if wp.static(branch_free):
+                            # Kernel values for all cells without branches (zeros where the kernel is not
+                            # positive; the C++ adds only positive ones), then added in: adding 0 leaves a sum
+                            # as it was.
+                            weights = cell_scalars()
+                            for j in range(n3):
+                                weights[j] = f64(sbki_sparse_kernel_scaled(wp.vec3(scaled_x[j], scaled_y[j], scaled_z[j]), scaled_point, sigma32))
+                            for j in range(n3):
+                                evidence[label, j] = evidence[label, j] + weights[j]
+                                weight_sum[j] = weight_sum[j] + weights[j]
+                                hits[j] = hits[j] + wp.where(weights[j] > _ZERO, _ONE, _ZERO)
+                        else:
+                            for j in range(n3):
+                                w = f64(sbki_sparse_kernel_scaled(wp.vec3(scaled_x[j], scaled_y[j], scaled_z[j]), scaled_point, sigma32))
+                                if w > _ZERO:
+                                    evidence[label, j] = evidence[label, j] + w
+                                    weight_sum[j] = weight_sum[j] + w
+                                    hits[j] = hits[j] + _ONE
         total = _ZERO
         for j in range(n3):
             row = rows[j]

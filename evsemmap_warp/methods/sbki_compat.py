@@ -294,7 +294,7 @@ def training_data(
 def joined_training_set(hits: np.ndarray, hit_labels: np.ndarray, free_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """The training set from its parts: the hits, then the free samples (label ``FREE_LABEL``), and the
     count of each."""
-    train_points = np.concatenate([hits, free_points]).astype(np.float32)
+    train_points = np.concatenate([hits, free_points]).astype(np.float32, copy=False)
     train_labels = np.concatenate([hit_labels, np.full(len(free_points), FREE_LABEL, np.int64)])
     return train_points, train_labels, {"hits": len(hits), "free_samples": len(free_points)}
 

@@ -375,13 +375,18 @@ def gated_targets(blocks: wp.array, total: wp.array, box, scratch: DeviceScratch
 @dataclass
 class DeviceGatherTables:
     """One scan's inputs of the S-BKI gather kernel on the device (``block_gather.sbki_blocks``'s arrays):
-    its test blocks (``DeviceBlocks``), their sources, the points' starts and the sorted points and labels."""
+    its test blocks (``DeviceBlocks``), their sources, the points' starts, the sorted points and labels, and
+    for ``near_face_masks`` the points' count and the blocks holding them (``pair_count``, ``blocks`` and
+    ``block_count``, the counts [1] arrays on the device)."""
 
     targets: DeviceBlocks
     sources: wp.array
     point_start: wp.array
     scaled_points: wp.array
     labels: wp.array
+    pair_count: wp.array
+    blocks: wp.array
+    block_count: wp.array
 
     @property
     def tests(self) -> wp.array:
@@ -424,4 +429,21 @@ def gather_tables_on_device(points: Rows, labels: wp.array, block_size: np.float
         points.array, labels, point_ids, groups.order, member_blocks.count, float(np.float32(length_m)), scaled_points, sorted_labels])
     test_box = None if member_box is None else (member_box[0] - 1, member_box[1] + 1)  # a test block is a face neighbour of a block
     return DeviceGatherTables(gated_targets(tests, last_of(slot), test_box, scratch), sources, narrow_starts(groups, scratch), scaled_points,
-                              sorted_labels)
+                              sorted_labels, member_blocks.count, groups.blocks, groups.count)
+
+
+def near_face_masks(scaled_points: wp.array, pair_count: wp.array, point_start: wp.array, blocks: wp.array, block_count: wp.array, *,
+                    cells_per_block: int, resolution_m: float, grid_offset_m: float, length_m: float,
+                    scratch: DeviceScratch | None = None) -> wp.array:
+    """The gather kernel's near-face masks [words, 6] (``block_gather.near_face_masks``) of the
+    pair_count[0] sorted points (room for all of ``scaled_points``), block s (``blocks[s]``, vec3i) owning
+    point_start[s]:point_start[s + 1] of block_count[0] blocks; ``scratch``: where the array is kept
+    (None: a new one)."""
+    device = scaled_points.device
+    words = block_gather.near_face_words(scaled_points.shape[0])
+    shape = (words, block_gather.FACE_COUNT)
+    near = scratch.empty(shape, wp.int64) if scratch is not None else wp.empty(shape, dtype=wp.int64, device=device)
+    wp.launch(block_gather.near_face_masks, dim=words, device=device, inputs=[
+        scaled_points, pair_count, point_start, block_count, blocks, cells_per_block, float(np.float32(resolution_m)),
+        float(np.float32(grid_offset_m)), float(np.float32(length_m)), near])
+    return near

@@ -112,6 +112,33 @@ def sorted_block_points(points, labels, point_ids, order, length) -> tuple[np.nd
     return np.asarray(points, np.float32)[ids] / np.float32(length), np.asarray(labels)[ids].astype(np.int32)
 
 
+# The faces of a block in the order of its sources after the block itself: +x, -x, +y, -y, +z, -z.
+FACE_OFFSETS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.int64)
+
+
+def near_face_masks(scaled_points, point_start, blocks, *, cells_per_block: int, resolution: float, grid_offset: float, length: float,
+                    reach2: float = 1.0) -> np.ndarray:
+    """Twin of ``near_face_masks``: [ceil(P / 64), 6] int64, bit i of [w, f] set where sorted point 64 w + i
+    (of block s, blocks[s], owning point_start[s]:point_start[s + 1]) lies, along face f's axis, less than
+    sqrt(reach2) (over ell) from the box of the scaled cell centers of the test block blocks[s] - face f."""
+    points = np.asarray(scaled_points, np.float32).reshape(-1, 3)
+    starts = np.asarray(point_start, np.int64)
+    owner = np.repeat(np.arange(len(starts) - 1), np.diff(starts))[:len(points)]
+    n = cells_per_block
+    words = -(-len(points) // 64)
+    masks = np.zeros((words, 6), np.uint64)
+    for f, offset in enumerate(FACE_OFFSETS):
+        axis = int(np.flatnonzero(offset)[0])
+        test_first = (np.asarray(blocks, np.int64)[owner, axis] - offset[axis]) * n - n // 2
+        scaled = [((first.astype(np.float32) + np.float32(0.5)) * np.float32(resolution) + np.float32(grid_offset)) / np.float32(length)
+                  for first in (test_first, test_first + n - 1)]
+        x = points[:, axis]
+        d = np.maximum(np.maximum(scaled[0] - x, x - scaled[1]), np.float32(0))
+        for q in np.flatnonzero(d * d < np.float32(reach2)):
+            masks[q // 64, f] |= np.uint64(1) << np.uint64(q % 64)
+    return masks.view(np.int64)
+
+
 def narrow_starts(wide) -> np.ndarray:
     """Twin of ``narrow_starts``: the starts as int32."""
     return np.asarray(wide, np.int64).astype(np.int32)
