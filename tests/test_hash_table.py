@@ -219,3 +219,20 @@ def test_cpu_rows_stay_in_place_when_reserved_and_are_copied_otherwise(reserved,
     vm.grow(vm.capacity * 8)
     assert (vm.data.ptr == before) == reserved
     np.testing.assert_array_equal(vm.data.numpy()[vm.lookup_points((index + 0.5) * 0.5), 0], np.arange(len(index)))
+
+
+@pytest.mark.parametrize("rows", [1, 255, 256, 257, 5000])
+@pytest.mark.parametrize("dtype", [np.float32, np.int64])
+def test_column_bounds_are_the_columns_min_and_max(rows, dtype):
+    from evsemmap_warp.voxel_keys import column_bounds
+
+    values = (np.random.default_rng(rows).normal(size=(rows, 3)) * 1e4).astype(dtype)
+    values[-1] = values.max() + 1  # the extremes in the rows left over after the folds
+    values[0, 1] = values.min() - 1
+    lo, hi = column_bounds(values)
+    np.testing.assert_array_equal(lo, values.min(axis=0))
+    np.testing.assert_array_equal(hi, values.max(axis=0))
+    assert lo.dtype == hi.dtype == dtype
+    if dtype == np.float32 and rows > 256:
+        values[100, 2] = np.nan
+        assert np.isnan(column_bounds(values)[0][2]) and np.isnan(column_bounds(values)[1][2])
