@@ -239,11 +239,12 @@ def block_gather_kernel(Inputs, gather_block, *, cells_per_block: int, prefetch:
 
 
 @functools.cache
-def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: bool = False, prefetch: bool = True):
+def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: bool = False, prefetch: bool = True, near_faces: bool = True):
     """The gather kernel (``block_gather_kernel`` over ``SbkiBlocks``) for K = num_classes and blocks of
     cells_per_block^3 cells (one Warp module per form, compiled on first use). The other forms are for the
     study (tools/kernel_study.py): ``branch_free`` (every cell's kernel value added, zeros included,
-    instead of the branch on its sign; both compile to vector code over the cells), ``prefetch`` off.
+    instead of the branch on its sign; both compile to vector code over the cells), ``prefetch`` off,
+    ``near_faces`` off (the masks ignored: every point of a neighbour visited and box-tested).
     Every form gives the same map bit for bit."""
     n = cells_per_block
     n3 = n * n * n
@@ -292,7 +293,8 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
                 for word in range(start / PAIRS_PER_WORD, (end + PAIRS_PER_WORD - 1) / PAIRS_PER_WORD):
                     base = word * PAIRS_PER_WORD
                     # all of the block's own points; of a neighbour's, those near the shared face
-                    pending = wp.where(f == 0, ALL_PAIRS, scan.near_faces[word, wp.max(f - 1, 0)]) & pair_bits_between(start - base, end - base)
+                    near = wp.where(f == 0 or not wp.static(near_faces), ALL_PAIRS, scan.near_faces[word, wp.max(f - 1, 0)])
+                    pending = near & pair_bits_between(start - base, end - base)
                     while pending != wp.int64(0):
                         lowest = pending & (-pending)
                         pending = pending ^ lowest

@@ -118,7 +118,7 @@ def test_quick_study_runs_and_its_strategies_agree(tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     report = (tmp_path / "kernel_study.md").read_text()
     assert "every strategy gave the atomic scatter's voxels" in report
-    assert report.count("| S-BKI gather") == 4 and report.count("| release gather") == 2  # every form, the same map
+    assert report.count("| S-BKI gather") == 5 and report.count("| release gather") == 2  # every form, the same map
     for png in ("strategies.png", "hash_load.png", "scaling.png"):
         assert (tmp_path / "kernel_study" / png).stat().st_size > 1000
     # its record beside it, named by the page, holding every speed figure the page prints

@@ -150,6 +150,7 @@ GATHER_FORMS = (
     ("S-BKI gather (sbki mode, free_res 0.5)", "per-cell branches", {"branch_free": False, "prefetch": False}),
     ("S-BKI gather (sbki mode, free_res 0.5)", "branch-free + prefetch", {"branch_free": True, "prefetch": True}),
     ("S-BKI gather (sbki mode, free_res 0.5)", "branch-free", {"branch_free": True, "prefetch": False}),
+    ("S-BKI gather (sbki mode, free_res 0.5)", "per-cell branches + prefetch, near-face masks ignored", {"near_faces": False}),
     ("release gather (ebs, release mode)", "branch-free + prefetch", {"prefetch": True}),
     ("release gather (ebs, release mode)", "branch-free", {"prefetch": False}),
 )
