@@ -42,7 +42,8 @@ def test_first_frame_from_the_first_tiles_then_the_overview_fills_in(store):
         assert overview.held_rows <= 600 + tiles  # each tile its share of max_voxels (at least one row)
         assert round(viewer.layers[0].weight.sum()) == overview.total_voxels
         assert set(viewer.present_classes) == {"void", "object", "grass"}
-        assert "reading its tiles" not in viewer.gui_status.content
+        # the counter is rewritten by the redraw that follows the last tile's rows, on the viewer's thread
+        assert _wait(lambda: "reading its tiles" not in viewer.gui_status.content), viewer.gui_status.content
     finally:
         viewer.close()
 
