@@ -98,8 +98,7 @@ def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float)
         leaf_index = wp.empty(n, dtype=wp.int64, device="cpu")
         wp.launch(voxel_grid.leaf_indices, dim=n, device="cpu", inputs=[
             points_wp, wp.array([n], dtype=int, device="cpu"), float(inverse_leaf), *[int(x) for x in ijk_lo], int(dims[0]), int(dims[1]), leaf_index])
-        sorted_index, order = stable_sort(leaf_index.numpy(), box_cells(dims))
-        starts = np.r_[np.flatnonzero(np.r_[True, sorted_index[1:] != sorted_index[:-1]]), n]
+        order, starts = stable_sorted_runs(leaf_index.numpy(), box_cells(dims))
     counts = np.diff(starts)
     starts = starts[:-1]
     centroids = wp.empty(len(starts), dtype=wp.vec3, device="cpu")
@@ -153,6 +152,13 @@ def _sort_packed(packed: np.ndarray, position_bits: int, key_bits: int) -> np.nd
     if len(packed) < MIN_RADIX_SORT_KEYS or key_bits == 0:
         return np.sort(packed)
     return _radix_sort(packed, position_bits, key_bits)
+
+
+def stable_sorted_runs(keys: np.ndarray, key_limit: int) -> tuple[np.ndarray, np.ndarray]:
+    """``sorted_runs`` of keys too wide to pack with their positions (``stable_sort``): the stable order and
+    the starts of its runs of equal keys [R + 1], the last the key count."""
+    sorted_keys, order = stable_sort(keys, key_limit)
+    return order, np.r_[np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]), len(order)]
 
 
 def sorted_runs(packed: np.ndarray, position_bits: int, key_bits: int) -> tuple[np.ndarray, np.ndarray]:
@@ -426,8 +432,7 @@ def group_by_block(member_blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
             position = (relative[:, 0] * span[1] + relative[:, 1]) * span[2] + relative[:, 2]
         else:  # blocks spread over the whole key range: their packed keys (63 bits) sort alike
             position, cells = pack_voxel_keys(member_blocks), 1 << 63
-        sorted_position, order = stable_sort(position, cells)
-        starts = np.r_[np.flatnonzero(np.r_[True, sorted_position[1:] != sorted_position[:-1]]), n]
+        order, starts = stable_sorted_runs(position, cells)
     blocks = take_rows(member_blocks, order[starts[:-1]])
     return blocks, pack_voxel_keys(blocks), order, starts
 
