@@ -33,6 +33,7 @@ import warp as wp
 
 from .device_counts import PAST_COUNT_KEY
 from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, HashTable, block_cell, block_first_cell, find_block_rows, prefetch_brick
+from .indexing import nonnegative
 from .scatter import _ONE, _ZERO, sbki_sparse_kernel_scaled, sbki_voxel_center, tally_row, touch_row
 
 wp.set_module_options({"enable_backward": False})
@@ -353,12 +354,12 @@ def extended_block_tables(keys: wp.array(dtype=wp.int64), shifts: wp.array(dtype
     while True:
         t = last + wp.int64(1)
         for f in range(wp.static(EXTENDED_BLOCK_COUNT)):
-            t = wp.min(t, keys[cursor[f]] - shifts[f])
+            t = wp.min(t, keys[nonnegative(cursor[f])] - shifts[f])
         if t > last:
             break
         tests[count] = t
         for f in range(wp.static(EXTENDED_BLOCK_COUNT)):
-            source = wp.where(keys[cursor[f]] - shifts[f] == t, cursor[f], -1)
+            source = wp.where(keys[nonnegative(cursor[f])] - shifts[f] == t, cursor[f], -1)
             sources[count, f] = source
             cursor[f] = cursor[f] + wp.where(source >= 0, 1, 0)
         count += 1

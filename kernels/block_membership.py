@@ -16,6 +16,8 @@ numpy twin: ``evsemmap_warp/reference/block_membership.py``.
 
 import warp as wp
 
+from .indexing import nonnegative
+
 wp.set_module_options({"enable_backward": False})
 
 # Bit (sx + 1) * 9 + (sy + 1) * 3 + (sz + 1) of a mask: the point lies in block nearest + (sx, sy, sz).
@@ -60,9 +62,13 @@ def _membership(points: wp.array(dtype=wp.vec3), i: int, size: float, nearest: w
 @wp.kernel
 def block_membership_masks(points: wp.array(dtype=wp.vec3), size: float, nearest: wp.array2d(dtype=wp.int64), masks: wp.array(dtype=int)):
     """nearest[i] = round(points[i] / size) per axis (in float64), masks[i] = the 27-bit mask of the
-    blocks nearest[i] + (-1..1)^3 whose closed float32 box holds the point."""
-    for i in range(points.shape[0]):
+    blocks nearest[i] + (-1..1)^3 whose closed float32 box holds the point. One thread (a while loop:
+    ``kernels.indexing``)."""
+    n = points.shape[0]
+    i = int(0)
+    while i < n:
         masks[i] = _membership(points, i, size, nearest)
+        i += 1
 
 
 @wp.func
@@ -73,7 +79,9 @@ def _shift_of_bit(bit: int) -> wp.vec3l:
 @wp.kernel
 def membership_counts(masks: wp.array(dtype=int), counts: wp.array(dtype=int)):
     """counts[bit] = how many masks have ``bit`` set (counts start at zero). One thread."""
-    for i in range(masks.shape[0]):
+    n = masks.shape[0]
+    i = int(0)
+    while i < n:
         mask = masks[i]
         if mask == 1 << NEAREST_BIT:  # nearly every point: inside its nearest block only
             counts[NEAREST_BIT] = counts[NEAREST_BIT] + 1
@@ -81,6 +89,7 @@ def membership_counts(masks: wp.array(dtype=int), counts: wp.array(dtype=int)):
             for bit in range(27):
                 if (mask >> bit) & 1 == 1:
                     counts[bit] = counts[bit] + 1
+        i += 1
 
 
 @wp.kernel
@@ -88,28 +97,32 @@ def membership_pairs(masks: wp.array(dtype=int), nearest: wp.array2d(dtype=wp.in
                      point_ids: wp.array(dtype=wp.int64), blocks: wp.array2d(dtype=wp.int64)):
     """Every (point, block) pair of the masks, shift by shift (bit order), points ascending within a
     shift: pair next_pair[bit] (which then moves on; it starts at the exclusive prefix sum of
-    ``membership_counts``) is point i and block nearest[i] + the bit's shift. One thread."""
-    for i in range(masks.shape[0]):
+    ``membership_counts``) is point i and block nearest[i] + the bit's shift. One thread (a while loop and
+    nonnegative indices: ``kernels.indexing``)."""
+    n = masks.shape[0]
+    i = int(0)
+    while i < n:
         mask = masks[i]
         # Nearly every point lies inside its nearest block only: its pair written directly (the bit loop
         # below gives the same pair; running it for these points doubled this kernel's time).
         if mask == 1 << NEAREST_BIT:
-            pair = next_pair[NEAREST_BIT]
+            pair = nonnegative(next_pair[NEAREST_BIT])
             next_pair[NEAREST_BIT] = pair + 1
             point_ids[pair] = wp.int64(i)
             blocks[pair, 0] = nearest[i, 0]
             blocks[pair, 1] = nearest[i, 1]
             blocks[pair, 2] = nearest[i, 2]
-            continue
-        for bit in range(27):
-            if (mask >> bit) & 1 == 1:
-                pair = next_pair[bit]
-                next_pair[bit] = pair + 1
-                point_ids[pair] = wp.int64(i)
-                shift = _shift_of_bit(bit)
-                blocks[pair, 0] = nearest[i, 0] + shift[0]
-                blocks[pair, 1] = nearest[i, 1] + shift[1]
-                blocks[pair, 2] = nearest[i, 2] + shift[2]
+        else:
+            for bit in range(27):
+                if (mask >> bit) & 1 == 1:
+                    pair = nonnegative(next_pair[bit])
+                    next_pair[bit] = pair + 1
+                    point_ids[pair] = wp.int64(i)
+                    shift = _shift_of_bit(bit)
+                    blocks[pair, 0] = nearest[i, 0] + shift[0]
+                    blocks[pair, 1] = nearest[i, 1] + shift[1]
+                    blocks[pair, 2] = nearest[i, 2] + shift[2]
+        i += 1
 
 
 # ------------------------------------------------------------------ parallel forms (one thread per point or pair)

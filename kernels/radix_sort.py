@@ -7,11 +7,14 @@ histograms come from one read per three passes (``digit_histograms``); each pass
 into their digit's range (``radix_scatter``) in input order, which is what makes the sort stable. Digits
 of up to 13 bits (``methods.sbki_compat.MAX_RADIX_DIGIT_BITS``): a pass over more write streams costs more
 per value, but fewer passes gain more. Against numpy's sort, which is scalar on the CPU: docs/performance.md.
+The loops are ``while`` loops over indices passed through ``indexing.nonnegative`` (that module says why).
 
 numpy twin: ``evsemmap_warp/reference/radix_sort.py``.
 """
 
 import warp as wp
+
+from .indexing import nonnegative
 
 wp.set_module_options({"enable_backward": False})
 
@@ -30,16 +33,19 @@ def digit_histograms(values: wp.array(dtype=wp.int64), lowest_bit: int, digit_bi
     shift0 = wp.int64(lowest_bit)
     shift1 = wp.int64(lowest_bit + digit_bits)
     shift2 = wp.int64(lowest_bit + 2 * digit_bits)
-    for i in range(values.shape[0]):
+    n = values.shape[0]
+    i = int(0)
+    while i < n:
         value = values[i]
-        d0 = int((value >> shift0) & mask)
+        d0 = nonnegative(int((value >> shift0) & mask))
         first[d0] = first[d0] + 1
         if passes > 1:
-            d1 = int((value >> shift1) & mask)
+            d1 = nonnegative(int((value >> shift1) & mask))
             second[d1] = second[d1] + 1
         if passes > 2:
-            d2 = int((value >> shift2) & mask)
+            d2 = nonnegative(int((value >> shift2) & mask))
             third[d2] = third[d2] + 1
+        i += 1
 
 
 @wp.kernel
@@ -48,12 +54,15 @@ def radix_scatter(values_in: wp.array(dtype=wp.int64), shift: int, digit_bits: i
     """One pass: value i goes to next_slot[its digit], which then moves on; next_slot starts as the
     exclusive prefix sum of the pass's digit counts."""
     mask = (wp.int64(1) << wp.int64(digit_bits)) - wp.int64(1)
-    for i in range(values_in.shape[0]):
+    n = values_in.shape[0]
+    i = int(0)
+    while i < n:
         value = values_in[i]
-        digit = int((value >> wp.int64(shift)) & mask)
+        digit = nonnegative(int((value >> wp.int64(shift)) & mask))
         slot = next_slot[digit]
         next_slot[digit] = slot + 1
-        values_out[slot] = value
+        values_out[nonnegative(slot)] = value
+        i += 1
 
 
 @wp.kernel
@@ -67,7 +76,8 @@ def sorted_runs(packed: wp.array(dtype=wp.int64), position_bits: int, order: wp.
     n = packed.shape[0]
     runs = int(0)
     previous = wp.int64(0)
-    for k in range(n):
+    k = int(0)
+    while k < n:
         value = packed[k]
         key = value >> shift
         order[k] = value & mask
@@ -75,5 +85,6 @@ def sorted_runs(packed: wp.array(dtype=wp.int64), position_bits: int, order: wp.
             starts[runs] = wp.int64(k)
             runs += 1
             previous = key
+        k += 1
     starts[runs] = wp.int64(n)
     run_count[0] = runs

@@ -25,6 +25,7 @@ import warp as wp
 
 from .block_gather import block_gather_kernel, block_rows_type
 from .hash_table import KEY_OFFSET, block_cell, pack_key
+from .indexing import nonnegative
 from .scatter import _BELIEF_EPSILON, _ONE, _ZERO, FUSION_DEMPSTER, sbki_voxel_center, tally_row
 
 wp.set_module_options({"enable_backward": False})
@@ -357,21 +358,28 @@ def _snap_point(p: wp.vec3, lo: wp.vec3, hi: wp.vec3, ds: float) -> wp.vec3:
 def snap_to_lines(points: wp.array(dtype=wp.vec3), lo: wp.vec3, hi: wp.vec3, ds: float, snapped: wp.array(dtype=wp.vec3)):
     """The release's coord_to_voxel_center_coord per axis, in float32 as its loop runs: from
     i = trunc((p - lo) / ds) - 1 up to trunc((hi - lo) / ds), the first line lo + i ds with
-    p - line < next line - p; none: hi. One thread walks all points (launch with dim=1)."""
-    for n in range(points.shape[0]):
+    p - line < next line - p; none: hi. One thread walks all points (launch with dim=1; a while loop:
+    ``kernels.indexing``)."""
+    count = points.shape[0]
+    n = int(0)
+    while n < count:
         snapped[n] = _snap_point(points[n], lo, hi, ds)
+        n += 1
 
 
 @wp.kernel
 def keep_first_per_block(cells: wp.array(dtype=int), cap: int, counts: wp.array(dtype=int), keep: wp.array(dtype=wp.uint8)):
     """keep[i] = 1 for the first ``cap`` points (input order) of each cell of a dense grid of blocks;
     ``counts`` zeroed, one entry per cell. One thread walks all points (launch with dim=1): one pass
-    where the numpy form sorted the keys."""
-    for i in range(cells.shape[0]):
-        c = cells[i]
+    where the numpy form sorted the keys (a while loop and nonnegative indices: ``kernels.indexing``)."""
+    n = cells.shape[0]
+    i = int(0)
+    while i < n:
+        c = nonnegative(cells[i])
         seen = counts[c]
         keep[i] = wp.uint8(wp.where(seen < cap, 1, 0))
         counts[c] = seen + 1
+        i += 1
 
 
 # ------------------------------------------------------------------ parallel forms of the "ds" step and the rows

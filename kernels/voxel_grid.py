@@ -23,6 +23,7 @@ numpy twins: ``evsemmap_warp/reference/voxel_grid.py``.
 import warp as wp
 
 from .device_counts import PAST_COUNT_KEY
+from .indexing import nonnegative
 
 wp.set_module_options({"enable_backward": False})
 
@@ -83,7 +84,7 @@ def _leaf_centroid(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int
     """The float32 mean of points[order[start:start + n]]: their float32 sum in that order, from zero, over n."""
     total = wp.vec3(0.0, 0.0, 0.0)
     for k in range(n):
-        total = total + points[int(order[start + k])]
+        total = total + points[nonnegative(int(order[start + k]))]
     return total / float(n)
 
 
@@ -93,14 +94,19 @@ def leaf_centroids(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int
     """centroids[l] = the float32 mean of points[order[starts[l]:starts[l] + counts[l]]]: their float32
     sum in that order, from zero, over the count."""
     last = order.shape[0] - 1
-    for leaf in range(starts.shape[0]):
-        start = int(starts[leaf])
+    leaves = starts.shape[0]
+    leaf = int(0)
+    while leaf < leaves:  # (a while loop and nonnegative indices: kernels.indexing)
+        start = nonnegative(int(starts[leaf]))
         n = int(counts[leaf])
         # The points are read in sorted order, from all over the cloud: ask for the ones this many
         # positions ahead while this leaf sums (a hint, compiled out on CUDA).
-        for k in range(n):
+        k = int(0)
+        while k < n:
             _prefetch_point(points, int(order[wp.min(start + k + POINTS_AHEAD, last)]))
+            k += 1
         centroids[leaf] = _leaf_centroid(points, order, start, n)
+        leaf += 1
 
 
 # leaf_centroids_of_sorted in place of listing the order and the runs' starts, then leaf_centroids: free_res
@@ -119,7 +125,8 @@ def leaf_centroids_of_sorted(points: wp.array(dtype=wp.vec3), packed: wp.array(d
     previous = wp.int64(0)
     total = wp.vec3(0.0, 0.0, 0.0)
     count = int(0)
-    for k in range(n):
+    k = int(0)
+    while k < n:  # (a while loop and nonnegative indices: kernels.indexing)
         value = packed[k]
         _prefetch_point(points, int(packed[wp.min(k + POINTS_AHEAD, n - 1)] & mask))
         key = value >> shift
@@ -128,9 +135,10 @@ def leaf_centroids_of_sorted(points: wp.array(dtype=wp.vec3), packed: wp.array(d
             leaves += 1
             total = wp.vec3(0.0, 0.0, 0.0)
             count = 0
-        total = total + points[int(value & mask)]
+        total = total + points[nonnegative(int(value & mask))]
         count += 1
         previous = key
+        k += 1
     if n > 0:
         centroids[leaves] = total / float(count)
         leaves += 1

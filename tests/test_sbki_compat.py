@@ -493,6 +493,23 @@ def test_stable_sort_is_a_stable_argsort(n, limit):
     np.testing.assert_array_equal(got_keys, keys[want])
 
 
+def test_nonnegative_indices_are_the_indices_themselves():
+    # The host loops index through kernels.indexing.nonnegative: every int from 0 to the largest is itself.
+    import warp as wp
+
+    from evsemmap_warp.kernels.indexing import nonnegative
+
+    @wp.kernel(module="unique")
+    def through_nonnegative(values: wp.array(dtype=int), out: wp.array(dtype=int)):
+        i = wp.tid()
+        out[i] = nonnegative(values[i])
+
+    values = np.array([0, 1, 2, 255, 1 << 16, (1 << 30) + 7, np.iinfo(np.int32).max], np.int32)
+    out = wp.empty(len(values), dtype=int, device="cpu")
+    wp.launch(through_nonnegative, dim=len(values), device="cpu", inputs=[wp.array(values, dtype=int, device="cpu"), out])
+    np.testing.assert_array_equal(out.numpy(), values)
+
+
 @pytest.mark.parametrize("n, digit_bits", [(0, 4), (1, 4), (1000, 1), (3000, 7), (3000, 10)])
 def test_radix_kernels_match_their_twins(n, digit_bits):
     import warp as wp
