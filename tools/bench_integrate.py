@@ -21,8 +21,8 @@ slower). ``@1t`` rows call ``Mapper.integrate`` scan by scan, throughput = input
 time of those calls; ``@2t`` rows and the clean rows (2 workers) map through ``Mapper.integrate_many``
 (the next scans' host work overlaps this scan's kernels), throughput = input points / its wall time.
 Scans are in memory (loading excluded); median of --repeats fresh maps after one warm-up (kernel
-compile); the numpy twin likewise, at one thread (numpy's scatter does not thread). The map's
-read-out that a query needs (``Mapper.voxels()``: the shards merged, the summary) is timed apart, after
+compile); the numpy twin likewise, at one thread (numpy's scatter does not thread). The rows run in
+rounds, one repeat of every row per round (``time_rows``). The map's read-out that a query needs (``Mapper.voxels()``: the shards merged, the summary) is timed apart, after
 each repeat (``summary_seconds``). A C++ rate is input points / the median of its runs' summed insert
 times. The cell counts, and the release's counts after the cut and after "ds", must equal the C++'s, or
 the tool exits 1 (after writing its record, which lists the mismatch).
@@ -126,49 +126,92 @@ def release_counts(config: MappingConfig, scans) -> int:
     return sum(integrator.training_points(prepare_payload(s.points, s.payload, "alpha", 9), s.sensor_origin)[1]["after_cut"] for s in scans)
 
 
-def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, repeats, progress, workers=None, pipelined=False):
-    warm = Mapper(config, 9, device=device, workers=workers)
-    warm.integrate(scans[0].points[:1000], payloads[0][:1000], payload_type=payload_type, sensor_origin=scans[0].sensor_origin)
-    runs, summaries, first = [], [], None
-    for _ in range(repeats):
-        mapper = Mapper(config, 9, device=device, workers=workers)
-        if pipelined:
-            items = [SimpleNamespace(points=s.points, payload=p, payload_type=payload_type, sensor_origin=s.sensor_origin) for s, p in zip(scans, payloads)]
+class MapperRow:
+    """One mapper row of the table: ``warm_up`` once (kernel compile), then each ``run`` times one repeat on
+    a fresh map, ``result`` their median. The rows run in rounds (``main``), one repeat of every row per
+    round."""
+
+    def __init__(self, config: MappingConfig, scans, payloads, payload_type, device, workers=None, pipelined=False):
+        self.config, self.scans, self.payloads, self.payload_type = config, scans, payloads, payload_type
+        self.device, self.workers, self.pipelined = device, workers, pipelined
+        self.runs, self.summaries, self.first = [], [], None
+
+    def warm_up(self) -> None:
+        scan, payload = self.scans[0], self.payloads[0]
+        warm = Mapper(self.config, 9, device=self.device, workers=self.workers)
+        warm.integrate(scan.points[:1000], payload[:1000], payload_type=self.payload_type, sensor_origin=scan.sensor_origin)
+
+    def run(self, progress) -> None:
+        mapper = Mapper(self.config, 9, device=self.device, workers=self.workers)
+        if self.pipelined:
+            items = [SimpleNamespace(points=s.points, payload=p, payload_type=self.payload_type, sensor_origin=s.sensor_origin)
+                     for s, p in zip(self.scans, self.payloads)]
             start = time.perf_counter()
             all_stats = mapper.integrate_many(items, progress=lambda scan, _: progress.update(len(scan.points)))
             elapsed = time.perf_counter() - start
         else:
             elapsed, all_stats = 0.0, []
-            for scan, payload in zip(scans, payloads):
+            for scan, payload in zip(self.scans, self.payloads):
                 start = time.perf_counter()
-                all_stats.append(mapper.integrate(scan.points, payload, payload_type=payload_type, sensor_origin=scan.sensor_origin))
+                all_stats.append(mapper.integrate(scan.points, payload, payload_type=self.payload_type, sensor_origin=scan.sensor_origin))
                 elapsed += time.perf_counter() - start
                 progress.update(len(scan.points))
-        runs.append(elapsed)
+        self.runs.append(elapsed)
         start = time.perf_counter()
         mapper.voxels()
-        summaries.append(time.perf_counter() - start)
-        if first is None:
+        self.summaries.append(time.perf_counter() - start)
+        if self.first is None:
             counts = mapper.state_counts()
-            first = {
+            self.first = {
                 "voxel_updates": sum(s.voxel_updates for s in all_stats), "kept_or_training_points": sum(s.kept_points for s in all_stats),
                 "voxels": mapper.voxel_count, "free": counts["FREE"], "occupied": counts["OCCUPIED"],
                 "bytes_per_voxel": round(mapper.device_bytes / max(mapper.voxel_count, 1), 1), "workers": len(mapper.shards),
             }
-        # Each map is released before the next repeat: on this project's VMs memory the process has not
-        # touched before faults in ~1.5x slower (fr4, 1 thread: 1.9 s with the earlier maps released,
+        # Each map is released before the next one is made: on this project's VMs memory the process has
+        # not touched before faults in ~1.5x slower (fr4, 1 thread: 1.9 s with the earlier maps released,
         # 3.0 s with them kept), which made every repeat after the first slower than the first.
         del mapper, all_stats
         gc.collect()
-    return first | {"seconds": statistics.median(runs), "all_seconds": [round(r, 3) for r in runs],
-                    "summary_seconds": statistics.median(summaries), "all_summary_seconds": [round(r, 4) for r in summaries]}
+
+    def result(self) -> dict:
+        return self.first | {"seconds": statistics.median(self.runs), "all_seconds": [round(r, 3) for r in self.runs],
+                             "summary_seconds": statistics.median(self.summaries), "all_summary_seconds": [round(r, 4) for r in self.summaries]}
 
 
-def time_numpy(config: MappingConfig, scans, payloads, repeats: int):
-    """The numpy twin, timed like the mapper: a warm-up on a small scan, then the median of repeats."""
-    numpy_run(config, [scans[0]], [payloads[0]])
-    runs = [numpy_run(config, scans, payloads) for _ in range(repeats)]
-    return runs[0] | {"seconds": statistics.median(r["seconds"] for r in runs), "all_seconds": [round(r["seconds"], 3) for r in runs]}
+class NumpyRow:
+    """The numpy twin's row, timed like a ``MapperRow``: a warm-up on one scan, then one repeat per ``run``."""
+
+    def __init__(self, config: MappingConfig, scans, payloads):
+        self.config, self.scans, self.payloads = config, scans, payloads
+        self.runs = []
+
+    def warm_up(self) -> None:
+        numpy_run(self.config, [self.scans[0]], [self.payloads[0]])
+
+    def run(self, progress) -> None:
+        self.runs.append(numpy_run(self.config, self.scans, self.payloads))
+        progress.update(sum(len(s.points) for s in self.scans))
+
+    def result(self) -> dict:
+        return self.runs[0] | {"seconds": statistics.median(r["seconds"] for r in self.runs), "all_seconds": [round(r["seconds"], 3) for r in self.runs]}
+
+
+def time_rows(rows: dict, repeats: int, progress) -> dict:
+    """Each row (name -> ``MapperRow`` or ``NumpyRow``) warmed up, then ``repeats`` rounds, each running every
+    row once in order; name -> its ``result``. In rounds rather than row by row: a shared VM's slower stretch
+    (minutes long on this project's VMs) then falls on a repeat of every row, which the medians drop,
+    rather than on all of one row's repeats."""
+    for row in rows.values():
+        row.warm_up()
+    for _ in range(repeats):
+        for row in rows.values():
+            row.run(progress)
+    return {name: row.result() for name, row in rows.items()}
+
+
+def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, repeats, progress, workers=None, pipelined=False) -> dict:
+    """One mapper row timed on its own (``time_rows`` of that row)."""
+    return time_rows({"row": MapperRow(config, scans, payloads, payload_type, device, workers, pipelined)}, repeats, progress)["row"]
 
 
 def numpy_run(config: MappingConfig, scans, payloads):
@@ -223,25 +266,23 @@ def main() -> int:
         return 2
     alphas = [s.payload for s in scans]
 
-    rows = {}
+    timed = {}
     thread_counts = (1, 2) if args.device == "cpu" else (1,)
     like_for_like = [f"s-bki-compat@fr{fr}" for fr in args.free_resolutions] + [f"{m}-release" for m in RELEASE_METHODS]
-    runs = (len(METHODS) + len(like_for_like) * len(thread_counts)) * args.repeats + (0 if args.skip_numpy else 2 * args.repeats)
-    with tqdm(total=runs * n_points, unit="pt", unit_scale=True, desc="integrating", file=sys.stderr) as progress:
-        for method in METHODS:
-            cfg = load_config([PRESET], method=method).mapping
-            rows[method] = time_mapper(cfg, scans, alphas, "alpha", args.device, args.repeats, progress, pipelined=True)
-            if not args.skip_numpy and method in ("ebs", "s-bki"):  # the numpy twin times the radius rules
-                rows[f"numpy:{method}"] = time_numpy(cfg, scans, alphas, args.repeats)
-                progress.update(n_points * args.repeats)
-        for threads in thread_counts:
-            for fr in args.free_resolutions:
-                rows[f"s-bki-compat@fr{fr}@{threads}t"] = time_mapper(compat_config(float(fr)), scans, labels, "label", args.device,
-                                                                      args.repeats, progress, workers=threads, pipelined=threads > 1)
-            for method in RELEASE_METHODS:
-                cfg = load_config([RELEASE_PRESET], method=method).mapping
-                rows[f"{method}-release@{threads}t"] = time_mapper(cfg, scans, alphas, "alpha", args.device, args.repeats, progress, workers=threads,
-                                                                   pipelined=threads > 1)
+    for method in METHODS:
+        cfg = load_config([PRESET], method=method).mapping
+        timed[method] = MapperRow(cfg, scans, alphas, "alpha", args.device, pipelined=True)
+        if not args.skip_numpy and method in ("ebs", "s-bki"):  # the numpy twin times the radius rules
+            timed[f"numpy:{method}"] = NumpyRow(cfg, scans, alphas)
+    for threads in thread_counts:
+        for fr in args.free_resolutions:
+            timed[f"s-bki-compat@fr{fr}@{threads}t"] = MapperRow(compat_config(float(fr)), scans, labels, "label", args.device, workers=threads,
+                                                                 pipelined=threads > 1)
+        for method in RELEASE_METHODS:
+            timed[f"{method}-release@{threads}t"] = MapperRow(load_config([RELEASE_PRESET], method=method).mapping, scans, alphas, "alpha",
+                                                              args.device, workers=threads, pipelined=threads > 1)
+    with tqdm(total=len(timed) * args.repeats * n_points, unit="pt", unit_scale=True, desc="integrating", file=sys.stderr) as progress:
+        rows = time_rows(timed, args.repeats, progress)
         release_after_cut = {m: release_counts(load_config([RELEASE_PRESET], method=m).mapping, scans) for m in RELEASE_METHODS}
 
     # The C++ on one thread and at its best thread count (1 or 2): input points / median summed insert time.
@@ -336,7 +377,7 @@ def integration_results(rows: dict, *, scans: int, n_points: int, device: str, r
     cpp_file = cpp_path.resolve().relative_to(REPO).as_posix() if cpp_path.resolve().is_relative_to(REPO) else str(cpp_path)
     return {
         "workload": {"file": "../shared/data/bench/rellis_like_30scans.npz", "scans": scans, "input_points": n_points},
-        "device": device, "repeats": repeats, "free_resolutions": list(free_resolutions), "thread_counts": list(thread_counts),
+        "device": device, "repeats": repeats, "order": "rounds: one repeat of every row per round", "free_resolutions": list(free_resolutions), "thread_counts": list(thread_counts),
         "methods": list(METHODS), "like_for_like": list(like_for_like),
         "cpp": {"file": cpp_file, "summary": cpp_source, "points_per_s": {f"{name}@{t}t": rate for (name, t), rate in cpp_rate.items()}},
         "release_after_cut": release_after_cut, "rows": rows, "problems": problems,

@@ -312,7 +312,12 @@ def bench_integrate_caption(record: dict, record_path: str) -> str:
     return (f"*From [`{name}`](bench/{name}): `{command}` at commit `{str(record.get('commit', ''))[:10]}`"
             f"{'' if record.get('tree_clean', True) else ' (modified tree)'}, {record.get('utc', '')}, {machine.get('cpu_model', '')} "
             f"({machine.get('cores', '')} cores), device {results['device']}, {results['workload']['scans']} of the workload's scans, median of "
-            f"{results['repeats']} after a warm-up; C++: {results['cpp']['summary']}{_cpp_day_note(record)}{_cpp_cpu_note(record)}.*")
+            f"{results['repeats']} after a warm-up{_order_note(results)}; C++: {results['cpp']['summary']}{_cpp_day_note(record)}{_cpp_cpu_note(record)}.*")
+
+
+def _order_note(results: dict) -> str:
+    """How the run ordered its repeats, where its record says (records before the rounds do not)."""
+    return " (the rows in rounds, one repeat of each per round)" if results.get("order", "").startswith("rounds") else ""
 
 
 def _cpp_day_note(record: dict) -> str:
