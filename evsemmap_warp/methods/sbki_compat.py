@@ -135,10 +135,12 @@ def _majority_labels(cells: np.ndarray, labels: np.ndarray, n_cells: int) -> np.
 # Digits of at most this many bits per radix pass: a pass over more write streams is slower per value, but
 # one pass fewer gains more (the free samples' 25-bit leaf keys at free_res 0.5, 30 bench scans: 3 passes
 # of at most 10 bits 0.31 s, 2 passes of 13 bits 0.25 s; at most 14 bits 0.24 s, 16 bits 0.25 s). Below
-# this many keys numpy's sort is faster: the radix sort's launches cost ~0.5 ms (26-bit keys, measured:
-# 20 k keys 1.0 against 0.7 ms, 50 k 2.0 against 2.1 ms).
+# this many keys numpy's sort is faster: the radix sort's launches cost ~0.15 ms (14- to 26-bit keys,
+# measured since its loops index through kernels.indexing: 5 k keys 0.18-0.25 against 0.10-0.13 ms,
+# 10 k 0.19-0.22 against 0.24-0.25 ms, 20 k 0.24-0.43 against 0.56-0.69 ms; the release's ~28 k block
+# memberships a scan took numpy's sort before).
 MAX_RADIX_DIGIT_BITS = 13
-MIN_RADIX_SORT_KEYS = 50_000
+MIN_RADIX_SORT_KEYS = 10_000
 
 
 def _packing_bits(n: int, key_limit: int) -> tuple[int, int]:
