@@ -180,8 +180,8 @@ def test_the_integration_bench_releases_each_repeats_map_before_the_next(monkeyp
     rng = np.random.default_rng(3)
     scans = [SimpleNamespace(points=rng.uniform(-3, 3, (400, 3)), sensor_origin=np.zeros(3)) for _ in range(2)]
     payloads = [rng.gamma(0.7, 6.0, (400, 9)) + 1.0 for _ in scans]
-    row = bench_integrate.time_mapper(load_config([REPO / "configs/presets/rellis3d.yaml"], method="ebs").mapping, scans, payloads, "alpha",
-                                      "cpu", 3, SimpleNamespace(update=lambda n: None))
+    timed = bench_integrate.MapperRow(load_config([REPO / "configs/presets/rellis3d.yaml"], method="ebs").mapping, scans, payloads, "alpha", "cpu")
+    row = bench_integrate.time_rows({"ebs": timed}, 3, SimpleNamespace(update=lambda n: None))["ebs"]
     assert len(row["all_seconds"]) == 3 and row["voxels"] > 0
     # no map, the warm-up's included, is alive when the next one is made
     assert alive_at_start == [0, 0, 0, 0]

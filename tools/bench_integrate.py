@@ -22,8 +22,9 @@ time of those calls; ``@2t`` rows and the clean rows (2 workers) map through ``M
 (the next scans' host work overlaps this scan's kernels), throughput = input points / its wall time.
 Scans are in memory (loading excluded); median of --repeats fresh maps after one warm-up (kernel
 compile); the numpy twin likewise, at one thread (numpy's scatter does not thread). The rows run in
-rounds, one repeat of every row per round (``time_rows``). The map's read-out that a query needs (``Mapper.voxels()``: the shards merged, the summary) is timed apart, after
-each repeat (``summary_seconds``). A C++ rate is input points / the median of its runs' summed insert
+rounds, one repeat of every row per round (``time_rows``). The map's read-out that a query needs
+(``Mapper.voxels()``: the shards merged, the summary) is timed apart, after each repeat
+(``summary_seconds``). A C++ rate is input points / the median of its runs' summed insert
 times. The cell counts, and the release's counts after the cut and after "ds", must equal the C++'s, or
 the tool exits 1 (after writing its record, which lists the mismatch).
 
@@ -128,8 +129,7 @@ def release_counts(config: MappingConfig, scans) -> int:
 
 class MapperRow:
     """One mapper row of the table: ``warm_up`` once (kernel compile), then each ``run`` times one repeat on
-    a fresh map, ``result`` their median. The rows run in rounds (``main``), one repeat of every row per
-    round."""
+    a fresh map, ``result`` their median (``time_rows`` runs the rows in rounds)."""
 
     def __init__(self, config: MappingConfig, scans, payloads, payload_type, device, workers=None, pipelined=False):
         self.config, self.scans, self.payloads, self.payload_type = config, scans, payloads, payload_type
@@ -207,11 +207,6 @@ def time_rows(rows: dict, repeats: int, progress) -> dict:
         for row in rows.values():
             row.run(progress)
     return {name: row.result() for name, row in rows.items()}
-
-
-def time_mapper(config: MappingConfig, scans, payloads, payload_type, device, repeats, progress, workers=None, pipelined=False) -> dict:
-    """One mapper row timed on its own (``time_rows`` of that row)."""
-    return time_rows({"row": MapperRow(config, scans, payloads, payload_type, device, workers, pipelined)}, repeats, progress)["row"]
 
 
 def numpy_run(config: MappingConfig, scans, payloads):
@@ -377,7 +372,8 @@ def integration_results(rows: dict, *, scans: int, n_points: int, device: str, r
     cpp_file = cpp_path.resolve().relative_to(REPO).as_posix() if cpp_path.resolve().is_relative_to(REPO) else str(cpp_path)
     return {
         "workload": {"file": "../shared/data/bench/rellis_like_30scans.npz", "scans": scans, "input_points": n_points},
-        "device": device, "repeats": repeats, "order": "rounds: one repeat of every row per round", "free_resolutions": list(free_resolutions), "thread_counts": list(thread_counts),
+        "device": device, "repeats": repeats, "order": "rounds: one repeat of every row per round",
+        "free_resolutions": list(free_resolutions), "thread_counts": list(thread_counts),
         "methods": list(METHODS), "like_for_like": list(like_for_like),
         "cpp": {"file": cpp_file, "summary": cpp_source, "points_per_s": {f"{name}@{t}t": rate for (name, t), rate in cpp_rate.items()}},
         "release_after_cut": release_after_cut, "rows": rows, "problems": problems,
