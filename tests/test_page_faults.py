@@ -57,3 +57,51 @@ def test_the_block_gather_faults_its_fresh_rows_in_once(monkeypatch):
     assert row_pages > 500, "too few new rows to tell one fault per page from two"
     # read first, each fresh page faults twice (2.0x); written first, once, plus the brick cache's new entries
     assert faults["gather"] < 1.3 * row_pages, f"{faults['gather']} faults for {row_pages:.0f} pages of new rows"
+
+
+def test_the_read_out_turns_numpys_huge_page_advice_off_and_back():
+    # The advice only places memory: off while a map's read-out allocates (huge pages' first touch costs
+    # more on this project's VMs), then the setting found, also after nested and concurrent uses.
+    import threading
+
+    from evsemmap_warp.core import _host_memory
+
+    switch = _host_memory._SET_HUGE_PAGE_ADVICE
+    if switch is None:
+        pytest.skip("this numpy has no huge-page advice switch")
+    seen = []
+    real_summarize = Mapper.summarize
+
+    def summarize(self, evidence, touched):
+        seen.append(bool(switch(False)))  # returns the setting in force (and keeps it off)
+        return real_summarize(self, evidence, touched)
+
+    before = bool(switch(True))
+    try:
+        mapper = Mapper(MappingConfig(method="ebs"), 5, workers=1)
+        rng = np.random.default_rng(0)
+        mapper.integrate(rng.uniform(-2, 2, (500, 3)), rng.gamma(1.0, 2.0, (500, 5)) + 1.0, payload_type="alpha", sensor_origin=np.zeros(3))
+        Mapper.summarize = summarize
+        mapper.voxels()
+        assert seen == [False] and switch(True) is True
+        inner = []
+        gate = threading.Barrier(2)
+
+        def reader():
+            with _host_memory.without_huge_page_advice():
+                gate.wait()
+                gate.wait()
+
+        thread = threading.Thread(target=reader)
+        thread.start()
+        with _host_memory.without_huge_page_advice():
+            gate.wait()
+            with _host_memory.without_huge_page_advice():
+                inner.append(switch(False))
+            gate.wait()
+            thread.join()
+            inner.append(switch(False))
+        assert inner == [False, False] and switch(True) is True
+    finally:
+        Mapper.summarize = real_summarize
+        switch(before)

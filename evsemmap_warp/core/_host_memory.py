@@ -3,8 +3,10 @@ space reservation a growing table's rows live in (``VoxelMap``'s storage on the 
 
 from __future__ import annotations
 
+import contextlib
 import mmap
 import sys
+import threading
 
 import numpy as np
 
@@ -49,3 +51,35 @@ def reserved_zeros(rows: int, columns: int) -> np.ndarray | None:
     except (OSError, ValueError, OverflowError):
         return None
     return np.frombuffer(memory, dtype=np.float64).reshape(rows, columns)
+
+
+# numpy's switch for its huge-page advice (a private function, numpy >= 1.20; None where it is absent).
+_SET_HUGE_PAGE_ADVICE = getattr(getattr(getattr(np, "_core", None), "multiarray", None), "_set_madvise_hugepage", None) or getattr(
+    getattr(getattr(np, "core", None), "multiarray", None), "_set_madvise_hugepage", None)
+_advice_lock = threading.Lock()
+_advice_off_depth = 0
+_advice_before = True
+
+
+@contextlib.contextmanager
+def without_huge_page_advice():
+    """numpy's transparent-huge-page advice off while the block runs (nested and concurrent uses keep it
+    off until the last one ends, which restores the setting found), for work that allocates large arrays
+    once and reads them once, such as a map's read-out: on this project's VMs a huge page's first touch
+    costs more than the small pages it replaces (``lazily_zeroed`` avoids the advice for the tables).
+    The advice only places memory; results are the same with it or without it."""
+    global _advice_off_depth, _advice_before
+    if _SET_HUGE_PAGE_ADVICE is None:
+        yield
+        return
+    with _advice_lock:
+        if _advice_off_depth == 0:
+            _advice_before = bool(_SET_HUGE_PAGE_ADVICE(False))
+        _advice_off_depth += 1
+    try:
+        yield
+    finally:
+        with _advice_lock:
+            _advice_off_depth -= 1
+            if _advice_off_depth == 0:
+                _SET_HUGE_PAGE_ADVICE(_advice_before)
