@@ -17,6 +17,7 @@ from evsemmap_warp.apps.cli import main
 from evsemmap_warp.core.map_store import MapStore, fold
 from evsemmap_warp.core.mapper import load_map
 from evsemmap_warp.core.voxel_map import add_duplicate_voxels
+from evsemmap_warp.voxel_keys import pack_voxel_keys
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence
 
@@ -184,3 +185,24 @@ def test_tiles_leaving_memory_early_and_a_run_killed_while_folding_give_the_same
             assert (tmp_path / store / "tiles" / name).read_bytes() == (reference / "tiles" / name).read_bytes(), (store, name)
         assert (tmp_path / store / "store.json").read_bytes() == (reference / "store.json").read_bytes()
         assert not list((tmp_path / store / "work").rglob("*.vox"))
+
+
+def test_duplicate_voxels_add_left_to_right_from_zero():
+    # add_duplicate_voxels (a map's shards merged, a store's partials) keeps np.add.at's bits: each voxel's
+    # rows added into zeros in input order, for runs of up to five rows and a -0.0 alone or repeated.
+    rng = np.random.default_rng(11)
+    index = rng.integers(-40, 40, (3000, 3))
+    index[2000:] = index[rng.integers(0, 2000, 1000)]  # repeats, some of them several times
+    rows = rng.random((3000, 13)) * 10.0 ** rng.uniform(-8, 8, (3000, 13))
+    rows[:, -2] = rng.integers(0, 50, 3000)  # hits, a count
+    rows[:, -1] = rng.random(3000) < 0.5  # touched
+    rows[rng.integers(0, 3000, 200), rng.integers(0, 11, 200)] = -0.0
+    keys, first, inverse = np.unique(pack_voxel_keys(index), return_index=True, return_inverse=True)
+    want = np.zeros((len(keys), 13))
+    np.add.at(want, inverse.reshape(-1), rows)
+    want[:, -1] = np.minimum(want[:, -1], 1.0)
+    got = add_duplicate_voxels(index, rows)
+    assert np.bincount(inverse.reshape(-1)).max() >= 4
+    np.testing.assert_array_equal(got.index, index[first])
+    assert got.rows().tobytes() == want.tobytes()
+    assert add_duplicate_voxels(index[:0], rows[:0]).rows().shape == (0, 13)

@@ -38,7 +38,7 @@ from . import map_file
 from ._host_memory import without_huge_page_advice
 from .integrators import IntegrationStats, Launch, ScanPayload, SensorOrigin, make_integrator
 from ._shards import PendingUpdates, ShardLanes
-from .voxel_map import EXTRA_COLUMNS, VoxelArrays, VoxelMap, add_duplicate_voxels, sum_voxel_arrays
+from .voxel_map import EXTRA_COLUMNS, VoxelArrays, VoxelMap, add_duplicate_voxels, sum_shard_rows
 
 
 class VoxelState(enum.IntEnum):
@@ -528,7 +528,7 @@ class Mapper:
 
     # ------------------------------------------------------------------ reading
     def _local_voxels(self) -> VoxelArrays:
-        return sum_voxel_arrays([shard.arrays() for shard in self.shards])
+        return sum_shard_rows([shard.stored_rows() for shard in self.shards])
 
     def voxels(self) -> MapVoxels:
         """All stored voxels in key order, with global indices (``.arrays``), and their read-out

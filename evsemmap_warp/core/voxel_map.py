@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..methods.device_scratch import DeviceScratch, counts_with_room, inclusive_scan, last_value, offsets_and_total
-from ..voxel_keys import check_index_range, column_bounds, pack_voxel_keys, unpack_voxel_keys, within_index_range
+from ..voxel_keys import check_index_range, column_bounds, pack_voxel_keys, take_rows, unpack_voxel_keys, within_index_range
 from . import _host_memory
 from ._staging import Staging
 from .warp_runtime import init_warp, resolve_device
@@ -631,11 +631,16 @@ class VoxelMap:
         slots = slots[np.argsort(keys[slots], kind="stable")]
         return keys[slots], self.slot_rows.numpy()[slots].astype(np.int64) - 1
 
+    def stored_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """The stored keys in ascending order and a host copy of their [V, K + 4] value rows."""
+        keys, rows = self.stored_keys_and_rows()
+        return keys, take_rows(self.data.numpy(), rows)
+
     def arrays(self) -> VoxelArrays:
         """A host copy of every stored voxel (``VoxelArrays``), in ascending key order; indices relative to
         the map origin."""
-        keys, rows = self.stored_keys_and_rows()
-        return VoxelArrays.from_rows(unpack_voxel_keys(keys), self.data.numpy()[rows])
+        keys, rows = self.stored_rows()
+        return VoxelArrays.from_rows(unpack_voxel_keys(keys), rows)
 
     def rows_at(self, rows: np.ndarray) -> np.ndarray:
         """The [len(rows), K + 4] data rows at the given row indices (zeros for -1); copies only those
@@ -677,11 +682,42 @@ def sum_voxel_arrays(parts: list[VoxelArrays]) -> VoxelArrays:
     return add_duplicate_voxels(np.concatenate([p.index for p in parts]), np.concatenate([p.rows() for p in parts]))
 
 
+def sum_shard_rows(parts: list[tuple[np.ndarray, np.ndarray]]) -> VoxelArrays:
+    """``sum_voxel_arrays`` of shards given as ``VoxelMap.stored_rows`` (keys and value rows), without
+    splitting each shard's rows into arrays first."""
+    if len(parts) == 1:
+        keys, rows = parts[0]
+        return VoxelArrays.from_rows(unpack_voxel_keys(keys), rows)
+    return _add_duplicate_keys(np.concatenate([keys for keys, _ in parts]), np.concatenate([rows for _, rows in parts]))
+
+
 def add_duplicate_voxels(index: np.ndarray, rows: np.ndarray) -> VoxelArrays:
     """One row per distinct voxel of ``index`` [N, 3] (relative to the origin), in key order: the
     [N, K + 4] data rows of repeated voxels are added, their touched flags or-ed."""
-    keys, first, inverse = np.unique(pack_voxel_keys(index), return_index=True, return_inverse=True)
-    summed = np.zeros((len(keys), rows.shape[1]))
-    np.add.at(summed, inverse.reshape(-1), rows)
+    return _add_duplicate_keys(pack_voxel_keys(np.asarray(index, np.int64).reshape(-1, 3)), rows)
+
+
+def _add_duplicate_keys(keys: np.ndarray, rows: np.ndarray) -> VoxelArrays:
+    """``add_duplicate_voxels`` of packed keys [N]. A voxel's rows add left to right in input order from
+    zero, as np.add.at into zeros adds them (the bits the store's ``fold`` gives): a stable sort keeps
+    that order, each run's first row plus 0.0 starts its sum (0 + x: a -0.0 becomes 0.0), and the k-th
+    rows of all runs are added in step k, one step per row of the longest run (a voxel's shards or
+    partials; np.add.reduceat does not add left to right). np.unique and np.add.at took most of a
+    two-shard map's read-out."""
+    rows = np.asarray(rows, np.float64)
+    if len(keys) == 0:
+        return VoxelArrays.from_rows(np.zeros((0, 3), np.int64), np.zeros((0, rows.shape[1])))
+    order = np.argsort(keys, kind="stable")
+    sorted_keys = keys[order]
+    starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
+    summed = take_rows(rows, order[starts])
+    summed += 0.0
+    if len(starts) < len(keys):
+        lengths = np.diff(np.r_[starts, len(keys)])
+        run = np.repeat(np.arange(len(starts)), lengths)
+        place = np.arange(len(keys)) - starts[run]
+        for k in range(1, int(lengths.max())):
+            kth = np.flatnonzero(place == k)
+            summed[run[kth]] += take_rows(rows, order[kth])
     summed[:, -1] = np.minimum(summed[:, -1], 1.0)  # touched is or-ed, not added
-    return VoxelArrays.from_rows(np.asarray(index, np.int64)[first].reshape(-1, 3), summed)
+    return VoxelArrays.from_rows(unpack_voxel_keys(sorted_keys[starts]), summed)
