@@ -21,7 +21,7 @@ from itertools import islice
 import numpy as np
 
 from ..core.map_file import file_arrays
-from ..core.voxel_map import VoxelArrays, sum_voxel_arrays
+from ..core.voxel_map import VoxelArrays, sum_shard_rows
 from .viewer import TRAJECTORY_COLOR, MapLayer
 
 
@@ -126,7 +126,7 @@ class LiveMap(_ViewerThread):
             self.offers_skipped += 1
             return False
         started = time.perf_counter()
-        shards = [shard.arrays() for shard in self.mapper.shards]  # relative to the map origin
+        shards = [shard.stored_rows() for shard in self.mapper.shards]  # keys relative to the map origin, and rows
         origin_index = None if self.mapper.origin_index is None else np.array(self.mapper.origin_index)
         self.copy_seconds += time.perf_counter() - started
         points = None if last_scan is None else np.array(last_scan.points, np.float64)
@@ -147,7 +147,7 @@ class LiveMap(_ViewerThread):
         if origin_index is None:  # nothing mapped yet
             return
         self.template.origin_index = origin_index
-        voxels = sum_voxel_arrays(shards)
+        voxels = sum_shard_rows(shards)
         voxels = VoxelArrays(voxels.index + origin_index, voxels.evidence, voxels.weight_sum, voxels.weighted_uncertainty_sum,
                              voxels.hits, voxels.touched)
         self._show(MapLayer.from_mapper(self.name, self.path, self.template, voxels), scans_done, points, sensor_path)

@@ -674,17 +674,10 @@ def _points_array(points: np.ndarray, device: str):
     return wp.array(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3), dtype=wp.vec3d, device=device, copy=False)
 
 
-def sum_voxel_arrays(parts: list[VoxelArrays]) -> VoxelArrays:
-    """Union of several maps' voxels (indices relative to one origin), adding evidence, weights and
-    hits and or-ing touched. BKI updates are sums, so this is exact up to float64 summation order."""
-    if len(parts) == 1:
-        return parts[0]
-    return add_duplicate_voxels(np.concatenate([p.index for p in parts]), np.concatenate([p.rows() for p in parts]))
-
-
 def sum_shard_rows(parts: list[tuple[np.ndarray, np.ndarray]]) -> VoxelArrays:
-    """``sum_voxel_arrays`` of shards given as ``VoxelMap.stored_rows`` (keys and value rows), without
-    splitting each shard's rows into arrays first."""
+    """Union of a map's shards given as ``VoxelMap.stored_rows`` (keys relative to one origin and value
+    rows), adding evidence, weights and hits and or-ing touched (``add_duplicate_voxels``). BKI updates
+    are sums, so this is exact up to float64 summation order."""
     if len(parts) == 1:
         keys, rows = parts[0]
         return VoxelArrays.from_rows(unpack_voxel_keys(keys), rows)
