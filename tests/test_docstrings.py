@@ -16,11 +16,15 @@ ROOTS = [REPO / "evsemmap_warp", REPO / "kernels", REPO / "configs"]
 # that rewrite. Remove a file from this set once it passes; the test fails when a listed file is gone.
 PENDING: set[str] = set()
 
-# A timing change told as history ("took 82 ms against 5 ms", "2.5 s -> 0.6 s", "~1.5x as long").
+# A timing change told as history ("took 82 ms against 5 ms", "2.5 s -> 0.6 s", "~1.5x as long"), or a
+# measured rate ("0.5 M voxels/s", "12 GB/s", "3 M/s", "20 scans/s"): a number, an optional unit prefix,
+# then bytes, a plural count or the prefix alone, per second. A unit with no number ("speed (m/s)") and
+# physical rates ("1 m/s", "0.5 rad/s") are not measurements and do not match.
 TIMING_HISTORY = re.compile(
     r"\d[\d.,]*\s?(?:ms|ns|µs|us|s)\b[^.;]{0,40}?(?:->|→|against|instead of)\s*~?\d"
     r"|\d(?:\.\d+)?x (?:as long|slower|faster|the time)"
-    r"|took ~?\d[\d.,]*\s?(?:ms|ns|µs|us|s)\b")
+    r"|took ~?\d[\d.,]*\s?(?:ms|ns|µs|us|s)\b"
+    r"|\d[\d.,]*\s?(?:[kKMGT]i?\s?)?(?:B|[A-Za-z]*[a-z]s|[kKMGT])/s\b")
 
 
 def _public_definitions(tree: ast.Module):

@@ -15,12 +15,12 @@ is refused before it is used. The payload holds only what cannot be derived:
 
 Centers, concentrations, labels, states and variance are derived on reading, as a Mapper does.
 
-Why this and not a library format (measured on 763 k voxels, 300 frames of the ``long`` drive, EBS,
-13 tiles): the map-file npz takes 230 B/voxel; the same minimal arrays in an npz 95 B, deflated
-(``np.savez_compressed``) 20.7 B at 0.5 M voxels/s written; zstd of the voxel rows 19.8 B; Parquet
-(pyarrow, zstd, byte-stream-split floats) 17.3 B, read at 1.9 M voxels/s, and a 40 MB dependency;
-zstd of the columns 10.9 B (byte-shuffling them first, as blosc does: 11.2 B). So: columns and zstd,
-with ``zstandard`` (a dependency of its own, 0.9 MB) and numpy.
+Why this and not a library format (the measurements: docs/formats.md, "Why this encoding"): the same
+arrays in an npz are several times larger; deflated (``np.savez_compressed``) they are still larger
+and far slower to write; zstd of the voxel rows is larger than zstd of the columns; Parquet (pyarrow,
+zstd, byte-stream-split floats) is larger, slower to read, and a 40 MB dependency; byte-shuffling the
+columns first (as blosc does) does not pay for a format of its own. So: columns and zstd, with
+``zstandard`` (a dependency of its own, 0.9 MB) and numpy.
 """
 
 from __future__ import annotations
@@ -33,6 +33,11 @@ import numpy as np
 
 from ..files import write_atomically
 
+# The encoding was first chosen on 763 k voxels (300 frames of the ``long`` drive, EBS, 13 tiles; measured
+# before records were kept, docs/formats.md): the map-file npz 230 B/voxel; the same minimal arrays in an
+# npz 95 B, deflated (np.savez_compressed) 20.7 B at 0.5 M voxels/s written; zstd of the voxel rows
+# 19.8 B; Parquet 17.3 B, read at 1.9 M voxels/s; zstd of the columns 10.9 B (byte-shuffled first, as
+# blosc does: 11.2 B).
 MAGIC = b"EVSMVOX2"
 CODEC_FORMAT = "evsemmap_warp.voxels"
 CODEC_VERSION = 1
