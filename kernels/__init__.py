@@ -8,6 +8,12 @@ nothing: Warp builds a module on its first launch.
 
 import threading
 
+# The options every kernel module here is built with (``wp.set_module_options`` in each module, and the
+# ``module_options`` of the kernels factories build as modules of their own). fuse_fp off: a CUDA build
+# otherwise contracts a * b + c into one fused multiply-add, which a CPU build does not, and the device
+# paths and the compatibility modes promise the CPU's results bit for bit on any device.
+MODULE_OPTIONS = {"enable_backward": False, "fuse_fp": False}
+
 # (device, id of the module) -> the module, kept so that its id is never reused.
 _loaded: dict = {}
 _loading = threading.Lock()

@@ -31,12 +31,13 @@ import functools
 
 import warp as wp
 
+from . import MODULE_OPTIONS
 from .device_counts import PAST_COUNT_KEY
 from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, HashTable, block_cell, block_first_cell, find_block_rows, prefetch_brick
 from .indexing import nonnegative
 from .scatter import _ONE, _ZERO, sbki_sparse_kernel_scaled, sbki_voxel_center, tally_row, touch_row
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 f64 = wp.float64
 
@@ -207,7 +208,7 @@ def block_gather_kernel(Inputs, gather_block, *, cells_per_block: int, prefetch:
     n3 = n * n * n
     cell_rows = block_rows_type(n3)
 
-    @wp.kernel(module="unique", module_options={"max_unroll": 1}, enable_backward=False)
+    @wp.kernel(module="unique", module_options={**MODULE_OPTIONS, "max_unroll": 1})
     def gather_blocks(
         launch_ids: wp.array(dtype=int),
         block_ids: wp.array(dtype=int),

@@ -16,9 +16,10 @@ numpy twin: ``evsemmap_warp/reference/block_membership.py``.
 
 import warp as wp
 
+from . import MODULE_OPTIONS
 from .indexing import nonnegative
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 # Bit (sx + 1) * 9 + (sy + 1) * 3 + (sz + 1) of a mask: the point lies in block nearest + (sx, sy, sz).
 NEAREST_BIT = 13

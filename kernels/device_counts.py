@@ -13,7 +13,9 @@ numpy twin: ``evsemmap_warp/reference/device_counts.py``.
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+from . import MODULE_OPTIONS
+
+wp.set_module_options(MODULE_OPTIONS)
 
 # The sort key of the rows past a count: after every leaf and block position (a stable radix sort over a
 # scratch array's whole capacity keeps them last, whatever its end bit, since they have every bit set).

@@ -15,7 +15,9 @@ numpy twin: ``evsemmap_warp/reference/free_space.py``.
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+from . import MODULE_OPTIONS
+
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.kernel

@@ -24,7 +24,9 @@ from typing import Any
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+from . import MODULE_OPTIONS
+
+wp.set_module_options(MODULE_OPTIONS)
 
 KEY_BITS = 21
 KEY_OFFSET = 1 << (KEY_BITS - 1)
@@ -166,7 +168,9 @@ def prefetch_brick(table: HashTable, bricks: HashTable, data: wp.array2d(dtype=w
 @wp.func
 def slot_row(slot_rows: wp.array(dtype=int), slot: int) -> int:
     """The row of an occupied slot (-1 for slot -1). On a GPU a key can be seen before its inserter has
-    published the row: that reader waits for it (an atomic read, so the load is not hoisted)."""
+    published the row: that reader waits for it (an atomic read, so the load is not hoisted), which needs
+    a GPU that schedules a warp's threads independently (compute capability 7.0 or newer,
+    ``core.warp_runtime.resolve_device``)."""
     if slot < 0:
         return -1
     stored = slot_rows[slot]
@@ -210,7 +214,9 @@ def _find_or_insert(table: HashTable, key: wp.int64, given_row: int) -> int:
         if k == key:
             return slot_row(table.slot_rows, slot)
         if k == _EMPTY:
-            if table.key_count[0] >= table.max_count:
+            # Read through the atomic unit: a GPU's plain load may see a count its SM cached, and thousands
+            # of threads would then insert past the fill limit together (on the CPU a plain read-and-write).
+            if wp.atomic_add(table.key_count, 0, 0) >= table.max_count:
                 return -1
             old = wp.atomic_cas(keys, slot, _EMPTY, key)
             if old == _EMPTY:

@@ -14,11 +14,12 @@ numpy twin: ``evsemmap_warp/reference/hashgrid_gather.py``.
 
 import warp as wp
 
+from . import MODULE_OPTIONS
 from .hash_table import HashTable, pack_key, table_find_or_insert, unpack_key
 from .scatter import (_EXTRA, _ZERO, REACH_BALL, MapTarget, ScanPoints, ScatterParams, Span, Visit, add_label_evidence,
                       add_weighted_evidence, center_offset, count_from_zero, end_nothing, sparse_kernel, tally_row, touch_row, walk_kernel)
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 f64 = wp.float64
 

@@ -12,7 +12,9 @@ On CUDA the same code costs one AND per index.
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+from . import MODULE_OPTIONS
+
+wp.set_module_options(MODULE_OPTIONS)
 
 # Measured on the CPU (one bench scan's 327 k free-sample sort values, ns per value): radix_scatter 3.3 as
 # a range loop, 2.4 with nonnegative indices, 1.4 as a while loop with them (a plain C loop: 1.1); the

@@ -14,9 +14,10 @@ numpy twin: ``evsemmap_warp/reference/radix_sort.py``.
 
 import warp as wp
 
+from . import MODULE_OPTIONS
 from .indexing import nonnegative
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 
 # Passes one ``digit_histograms`` launch counts.

@@ -23,12 +23,13 @@ import functools
 
 import warp as wp
 
+from . import MODULE_OPTIONS
 from .block_gather import block_gather_kernel, block_rows_type
 from .hash_table import KEY_OFFSET, block_cell, pack_key
 from .indexing import nonnegative
 from .scatter import _BELIEF_EPSILON, _ONE, _ZERO, FUSION_DEMPSTER, sbki_voxel_center, tally_row
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 f64 = wp.float64
 _MAX_FACTORS = wp.constant(wp.float64(40.0))  # 1e6^(40 + 7) = 1e282 < float64's 1.8e308
@@ -435,7 +436,7 @@ def sorted_rows_kernel(num_classes: int, dempster: bool):
     clip(p - u / K, 0, 1) (``core.integrators.dirichlet_beliefs``)."""
     vec_k = vector_type(num_classes)
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
     def sorted_rows(points: wp.array(dtype=wp.vec3), probabilities: wp.array2d(dtype=wp.float64), uncertainty: wp.array(dtype=wp.float64),
                     kept: wp.array(dtype=int), point_ids: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int64), pair_count: wp.array(dtype=int),
                     sorted_points: wp.array(dtype=wp.vec3), class_weights: wp.array(dtype=vec_k), sorted_uncertainty: wp.array(dtype=wp.float64)):

@@ -50,9 +50,10 @@ from typing import Any
 
 import warp as wp
 
+from . import MODULE_OPTIONS
 from .hash_table import HashTable, block_cell, block_first_cell, pack_key, table_find, table_find_or_insert
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 MODE_RADIUS = 0
 MODE_OWN_VOXEL = 1
@@ -568,7 +569,7 @@ def walk_kernel(reach: int, visit: Visit, *, module: str):
             near = partial_d2 < span.reach2 and steps <= 1
         return near
 
-    @wp.kernel(module=module, enable_backward=False)
+    @wp.kernel(module=module, module_options=MODULE_OPTIONS if module == "unique" else None)
     def walk(scan: ScanPoints, params: ScatterParams, out: Out):
         t = wp.tid()
         i = t
@@ -772,7 +773,7 @@ def weight_rule_kernel(mode: int):
     reach, rule, _ = SCATTER_MODES[mode]
     span_of = _SPAN_OF[reach]
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
     def weight_rule_values(scan: ScanPoints, params: ScatterParams, pair_point: wp.array(dtype=int), pair_cell: wp.array(dtype=wp.vec3i),
                            out: wp.array(dtype=wp.float64)):
         k = wp.tid()

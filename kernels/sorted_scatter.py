@@ -14,11 +14,12 @@ numpy twin: ``evsemmap_warp/reference/sorted_scatter.py`` (and ``reference/scatt
 
 import warp as wp
 
+from . import MODULE_OPTIONS
 from .hash_table import pack_key, table_find_or_insert
 from .scatter import (_EXTRA, _ZERO, REACH_BALL, MapTarget, ScanPoints, ScatterParams, Span, Visit, add_label_evidence,
                       add_weighted_evidence, count_from_zero, end_nothing, sparse_weight, tally_row, touch_row, walk_kernel)
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 f64 = wp.float64
 

@@ -24,7 +24,9 @@ numpy twins: ``evsemmap_warp/reference/terrain.py``.
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+from . import MODULE_OPTIONS
+
+wp.set_module_options(MODULE_OPTIONS)
 
 Z_OFFSET = 1 << 30  # packed z index = z + Z_OFFSET >= 0 for |z| < 2^30
 NO_VOXEL = -1  # a cell's key before any voxel reached it
@@ -45,30 +47,60 @@ def packed_z(key: wp.int64) -> int:
     return int((key >> wp.int64(32)) - _Z_OFFSET)
 
 
+@wp.struct
+class ColumnGrid:
+    """The cell grid the column kernels reduce onto, as they see it: ``voxel_m`` the voxel size (m);
+    ``shift_x``, ``shift_y`` the reference voxel's lower corner minus the grid's lower corner (m);
+    ``cell_m`` the cell size (m); ``width``, ``height`` the cells per row and the rows; ``z_low``,
+    ``z_high`` the voxel z indices kept (inclusive, relative to the reference voxel)."""
+
+    voxel_m: wp.float64
+    shift_x: wp.float64
+    shift_y: wp.float64
+    cell_m: wp.float64
+    width: int
+    height: int
+    z_low: int
+    z_high: int
+
+
+def column_grid(voxel_m: float, shift_x: float, shift_y: float, cell_m: float, width: int, height: int, z_low: int,
+                z_high: int) -> ColumnGrid:
+    """The ``ColumnGrid`` struct of a grid (host side)."""
+    grid = ColumnGrid()
+    grid.voxel_m = wp.float64(voxel_m)
+    grid.shift_x = wp.float64(shift_x)
+    grid.shift_y = wp.float64(shift_y)
+    grid.cell_m = wp.float64(cell_m)
+    grid.width = int(width)
+    grid.height = int(height)
+    grid.z_low = int(z_low)
+    grid.z_high = int(z_high)
+    return grid
+
+
 @wp.func
-def cell_of(v: wp.vec3i, voxel_m: wp.float64, shift_x: wp.float64, shift_y: wp.float64, cell_m: wp.float64,
-            width: int, height: int, z_low: int, z_high: int) -> int:
+def cell_of(v: wp.vec3i, grid: ColumnGrid) -> int:
     """The cell (j * width + i) holding voxel v's center, -1 outside the grid or the z range."""
-    if v[2] < z_low or v[2] > z_high:
+    if v[2] < grid.z_low or v[2] > grid.z_high:
         return -1
-    i = int(wp.floor(((wp.float64(v[0]) + wp.float64(0.5)) * voxel_m + shift_x) / cell_m))
-    j = int(wp.floor(((wp.float64(v[1]) + wp.float64(0.5)) * voxel_m + shift_y) / cell_m))
-    if i < 0 or i >= width or j < 0 or j >= height:
+    i = int(wp.floor(((wp.float64(v[0]) + wp.float64(0.5)) * grid.voxel_m + grid.shift_x) / grid.cell_m))
+    j = int(wp.floor(((wp.float64(v[1]) + wp.float64(0.5)) * grid.voxel_m + grid.shift_y) / grid.cell_m))
+    if i < 0 or i >= grid.width or j < 0 or j >= grid.height:
         return -1
-    return j * width + i
+    return j * grid.width + i
 
 
 @wp.kernel
 def column_extremes(index: wp.array(dtype=wp.vec3i), label: wp.array(dtype=wp.int32), occupied: wp.array(dtype=wp.int32),
-                    surface_class: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.float64), voxel_m: wp.float64,
-                    shift_x: wp.float64, shift_y: wp.float64, cell_m: wp.float64, width: int, height: int, z_low: int, z_high: int,
+                    surface_class: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.float64), grid: ColumnGrid,
                     top_key: wp.array(dtype=wp.int64), support_key: wp.array(dtype=wp.int64), low_z: wp.array(dtype=wp.int32),
                     observations: wp.array(dtype=wp.float64)):
     """Per cell: the highest occupied voxel, the highest occupied surface-class voxel (packed keys),
     the lowest occupied z index, and the summed contribution counts of all its voxels."""
     row = wp.tid()
     v = index[row]
-    c = cell_of(v, voxel_m, shift_x, shift_y, cell_m, width, height, z_low, z_high)
+    c = cell_of(v, grid)
     if c < 0:
         return
     wp.atomic_add(observations, c, hits[row])
@@ -82,8 +114,7 @@ def column_extremes(index: wp.array(dtype=wp.vec3i), label: wp.array(dtype=wp.in
 
 
 @wp.kernel
-def column_cover(index: wp.array(dtype=wp.vec3i), occupied: wp.array(dtype=wp.int32), voxel_m: wp.float64, shift_x: wp.float64,
-                 shift_y: wp.float64, cell_m: wp.float64, width: int, height: int, z_low: int, z_high: int, clearance_voxels: int,
+def column_cover(index: wp.array(dtype=wp.vec3i), occupied: wp.array(dtype=wp.int32), grid: ColumnGrid, clearance_voxels: int,
                  support_key: wp.array(dtype=wp.int64), low_z: wp.array(dtype=wp.int32), cover_key: wp.array(dtype=wp.int64)):
     """Per cell: the highest occupied voxel at most ``clearance_voxels`` above the support voxel (above
     the lowest occupied voxel where there is no support)."""
@@ -91,7 +122,7 @@ def column_cover(index: wp.array(dtype=wp.vec3i), occupied: wp.array(dtype=wp.in
     if occupied[row] == 0:
         return
     v = index[row]
-    c = cell_of(v, voxel_m, shift_x, shift_y, cell_m, width, height, z_low, z_high)
+    c = cell_of(v, grid)
     if c < 0:
         return
     support = support_key[c]

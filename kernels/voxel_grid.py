@@ -22,10 +22,11 @@ numpy twins: ``evsemmap_warp/reference/voxel_grid.py``.
 
 import warp as wp
 
+from . import MODULE_OPTIONS
 from .device_counts import PAST_COUNT_KEY
 from .indexing import nonnegative
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.func

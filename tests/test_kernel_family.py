@@ -2,11 +2,14 @@
 arguments), every scatter combination built once, and each method's weight rule against its numpy twin."""
 
 import importlib
+import pkgutil
 
 import numpy as np
 import pytest
 import warp as wp
 
+from evsemmap_warp import kernels as kernel_package
+from evsemmap_warp.kernels import MODULE_OPTIONS
 from evsemmap_warp.kernels import block_gather, hashgrid_gather, release, sorted_scatter
 from evsemmap_warp.kernels import scatter as sc
 from evsemmap_warp.reference import scatter as ref
@@ -15,13 +18,12 @@ from evsemmap_warp.reference import scatter as ref
 MAX_KERNEL_ARGUMENTS = 12
 # Arguments that would mean a kernel branches on a method at run time.
 METHOD_SWITCHES = {"mode", "fusion", "use_labels", "media", "payload_type"}
-# The kernel modules of map integration and its preprocessing (issue 27's kernel family).
-MAPPING_MODULES = ("hash_table", "scatter", "sorted_scatter", "hashgrid_gather", "block_gather", "release", "block_membership", "free_space",
-                   "voxel_grid", "radix_sort")
+# Every module of kernels/, so that a kernel anywhere in it is checked (as tests/test_twins.py finds them).
+KERNEL_MODULES = tuple(sorted(m.name for m in pkgutil.iter_modules(kernel_package.__path__)))
 
 
 def _every_kernel():
-    """(name, kernel) for every module-level kernel of the mapping modules and a made instance of every factory."""
+    """(name, kernel) for every module-level kernel of every module of kernels/ and a made instance of every factory."""
     made = {
         "scatter_points": [sc.scatter_kernel(mode, fusion, labels) for (mode, fusion, labels) in sc._SCATTER_KERNELS],
         "weight_rule_values": [sc.weight_rule_kernel(mode) for mode in sc.SCATTER_MODES],
@@ -33,7 +35,7 @@ def _every_kernel():
         "sorted_rows": [release.sorted_rows_kernel(9, dempster) for dempster in (False, True)],
     }
     out = []
-    for module_name in MAPPING_MODULES:
+    for module_name in KERNEL_MODULES:
         module = importlib.import_module(f"evsemmap_warp.kernels.{module_name}")
         out += [(f"{module_name}.{n}", k) for n, k in vars(module).items() if isinstance(k, wp.Kernel)]
         for name in getattr(module, "KERNEL_FACTORIES", {}):
@@ -52,12 +54,16 @@ def test_no_kernel_takes_a_method_switch_or_loose_state():
         assert not switches, f"{name} branches at run time on {switches}: specialise it when it is built"
 
 
-def test_no_kernel_compiles_a_backward_pass():
-    # Nothing here is differentiated. A kernel in a module of its own (module="unique") does not take its
-    # file's wp.set_module_options: the block gathers and the rows kernels compiled their adjoints, more
-    # than half of the gathers' first-use compile (docs/performance.md).
+def test_every_kernel_is_built_with_the_package_options():
+    # A kernel in a module of its own (module="unique") does not take its file's wp.set_module_options.
+    # Without them the block gathers and the rows kernels compiled their adjoints, more than half of the
+    # gathers' first-use compile (docs/performance.md), and a CUDA build fuses multiply-adds that the CPU
+    # build does not (fuse_fp), so that its results would not be the CPU's bit for bit.
+    assert MODULE_OPTIONS == {"enable_backward": False, "fuse_fp": False}
     for name, kernel in _every_kernel():
-        assert not (kernel.module.options | kernel.options)["enable_backward"], f"{name} compiles a backward pass"
+        options = kernel.module.options | kernel.options
+        assert not options["enable_backward"], f"{name} compiles a backward pass"
+        assert not options["fuse_fp"], f"{name} lets a CUDA build fuse multiply-adds"
 
 
 def test_every_valid_scatter_combination_is_built_once_and_the_others_are_refused():

@@ -137,3 +137,61 @@ def test_scratch_uploads_go_through_kept_buffers_on_the_gpu_path():
 
     first = np.arange(12, dtype=np.float32).reshape(4, 3)
     assert scan(first) == scan(first[:3] * 2)
+
+
+@pytest.mark.parametrize("values, dtype", [(np.arange(6, dtype=np.int64), wp.int32), (np.arange(12, dtype=np.float64).reshape(4, 3), wp.vec3)])
+def test_scratch_uploads_of_another_numpy_type_arrive_as_values_on_the_gpu_path(values, dtype):
+    # The pinned buffer must hold the values in the device array's layout: an int64 array uploaded as
+    # int32 (or float64 rows as vec3) copied raw would arrive as other numbers on a GPU only.
+    from evsemmap_warp.methods.device_scratch import ScratchPool
+
+    scratch = ScratchPool().take("cpu")
+    scratch.copies_uploads = True
+    np.testing.assert_array_equal(scratch.upload(values, dtype).numpy(), values)
+    scratch.release()
+
+
+def test_a_gpu_maps_prepare_thread_and_its_launches_call_warp_in_turn(monkeypatch):
+    # A GPU map prepares (on the device, in the compat modes) on a thread while the main thread launches;
+    # both must hold core.warp_runtime.device_calls while they call Warp. Recorded here on the CPU backend.
+    import threading
+    from contextlib import contextmanager
+    from types import SimpleNamespace
+
+    from evsemmap_warp.core import integrators
+    from evsemmap_warp.core import mapper as mapper_module
+
+    turns = threading.RLock()
+    callers = []
+
+    @contextmanager
+    def recorded(device):
+        with turns:
+            callers.append(threading.current_thread().name)
+            yield
+
+    monkeypatch.setattr(integrators, "device_calls", recorded)
+    monkeypatch.setattr(mapper_module, "device_calls", recorded)
+    rng = np.random.default_rng(9)
+    config = load_config([REPO / "configs/presets/release.yaml"], method="ebs").mapping
+    scans = [SimpleNamespace(points=rng.uniform(-6, 6, (n, 3)), payload=rng.gamma(2.0, 2.0, (n, 9)) + 1.0, payload_type="alpha",
+                             sensor_origin=np.zeros(3)) for n in (3000, 2000, 4000)]
+    mapper = Mapper(config, 9, workers=1)
+    mapper.prepare_ahead = True
+    mapper.integrator.preprocess_on_device = True
+    mapper.integrate_many(scans)
+    mapper.voxels()
+    prepared = [name for name in callers if name.startswith("evsemmap-prepare")]
+    assert len(prepared) == len(scans) and callers.count(threading.main_thread().name) == len(scans) + 1
+
+
+def test_device_calls_lock_a_gpu_per_device_and_nothing_on_the_cpu():
+    import contextlib
+
+    from evsemmap_warp.core.warp_runtime import device_calls
+
+    assert isinstance(device_calls("cpu"), contextlib.nullcontext)
+    first = device_calls("cuda:0")
+    assert device_calls("cuda:0") is first and device_calls("cuda:1") is not first
+    with first, first:  # re-entrant: a launch that rebuilds its scan's inputs takes it again
+        pass

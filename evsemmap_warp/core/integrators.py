@@ -38,6 +38,7 @@ from ..methods.device_scratch import STATUS_KEPT_POINTS, STATUS_OVERFLOW, Device
 from ..voxel_keys import column_bounds, take_rows
 from ._shards import PendingUpdates, ShardLanes, block_shard, for_each_shard, split_over_shards, total_updates, when_done
 from .voxel_map import VoxelMap
+from .warp_runtime import device_calls
 
 @dataclass
 class ScanPayload:
@@ -688,7 +689,7 @@ def counted_gather_launch(stats: IntegrationStats, pool: ScratchPool, device: st
     range check and the shards' split). A scan whose status says it ran out of room gathered nothing: it is
     built again with room for what it counted and gathered again, in the launch. ``stats.kept_points``
     comes from the status."""
-    with pool.taken(device) as scratch:
+    with pool.taken(device) as scratch, device_calls(device):
         built = build(scratch)
     if not isinstance(built, tuple):  # the host path
         scratch.release()

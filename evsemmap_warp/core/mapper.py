@@ -39,6 +39,7 @@ from ._host_memory import without_huge_page_advice
 from .integrators import IntegrationStats, Launch, ScanPayload, SensorOrigin, make_integrator
 from ._shards import PendingUpdates, ShardLanes
 from .voxel_map import EXTRA_COLUMNS, VoxelArrays, VoxelMap, add_duplicate_voxels, sum_shard_rows
+from .warp_runtime import device_calls
 
 
 class VoxelState(enum.IntEnum):
@@ -377,10 +378,14 @@ class Mapper:
     def _load_kernels(self) -> None:
         """Compile or load the integrator's kernel modules once, in the calling thread, before its first
         scan: Warp's compiler keeps its precompiled headers per thread, so a first compile on each prepare
-        and shard thread built them again; and a map that is only read compiles nothing of them."""
+        and shard thread built them again; and a map that is only read compiles nothing of them. A GPU
+        map loads them for the CPU as well: its host paths (the S-CSM and SEE-CSOM training data, the
+        compat modes' fallbacks) launch them there."""
         if not self._kernels_loaded:
+            devices = (self.device,) if self.device == "cpu" else (self.device, "cpu")
             for module in self.integrator.kernel_modules(self.device):
-                load_once(module, self.device)
+                for device in devices:
+                    load_once(module, device)
             self._kernels_loaded = True
 
     def integrate_many(self, scans: Iterable, progress=None) -> list[IntegrationStats]:
@@ -508,7 +513,8 @@ class Mapper:
         if prepared is None:
             return IntegrationStats()
         try:
-            stats = prepared.launch(self.shards, self._lanes)
+            with device_calls(self.device):
+                stats = prepared.launch(self.shards, self._lanes)
         except BaseException:
             if prepared.sets_origin and self.scans_integrated == 0 and all(shard.voxel_count == 0 for shard in self.shards):
                 self.origin_index = None
@@ -528,7 +534,9 @@ class Mapper:
 
     # ------------------------------------------------------------------ reading
     def _local_voxels(self) -> VoxelArrays:
-        return sum_shard_rows([shard.stored_rows() for shard in self.shards])
+        with device_calls(self.device):
+            rows = [shard.stored_rows() for shard in self.shards]
+        return sum_shard_rows(rows)
 
     def voxels(self) -> MapVoxels:
         """All stored voxels in key order, with global indices (``.arrays``), and their read-out

@@ -329,14 +329,16 @@ class VoxelMap:
         The table is first grown for as many new voxels as the previous launch of this kind made, at
         most ``most_new``; for the first launch of a kind, for none, or for ``most_new`` when that is
         the launch's own bound (``exact_most``: whole blocks, every cell new in a map's first scan,
-        where growing step by step relaunched most blocks three times). A wrong guess costs a relaunch
-        of the items that did not fit, never a voxel.
+        where growing step by step relaunched most blocks three times) or the map is on a GPU (whose
+        threads insert at once: a table far too small is overfilled before they see its limit). A wrong
+        guess costs a relaunch of the items that did not fit, never a voxel.
 
         ``fails_only_when_full``: the launch's items fail only where an insertion found the table at the
         launch's fill limit (the inserting scatters, the block gathers), and the key count never drops, so
         a launch that leaves it below that limit failed nowhere: its flags are not read, and a warm scan
         reads its launch's outcome back once (``_read_counters``)."""
-        self.reserve(min(most_new, self._last_new_voxels.get(kind, most_new if exact_most else 0)) if may_insert else 0)
+        first_guess = most_new if exact_most or self.device != "cpu" else 0
+        self.reserve(min(most_new, self._last_new_voxels.get(kind, first_guess)) if may_insert else 0)
         before = self.voxel_count
         self._updates.zero_()
         pending = None  # None: every item, in order

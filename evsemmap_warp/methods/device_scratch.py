@@ -154,11 +154,12 @@ class DeviceScratch:
         out = self._view(site, host.shape, dtype)
         if host.size:
             key = (site, self._requests[site] - 1)
+            staged = np.ascontiguousarray(host.numpy())  # in ``dtype``'s layout: the bytes the device copy reads
             pinned = self._pinned.get(key)
-            if pinned is None or pinned.size < values.nbytes:
-                pinned = self._pinned[key] = wp.empty(max(values.nbytes, int((0 if pinned is None else pinned.size) * _GROWTH)), dtype=wp.uint8,
+            if pinned is None or pinned.size < staged.nbytes:
+                pinned = self._pinned[key] = wp.empty(max(staged.nbytes, int((0 if pinned is None else pinned.size) * _GROWTH)), dtype=wp.uint8,
                                                       device="cpu", pinned=wp.get_device(self.device).is_cuda)
-            pinned.numpy()[:values.nbytes] = values.reshape(-1).view(np.uint8)
+            pinned.numpy()[:staged.nbytes] = staged.reshape(-1).view(np.uint8)
             wp.copy(out, wp.array(ptr=pinned.ptr, shape=host.shape, dtype=dtype, device="cpu"))
         return out
 

@@ -279,12 +279,12 @@ def column_reduction(voxels: VoxelColumns, grid: LayerGrid, *, voxel_m: float, o
     cover = wp.array(np.full(cells, tk.NO_VOXEL, np.int64), dtype=wp.int64, device=d)
     low_z = wp.array(np.full(cells, np.iinfo(np.int32).max, np.int32), dtype=wp.int32, device=d)
     observations = wp.zeros(cells, dtype=wp.float64, device=d)
-    geometry = [wp.float64(voxel_m), wp.float64(shift_x), wp.float64(shift_y), wp.float64(grid.cell_m), grid.width, grid.height, low, high]
+    geometry = tk.column_grid(voxel_m, shift_x, shift_y, grid.cell_m, grid.width, grid.height, low, high)
     n = len(local)
-    wp.launch(tk.column_extremes, dim=n, device=d, inputs=[index_wp, label_wp, occupied_wp, surface_wp, hits_wp, *geometry, top, support, low_z,
+    wp.launch(tk.column_extremes, dim=n, device=d, inputs=[index_wp, label_wp, occupied_wp, surface_wp, hits_wp, geometry, top, support, low_z,
                                                           observations])
     clearance_voxels = int(math.floor(clearance_m / voxel_m + 1e-9))
-    wp.launch(tk.column_cover, dim=n, device=d, inputs=[index_wp, occupied_wp, *geometry, clearance_voxels, support, low_z, cover])
+    wp.launch(tk.column_cover, dim=n, device=d, inputs=[index_wp, occupied_wp, geometry, clearance_voxels, support, low_z, cover])
     out["observations"] = observations.numpy()
     for name, keys in (("top", top), ("support", support), ("cover", cover)):
         key = keys.numpy()
