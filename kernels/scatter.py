@@ -30,10 +30,14 @@ a scan as one ``ScanPoints`` struct, the method's numbers as one ``ScatterParams
 ``MapTarget`` (the table as a ``kernels.hash_table.HashTable``, the value rows, the failure flags and
 the update count); ``tally_row`` is the one place a row's bookkeeping columns are written.
 
-In the clean modes every point runs two passes over its voxels: the first finds or inserts all
-of them, the second adds. A point whose insertion fails (table full) adds nothing and is flagged
-in ``failed``; the host grows the table and relaunches only those points, so each point lands
-exactly once. The compat modes only add: their target cells are inserted beforehand.
+In the clean modes a point finds or inserts each voxel and adds to it in one pass when the table
+has room for every voxel of its span; otherwise it first runs an insert pass over them, and a point
+whose insertion fails there (table full) adds nothing. A failed point is flagged in ``failed``; the
+host grows the table and relaunches only those points, so each point lands exactly once. Threads
+of a CPU launch run one after another, so there a point that found room cannot fail and the map is
+the same as with two passes throughout; on a GPU other points may fill the room it saw, so a point
+that stops in its adding pass records how many of its voxels it had added, and its relaunch resumes
+after them. The compat modes only add: their target cells are inserted beforehand.
 
 Arithmetic is float64 throughout (positions relative to the map origin, weights, sums), so evidence
 keeps growing on long drives and a far-away scan maps exactly as the same scan near the origin; only
@@ -263,7 +267,8 @@ class ScatterParams:
 @wp.struct
 class MapTarget:
     """Where a launch writes: the voxel table, its value rows ``voxel_data`` [capacity, K + 4], ``failed``
-    [T] (1: the thread's work did not fit; relaunched after the table grew) and ``update_count`` [1]."""
+    [T] (0, or the thread's work did not fit: relaunched after the table grew; the scatter writes 1 + how
+    many of its voxels the point had added, and reads it back in the relaunch) and ``update_count`` [1]."""
 
     table: HashTable
     voxel_data: wp.array2d(dtype=wp.float64)
@@ -511,7 +516,12 @@ class Visit:
       negative when the point must stop (it flagged itself for a relaunch);
     * ``step(scan, params, out, t, i, p, cell, d2, span, counter) -> int64``: the (second) pass,
       negative when the point must stop;
-    * ``end(scan, out, t, i, counter)``: after a point's last voxel.
+    * ``end(scan, out, t, i, counter)``: after a point's last voxel;
+    * ``plan(scan, params, out, t, i, span) -> int``: with an insert pass, where the point starts: -1
+      the insert pass; k >= 0 only the adding pass, past the first k voxels it reaches (None: the
+      insert pass);
+    * ``stop(scan, out, t, i, done, counter)``: a point whose step returned < 0 after ``done`` voxels
+      of its adding pass (None: nothing).
 
     ``indexed``: thread t takes point scan.point_ids[t] (else point t)."""
 
@@ -520,12 +530,24 @@ class Visit:
     step: Any
     end: Any
     insert: Any = None
+    plan: Any = None
+    stop: Any = None
     indexed: bool = True
 
 
 @wp.func
 def _insert_nothing(scan: ScanPoints, params: ScatterParams, out: Any, t: int, i: int, cell: wp.vec3i, span: Span) -> int:
     return 0
+
+
+@wp.func
+def _plan_insert_pass(scan: ScanPoints, params: ScatterParams, out: Any, t: int, i: int, span: Span) -> int:
+    return -1
+
+
+@wp.func
+def _stop_quietly(scan: ScanPoints, out: Any, t: int, i: int, done: int, counter: wp.int64):
+    pass
 
 
 @wp.func
@@ -550,6 +572,8 @@ def walk_kernel(reach: int, visit: Visit, *, module: str):
     span_of = _SPAN_OF[reach]
     first_pass = 0 if visit.insert is not None else 1
     insert = visit.insert if visit.insert is not None else _insert_nothing
+    plan = visit.plan if visit.plan is not None else _plan_insert_pass
+    stop = visit.stop if visit.stop is not None else _stop_quietly
     Out = visit.Out
 
     @wp.func
@@ -578,7 +602,16 @@ def walk_kernel(reach: int, visit: Visit, *, module: str):
         p = scan.points[i]
         span = wp.static(span_of)(scan, params, i, p)
         counter = wp.static(visit.begin)(scan, out, t, i)
-        for pass_index in range(wp.static(first_pass), 2):
+        start = wp.static(first_pass)
+        skip = int(0)  # voxels of the adding pass a relaunch finds added already
+        if wp.static(first_pass == 0):
+            skip = wp.static(plan)(scan, params, out, t, i, span)
+            if skip >= 0:
+                start = 1
+            else:
+                skip = 0
+        done = int(0)
+        for pass_index in range(start, 2):
             for ix in range(span.lo[0], span.hi[0] + 1):
                 dx = center_offset(ix, params.resolution, params.grid_offset, p[0])
                 bx = block_steps(ix, span.owner[0], params)
@@ -597,9 +630,13 @@ def walk_kernel(reach: int, visit: Visit, *, module: str):
                                         if wp.static(insert)(scan, params, out, t, i, cell, span) < 0:
                                             return
                                     else:
-                                        counter = wp.static(visit.step)(scan, params, out, t, i, p, cell, d2, span, counter)
-                                        if counter < wp.int64(0):
-                                            return
+                                        if done >= skip:
+                                            after = wp.static(visit.step)(scan, params, out, t, i, p, cell, d2, span, counter)
+                                            if after < wp.int64(0):
+                                                wp.static(stop)(scan, out, t, i, done, counter)
+                                                return
+                                            counter = after
+                                        done += 1
         wp.static(visit.end)(scan, out, t, i, counter)
 
     return walk
@@ -607,14 +644,39 @@ def walk_kernel(reach: int, visit: Visit, *, module: str):
 
 # ---------------------------------------------------------------------------- the scatter
 @wp.func
+def plan_adding(out: MapTarget, t: int, new_voxels_at_most: wp.int64) -> int:
+    """Where an inserting point starts (the module docstring says why): -1 with the insert pass, where
+    the table may not have room for ``new_voxels_at_most`` more keys; k >= 0 with the adding pass alone,
+    past the first k voxels it reaches (a relaunch: ``failed[t]`` holds 1 + the voxels it had added; 0
+    for a point not yet started). Clears ``failed[t]``."""
+    added = out.failed[t] - 1
+    out.failed[t] = 0
+    if added > 0:
+        return added
+    if wp.int64(out.table.key_count[0]) + new_voxels_at_most <= wp.int64(out.table.max_count):
+        return 0
+    return -1
+
+
+@wp.func
+def stop_adding(out: MapTarget, t: int, added: int, counter: wp.int64):
+    """A point that stopped in its adding pass after ``added`` of its voxels: flagged for a relaunch that
+    resumes there (``plan_adding``), its updates so far counted."""
+    out.failed[t] = added + 1
+    wp.atomic_add(out.update_count, 0, counter)
+
+
+@wp.func
 def _count_updates(scan: ScanPoints, out: MapTarget, t: int, i: int, counter: wp.int64):
     wp.atomic_add(out.update_count, 0, counter)
 
 
 def scatter_visit(rule: WeightRule, evidence, *, inserts: bool) -> Visit:
-    """The scatter as a visit: (``inserts``) a first pass that finds or inserts every voxel the rule's
-    screen lets through, then the pass that adds the rule's weight through ``evidence`` (an evidence
-    rule) and tallies the row; the point's update count goes to ``update_count`` at its end."""
+    """The scatter as a visit: the pass that adds the rule's weight through ``evidence`` (an evidence
+    rule) to every voxel the rule's screen lets through and tallies the row; the point's update count
+    goes to ``update_count`` at its end. ``inserts``: that pass finds or inserts its voxels, after a
+    first pass that only inserts them where the table may not have room for the point's span (the
+    module docstring says why)."""
 
     @wp.func
     def insert_voxel(scan: ScanPoints, params: ScatterParams, out: MapTarget, t: int, i: int, cell: wp.vec3i, span: Span) -> int:
@@ -623,6 +685,15 @@ def scatter_visit(rule: WeightRule, evidence, *, inserts: bool) -> Visit:
                 out.failed[t] = 1
                 return -1
         return 0
+
+    @wp.func
+    def plan_passes(scan: ScanPoints, params: ScatterParams, out: MapTarget, t: int, i: int, span: Span) -> int:
+        extent = span.hi - span.lo + wp.vec3i(1, 1, 1)
+        return plan_adding(out, t, wp.int64(extent[0]) * wp.int64(extent[1]) * wp.int64(extent[2]))
+
+    @wp.func
+    def stop_point(scan: ScanPoints, out: MapTarget, t: int, i: int, done: int, counter: wp.int64):
+        stop_adding(out, t, done, counter)
 
     @wp.func
     def add_to_voxel(scan: ScanPoints, params: ScatterParams, out: MapTarget, t: int, i: int, p: wp.vec3d, cell: wp.vec3i,
@@ -634,17 +705,22 @@ def scatter_visit(rule: WeightRule, evidence, *, inserts: bool) -> Visit:
         if wp.static(rule.positive_only):
             if not (w > _ZERO):
                 return counter
-        row = table_find(out.table, pack_key(cell[0], cell[1], cell[2]))
+        key = pack_key(cell[0], cell[1], cell[2])
+        row = int(0)
+        if wp.static(inserts):
+            row = table_find_or_insert(out.table, key)  # -1: the table is full (stop_adding flags the point)
+        else:
+            row = table_find(out.table, key)  # -1 only if a target cell was not inserted beforehand (a bug)
         if row < 0:
-            # Only reachable in the compat modes, if a target cell was not inserted beforehand.
-            out.failed[t] = 1
             return wp.int64(-1)
         touch_row(out.voxel_data, row)
         tallied = wp.static(evidence)(scan, params, out.voxel_data, row, i, w, stencil_row(cell, span.owner, params.stencil_half))
         tally_row(out.voxel_data, row, out.voxel_data.shape[1] - _EXTRA, tallied, tallied * scan.uncertainty[i], _ONE)
         return counter + wp.int64(1)
 
-    return Visit(MapTarget, count_from_zero, add_to_voxel, _count_updates, insert=insert_voxel if inserts else None)
+    if not inserts:
+        return Visit(MapTarget, count_from_zero, add_to_voxel, _count_updates, stop=stop_point)
+    return Visit(MapTarget, count_from_zero, add_to_voxel, _count_updates, insert=insert_voxel, plan=plan_passes, stop=stop_point)
 
 
 # mode -> (where a point reaches, its weight rule, whether the scatter inserts: the compat modes' targets
@@ -716,7 +792,8 @@ def scatter_block_targets(scan: ScanPoints, target_lengths: wp.array2d(dtype=wp.
     """SEE-CSOM (docs/compatibility.md §3.3): point i updates every cell of target block owner +
     face_offset(j) for each j with target_lengths[i, j] > 0 (the host decided which blocks may use this
     point and with which length), with its triangular kernel (``see_csom_weight``). Every cell of a
-    target block is touched, as the original updates all of a block's nodes. Two passes: insert, then add."""
+    target block is touched, as the original updates all of a block's nodes. One pass that finds or
+    inserts and adds, after an insert pass where the table may not have room (``plan_adding``)."""
     t = wp.tid()
     i = scan.point_ids[t]
     p = scan.points[i]
@@ -724,7 +801,17 @@ def scatter_block_targets(scan: ScanPoints, target_lengths: wp.array2d(dtype=wp.
     n = params.cells_per_block
     num_classes = out.voxel_data.shape[1] - _EXTRA
     n_updates = wp.int64(0)
-    for pass_index in range(2):
+    targets = int(0)
+    for j in range(7):
+        if target_lengths[i, j] > _ZERO:
+            targets += 1
+    skip = plan_adding(out, t, wp.int64(targets) * wp.int64(n * n * n))
+    start = int(1)
+    if skip < 0:
+        start = 0
+        skip = 0
+    done = int(0)
+    for pass_index in range(start, 2):
         for j in range(7):
             ell = target_lengths[i, j]
             if ell > _ZERO:
@@ -737,12 +824,17 @@ def scatter_block_targets(scan: ScanPoints, target_lengths: wp.array2d(dtype=wp.
                             out.failed[t] = 1
                             return
                     else:
-                        row = table_find(out.table, key)
-                        w = see_csom_weight(voxel_center(cell[0], cell[1], cell[2], params.resolution, params.grid_offset), p, ell)
-                        touch_row(out.voxel_data, row)
-                        tallied = add_label_evidence(scan, params, out.voxel_data, row, i, w, 0)
-                        tally_row(out.voxel_data, row, num_classes, tallied, tallied * u, _ONE)
-                        n_updates += wp.int64(1)
+                        if done >= skip:
+                            row = table_find_or_insert(out.table, key)
+                            if row < 0:
+                                stop_adding(out, t, done, n_updates)
+                                return
+                            w = see_csom_weight(voxel_center(cell[0], cell[1], cell[2], params.resolution, params.grid_offset), p, ell)
+                            touch_row(out.voxel_data, row)
+                            tallied = add_label_evidence(scan, params, out.voxel_data, row, i, w, 0)
+                            tally_row(out.voxel_data, row, num_classes, tallied, tallied * u, _ONE)
+                            n_updates += wp.int64(1)
+                        done += 1
     wp.atomic_add(out.update_count, 0, n_updates)
 
 

@@ -45,3 +45,36 @@ def wait_until(predicate, timeout: float, interval: float = 0.05) -> bool:
             return True
         time.sleep(interval)
     return False
+
+
+@pytest.fixture
+def overfill_next_launch(monkeypatch):
+    """A function that makes the next inserting launch of any VoxelMap see a fill limit past its table's
+    slots, so that its points plan to add in one pass and stop part way once every slot is taken, as a
+    GPU's threads can when others take the room they saw. It returns what each relaunched item had added
+    before it stopped (the flags its relaunch is handed, minus 1) and the maps of the launches after it."""
+    import warp as wp
+
+    from evsemmap_warp.core.voxel_map import VoxelMap
+
+    def overfill():
+        real_table, real_copy = VoxelMap.table, wp.copy
+        resumed_after, launches = [], []
+
+        def table_with_room_it_does_not_have(self):
+            table = real_table(self)
+            if not launches:
+                table.max_count = 4 * self.capacity
+            launches.append(self)
+            return table
+
+        def copy_seen(dest, src, *args, **kwargs):
+            if any(m._failure_flags is not None and dest.ptr == m._failure_flags.ptr for m in launches):
+                resumed_after.extend(src.numpy() - 1)
+            return real_copy(dest, src, *args, **kwargs)
+
+        monkeypatch.setattr(VoxelMap, "table", table_with_room_it_does_not_have)
+        monkeypatch.setattr(wp, "copy", copy_seen)
+        return resumed_after, launches
+
+    return overfill

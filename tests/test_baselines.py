@@ -160,6 +160,23 @@ def test_block_target_kernel_matches_twin(device):
     assert VoxelMap(4, 0.25, device=device).scatter_block_targets(np.zeros((0, 3)), np.zeros(0, int), np.zeros(0), np.zeros((0, 3), int), np.zeros((0, 7)), 2) == 0
 
 
+def test_block_target_points_stopped_in_their_adding_pass_resume_where_they_stopped(device, overfill_next_launch):
+    # As the scatter's (tests/test_scatter.py): a second, wider scan whose points stop part way through
+    # their target blocks once every slot is taken; the relaunch lands each (point, cell) once.
+    rng = np.random.default_rng(6)
+    points = np.concatenate([rng.uniform(-1.0, 1.0, (100, 3)), rng.uniform(-3.0, 3.0, (3000, 3))])
+    labels = rng.integers(1, 4, len(points))
+    unc = rng.uniform(0, 1, len(points))
+    owners, lengths = see_csom.block_targets(points, labels, 4, 0.25)
+    vm = VoxelMap(4, 0.25, device=device, initial_capacity=32)
+    first, second = slice(0, 100), slice(100, None)
+    updates = vm.scatter_block_targets(points[first], labels[first], unc[first], owners[first], lengths[first], see_csom.CELLS_PER_BLOCK)
+    resumed_after, launches = overfill_next_launch()
+    updates += vm.scatter_block_targets(points[second], labels[second], unc[second], owners[second], lengths[second], see_csom.CELLS_PER_BLOCK)
+    assert len(launches) >= 2 and np.count_nonzero(np.array(resumed_after) > 0) >= 20, "points must stop part way and be relaunched"
+    _compare(vm, updates, ref.scatter_block_targets(points, labels, unc, owners, lengths, 0.25, 0.0, see_csom.CELLS_PER_BLOCK, 4))
+
+
 def test_see_csom_is_dense_but_not_thick():
     """A flat floor of one class: SEE-CSOM keeps it one block thick; S-BKI-like smoothing would not
     fill a gap, SEE-CSOM fills a sandwiched empty block."""

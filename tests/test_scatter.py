@@ -5,8 +5,11 @@ Tagged boundary band (style recommendation 3): in radius mode, a (point, voxel) 
 reached exclusively by such pairs may be missing from one side, with a kernel weight ~0.
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
+import warp as wp
 
 from evsemmap_warp.kernels import scatter as sc
 from evsemmap_warp.reference import scatter as ref
@@ -131,6 +134,61 @@ def test_growth_during_one_launch_loses_nothing(device):
     vm, updates = _run(pts, lengths, unc, mode=sc.MODE_RADIUS, k=5, device=device, weights=weights, capacity=16)
     assert vm.grow_count >= 5, "a 16-slot table must grow repeatedly inside the launch"
     _compare(vm, updates, ref.scatter_points(pts, None, weights, lengths, unc, None, sc.MODE_RADIUS, 0.2, 0.0, 1.0, 1, 5))
+
+
+@wp.func
+def _insert_pass_first(scan: sc.ScanPoints, params: sc.ScatterParams, out: sc.MapTarget, t: int, i: int, span: sc.Span) -> int:
+    out.failed[t] = 0  # a relaunched point had added nothing
+    return -1
+
+
+def _two_pass_scatter(mode, fusion, use_labels):
+    """The clean scatter as it was: every point runs its insert pass before it adds."""
+    reach, rule, _ = sc.SCATTER_MODES[mode]
+    visit = sc.scatter_visit(rule, sc._evidence_rule(mode, fusion, use_labels), inserts=True)
+    return sc.walk_kernel(reach, dataclasses.replace(visit, plan=_insert_pass_first), module="unique")
+
+
+@pytest.mark.parametrize("capacity", [16, 1 << 17])
+@pytest.mark.parametrize("mode", [sc.MODE_RADIUS, sc.MODE_STENCIL])
+def test_one_pass_points_map_as_two_passes_bit_for_bit(monkeypatch, capacity, mode):
+    """A CPU launch runs its threads in order, so a point that found room for its span cannot fail:
+    the map (rows, sums, their order) is the two-pass scatter's, with growth (16 slots) or without."""
+    rng = np.random.default_rng(5)
+    pts, weights, labels, lengths, unc = _random_scan(rng, 1500, 5)
+    stencil = rng.uniform(0.0, 1.0, (27, 5)) if mode == sc.MODE_STENCIL else None
+
+    def run():
+        vm = VoxelMap(5, 0.2, device="cpu", initial_capacity=capacity)
+        updates = vm.scatter(pts, lengths, unc, mode=mode, sigma0=1.0, class_weights=weights, stencil_weights=stencil)
+        return vm, updates
+
+    one_pass, one_pass_updates = run()
+    monkeypatch.setattr(sc, "scatter_kernel", _two_pass_scatter)
+    two_pass, two_pass_updates = run()
+    assert one_pass_updates == two_pass_updates and one_pass.grow_count == two_pass.grow_count
+    assert (one_pass.grow_count > 0) == (capacity == 16)
+    np.testing.assert_array_equal(one_pass.keys.numpy(), two_pass.keys.numpy())
+    np.testing.assert_array_equal(one_pass.data.numpy()[:one_pass.voxel_count], two_pass.data.numpy()[:two_pass.voxel_count])
+
+
+def test_points_stopped_in_their_adding_pass_resume_where_they_stopped(device, overfill_next_launch):
+    """On a GPU other points may take the room a point saw before it inserts; it then stops part way
+    through its adding pass and its relaunch resumes after the voxels it had added. Forced here
+    (``overfill_next_launch``) on a second scan, wider than the first so that its points reach voxels
+    held and new ones: the relaunch must land every (point, voxel) exactly once."""
+    rng = np.random.default_rng(6)
+    scans = [_random_scan(rng, n, 4, spread=spread) for n, spread in ((300, 2.0), (1500, 4.0))]
+    pts, weights, _, lengths, unc = (np.concatenate(arrays) for arrays in zip(*scans))
+    keep = _away_from_boundaries(pts, lengths, 0.2)
+    pts, weights, lengths, unc = pts[keep], weights[keep], lengths[keep], unc[keep]
+    first, second = slice(0, int(keep[:300].sum())), slice(int(keep[:300].sum()), None)
+    vm = VoxelMap(4, 0.2, device=device, initial_capacity=16)
+    updates = vm.scatter(pts[first], lengths[first], unc[first], mode=sc.MODE_RADIUS, sigma0=1.0, class_weights=weights[first])
+    resumed_after, launches = overfill_next_launch()
+    updates += vm.scatter(pts[second], lengths[second], unc[second], mode=sc.MODE_RADIUS, sigma0=1.0, class_weights=weights[second])
+    assert len(launches) >= 2 and np.count_nonzero(np.array(resumed_after) > 0) >= 20, "points must stop part way and be relaunched"
+    _compare(vm, updates, ref.scatter_points(pts, None, weights, lengths, unc, None, sc.MODE_RADIUS, 0.2, 0.0, 1.0, 1, 4))
 
 
 def test_cpu_results_are_bit_identical_run_to_run():

@@ -322,7 +322,7 @@ class VoxelMap:
         return key_count
 
     def _launch_until_done(self, n: int, launch, *, may_insert: bool, kind: str, most_new: int, exact_most: bool = False,
-                           fails_only_when_full: bool = False) -> None:
+                           fails_only_when_full: bool = False, resumes: bool = False) -> None:
         """launch(ids, failed) over range(n), relaunching the failed ids after the table grew; the updates
         the launches counted in ``self._updates`` (zeroed first) are then in ``self._counted_updates``.
 
@@ -336,24 +336,32 @@ class VoxelMap:
         ``fails_only_when_full``: the launch's items fail only where an insertion found the table at the
         launch's fill limit (the inserting scatters, the block gathers), and the key count never drops, so
         a launch that leaves it below that limit failed nowhere: its flags are not read, and a warm scan
-        reads its launch's outcome back once (``_read_counters``)."""
+        reads its launch's outcome back once (``_read_counters``).
+
+        ``resumes``: a relaunched item is handed its flag as the failed launch left it (the scatter's flag
+        says where its point stopped), else a zero flag."""
         first_guess = most_new if exact_most or self.device != "cpu" else 0
         self.reserve(min(most_new, self._last_new_voxels.get(kind, first_guess)) if may_insert else 0)
         before = self.voxel_count
         self._updates.zero_()
         pending = None  # None: every item, in order
+        resume_flags = None
         try:
             while True:
                 count = n if pending is None else len(pending)
                 failed = self._failure_flags_for(count)
+                if resume_flags is not None:
+                    wp.copy(failed, wp.array(resume_flags, dtype=int, device=self.device))
                 limit = self._launch_fill_limit()
                 launch(self._thread_ids_for(n) if pending is None else wp.array(pending, dtype=int, device=self.device, copy=False), failed)
                 if fails_only_when_full and self._read_counters() < limit:
                     break
-                flagged = failed.numpy().astype(bool)
+                flags = failed.numpy()
+                flagged = flags != 0
                 retry = np.flatnonzero(flagged).astype(np.int32) if pending is None else pending[flagged]
                 if not len(retry):
                     break
+                resume_flags = flags[flagged] if resumes else None
                 failed.zero_()
                 if not may_insert:
                     raise RuntimeError(f"{len(retry)} items reached voxels that were never inserted (a bug)")
@@ -415,7 +423,7 @@ class VoxelMap:
             wp.launch(kernel, dim=len(ids), device=d, inputs=[scan, params, self._target(failed, self._updates)])
 
         inserts = sc.scatter_inserts(mode)  # the other modes' points fail only where a target was never inserted (a bug): always read
-        self._launch_until_done(n, launch, may_insert=inserts, kind=f"scatter{mode}", most_new=n, fails_only_when_full=inserts)
+        self._launch_until_done(n, launch, may_insert=inserts, kind=f"scatter{mode}", most_new=n, fails_only_when_full=inserts, resumes=inserts)
         return self._counted_updates
 
     def _radius_scan(self, points, lengths, point_uncertainty, labels, class_weights) -> sc.ScanPoints:
@@ -535,7 +543,7 @@ class VoxelMap:
             wp.launch(sc.scatter_block_targets, dim=len(ids), device=d, inputs=[scan, lengths, params, self._target(failed, self._updates)])
 
         self._launch_until_done(n, launch, may_insert=True, kind="block_targets", most_new=n * 7 * cells_per_block**3,
-                                fails_only_when_full=True)
+                                fails_only_when_full=True, resumes=True)
         return self._counted_updates
 
     def load_kernel(self, kernel) -> None:
