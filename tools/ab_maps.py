@@ -3,7 +3,8 @@ and by another one (a ``git worktree`` of the reference commit), compared byte f
 
 Each checkout maps in its own process: every method with the RELLIS-3D preset, at each worker count,
 then every array of ``Mapper.voxels()`` (indices, evidence, weight sums, hits, touched) is compared.
-Prints one line per (method, workers) and exits 1 when any map differs.
+Prints one line per (method, workers), writes docs/bench/ab_maps-<UTC>.json (both commits, every map's
+voxel count and whether its bytes are the same, the fields that differ) and exits 1 when any map differs.
 
     git worktree add /tmp/main_ref HEAD
     python tools/ab_maps.py /tmp/main_ref [--methods ebs s-csm s-bki] [--workers 1 2] [--scans 30]
@@ -20,11 +21,15 @@ import json
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "tools"))
+from bench_record import RECORDS, write_record  # noqa: E402
+
 FIELDS = ("index", "evidence", "weight_sum", "weighted_uncertainty_sum", "hits", "touched")
 
 # Run in a child with the checkout to test first on the path (the editable install's finder removed, so
@@ -98,6 +103,10 @@ def workload(scans: int, path: Path) -> None:
     np.savez(path, **arrays)
 
 
+def _commit(root: Path) -> str:
+    return subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True).stdout.strip()
+
+
 def maps_of(root: Path, work: Path, runs: list, out: Path) -> dict:
     done = subprocess.run([sys.executable, "-c", CHILD, str(root), str(work), json.dumps(runs), str(out)], capture_output=True, text=True)
     if done.returncode != 0:
@@ -112,22 +121,27 @@ def main() -> int:
     parser.add_argument("--methods", nargs="+", default=["ebs", "s-csm", "s-bki"])
     parser.add_argument("--workers", nargs="+", type=int, default=[1, 2])
     parser.add_argument("--scans", type=int, default=30)
+    parser.add_argument("--record-dir", type=Path, default=RECORDS)
     args = parser.parse_args()
+    started = time.time()
     runs = [(method, workers) for method in args.methods for workers in args.workers]
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp) / "work.npz"
         workload(args.scans, work)
         ours = maps_of(REPO, work, runs, Path(tmp) / "ours.npz")
         theirs = maps_of(args.reference.resolve(), work, runs, Path(tmp) / "theirs.npz")
-    differ = 0
+    maps = []
     for method, workers in runs:
         keys = [f"{method}@{workers}:{field}" for field in FIELDS]
         same = [ours[k].dtype == theirs[k].dtype and ours[k].shape == theirs[k].shape and ours[k].tobytes() == theirs[k].tobytes() for k in keys]
-        differ += not all(same)
-        voxels = len(ours[keys[0]])
-        print(f"{method} @ {workers} worker(s): {voxels:,} voxels, "
-              + ("identical bytes" if all(same) else "DIFFERENT: " + ", ".join(f for f, s in zip(FIELDS, same) if not s)))
-    return 1 if differ else 0
+        differing = [f for f, s in zip(FIELDS, same) if not s]
+        maps.append({"method": method, "workers": workers, "voxels": len(ours[keys[0]]), "reference_voxels": len(theirs[keys[0]]),
+                     "identical": not differing, "differing_fields": differing})
+        print(f"{method} @ {workers} worker(s): {maps[-1]['voxels']:,} voxels, "
+              + ("identical bytes" if not differing else "DIFFERENT: " + ", ".join(differing)))
+    results = {"reference_commit": _commit(args.reference.resolve()), "scans": args.scans, "fields": list(FIELDS), "maps": maps}
+    print(write_record("ab_maps", results, started=started, folder=args.record_dir))
+    return 0 if all(m["identical"] for m in maps) else 1
 
 
 if __name__ == "__main__":

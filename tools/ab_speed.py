@@ -43,13 +43,17 @@ def _link_subpackages(root: Path) -> None:
 
 
 def bench(root: Path, args, out: Path) -> dict:
-    """One bench_integrate run of the checkout at ``root``: its record's rows."""
+    """One bench_integrate run of the checkout at ``root``: its record's rows (a checkout from before the
+    records, whose bench has no --record-dir, prints them on its ``details:`` line)."""
     env = dict(os.environ, PYTHONPATH=str(root))
-    command = [sys.executable, str(root / "tools" / "bench_integrate.py"), "--repeats", str(args.repeats), "--skip-numpy",
-               "--free-resolutions", *args.free_resolutions, "--record-dir", str(out)]
-    done = subprocess.run(command, cwd=out, env=env, capture_output=True, text=True)
+    tool = root / "tools" / "bench_integrate.py"
+    writes_records = "--record-dir" in tool.read_text()
+    command = [sys.executable, str(tool), "--repeats", str(args.repeats), "--skip-numpy", "--free-resolutions", *args.free_resolutions]
+    done = subprocess.run(command + (["--record-dir", str(out)] if writes_records else []), cwd=out, env=env, capture_output=True, text=True)
     if done.returncode != 0:
         raise SystemExit(f"bench_integrate in {root} failed:\n{done.stderr[-3000:]}")
+    if not writes_records:
+        return json.loads(next(line for line in done.stdout.splitlines() if line.startswith("details: "))[len("details: "):])
     record = json.loads(next(out.glob("bench_integrate-*.json")).read_text())
     return record["results"]["rows"]
 
