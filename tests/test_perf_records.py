@@ -170,3 +170,14 @@ def test_a_record_states_how_warp_builds_cpu_kernels(tmp_path):
     wp = init_warp()
     record = json.loads(write_record("trial", {"n": 1}, folder=tmp_path).read_text())
     assert record["warp_build"]["cpu_compiler_flags"] == wp.config.cpu_compiler_flags and record["results"] == {"n": 1}
+
+
+def test_ratios_in_prose_are_speed_figures(tmp_path):
+    record = _write(tmp_path, "ab.json", json.dumps({"results": {"ours_over_reference": [0.9061, 0.927]}}))
+    text = f"""<!-- record: {record} -->
+free_res 0.5 took x0.906 the time and free_res 4 ×0.93; then x0.95, which the record does not hold.
+
+A Brier score ×100, a x86-64 build and 2x as long are not ratios of a run.
+"""
+    report = perf_records.check([_write(tmp_path, "page.md", text)], repo=tmp_path)
+    assert len(report.problems) == 1 and report.problems[0].endswith(": 0.95"), report.problems

@@ -56,6 +56,8 @@ RATE = re.compile(NUMBER + r"(?P<rest>(?:" + JOINER + r"\d[\d,.]*)*)\s?(?:(?P<mu
 # A table cell's number: also right after an "x" (x1.23), with its multiplier and unit.
 CELL_NUMBER = re.compile(r"(?:(?<=x)|(?<![\w.,^]))(?P<num>\d{1,3}(?:,\d{3})+(?:\.\d+)?|\d+(?:\.\d+)?)(?!\d)"
                          r"(?:\s?(?P<mult>[kMG])(?!\w))?(?P<unit>\s?(?:%|x|×|ms|µs|ns|s|MB|GB|KB)(?!\w))?")
+# A speed ratio in prose, with its decimals: "x0.906", "×12.3" (not "×100", a scale, nor "x86-64").
+RATIO = re.compile(r"(?<![\w.])[x×](?P<num>\d+\.\d+)(?![\w.-])")
 PERFORMANCE_HEADER = re.compile(r"(^|[\s(])(s|ms|wall|time|seconds|speed|throughput|speed-up)([\s)]|$)|/s\b|\bvs\b|×|ratio|roofline",
                                 re.IGNORECASE)
 
@@ -120,6 +122,7 @@ def prose_figures(line: str) -> list[Figure]:
             scales = _unit_scales(match["unit"], match.groupdict().get("mult"))
             numbers = [match["num"]] + re.findall(r"\d[\d,]*(?:\.\d+)?", match["rest"] or "")
             out += [_figure(n.rstrip(",."), scales) for n in numbers if n.rstrip(",.")]
+    out += [_figure(match["num"]) for match in RATIO.finditer(text)]
     return out
 
 
