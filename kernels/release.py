@@ -27,7 +27,7 @@ from . import MODULE_OPTIONS
 from .block_gather import block_gather_kernel, block_rows_type
 from .hash_table import KEY_OFFSET, block_cell, pack_key
 from .indexing import nonnegative
-from .scatter import _BELIEF_EPSILON, _ONE, _ZERO, FUSION_DEMPSTER, sbki_voxel_center, tally_row
+from .scatter import _ONE, _ZERO, FUSION_DEMPSTER, discounted_belief, sbki_voxel_center, tally_row, uncommitted_mass
 
 wp.set_module_options(MODULE_OPTIONS)
 
@@ -196,10 +196,10 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, fusion:
                                 wb = wp.min(w, _ONE)
                                 committed = _ZERO
                                 for c in range(num_classes):
-                                    committed += wp.clamp(y[c] * wb, _ZERO, _ONE - _BELIEF_EPSILON)
-                                inverse_uncommitted = _ONE / wp.max(_ONE - committed, _BELIEF_EPSILON)
+                                    committed += discounted_belief(y[c], wb)
+                                inverse_uncommitted = _ONE / uncommitted_mass(committed)
                                 for c in range(num_classes):
-                                    ratio = _ONE + wp.clamp(y[c] * wb, _ZERO, _ONE - _BELIEF_EPSILON) * inverse_uncommitted
+                                    ratio = _ONE + discounted_belief(y[c], wb) * inverse_uncommitted
                                     commonality[j, c] = commonality[j, c] * integer_power(ratio, models)
                                 # each point multiplies in at most 1e6^7 = 1e42; fold before 1e250 could overflow
                                 factors[j] = factors[j] + mult

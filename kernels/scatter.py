@@ -328,6 +328,19 @@ def add_weighted_evidence(scan: ScanPoints, params: ScatterParams, voxel_data: w
 
 
 @wp.func
+def discounted_belief(mass: wp.float64, discount: wp.float64) -> wp.float64:
+    """A point's belief mass discounted by its kernel weight (``discount``, at most 1), clamped to [0, 1 -
+    BELIEF_EPSILON] (docs/algorithm.md §3.7)."""
+    return wp.clamp(mass * discount, _ZERO, _ONE - _BELIEF_EPSILON)
+
+
+@wp.func
+def uncommitted_mass(committed: wp.float64) -> wp.float64:
+    """The mass a point's discounted beliefs leave uncommitted, at least BELIEF_EPSILON."""
+    return wp.max(_ONE - committed, _BELIEF_EPSILON)
+
+
+@wp.func
 def add_belief_evidence(scan: ScanPoints, params: ScatterParams, voxel_data: wp.array2d(dtype=wp.float64), row: int, i: int,
                         w: wp.float64, stencil_row: int) -> wp.float64:
     """Dempster fusion: the point's belief masses (``class_weights``) discounted by min(w, 1), added as
@@ -336,11 +349,10 @@ def add_belief_evidence(scan: ScanPoints, params: ScatterParams, voxel_data: wp.
     num_classes = voxel_data.shape[1] - _EXTRA
     committed = _ZERO
     for c in range(num_classes):
-        committed += wp.clamp(scan.class_weights[i, c] * discount, _ZERO, _ONE - _BELIEF_EPSILON)
-    uncommitted = wp.max(_ONE - committed, _BELIEF_EPSILON)
+        committed += discounted_belief(scan.class_weights[i, c], discount)
+    uncommitted = uncommitted_mass(committed)
     for c in range(num_classes):
-        b = wp.clamp(scan.class_weights[i, c] * discount, _ZERO, _ONE - _BELIEF_EPSILON)
-        wp.atomic_add(voxel_data, row, c, wp.log(_ONE + b / uncommitted))
+        wp.atomic_add(voxel_data, row, c, wp.log(_ONE + discounted_belief(scan.class_weights[i, c], discount) / uncommitted))
     return discount
 
 
