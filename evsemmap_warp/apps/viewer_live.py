@@ -126,7 +126,7 @@ class LiveMap(_ViewerThread):
             self.offers_skipped += 1
             return False
         started = time.perf_counter()
-        shards = [shard.stored_rows() for shard in self.mapper.shards]  # keys relative to the map origin, and rows
+        shards = self.mapper.shard_rows()
         origin_index = None if self.mapper.origin_index is None else np.array(self.mapper.origin_index)
         self.copy_seconds += time.perf_counter() - started
         points = None if last_scan is None else np.array(last_scan.points, np.float64)

@@ -533,10 +533,14 @@ class Mapper:
         return stats
 
     # ------------------------------------------------------------------ reading
-    def _local_voxels(self) -> VoxelArrays:
+    def shard_rows(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """A host copy of each shard's stored keys (relative to the map origin) and value rows
+        (``VoxelMap.stored_rows``), for ``voxel_map.sum_shard_rows`` to merge."""
         with device_calls(self.device):
-            rows = [shard.stored_rows() for shard in self.shards]
-        return sum_shard_rows(rows)
+            return [shard.stored_rows() for shard in self.shards]
+
+    def _local_voxels(self) -> VoxelArrays:
+        return sum_shard_rows(self.shard_rows())
 
     def voxels(self) -> MapVoxels:
         """All stored voxels in key order, with global indices (``.arrays``), and their read-out
