@@ -61,6 +61,7 @@ def test_a_scan_that_outgrows_its_reserved_room_is_redone_to_the_same_map(device
     from evsemmap_warp.data.datasets import open_dataset
     from evsemmap_warp.methods import sbki_device
 
+    shared_path("data", "bench", "rellis_like_30scans.npz")  # the bench config's workload, or a skip that says why
     run = load_config([PRESET, REPO / "configs/datasets/bench_rellis_like.yaml"], method="ebs")
     scans = [scan for _, scan in zip(range(2), open_dataset(run.dataset))]
     monkeypatch.setattr(sbki_device, "PAIRS_GUESS_PER_POINT", 0.0)
