@@ -254,6 +254,7 @@ class PageRunner:
     def __init__(self, root: Path):
         self.root = root
         self.finished: dict[str, Path] = {}
+        self.batch_stores: set[Path] = set()
 
     def run(self, name: str, monkeypatch) -> Path:
         if name in self.finished:
@@ -307,6 +308,13 @@ class PageRunner:
         from evsemmap_warp.apps.cli import main
 
         if argv[0] == "evsemmap":
+            if argv[1] == "batch" and "--out" in argv:
+                # A second batch into a finished store only resumes it ("resuming: 50 of 50 chunks are mapped
+                # already"): a page that shows two runs must give each its own --out, or the second shows nothing.
+                out = (folder / argv[argv.index("--out") + 1]).resolve()
+                assert out not in self.batch_stores, f"{block.where}: `{shlex.join(argv)}` writes into {out.name}, " \
+                    "which an earlier batch command of the page finished: it would only resume; give it its own --out"
+                self.batch_stores.add(out)
             if "--executor" in argv and argv[argv.index("--executor") + 1] == "ray":
                 pytest.importorskip("ray", reason=f"{block.where}: the ray extra is not installed")
             try:
