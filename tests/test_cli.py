@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from evsemmap_warp.apps.cli import main
 from evsemmap_warp.core.map_file import read_map_arrays
@@ -34,3 +35,12 @@ def test_errors_exit_2_with_a_message(tmp_path, capsys):
     assert "nowhere" in capsys.readouterr().err
     assert main(["infer", str(tmp_path / "missing.pt"), str(tmp_path / "no_images"), "--out", str(tmp_path / "o")]) == 2
     assert "missing.pt" in capsys.readouterr().err
+
+
+@pytest.mark.filterwarnings("default::evsemmap_warp.data.pcd.ExtraColumnsWarning")
+def test_a_warning_is_one_line_without_a_source_line(tmp_path, capsys):
+    # The S-BKI toy scans carry an undeclared column: the command says so once, in one line.
+    assert main(["map", str(REPO / "configs/datasets/sbki_toy.yaml"), "--method", "s-csm", "--out", str(tmp_path / "m.npz"),
+                 "--quiet"]) == 0
+    lines = [line for line in capsys.readouterr().err.splitlines() if "column" in line or ".py:" in line]
+    assert len(lines) == 1 and lines[0].startswith("evsemmap: warning: ") and "more columns" in lines[0], lines

@@ -9,6 +9,7 @@ import math
 import re
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -839,11 +840,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:
+    # A command's user wants what is wrong in one line, not the source line that noticed it; tqdm.write keeps
+    # a progress bar on screen intact.
+    from tqdm import tqdm
+
+    tqdm.write(f"evsemmap: warning: {message}", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``evsemmap`` with ``argv`` (default: the process's arguments); returns the exit code. A
     ConfigError, ValueError or OSError ends in one line on stderr naming the file, key or value, with exit
-    code 2; Ctrl-C in 130."""
+    code 2; Ctrl-C in 130. A warning is one line, ``evsemmap: warning: ...``."""
     args = build_parser().parse_args(argv)
+    with warnings.catch_warnings():
+        warnings.showwarning = _warning_line
+        return _run(args)
+
+
+def _run(args) -> int:
     try:
         return args.func(args)
     except (ConfigError, ValueError, OSError) as exc:  # OSError: missing or unreadable files, named by the OS
