@@ -145,6 +145,13 @@ def test_readme_is_a_front_page():
     assert len(lines) <= 210, f"README.md has {len(lines)} lines; reference material belongs in docs/"
 
 
+def test_the_readmes_python_loop_shows_progress():
+    # A user who copies the README's loop onto a long drive should see its rate and ETA, as the commands show them.
+    block = next(b for b in blocks_of(REPO / "README.md") if b.language == "python")
+    loop = next(line for line in block.text.split("\n") if line.startswith("for scan in "))
+    assert loop.startswith("for scan in tqdm("), loop
+
+
 # ------------------------------------------------------------------------------------------ install commands
 def _pyproject():
     import tomllib
