@@ -33,12 +33,13 @@ from .. import __version__
 from ..config import Fusion, MappingConfig, PayloadType, flat_items
 from ..frames import WorldFrame, check_same_frame
 from ..kernels import load_once
+from ..limits import check_memory_bytes
 from ..voxel_keys import check_index_range, voxel_index_of
 from . import map_file
 from ._host_memory import without_huge_page_advice
 from .integrators import IntegrationStats, Launch, ScanPayload, SensorOrigin, make_integrator
 from ._shards import PendingUpdates, ShardLanes
-from .voxel_map import EXTRA_COLUMNS, VoxelArrays, VoxelMap, add_duplicate_voxels, sum_shard_rows
+from .voxel_map import EXTRA_COLUMNS, TableBudget, VoxelArrays, VoxelMap, add_duplicate_voxels, sum_shard_rows
 from .warp_runtime import device_calls
 
 
@@ -289,7 +290,9 @@ class Mapper:
     default the first scan's bounding-box center. Either is snapped to a multiple of
     ORIGIN_STEP_VOXELS voxels; the map spans +-2^20 voxels around it. ``frame``: the world frame the
     points are in (recorded in the map file; maps of different frames do not merge); None when the
-    caller does not say."""
+    caller does not say. ``max_memory``: bytes the voxel tables of all shards may take together
+    (``voxel_map.TableBudget``; None: the memory available at each growth); a scan that would grow them
+    past it is refused with ``limits.MemoryBudgetError``."""
 
     def __init__(
         self,
@@ -302,8 +305,10 @@ class Mapper:
         workers: int | None = None,
         origin=None,
         frame: WorldFrame | None = None,
+        max_memory: int | None = None,
     ):
         self.config = config
+        self.memory_budget = TableBudget(None if max_memory is None else check_memory_bytes(max_memory, "max_memory"))
         if frame is not None and not isinstance(frame, WorldFrame):
             raise ValueError(f"frame must be a WorldFrame (evsemmap_warp.frames) or None, got {type(frame).__name__}")
         self.frame = frame
@@ -341,7 +346,8 @@ class Mapper:
 
     def _new_shard(self, device) -> VoxelMap:
         return VoxelMap(self.num_classes, self.config.resolution_m, prior=self.config.prior,
-                        grid_offset_m=self.grid_offset_m, device=device, initial_capacity=self._initial_capacity)
+                        grid_offset_m=self.grid_offset_m, device=device, initial_capacity=self._initial_capacity,
+                        memory_budget=self.memory_budget)
 
     def _snap_origin(self, point: np.ndarray) -> np.ndarray:
         step = ORIGIN_STEP_VOXELS * self.config.resolution_m
@@ -622,7 +628,7 @@ class Mapper:
 
     @classmethod
     def for_dataset(cls, dataset, config: MappingConfig, *, device: str | None = "cpu", workers: int | None = None,
-                    origin=None) -> "Mapper":
+                    origin=None, max_memory: int | None = None) -> "Mapper":
         """An empty map for ``dataset`` (what ``open_dataset`` returns, or any scan source with
         ``num_classes``, ``class_names`` and ``frame``): its classes, in its world frame.
 
@@ -631,7 +637,7 @@ class Mapper:
         frame unrecorded, so the map could not be merged with a map the command line made of the same
         data (``check_same_frame``) and its exports would not say where they are."""
         return cls(config, dataset.num_classes, class_names=dataset.class_names or None, device=device, workers=workers,
-                   origin=origin, frame=dataset.frame)
+                   origin=origin, frame=dataset.frame, max_memory=max_memory)
 
     @classmethod
     def load(cls, path, *, device: str | None = "cpu") -> "Mapper":

@@ -21,11 +21,14 @@ elsewhere.
 
 from __future__ import annotations
 
+import threading
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..methods.device_scratch import DeviceScratch, counts_with_room, inclusive_scan, last_value, offsets_and_total
+from ..limits import MemoryBudgetError, available_memory, describe_bytes
 from ..voxel_keys import check_index_range, column_bounds, pack_voxel_keys, take_rows, unpack_voxel_keys, within_index_range
 from . import _host_memory
 from ._staging import Staging
@@ -76,6 +79,38 @@ class VoxelArrays:
                                 self.hits.astype(np.float64), self.touched.astype(np.float64)])
 
 
+class TableBudget:
+    """The memory the voxel tables of one map (a Mapper's shards) may take together, checked before any of
+    them is allocated or grown, so that an input reaching far more voxels than any estimate foresaw is
+    refused in one line (``MemoryBudgetError``) instead of ending in the OS's out-of-memory killer.
+    ``limit_bytes``: the budget (``Mapper``'s ``max_memory``, ``--max-memory``); None: at each growth,
+    the memory the process may still take (``limits.available_memory``, or the GPU's free memory) plus
+    what the tables hold already."""
+
+    def __init__(self, limit_bytes: int | None = None):
+        self.limit_bytes = None if limit_bytes is None else int(limit_bytes)
+        self._held: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # VoxelMap -> the bytes admitted for it
+        self._lock = threading.Lock()  # shards grow on their own threads
+
+    def admit(self, table: "VoxelMap", need: int, what: str) -> None:
+        """Record that ``table`` will take ``need`` bytes, or raise MemoryBudgetError (nothing recorded)."""
+        with self._lock:
+            others = sum(held for key, held in self._held.items() if key is not table)
+            if self.limit_bytes is not None:
+                budget, source = self.limit_bytes, "max_memory (--max-memory)"
+            else:
+                free = available_memory() if table.device == "cpu" else wp.get_device(table.device).free_memory
+                budget = free + sum(self._held.values())
+                source = f"the memory available on {table.device} (set --max-memory / Mapper max_memory to choose it)"
+            if others + need > budget:
+                shards = f" beside {describe_bytes(others)} of the map's other shards" if others else ""
+                raise MemoryBudgetError(
+                    f"the voxel table would need {describe_bytes(need)} ({what}){shards}, over the memory budget of "
+                    f"{describe_bytes(budget)}, {source}: the input reaches far more voxels than a map holds (check the "
+                    f"sensor origin, the units of the points and lengths, mapping.sbki.max_range_m)")
+            self._held[table] = int(need)
+
+
 def _next_pow2(n: int) -> int:
     return 1 << max(int(n) - 1, 0).bit_length()
 
@@ -92,8 +127,10 @@ class VoxelMap:
     the launches that add evidence to it (see the module's description). ``num_classes`` K >= 2;
     ``resolution_m`` the voxel edge (m); ``grid_offset_m`` the lattice's offset (m, 0 but for S-CSM's
     half-shifted grid); ``prior`` alpha0; ``device`` a Warp device name; ``initial_capacity`` slots
-    (rounded up to a power of two); ``max_load`` the fill the table grows at, in [0.05, 0.75]. Raises
-    ValueError for values outside those ranges."""
+    (rounded up to a power of two); ``max_load`` the fill the table grows at, in [0.05, 0.75];
+    ``memory_budget`` the ``TableBudget`` it shares with the map's other shards (None: one of its own,
+    of the memory available). Raises ValueError for values outside those ranges, MemoryBudgetError
+    for a table the budget does not hold."""
 
     def __init__(
         self,
@@ -105,6 +142,7 @@ class VoxelMap:
         device: str | None = "cpu",
         initial_capacity: int = 1 << 16,
         max_load: float = 0.5,
+        memory_budget: TableBudget | None = None,
     ):
         if num_classes < 2:
             raise ValueError(f"num_classes must be >= 2, got {num_classes}")
@@ -118,6 +156,8 @@ class VoxelMap:
         self.prior = float(prior)
         self.max_load = float(max_load)
         self.device = resolve_device(device)
+        self.memory_budget = memory_budget if memory_budget is not None else TableBudget()
+        self.brick_capacity = 0
         self.grow_count = 0
         self._last_new_voxels: dict[str, int] = {}  # per kind of launch: how many voxels the last one made
         load_once(ht, self.device)  # every launch reads its counters back through it
@@ -152,7 +192,21 @@ class VoxelMap:
             return wp.array(host, dtype=dtype, device="cpu", copy=False)
         return wp.full(shape, value, dtype=dtype, device=self.device)
 
+    def _bytes_at(self, capacity: int, brick_capacity: int) -> int:
+        """Bytes a table of ``capacity`` slots and a brick cache of ``brick_capacity`` take once filled to
+        max_load: each slot's key and row (int64, int32) and the value rows (K + 4 float64) of the voxels
+        it then holds; a GPU allocates a row for every slot at once."""
+        rows = int(np.ceil(self.max_load * capacity)) if self.device == "cpu" else capacity
+        return 12 * (capacity + brick_capacity) + 8 * (self.num_classes + EXTRA_COLUMNS) * rows
+
+    def _admit(self, capacity: int, brick_capacity: int) -> None:
+        """Refuse (MemoryBudgetError, before anything is allocated) a table the memory budget does not hold."""
+        self.memory_budget.admit(self, self._bytes_at(capacity, brick_capacity),
+                                 f"{capacity:,} slots for up to {int(self.max_load * capacity):,} voxels of "
+                                 f"{self.num_classes + EXTRA_COLUMNS} float64 columns")
+
     def _allocate(self, capacity: int) -> None:
+        self._admit(capacity, MIN_CAPACITY)
         self.capacity = capacity
         self.keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
         self.slot_rows = self._filled(capacity, 0, wp.int32)
@@ -190,6 +244,7 @@ class VoxelMap:
             capacity *= 2
         if capacity == self.brick_capacity:
             return
+        self._admit(self.capacity, capacity)
         self.brick_capacity = capacity
         self.brick_keys, self.brick_rows = self._rehashed(self.brick_keys, self.brick_rows, capacity)
 
@@ -270,6 +325,7 @@ class VoxelMap:
         count = self.voxel_count
         if new_capacity < count / LAUNCH_FILL_LIMIT:
             raise ValueError(f"cannot shrink the table to {new_capacity} slots: it holds {count} voxels")
+        self._admit(new_capacity, self.brick_capacity)
         old_data = self.data
         self.capacity = new_capacity
         self.keys, self.slot_rows = self._rehashed(self.keys, self.slot_rows, new_capacity)
