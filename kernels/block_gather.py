@@ -35,7 +35,7 @@ from . import MODULE_OPTIONS
 from .device_counts import PAST_COUNT_KEY
 from .hash_table import PREFETCH_AHEAD, PREFETCH_NEARER, HashTable, block_cell, block_first_cell, find_block_rows, prefetch_brick
 from .indexing import nonnegative
-from .scatter import _ONE, _ZERO, sbki_sparse_kernel_scaled, sbki_voxel_center, tally_row, touch_row
+from .scatter import ONE64, ZERO64, sbki_sparse_kernel_scaled, sbki_voxel_center, tally_row, touch_row
 
 wp.set_module_options(MODULE_OPTIONS)
 
@@ -315,20 +315,20 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
                             for j in range(n3):
                                 evidence[label, j] = evidence[label, j] + weights[j]
                                 weight_sum[j] = weight_sum[j] + weights[j]
-                                hits[j] = hits[j] + wp.where(weights[j] > _ZERO, _ONE, _ZERO)
+                                hits[j] = hits[j] + wp.where(weights[j] > ZERO64, ONE64, ZERO64)
                         else:
                             for j in range(n3):
                                 w = f64(sbki_sparse_kernel_scaled(wp.vec3(scaled_x[j], scaled_y[j], scaled_z[j]), scaled_point, sigma32))
-                                if w > _ZERO:
+                                if w > ZERO64:
                                     evidence[label, j] = evidence[label, j] + w
                                     weight_sum[j] = weight_sum[j] + w
-                                    hits[j] = hits[j] + _ONE
-        total = _ZERO
+                                    hits[j] = hits[j] + ONE64
+        total = ZERO64
         for j in range(n3):
             row = rows[j]
             for c in range(num_classes):
                 voxel_data[row, c] = voxel_data[row, c] + evidence[c, j]
-            tally_row(voxel_data, row, num_classes, weight_sum[j], _ZERO, hits[j])  # S-BKI points carry no uncertainty
+            tally_row(voxel_data, row, num_classes, weight_sum[j], ZERO64, hits[j])  # S-BKI points carry no uncertainty
             total += hits[j]
         return total
 

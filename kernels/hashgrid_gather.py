@@ -16,7 +16,7 @@ import warp as wp
 
 from . import MODULE_OPTIONS
 from .hash_table import HashTable, pack_key, table_find_or_insert, unpack_key
-from .scatter import (_EXTRA, _ZERO, REACH_BALL, MapTarget, ScanPoints, ScatterParams, Span, Visit, add_label_evidence,
+from .scatter import (EXTRA_COLUMNS_CONST, ZERO64, REACH_BALL, MapTarget, ScanPoints, ScatterParams, Span, Visit, add_label_evidence,
                       add_weighted_evidence, center_offset, count_from_zero, end_nothing, sparse_kernel, tally_row, touch_row, walk_kernel)
 
 wp.set_module_options(MODULE_OPTIONS)
@@ -62,11 +62,11 @@ def _gather_kernel(evidence):
             return
         touch_row(out.voxel_data, row)
         v = unpack_key(key)
-        center = wp.vec3d(center_offset(v[0], params.resolution, params.grid_offset, _ZERO),
-                          center_offset(v[1], params.resolution, params.grid_offset, _ZERO),
-                          center_offset(v[2], params.resolution, params.grid_offset, _ZERO))
-        weight_sum = _ZERO
-        weighted_u = _ZERO
+        center = wp.vec3d(center_offset(v[0], params.resolution, params.grid_offset, ZERO64),
+                          center_offset(v[1], params.resolution, params.grid_offset, ZERO64),
+                          center_offset(v[2], params.resolution, params.grid_offset, ZERO64))
+        weight_sum = ZERO64
+        weighted_u = ZERO64
         hits = int(0)
         query = wp.hash_grid_query(grid, center, longest)
         i = int(0)
@@ -83,7 +83,7 @@ def _gather_kernel(evidence):
                 weight_sum += w
                 weighted_u += w * scan.uncertainty[i]
                 hits += 1
-        tally_row(out.voxel_data, row, out.voxel_data.shape[1] - _EXTRA, weight_sum, weighted_u, f64(hits))
+        tally_row(out.voxel_data, row, out.voxel_data.shape[1] - EXTRA_COLUMNS_CONST, weight_sum, weighted_u, f64(hits))
         wp.atomic_add(out.update_count, 0, wp.int64(hits))
 
     return gather_voxels

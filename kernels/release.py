@@ -27,7 +27,7 @@ from . import MODULE_OPTIONS
 from .block_gather import block_gather_kernel, block_rows_type
 from .hash_table import KEY_OFFSET, block_cell, pack_key
 from .indexing import nonnegative
-from .scatter import _ONE, _ZERO, FUSION_DEMPSTER, discounted_belief, sbki_voxel_center, tally_row, uncommitted_mass
+from .scatter import ONE64, ZERO64, FUSION_DEMPSTER, discounted_belief, sbki_voxel_center, tally_row, uncommitted_mass
 
 wp.set_module_options(MODULE_OPTIONS)
 
@@ -61,7 +61,7 @@ def release_sparse_kernel(d2: float, inverse_length: wp.float64, sf2: float) -> 
     Estrin's scheme: four dependent steps instead of fourteen), times sf2, rounded to float32; 0 from
     d = l on."""
     x = f64(wp.sqrt(d2)) * inverse_length
-    s = f64(2.0) * x - _ONE
+    s = f64(2.0) * x - ONE64
     s2 = s * s
     s4 = s2 * s2
     c = _POLY_COEFFS
@@ -71,14 +71,14 @@ def release_sparse_kernel(d2: float, inverse_length: wp.float64, sf2: float) -> 
     q3 = (c[12] + c[13] * s) + c[14] * s2
     k = (q0 + q1 * s4) + (q2 + q3 * s4) * (s4 * s4)
     # A select, not an early return, so that loops over cells vectorise.
-    return wp.where(x >= _ONE, 0.0, float(wp.max(k, _ZERO)) * sf2)
+    return wp.where(x >= ONE64, 0.0, float(wp.max(k, ZERO64)) * sf2)
 
 
 @wp.func
 def integer_power(x: wp.float64, m: int) -> wp.float64:
     """x^m for 0 <= m <= 7 (a model count) by squaring, without a loop."""
     x2 = x * x
-    out = _ONE
+    out = ONE64
     if m & 1 != 0:
         out = out * x
     if m & 2 != 0:
@@ -156,7 +156,7 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, fusion:
         sigma0 = scan.sigma0
         reach = float(scan.length)
         reach2 = reach * reach
-        inverse_length = _ONE / scan.length
+        inverse_length = ONE64 / scan.length
         evidence = class_cell_sums()
         # Dempster: products of commonality ratios (each at most 1 / BELIEF_EPSILON = 1e6), folded into the
         # log sums after at most _MAX_FACTORS ratios: about 1 log per cell and class per 40 points instead of 1 per point.
@@ -165,7 +165,7 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, fusion:
         if wp.static(dempster):
             for j in range(n3):
                 for c in range(num_classes):
-                    commonality[j, c] = _ONE
+                    commonality[j, c] = ONE64
         weight_sum = cell_scalars()
         weighted_u = cell_scalars()
         hits = cell_scalars()
@@ -186,28 +186,28 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, fusion:
                         dy = centers[j, 1] - p[1]
                         dz = centers[j, 2] - p[2]
                         d2 = dx * dx + dy * dy + dz * dz
-                        weights[j] = wp.where(d2 < reach2, f64(release_sparse_kernel(d2, inverse_length, sigma0)), _ZERO)
+                        weights[j] = wp.where(d2 < reach2, f64(release_sparse_kernel(d2, inverse_length, sigma0)), ZERO64)
                     if wp.static(dempster):
                         # Cell by cell, only where the kernel is positive: as vectors over all cells
                         # (ratios of exactly 1 out of reach) this loop measured 1.7x slower.
                         for j in range(n3):
                             w = weights[j]
-                            if w > _ZERO:
-                                wb = wp.min(w, _ONE)
-                                committed = _ZERO
+                            if w > ZERO64:
+                                wb = wp.min(w, ONE64)
+                                committed = ZERO64
                                 for c in range(num_classes):
                                     committed += discounted_belief(y[c], wb)
-                                inverse_uncommitted = _ONE / uncommitted_mass(committed)
+                                inverse_uncommitted = ONE64 / uncommitted_mass(committed)
                                 for c in range(num_classes):
-                                    ratio = _ONE + discounted_belief(y[c], wb) * inverse_uncommitted
+                                    ratio = ONE64 + discounted_belief(y[c], wb) * inverse_uncommitted
                                     commonality[j, c] = commonality[j, c] * integer_power(ratio, models)
                                 # each point multiplies in at most 1e6^7 = 1e42; fold before 1e250 could overflow
                                 factors[j] = factors[j] + mult
                                 if factors[j] > _MAX_FACTORS:
                                     for c in range(num_classes):
                                         evidence[c, j] = evidence[c, j] + wp.log(commonality[j, c])
-                                        commonality[j, c] = _ONE
-                                    factors[j] = _ZERO
+                                        commonality[j, c] = ONE64
+                                    factors[j] = ZERO64
                     else:
                         for c in range(num_classes):
                             for j in range(n3):
@@ -215,8 +215,8 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, fusion:
                     for j in range(n3):
                         weight_sum[j] = weight_sum[j] + mult * weights[j]
                         weighted_u[j] = weighted_u[j] + mult * weights[j] * u
-                        hits[j] = hits[j] + wp.where(weights[j] > _ZERO, mult, _ZERO)
-        total_hits = _ZERO
+                        hits[j] = hits[j] + wp.where(weights[j] > ZERO64, mult, ZERO64)
+        total_hits = ZERO64
         for j in range(n3):
             row = rows[j]
             for c in range(num_classes):

@@ -87,16 +87,18 @@ def _series_coefficient(n: int) -> float:
 
 # c_2 .. c_11 of the series in sparse_kernel: ten terms are exact to float64 for t < 1/4.
 _C2, _C3, _C4, _C5, _C6, _C7, _C8, _C9, _C10, _C11 = (wp.constant(f64(_series_coefficient(n))) for n in range(2, 12))
-_ZERO = wp.constant(f64(0.0))
+# ZERO64, ONE64 and EXTRA_COLUMNS_CONST are the family's shared constants (block_gather, release,
+# sorted_scatter and hashgrid_gather use them too); the rest are this module's own.
+ZERO64 = wp.constant(f64(0.0))
 _HALF = wp.constant(f64(0.5))
-_ONE = wp.constant(f64(1.0))
+ONE64 = wp.constant(f64(1.0))
 _QUARTER = wp.constant(f64(0.25))
 _THREE = wp.constant(f64(3.0))
 _TWO_PI = wp.constant(f64(6.283185307179586))
 _SBKI_PI = wp.constant(3.1415926)
 _SBKI_REACH = wp.constant(f64(SBKI_REACH_FACTOR))
 _BELIEF_EPSILON = wp.constant(f64(BELIEF_EPSILON))
-_EXTRA = wp.constant(EXTRA_COLUMNS)
+EXTRA_COLUMNS_CONST = wp.constant(EXTRA_COLUMNS)
 
 
 @wp.func
@@ -108,9 +110,9 @@ def sparse_kernel(d: wp.float64, length: wp.float64, sigma0: wp.float64) -> wp.f
     sum_{n>=2} (-1)^n c_n a^(2n), c_n = 1/(3 (2n)!) - 1/(2n+1)!; for t < 1/4 the series is used.
     """
     x = d / length
-    t = _ONE - x
-    if t <= _ZERO:
-        return _ZERO
+    t = ONE64 - x
+    if t <= ZERO64:
+        return ZERO64
     if t < _QUARTER:
         a = _TWO_PI * t
         a2 = a * a
@@ -125,7 +127,7 @@ def sparse_kernel(d: wp.float64, length: wp.float64, sigma0: wp.float64) -> wp.f
         s = _C2 - a2 * s
         return sigma0 * t * a2 * a2 * s
     a = _TWO_PI * x
-    return wp.max(sigma0 * ((f64(2.0) + wp.cos(a)) * t / _THREE + wp.sin(a) / _TWO_PI), _ZERO)
+    return wp.max(sigma0 * ((f64(2.0) + wp.cos(a)) * t / _THREE + wp.sin(a) / _TWO_PI), ZERO64)
 
 
 def _taylor(first_power: int, terms: int):
@@ -159,7 +161,7 @@ def sincos_float32(a: float) -> wp.vec2:
     r = (x - q * _PIO2_HI) - q * _PIO2_LO
     r2 = r * r
     s = r + r * r2 * (_SIN3 + r2 * (_SIN5 + r2 * (_SIN7 + r2 * (_SIN9 + r2 * _SIN11))))
-    c = _ONE + r2 * (_COS2 + r2 * (_COS4 + r2 * (_COS6 + r2 * (_COS8 + r2 * (_COS10 + r2 * _COS12)))))
+    c = ONE64 + r2 * (_COS2 + r2 * (_COS4 + r2 * (_COS6 + r2 * (_COS8 + r2 * (_COS10 + r2 * _COS12)))))
     # sin and cos of r + q pi / 2, by selects rather than branches: the quadrant changes from cell to cell,
     # and a loop over cells can vectorise (rint rather than round for the same reason: either nearest
     # integer reduces to |r| <= pi / 4).
@@ -293,7 +295,7 @@ def touch_row(voxel_data: wp.array2d(dtype=wp.float64), row: int):
     fresh row's page, read first, maps the shared zero page and faults a second time on the write that
     follows; written first, it faults once. The read-first order doubled the S-BKI gather's faults, and
     faults of two shards contend (docs/performance.md measures what it cost; tests/test_page_faults.py)."""
-    voxel_data[row, voxel_data.shape[1] - _EXTRA + COL_TOUCHED] = _ONE
+    voxel_data[row, voxel_data.shape[1] - EXTRA_COLUMNS_CONST + COL_TOUCHED] = ONE64
 
 
 @wp.func
@@ -322,7 +324,7 @@ def add_label_evidence(scan: ScanPoints, params: ScatterParams, voxel_data: wp.a
 def add_weighted_evidence(scan: ScanPoints, params: ScatterParams, voxel_data: wp.array2d(dtype=wp.float64), row: int, i: int,
                           w: wp.float64, stencil_row: int) -> wp.float64:
     """Class-weight payload, Bayes fusion: w * y_k into column k."""
-    for c in range(voxel_data.shape[1] - _EXTRA):
+    for c in range(voxel_data.shape[1] - EXTRA_COLUMNS_CONST):
         wp.atomic_add(voxel_data, row, c, w * scan.class_weights[i, c])
     return w
 
@@ -331,13 +333,13 @@ def add_weighted_evidence(scan: ScanPoints, params: ScatterParams, voxel_data: w
 def discounted_belief(mass: wp.float64, discount: wp.float64) -> wp.float64:
     """A point's belief mass discounted by its kernel weight (``discount``, at most 1), clamped to [0, 1 -
     BELIEF_EPSILON] (docs/algorithm.md §3.7)."""
-    return wp.clamp(mass * discount, _ZERO, _ONE - _BELIEF_EPSILON)
+    return wp.clamp(mass * discount, ZERO64, ONE64 - _BELIEF_EPSILON)
 
 
 @wp.func
 def uncommitted_mass(committed: wp.float64) -> wp.float64:
     """The mass a point's discounted beliefs leave uncommitted, at least BELIEF_EPSILON."""
-    return wp.max(_ONE - committed, _BELIEF_EPSILON)
+    return wp.max(ONE64 - committed, _BELIEF_EPSILON)
 
 
 @wp.func
@@ -345,14 +347,14 @@ def add_belief_evidence(scan: ScanPoints, params: ScatterParams, voxel_data: wp.
                         w: wp.float64, stencil_row: int) -> wp.float64:
     """Dempster fusion: the point's belief masses (``class_weights``) discounted by min(w, 1), added as
     log commonality ratios log(1 + b'_k / u'); the bookkeeping records min(w, 1)."""
-    discount = wp.min(w, _ONE)
-    num_classes = voxel_data.shape[1] - _EXTRA
-    committed = _ZERO
+    discount = wp.min(w, ONE64)
+    num_classes = voxel_data.shape[1] - EXTRA_COLUMNS_CONST
+    committed = ZERO64
     for c in range(num_classes):
         committed += discounted_belief(scan.class_weights[i, c], discount)
     uncommitted = uncommitted_mass(committed)
     for c in range(num_classes):
-        wp.atomic_add(voxel_data, row, c, wp.log(_ONE + discounted_belief(scan.class_weights[i, c], discount) / uncommitted))
+        wp.atomic_add(voxel_data, row, c, wp.log(ONE64 + discounted_belief(scan.class_weights[i, c], discount) / uncommitted))
     return discount
 
 
@@ -360,7 +362,7 @@ def add_belief_evidence(scan: ScanPoints, params: ScatterParams, voxel_data: wp.
 def add_stencil_evidence(scan: ScanPoints, params: ScatterParams, voxel_data: wp.array2d(dtype=wp.float64), row: int, i: int,
                          w: wp.float64, stencil_row: int) -> wp.float64:
     """ConvBKI: per class, the stencil's weight for this offset times y_k."""
-    for c in range(voxel_data.shape[1] - _EXTRA):
+    for c in range(voxel_data.shape[1] - EXTRA_COLUMNS_CONST):
         wp.atomic_add(voxel_data, row, c, params.stencil_weights[stencil_row, c] * scan.class_weights[i, c])
     return w
 
@@ -389,7 +391,7 @@ def stencil_row(cell: wp.vec3i, owner: wp.vec3i, half: int) -> int:
 @wp.func
 def every_voxel(scan: ScanPoints, params: ScatterParams, i: int, cell: wp.vec3i, span: Span) -> wp.float64:
     """A ``screen`` that lets every voxel in a point's span take part (weight 1)."""
-    return _ONE
+    return ONE64
 
 
 @wp.func
@@ -397,7 +399,7 @@ def convbki_mass(scan: ScanPoints, params: ScatterParams, i: int, cell: wp.vec3i
     """ConvBKI's screen: the point's stencil mass at this offset, sum_k stencil[offset, k] y_k (offsets
     that add nothing are skipped)."""
     row = stencil_row(cell, span.owner, params.stencil_half)
-    mass = _ZERO
+    mass = ZERO64
     for c in range(params.stencil_weights.shape[1]):
         mass += params.stencil_weights[row, c] * scan.class_weights[i, c]
     return mass
@@ -414,7 +416,7 @@ def sparse_weight(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d, 
 def count_weight(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d, cell: wp.vec3i, d2: wp.float64, span: Span,
                  screened: wp.float64) -> wp.float64:
     """S-CSM: 1 (the walk reaches the one voxel or block cell the point counts in)."""
-    return _ONE
+    return ONE64
 
 
 @wp.func
@@ -436,7 +438,7 @@ def convbki_weight(scan: ScanPoints, params: ScatterParams, i: int, p: wp.vec3d,
 @wp.func
 def see_csom_weight(center: wp.vec3d, p: wp.vec3d, length: wp.float64) -> wp.float64:
     """SEE-CSOM's triangular kernel max(0, 1 - d / l)."""
-    return wp.max(_ONE - wp.length(center - p) / length, _ZERO)
+    return wp.max(ONE64 - wp.length(center - p) / length, ZERO64)
 
 
 SPARSE_RULE = WeightRule(every_voxel, sparse_weight)
@@ -692,7 +694,7 @@ def scatter_visit(rule: WeightRule, evidence, *, inserts: bool) -> Visit:
 
     @wp.func
     def insert_voxel(scan: ScanPoints, params: ScatterParams, out: MapTarget, t: int, i: int, cell: wp.vec3i, span: Span) -> int:
-        if wp.static(rule.screen)(scan, params, i, cell, span) > _ZERO:
+        if wp.static(rule.screen)(scan, params, i, cell, span) > ZERO64:
             if table_find_or_insert(out.table, pack_key(cell[0], cell[1], cell[2])) < 0:
                 out.failed[t] = 1
                 return -1
@@ -711,11 +713,11 @@ def scatter_visit(rule: WeightRule, evidence, *, inserts: bool) -> Visit:
     def add_to_voxel(scan: ScanPoints, params: ScatterParams, out: MapTarget, t: int, i: int, p: wp.vec3d, cell: wp.vec3i,
                      d2: wp.float64, span: Span, counter: wp.int64) -> wp.int64:
         screened = wp.static(rule.screen)(scan, params, i, cell, span)
-        if not (screened > _ZERO):
+        if not (screened > ZERO64):
             return counter
         w = wp.static(rule.weight)(scan, params, i, p, cell, d2, span, screened)
         if wp.static(rule.positive_only):
-            if not (w > _ZERO):
+            if not (w > ZERO64):
                 return counter
         key = pack_key(cell[0], cell[1], cell[2])
         row = int(0)
@@ -727,7 +729,7 @@ def scatter_visit(rule: WeightRule, evidence, *, inserts: bool) -> Visit:
             return wp.int64(-1)
         touch_row(out.voxel_data, row)
         tallied = wp.static(evidence)(scan, params, out.voxel_data, row, i, w, stencil_row(cell, span.owner, params.stencil_half))
-        tally_row(out.voxel_data, row, out.voxel_data.shape[1] - _EXTRA, tallied, tallied * scan.uncertainty[i], _ONE)
+        tally_row(out.voxel_data, row, out.voxel_data.shape[1] - EXTRA_COLUMNS_CONST, tallied, tallied * scan.uncertainty[i], ONE64)
         return counter + wp.int64(1)
 
     if not inserts:
@@ -811,11 +813,11 @@ def scatter_block_targets(scan: ScanPoints, target_lengths: wp.array2d(dtype=wp.
     p = scan.points[i]
     u = scan.uncertainty[i]
     n = params.cells_per_block
-    num_classes = out.voxel_data.shape[1] - _EXTRA
+    num_classes = out.voxel_data.shape[1] - EXTRA_COLUMNS_CONST
     n_updates = wp.int64(0)
     targets = int(0)
     for j in range(7):
-        if target_lengths[i, j] > _ZERO:
+        if target_lengths[i, j] > ZERO64:
             targets += 1
     skip = plan_adding(out, t, wp.int64(targets) * wp.int64(n * n * n))
     start = int(1)
@@ -826,7 +828,7 @@ def scatter_block_targets(scan: ScanPoints, target_lengths: wp.array2d(dtype=wp.
     for pass_index in range(start, 2):
         for j in range(7):
             ell = target_lengths[i, j]
-            if ell > _ZERO:
+            if ell > ZERO64:
                 first = block_first_cell(scan.owner_blocks[i] + face_offset(j), n)
                 for c in range(n * n * n):
                     cell = block_cell(first, c, n)
@@ -844,7 +846,7 @@ def scatter_block_targets(scan: ScanPoints, target_lengths: wp.array2d(dtype=wp.
                             w = see_csom_weight(voxel_center(cell[0], cell[1], cell[2], params.resolution, params.grid_offset), p, ell)
                             touch_row(out.voxel_data, row)
                             tallied = add_label_evidence(scan, params, out.voxel_data, row, i, w, 0)
-                            tally_row(out.voxel_data, row, num_classes, tallied, tallied * u, _ONE)
+                            tally_row(out.voxel_data, row, num_classes, tallied, tallied * u, ONE64)
                             n_updates += wp.int64(1)
                         done += 1
     wp.atomic_add(out.update_count, 0, n_updates)
@@ -890,8 +892,8 @@ def weight_rule_kernel(mode: int):
         dz = center_offset(cell[2], params.resolution, params.grid_offset, p[2])
         d2 = dx * dx + dy * dy + dz * dz
         screened = wp.static(rule.screen)(scan, params, i, cell, span)
-        w = _ZERO
-        if screened > _ZERO:
+        w = ZERO64
+        if screened > ZERO64:
             w = wp.static(rule.weight)(scan, params, i, p, cell, d2, span, screened)
         out[k] = w
 

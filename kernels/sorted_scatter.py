@@ -16,7 +16,7 @@ import warp as wp
 
 from . import MODULE_OPTIONS
 from .hash_table import pack_key, table_find_or_insert
-from .scatter import (_EXTRA, _ZERO, REACH_BALL, MapTarget, ScanPoints, ScatterParams, Span, Visit, add_label_evidence,
+from .scatter import (EXTRA_COLUMNS_CONST, ZERO64, REACH_BALL, MapTarget, ScanPoints, ScatterParams, Span, Visit, add_label_evidence,
                       add_weighted_evidence, count_from_zero, end_nothing, sparse_weight, tally_row, touch_row, walk_kernel)
 
 wp.set_module_options(MODULE_OPTIONS)
@@ -66,7 +66,7 @@ def _write_pair(scan: ScanPoints, params: ScatterParams, out: PairList, t: int, 
     out.keys[k] = pack_key(cell[0], cell[1], cell[2])
     out.ids[k] = k
     out.point[k] = i
-    out.weight[k] = sparse_weight(scan, params, i, p, cell, d2, span, _ZERO)
+    out.weight[k] = sparse_weight(scan, params, i, p, cell, d2, span, ZERO64)
     return counter + wp.int64(1)
 
 
@@ -122,8 +122,8 @@ def _reduce_kernel(evidence):
             out.failed[v] = 1
             return
         touch_row(out.voxel_data, row)
-        weight_sum = _ZERO
-        weighted_u = _ZERO
+        weight_sum = ZERO64
+        weighted_u = ZERO64
         for j in range(first, last):
             pair = pairs.ids[j]
             i = pairs.point[pair]
@@ -131,7 +131,7 @@ def _reduce_kernel(evidence):
             wp.static(evidence)(scan, params, out.voxel_data, row, i, w, 0)
             weight_sum += w
             weighted_u += w * scan.uncertainty[i]
-        tally_row(out.voxel_data, row, out.voxel_data.shape[1] - _EXTRA, weight_sum, weighted_u, f64(last - first))
+        tally_row(out.voxel_data, row, out.voxel_data.shape[1] - EXTRA_COLUMNS_CONST, weight_sum, weighted_u, f64(last - first))
 
     return reduce_voxels
 

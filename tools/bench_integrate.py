@@ -224,7 +224,7 @@ def numpy_run(config: MappingConfig, scans, payloads):
         parts_index.append(res.voxel_index)
         parts_evidence.append(res.alpha_increment)
         updates += res.update_count
-    uniq, inverse = ref._unique_rows(np.concatenate(parts_index))
+    uniq, inverse = ref.unique_rows(np.concatenate(parts_index))
     stacked = np.concatenate(parts_evidence)
     evidence = np.stack([np.bincount(inverse, weights=stacked[:, k], minlength=len(uniq)) for k in range(9)], axis=1)
     return {"seconds": time.perf_counter() - start, "voxel_updates": updates, "voxels": len(uniq)}

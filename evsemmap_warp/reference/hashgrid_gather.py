@@ -6,18 +6,18 @@ from __future__ import annotations
 import numpy as np
 
 from .hash_table import pack_key
-from .sorted_scatter import _pairs
+from .sorted_scatter import radius_pairs
 from .scatter import sparse_kernel
 
 
 def mark_reached(points, lengths, resolution, grid_offset) -> np.ndarray:
     """The distinct packed keys of the voxels the points reach, ascending."""
-    return np.unique(pack_key(_pairs(points, lengths, resolution, grid_offset)[1]))
+    return np.unique(pack_key(radius_pairs(points, lengths, resolution, grid_offset)[1]))
 
 
 def gather_voxels(points, lengths, class_weights, point_uncertainty, resolution, grid_offset, sigma0):
     """Per reached voxel (ascending key): class sums [V, K], weight sum, weight * u sum, count."""
-    point_id, index, d = _pairs(points, lengths, resolution, grid_offset)
+    point_id, index, d = radius_pairs(points, lengths, resolution, grid_offset)
     keys, inverse = np.unique(pack_key(index), return_inverse=True)
     w = sparse_kernel(d, np.asarray(lengths, np.float64)[point_id], sigma0)
     k = class_weights.shape[1]

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from .sbki import _EXTENDED, _blocks_containing
+from .sbki import BLOCK_AND_FACE_NEIGHBOURS, blocks_containing
 
 BELIEF_EPSILON = 1e-6
 
@@ -39,7 +39,7 @@ def release_insert(points, class_weights, uncertainty, *, resolution_m: float, b
     k = class_weights.shape[1]
     members: dict[tuple[int, int, int], list[int]] = {}
     for i, p in enumerate(points):
-        for b in _blocks_containing(p, size):
+        for b in blocks_containing(p, size):
             members.setdefault(b, []).append(i)
     local = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3)
     cells: dict[tuple[int, int, int], np.ndarray] = {}
@@ -47,8 +47,8 @@ def release_insert(points, class_weights, uncertainty, *, resolution_m: float, b
         for idx in map(tuple, np.array(block) * n - n // 2 + local):
             cells[idx] = np.zeros(k + 3)
     for model in sorted(members):
-        train = [i for e in _EXTENDED for i in members.get(tuple(np.add(model, e)), [])]
-        for e in _EXTENDED:
+        train = [i for e in BLOCK_AND_FACE_NEIGHBOURS for i in members.get(tuple(np.add(model, e)), [])]
+        for e in BLOCK_AND_FACE_NEIGHBOURS:
             target = tuple(np.add(model, e))
             if target not in members:
                 continue
@@ -111,7 +111,7 @@ def block_models(blocks: np.ndarray, target_offsets: np.ndarray) -> tuple[np.nda
             if src not in where:
                 continue
             source[b, o] = where[src]
-            for face in _EXTENDED:
+            for face in BLOCK_AND_FACE_NEIGHBOURS:
                 model = tuple(np.add(src, face))
                 if model in where and np.abs(np.subtract(block, model)).sum() <= 1:
                     mult[b, o] += 1

@@ -12,10 +12,10 @@ import numpy as np
 
 from .scatter import sbki_sparse_kernel
 
-_EXTENDED = [(0, 0, 0), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)]
+BLOCK_AND_FACE_NEIGHBOURS = [(0, 0, 0), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)]
 
 
-def _blocks_containing(p: np.ndarray, size: np.float32) -> list[tuple[int, int, int]]:
+def blocks_containing(p: np.ndarray, size: np.float32) -> list[tuple[int, int, int]]:
     half = np.float32(size / np.float32(2.0))
     per_axis = []
     for axis in range(3):
@@ -36,9 +36,9 @@ def sbki_insert(points, labels, *, resolution_m: float, block_depth: int, ell: f
     r = np.float32(resolution_m)
     members: dict[tuple[int, int, int], list[int]] = {}
     for i, p in enumerate(points):
-        for b in _blocks_containing(p, size):
+        for b in blocks_containing(p, size):
             members.setdefault(b, []).append(i)
-    test = {tuple(np.add(b, e)) for b in members for e in _EXTENDED}
+    test = {tuple(np.add(b, e)) for b in members for e in BLOCK_AND_FACE_NEIGHBOURS}
     cells: dict[tuple[int, int, int], tuple[np.ndarray, bool]] = {}
     for t in sorted(test):
         first = np.array(t) * n - n // 2
@@ -47,7 +47,7 @@ def sbki_insert(points, labels, *, resolution_m: float, block_depth: int, ell: f
         center = np.array(t, dtype=np.float32) * size
         cell_xyz = (center - size / np.float32(2.0) + (local.astype(np.float32) + np.float32(0.5)) * r).astype(np.float32)
         ybar = np.zeros((len(index), num_classes))
-        sources = [t] if counting else [tuple(np.add(t, e)) for e in _EXTENDED]
+        sources = [t] if counting else [tuple(np.add(t, e)) for e in BLOCK_AND_FACE_NEIGHBOURS]
         has_points = any(s in members for s in sources)
         for s in sources:
             for i in members.get(s, []):

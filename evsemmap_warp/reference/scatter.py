@@ -131,7 +131,7 @@ def block_of_voxel(index: np.ndarray, cells_per_block: int) -> np.ndarray:
     return np.floor_divide(index + cells_per_block // 2, cells_per_block)
 
 
-def _candidate_pairs(points, lengths, owners, mode, resolution, grid_offset, stencil_half=0):
+def candidate_pairs(points, lengths, owners, mode, resolution, grid_offset, stencil_half=0):
     """All (point, voxel) pairs a point might reach: [P] point ids and [P, 3] voxel indices."""
     n = len(points)
     if mode == MODE_STENCIL:
@@ -174,7 +174,7 @@ def scatter_points(
     points = np.asarray(points, dtype=np.float64)
     lengths = np.asarray(lengths, dtype=np.float64)
     stencil_half = round(len(stencil_weights) ** (1 / 3)) // 2 if mode == MODE_STENCIL else 0
-    pid, vox = _candidate_pairs(points, lengths, owner_blocks, mode, resolution, grid_offset, stencil_half)
+    pid, vox = candidate_pairs(points, lengths, owner_blocks, mode, resolution, grid_offset, stencil_half)
     per_class = None  # [P, K] additions where they are not weight * y
     if mode == MODE_STENCIL:
         side = 2 * stencil_half + 1
@@ -204,7 +204,7 @@ def scatter_points(
             uncommitted = np.maximum(1.0 - beliefs.sum(axis=1), BELIEF_EPSILON)
             per_class = np.log1p(beliefs / uncommitted[:, None])
 
-    uniq, inverse = _unique_rows(vox)
+    uniq, inverse = unique_rows(vox)
     alpha = np.zeros((len(uniq), num_classes))
     if per_class is not None:
         for k in range(num_classes):
@@ -246,7 +246,7 @@ def scatter_block_targets(
     pid, vox, ell = np.concatenate(pid), np.concatenate(vox), np.concatenate(ell).astype(np.float64)
     centers = (vox + 0.5) * resolution + grid_offset
     weight = see_csom_weight(np.linalg.norm(centers - np.asarray(points, np.float64)[pid], axis=1), ell)
-    uniq, inverse = _unique_rows(vox)
+    uniq, inverse = unique_rows(vox)
     flat = inverse * num_classes + np.asarray(labels)[pid]
     alpha = np.bincount(flat, weights=weight, minlength=len(uniq) * num_classes).reshape(len(uniq), num_classes)
     weight_sum = np.bincount(inverse, weights=weight, minlength=len(uniq))
@@ -254,7 +254,7 @@ def scatter_block_targets(
     return ScatterResult(uniq.reshape(-1, 3), alpha, weight_sum, unc_sum, np.bincount(inverse, minlength=len(uniq)), len(pid))
 
 
-def _unique_rows(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def unique_rows(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """np.unique(index, axis=0, return_inverse=True) for int rows, via one int64 per row (much faster)."""
     if len(index) == 0:
         return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)

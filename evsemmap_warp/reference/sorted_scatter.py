@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 from .hash_table import pack_key
-from .scatter import MODE_RADIUS, _candidate_pairs, sparse_kernel
+from .scatter import MODE_RADIUS, candidate_pairs, sparse_kernel
 
 
-def _pairs(points, lengths, resolution, grid_offset):
+def radius_pairs(points, lengths, resolution, grid_offset):
     """Point ids, voxel indices and distances of the pairs with the voxel center within the length."""
     points, lengths = np.asarray(points, np.float64), np.asarray(lengths, np.float64)
-    point_id, index = _candidate_pairs(points, lengths, None, MODE_RADIUS, resolution, grid_offset)
+    point_id, index = candidate_pairs(points, lengths, None, MODE_RADIUS, resolution, grid_offset)
     d = np.linalg.norm((index + 0.5) * resolution + grid_offset - points[point_id], axis=1)
     inside = d < lengths[point_id]
     return point_id[inside], index[inside], d[inside]
@@ -20,13 +20,13 @@ def _pairs(points, lengths, resolution, grid_offset):
 def count_pairs(points, lengths, resolution, grid_offset) -> np.ndarray:
     """Twin of ``kernels.sorted_scatter.count_pairs``: how many voxel centers lie strictly within each
     point's length [N] (points and lengths in m, relative to the map origin)."""
-    point_id = _pairs(points, lengths, resolution, grid_offset)[0]
+    point_id = radius_pairs(points, lengths, resolution, grid_offset)[0]
     return np.bincount(point_id, minlength=len(points))
 
 
 def expand_pairs(points, lengths, resolution, grid_offset, sigma0):
     """Pairs in point order: keys, point ids, weights."""
-    point_id, index, d = _pairs(points, lengths, resolution, grid_offset)
+    point_id, index, d = radius_pairs(points, lengths, resolution, grid_offset)
     order = np.argsort(point_id, kind="stable")
     weights = sparse_kernel(d, np.asarray(lengths, np.float64)[point_id], sigma0)
     return pack_key(index[order]), point_id[order], weights[order]
