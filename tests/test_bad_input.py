@@ -15,6 +15,8 @@ from evsemmap_warp.core.map_file import MapFileError
 from evsemmap_warp.core.mapper import Mapper, load_map
 from evsemmap_warp.data.point_files import read_point_file
 
+from legacy_maps import write_v2_map
+
 REPO = Path(__file__).resolve().parents[1]
 PRESET = REPO / "configs/presets/offroad.yaml"
 
@@ -134,13 +136,14 @@ def test_npz_renamed_npy_and_npy_renamed_npz(tmp_path, capsys):
 
 
 # ------------------------------------------------------------------------------------- map files
-def _small_map_file(tmp_path) -> Path:
-    path = tmp_path / "small.npz"
+def _small_map_file(tmp_path, *, version: int = 3) -> Path:
+    """A small map file: version 3 (written now) or 2 (the npz of every array, which the cases below edit member by member)."""
+    path = tmp_path / f"small_v{version}.npz"
     if not path.exists():
         rng = np.random.default_rng(0)
         mapper = Mapper(load_config([PRESET], method="ebs").mapping, 3)
         mapper.integrate(rng.uniform(-2, 2, (300, 3)), rng.gamma(1, 3, (300, 3)) + 1, payload_type="alpha")
-        mapper.save(path)
+        mapper.save(path) if version == 3 else write_v2_map(path, mapper)
     return path
 
 
@@ -189,10 +192,10 @@ MAP_FILE_CASES = {
 def test_inconsistent_map_file_is_refused_on_load(tmp_path, capsys, case):
     changes, pattern = MAP_FILE_CASES[case]
     if case == "unknown-mapping-key":
-        with np.load(_small_map_file(tmp_path)) as data:
+        with np.load(_small_map_file(tmp_path, version=2)) as data:
             mapping = json.loads(str(data["meta"]))["mapping"]
         changes = {"meta": {"mapping": mapping | {"warp_speed": 9}}}
-    bad = _rewrite(_small_map_file(tmp_path), tmp_path / f"{case}.npz", **changes)
+    bad = _rewrite(_small_map_file(tmp_path, version=2), tmp_path / f"{case}.npz", **changes)
     with pytest.raises(MapFileError, match=pattern):
         load_map(bad)
     line = run_cli(capsys, "info", bad)
@@ -200,7 +203,7 @@ def test_inconsistent_map_file_is_refused_on_load(tmp_path, capsys, case):
 
 
 def test_a_member_declaring_an_absurd_size_is_refused_before_allocation(tmp_path, capsys):
-    src = _small_map_file(tmp_path)
+    src = _small_map_file(tmp_path, version=2)
     bad = tmp_path / "huge.npz"
     with zipfile.ZipFile(src) as zin, zipfile.ZipFile(bad, "w") as zout:
         for item in zin.infolist():
@@ -217,6 +220,14 @@ def test_a_member_declaring_an_absurd_size_is_refused_before_allocation(tmp_path
     with pytest.raises(MapFileError, match="declares shape .* truncated or corrupt"):
         load_map(bad)
     assert "declares shape" in run_cli(capsys, "info", bad)
+
+
+def test_a_damaged_version_3_map_file_is_one_line(tmp_path, capsys):
+    data = _small_map_file(tmp_path).read_bytes()
+    for name, damaged in (("cut.npz", data[:len(data) - 50]), ("flipped.npz", data[:-30] + bytes([data[-30] ^ 0xFF]) + data[-29:])):
+        (tmp_path / name).write_bytes(damaged)
+        line = run_cli(capsys, "info", tmp_path / name)
+        assert str(tmp_path / name) in line and ("truncated" in line or "checksum mismatch" in line)
 
 
 # ------------------------------------------------------------------------------------- checkpoints

@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 
 from evsemmap_warp.config import legacy_flat_dict, load_config
-from evsemmap_warp.core.map_file import FORMAT_VERSION, MapFileError, read_map_arrays
+from evsemmap_warp.core.map_file import FORMAT_VERSION, MAGIC, MapFileError, read_map_arrays, read_map_file
 from evsemmap_warp.core.mapper import Mapper, load_map, save_map
 
 from conftest import REPO
+from legacy_maps import v2_arrays, write_v2_map
 
 
 @pytest.fixture
@@ -45,9 +46,7 @@ def test_round_trip_is_exact(tmp_path, small_map, device):
 
 def test_a_map_written_before_the_mode_sections_loads_silently(tmp_path, small_map, capsys):
     # map files record MappingConfig.as_dict(); before the sections it was flat, with -1 for "none"
-    path = save_map(tmp_path / "m.npz", small_map)
-    with np.load(path) as arrays:
-        data = dict(arrays)
+    data = v2_arrays(small_map)
     meta = json.loads(str(data["meta"]))
     assert meta["mapping"]["sbki"]["max_range_m"] is None and "block_depth" not in meta["mapping"]
     meta["mapping"] = legacy_flat_dict(meta["mapping"])
@@ -65,13 +64,13 @@ def test_saving_to_a_name_without_npz_suffix_keeps_the_name(tmp_path, small_map)
 
 
 def test_truncated_file(tmp_path, small_map):
-    path = save_map(tmp_path / "m.npz", small_map)
-    data = path.read_bytes()
-    cut = tmp_path / "cut.npz"
-    cut.write_bytes(data[: len(data) // 2])
-    with pytest.raises(MapFileError, match="corrupt or truncated") as err:
-        load_map(cut)
-    assert "cut.npz" in str(err.value)
+    for write in (save_map, lambda path, mapper: write_v2_map(path, mapper)):
+        data = write(tmp_path / "m.npz", small_map).read_bytes()
+        cut = tmp_path / "cut.npz"
+        cut.write_bytes(data[: len(data) // 2])
+        with pytest.raises(MapFileError, match="truncated") as err:
+            load_map(cut)
+        assert "cut.npz" in str(err.value)
 
 
 def test_not_a_map_file(tmp_path):
@@ -96,16 +95,16 @@ def _rewrite(path, out, **changes):
 
 
 def test_other_format_version_is_refused(tmp_path, small_map):
-    path = save_map(tmp_path / "m.npz", small_map)
+    path = write_v2_map(tmp_path / "m.npz", small_map)
     meta = json.loads(str(np.load(path)["meta"]))
     meta["format_version"] = 99
     bad = _rewrite(path, tmp_path / "v99.npz", meta=np.array(json.dumps(meta)), format_version=np.int64(99))
-    with pytest.raises(MapFileError, match="format version 99.*reads versions 1, 2"):
+    with pytest.raises(MapFileError, match="format version 99.*reads versions 1, 2, 3"):
         load_map(bad)
 
 
 def test_inconsistent_shapes_and_pickled_objects_are_refused(tmp_path, small_map):
-    path = save_map(tmp_path / "m.npz", small_map)
+    path = write_v2_map(tmp_path / "m.npz", small_map)
     bad = _rewrite(path, tmp_path / "shape.npz", alpha=np.zeros((3, 9), np.float32))
     with pytest.raises(MapFileError, match="field 'alpha' has shape"):
         load_map(bad)
@@ -117,10 +116,8 @@ def test_inconsistent_shapes_and_pickled_objects_are_refused(tmp_path, small_map
 
 
 def test_version_1_files_still_load(tmp_path, small_map):
-    """The previous format: float32 values, int32 indices, no origin (the map sat at 0)."""
-    path = save_map(tmp_path / "m.npz", small_map)
-    with np.load(path, allow_pickle=False) as d:
-        arrays = {k: d[k] for k in d.files if k != "origin"}
+    """The first format: float32 values, int32 indices, no origin (the map sat at 0)."""
+    arrays = {k: v for k, v in v2_arrays(small_map).items() if k != "origin"}
     meta = json.loads(str(arrays["meta"])) | {"format_version": 1}
     arrays |= {"meta": np.array(json.dumps(meta)), "format_version": np.int64(1), "voxel_index": arrays["voxel_index"].astype(np.int32)}
     for name in ("alpha", "evidence", "variance", "weight_sum", "weighted_uncertainty_sum"):
@@ -132,3 +129,161 @@ def test_version_1_files_still_load(tmp_path, small_map):
     np.testing.assert_array_equal(a.index, b.index)
     np.testing.assert_allclose(a.evidence, b.evidence, rtol=1e-6)
     assert (sa.label != sb.label).sum() <= 2  # float32 rounding may decide a near-tie
+
+
+# ------------------------------------------------------------------------------------- version 3
+def test_a_round_trip_gives_the_same_bytes_and_sums(tmp_path, small_map):
+    path = save_map(tmp_path / "m.npz", small_map)
+    assert path.read_bytes()[:len(MAGIC)] == MAGIC and FORMAT_VERSION == 3
+    contents = read_map_file(path)
+    assert contents.alpha is None and contents.centers is None  # the read-out is derived only when asked for
+    arrays = small_map.voxels().arrays
+    np.testing.assert_array_equal(contents.index, arrays.index)
+    assert contents.voxels().rows().tobytes() == arrays.rows().tobytes()
+    again = save_map(tmp_path / "again.npz", load_map(path))
+    assert again.read_bytes() == path.read_bytes()
+
+
+def test_version_2_files_read_as_the_same_map(tmp_path, small_map):
+    new, old = save_map(tmp_path / "new.npz", small_map), write_v2_map(tmp_path / "old.npz", small_map)
+    (a, meta_a), (b, meta_b) = read_map_arrays(new), read_map_arrays(old)
+    assert a.keys() == b.keys() and meta_b["format_version"] == 2
+    assert {k: v for k, v in meta_a.items() if k != "format_version"} == {k: v for k, v in meta_b.items() if k != "format_version"}
+    for name in a:
+        if name not in ("format_version", "meta"):
+            assert a[name].dtype == b[name].dtype and a[name].tobytes() == b[name].tobytes(), name
+    assert save_map(tmp_path / "resaved.npz", load_map(old)).read_bytes() == new.read_bytes()
+    assert new.stat().st_size * 2 < old.stat().st_size  # random sums: the drive test measures the real ratio
+
+
+def _parts(path):
+    data = path.read_bytes()
+    length = int.from_bytes(data[len(MAGIC):len(MAGIC) + 4], "little")
+    start = len(MAGIC) + 4
+    return json.loads(data[start:start + length]), data[start + length:]
+
+
+def _rewrite_v3(path, out, header=None, payload=None, *, fix_checks=True):
+    """``path`` with header keys replaced and/or another payload (its size and CRC made to match unless
+    ``fix_checks`` is off)."""
+    import struct
+    import zlib
+
+    head, body = _parts(path)
+    head |= header or {}
+    if payload is not None:
+        body = payload
+        if fix_checks:
+            head |= {"payload_bytes": len(body), "payload_crc32": zlib.crc32(body)}
+    text = json.dumps(head, sort_keys=True).encode()
+    out.write_bytes(MAGIC + struct.pack("<I", len(text)) + text + body)
+    return out
+
+
+def _payload_of(local, rows, dtype=np.uint16):
+    from evsemmap_warp.core.tile_codec import compress_columns
+
+    return compress_columns(local, rows, dtype)
+
+
+def _v3_columns(path):
+    from evsemmap_warp.core.tile_codec import decompress_columns, index_dtype
+
+    head, body = _parts(path)
+    local, rows = decompress_columns(body, head["voxels"], head["columns"], index_dtype(max(head["index_extent"])), path)
+    return head, local, rows
+
+
+def _with_rows(change):
+    def payload(head, local, rows):
+        rows = rows.copy()
+        change(rows)
+        return _payload_of(local, rows, _dtype(head))
+    return payload
+
+
+def _with_local(change):
+    def payload(head, local, rows):
+        local = local.copy()
+        change(local)
+        return _payload_of(local, rows, _dtype(head))
+    return payload
+
+
+def _dtype(head):
+    from evsemmap_warp.core.tile_codec import index_dtype
+
+    return index_dtype(max(head["index_extent"]))
+
+
+def _lying_frame(head, local, rows):
+    """A zstd frame whose header declares 2**40 bytes (the CRC over it recomputed): a liar that checks out."""
+    body = bytearray(_payload_of(local, rows, _dtype(head)))
+    descriptor = body[4]  # frame header descriptor: the content-size field's width is its top two bits
+    assert descriptor >> 6 in (1, 2, 3)
+    width = {1: 2, 2: 4, 3: 8}[descriptor >> 6]
+    at = 5 + (0 if descriptor & 0x20 else 1)  # window descriptor unless single-segment
+    body[4] = (descriptor & 0x3F) | (3 << 6)  # widen the field to 8 bytes, then declare 2**40
+    return bytes(body[:at]) + (2**40).to_bytes(8, "little") + bytes(body[at + width:])
+
+
+def _consistent_lie(head, local, rows):
+    """A header and a frame that agree on 10**9 voxels (CRC recomputed) over a payload of a few bytes."""
+    count = 10**9
+    expected = 3 * count * np.dtype(_dtype(head)).itemsize + (head["columns"] - 1) * count * 8 + (count + 7) // 8
+    body = bytearray(_payload_of(local, rows, _dtype(head)))
+    descriptor = body[4]
+    width = {0: 1 if descriptor & 0x20 else 0, 1: 2, 2: 4, 3: 8}[descriptor >> 6]
+    at = 5 + (0 if descriptor & 0x20 else 1)
+    body[4] = (descriptor & 0x3F) | (3 << 6)
+    return bytes(body[:at]) + expected.to_bytes(8, "little") + bytes(body[at + width:])
+
+
+V3_CASES = {
+    "consistent-lie": (_consistent_lie, "cannot hold the .* bytes of 1000000000 voxels", {"voxels": 10**9}),
+    "truncated-payload": (lambda h, l, r: None, "truncated", {"payload_bytes": 10**9}),
+    "flipped-byte": ("flip", "checksum mismatch", {}),
+    "lying-voxel-count": (None, "declares .* bytes, 1000000000 voxels", {"voxels": 10**9}),
+    "lying-frame-size": (_lying_frame, "declares .* bytes", {}),
+    "header-beyond-file": ("header", "bytes left for a", {}),
+    "nan-evidence": (_with_rows(lambda r: r.__setitem__((0, 0), np.nan)), "'evidence' holds 1 NaN/inf", {}),
+    "negative-weight": (_with_rows(lambda r: r.__setitem__((0, 3), -1.0)), "'weight_sum' holds negative", {}),
+    "fractional-hits": (_with_rows(lambda r: r.__setitem__((0, 5), 0.5)), "'hits' holds values that are not whole", {}),
+    "duplicate-index": (_with_local(lambda a: a.__setitem__(1, a[0])), "appears more than once", {}),
+    "out-of-order": (_with_local(lambda a: a.__setitem__(slice(0, 2), a[[1, 0]])), "out of key order", {}),
+    "beyond-extent": (None, "beyond the header's index_extent", {"index_extent": [1, 1, 1]}),
+    "index-out-of-range": (None, "outside the key range", {"index_low": [1 << 22, 0, 0]}),
+    "resolution-disagrees": (None, "disagrees with meta.mapping.resolution_m", {"resolution": 0.5}),
+    "origin-off-lattice": (None, "not on the voxel lattice", {"origin": [0.05, 0.0, 0.0]}),
+    "wrong-columns": (None, "header says 12 columns, 3 classes need 7", {"columns": 12}),
+    "bad-header-key": (None, "header key 'voxels' = 'many'", {"voxels": "many"}),
+}
+
+
+@pytest.fixture
+def tiny_map_file(tmp_path):
+    rng = np.random.default_rng(0)
+    mapper = Mapper(load_config([REPO / "configs/presets/offroad.yaml"], method="ebs").mapping, 3)
+    mapper.integrate(rng.uniform(-2, 2, (300, 3)), rng.gamma(1, 3, (300, 3)) + 1, payload_type="alpha")
+    return mapper.save(tmp_path / "small.npz")
+
+
+@pytest.mark.parametrize("case", sorted(V3_CASES))
+def test_a_damaged_or_lying_version_3_file_is_refused(tmp_path, tiny_map_file, case):
+    make_payload, pattern, header = V3_CASES[case]
+    head, local, rows = _v3_columns(tiny_map_file)
+    bad = tmp_path / f"{case}.npz"
+    if make_payload == "flip":
+        data = bytearray(tiny_map_file.read_bytes())
+        data[-20] ^= 0xFF
+        bad.write_bytes(bytes(data))
+    elif make_payload == "header":
+        bad.write_bytes(tiny_map_file.read_bytes()[:len(MAGIC) + 40])
+    else:
+        payload = make_payload(head, local, rows) if callable(make_payload) else None
+        _rewrite_v3(tiny_map_file, bad, header, payload)
+        if case == "truncated-payload":
+            bad.write_bytes(bad.read_bytes()[:-100])
+    with pytest.raises(MapFileError, match=pattern) as err:
+        load_map(bad)
+    assert str(bad) in str(err.value) and "\n" not in str(err.value)

@@ -1,7 +1,5 @@
 """Drive playback (issue 30 item 3) in-process: the replay's maps, the scan, pose and camera drawn, bad input."""
 
-import json
-
 import numpy as np
 import pytest
 
@@ -163,5 +161,5 @@ def test_bad_drive_input_is_one_line(drive, tmp_path, capsys):
     _one_line_error(capsys, ["view", labels, str(drive / "alpha.npz"), "--drive", str(drive / "seq"), *port], "one map file")
     _one_line_error(capsys, ["view", labels, "--alpha-dir", str(drive / "alpha"), *port], "--alpha-dir", "--drive")
     _one_line_error(capsys, ["view", labels, "--drive", str(drive / "seq"), "--snapshot-every", "0", *port], "--snapshot-every")
-    meta = json.loads(str(np.load(drive / "labels.npz")["meta"]))
+    meta = read_map_arrays(drive / "labels.npz")[1]
     assert meta["scan_ids"], "the check needs the map's scan ids"

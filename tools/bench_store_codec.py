@@ -51,7 +51,7 @@ class Tile:
     def __init__(self, name, index, rows, tile, tile_voxels):
         self.name, self.tile, self.tile_voxels = name, tuple(int(t) for t in tile), int(tile_voxels)
         self.index, self.rows = index, rows
-        self.local = (index - np.asarray(tile, np.int64) * tile_voxels).astype(tile_codec._index_dtype(tile_voxels))
+        self.local = (index - np.asarray(tile, np.int64) * tile_voxels).astype(tile_codec.index_dtype(tile_voxels))
         self.sums = np.ascontiguousarray(rows[:, :-1])
         self.touched = rows[:, -1] > 0
 

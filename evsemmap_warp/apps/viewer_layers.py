@@ -440,14 +440,17 @@ def load_truth(path, layer, frame=None) -> np.ndarray:
     - a map file: its label where it has an OCCUPIED voxel.
 
     Class names are matched by name; a frame recorded in the file must be ``frame``."""
-    from ..core.map_file import read_map_arrays
+    from ..core.map_file import is_compact, read_map_arrays
     from ..frames import WorldFrame, check_same_frame
 
     path = Path(path)
     names = [c.lower() for c in layer.classes]
+    map_file = path.is_file() and is_compact(path)  # a map file of format 3 or later is no npz
     try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
+        arrays = {}
+        if not map_file:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {key: data[key] for key in data.files}
     except FileNotFoundError:
         raise ValueError(f"{path}: no such ground-truth file") from None
     except (OSError, ValueError) as exc:
@@ -471,7 +474,7 @@ def load_truth(path, layer, frame=None) -> np.ndarray:
         k = len(names)
         votes = np.bincount(rows[ok] * k + labels[ok], minlength=len(layer.centers) * k).reshape(len(layer.centers), k)
         return np.where(votes.sum(axis=1) > 0, votes.argmax(axis=1), -1)
-    if "alpha" in arrays or "centers" in arrays:
+    if map_file or "alpha" in arrays or "centers" in arrays:
         data, meta = read_map_arrays(path)
         other = type(layer).from_arrays(path.stem, path, data, meta)  # the viewer's MapLayer, without importing the viewer back
         check_same_frame("compare with the truth", (str(layer.path), frame), (str(path), WorldFrame.from_dict(meta.get("frame"), f"{path}: meta.frame")))

@@ -1,31 +1,45 @@
-"""The map file: one ``.npz`` (no pickle), schema defined here and nowhere else.
+"""The map file, schema defined here and nowhere else. Format version 3 (written now) holds what a map
+needs once, compressed as a store's tiles are (core/tile_codec.py's columns in one zstd frame):
 
-Arrays (V voxels in ascending index order, K classes):
-  centers [V, 3] float64 voxel centers (m)      voxel_index [V, 3] int64 global grid indices
+  MAGIC (8 bytes), a little-endian uint32 header length, a JSON header, then the payload.
+  header: format, format_version, voxels V, columns (K + 4), resolution (m), origin [3] (m, on the voxel
+          lattice), index_low [3] and index_extent [3] (the voxels' global indices lie in
+          index_low .. index_low + index_extent - 1), payload_bytes, payload_crc32, and meta.
+  payload: tile_codec.compress_columns of the indices minus index_low and the [V, K + 4] sums of
+          ``VoxelArrays.rows()`` (evidence, weight sum, weighted-uncertainty sum, contribution count,
+          touched), voxels in ascending key order (x, then y, then z index), each once.
+  meta: classes, the method and all its parameters, the grid offset, the world frame ({"name", "crs"}:
+        the frame centers and origin are in, docs/algorithm.md §6.6), provenance, scan_ids (the
+        fingerprints of the scans the map holds, core/mapper.scan_fingerprint; optional: a merge refuses
+        maps holding a scan in common) and, in a format-1 store's tile, tile (core/map_store.py).
+
+Centers, concentrations (alpha), labels, states and variance are derived on reading, as a Mapper derives
+them (``read_map_arrays`` gives them in the schema of versions 1 and 2; ``read_map_file`` does not derive
+them). Voxel i's center is (i + 0.5) * resolution + grid offset. A round trip is exact.
+
+Versions 1 and 2 are one ``.npz`` (no pickle) holding every array, derived ones included (V voxels, K classes):
+  centers [V, 3] float64                         voxel_index [V, 3] int64 global grid indices
   alpha [V, K] float64 concentrations            label [V] int32 argmax class (lowest on ties)
-  evidence [V, K] float64 alpha - prior as accumulated (kept so that a round trip is exact)
-  state [V] int8 0 UNKNOWN, 1 FREE, 2 OCCUPIED   variance [V] float64 variance of the label's class
-  weight_sum [V] float64 sum of kernel weights   weighted_uncertainty_sum [V] float64 sum of weight * u
+  evidence [V, K] float64 alpha - prior          state [V] int8 0 UNKNOWN, 1 FREE, 2 OCCUPIED
+  variance [V] float64 of the label's class      weight_sum, weighted_uncertainty_sum [V] float64
   hits [V] int64 number of contributions         touched [V] bool updated at least once
-  resolution float64 (m)                         origin [3] float64 map origin (m), on the voxel lattice
-  format_version int
-  meta: JSON string with the classes, the method and all its parameters, the grid offset, the world
-        frame ({"name", "crs"}: the frame centers and origin are in, docs/algorithm.md §6.6), provenance,
-        scan_ids (the fingerprints of the scans the map holds, core/mapper.scan_fingerprint; optional:
-        a merge refuses maps holding a scan in common) and, in a store's tile, tile (core/map_store.py).
-Voxel i's center is (i + 0.5) * resolution + grid offset. A round trip is exact.
+  resolution float64 (m)                         origin [3] float64 (version 1: none, float32 values)
+  format_version int                             meta: JSON string, as above
+They are still read.
 
-Reading validates the content, not only the shapes: every member's declared size against what the
-file holds (before anything is allocated), finite non-negative evidence, unique integer indices within
-the key range around the origin, the origin on the lattice, resolution and meta agreeing, meta keys
-present with the right types. Version 1 files (float32 values, no origin) are read as well.
+Reading validates the content, not only the shapes: every declared size against what the file holds
+(before anything of that size is allocated), finite non-negative sums, unique integer indices within
+the key range around the origin (in key order, version 3), the origin on the lattice, resolution and
+meta agreeing, meta keys present with the right types.
 """
 
 from __future__ import annotations
 
 import json
+import struct
 import zipfile
-from dataclasses import dataclass
+import zlib
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,11 +47,15 @@ import numpy as np
 from .. import files
 from ..config import ConfigError, MappingConfig
 from ..frames import FrameError, WorldFrame
-from ..voxel_keys import check_index_range
+from ..voxel_keys import check_index_range, pack_voxel_keys
+from . import tile_codec
+from .voxel_map import EXTRA_COLUMNS, VoxelArrays
 
 FORMAT_NAME = "evsemmap_warp.map"
-FORMAT_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+FORMAT_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
+MAGIC = b"EVSMMAP3"
+_HEADER_LIMIT = 1 << 26  # a header beyond 64 MB (meta with its scan ids) is not one this writes
 _PER_VOXEL = ("centers", "voxel_index", "alpha", "evidence", "label", "state", "variance", "weight_sum",
               "weighted_uncertainty_sum", "hits", "touched")
 _REQUIRED = _PER_VOXEL + ("resolution", "format_version", "meta")
@@ -54,15 +72,13 @@ class MapFileError(ValueError):
 
 @dataclass
 class MapContents:
-    """A map file's content, validated. ``index`` holds global voxel indices."""
+    """A map file's content, validated. ``index`` holds global voxel indices. The read-out (``alpha``,
+    ``centers``, ``summary``) is derived, not stored: None where no one asked for it (``with_read_out``)."""
 
     meta: dict
     origin: np.ndarray
     index: np.ndarray
     evidence: np.ndarray
-    alpha: np.ndarray
-    centers: np.ndarray
-    summary: object  # DirichletSummary (label, probabilities, variance, state) when writing
     weight_sum: np.ndarray
     weighted_uncertainty_sum: np.ndarray
     hits: np.ndarray
@@ -71,17 +87,47 @@ class MapContents:
     config: MappingConfig | None = None
     origin_index: np.ndarray | None = None
     frame: WorldFrame | None = None
+    alpha: np.ndarray | None = None
+    centers: np.ndarray | None = None
+    summary: object = None  # DirichletSummary (label, probabilities, variance, state)
+
+    def voxels(self) -> VoxelArrays:
+        """The stored sums as VoxelArrays (global indices)."""
+        return VoxelArrays(index=self.index, evidence=self.evidence, weight_sum=self.weight_sum,
+                           weighted_uncertainty_sum=self.weighted_uncertainty_sum, hits=self.hits, touched=self.touched)
 
 
 def write_map_file(path, contents: MapContents) -> Path:
     """Write atomically (files.write_atomically: a temporary name in the same folder, then a rename), so
     that a killed writer never leaves a half-written file under the final name."""
-    return files.write_atomically(Path(path), lambda f: write_npz(f, **file_arrays(contents)))
+    data = encode_map(contents)
+    return files.write_atomically(Path(path), lambda f: f.write(data))
+
+
+def encode_map(contents: MapContents) -> bytes:
+    """A version-3 map file's bytes: the header and the compressed sums of ``contents`` (the read-out
+    is not stored). The same contents give the same bytes."""
+    voxels = contents.voxels()
+    index = np.asarray(voxels.index, np.int64).reshape(-1, 3)
+    rows = voxels.rows()
+    if len(index) > 1 and np.any(np.diff(pack_voxel_keys(index - lattice_index(contents.origin, contents.resolution))) <= 0):
+        order = np.lexsort(index.T[::-1])  # key order, as a Mapper's voxels come
+        index, rows = index[order], rows[order]
+    low = index.min(axis=0) if len(index) else np.zeros(3, np.int64)
+    extent = index.max(axis=0) - low + 1 if len(index) else np.ones(3, np.int64)
+    payload = tile_codec.compress_columns(index - low, rows, tile_codec.index_dtype(int(extent.max())))
+    header = {"format": FORMAT_NAME, "format_version": FORMAT_VERSION, "voxels": len(index), "columns": rows.shape[1],
+              "resolution": float(contents.resolution), "origin": [float(v) for v in contents.origin],
+              "index_low": [int(v) for v in low], "index_extent": [int(v) for v in extent], "payload_bytes": len(payload),
+              "payload_crc32": zlib.crc32(payload), "meta": contents.meta | {"format_version": FORMAT_VERSION}}
+    text = json.dumps(header, sort_keys=True).encode()
+    return MAGIC + struct.pack("<I", len(text)) + text + payload
 
 
 def file_arrays(contents: MapContents) -> dict[str, np.ndarray]:
-    """The arrays a map file of ``contents`` holds (``read_map_arrays`` gives them back), in the schema's
-    types: for readers that want a map file's arrays of a map that is not one (a store's tile)."""
+    """Every array of the map-file schema (versions 1 and 2 stored them all; ``read_map_arrays`` gives
+    them back) of ``contents`` with its read-out (``with_read_out``), in the schema's types: for readers
+    that want every array of a map."""
     meta = contents.meta | {"format_version": FORMAT_VERSION}
     return dict(
         centers=contents.centers,
@@ -100,6 +146,27 @@ def file_arrays(contents: MapContents) -> dict[str, np.ndarray]:
         format_version=np.int64(FORMAT_VERSION),
         meta=np.array(json.dumps(meta)),
     )
+
+
+def reader_mapper(contents: MapContents):
+    """An empty Mapper with the map's parameters, classes, frame and origin: the read-out of its voxels
+    without a table of its own to speak of."""
+    from .mapper import Mapper  # the Mapper writes map files: imported here, not at the top
+
+    reader = Mapper(contents.config, int(contents.meta["num_classes"]), class_names=tuple(contents.meta["classes"]), workers=1,
+                    initial_capacity=1, frame=contents.frame)
+    reader.origin_index = None if contents.origin_index is None else np.asarray(contents.origin_index, np.int64)
+    return reader
+
+
+def with_read_out(contents: MapContents) -> MapContents:
+    """``contents`` with its read-out (concentrations, centers, labels, states, variance) derived as a
+    Mapper of its parameters derives them."""
+    if contents.alpha is not None and contents.centers is not None and contents.summary is not None:
+        return contents
+    reader = reader_mapper(contents)
+    return replace(contents, alpha=reader.concentrations(contents.evidence), centers=reader.voxel_centers(contents.index),
+                   summary=reader.summarize(contents.evidence, contents.touched))
 
 
 def write_npz(file, **arrays: np.ndarray) -> None:
@@ -138,10 +205,163 @@ def _check_member_sizes(path: Path) -> None:
 
 
 def read_map_arrays(path) -> tuple[dict[str, np.ndarray], dict]:
-    """Every array of a map file and its parsed meta, validated (see the module docstring)."""
+    """Every array of the map-file schema (versions 1 and 2 hold them; a version-3 file's read-out is
+    derived) and the parsed meta, validated (see the module docstring)."""
     path = Path(path)
-    if not path.exists():
-        raise MapFileError(f"{path}: no such map file")
+    if is_compact(path):
+        contents = _read_compact(path)
+        return file_arrays(with_read_out(contents)), contents.meta
+    return _read_npz(path)
+
+
+def read_map_file(path) -> MapContents:
+    """A validated map file (any readable version) with its mapping config, ready to become a Mapper;
+    the read-out of a version-3 file is not derived (``with_read_out``)."""
+    path = Path(path)
+    if is_compact(path):
+        return _read_compact(path)
+    arrays, meta = _read_npz(path)
+    config = mapping_config(path, meta)
+    origin = arrays["origin"].astype(np.float64)
+    return MapContents(
+        meta=meta, origin=origin, index=arrays["voxel_index"].astype(np.int64), evidence=arrays["evidence"].astype(np.float64),
+        alpha=arrays["alpha"], centers=arrays["centers"], weight_sum=arrays["weight_sum"].astype(np.float64),
+        weighted_uncertainty_sum=arrays["weighted_uncertainty_sum"].astype(np.float64), hits=arrays["hits"].astype(np.int64),
+        touched=arrays["touched"].astype(bool), resolution=float(arrays["resolution"]), config=config,
+        origin_index=lattice_index(origin, float(arrays["resolution"])), frame=WorldFrame.from_dict(meta.get("frame"), str(path)),
+    )
+
+
+def is_compact(path: Path) -> bool:
+    """Whether ``path`` is a version-3 map file by its signature (else it is read as a version 1 or 2 npz)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(MAGIC)) == MAGIC
+    except FileNotFoundError:
+        raise MapFileError(f"{path}: no such map file") from None
+    except OSError as exc:
+        raise MapFileError(f"{path}: cannot read the map file ({exc.strerror})") from None
+
+
+def _read_compact(path: Path) -> MapContents:
+    """A version-3 file, validated: header, payload size and checksums, sizes before decompressing, then
+    the voxels and the meta as a version 1 or 2 file's are."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise MapFileError(f"{path}: cannot read the map file ({exc.strerror})") from None
+    header, start = _compact_header(path, data)
+    meta = _check_meta(path, header["meta"], header["format_version"])
+    count, columns, low, extent = header["voxels"], header["columns"], header["index_low"], header["index_extent"]
+    k = meta["num_classes"]
+    if columns != k + EXTRA_COLUMNS:
+        raise MapFileError(f"{path}: header says {columns} columns, {k} classes need {k + EXTRA_COLUMNS}")
+    try:
+        payload = data[start:]
+        tile_codec.check_payload(payload, header, path)
+        local, rows = tile_codec.decompress_columns(payload, count, columns, tile_codec.index_dtype(max(extent)), path)
+    except tile_codec.VoxelFileError as exc:
+        raise MapFileError(f"corrupt or truncated map file: {exc}") from None
+    del data, payload
+    if count and np.any(local.max(axis=0) >= extent):
+        raise MapFileError(f"{path}: voxel indices beyond the header's index_extent {extent}")
+    _check_sums(path, rows)
+    voxels = VoxelArrays.from_rows(local + np.asarray(low, np.int64), rows)
+    del local, rows
+    contents = MapContents(meta=meta, origin=np.asarray(header["origin"], np.float64), index=voxels.index, evidence=voxels.evidence,
+                           weight_sum=voxels.weight_sum, weighted_uncertainty_sum=voxels.weighted_uncertainty_sum, hits=voxels.hits,
+                           touched=voxels.touched, resolution=float(header["resolution"]), config=mapping_config(path, meta),
+                           frame=WorldFrame.from_dict(meta.get("frame"), str(path)))
+    _validate_compact(path, contents)
+    return contents
+
+
+def _compact_header(path: Path, data: bytes) -> tuple[dict, int]:
+    """A version-3 file's header (its keys present, of the right types) and where its payload starts."""
+    start = len(MAGIC) + 4
+    if len(data) < start:
+        raise MapFileError(f"{path}: corrupt or truncated map file ({len(data)} bytes)")
+    (length,) = struct.unpack_from("<I", data, len(MAGIC))
+    if length > _HEADER_LIMIT or start + length > len(data):
+        raise MapFileError(f"{path}: corrupt or truncated map file ({len(data) - start} bytes left for a {length}-byte header)")
+    try:
+        header = json.loads(data[start:start + length])
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise MapFileError(f"{path}: corrupt map file: the header is not valid JSON ({exc})") from None
+    if not isinstance(header, dict):
+        raise MapFileError(f"{path}: corrupt map file: the header is not a JSON object")
+    for key in ("format_version", "voxels", "columns", "payload_bytes", "payload_crc32"):
+        value = header.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise MapFileError(f"{path}: header key {key!r} = {value!r} must be a whole number >= 0")
+    for key, kind in (("index_low", int), ("index_extent", int), ("origin", (int, float))):
+        value = header.get(key)
+        if not (isinstance(value, list) and len(value) == 3 and all(isinstance(v, kind) and not isinstance(v, bool) for v in value)):
+            raise MapFileError(f"{path}: header key {key!r} = {str(value)[:80]} must be three numbers")
+    if min(header["index_extent"]) < 1:
+        raise MapFileError(f"{path}: header key 'index_extent' = {header['index_extent']} must be at least 1 per axis")
+    resolution = header.get("resolution")
+    if isinstance(resolution, bool) or not isinstance(resolution, (int, float)):
+        raise MapFileError(f"{path}: header key 'resolution' = {resolution!r} must be a number")
+    if header.get("format") != FORMAT_NAME:
+        raise MapFileError(f"{path}: header format is {header.get('format')!r}, not {FORMAT_NAME!r}")
+    if not isinstance(header.get("meta"), dict):
+        raise MapFileError(f"{path}: field 'meta' must be a JSON object, got {type(header.get('meta')).__name__}")
+    return header, start + length
+
+
+def _check_sums(path: Path, rows: np.ndarray) -> None:
+    """Refuse NaN/inf or negative sums ([V, K + 4] as ``VoxelArrays.rows()``), or counts that are not whole."""
+    k = rows.shape[1] - EXTRA_COLUMNS
+    fields = {"evidence": rows[:, :k], "weight_sum": rows[:, k], "weighted_uncertainty_sum": rows[:, k + 1], "hits": rows[:, k + 2]}
+    for name, values in fields.items():
+        bad = ~np.isfinite(values)
+        if bad.any():
+            raise MapFileError(f"{path}: field {name!r} holds {int(bad.sum())} NaN/inf values")
+        if values.size and values.min() < 0:
+            raise MapFileError(f"{path}: field {name!r} holds negative values (min {values.min()}); evidence, weights and counts only grow")
+    if np.any(fields["hits"] != np.floor(fields["hits"])):
+        raise MapFileError(f"{path}: field 'hits' holds values that are not whole numbers")
+
+
+def _validate_compact(path: Path, contents: MapContents) -> None:
+    """What a version-3 file's sums, indices, origin and resolution must satisfy (its sizes and order of
+    reading are checked before)."""
+    def fail(text: str):
+        raise MapFileError(f"{path}: {text}")
+
+    _check_lattice(path, contents.meta, contents.resolution, contents.origin)
+    contents.origin_index = lattice_index(contents.origin, contents.resolution)
+    local = contents.index - contents.origin_index
+    try:
+        check_index_range(local, "voxel indices")
+    except ValueError as exc:
+        fail(str(exc))
+    if len(local) > 1:
+        steps = np.diff(pack_voxel_keys(local))
+        if np.any(steps <= 0):
+            at = int(np.flatnonzero(steps <= 0)[0]) + 1
+            what = "appears more than once" if steps[at - 1] == 0 else "is out of key order (x, then y, then z)"
+            fail(f"voxel index {contents.index[at].tolist()} {what}")
+    grid_offset = reader_mapper(contents).grid_offset_m
+    if float(contents.meta["grid_offset_m"]) != grid_offset:
+        fail(f"meta.grid_offset_m {contents.meta['grid_offset_m']} disagrees with the method's grid offset {grid_offset}")
+
+
+def _check_lattice(path: Path, meta: dict, resolution: float, origin: np.ndarray) -> None:
+    """Refuse a resolution other than meta.mapping's, or an origin off the voxel lattice."""
+    mapping = meta["mapping"]
+    if not resolution > 0 or mapping.get("resolution_m") != resolution:
+        raise MapFileError(f"{path}: resolution {resolution} disagrees with meta.mapping.resolution_m {mapping.get('resolution_m')!r}")
+    if not np.isfinite(origin).all():
+        raise MapFileError(f"{path}: field 'origin' holds NaN/inf values")
+    origin_index = lattice_index(origin, resolution)
+    if np.abs(origin / resolution - origin_index).max() > _LATTICE_TOLERANCE:
+        raise MapFileError(f"{path}: origin {origin.tolist()} is not on the voxel lattice (a whole number of {resolution} m voxels)")
+
+
+def _read_npz(path: Path) -> tuple[dict[str, np.ndarray], dict]:
+    """Every array of a version 1 or 2 file and its parsed meta, validated."""
     try:
         _check_member_sizes(path)
         with np.load(path, allow_pickle=False) as data:
@@ -174,12 +394,25 @@ def mapping_config(path, meta: dict) -> MappingConfig:
 
 
 def _read_meta(path: Path, arrays: dict) -> dict:
+    """A version 1 or 2 file's meta member, parsed and checked, agreeing with its format_version member."""
     try:
         meta = json.loads(str(arrays["meta"]))
     except json.JSONDecodeError as exc:
         raise MapFileError(f"{path}: field 'meta' is not valid JSON ({exc})") from None
     if not isinstance(meta, dict):
         raise MapFileError(f"{path}: field 'meta' must be a JSON object, got {type(meta).__name__}")
+    file_version = arrays["format_version"]
+    if file_version.shape != () or not np.issubdtype(file_version.dtype, np.integer):
+        raise MapFileError(f"{path}: format_version {file_version!r} is not a whole number")
+    meta = _check_meta(path, meta, int(file_version))
+    if meta["format_version"] == FORMAT_VERSION:
+        raise MapFileError(f"{path}: an npz says format version {FORMAT_VERSION}, whose files are not npz (corrupt)")
+    return meta
+
+
+def _check_meta(path: Path, meta: dict, file_version: int) -> dict:
+    """``meta`` checked: every key of the right type, the format and a readable version agreeing with the
+    file's own ``file_version``, classes, counts, scan ids and frame."""
     for key, types in _META_TYPES.items():
         if key not in meta:
             raise MapFileError(f"{path}: meta lacks the key {key!r}")
@@ -188,8 +421,7 @@ def _read_meta(path: Path, arrays: dict) -> dict:
             raise MapFileError(f"{path}: meta.{key} = {value!r} has the wrong type (expected {' or '.join(t.__name__ for t in types)})")
     if meta["format"] != FORMAT_NAME:
         raise MapFileError(f"{path}: meta.format is {meta['format']!r}, not {FORMAT_NAME!r}")
-    file_version = arrays["format_version"]
-    if file_version.shape != () or not np.issubdtype(file_version.dtype, np.integer) or int(file_version) != meta["format_version"]:
+    if file_version != meta["format_version"]:
         raise MapFileError(f"{path}: format_version {file_version!r} disagrees with meta.format_version {meta['format_version']}")
     if meta["format_version"] not in READABLE_VERSIONS:
         raise MapFileError(f"{path}: map format version {meta['format_version']}; this evsemmap_warp reads versions "
@@ -238,12 +470,8 @@ def _validate_arrays(path: Path, arrays: dict, meta: dict) -> None:
     if v and not np.isin(arrays["state"], (0, 1, 2)).all():
         fail("field 'state' holds values other than 0 (UNKNOWN), 1 (FREE), 2 (OCCUPIED)")
     resolution = float(arrays["resolution"])
-    mapping = meta["mapping"]
-    if not resolution > 0 or mapping.get("resolution_m") != resolution:
-        fail(f"resolution {resolution} disagrees with meta.mapping.resolution_m {mapping.get('resolution_m')!r}")
+    _check_lattice(path, meta, resolution, arrays["origin"])
     origin_index = lattice_index(arrays["origin"], resolution)
-    if np.abs(arrays["origin"] / resolution - origin_index).max() > _LATTICE_TOLERANCE:
-        fail(f"origin {arrays['origin'].tolist()} is not on the voxel lattice (a whole number of {resolution} m voxels)")
     index = arrays["voxel_index"].astype(np.int64)
     try:
         check_index_range(index - origin_index, "voxel indices")
@@ -258,17 +486,3 @@ def _validate_arrays(path: Path, arrays: dict, meta: dict) -> None:
         centers = (index + 0.5) * resolution + float(meta["grid_offset_m"])
         if np.abs(centers - arrays["centers"]).max() > _LATTICE_TOLERANCE * resolution + 1e-9 * np.abs(centers).max():
             fail("field 'centers' disagrees with voxel_index, resolution and meta.grid_offset_m")
-
-
-def read_map_file(path) -> MapContents:
-    """A validated map file with its mapping config, ready to become a Mapper."""
-    arrays, meta = read_map_arrays(path)
-    config = mapping_config(path, meta)
-    origin = arrays["origin"].astype(np.float64)
-    return MapContents(
-        meta=meta, origin=origin, index=arrays["voxel_index"].astype(np.int64), evidence=arrays["evidence"].astype(np.float64),
-        alpha=arrays["alpha"], centers=arrays["centers"], summary=None, weight_sum=arrays["weight_sum"].astype(np.float64),
-        weighted_uncertainty_sum=arrays["weighted_uncertainty_sum"].astype(np.float64), hits=arrays["hits"].astype(np.int64),
-        touched=arrays["touched"].astype(bool), resolution=float(arrays["resolution"]), config=config,
-        origin_index=lattice_index(origin, float(arrays["resolution"])), frame=WorldFrame.from_dict(meta.get("frame"), str(path)),
-    )

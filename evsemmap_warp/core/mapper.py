@@ -606,21 +606,28 @@ class Mapper:
 
     # ------------------------------------------------------------------ files and merging
     def save(self, path) -> Path:
-        """Write the map file (schema in ``core/map_file.py``)."""
-        arrays, summary = self.voxels()
-        return map_file.write_map_file(path, self.contents_of(arrays, summary))
+        """Write the map file (schema in ``core/map_file.py``: the sums, not the read-out)."""
+        return map_file.write_map_file(path, self.contents_of(self.voxels().arrays, read_out=False))
 
-    def contents_of(self, arrays: VoxelArrays, summary: DirichletSummary | None = None, **meta) -> "map_file.MapContents":
+    def contents_of(self, arrays: VoxelArrays, summary: DirichletSummary | None = None, *, read_out: bool = True,
+                    **meta) -> "map_file.MapContents":
         """What a map file of ``arrays`` (global indices) holds with this map's parameters, origin and
-        frame: the read-out (concentrations, centers, labels, states, variance) derived here; ``meta``
-        overrides keys of ``metadata()``."""
-        summary = summary if summary is not None else self.summarize(arrays.evidence, arrays.touched)
-        return map_file.MapContents(
+        frame, with (``read_out``) the read-out derived here (concentrations, centers, labels, states,
+        variance; ``summary`` when already at hand); ``meta`` overrides keys of ``metadata()``."""
+        contents = map_file.MapContents(
             meta=self.metadata() | meta, origin=self.origin, index=arrays.index, evidence=arrays.evidence,
-            alpha=self.concentrations(arrays.evidence), centers=self.voxel_centers(arrays.index), summary=summary,
             weight_sum=arrays.weight_sum, weighted_uncertainty_sum=arrays.weighted_uncertainty_sum, hits=arrays.hits,
             touched=arrays.touched, resolution=self.config.resolution_m, config=self.config, origin_index=self.origin_index,
             frame=self.frame)
+        if read_out:
+            contents.summary = summary if summary is not None else self.summarize(arrays.evidence, arrays.touched)
+            contents.alpha, contents.centers = self.concentrations(arrays.evidence), self.voxel_centers(arrays.index)
+        return contents
+
+    def check_room(self, new_voxels: int) -> None:
+        """Refuse (MemoryBudgetError) ``new_voxels`` more voxels, spread over the shards, where the memory
+        budget does not hold the tables they need; changes nothing."""
+        self.shards[0].check_room(-(-int(new_voxels) // len(self.shards)))
 
     def _check_writable(self) -> None:
         if self.read_only is not None:

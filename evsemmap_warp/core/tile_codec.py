@@ -43,21 +43,76 @@ CODEC_FORMAT = "evsemmap_warp.voxels"
 CODEC_VERSION = 1
 ZSTD_LEVEL = 3
 _HEADER_LIMIT = 1 << 24  # a header beyond 16 MB is not one this writes
+# zstd's format: a block holds at most 128 KiB of content and takes at least a 3-byte header and one byte
+_ZSTD_BLOCK_MAX = 128 * 1024
+_ZSTD_BLOCK_OVERHEAD = 4
 
 
 class VoxelFileError(ValueError):
     """A store voxel file that is truncated, corrupt, of another format or of another store."""
 
 
-def _index_dtype(tile_voxels: int):
-    return np.uint8 if tile_voxels <= 256 else np.uint16 if tile_voxels <= 65536 else np.uint32
+def index_dtype(extent: int):
+    """The narrowest unsigned integer holding indices 0 .. extent - 1 (a tile's or a map's extent in voxels)."""
+    return np.uint8 if extent <= 256 else np.uint16 if extent <= 65536 else np.uint32
+
+
+def compress_columns(local: np.ndarray, rows: np.ndarray, dtype) -> bytes:
+    """The payload of ``local`` [V, 3] (non-negative voxel indices that fit the unsigned ``dtype``) and their
+    ``rows`` [V, K + 4] (``VoxelArrays.rows()``): one zstd frame (content size and checksum in its header)
+    of the indices axis by axis, the sums column by column and the touched flags as bits. The map file
+    (core/map_file.py) holds the same payload."""
+    import zstandard
+
+    parts = [np.ascontiguousarray(np.asarray(local).T, dtype=dtype).tobytes()]
+    parts.append(np.ascontiguousarray(rows[:, :-1].T, dtype="<f8").tobytes())  # column by column: a class's zeros run together
+    parts.append(np.packbits(rows[:, -1] > 0).tobytes())
+    return zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True).compress(b"".join(parts))
+
+
+def decompress_columns(payload: bytes, count: int, columns: int, dtype, where) -> tuple[np.ndarray, np.ndarray]:
+    """(local indices [V, 3] int64, rows [V, columns] float64) of a ``compress_columns`` payload that
+    the caller's header says holds ``count`` voxels. The size those need is checked against the zstd
+    frame's declared content size and against the most a frame of the payload's size can expand to,
+    before anything of that size is allocated: a lying count or frame header is refused, not allocated."""
+    import zstandard
+
+    dtype = np.dtype(dtype)
+    expected = 3 * count * dtype.itemsize + (columns - 1) * count * 8 + (count + 7) // 8
+    try:
+        declared = zstandard.frame_content_size(payload)
+    except zstandard.ZstdError as exc:
+        raise VoxelFileError(f"{where}: payload is not a zstd frame ({exc})") from None
+    if declared != expected:
+        raise VoxelFileError(f"{where}: the payload declares {declared:,} bytes, {count} voxels of {columns} columns need {expected:,} "
+                             f"(corrupt or truncated)")
+    if expected > _most_content(len(payload)):
+        raise VoxelFileError(f"{where}: {len(payload):,} payload bytes cannot hold the {expected:,} bytes of {count} voxels "
+                             f"(corrupt: a lying size)")
+    try:
+        raw = zstandard.ZstdDecompressor().decompress(payload, max_output_size=expected)
+    except zstandard.ZstdError as exc:
+        raise VoxelFileError(f"{where}: payload does not decompress ({exc})") from None
+    if len(raw) != expected:
+        raise VoxelFileError(f"{where}: payload holds {len(raw)} bytes, {count} voxels of {columns} columns need {expected}")
+    at = 3 * count * dtype.itemsize
+    local = np.frombuffer(raw[:at], dtype).reshape(3, count).T.astype(np.int64)
+    rows = np.empty((count, columns), np.float64)
+    rows[:, :-1] = np.frombuffer(raw, "<f8", count=(columns - 1) * count, offset=at).reshape(columns - 1, count).T
+    at += (columns - 1) * 8 * count
+    rows[:, -1] = np.unpackbits(np.frombuffer(raw, np.uint8, offset=at), count=count)
+    return local, rows
+
+
+def _most_content(payload_bytes: int) -> int:
+    """The most bytes a zstd frame of ``payload_bytes`` can decompress to: every block (at least
+    _ZSTD_BLOCK_OVERHEAD bytes, one byte of it content for an RLE block) holds at most _ZSTD_BLOCK_MAX."""
+    return (payload_bytes // _ZSTD_BLOCK_OVERHEAD + 1) * _ZSTD_BLOCK_MAX
 
 
 def encode_voxels(index: np.ndarray, rows: np.ndarray, tile: tuple[int, int, int], tile_voxels: int, header: dict) -> bytes:
     """One file's bytes: voxels of ``tile`` (global ``index`` [V, 3] in key order, ``rows`` [V, K + 4]
     as ``VoxelArrays.rows()``), with ``header``'s identity fields."""
-    import zstandard
-
     index = np.asarray(index, np.int64).reshape(-1, 3)
     rows = np.asarray(rows, np.float64)
     tile_key = np.asarray(tile, np.int64).reshape(3)
@@ -65,10 +120,7 @@ def encode_voxels(index: np.ndarray, rows: np.ndarray, tile: tuple[int, int, int
     if len(local) and (local.min() < 0 or local.max() >= tile_voxels):
         raise ValueError(f"voxels outside tile {tuple(int(t) for t in tile_key)} of {tile_voxels} voxels")
     count, columns = len(index), rows.shape[1]
-    parts = [np.ascontiguousarray(local.T, dtype=_index_dtype(tile_voxels)).tobytes()]
-    parts.append(np.ascontiguousarray(rows[:, :-1].T, dtype="<f8").tobytes())  # column by column: a class's zeros run together
-    parts.append(np.packbits(rows[:, -1] > 0).tobytes())
-    payload = zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True).compress(b"".join(parts))
+    payload = compress_columns(local, rows, index_dtype(tile_voxels))
     head = header | {"format": CODEC_FORMAT, "version": CODEC_VERSION, "voxels": count, "columns": columns,
                      "tile": [int(t) for t in tile_key], "tile_voxels": int(tile_voxels), "payload_bytes": len(payload),
                      "payload_crc32": zlib.crc32(payload)}
@@ -102,33 +154,23 @@ def decode_header(data: bytes, where) -> tuple[dict, int]:
     return header, start + length
 
 
-def decode_voxels(data: bytes, where) -> tuple[dict, np.ndarray, np.ndarray]:
-    """(header, global index [V, 3] int64, rows [V, K + 4] float64) of a voxel file's bytes, checked:
-    signature, header, payload size and CRC, zstd's content checksum, indices inside the tile and in
-    strict key order, finite non-negative sums."""
-    import zstandard
-
-    header, start = decode_header(data, where)
-    payload = data[start:]
+def check_payload(payload: bytes, header: dict, where) -> None:
+    """Refuse a payload of another size or CRC-32 than its header's ``payload_bytes`` and ``payload_crc32``."""
     if len(payload) != header["payload_bytes"]:
         raise VoxelFileError(f"{where}: {len(payload)} payload bytes, the header says {header['payload_bytes']} (truncated?)")
     if zlib.crc32(payload) != header["payload_crc32"]:
         raise VoxelFileError(f"{where}: payload checksum mismatch (the file is corrupt)")
+
+
+def decode_voxels(data: bytes, where) -> tuple[dict, np.ndarray, np.ndarray]:
+    """(header, global index [V, 3] int64, rows [V, K + 4] float64) of a voxel file's bytes, checked:
+    signature, header, payload size and CRC, zstd's content checksum, indices inside the tile and in
+    strict key order, finite non-negative sums."""
+    header, start = decode_header(data, where)
+    payload = data[start:]
+    check_payload(payload, header, where)
     count, columns, tile_voxels = header["voxels"], header["columns"], header["tile_voxels"]
-    index_dtype = np.dtype(_index_dtype(tile_voxels))
-    expected = 3 * count * index_dtype.itemsize + (columns - 1) * count * 8 + (count + 7) // 8
-    try:
-        raw = zstandard.ZstdDecompressor().decompress(payload, max_output_size=expected)
-    except zstandard.ZstdError as exc:
-        raise VoxelFileError(f"{where}: payload does not decompress ({exc})") from None
-    if len(raw) != expected:
-        raise VoxelFileError(f"{where}: payload holds {len(raw)} bytes, {count} voxels of {columns} columns need {expected}")
-    at = 3 * count * index_dtype.itemsize
-    local = np.frombuffer(raw[:at], index_dtype).reshape(3, count).T.astype(np.int64)
-    rows = np.empty((count, columns), np.float64)
-    rows[:, :-1] = np.frombuffer(raw, "<f8", count=(columns - 1) * count, offset=at).reshape(columns - 1, count).T
-    at += (columns - 1) * 8 * count
-    rows[:, -1] = np.unpackbits(np.frombuffer(raw, np.uint8, offset=at), count=count)
+    local, rows = decompress_columns(payload, count, columns, index_dtype(tile_voxels), where)
     if count:
         if local.max() >= tile_voxels:
             raise VoxelFileError(f"{where}: voxel indices outside the tile")
