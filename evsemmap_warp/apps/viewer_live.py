@@ -36,8 +36,9 @@ def reading_template(mapper):
     return template
 
 
-class _ViewerThread:
-    """One background thread drawing the newest thing handed to it; older ones not yet drawn are dropped."""
+class LatestOnlyWorker:
+    """One background thread handling (``_draw``) the newest thing handed to it; older ones not yet handled are
+    dropped. The live viewer draws with it, ``evsemmap live`` publishes the map with it."""
 
     def __init__(self, name: str):
         self._cond = threading.Condition()
@@ -97,7 +98,7 @@ class _ViewerThread:
         pass
 
 
-class LiveMap(_ViewerThread):
+class LiveMap(LatestOnlyWorker):
     """``mapper``'s map, shown as map ``map_index`` of ``viewer`` while it is made (named ``name``, to be
     written to ``path``), with the last scan of each update and the sensor's path so far. ``offer`` on
     the mapping thread; the rest happens on this object's thread."""
@@ -196,7 +197,7 @@ def map_live(mapper, scans, live: LiveMap, *, every: int, progress=None) -> list
         live.offer(len(stats), last[0] if last else None)
 
 
-class LiveTiles(_ViewerThread):
+class LiveTiles(LatestOnlyWorker):
     """Tiles of a store being written (``run_batch``'s ``on_tile(name, voxels)``: a tile's running sum,
     global indices) or read, shown as map ``map_index`` of ``viewer``: an overview in which each tile
     holds its share of ``max_voxels``, filled in as tiles arrive. ``template``: a Mapper with the store's

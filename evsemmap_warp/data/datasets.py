@@ -209,10 +209,15 @@ class LabelledSequence(_Insertions):
         for frame in self.frames[start:stop]:
             scan = self.sequence.read_scan(frame)
             labels = remap_point_labels(self.sequence.read_point_labels(frame), self.table, frame.point_labels)
-            to_world = self.world.to_world(self.sequence.pose(frame))
-            returned = np.any(scan[:, :3] != 0, axis=1)
-            points = scan[returned, :3].astype(np.float64) @ to_world[:3, :3].T + to_world[:3, 3]
-            yield Scan(str(frame.scan), points, labels[returned], PayloadType.LABEL, to_world[:3, 3].copy())
+            yield labelled_scan(str(frame.scan), scan, labels, self.world.to_world(self.sequence.pose(frame)))
+
+
+def labelled_scan(name: str, scan: np.ndarray, labels: np.ndarray, to_world: np.ndarray) -> Scan:
+    """A LiDAR scan [N, 4] (sensor frame) with its class labels [N], placed in the world frame with the float64
+    transform ``to_world`` [4, 4]; zero returns dropped (every labelled source places its scans here)."""
+    returned = np.any(scan[:, :3] != 0, axis=1)
+    points = scan[returned, :3].astype(np.float64) @ to_world[:3, :3].T + to_world[:3, 3]
+    return Scan(name, points, labels[returned], PayloadType.LABEL, to_world[:3, 3].copy())
 
 
 def label_table(ontology: str, num_classes: int = 0) -> tuple[np.ndarray, tuple[str, ...]]:

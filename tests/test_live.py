@@ -1,0 +1,181 @@
+"""Live mapping over Zenoh, end to end: real Zenoh peers on 127.0.0.1 (peer mode, explicit endpoints, no
+multicast, no other network). ``evsemmap replay`` publishes the tiny synthetic drive as a ROS 2 robot on
+rmw_zenoh would; ``evsemmap live`` maps it; the live map equals ``evsemmap map`` of the same log, and what
+it publishes back decodes with rosbags into the map and its terrain layers."""
+
+import json
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+pytest.importorskip("rosbags")
+
+from conftest import wait_until  # noqa: E402
+
+from evsemmap_warp.apps.cli import main  # noqa: E402
+from evsemmap_warp.core.mapper import Mapper, VoxelState  # noqa: E402
+from evsemmap_warp.data.log_writer import write_log  # noqa: E402
+from evsemmap_warp.live.publish import COSTMAP_TOPIC, GRID_MAP_TOPIC, MAP_TOPIC  # noqa: E402
+from evsemmap_warp.live.ros2_wire import ADMIN_SPACE, decode_attachment, parse_token, topic_key, typestore  # noqa: E402
+from evsemmap_warp.live.session import ZenohOptions, open_session  # noqa: E402
+from evsemmap_warp.synthetic.preset import load_preset  # noqa: E402
+from evsemmap_warp.synthetic.writer import generate_sequence  # noqa: E402
+from evsemmap_warp.terrain.api import compute_layers  # noqa: E402
+from evsemmap_warp.terrain.outputs import band_from_grid_map  # noqa: E402
+
+PRESETS = ["rellis3d", "rellis3d-bag"]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    """The tiny synthetic drive (LiDAR only: no camera) as a ROS 2 bag, and as its two halves."""
+    root = tmp_path_factory.mktemp("live_drive")
+    folder = root / "folder"
+    generate_sequence(load_preset("tiny"), folder, progress=False, camera=False)
+    logs = {"whole": root / "whole", "first": root / "first", "second": root / "second"}
+    write_log(folder, logs["whole"], "rosbag2")
+    write_log(folder, logs["first"], "rosbag2", frames=slice(0, 3))
+    write_log(folder, logs["second"], "rosbag2", frames=slice(3, None))
+    return logs
+
+
+class LiveRun:
+    """``evsemmap live`` on a thread of this process, listening on a free port; ``result()`` joins it."""
+
+    def __init__(self, tmp_path, *extra):
+        self.port = free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.out, self.report = tmp_path / "live.npz", tmp_path / "live.json"
+        argv = ["live", *PRESETS, "--method", "ebs", "--out", str(self.out), "--listen", self.endpoint, "--report", str(self.report),
+                "--map-period", "0.2", "--grid-period", "0.5", *extra]
+        self.code = None
+        self.thread = threading.Thread(target=lambda: setattr(self, "code", main(argv)), daemon=True)
+        self.thread.start()
+
+    def result(self, timeout: float = 60.0) -> dict:
+        self.thread.join(timeout)
+        assert not self.thread.is_alive(), "evsemmap live did not end"
+        return json.loads(self.report.read_text()) if self.report.exists() else {}
+
+
+def replay(endpoint: str, log, *extra) -> int:
+    return main(["replay", str(log), "--connect", endpoint, "--quiet", "--start-delay", "1.0", *extra])
+
+
+def batch_map(log, tmp_path) -> Mapper:
+    out = tmp_path / "batch.npz"
+    assert main(["map", str(log), *PRESETS, "--method", "ebs", "--out", str(out), "--quiet"]) == 0
+    return Mapper.load(out)
+
+
+def assert_same_map(live: Mapper, batch: Mapper) -> None:
+    (va, sa), (vb, sb) = live.voxels(), batch.voxels()
+    np.testing.assert_array_equal(va.index, vb.index)
+    np.testing.assert_array_equal(sa.label, sb.label)
+    np.testing.assert_array_equal(va.hits, vb.hits)
+    np.testing.assert_allclose(va.evidence, vb.evidence, rtol=1e-5, atol=1e-6)  # float32 kernels, summed in another order
+    assert live.frame == batch.frame
+
+
+class Listener:
+    """A third peer, connected to live's endpoint: keeps the last sample of the published topics."""
+
+    def __init__(self, endpoint: str):
+        self.session = open_session(ZenohOptions(connect=[endpoint]))
+        self.last: dict[str, tuple[bytes, bytes | None]] = {}
+        self.subscribers = [self.session.declare_subscriber(topic_key(t, key_format="rmw_zenoh"), self._keep(t))
+                            for t in (MAP_TOPIC, GRID_MAP_TOPIC, COSTMAP_TOPIC)]
+
+    def _keep(self, topic):
+        def keep(sample):
+            attachment = None if sample.attachment is None else sample.attachment.to_bytes()
+            self.last[topic] = (sample.payload.to_bytes(), attachment)
+        return keep
+
+    def publishers(self) -> dict[str, str]:
+        tokens = {}
+        for reply in self.session.liveliness().get(f"{ADMIN_SPACE}/0/**", timeout=5.0):
+            token = parse_token(str(reply.ok.key_expr)) if reply.ok is not None else None
+            if token is not None and token["kind"] == "MP":
+                tokens[token["topic"]] = token["msgtype"]
+        return tokens
+
+    def close(self):
+        for s in self.subscribers:
+            s.undeclare()
+        self.session.close()
+
+
+def test_replayed_drive_maps_live_as_the_log_maps_and_the_published_map_decodes_back(drive, tmp_path):
+    batch = batch_map(drive["whole"], tmp_path)
+    live = LiveRun(tmp_path, "--idle-exit", "4")
+    listener = Listener(live.endpoint)
+    try:
+        assert replay(live.endpoint, drive["whole"]) == 0
+        # ros2 topic list on an rmw_zenoh robot reads the publishers' liveliness tokens
+        assert wait_until(lambda: {MAP_TOPIC, GRID_MAP_TOPIC, COSTMAP_TOPIC} <= set(listener.publishers()), 10)
+        assert listener.publishers()[MAP_TOPIC] == "sensor_msgs/msg/PointCloud2"
+        report = live.result()
+        assert live.code == 0, report
+        assert wait_until(lambda: len(listener.last) == 3, 5)
+    finally:
+        listener.close()
+    assert report["scans_mapped"] == 6 and report["scans_dropped"] == 0 and report["key_format"] == "rmw_zenoh"
+    mapped = Mapper.load(live.out)
+    assert_same_map(mapped, batch)
+
+    store = typestore()
+    # the map cloud published last holds every scan: the occupied voxels' centers, labels, probabilities, variances
+    payload, attachment = listener.last[MAP_TOPIC]
+    assert decode_attachment(attachment)[0] >= 1
+    cloud = store.deserialize_cdr(payload, "sensor_msgs/msg/PointCloud2")
+    from evsemmap_warp.data.ros_messages import decode_cloud
+
+    points = decode_cloud(cloud)
+    arrays, summary = batch.voxels()
+    occupied = summary.state == VoxelState.OCCUPIED
+    assert len(points) == occupied.sum() and cloud.header.frame_id == batch.frame.name
+    np.testing.assert_allclose(np.stack([points[n] for n in "xyz"], axis=1), batch.voxel_centers(arrays.index[occupied]), atol=1e-4)
+    np.testing.assert_array_equal(points["label"], summary.label[occupied])
+    labels = summary.label[occupied]
+    np.testing.assert_allclose(points["probability"], summary.probabilities[occupied][np.arange(len(labels)), labels], rtol=1e-5)
+    np.testing.assert_allclose(points["variance"], summary.variance[occupied], rtol=1e-4, atol=1e-9)
+
+    # the GridMap: every band of the terrain layers over the window it covers
+    grid_map = store.deserialize_cdr(listener.last[GRID_MAP_TOPIC][0], "grid_map_msgs/msg/GridMap")
+    info = grid_map.info
+    size_x, size_y = round(info.length_x / info.resolution), round(info.length_y / info.resolution)
+    cx, cy, inset = info.pose.position.x, info.pose.position.y, 1e-6
+    layers = compute_layers(batch, bounds=[cx - info.length_x / 2 + inset, cy - info.length_y / 2 + inset,
+                                           cx + info.length_x / 2 - inset, cy + info.length_y / 2 - inset])
+    assert (layers.grid.width, layers.grid.height) == (size_x, size_y) and list(grid_map.layers) == layers.band_names
+    for name, data in zip(grid_map.layers, grid_map.data):
+        np.testing.assert_allclose(band_from_grid_map(data.data, size_x, size_y), layers.bands[name], rtol=1e-4, atol=1e-5,
+                                   equal_nan=True, err_msg=name)
+    costmap = store.deserialize_cdr(listener.last[COSTMAP_TOPIC][0], "nav_msgs/msg/OccupancyGrid")
+    assert (costmap.info.width, costmap.info.height) == (size_x, size_y)
+    assert set(np.unique(costmap.data)) <= set(range(-1, 101))
+
+
+def test_the_mapper_starts_before_the_robot_which_stops_and_comes_back(drive, tmp_path):
+    """The robot's publisher session ends after the first half of the drive and a new one brings the second:
+    the live map is the map of the whole log."""
+    batch = batch_map(drive["whole"], tmp_path)
+    live = LiveRun(tmp_path, "--idle-exit", "6", "--no-publish")
+    time.sleep(1.0)  # nobody publishes yet: live waits
+    assert replay(live.endpoint, drive["first"]) == 0
+    time.sleep(1.0)  # the robot is gone
+    assert replay(live.endpoint, drive["second"]) == 0
+    report = live.result()
+    assert live.code == 0 and report["scans_mapped"] == 6 and report["scans_dropped"] == 0, report
+    assert_same_map(Mapper.load(live.out), batch)
