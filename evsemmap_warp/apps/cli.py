@@ -829,6 +829,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_demo)
 
+    from ..live.commands import add_parsers as add_live_parsers  # evsemmap live, evsemmap replay (imports no zenoh)
+
+    add_live_parsers(sub, positive=_positive, positive_float=_positive_float, port=_port)
+
     p = sub.add_parser("info", help="summarise a map file or a map store")
     p.add_argument("map", type=Path)
     p.set_defaults(func=_cmd_info)

@@ -118,6 +118,27 @@ def _stamp(header) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
+def cloud_points(msg, label_field: str | None, where: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """A decoded PointCloud2 as [N, 4] float32 x y z intensity (points without a return, NaN, dropped) and
+    the raw label ids of field ``label_field`` (None: no labels); raises DataError naming ``where``."""
+    try:
+        cloud = decode_cloud(msg)
+        xyz = cloud_xyz(cloud, where)
+    except MessageError as exc:
+        raise DataError(f"{where}: {exc}") from None
+    # organised clouds and is_dense: false mark missing returns with NaN: they are no points
+    finite = np.isfinite(xyz).all(axis=1)
+    scan = np.zeros((int(finite.sum()), 4), np.float32)
+    scan[:, :3] = xyz[finite]
+    if "intensity" in cloud.dtype.names:
+        scan[:, 3] = cloud["intensity"][finite]
+    if label_field is None:
+        return scan, None
+    if label_field not in cloud.dtype.names:
+        raise DataError(f"{where}: the cloud has no {label_field!r} field (dataset.bag.label_field); its fields: {list(cloud.dtype.names)}")
+    return scan, cloud[label_field][finite].astype(np.int64)
+
+
 class LogSequence:
     """A robot log read as a sequence (see the module text). ``missing_topics`` lists configured
     camera topics the log lacks (for ``check-data``); using a missing or broken part raises a
@@ -407,21 +428,8 @@ class LogSequence:
     def _decode(self, frame: LogFrame) -> tuple[np.ndarray, np.ndarray | None]:
         if self._decoded is None or self._decoded[0] != frame.index:
             msg = self._message("cloud", frame.log_time_ns, frame.stamp_ns, frame.scan)
-            try:
-                cloud = decode_cloud(msg)
-                xyz = cloud_xyz(cloud, frame.scan)
-            except MessageError as exc:
-                raise DataError(f"{frame.scan}: {exc}") from None
-            # organised clouds and is_dense: false mark missing returns with NaN: they are no points
-            finite = np.isfinite(xyz).all(axis=1)
-            scan = np.zeros((int(finite.sum()), 4), np.float32)
-            scan[:, :3] = xyz[finite]
-            if "intensity" in cloud.dtype.names:
-                scan[:, 3] = cloud["intensity"][finite]
-            labels = None
-            if frame.point_labels is not None:
-                labels = cloud[self.config.label_field][finite].astype(np.int64)
-            self._decoded = (frame.index, scan, labels)
+            label_field = self.config.label_field if frame.point_labels is not None else None
+            self._decoded = (frame.index, *cloud_points(msg, label_field, frame.scan))
         return self._decoded[1], self._decoded[2]
 
     def read_scan(self, frame: LogFrame) -> np.ndarray:
