@@ -56,6 +56,13 @@ class _TimedEdge:
         self.translations.insert(at, np.asarray(translation, np.float64))
         self.rotations.insert(at, q / np.linalg.norm(q))
 
+    def trim(self, before_ns: int | None, after_ns: int | None) -> None:
+        start = 0 if before_ns is None else max(bisect.bisect_right(self.stamps, before_ns) - 1, 0)
+        stop = len(self.stamps) if after_ns is None else bisect.bisect_right(self.stamps, after_ns)
+        for samples in (self.stamps, self.translations, self.rotations):
+            del samples[stop:]
+            del samples[:start]
+
     def at(self, stamp_ns: int, child: str) -> np.ndarray:
         at = bisect.bisect_right(self.stamps, stamp_ns) - 1
         if at < 0 or (stamp_ns > self.stamps[-1]):
@@ -101,6 +108,17 @@ class TransformTree:
         self._check_parent(parent, child)
         _check_parts(parent, child, translation, quaternion, stamp_ns)
         self._timed.setdefault(child, _TimedEdge(parent)).add(int(stamp_ns), translation, quaternion)
+
+    def trim(self, *, before_ns: int | None = None, after_ns: int | None = None) -> None:
+        """Forget the timed samples stamped before ``before_ns`` (but the last one before it, so a lookup at
+        ``before_ns`` or later still interpolates) and those after ``after_ns``; static transforms stay. A live
+        source keeps its tree to the scans still to come this way, and forgets another timeline's samples
+        when time jumped back."""
+        for child in list(self._timed):
+            edge = self._timed[child]
+            edge.trim(before_ns, after_ns)
+            if not edge.stamps:
+                del self._timed[child]
 
     def _check_parent(self, parent: str, child: str) -> None:
         if parent == child:

@@ -57,7 +57,6 @@ class RobotFeed:
         self.detected_format = None if key_format == "auto" else key_format
         self.tree = TransformTree()
         self.tree_lock = threading.Lock()
-        self.static: list[tuple[str, str, np.ndarray, np.ndarray]] = []  # kept to rebuild the tree after a time jump
         self.odometry_frames: set[str] = set()
         self.too_large = 0
         self.topics: dict[str, TopicState] = {}
@@ -71,7 +70,7 @@ class RobotFeed:
             self.topics[topic] = TopicState(role, topic, msgtype)
             for fmt in formats:
                 key = topic_key(topic, key_format=fmt, domain_id=domain_id)
-                self._subscribers.append(session.declare_subscriber(key, lambda sample, t=topic: self._on_sample(t, sample)))
+                self._subscribers.append(session.declare_subscriber(key, lambda sample, t=topic: self.on_sample(t, sample)))
 
     def close(self) -> None:
         for subscriber in self._subscribers:
@@ -85,7 +84,8 @@ class RobotFeed:
             state.problems.append(text)
             say(f"{state.topic}: {text}; not mapped (counted in the diagnostics)")
 
-    def _on_sample(self, topic: str, sample) -> None:
+    def on_sample(self, topic: str, sample) -> None:
+        """The subscriber callback of ``topic`` (public: tests hand it samples without a network)."""
         state = self.topics[topic]
         try:
             key = parse_key(str(sample.key_expr), self.domain_id)
@@ -130,16 +130,14 @@ class RobotFeed:
                 translation, rotation = np.array([v.x, v.y, v.z]), np.array([q.x, q.y, q.z, q.w])
                 if role == "tf_static":
                     self.tree.add_static(t.header.frame_id, t.child_frame_id, translation, rotation)
-                    self.static.append((t.header.frame_id, t.child_frame_id, translation, rotation))
                 else:
                     self.tree.add_timed(t.header.frame_id, t.child_frame_id, stamp_of(t.header), translation, rotation)
 
-    def forget_motion(self) -> None:
-        """Drop every moving transform received so far, keeping the static ones (after time jumped back)."""
+    def trim(self, *, before_ns: int | None = None, after_ns: int | None = None) -> None:
+        """``TransformTree.trim`` under the lock: forget moving transforms no scan to come needs (before the last
+        scan mapped: the tree stays bounded over a drive of any length), or another timeline's (after time jumped back)."""
         with self.tree_lock:
-            self.tree = TransformTree()
-            for parent, child, translation, rotation in self.static:
-                self.tree.add_static(parent, child, translation, rotation)
+            self.tree.trim(before_ns=before_ns, after_ns=after_ns)
 
     def silent_topics(self) -> list[str]:
         """Subscribed topics nothing has arrived on yet."""

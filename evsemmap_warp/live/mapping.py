@@ -9,7 +9,7 @@ What a robot does to a mapper, each said in one line and counted in the diagnost
   a scan older than the first transform is dropped at once;
 - time jumping back (a looping replay, a restarted robot): ``refuse`` drops the scans stamped before the
   last one mapped (``time_jump``); ``reset`` writes the map so far next to ``--out`` (``NAME.1.npz``, ...),
-  forgets the moving transforms and starts a new map;
+  forgets the moving transforms stamped after the scan (the old timeline's) and starts a new map;
 - a cloud that does not decode (``malformed``), is too large (``too_large``, before queueing), or a message
   of another type on a topic (refused by the feed);
 - mapping falling behind: the queue drops its oldest scans (``queue_full``);
@@ -175,6 +175,7 @@ class LiveMapping:
         back = (self.last_stamp - stamp) / 1e9
         if self.settings.on_time_jump == "reset" and self.mapper is not None:
             written = self._finish_map(reset=True)
+            self.feed.trim(after_ns=stamp)  # the old timeline's transforms
             say(f"{where}: time jumped back {back:.3f} s (a looping replay or a restarted robot): the map so far is written to "
                 f"{written}, a new map starts (--on-time-jump reset)")
             return True
@@ -221,6 +222,7 @@ class LiveMapping:
         self.mapper.integrate_many([placed])
         done_ns = time.time_ns()
         self.last_stamp = stamp
+        self.feed.trim(before_ns=stamp)
         self.robot_xy = placed.sensor_origin[:2]
         self.stats.mapped += 1
         self.stats.integrated_ms.append((done_ns - item.origin_ns) / 1e6)
@@ -340,7 +342,6 @@ class LiveMapping:
             save_map(path, self.mapper)
             self.maps_written.append(path)
         if reset:
-            self.feed.forget_motion()
             self.mapper, self.frame, self.last_stamp = None, None, None
         return path
 

@@ -7,8 +7,8 @@ Two key formats (``KEY_FORMATS``):
   ``0/os1_cloud_node/points/sensor_msgs::msg::dds_::PointCloud2_/RIHS01_9198...``; the type hash is the
   type description's RIHS01 hash (``rosbags`` computes it from the message definition). Every sample
   carries an attachment: sequence number (int64), source timestamp (int64, ns since the epoch) and the
-  publisher's 16-byte GID, serialized with Zenoh's serializer (little-endian integers, the GID's bytes
-  as they are: 32 bytes). Every entity announces itself with a liveliness token
+  publisher's 16-byte GID, serialized with Zenoh's serializer (``zenoh::ext``: little-endian integers, the
+  GID as a sequence, its length 16 as one varint byte, then its bytes: 33 bytes). Every entity announces itself with a liveliness token
   ``@ros2_lv/<domain>/<session id>/<node id>/<entity id>/<NN|MP|MS>/<enclave>/<namespace>/<node>
   [/<topic>/<type>/<hash>/<qos>]``, slashes inside names written ``%``; ``ros2 topic list`` on an
   rmw_zenoh robot lists a topic from its publisher's token.
@@ -28,10 +28,10 @@ from ..config import ConfigError
 KEY_FORMATS = ("rmw_zenoh", "bridge")
 ADMIN_SPACE = "@ros2_lv"
 GID_BYTES = 16
-# A liveliness token's QoS field for reliable, volatile, keep-last 10 (rmw_zenoh's qos_to_keyexpr, every value written out):
-# reliability:durability:history,depth:deadline s,ns:lifespan s,ns:liveliness,lease s,ns
-DEFAULT_QOS = "1:2:1,10:,:,:,,"
-ATTACHMENT = struct.Struct("<qq16s")
+# A liveliness token's QoS field (rmw_zenoh's qos_to_keyexpr: reliability:durability:history,depth:deadline s,ns:
+# lifespan s,ns:liveliness,lease s,ns, a value equal to the default left empty): reliable, volatile, keep last 10
+DEFAULT_QOS = "::,10:,:,:,,"
+ATTACHMENT = struct.Struct("<qqB16s")  # sequence number, source timestamp, GID length (16), GID
 
 # grid_map_msgs for ROS 2 (ANYbotics/grid_map, branches humble / jazzy / rolling): the header moved from the
 # info to the map; the ROS 1 text is in terrain/outputs.py.
@@ -118,7 +118,7 @@ def parse_key(key: str, domain_id: int) -> SampleKey:
 
 def encode_attachment(sequence_number: int, source_timestamp_ns: int, gid: bytes) -> bytes:
     """rmw_zenoh's attachment of one sample (see the module text)."""
-    return ATTACHMENT.pack(int(sequence_number), int(source_timestamp_ns), bytes(gid)[:GID_BYTES].ljust(GID_BYTES, b"\0"))
+    return ATTACHMENT.pack(int(sequence_number), int(source_timestamp_ns), GID_BYTES, bytes(gid)[:GID_BYTES].ljust(GID_BYTES, b"\0"))
 
 
 def decode_attachment(raw: bytes | None) -> tuple[int, int, bytes] | None:
@@ -126,9 +126,10 @@ def decode_attachment(raw: bytes | None) -> tuple[int, int, bytes] | None:
     sample). Raises WireError for an attachment of another size."""
     if raw is None:
         return None
-    if len(raw) != ATTACHMENT.size:
+    if len(raw) != ATTACHMENT.size or raw[16] != GID_BYTES:
         raise WireError(f"an attachment of {len(raw)} bytes, not rmw_zenoh's {ATTACHMENT.size} (sequence number, timestamp, GID)")
-    return ATTACHMENT.unpack(raw)
+    sequence, stamp, _, gid = ATTACHMENT.unpack(raw)
+    return sequence, stamp, gid
 
 
 def mangle(name: str) -> str:
