@@ -69,7 +69,7 @@ class LiveRun:
 
 
 def replay(endpoint: str, log, *extra) -> int:
-    return main(["replay", str(log), "--connect", endpoint, "--quiet", "--start-delay", "1.0", *extra])
+    return main(["replay", str(log), "--connect", endpoint, "--quiet", "--wait-subscribers", "10", *extra])
 
 
 def batch_map(log, tmp_path) -> Mapper:

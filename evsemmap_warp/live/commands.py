@@ -6,7 +6,6 @@ import json
 import signal
 import sys
 import threading
-import time
 from pathlib import Path
 
 from ..config import ConfigError, available_methods, load_config
@@ -65,8 +64,8 @@ def add_parsers(sub, *, positive, positive_float, port) -> None:
     p.add_argument("--rate", type=float, default=1.0, help="a factor of the recorded rate (default 1; 0: as fast as possible)")
     p.add_argument("--loops", type=positive, default=1, help="play the log this many times (its time jumps back each time)")
     p.add_argument("--topics", nargs="+", default=(), help="publish only these topics (default all)")
-    p.add_argument("--start-delay", type=float, default=0.5, metavar="S", help="wait this long after connecting, for subscribers to be "
-                                                                              "matched (default 0.5 s)")
+    p.add_argument("--wait-subscribers", type=float, default=3.0, metavar="S", help="wait up to S seconds for subscribers before the "
+                                                                                  "first message (default 3; 0: start at once)")
     p.add_argument("--no-clock", action="store_true", help="do not publish /clock")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run_replay)
@@ -94,9 +93,9 @@ def run_replay(args) -> int:
     stop = threading.Event()
     _stop_on_signals(stop)
     try:
-        time.sleep(max(args.start_delay, 0.0))
         stats = replay_log(session, args.logs, rate=args.rate, topics=tuple(args.topics), key_format=args.key_format,
-                           domain_id=args.domain_id, loops=args.loops, clock=not args.no_clock, stop=stop)
+                           domain_id=args.domain_id, loops=args.loops, clock=not args.no_clock, stop=stop,
+                           wait_for_subscribers_s=max(args.wait_subscribers, 0.0))
     finally:
         session.close()
     if not args.quiet:

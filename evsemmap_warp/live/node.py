@@ -19,8 +19,9 @@ class Ros2Node:
     """Publishers of ROS 2 messages on ``session``; ``publish(topic, cdr)`` puts serialised messages,
     ``publish_message(topic, msg)`` serialises rosbags messages first."""
 
-    def __init__(self, session, name: str, *, key_format: str = "rmw_zenoh", domain_id: int = 0, store=None):
+    def __init__(self, session, name: str, *, key_format: str = "rmw_zenoh", domain_id: int = 0, store=None, block: bool = False):
         self.session, self.name, self.key_format, self.domain_id = session, name, key_format, domain_id
+        self.block = block  # wait for the network when its buffers are full (a replay: nothing lost) instead of dropping the sample
         self.store = store if store is not None else typestore()
         self.session_id = str(session.zid())
         self.node_id = next(_NODE_IDS)
@@ -43,7 +44,25 @@ class Ros2Node:
                 token = publisher_token(self.domain_id, self.session_id, self.node_id, entity, self.name, topic, msgtype, type_hash)
                 self._tokens.append(self.session.liveliness().declare_token(token))
             gid = hashlib.blake2b(f"{self.session_id}/{self.node_id}/{entity}".encode(), digest_size=16).digest()
-            self._publishers[topic] = (self.session.declare_publisher(key), msgtype, gid, itertools.count(1))
+            from .session import zenoh_module
+
+            congestion = zenoh_module().CongestionControl
+            publisher = self.session.declare_publisher(key, congestion_control=congestion.BLOCK if self.block else congestion.DROP)
+            self._publishers[topic] = (publisher, msgtype, gid, itertools.count(1))
+
+    def wait_for_subscribers(self, timeout: float, settle: float = 0.3) -> list[str]:
+        """Wait until a subscriber matches one of the publishers and no further one has matched for ``settle``
+        seconds, ``timeout`` seconds at most; returns the topics with subscribers."""
+        end = time.monotonic() + timeout
+        matched, since = [], time.monotonic()
+        while time.monotonic() < end:
+            now_matched = [t for t, (publisher, *_) in self._publishers.items() if publisher.matching_status.matching]
+            if now_matched != matched:
+                matched, since = now_matched, time.monotonic()
+            elif matched and time.monotonic() - since >= settle:
+                break
+            time.sleep(0.02)
+        return matched
 
     def publish(self, topic: str, cdr: bytes, msgtype: str | None = None) -> None:
         """Put one serialised message on ``topic`` (advertised on first use when ``msgtype`` is given)."""

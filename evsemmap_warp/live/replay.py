@@ -48,16 +48,20 @@ class ReplayStats:
 
 
 def replay_log(session, logs, *, rate: float = 1.0, topics: tuple[str, ...] = (), key_format: str = "rmw_zenoh", domain_id: int = 0,
-               loops: int = 1, clock: bool = True, stop: threading.Event | None = None, on_message=None) -> ReplayStats:
+               loops: int = 1, clock: bool = True, stop: threading.Event | None = None, on_message=None,
+               wait_for_subscribers_s: float = 0.0, linger_s: float = 0.3) -> ReplayStats:
     """Publish the messages of ``logs`` on ``session`` in log-time order, ``rate`` times as fast as recorded
     (0: as fast as possible), ``loops`` times over (the log time jumping back each time, as a looping replay
-    does); ``topics``: only these (default all). ``on_message(topic, log_time_ns)`` after each message."""
+    does); ``topics``: only these (default all). ``on_message(topic, log_time_ns)`` after each message.
+    Samples wait for the network rather than being dropped. ``wait_for_subscribers_s``: wait up to this long for
+    subscribers first (``Ros2Node.wait_for_subscribers``); ``linger_s``: after the last message, before the
+    publishers go, for the network to deliver it."""
     if rate < 0:
         raise ConfigError(f"--rate {rate}: a factor of the recorded rate, >= 0 (0: as fast as possible)")
     logs = [Path(p) for p in logs]
     reader = open_reader(logs)
     store = typestore()
-    node = Ros2Node(session, "evsemmap_replay", key_format=key_format, domain_id=domain_id, store=store)
+    node = Ros2Node(session, "evsemmap_replay", key_format=key_format, domain_id=domain_id, store=store, block=True)
     try:
         connections = [c for c in reader.connections if not topics or c.topic in topics]
         missing = sorted(set(topics) - {c.topic for c in connections})
@@ -72,6 +76,8 @@ def replay_log(session, logs, *, rate: float = 1.0, topics: tuple[str, ...] = ()
         if clock:
             node.advertise(CLOCK_TOPIC, CLOCK_TYPE)
         counts = {c.topic: 0 for c in connections}
+        if wait_for_subscribers_s > 0 and not node.wait_for_subscribers(wait_for_subscribers_s):
+            print(f"evsemmap replay: no subscriber after {wait_for_subscribers_s:g} s (--wait-subscribers); publishing anyway", file=sys.stderr)
         started, late = time.perf_counter(), 0.0
         first = last = None
         for _ in range(loops):
@@ -100,6 +106,7 @@ def replay_log(session, logs, *, rate: float = 1.0, topics: tuple[str, ...] = ()
                 if on_message is not None:
                     on_message(connection.topic, log_time)
         wall = time.perf_counter() - started
+        time.sleep(linger_s)
         return ReplayStats(counts, 0.0 if first is None else (last - first) / 1e9, wall, late)
     finally:
         node.close()
