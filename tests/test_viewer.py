@@ -355,7 +355,8 @@ def test_store_overview_counter_and_present_classes(tmp_path):
         assert total > len(v.layers[0].state)  # the overview is a share of the store
         assert f"of its {total:,} voxels" in v.gui_status.content and "decimated" in v.gui_status.content
         assert abs(v.layers[0].weight.sum() - total) < 1e-6 * total  # each overview row stands for its share of a tile
-        assert v.present_classes == ["void", "object", "grass"] and set(v.gui_classes) == {"void", "object", "grass"}
+        # void labels the free-space evidence only (FREE voxels): no occupied voxel has it, so it is not offered
+        assert v.present_classes == ["object", "grass"] and set(v.gui_classes) == {"object", "grass"}
     finally:
         v.server.stop()
     v = MapViewer([tmp_path / "store"], port=free_port(), max_voxels=10 * total)  # the whole store fits: nothing is left out

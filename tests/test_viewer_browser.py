@@ -11,7 +11,7 @@ from io import BytesIO
 import numpy as np
 import pytest
 
-from evsemmap_warp.apps.viewer import CLASS_COLORS, MapViewer, colormap, free_port
+from evsemmap_warp.apps.viewer import CLASS_COLORS, SELECTION_COLOR, MapViewer, colormap, faded, free_port
 
 from conftest import REPO, wait_until
 from test_viewer import make_map
@@ -296,7 +296,8 @@ def test_only_classes_the_map_holds_are_offered(open_page, tmp_path):
         page = open_page(viewer)
         page.get_by_label("grass", exact=True).wait_for(timeout=10_000)
         assert page.get_by_label("object", exact=True).count() == 1
-        for absent in ("sky", "water", "paved", "vegetation"):
+        # void too: it labels FREE voxels only (issue 45 item 6)
+        for absent in ("void", "sky", "water", "paved", "vegetation"):
             assert page.get_by_label(absent, exact=True).count() == 0, f"{absent} is offered but the map holds none"
         legend = _panel_images(page)[0]
         assert legend["height"] < 18 * 4 * 1.6  # three classes, not nine
@@ -563,9 +564,11 @@ def test_drive_playback_scrubs_the_map_and_shows_the_scan_and_the_camera(open_pa
                                bin_frames=1, snapshot_every=2)
     viewer = MapViewer([alpha_drive / "map.npz"], port=free_port())
     playback = DrivePlayback(viewer, drive, replay, precompute=False)
+    # the map is drawn faded under the scan
+    grass, vegetation = (faded(np.array([CLASS_COLORS[name]]), playback.MAP_FADE)[0] for name in ("grass", "vegetation"))
     try:
         page = open_page(viewer)
-        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000)
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], grass).sum() >= 2000)
         assert playback.wait_until_drawn(5)
         # the camera, its predicted labels and their uncertainty: three images in the Drive folder, below the legend
         camera, labels, uncertainty, inside = _drive_images_in_view(page, page.get_by_text("predicted labels (alpha files)").first)
@@ -577,15 +580,15 @@ def test_drive_playback_scrubs_the_map_and_shows_the_scan_and_the_camera(open_pa
         assert _near(inside(uncertainty)[:, half:], strong, 25).sum() > 200 and _near(inside(uncertainty)[:, :half], weak, 25).sum() > 200
         # scrub to the first scan in the page: the map as it stood then, smaller
         voxels_at_end = int((viewer.layers[0].state == 2).sum())
-        vegetation_at_end = _near(_image(page.screenshot())[:, :900], CLASS_COLORS["vegetation"], 20).sum()
+        vegetation_at_end = _near(_image(page.screenshot())[:, :900], vegetation, 20).sum()
         box = _number_box(page, "Scan")
-        box.fill("0")
+        box.fill("1")  # the slider counts scans from 1
         box.press("Enter")
         assert _wait(lambda: playback._drawn_map == 1, 60), playback.errors
-        page.get_by_text("of 6 (frame 0, t = 0.00 s)").first.wait_for(timeout=20_000)
+        page.get_by_text("scan 1 of 6 (frame 0, t = 0.00 s)").first.wait_for(timeout=20_000)  # the slider's number, the label's
         page.get_by_text("as it stood after scan 1").first.wait_for(timeout=20_000)
         assert int((viewer.layers[0].state == 2).sum()) < 0.6 * voxels_at_end
-        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["vegetation"], 20).sum() < 0.8 * vegetation_at_end), \
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], vegetation, 20).sum() < 0.8 * vegetation_at_end), \
             "the scene still shows the whole map"
         # the scan by input uncertainty: its unsure points (the left half of the camera's view) turn teal
         time.sleep(1.0)
@@ -656,7 +659,7 @@ def test_drive_playback_of_a_robot_log_labelled_by_a_checkpoint(open_page, log_d
         assert _near(inside(uncertainty), expected, 30).sum() > 0.3 * area, "the uncertainty image is not the net's uncertainty"
         voxels_at_end = int((viewer.layers[0].state == 2).sum())
         box = _number_box(page, "Scan")
-        box.fill("0")
+        box.fill("1")
         box.press("Enter")
         assert _wait(lambda: playback._drawn_map == 1, 60), playback.errors
         page.get_by_text("as it stood after scan 1").first.wait_for(timeout=20_000)
@@ -833,3 +836,148 @@ def test_the_docs_screenshots_come_from_the_screenshot_tool(tmp_path):
     pages = (REPO / "docs" / "viewer.md").read_text() + (REPO / "README.md").read_text()
     for mode in viewer_screenshots.MODES:
         assert (REPO / "docs" / "viewer" / f"{mode}.png").is_file() and f"viewer/{mode}.png" in pages, mode
+
+
+# --- issue 45 items 4 and 6: a new user's viewer -------------------------------------------------------------------
+def _scene_changed_by(page, hide, show, threshold=40) -> np.ndarray:
+    """[H, 900] bool: the scene's pixels that change when ``hide()`` is called (``show()`` undoes it)."""
+    time.sleep(1.0)
+    before = _image(page.screenshot())[:, :900]
+    hide()
+    time.sleep(1.5)
+    after = _image(page.screenshot())[:, :900]
+    show()
+    return np.abs(before - after).max(axis=2) > threshold
+
+
+def test_layers_show_the_terrain_surface_with_one_control_at_the_top(open_page, tmp_path):
+    """Issue 45 item 4: with --layers the page showed the plain map (the surface under the voxels), the switch three
+    controls away: now the surface is drawn instead of the voxels, and one control near the top brings them back."""
+    make_map(tmp_path / "m.npz")
+    viewer = MapViewer([tmp_path / "m.npz"], port=free_port(), terrain=True)
+    try:
+        page = open_page(viewer)
+        assert viewer.gui_terrain_mode.value == vl.TERRAIN_MODES[1]
+        assert all(len(rows) == 0 for rows in viewer.visible_rows), "voxels drawn over the terrain surface"
+        page.get_by_text("voxels hidden: the terrain surface is drawn instead").first.wait_for(timeout=20_000)
+        # the cost surface (viridis), not the class colors of the voxels
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], (253, 231, 37), 40).sum()
+                     + _near(_image(page.screenshot())[:, :900], (68, 1, 84), 40).sum() > 500), "no terrain surface drawn"
+        assert _near(_image(page.screenshot())[:, :900], CLASS_COLORS["object"]).sum() < 100
+        draw = page.get_by_label("Draw", exact=True)
+        box = draw.bounding_box()
+        assert box is not None and box["y"] + box["height"] < 400, f"the Draw control is not near the panel's top: {box}"
+        _choose(page, "Draw", vl.TERRAIN_MODES[0])
+        assert _wait(lambda: len(viewer.visible_rows[0]) > 0)
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["object"]).sum() > 500), "the voxels never came back"
+    finally:
+        viewer.server.stop()
+
+
+def test_the_clicked_voxel_is_highlighted(open_page, tmp_path):
+    """Issue 45 item 6: a wireframe box at the clicked voxel, gone when a click hits no voxel."""
+    make_map(tmp_path / "m.npz")
+    viewer = MapViewer([tmp_path / "m.npz"], port=free_port())
+    try:
+        page = open_page(viewer)
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000)
+        time.sleep(1.0)
+        red_before = _near(_image(page.screenshot())[:, :900], SELECTION_COLOR, 40)  # the origin's x axis is red too
+
+        def new_red():
+            return _near(_image(page.screenshot())[:, :900], SELECTION_COLOR, 40) & ~red_before
+
+        page.mouse.click(450, 450)
+        assert _wait(lambda: "voxel (" in viewer.gui_selection.content), viewer.gui_selection.content
+        assert _wait(lambda: new_red().sum() > 40), "no highlight drawn"
+        red = np.argwhere(new_red())  # (row, column): the box at the click, its stem rising from it
+        assert abs(red[:, 0].max() - 450) < 30 and abs(np.median(red[:, 1]) - 450) < 30, "the highlight is not at the click"
+        page.mouse.click(640, 760)  # in front of the map: the ground grid's plane, no voxel
+        assert _wait(lambda: "voxel (" not in viewer.gui_selection.content), viewer.gui_selection.content
+        assert _wait(lambda: new_red().sum() < 5), "the highlight stayed"
+    finally:
+        viewer.server.stop()
+
+
+def test_top_down_and_reset_view_buttons(open_page, tmp_path):
+    """Issue 45 item 6: a top-down button and a reset-view button, acting on the browser that clicks them."""
+    make_map(tmp_path / "m.npz")
+    viewer = MapViewer([tmp_path / "m.npz"], port=free_port())
+    try:
+        page = open_page(viewer)
+        client = next(iter(viewer.server.get_clients().values()))
+        start_position, start_look_at = viewer._auto_camera
+
+        def looks_down():
+            view = np.asarray(client.camera.look_at) - np.asarray(client.camera.position)
+            return view[2] < -0.999 * np.linalg.norm(view)
+
+        assert _wait(lambda: np.linalg.norm(np.asarray(client.camera.position) - start_position) < 1e-2)
+        assert not looks_down()
+        page.get_by_role("button", name="top-down").click()
+        assert _wait(looks_down), (client.camera.position, client.camera.look_at)
+        time.sleep(1.0)
+        # from above, the ground is a rectangle of grass whose rows are as wide at the top of the screen as at the bottom
+        grass = _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"])
+        rows = np.flatnonzero(grass.sum(axis=1) > 20)
+        widths = grass[rows].sum(axis=1)
+        assert abs(float(widths[: len(widths) // 4].mean()) / float(widths[-len(widths) // 4:].mean()) - 1.0) < 0.15
+        page.get_by_role("button", name="reset view").click()
+        assert _wait(lambda: np.linalg.norm(np.asarray(client.camera.position) - start_position) < 1e-2
+                     and np.linalg.norm(np.asarray(client.camera.look_at) - start_look_at) < 1e-2), (client.camera.position, start_position)
+    finally:
+        viewer.server.stop()
+
+
+def test_side_by_side_keeps_both_maps_in_view(open_page, tmp_path):
+    """Issue 45 item 6: side by side put the second map under the GUI panel; now both are in view, clear of it."""
+    make_map(tmp_path / "a.npz")
+    make_map(tmp_path / "b.npz", seed=1)
+    viewer = MapViewer([tmp_path / "a.npz", tmp_path / "b.npz"], port=free_port())
+    try:
+        page = open_page(viewer)
+        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000)
+        page.get_by_label("Side by side", exact=True).click()
+        assert _wait(lambda: len(viewer.visible_rows[1]) > 0)
+        panel_left = page.evaluate("""() => Math.min(...[...document.querySelectorAll('label')].filter(e => e.innerText === 'Side by side')
+            .map(e => e.getBoundingClientRect().left))""") - 20
+        time.sleep(2.0)
+        for i in (0, 1):
+            handle = viewer.voxel_handles[i]
+            changed = _scene_changed_by(page, lambda: setattr(handle, "visible", False), lambda: setattr(handle, "visible", True))
+            columns = np.flatnonzero(changed.any(axis=0))
+            assert changed.sum() > 1000, f"map {i} is not in view"
+            assert columns.max() < panel_left, f"map {i} reaches under the panel (x up to {columns.max()}, panel from {panel_left:.0f})"
+            assert columns.min() > 10, f"map {i} is cut at the screen's left edge"
+    finally:
+        viewer.server.stop()
+
+
+def test_drive_scan_shows_over_the_map(open_page, alpha_drive):
+    """Issue 45 item 6: in playback the current scan was hidden under the map's voxels (the same colors, smaller
+    points, in them): now it is drawn over a faded map, larger than a voxel; the old drawing is one tick away."""
+    from evsemmap_warp.apps.viewer_drive import DrivePlayback, open_drive
+
+    drive, replay = open_drive(alpha_drive / "map.npz", [alpha_drive / "seq", "rellis3d"], alpha_dir=alpha_drive / "alpha",
+                               bin_frames=1, snapshot_every=2)
+    viewer = MapViewer([alpha_drive / "map.npz"], port=free_port())
+    playback = DrivePlayback(viewer, drive, replay, precompute=False)
+    try:
+        page = open_page(viewer)
+        assert playback.wait_until_drawn(len(drive) - 1), playback.errors
+        page.get_by_text(f"scan {len(drive)} of {len(drive)}").first.wait_for(timeout=20_000)
+        assert playback.gui_scan.value == len(drive)  # the slider and the label say the same scan
+
+        def scan_pixels() -> int:
+            handle = playback.scan_handle
+            return int(_scene_changed_by(page, lambda: setattr(handle, "visible", False), lambda: setattr(handle, "visible", True)).sum())
+
+        over = scan_pixels()
+        drawn_over = playback.scan_handle
+        page.get_by_label("Scan over a faded map", exact=True).click()
+        assert _wait(lambda: viewer.map_fade == 0 and playback.scan_handle is not drawn_over and playback._drawn_scan is not None, 30)
+        under = scan_pixels()
+        assert over > 2000 and over > 3 * under, f"the scan shows in {over} pixels over the map, {under} as it was drawn before"
+    finally:
+        playback.close()
+        viewer.server.stop()

@@ -59,7 +59,7 @@ def test_playback_draws_the_scan_the_pose_and_the_map_as_it_stood(drive):
     try:
         assert playback.wait_until_drawn(5), playback.errors
         assert len(viewer.layers[0].state) == len(file_arrays["state"])  # the last scan: the map file itself
-        assert playback.gui_scan.max == 5 and playback.gui_scan.value == 5
+        assert playback.gui_scan.max == 6 and playback.gui_scan.value == 6  # counted from 1, as the status line counts
         playback.show(1)
         assert playback.wait_until_drawn(1), playback.errors
         want = _mapped(drive, 2)

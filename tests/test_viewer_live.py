@@ -159,7 +159,7 @@ def test_live_tiles_overview_of_running_sums(tmp_path):
         whole = store.to_mapper()
         result = whole.query(layer.centers)
         np.testing.assert_array_equal(result.label, layer.label)
-        assert set(viewer.present_classes) == {"void", "object", "grass"}  # toggles appeared with the tiles
+        assert set(viewer.present_classes) == {"object", "grass"}  # toggles appeared with the tiles
     finally:
         live.close()
         viewer.server.stop()

@@ -41,7 +41,7 @@ def test_first_frame_from_the_first_tiles_then_the_overview_fills_in(store):
         np.testing.assert_array_equal(viewer.origin, origin)  # the origin does not move as tiles arrive
         assert overview.held_rows <= 600 + tiles  # each tile its share of max_voxels (at least one row)
         assert round(viewer.layers[0].weight.sum()) == overview.total_voxels
-        assert set(viewer.present_classes) == {"void", "object", "grass"}
+        assert set(viewer.present_classes) == {"object", "grass"}
         # the counter is rewritten by the redraw that follows the last tile's rows, on the viewer's thread
         assert _wait(lambda: "reading its tiles" not in viewer.gui_status.content), viewer.gui_status.content
     finally:

@@ -57,6 +57,8 @@ _VIRIDIS = np.array([(68, 1, 84), (71, 44, 122), (59, 81, 139), (44, 113, 142), 
                      (39, 173, 129), (92, 200, 99), (170, 220, 50), (253, 231, 37)], np.float64)
 _NO_DATA = np.array([128, 128, 128], np.uint8)
 TRAJECTORY_COLOR = (255, 140, 0)  # orange (README: "the drive in orange")
+SELECTION_COLOR = (255, 0, 0)  # the clicked voxel's wireframe box: a color no class and no other marker has
+VIEW_BUTTONS = ("top-down", "reset view")
 
 
 def class_palette(classes: list[str]) -> np.ndarray:
@@ -72,6 +74,18 @@ def colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
     out = np.stack([np.interp(t, stops, _VIRIDIS[:, c]) for c in range(3)], axis=1).astype(np.uint8)
     out[~finite] = _NO_DATA
     return out
+
+
+def held_classes(label: np.ndarray, state: np.ndarray) -> np.ndarray:
+    """Class indices that some OCCUPIED voxel carries: the classes a map holds, and the only ones its class
+    toggles offer (a FREE voxel's label is the free-space evidence's, "void", which no object has)."""
+    return np.unique(label[state == STATE_NAMES.index("OCCUPIED")]).astype(np.int64)
+
+
+def faded(colors: np.ndarray, share: float) -> np.ndarray:
+    """sRGB colors ``share`` (0..1) of the way to white."""
+    colors = np.asarray(colors, np.float64)
+    return np.round(colors + share * (255.0 - colors)).astype(np.uint8)
 
 
 def frame_of(meta: dict, where) -> WorldFrame | None:
@@ -109,14 +123,14 @@ class MapLayer:
     origin_index: np.ndarray = field(default_factory=lambda: np.zeros(3, np.int64))  # the map origin's voxel index
     # a store overview's rows stand for several voxels each (its tiles are decimated): how many; None: one each
     weight: np.ndarray | None = None
-    # class indices that label at least one voxel with evidence (not UNKNOWN); None: from the voxels held
+    # class indices that label at least one OCCUPIED voxel (held_classes); None: from the voxels held
     present: np.ndarray | None = None
 
     def present_labels(self) -> np.ndarray:
-        """Class indices that some voxel with evidence carries (the classes the map holds)."""
+        """Class indices that some OCCUPIED voxel carries (the classes the map holds)."""
         if self.present is not None:
             return self.present
-        return np.unique(self.label[self.state != STATE_NAMES.index("UNKNOWN")]).astype(np.int64)
+        return held_classes(self.label, self.state)
 
     @classmethod
     def from_file(cls, path) -> "MapLayer":
@@ -221,7 +235,7 @@ class StoreOverview:
     def _read(self, name: str, keep: int | None) -> dict:
         arrays = file_arrays(self.store.tile_contents(name))
         n = len(arrays["state"])
-        self._present.update(np.unique(arrays["label"][arrays["state"] != STATE_NAMES.index("UNKNOWN")]).tolist())
+        self._present.update(held_classes(arrays["label"], arrays["state"]).tolist())
         rows = np.arange(n) if keep is None or keep >= n else np.linspace(0, n - 1, keep).astype(np.int64)
         return {k: arrays[k][rows] for k in _LAYER_ARRAYS} | {"resolution": arrays["resolution"], "origin": arrays["origin"],
                                                              "weight": np.full(len(rows), n / max(len(rows), 1), np.float64)}
@@ -400,6 +414,7 @@ class MapViewer:
         self._truth: dict[int, np.ndarray] = {}
         self._diff_cache: dict = {}
         self.measure_points: list[np.ndarray] = []
+        self.map_fade = 0.0  # the voxels' colors drawn this share of the way to white (a drive's scan shown over them)
         self.scale_bar: tuple[float, float, float] | None = None  # (metres, pixels, metres per pixel)
         self.last_point: np.ndarray | None = None  # world coordinates of the last clicked point
         self.center_hit: dict | None = None  # what lies under the screen's center (pick_point), for the last camera
@@ -489,6 +504,8 @@ class MapViewer:
             self.gui_map = gui.add_dropdown("Map", options=names, initial_value=names[0])
             self.gui_side_by_side = gui.add_checkbox("Side by side", initial_value=False, disabled=len(self.layers) == 1)
             self.gui_color_by = gui.add_dropdown("Color by", options=COLOR_MODES, initial_value="semantic")
+            # here, not in the terrain folder: with terrain layers, what is drawn is the first thing a user switches
+            self.gui_terrain_mode = gui.add_dropdown("Draw", options=vl.TERRAIN_MODES, initial_value=vl.TERRAIN_MODES[1], visible=False)
             self.gui_status = gui.add_markdown("")
         with gui.add_folder("Legend"):
             self.gui_legend = gui.add_image(vl.swatch_image([("", (255, 255, 255))]), label=None)
@@ -515,6 +532,7 @@ class MapViewer:
         with self.gui_classes_folder:
             self.gui_classes = {name: gui.add_checkbox(name, initial_value=True) for name in self.present_classes}
         with gui.add_folder("Orientation and measuring"):
+            self.gui_view = gui.add_button_group("View", VIEW_BUTTONS)
             self.gui_grid = gui.add_checkbox("Ground grid", initial_value=True)
             self.gui_measure = gui.add_checkbox("Measure (click 2 points)", initial_value=False)
             self.gui_measure_result = gui.add_markdown("")
@@ -522,7 +540,6 @@ class MapViewer:
             self.gui_terrain_compute = gui.add_button("Compute terrain layers")
             self.gui_terrain_show = gui.add_checkbox("Show surface", initial_value=True)
             self.gui_terrain_band = gui.add_dropdown("Layer", options=("traversability_cost",), initial_value="traversability_cost")
-            self.gui_terrain_mode = gui.add_dropdown("Draw", options=vl.TERRAIN_MODES, initial_value=vl.TERRAIN_MODES[0])
             self.gui_terrain_status = gui.add_markdown("Not computed: the button computes the layers of each map (docs/terrain.md).")
         self.gui_diff = self.gui_diff_against = self.gui_diff_status = None
         if len(self.layers) > 1:
@@ -544,6 +561,8 @@ class MapViewer:
         for handle in controls:
             handle.on_update(lambda _event: self._on_control())
         self.gui_grid.on_update(lambda _event: self._show_grid(self.gui_grid.value))
+        self.gui_view.on_click(lambda event: self.set_view(event.target.value, event.client))
+        self.gui_side_by_side.on_update(lambda event: self.frame_shown(event.client))
         self.gui_measure.on_update(lambda _event: self._reset_measure())
         self.gui_terrain_compute.on_click(lambda _event: self._compute_terrain_from_gui())
         self.gui_export_html.on_click(lambda _event: self._export_from_gui("html"))
@@ -638,8 +657,7 @@ class MapViewer:
     def _frame_camera(self, lo: np.ndarray, hi: np.ndarray) -> None:
         """Point the initial camera, and the cameras of browsers whose users have not moved theirs, at the maps' extent."""
         extent = float(max(np.max(hi - lo), 1.0))
-        look_at = np.round((lo + hi) / 2.0) - self.origin
-        position = look_at + np.array([0.0, -0.9 * extent, 0.7 * extent])
+        position, look_at = self._framing(lo, hi)
         previous, self._auto_camera = self._auto_camera, (position, look_at)
         self.server.initial_camera.position, self.server.initial_camera.look_at = tuple(position), tuple(look_at)
         # viser clips at 1 km by default: a long store framed whole (its camera a few km away) drew nothing
@@ -650,6 +668,43 @@ class MapViewer:
             if previous is not None and self._camera_left_alone(client.camera):
                 client.camera.position, client.camera.look_at = tuple(position), tuple(look_at)
         self._auto_positions.append((position, 1e-3 * max(float(np.linalg.norm(position - look_at)), 1.0)))
+
+    def _framing(self, lo: np.ndarray, hi: np.ndarray, *, panel_margin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(position, look_at) in display coordinates of a camera that sees the box ``lo``..``hi`` (world
+        coordinates) whole from the south, above. ``panel_margin``: the box's share of its width moved left
+        of the screen's center, out from under the GUI panel on the right, with the camera that much further away."""
+        extent = float(max(np.max(hi - lo), 1.0))
+        look_at = np.round((lo + hi) / 2.0) - self.origin + np.array([panel_margin * float(hi[0] - lo[0]), 0.0, 0.0])
+        reach = extent * (1.0 + panel_margin)
+        return look_at + np.array([0.0, -0.9 * reach, 0.7 * reach]), look_at
+
+    def _place_cameras(self, client, position: np.ndarray, look_at: np.ndarray) -> None:
+        """Move one browser's camera (``client``; every browser's for None) to ``position``, looking at ``look_at``."""
+        clients = [client] if client is not None else list(self.server.get_clients().values())
+        for each in clients:
+            each.camera.position, each.camera.look_at = tuple(position), tuple(look_at)  # position moves look_at along: it goes first
+
+    def set_view(self, which: str, client=None) -> None:
+        """The View buttons: "top-down" looks straight down at what a browser's camera looks at, from as far;
+        "reset view" puts it where the viewer first put it (the maps whole, from the south)."""
+        if which == VIEW_BUTTONS[1]:
+            self._place_cameras(client, *self._auto_camera)
+            return
+        for each in [client] if client is not None else list(self.server.get_clients().values()):
+            look_at = np.asarray(each.camera.look_at, np.float64)
+            distance = float(np.linalg.norm(np.asarray(each.camera.position, np.float64) - look_at))
+            # a little south of straight above: orbit controls have no heading when looking exactly along the up axis
+            self._place_cameras(each, look_at + np.array([0.0, -1e-3 * distance, distance]), look_at)
+
+    def frame_shown(self, client=None) -> None:
+        """Point a browser's camera (every browser's for None) at the maps shown, all of them side by side, clear
+        of the GUI panel."""
+        shown = [i for i in self._shown_layers() if len(self.layers[i].centers)]
+        if not shown:
+            return
+        lo = np.min([self.layers[i].centers.min(axis=0) + self._shift(i) for i in shown], axis=0)
+        hi = np.max([self.layers[i].centers.max(axis=0) + self._shift(i) for i in shown], axis=0)
+        self._place_cameras(client, *self._framing(lo, hi, panel_margin=0.15 if len(shown) > 1 else 0.0))
 
     @staticmethod
     def far_plane_m(extent_m: float) -> float:
@@ -1059,6 +1114,8 @@ class MapViewer:
         layer = self.layers[i]
         positions = (layer.centers[rows] - self.origin + self._shift(i)).astype(np.float32)
         colors = self.colors(i, rows)
+        if self.map_fade > 0:
+            colors = faded(colors, self.map_fade)
         name = f"/maps/{i}_{layer.name}"
         if len(rows) == 0:  # viser wants at least one point; hide an empty layer instead
             positions, colors = np.zeros((1, 3), np.float32), np.zeros((1, 3), np.uint8)
@@ -1105,6 +1162,7 @@ class MapViewer:
         if self.gui_terrain_band.value not in bands:
             self.gui_terrain_band.value = bands[0]
         self.gui_terrain_compute.visible = False
+        self.gui_terrain_mode.visible = True
         grid = self.terrain[0].grid
         self.gui_terrain_status.content = (
             f"{len(self.terrain)} map(s): cells of {grid.cell_m:g} m, {time.perf_counter() - started:.1f} s; click the surface for a "
@@ -1242,10 +1300,12 @@ class MapViewer:
         hit = self.pick_point(event.ray_origin, event.ray_direction)
         if hit is None:
             self.gui_selection.content = "Nothing under the cursor."
+            self._highlight(None)
             return
         point = np.asarray(hit["point"], np.float64)
         self.last_point = point
         where = (f"clicked point in {describe_frame(self.frame)}: " + ", ".join(f"{a}={c:.3f}" for a, c in zip("xyz", point)) + " m")
+        self._highlight(hit)
         if hit["kind"] == "voxel":
             text = self.describe(hit["layer"], hit["row"])
             if hit["layer"] in self.stores:  # a store's voxel: its tile column in full
@@ -1258,6 +1318,31 @@ class MapViewer:
         self.gui_selection.content = where + "\n\n" + text
         if self.gui_measure.value:
             self._add_measure_point(point)
+
+    SELECTION_STEM_VOXELS = 6.0  # the stem above the selected voxel, in voxel edges
+
+    def _highlight(self, hit: dict | None) -> None:
+        """The clicked voxel marked: a wireframe box around it (a little larger, so that its own faces do not
+        hide it) and, since its neighbours hide most of the box, a stem rising from it to a label, which show
+        above the map; removed when a click hits something else."""
+        for handle in getattr(self, "selection_handles", []):
+            handle.remove()
+        self.selection_handles = []
+        if hit is None or hit["kind"] != "voxel":
+            return
+        layer = self.layers[hit["layer"]]
+        center = np.asarray(layer.centers[hit["row"]], np.float64) - self.origin + self._shift(hit["layer"])
+        corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
+        edges = [(a, b) for a in range(8) for b in range(a + 1, 8) if np.abs(corners[a] - corners[b]).sum() == 2]
+        half = 0.6 * layer.resolution
+        segments = [[corners[a] * half + center, corners[b] * half + center] for a, b in edges]
+        top = center + [0.0, 0.0, half + self.SELECTION_STEM_VOXELS * layer.resolution]
+        segments.append([center + [0.0, 0.0, half], top])
+        scene = self.server.scene
+        self.selection_handles = [
+            scene.add_line_segments("/selection/box", np.array(segments, np.float32), colors=SELECTION_COLOR, thickness=4.0,
+                                    thickness_units="screen"),
+            scene.add_label("/selection/label", "selected", position=tuple(top), anchor="bottom-center")]
 
     # ------------------------------------------------------------------ measuring
     def _reset_measure(self) -> None:

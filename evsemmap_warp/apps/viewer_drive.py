@@ -225,6 +225,8 @@ class DrivePlayback:
         self.map_text = "the map file (all scans)"
         self.errors: list[str] = []
         self._build_gui()
+        self.viewer.map_fade = self.MAP_FADE
+        self.viewer.refresh()
         self._draw_path()
         self._worker = threading.Thread(target=self._work, name="evsemmap-drive", daemon=True)
         self._worker.start()
@@ -235,33 +237,55 @@ class DrivePlayback:
         folder = self.viewer.gui_drive_folder
         folder.label, folder.visible = "Drive", True
         with folder:
-            self.gui_scan = gui.add_slider("Scan", min=0, max=max(n - 1, 1), step=1, initial_value=n - 1, disabled=n == 1)
+            # the slider counts scans from 1, as the status line names them ("scan 21 of 89")
+            self.gui_scan = gui.add_slider("Scan", min=1, max=max(n, 2), step=1, initial_value=n, disabled=n == 1)
             self.gui_play = gui.add_button_group("Playback", PLAYBACK_BUTTONS)
             colorings = SCAN_COLORINGS if self.drive.payload_type is not PayloadType.LABEL else SCAN_COLORINGS[:1]
             self.gui_scan_color = gui.add_dropdown("Color scan by", options=colorings, initial_value="label")
+            self.gui_scan_on_top = gui.add_checkbox("Scan over a faded map", initial_value=True)
             self.gui_map_as_of = gui.add_checkbox("Map as of this scan", initial_value=True)
             self.gui_status = gui.add_markdown("")
             blank = np.full((2, 2, 3), 255, np.uint8)
             self.gui_camera = gui.add_image(blank, label="camera", format="jpeg", visible=False)
             self.gui_labels = gui.add_image(blank, label="predicted labels", format="png", visible=False)
             self.gui_uncertainty = gui.add_image(blank, label="uncertainty", format="png", visible=False)
-        self.gui_scan.on_update(lambda _event: self.show(int(self.gui_scan.value)))
+        self.gui_scan.on_update(lambda _event: self.show(self.slider_scan()))
+        self.gui_scan_on_top.on_update(lambda _event: self._scan_on_top())
         self.gui_scan_color.on_update(lambda _event: self._wake())
         self.gui_map_as_of.on_update(lambda _event: self._wake())
         self.gui_play.on_click(lambda event: self._on_button(event.target.value))
 
+    def slider_scan(self) -> int:
+        """The scan the slider is at, 0-based (the slider counts from 1)."""
+        return int(self.gui_scan.value) - 1
+
+    def set_slider(self, k: int) -> None:
+        """Move the slider to scan ``k`` (0-based)."""
+        self.gui_scan.value = int(k) + 1
+
+    # the map's colors this share of the way to white while the scan is drawn over it: the scan's own colors
+    # (the same class colors) stand out, and its points, drawn larger than a voxel, show round the voxels they fall in
+    MAP_FADE = 0.65
+    SCAN_POINT_VOXELS = 1.5
+
+    def _scan_on_top(self) -> None:
+        self.viewer.map_fade = self.MAP_FADE if self.gui_scan_on_top.value else 0.0
+        self.viewer.refresh()
+        self._drawn_scan = None  # drawn again at its new size
+        self._wake()
+
     def _on_button(self, which: str) -> None:
-        k = int(self.gui_scan.value)
+        k = self.slider_scan()
         if which == PLAYBACK_BUTTONS[0]:
             self._playing = False
-            self.gui_scan.value = max(k - 1, 0)
+            self.set_slider(max(k - 1, 0))
         elif which == PLAYBACK_BUTTONS[3]:
             self._playing = False
-            self.gui_scan.value = min(k + 1, len(self.drive) - 1)
+            self.set_slider(min(k + 1, len(self.drive) - 1))
         elif which == PLAYBACK_BUTTONS[1]:
             self._playing = True
             if k == len(self.drive) - 1:
-                self.gui_scan.value = 0  # from the start again
+                self.set_slider(0)  # from the start again
             self._wake()
         else:
             self._playing = False
@@ -341,7 +365,7 @@ class DrivePlayback:
             time.sleep(self.PLAY_INTERVAL_S)
             if self._playing and self._current() == k:
                 if k + 1 < len(self.drive):
-                    self.gui_scan.value = k + 1
+                    self.set_slider(k + 1)
                 else:
                     self._playing = False
         elif self.precompute:
@@ -361,7 +385,7 @@ class DrivePlayback:
         if len(points) == 0:
             points, colors = np.zeros((1, 3), np.float32), np.zeros((1, 3), np.uint8)
         scene = viewer.server.scene
-        size = 0.5 * self.file_layer.resolution
+        size = (self.SCAN_POINT_VOXELS if self.gui_scan_on_top.value else 0.5) * self.file_layer.resolution
         with viewer.server.atomic():
             self.scan_handle = scene.add_point_cloud("/drive/scan", points, colors, point_size=size, point_shape="circle",
                                                      precision="float32", visible=len(payload.points) > 0)
