@@ -21,7 +21,10 @@ def test_map_info_and_dump_config(tmp_path, capsys):
     assert meta["classes"] == ["free", "ground", "wall", "obstacle"] and meta["mapping"]["compat"] == "sbki"
     assert (np.bincount(arrays["state"], minlength=3) == [41329, 15814, 6987]).all()
     assert main(["info", str(out)]) == 0
-    assert json.loads(capsys.readouterr().out)["voxels"] == 64130
+    info = json.loads(capsys.readouterr().out)
+    assert info["voxels"] == 64130 and info["format_version"] == 3
+    half = info["resolution_m"] / 2  # the box the voxels fill: their faces, in metres of the map's frame
+    assert info["bounds_m"] == [(arrays["centers"].min(axis=0) - half).tolist(), (arrays["centers"].max(axis=0) + half).tolist()]
     assert main(["dump-config", str(REPO / "configs/presets/rellis3d.yaml"), "--method", "ebs"]) == 0
     assert "gamma: 10.0" in capsys.readouterr().out
 

@@ -87,6 +87,21 @@ def test_a_store_is_compact_and_exports_the_map(drive, tmp_path):
     assert store.format_version == 2 and store.voxel_count == summary["voxels"]
 
 
+def test_a_map_file_costs_about_what_its_store_costs(drive, tmp_path, capsys):
+    _batch([drive], tmp_path / "store")
+    store = MapStore(tmp_path / "store")
+    path = store.to_mapper().save(tmp_path / "map.npz")
+    store_bytes = sum(p.stat().st_size for p in (tmp_path / "store").rglob("*") if p.is_file())
+    assert path.stat().st_size <= 2 * store_bytes, (path.stat().st_size, store_bytes)  # the npz of every array took ~20x
+    reports = []
+    for target in (path, tmp_path / "store"):
+        assert main(["info", str(target)]) == 0
+        reports.append(json.loads(capsys.readouterr().out))
+    assert reports[0]["bounds_m"] == reports[1]["bounds_m"] and reports[0]["voxels"] == reports[1]["voxels"]
+    low, high = np.asarray(reports[0]["bounds_m"])
+    assert np.all(high - low > 5) and np.all(low < high)
+
+
 def test_a_format_1_store_still_reads_as_it_was_written(tmp_path, capsys):
     store = MapStore(V1 / "store")
     assert store.format_version == 1 and store.voxel_count == 1050

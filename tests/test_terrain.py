@@ -17,7 +17,7 @@ from evsemmap_warp.core.mapper import Mapper
 from evsemmap_warp.core.voxel_map import VoxelArrays
 from evsemmap_warp.frames import WorldFrame
 from evsemmap_warp.terrain import TerrainConfig, compute_layers, load_terrain_config
-from evsemmap_warp.terrain.layers import class_cost
+from evsemmap_warp.terrain.layers import band_units, class_cost
 from evsemmap_warp.terrain.outputs import band_from_grid_map, grid_map_typestore
 from evsemmap_warp.terrain.pipeline import write_layers
 
@@ -257,6 +257,8 @@ def test_geotiff_reads_back_with_rasterio(written):
         x, y = tif.xy(0, 0)
         assert (x, y) == (pytest.approx(FAR[0] + 0.1), pytest.approx(FAR[1] + 20 * VOXEL_M - 0.1))
         assert tif.tags(tif.descriptions.index("elevation") + 1)["UNITS"] == "m"
+        assert list(tif.units) == [band_units(name) for name in layers.band_names]  # GDAL's own per-band unit
+        assert tif.units[tif.descriptions.index("elevation")] == "m" and tif.units[tif.descriptions.index("slope")] == "deg"
         assert json.loads(tif.tags()["CLASSES"]) == list(CLASSES)
         for b, name in enumerate(layers.band_names, start=1):
             np.testing.assert_array_equal(tif.read(b), layers.bands[name], err_msg=name)

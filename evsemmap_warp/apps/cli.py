@@ -217,24 +217,26 @@ def _cmd_merge(args) -> int:
 
 
 def _cmd_info(args) -> int:
-    from ..core.map_file import read_map_arrays
-    from ..core.map_store import MapStore, is_store
+    from ..core.map_file import read_map_file, reader_mapper
+    from ..core.map_store import MapStore, is_store, voxel_bounds
 
     if is_store(args.map) or (args.map.is_dir() and (args.map / "work").is_dir()):
         print(json.dumps(MapStore(args.map).summary(), indent=1))
         return 0
 
-    arrays, meta = read_map_arrays(args.map)
-    state = arrays["state"]
+    contents = read_map_file(args.map)  # the sums; the states are read out below, the rest of the read-out is not needed
+    meta, reader = contents.meta, reader_mapper(contents)
+    state = reader.summarize(contents.evidence, contents.touched).state
     print(json.dumps({
         "file": str(args.map),
         "method": meta["method"],
         "classes": meta["classes"],
         "format_version": meta["format_version"],
-        "resolution_m": float(arrays["resolution"]),
-        "origin_m": arrays["origin"].tolist(),
+        "resolution_m": contents.resolution,
+        "origin_m": contents.origin.tolist(),
         "frame": meta.get("frame"),  # None: written before maps recorded their world frame
         "voxels": int(len(state)),
+        "bounds_m": voxel_bounds(reader, contents.index),  # [[x0, y0, z0], [x1, y1, z1]] in the frame, None when empty
         "states": {"UNKNOWN": int((state == 0).sum()), "FREE": int((state == 1).sum()), "OCCUPIED": int((state == 2).sum())},
         "scans_integrated": meta.get("scans_integrated"),
         "mapping": meta["mapping"],

@@ -194,11 +194,18 @@ def voxel_checksum(voxels: VoxelArrays) -> str:
 def tile_entry(template: Mapper, voxels: VoxelArrays) -> dict:
     """A tile's entry in store.json: its voxel count, the box its voxels fill (m) and its voxels per state."""
     summary = template.summarize(voxels.evidence, voxels.touched)
-    low, high = voxels.index.min(axis=0), voxels.index.max(axis=0)
-    half = template.config.resolution_m / 2
-    return {"voxels": int(len(voxels.index)),
-            "bounds_m": [(template.voxel_centers(low) - half).tolist(), (template.voxel_centers(high) + half).tolist()],
+    return {"voxels": int(len(voxels.index)), "bounds_m": voxel_bounds(template, voxels.index),
             "states": {s.name: int(np.count_nonzero(summary.state == s)) for s in VoxelState}}
+
+
+def voxel_bounds(template: Mapper, index: np.ndarray) -> list[list[float]] | None:
+    """The box the voxels of global ``index`` [V, 3] fill, in metres of the map's world frame:
+    [[x0, y0, z0], [x1, y1, z1]] (voxel faces, not centers); None for no voxels."""
+    if not len(index):
+        return None
+    low, high = index.min(axis=0), index.max(axis=0)
+    half = template.config.resolution_m / 2
+    return [(template.voxel_centers(low) - half).tolist(), (template.voxel_centers(high) + half).tolist()]
 
 
 def write_tile(path: Path, template: Mapper, voxels: VoxelArrays, tile_voxels: int, *, folded_through: int | None = None,
@@ -528,6 +535,14 @@ class MapStore:
         out.scan_ids = None if self.scan_ids is None else set(self.scan_ids)
         return out
 
+    def bounds_m(self) -> list[list[float]] | None:
+        """The box the store's voxels fill (m, its world frame), from its index: [[x0, y0, z0], [x1, y1, z1]];
+        None without tiles."""
+        boxes = [np.asarray(info["bounds_m"], np.float64) for info in self.tiles.values()]
+        if not boxes:
+            return None
+        return [np.min([b[0] for b in boxes], axis=0).tolist(), np.max([b[1] for b in boxes], axis=0).tolist()]
+
     def summary(self) -> dict:
         """What ``evsemmap info STORE`` prints."""
         index = self.index
@@ -540,6 +555,7 @@ class MapStore:
             "classes": list(self.class_names), "resolution_m": self.config.resolution_m, "origin_m": self.template.origin.tolist(),
             "frame": None if self.frame is None else self.frame.as_dict(),
             "tile_voxels": self.tile_voxels, "tile_size_m": self.tile_voxels * self.config.resolution_m, "tiles": len(self.tiles),
-            "voxels": self.voxel_count, "states": states, "scans_integrated": index["scans"], "points_integrated": index["points"],
+            "voxels": self.voxel_count, "bounds_m": self.bounds_m(), "states": states,
+            "scans_integrated": index["scans"], "points_integrated": index["points"],
             "inputs": index.get("inputs", []), "chunks": len(index.get("chunks", [])), "mapping": index["mapping"],
         }

@@ -125,6 +125,7 @@ class GeoTiffWriter:
                                  SOFTWARE=f"evsemmap_warp {__version__}")
         for b, name in enumerate(self.names, start=1):
             self.dataset.set_band_description(b, name)
+            self.dataset.set_band_unit(b, band_units(name))  # what GIS readers show; the UNITS tag is read by older tools
             tags = {"NAME": name, "UNITS": band_units(name)}
             if name in CLASS_BANDS:
                 tags["CLASSES"] = json.dumps(list(class_names))
