@@ -56,6 +56,9 @@ class ScanPayload:
     num_classes: int
     row_sums: np.ndarray | None = None
     sensor_origin: np.ndarray | None = None
+    # The Mapper's check_room(new_voxels): refuses (MemoryBudgetError) a scan whose new voxels its tables'
+    # memory budget cannot hold, so that a preparation sized by the voxels it makes asks before allocating for them.
+    check_room: Callable[[int], None] | None = None
 
     @functools.cached_property
     def probabilities(self) -> np.ndarray:
@@ -427,9 +430,10 @@ class SbkiCompatIntegrator:
             scan.points, scan.labels, scan.sensor_origin,
             ds_resolution_m=c.sbki.ds_resolution_m, free_resolution_m=c.sbki.free_resolution_m, max_range_m=c.sbki.max_range_m,
         )
-        return self._launch_from_training_set(IntegrationStats(input_points=len(scan.points)), points, labels, device)
+        return self._launch_from_training_set(IntegrationStats(input_points=len(scan.points)), points, labels, device, scan.check_room)
 
-    def _launch_from_training_set(self, stats: IntegrationStats, points: np.ndarray, labels: np.ndarray, device: str) -> Launch:
+    def _launch_from_training_set(self, stats: IntegrationStats, points: np.ndarray, labels: np.ndarray, device: str,
+                                  check_room: Callable[[int], None] | None = None) -> Launch:
         """The host path from the training set on: block memberships, then the gather tables or the counts."""
         stats.kept_points = len(points)
         if len(points) == 0:
@@ -437,7 +441,7 @@ class SbkiCompatIntegrator:
         point_ids, owners = sbki_compat.block_memberships(points, self.block_size)
         if self.config.kernel is Kernel.COUNT:
             return launch_step(stats, lambda shards, lanes: self._scatter_counts(shards, points, labels, point_ids, owners, lanes))
-        return launch_step(stats, self._gather_sparse(points, labels, point_ids, owners, device))
+        return launch_step(stats, self._gather_sparse(points, labels, point_ids, owners, device, check_room))
 
     def _prepare_on_device(self, scan: ScanPayload, device: str) -> Launch:
         """``prepare`` for the S-BKI kernel with the preprocessing on the map's device: the gather kernel's
@@ -462,7 +466,7 @@ class SbkiCompatIntegrator:
                     scratch.learn(status)
                     return build(scratch.begin())
                 training_points = points.numpy()
-                return self._launch_from_training_set(stats, training_points, labels.numpy()[:len(training_points)], device)
+                return self._launch_from_training_set(stats, training_points, labels.numpy()[:len(training_points)], device, scan.check_room)
             near_faces = sbki_device.near_face_masks(tables.scaled_points, tables.pair_count, tables.point_start, tables.blocks, tables.block_count,
                                                      **self._lattice(), scratch=scratch)
             inputs = block_gather.sbki_blocks(blocks=tables.tests, sources=tables.sources, point_start=tables.point_start,
@@ -489,11 +493,13 @@ class SbkiCompatIntegrator:
 
         return total_updates(split_over_shards(shards, lanes, len(point_ids), job))
 
-    def _gather_sparse(self, points, labels, point_ids, owners, d: str):
+    def _gather_sparse(self, points, labels, point_ids, owners, d: str, check_room: Callable[[int], None] | None = None):
         """S-BKI: every test block gathers from its extended block's points (``kernels.block_gather``).
         Builds the kernel's inputs; returns run(shards, lanes) -> updates."""
         c = self.config
-        tables = sbki_compat.gather_tables(owners)
+        # Each block holding points is a test block of cells_per_block^3 new voxels at most: the table is asked
+        # for them before the tables of their neighbours (several times larger) are built.
+        tables = sbki_compat.gather_tables(owners, None if check_room is None else lambda blocks: check_room(blocks * self.cells_per_block**3))
         sorted_points = np.take(point_ids, tables.pair_order)
         # numpy's takes here measured faster than the sorted_block_points kernel on Warp's CPU backend (free_res 0.5,
         # 30 bench scans: ~0.19 s against 0.27 s); scaled in place, as scale_points scales

@@ -506,6 +506,7 @@ class Mapper:
             scan.points = self._local(scan.points)
             if reads_sensor_origin:  # the map origin stands in for an optional one not given
                 scan.sensor_origin = self._local(self.origin if sensor_origin is None else sensor_origin)
+            scan.check_room = self.check_room
             return _Prepared(self.integrator.prepare(scan, self.device), scan_id, sets_origin)
         except BaseException:
             if sets_origin:  # a refused first scan leaves no origin behind: the next one picks it, as in a fresh map
@@ -623,6 +624,11 @@ class Mapper:
             contents.summary = summary if summary is not None else self.summarize(arrays.evidence, arrays.touched)
             contents.alpha, contents.centers = self.concentrations(arrays.evidence), self.voxel_centers(arrays.index)
         return contents
+
+    def check_room(self, new_voxels: int) -> None:
+        """Refuse (MemoryBudgetError) ``new_voxels`` more voxels, spread over the shards, where the memory
+        budget does not hold the tables they need; changes nothing."""
+        self.shards[0].check_room(-(-int(new_voxels) // len(self.shards)))
 
     def check_room(self, new_voxels: int) -> None:
         """Refuse (MemoryBudgetError) ``new_voxels`` more voxels, spread over the shards, where the memory

@@ -92,8 +92,8 @@ class TableBudget:
         self._held: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # VoxelMap -> the bytes admitted for it
         self._lock = threading.Lock()  # shards grow on their own threads
 
-    def admit(self, table: "VoxelMap", need: int, what: str) -> None:
-        """Record that ``table`` will take ``need`` bytes, or raise MemoryBudgetError (nothing recorded)."""
+    def admit(self, table: "VoxelMap", need: int, what: str, *, record: bool = True) -> None:
+        """Record (``record``) that ``table`` will take ``need`` bytes, or raise MemoryBudgetError (nothing recorded)."""
         with self._lock:
             others = sum(held for key, held in self._held.items() if key is not table)
             if self.limit_bytes is not None:
@@ -108,7 +108,8 @@ class TableBudget:
                     f"the voxel table would need {describe_bytes(need)} ({what}){shards}, over the memory budget of "
                     f"{describe_bytes(budget)}, {source}: the input reaches far more voxels than a map holds (check the "
                     f"sensor origin, the units of the points and lengths, mapping.sbki.max_range_m)")
-            self._held[table] = int(need)
+            if record:
+                self._held[table] = int(need)
 
 
 def _next_pow2(n: int) -> int:
@@ -201,9 +202,10 @@ class VoxelMap:
 
     def _admit(self, capacity: int, brick_capacity: int) -> None:
         """Refuse (MemoryBudgetError, before anything is allocated) a table the memory budget does not hold."""
-        self.memory_budget.admit(self, self._bytes_at(capacity, brick_capacity),
-                                 f"{capacity:,} slots for up to {int(self.max_load * capacity):,} voxels of "
-                                 f"{self.num_classes + EXTRA_COLUMNS} float64 columns")
+        self.memory_budget.admit(self, self._bytes_at(capacity, brick_capacity), self._describe(capacity))
+
+    def _describe(self, capacity: int) -> str:
+        return f"{capacity:,} slots for up to {int(self.max_load * capacity):,} voxels of {self.num_classes + EXTRA_COLUMNS} float64 columns"
 
     def _allocate(self, capacity: int) -> None:
         self._admit(capacity, MIN_CAPACITY)
@@ -310,14 +312,26 @@ class VoxelMap:
         """Keys a launch may fill the voxel table (or a table of ``capacity`` slots) up to."""
         return max(1, int((self.capacity if capacity is None else capacity) * LAUNCH_FILL_LIMIT))
 
-    def reserve(self, new_voxels: int) -> None:
-        """Grow until ``new_voxels`` more keys fit under max_load."""
+    def _capacity_for(self, new_voxels: int) -> int:
+        """The slots ``reserve(new_voxels)`` grows the table to."""
         needed = self.voxel_count + int(new_voxels)
         capacity = self.capacity
         while needed > self.max_load * capacity:
             capacity *= 2
+        return capacity
+
+    def reserve(self, new_voxels: int) -> None:
+        """Grow until ``new_voxels`` more keys fit under max_load."""
+        capacity = self._capacity_for(new_voxels)
         if capacity != self.capacity:
             self.grow(capacity)
+
+    def check_room(self, new_voxels: int) -> None:
+        """Raise MemoryBudgetError where ``reserve(new_voxels)`` would grow the table past its memory
+        budget; allocates nothing."""
+        capacity = self._capacity_for(new_voxels)
+        if capacity != self.capacity:
+            self.memory_budget.admit(self, self._bytes_at(capacity, self.brick_capacity), self._describe(capacity), record=False)
 
     def grow(self, new_capacity: int) -> None:
         """Rehash into a table of ``new_capacity`` slots (a power of two); voxels keep their rows."""

@@ -369,10 +369,14 @@ class GatherTables:
     sources: np.ndarray
 
 
-def gather_tables(owner_blocks: np.ndarray) -> GatherTables:
+def gather_tables(owner_blocks: np.ndarray, check_blocks=None) -> GatherTables:
     """The ``GatherTables`` of one scan from each point's owner block [N, 3]: the blocks holding points, the
-    points sorted by block, the test blocks and their sources (``kernels.block_gather.extended_block_tables``)."""
+    points sorted by block, the test blocks and their sources (``kernels.block_gather.extended_block_tables``).
+    ``check_blocks(count)``: called with the number of blocks holding points before the test blocks are
+    listed (to refuse a scan the map has no room for, before that allocation)."""
     blocks, _, order, point_start = group_by_block(owner_blocks)
+    if check_blocks is not None:
+        check_blocks(len(blocks))
     tests, sources = _extended_block_tables(blocks)
     return GatherTables(blocks, order, point_start, tests, sources)
 
