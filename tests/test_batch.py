@@ -191,6 +191,7 @@ def test_a_ray_instance_that_cannot_be_joined_by_address_is_one_line_naming_the_
         raise ConnectionError("Failed to connect to Ray cluster at 10.0.0.9:6379")
 
     monkeypatch.setattr(ray, "init", refused)
+    monkeypatch.setattr(batch, "check_ray_address", lambda address, timeout_s: None)  # something answers there, but not to us
     with pytest.raises(ConfigError, match=r"--ray-address 10\.0\.0\.9:6379: could not join .*RAY_AUTH_MODE=token"):
         batch.RayExecutor(2, address="10.0.0.9:6379")
     monkeypatch.setenv("RAY_AUTH_MODE", "token")  # asked for already: no hint, the address and Ray's reason

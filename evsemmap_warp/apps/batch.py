@@ -32,6 +32,7 @@ import os
 import pickle
 import resource
 import shutil
+import socket
 import sys
 import threading
 import time
@@ -49,6 +50,7 @@ from ..core import map_store, tile_codec
 from ..core.mapper import Mapper
 from ..core.voxel_map import EXTRA_COLUMNS, VoxelArrays
 from ..frames import WorldFrame, check_same_frame
+from ..limits import available_memory, check_chunk_frames, check_tile_voxels
 from .scan_sources import map_scans, open_scan_source
 
 WORKER_OVERHEAD_BYTES = 450 * 2**20  # a worker process with numpy, Warp and its kernels loaded (measured: ~0.4 GB)
@@ -59,6 +61,9 @@ FOLD_CACHE_TILES = 12  # tiles the driver keeps in memory while folding (the dri
 # frames each. It depends on the inputs only, never on the worker count: stores stay byte-identical.
 AUTO_CHUNKS = 16
 MAX_AUTO_CHUNK_FRAMES = 100
+# How long --ray-address's host:port may take to accept a connection (--ray-connect-timeout-s): ray.init
+# retries an address where nothing answers for many minutes ("Failed to connect to GCS").
+RAY_CONNECT_TIMEOUT_S = 30.0
 
 
 @dataclass(frozen=True)
@@ -79,6 +84,8 @@ class BatchOptions:
     workers: int | None = None  # default: one per core (local), the cluster's CPUs (ray)
     chunk_frames: int | None = None  # None: automatic (choose_chunk_frames), from the inputs' frames
     ray_address: str | None = None
+    ray_connect_timeout_s: float = RAY_CONNECT_TIMEOUT_S
+    max_memory: int | None = None  # --max-memory: each worker's voxel table budget (Mapper max_memory); None: the memory available
     checkpoint: Path | None = None
     alpha: Path | None = None
     bin_frames: int | None = None
@@ -114,6 +121,8 @@ class Context:
     tile_voxels: int
     frame: WorldFrame | None = None  # the world frame every input is mapped in
     fault: _FaultPlan | None = None  # tests only (run_batch's _fault); None in use
+
+    max_memory: int | None = None  # each worker's voxel table budget (BatchOptions.max_memory)
 
     def template(self) -> Mapper:
         """An empty Mapper with the store's parameters, classes, origin and frame (map_store.template_mapper)."""
@@ -171,9 +180,10 @@ def choose_chunk_frames(requested: int | None, total_frames: int) -> tuple[int, 
     ceil(total_frames / AUTO_CHUNKS), at most MAX_AUTO_CHUNK_FRAMES and at least 1 (plan_batch then
     rounds to whole bins, at least one). The inputs' frames alone decide, never the worker count."""
     if requested is not None:
-        if requested < 1:
-            raise ConfigError(f"--chunk-frames {requested}: must be >= 1")
-        return int(requested), "given: --chunk-frames"
+        try:
+            return check_chunk_frames(requested, "--chunk-frames"), "given: --chunk-frames"
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
     chosen = max(1, min(MAX_AUTO_CHUNK_FRAMES, -(-total_frames // AUTO_CHUNKS)))
     return chosen, (f"automatic: ceil({total_frames} frames / {AUTO_CHUNKS}) capped at {MAX_AUTO_CHUNK_FRAMES}, from the inputs' frames "
                     f"only (at least {AUTO_CHUNKS} chunks, two per worker up to {AUTO_CHUNKS // 2} workers, when the frames allow; "
@@ -230,12 +240,12 @@ def plan_batch(paths: list[str], options: BatchOptions):
     return inputs, sources, config, chunks, identity
 
 
-def probe(sources, config: MappingConfig) -> tuple[np.ndarray, tuple[str, ...], int, int]:
+def probe(sources, config: MappingConfig, max_memory: int | None = None) -> tuple[np.ndarray, tuple[str, ...], int, int]:
     """The origin and class names ``evsemmap map`` would give the map (the origin of the first
     non-empty scan), and the voxels of the first insertion and of the first two (for the memory
     estimate)."""
     source = sources[0]
-    mapper = Mapper.for_dataset(source, config, workers=1)
+    mapper = Mapper.for_dataset(source, config, workers=1, max_memory=max_memory)
     counts = []
     for i in range(len(source)):
         for scan in source.scans(i, i + 1):
@@ -247,17 +257,6 @@ def probe(sources, config: MappingConfig) -> tuple[np.ndarray, tuple[str, ...], 
     if mapper.origin_index is None:
         raise ConfigError("batch: every scan of the first input is empty")
     return mapper.origin_index.copy(), mapper.class_names, counts[0], counts[-1]
-
-
-def available_memory() -> int:
-    """Bytes of memory available to new processes (MemAvailable; the physical size where that is not known)."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")
 
 
 def bytes_per_voxel(num_classes: int) -> int:
@@ -410,7 +409,8 @@ def map_chunk(chunk: Chunk, context: Context | None = None) -> dict:
     shutil.rmtree(partial, ignore_errors=True)
     _inject_fault(context, chunk, partial)
     source = context.sources[chunk.sequence]
-    mapper = Mapper.for_dataset(source, context.config, workers=1, origin=context.origin_index * context.config.resolution_m)
+    mapper = Mapper.for_dataset(source, context.config, workers=1, origin=context.origin_index * context.config.resolution_m,
+                                max_memory=context.max_memory)
     scans_in = source.scans(chunk.start, chunk.stop)
     clock = dict.fromkeys(CHUNK_STAGES, 0.0)
     mark = time.perf_counter()
@@ -571,6 +571,7 @@ def _store_index(template: Mapper, tile_voxels: int, entries: dict, inputs: list
 def write_store_from_mapper(mapper: Mapper, out, tile_voxels: int, sources: list[str]) -> Path:
     """A whole map (a merge's result) written as a store."""
     out = Path(out)
+    check_tile_voxels(tile_voxels, "--tile-voxels")
     if out.exists() and any(out.iterdir()):
         raise ConfigError(f"{out}: exists and is not empty; a store is written to a new folder")
     voxels, _ = mapper.voxels()
@@ -755,9 +756,9 @@ class RayExecutor:
 
     name = "ray"
 
-    def __init__(self, workers: int | None, address: str | None, log=None):
+    def __init__(self, workers: int | None, address: str | None, log=None, connect_timeout_s: float = RAY_CONNECT_TIMEOUT_S):
         """Start (or join) Ray; ``attach`` gives it the run's context. Apart, so that a run starts Ray while it
-        plans (_run_batch)."""
+        plans (_run_batch). ``connect_timeout_s``: how long ``address`` may take to answer (check_ray_address)."""
         try:
             import ray
         except ImportError:
@@ -775,6 +776,7 @@ class RayExecutor:
             env |= {name: os.environ.get(name, str(share)) for name in _MATH_THREAD_VARIABLES}
             options = {"include_dashboard": False, "logging_level": "ERROR", "log_to_driver": False}
             if address:
+                check_ray_address(address, connect_timeout_s)
                 try:
                     ray.init(address=address, runtime_env={"env_vars": env}, **options)
                 except ConnectionError as exc:
@@ -830,6 +832,26 @@ class RayExecutor:
         if self.started:
             self.started = False
             self.ray.shutdown()
+
+
+def check_ray_address(address: str, timeout_s: float) -> None:
+    """Refuse (ConfigError, the line docs/troubleshooting.md lists) a --ray-address host:port (or ray://host:port)
+    that does not accept a connection within ``timeout_s`` seconds, before ray.init, which retries such an
+    address for many minutes. "auto" and addresses without a port are left to Ray."""
+    target = address.removeprefix("ray://")
+    host, _, port = target.rpartition(":")
+    if address == "auto" or not host:
+        return
+    try:
+        port_number = int(port)
+    except ValueError:
+        raise ConfigError(f"--ray-address {address}: the port {port!r} is not a number (auto, host:port or ray://host:port)") from None
+    try:
+        socket.create_connection((host.strip("[]"), port_number), timeout=timeout_s).close()
+    except OSError as exc:
+        reason = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or str(exc))
+        raise ConfigError(f"--ray-address {address}: could not join the Ray instance (nothing accepted a connection at "
+                          f"{host}:{port_number} within {timeout_s:g} s: {reason}; --ray-connect-timeout-s sets the wait)") from None
 
 
 # The run ----------------------------------------------------------------------------------------------
@@ -946,6 +968,7 @@ def run_batch(paths: list[str], options: BatchOptions, log=None, *, on_tile=None
     # never over a config, nor inside a sequence folder, the alpha files or a checkpoint (the data that dataset
     # configs point at is checked once planned); before the lock, which creates the folder
     files.check_not_inside(options.out, [p for p in (*paths, options.checkpoint, options.alpha) if p is not None], "batch --out")
+    check_tile_voxels(options.tile_voxels, "--tile-voxels")  # before the store folder exists: a store its readers refuse is never begun
     with _store_lock(Path(options.out)):
         return _run_batch(paths, options, log, on_tile=on_tile, _fault=_fault)
 
@@ -961,7 +984,7 @@ def _run_batch(paths: list[str], options: BatchOptions, log=None, *, on_tile=Non
         # Ray takes seconds to start its processes: the run is planned meanwhile (reading and hashing the inputs)
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="evsemmap-batch-plan") as planner:
             planning = planner.submit(plan_batch, paths, options)
-            executor = RayExecutor(options.workers, options.ray_address, log)
+            executor = RayExecutor(options.workers, options.ray_address, log, options.ray_connect_timeout_s)
             try:
                 inputs, sources, config, chunks, identity = planning.result()
             except BaseException:
@@ -984,7 +1007,7 @@ def _map_and_write(options: BatchOptions, log, on_tile, _fault, times: dict, sta
     inputs, sources, config, chunks, identity = planned
     files.check_not_inside(out, [e["path"] for entry in identity["inputs"] for e in entry if "path" in e], "batch --out")
     _check_store(out, identity)
-    origin_index, class_names, first, first_two = probe(sources, config)
+    origin_index, class_names, first, first_two = probe(sources, config, options.max_memory)
     workers = options.workers or (os.cpu_count() or 1)
     insertions = max(c.stop - c.start for c in chunks)
     chunk_frames = identity["chunk_frames"]
@@ -996,7 +1019,7 @@ def _map_and_write(options: BatchOptions, log, on_tile, _fault, times: dict, sta
     map_store.write_json(out / "work" / "plan.json", identity)
     _remove_unfinished_chunks(out)
     context = Context(out, sources, config, sources[0].num_classes, class_names, origin_index, options.tile_voxels, frame=sources[0].frame,
-                      fault=_fault)
+                      fault=_fault, max_memory=options.max_memory)
     finished = [c for c in chunks if (_chunk_dir(out, c.number) / "done.json").is_file()]
     todo = [c for c in chunks if c not in finished]
     total_frames = sum(c.frames for c in chunks)

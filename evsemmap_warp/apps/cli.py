@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from .. import limits
 from ..config import ConfigError, available_methods, load_config, warn_deprecated
 
 
@@ -34,7 +35,7 @@ def _cmd_map(args) -> int:
     read = [*run.sources, *data, *(p for p in (args.checkpoint, args.alpha_dir) if p is not None)]
     check_not_inside(args.out, read, "map --out")
     dataset = open_scan_source(run, checkpoint=args.checkpoint, alpha_dir=args.alpha_dir, bin_frames=args.bin_frames, batch_size=args.batch_size)
-    mapper = Mapper.for_dataset(dataset, run.mapping, device=args.device, workers=args.workers)
+    mapper = Mapper.for_dataset(dataset, run.mapping, device=args.device, workers=args.workers, max_memory=args.max_memory)
     live = None
     if args.view:
         live = _live_viewer(args, mapper, len(dataset))
@@ -105,7 +106,8 @@ def _cmd_batch(args) -> int:
     options = BatchOptions(method=args.method, out=args.out, executor=args.executor, workers=args.workers, chunk_frames=args.chunk_frames,
                            ray_address=args.ray_address, checkpoint=args.checkpoint, alpha=args.alpha_dir, bin_frames=args.bin_frames,
                            batch_size=args.batch_size, tile_voxels=args.tile_voxels, discard_partials=args.discard_partials,
-                           progress=not args.quiet, frame=args.frame, crs=args.crs)
+                           progress=not args.quiet, frame=args.frame, crs=args.crs, max_memory=args.max_memory,
+                           ray_connect_timeout_s=args.ray_connect_timeout_s)
     if args.ray_address and args.executor != "ray":
         raise ConfigError("--ray-address needs --executor ray")
     if not args.view and (args.host, args.port) != (None, None):
@@ -583,6 +585,24 @@ def _positive(text: str) -> int:
     return value
 
 
+def _limit_type(check, flag: str):
+    """An argparse type from a ``limits`` check: the flag's value as the check returns it, or argparse's
+    one-line usage error with the check's message (the same limit the writers and readers hold to)."""
+    def parse(text: str):
+        try:
+            return check(text if check is limits.parse_memory_size else _int(text), flag)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+    return parse
+
+
+_TILE_VOXELS = _limit_type(limits.check_tile_voxels, "--tile-voxels")
+_CHUNK_FRAMES = _limit_type(limits.check_chunk_frames, "--chunk-frames")
+_MAX_MEMORY = _limit_type(limits.parse_memory_size, "--max-memory")
+_MAX_MEMORY_HELP = ("the memory the map's voxel table may take (512M, 4G; with batch: each worker's); a scan that would grow it "
+                    "further is refused (default: the memory available when the table grows)")
+
+
 def _positive_float(text: str) -> float:
     try:
         value = float(text)
@@ -613,6 +633,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path, help="map file to write (.npz)")
     p.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N or auto")
     p.add_argument("--workers", type=_positive, default=None, help="CPU threads, each scattering into its own map shard (default: up to 2 on the CPU)")
+    p.add_argument("--max-memory", type=_MAX_MEMORY, default=None, metavar="SIZE", help=_MAX_MEMORY_HELP)
     p.add_argument("--checkpoint", type=Path, help="label the scans from the camera with this segmentation checkpoint "
                                                    "(evsemmap train-seg) instead of their per-point labels")
     p.add_argument("--alpha-dir", type=Path, metavar="DIR", help="label the scans from the camera with the per-image alpha files "
@@ -638,18 +659,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path, help="the map store (a folder) to write, or to finish when a run was interrupted")
     p.add_argument("--executor", choices=("local", "ray"), default="local", help="local: a process pool (default); ray: Ray tasks")
     p.add_argument("--workers", type=_positive, default=None, help="worker processes (default: one per core; with ray: the cluster's CPUs)")
-    p.add_argument("--chunk-frames", type=_positive, default=None,
+    p.add_argument("--max-memory", type=_MAX_MEMORY, default=None, metavar="SIZE", help=_MAX_MEMORY_HELP)
+    p.add_argument("--chunk-frames", type=_CHUNK_FRAMES, default=None,
                    help="frames per task, rounded to whole bins (default: automatic, from the inputs' total frames only: "
                         "ceil(frames / 16), at most 100: at least 16 chunks when the frames allow, two per worker up to 8 workers; "
                         "never from the worker count, so stores are the same for any; the JSON summary gives the value and rule)")
     p.add_argument("--ray-address", default=None, help="an existing Ray cluster: auto, ray://host:port, or its head's host:port (with RAY_AUTH_MODE=token for token authentication, Ray's default; default: a local Ray instance)")
+    p.add_argument("--ray-connect-timeout-s", type=_positive_float, default=30.0, metavar="S",
+                   help="with --ray-address host:port: seconds it may take to accept a connection before the run is refused (default 30)")
     p.add_argument("--checkpoint", type=Path, help="label the scans from the camera with this segmentation checkpoint (inference in each task)")
     p.add_argument("--alpha-dir", type=Path, metavar="DIR", help="label the scans from the camera with the alpha files of `evsemmap infer` "
                                                                    "in this folder")
     _renamed_flag(p, "--alpha", "--alpha-dir", type=Path)
     p.add_argument("--bin-frames", type=_positive, default=None, help="with --checkpoint or --alpha-dir: frames per insertion (default: the preset's)")
     p.add_argument("--batch-size", type=_positive, default=4, help="with --checkpoint: images per inference batch")
-    p.add_argument("--tile-voxels", type=_positive, default=256, help="tile edge in voxels (default 256: 51.2 m at 0.2 m)")
+    p.add_argument("--tile-voxels", type=_TILE_VOXELS, default=256, help=f"tile edge in voxels, 1..{limits.MAX_TILE_VOXELS} (default 256: 51.2 m at 0.2 m)")
     p.add_argument("--discard-partials", action="store_true", help="delete STORE/work (the run's plan and chunk records; partial maps are deleted as they are folded) at the end: a rerun then starts over")
     _add_frame_args(p)
     p.add_argument("--view", action="store_true", help="serve the store's overview in a browser while it is made (viser): tiles fill in "
@@ -685,7 +709,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("merge", help="add up maps or stores of disjoint scan sets (several drives over one area) into one")
     p.add_argument("inputs", nargs="+", type=Path, help="map files (.npz) and map stores, at least two")
     p.add_argument("--out", type=Path, required=True, help="a map file (.npz) or a map store (a folder)")
-    p.add_argument("--tile-voxels", type=_positive, default=256, help="tile edge in voxels when writing a store")
+    p.add_argument("--tile-voxels", type=_TILE_VOXELS, default=256, help=f"tile edge in voxels when writing a store, 1..{limits.MAX_TILE_VOXELS}")
     p.set_defaults(func=_cmd_merge)
 
     p = sub.add_parser("view", help="inspect map files and map stores in a browser (viser)")

@@ -34,6 +34,7 @@ import numpy as np
 from .. import files
 from ..config import MappingConfig, flat_items, upgrade_mapping_dict
 from ..frames import FrameError, WorldFrame, describe_frame
+from ..limits import check_tile_voxels
 from ..voxel_keys import pack_voxel_keys, voxel_index_of
 from . import map_file, tile_codec
 from .mapper import MAX_COORDINATE_M, Mapper, QueryResult, UNKNOWN_LABEL, VoxelState
@@ -293,9 +294,10 @@ class MapStore:
                           ("scans", int), ("points", int)):
             if not isinstance(index.get(key), kind) or isinstance(index.get(key), bool):
                 raise StoreError(f"{where}: key {key!r} missing or not a {kind.__name__}")
-        for key in ("tile_voxels",):
-            if not 1 <= index[key] <= 2**20:
-                raise StoreError(f"{where}: {key} {index[key]} must lie in 1..{2**20}")
+        try:
+            check_tile_voxels(index["tile_voxels"])
+        except ValueError as exc:
+            raise StoreError(f"{where}: {exc}") from None
         for key in ("scans", "points"):
             if index[key] < 0:
                 raise StoreError(f"{where}: {key} = {index[key]} is negative")

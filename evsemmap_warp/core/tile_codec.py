@@ -32,6 +32,7 @@ import zlib
 import numpy as np
 
 from ..files import write_atomically
+from ..limits import check_tile_voxels
 
 # The encoding was first chosen on 763 k voxels (300 frames of the ``long`` drive, EBS, 13 tiles; measured
 # before records were kept, docs/formats.md): the map-file npz 230 B/voxel; the same minimal arrays in an
@@ -113,6 +114,7 @@ def _most_content(payload_bytes: int) -> int:
 def encode_voxels(index: np.ndarray, rows: np.ndarray, tile: tuple[int, int, int], tile_voxels: int, header: dict) -> bytes:
     """One file's bytes: voxels of ``tile`` (global ``index`` [V, 3] in key order, ``rows`` [V, K + 4]
     as ``VoxelArrays.rows()``), with ``header``'s identity fields."""
+    tile_voxels = check_tile_voxels(tile_voxels)  # the readers' limit: a writer never writes what they refuse
     index = np.asarray(index, np.int64).reshape(-1, 3)
     rows = np.asarray(rows, np.float64)
     tile_key = np.asarray(tile, np.int64).reshape(3)
@@ -149,8 +151,12 @@ def decode_header(data: bytes, where) -> tuple[dict, int]:
     tile = header.get("tile")
     if not (isinstance(tile, list) and len(tile) == 3 and all(isinstance(t, int) and not isinstance(t, bool) for t in tile)):
         raise VoxelFileError(f"{where}: header key 'tile' = {tile!r} must be three whole numbers")
-    if header["columns"] < 6 or header["tile_voxels"] < 1:
-        raise VoxelFileError(f"{where}: header says {header['columns']} columns and tiles of {header['tile_voxels']} voxels")
+    if header["columns"] < 6:
+        raise VoxelFileError(f"{where}: header says {header['columns']} columns (at least 6)")
+    try:
+        check_tile_voxels(header["tile_voxels"], "header key 'tile_voxels'")
+    except ValueError as exc:
+        raise VoxelFileError(f"{where}: {exc}") from None
     return header, start + length
 
 
