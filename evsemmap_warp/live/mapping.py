@@ -77,6 +77,9 @@ class LiveStats:
     integrated_ms: list[float] = field(default_factory=list)
     published_ms: list[float] = field(default_factory=list)
     mapping_s: float = 0.0  # time spent decoding, posing and integrating (not waiting)
+    # where a mapped scan's time goes (ms): decode (CDR -> points and labels), place (pose lookup, into the world
+    # frame), integrate (the Mapper); waiting for its pose is not in them
+    stage_ms: dict[str, list[float]] = field(default_factory=lambda: {"decode": [], "place": [], "integrate": []})
 
 
 class LiveMapping:
@@ -219,8 +222,13 @@ class LiveMapping:
         if self.mapper is None:
             self._start_map()
         placed = labelled_scan(where, scan, labels, pose)
+        placed_at = time.perf_counter()
         self.mapper.integrate_many([placed])
         done_ns = time.time_ns()
+        stages = self.stats.stage_ms
+        stages["decode"].append((wait_started - started) * 1e3)
+        stages["place"].append((placed_at - wait_started - waited) * 1e3)
+        stages["integrate"].append((time.perf_counter() - placed_at) * 1e3)
         self.last_stamp = stamp
         self.feed.trim(before_ns=stamp)
         self.robot_xy = placed.sensor_origin[:2]
@@ -266,6 +274,7 @@ class LiveMapping:
                 **{f"dropped_{r}": (self.feed.too_large if r == "too_large" else n) for r, n in s.dropped.items()},
                 "queued": len(self.queue), **{f"integrated_latency_ms_{k}": v for k, v in percentiles(s.integrated_ms).items()},
                 **{f"published_latency_ms_{k}": v for k, v in percentiles(s.published_ms).items()},
+                **{f"{stage}_ms_p50": percentiles(times)["p50"] for stage, times in s.stage_ms.items()},
                 "refused_messages": sum(t.refused for t in self.feed.topics.values()) - self.feed.too_large,
                 "key_format": self.feed.detected_format or "none yet", "frame": self.frame.name if self.frame else "none yet"}
 
