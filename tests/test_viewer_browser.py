@@ -981,3 +981,35 @@ def test_drive_scan_shows_over_the_map(open_page, alpha_drive):
     finally:
         playback.close()
         viewer.server.stop()
+
+
+def test_a_new_tab_starts_from_the_defaults(open_page, tmp_path):
+    """Issue 45 item 6: a new browser tab inherited the previous tab's selection and measurement: each tab now has
+    its own, and a new one starts from the defaults while the first keeps its own."""
+    make_map(tmp_path / "m.npz")
+    viewer = MapViewer([tmp_path / "m.npz"], port=free_port())
+    try:
+        first = open_page(viewer)
+        assert _wait(lambda: _near(_image(first.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000)
+        first.get_by_label("Measure (click 2 points)", exact=True).click()
+        first.mouse.click(450, 450)
+        first.get_by_text("first point set").first.wait_for(timeout=10_000)
+        first.get_by_text("label: grass").first.wait_for(timeout=10_000)
+        second = open_page(viewer)
+        second.get_by_text("Click a voxel, the terrain surface or the ground.").first.wait_for(timeout=10_000)
+        assert _wait(lambda: len(viewer.server.get_clients()) == 2)
+        time.sleep(1.0)
+        text = second.inner_text("body")
+        assert "clicked point" not in text and "first point set" not in text, text[-1500:]
+        assert not second.get_by_label("Measure (click 2 points)", exact=True).is_checked()
+        assert first.get_by_label("Measure (click 2 points)", exact=True).is_checked()
+        assert "first point set" in first.inner_text("body") and "label: grass" in first.inner_text("body")
+        # the first tab's marks (its selection, its measured point) are not drawn in the second
+        assert _near(_image(second.screenshot())[:, :900], SELECTION_COLOR, 40).sum() < \
+            _near(_image(first.screenshot())[:, :900], SELECTION_COLOR, 40).sum() - 40
+        # a click in the second tab selects there, not in the first
+        second.mouse.click(640, 760)
+        assert _wait(lambda: "on the ground grid's plane" in second.inner_text("body"))
+        assert "on the ground grid's plane" not in first.inner_text("body")
+    finally:
+        viewer.server.stop()

@@ -358,6 +358,47 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+SELECTION_PROMPT = "Click a voxel, the terrain surface or the ground."
+
+
+class LocalControl:
+    """A control of a view without a browser (a script's, a test's clicks): a viser handle's ``value`` and
+    ``content``, whose ``on_update`` callbacks run when ``value`` is set."""
+
+    def __init__(self, value=None, content: str = ""):
+        self._value, self.content, self._callbacks = value, content, []
+
+    @property
+    def value(self):
+        return self._value
+
+    @value.setter
+    def value(self, value) -> None:
+        self._value = value
+        for callback in self._callbacks:
+            callback(None)
+
+    def on_update(self, callback):
+        self._callbacks.append(callback)
+        return callback
+
+
+@dataclass
+class ClientView:
+    """What one browser tab has of its own, from the defaults when it connects: the selection and its
+    highlight, the measuring tool and its points. ``scene``: where its marks are drawn (the client's scene,
+    seen by that tab only); ``selection``, ``measure``, ``measure_result``: its controls in the panel."""
+
+    scene: object
+    selection: object
+    measure: object
+    measure_result: object
+    measure_points: list = field(default_factory=list)
+    last_point: np.ndarray | None = None  # world coordinates of the last clicked point
+    measure_handles: list = field(default_factory=list)
+    selection_handles: list = field(default_factory=list)
+
+
 class MapViewer:
     """A viser server showing one or more map files, with filters, colorings, picking and export.
 
@@ -413,10 +454,8 @@ class MapViewer:
         self.terrain: dict[int, vl.TerrainSurface] = {}
         self._truth: dict[int, np.ndarray] = {}
         self._diff_cache: dict = {}
-        self.measure_points: list[np.ndarray] = []
         self.map_fade = 0.0  # the voxels' colors drawn this share of the way to white (a drive's scan shown over them)
         self.scale_bar: tuple[float, float, float] | None = None  # (metres, pixels, metres per pixel)
-        self.last_point: np.ndarray | None = None  # world coordinates of the last clicked point
         self.center_hit: dict | None = None  # what lies under the screen's center (pick_point), for the last camera
         self._center_camera = None  # (position, look_at) a browser last reported, waiting for _follow_view_center
         self._center_wake = threading.Condition()
@@ -459,7 +498,6 @@ class MapViewer:
         self.voxel_handles: list = [None] * len(self.layers)
         self.terrain_handles: dict[int, object] = {}
         self._terrain_drawn: dict[int, tuple] = {}  # what each surface was last drawn as (layer, mode, shift)
-        self._measure_handles: list = []
         # trajectory and scan: world coordinates of the maps' frame, drawn relative to the local origin
         self.trajectory_handles: list = []
         if trajectory is not None:
@@ -475,6 +513,7 @@ class MapViewer:
                                               point_size=0.05, precision="float32")
         self.server.scene.on_click()(self._on_click)
         self.server.on_client_connect(self._on_connect)
+        self.server.on_client_disconnect(self._on_disconnect)
         try:
             if terrain:
                 self.compute_terrain()
@@ -515,8 +554,8 @@ class MapViewer:
             self.gui_view_center = gui.add_markdown("under the screen's center: waiting for the camera")
         # filled by a drive's playback (viewer_drive.DrivePlayback) or a live map (viewer_live): kept next to the legend
         self.gui_drive_folder = gui.add_folder("Drive", visible=False)
-        with gui.add_folder("Selected"):
-            self.gui_selection = gui.add_markdown("Click a voxel, the terrain surface or the ground.")
+        # the selection and the measuring tool are each browser tab's own (ClientView), made as it connects
+        self.gui_selected_folder = gui.add_folder("Selected")
         with gui.add_folder("Filters"):
             self.variance_unit, step, top, label = self._variance_slider_range()
             self.gui_max_variance = gui.add_slider(label, min=0.0, max=top, step=step, initial_value=top)
@@ -531,11 +570,10 @@ class MapViewer:
         self.gui_classes_folder = gui.add_folder("Classes")
         with self.gui_classes_folder:
             self.gui_classes = {name: gui.add_checkbox(name, initial_value=True) for name in self.present_classes}
-        with gui.add_folder("Orientation and measuring"):
+        self.gui_orientation_folder = gui.add_folder("Orientation and measuring")
+        with self.gui_orientation_folder:
             self.gui_view = gui.add_button_group("View", VIEW_BUTTONS)
             self.gui_grid = gui.add_checkbox("Ground grid", initial_value=True)
-            self.gui_measure = gui.add_checkbox("Measure (click 2 points)", initial_value=False)
-            self.gui_measure_result = gui.add_markdown("")
         with gui.add_folder("Terrain layers"):
             self.gui_terrain_compute = gui.add_button("Compute terrain layers")
             self.gui_terrain_show = gui.add_checkbox("Show surface", initial_value=True)
@@ -563,7 +601,15 @@ class MapViewer:
         self.gui_grid.on_update(lambda _event: self._show_grid(self.gui_grid.value))
         self.gui_view.on_click(lambda event: self.set_view(event.target.value, event.client))
         self.gui_side_by_side.on_update(lambda event: self.frame_shown(event.client))
-        self.gui_measure.on_update(lambda _event: self._reset_measure())
+        # a view for clicks that come from no browser (scripts, tests)
+        self._local_view = self._new_view(self.server.scene, LocalControl(content=SELECTION_PROMPT),
+                                          LocalControl(False), LocalControl(content=""))
+        self._views: dict[int, ClientView] = {}
+        self._acting_view = self._local_view
+        self.gui_terrain_compute.on_click(lambda _event: self._compute_terrain_from_gui())
+        self.gui_export_html.on_click(lambda _event: self._export_from_gui("html"))
+        self.gui_export_ply.on_click(lambda _event: self._export_from_gui("ply"))
+
         self.gui_terrain_compute.on_click(lambda _event: self._compute_terrain_from_gui())
         self.gui_export_html.on_click(lambda _event: self._export_from_gui("html"))
         self.gui_export_ply.on_click(lambda _event: self._export_from_gui("ply"))
@@ -777,9 +823,38 @@ class MapViewer:
         for handle in [self.grid_handle, *self.grid_label_handles]:
             handle.visible = bool(visible)
 
+    def _new_view(self, scene, selection, measure, measure_result) -> ClientView:
+        view = ClientView(scene, selection, measure, measure_result)
+        measure.on_update(lambda _event: self._reset_measure(view, acting=True))
+        return view
+
     def _on_connect(self, client) -> None:
+        with self.gui_selected_folder:
+            selection = client.gui.add_markdown(SELECTION_PROMPT)
+        with self.gui_orientation_folder:
+            measure = client.gui.add_checkbox("Measure (click 2 points)", initial_value=False)
+            result = client.gui.add_markdown("")
+        self._views[client.client_id] = self._new_view(client.scene, selection, measure, result)
         client.camera.on_update(lambda camera: self._on_camera(client.client_id, camera))
         self._update_scale_bar(client.camera)
+
+    def _on_disconnect(self, client) -> None:
+        view = self._views.pop(client.client_id, None)
+        if view is self._acting_view:
+            self._acting_view = self._local_view
+
+    def view_of(self, client) -> ClientView:
+        """A browser tab's own view (``client``: a viser client; None: the view of clicks from no browser)."""
+        if client is None:
+            return self._local_view
+        return self._views.get(client.client_id) or self._local_view
+
+    # The view whose controls a click or a tick changed last: what these names read (scripts and tests).
+    gui_selection = property(lambda self: self._acting_view.selection)
+    gui_measure = property(lambda self: self._acting_view.measure)
+    gui_measure_result = property(lambda self: self._acting_view.measure_result)
+    measure_points = property(lambda self: self._acting_view.measure_points)
+    last_point = property(lambda self: self._acting_view.last_point)
 
     def _on_camera(self, client_id: int, camera) -> None:
         self._update_scale_bar(camera)
@@ -1297,15 +1372,15 @@ class MapViewer:
         return "\n".join(lines)
 
     def _on_click(self, event) -> None:
+        view = self._acting_view = self.view_of(getattr(event, "client", None))
         hit = self.pick_point(event.ray_origin, event.ray_direction)
+        self._highlight(view, hit)
         if hit is None:
-            self.gui_selection.content = "Nothing under the cursor."
-            self._highlight(None)
+            view.selection.content = "Nothing under the cursor."
             return
         point = np.asarray(hit["point"], np.float64)
-        self.last_point = point
+        view.last_point = point
         where = (f"clicked point in {describe_frame(self.frame)}: " + ", ".join(f"{a}={c:.3f}" for a, c in zip("xyz", point)) + " m")
-        self._highlight(hit)
         if hit["kind"] == "voxel":
             text = self.describe(hit["layer"], hit["row"])
             if hit["layer"] in self.stores:  # a store's voxel: its tile column in full
@@ -1315,19 +1390,19 @@ class MapViewer:
             text = self.terrain[hit["layer"]].describe(hit["row"], hit["column"], layer.classes, describe_frame(self.frame))
         else:
             text = "on the ground grid's plane"
-        self.gui_selection.content = where + "\n\n" + text
-        if self.gui_measure.value:
-            self._add_measure_point(point)
+        view.selection.content = where + "\n\n" + text
+        if view.measure.value:
+            self._add_measure_point(view, point)
 
     SELECTION_STEM_VOXELS = 6.0  # the stem above the selected voxel, in voxel edges
 
-    def _highlight(self, hit: dict | None) -> None:
+    def _highlight(self, view: ClientView, hit: dict | None) -> None:
         """The clicked voxel marked: a wireframe box around it (a little larger, so that its own faces do not
         hide it) and, since its neighbours hide most of the box, a stem rising from it to a label, which show
         above the map; removed when a click hits something else."""
-        for handle in getattr(self, "selection_handles", []):
+        for handle in view.selection_handles:
             handle.remove()
-        self.selection_handles = []
+        view.selection_handles = []
         if hit is None or hit["kind"] != "voxel":
             return
         layer = self.layers[hit["layer"]]
@@ -1338,38 +1413,40 @@ class MapViewer:
         segments = [[corners[a] * half + center, corners[b] * half + center] for a, b in edges]
         top = center + [0.0, 0.0, half + self.SELECTION_STEM_VOXELS * layer.resolution]
         segments.append([center + [0.0, 0.0, half], top])
-        scene = self.server.scene
-        self.selection_handles = [
+        scene = view.scene
+        view.selection_handles = [
             scene.add_line_segments("/selection/box", np.array(segments, np.float32), colors=SELECTION_COLOR, thickness=4.0,
                                     thickness_units="screen"),
             scene.add_label("/selection/label", "selected", position=tuple(top), anchor="bottom-center")]
 
     # ------------------------------------------------------------------ measuring
-    def _reset_measure(self) -> None:
-        self.measure_points = []
-        for handle in self._measure_handles:
+    def _reset_measure(self, view: ClientView, *, acting: bool = False) -> None:
+        if acting:
+            self._acting_view = view
+        view.measure_points.clear()
+        for handle in view.measure_handles:
             handle.remove()
-        self._measure_handles = []
-        self.gui_measure_result.content = "Click the first point." if self.gui_measure.value else ""
+        view.measure_handles.clear()
+        view.measure_result.content = "Click the first point." if view.measure.value else ""
 
-    def _add_measure_point(self, point: np.ndarray) -> None:
+    def _add_measure_point(self, view: ClientView, point: np.ndarray) -> None:
         """Two clicks: the distance and height difference between them (a third click starts again)."""
-        if len(self.measure_points) >= 2:
-            self._reset_measure()
-        self.measure_points.append(np.asarray(point, np.float64))
-        local = [p - self.origin for p in self.measure_points]
-        scene = self.server.scene
-        self._measure_handles.append(scene.add_point_cloud(f"/measure/point{len(local)}", local[-1][None].astype(np.float32),
+        if len(view.measure_points) >= 2:
+            self._reset_measure(view)
+        view.measure_points.append(np.asarray(point, np.float64))
+        local = [p - self.origin for p in view.measure_points]
+        scene = view.scene
+        view.measure_handles.append(scene.add_point_cloud(f"/measure/point{len(local)}", local[-1][None].astype(np.float32),
                                                            colors=(230, 0, 230), point_size=0.25, point_shape="circle", precision="float32"))
-        if len(self.measure_points) == 1:
-            self.gui_measure_result.content = "first point set; click the second."
+        if len(view.measure_points) == 1:
+            view.measure_result.content = "first point set; click the second."
             return
-        a, b = self.measure_points
-        self._measure_handles.append(scene.add_line_segments("/measure/line", np.array([local], np.float32), colors=(230, 0, 230),
+        a, b = view.measure_points
+        view.measure_handles.append(scene.add_line_segments("/measure/line", np.array([local], np.float32), colors=(230, 0, 230),
                                                              thickness=3.0, thickness_units="screen"))
-        self._measure_handles.append(scene.add_label("/measure/label", f"{np.linalg.norm(b - a):.2f} m, dz {b[2] - a[2]:+.2f} m",
+        view.measure_handles.append(scene.add_label("/measure/label", f"{np.linalg.norm(b - a):.2f} m, dz {b[2] - a[2]:+.2f} m",
                                                      position=tuple((local[0] + local[1]) / 2), anchor="bottom-center"))
-        self.gui_measure_result.content = vl.measurement_text(a, b, describe_frame(self.frame))
+        view.measure_result.content = vl.measurement_text(a, b, describe_frame(self.frame))
 
     # ------------------------------------------------------------------ export
     def offset_note(self) -> str:
