@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .kernels.hash_table import INDEX_LIMIT, KEY_BITS, KEY_OFFSET
+from .kernels.hash_table import KEY_BITS, KEY_OFFSET
+from .limits import INDEX_LIMIT  # the key range, beside the other limits (its value is the key layout's)
 
 
 # Rows folded into one for column_bounds: numpy reduces along axis 0 fast over wide rows only (on the
