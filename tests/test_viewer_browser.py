@@ -839,13 +839,14 @@ def test_the_docs_screenshots_come_from_the_screenshot_tool(tmp_path):
 
 
 # --- issue 45 items 4 and 6: a new user's viewer -------------------------------------------------------------------
-def _scene_changed_by(page, hide, show, threshold=40) -> np.ndarray:
-    """[H, 900] bool: the scene's pixels that change when ``hide()`` is called (``show()`` undoes it)."""
+def _scene_changed_by(page, hide, show, threshold=40, width=900) -> np.ndarray:
+    """[H, width] bool: the page's pixels that change when ``hide()`` is called (``show()`` undoes it); the
+    first 900 columns are the scene's, clear of the GUI panel."""
     time.sleep(1.0)
-    before = _image(page.screenshot())[:, :900]
+    before = _image(page.screenshot())[:, :width]
     hide()
     time.sleep(1.5)
-    after = _image(page.screenshot())[:, :900]
+    after = _image(page.screenshot())[:, :width]
     show()
     return np.abs(before - after).max(axis=2) > threshold
 
@@ -942,13 +943,17 @@ def test_side_by_side_keeps_both_maps_in_view(open_page, tmp_path):
         panel_left = page.evaluate("""() => Math.min(...[...document.querySelectorAll('label')].filter(e => e.innerText === 'Side by side')
             .map(e => e.getBoundingClientRect().left))""") - 20
         time.sleep(2.0)
+        drawn = []
         for i in (0, 1):
             handle = viewer.voxel_handles[i]
-            changed = _scene_changed_by(page, lambda: setattr(handle, "visible", False), lambda: setattr(handle, "visible", True))
+            # the whole page: a map under the (opaque) panel changes no pixel there
+            changed = _scene_changed_by(page, lambda: setattr(handle, "visible", False), lambda: setattr(handle, "visible", True), width=1280)
             columns = np.flatnonzero(changed.any(axis=0))
             assert changed.sum() > 1000, f"map {i} is not in view"
-            assert columns.max() < panel_left, f"map {i} reaches under the panel (x up to {columns.max()}, panel from {panel_left:.0f})"
+            assert columns.max() < panel_left - 10, f"map {i} reaches under the panel (x up to {columns.max()}, panel from {panel_left:.0f})"
             assert columns.min() > 10, f"map {i} is cut at the screen's left edge"
+            drawn.append(int(changed.sum()))
+        assert min(drawn) > 0.7 * max(drawn), f"two maps of one size, drawn in {drawn} pixels: one is partly hidden"
     finally:
         viewer.server.stop()
 
