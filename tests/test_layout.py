@@ -18,7 +18,7 @@ LAYERS = {
     "methods": 4,
     "core": 5,
     "synthetic": 6, "segmentation": 6, "terrain": 6,
-    "apps": 7,
+    "apps": 7, "live": 7,
     "__init__": 8,
 }
 

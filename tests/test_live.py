@@ -118,7 +118,7 @@ class Listener:
 
 def test_replayed_drive_maps_live_as_the_log_maps_and_the_published_map_decodes_back(drive, tmp_path):
     batch = batch_map(drive["whole"], tmp_path)
-    live = LiveRun(tmp_path, "--idle-exit", "4")
+    live = LiveRun(tmp_path, "--idle-exit", "4", "--window", "12")  # a window inside the map: the layers of its columns only
     listener = Listener(live.endpoint)
     try:
         assert replay(live.endpoint, drive["whole"]) == 0
@@ -179,3 +179,21 @@ def test_the_mapper_starts_before_the_robot_which_stops_and_comes_back(drive, tm
     report = live.result()
     assert live.code == 0 and report["scans_mapped"] == 6 and report["scans_dropped"] == 0, report
     assert_same_map(Mapper.load(live.out), batch)
+
+
+def test_a_store_written_as_it_goes_is_resumed_by_the_next_run(drive, tmp_path):
+    """--store: the first half of the drive mapped by one live run, the second by another resuming the store:
+    the store holds the map of the whole log."""
+    from evsemmap_warp.core.map_store import MapStore
+
+    batch = batch_map(drive["whole"], tmp_path)
+    store = tmp_path / "store"
+    for half in ("first", "second"):
+        (tmp_path / half).mkdir()
+        live = LiveRun(tmp_path / half, "--idle-exit", "3", "--no-publish", "--store", str(store), "--store-every", "0.2")
+        assert replay(live.endpoint, drive[half]) == 0
+        report = live.result()
+        assert live.code == 0 and report["scans_mapped"] == 3, report
+        assert MapStore(store).to_mapper().scans_integrated == (3 if half == "first" else 6)
+    assert not store.with_name("store.next").exists() and not store.with_name("store.prev").exists()
+    assert_same_map(MapStore(store).to_mapper(), batch)

@@ -51,15 +51,18 @@ class LatestOnlyWorker:
 
     @property
     def busy(self) -> bool:
+        """Whether something is being handled or waits to be."""
         with self._cond:
             return self._busy or self._pending is not None
 
     def hand_over(self, item) -> None:
+        """Give the thread ``item`` to handle next (replacing one still waiting)."""
         with self._cond:
             self._pending = item
             self._cond.notify_all()
 
     def wait_idle(self, timeout: float = 60.0) -> bool:
+        """Wait up to ``timeout`` seconds until nothing is handled or waiting; returns whether it came to that."""
         end = time.time() + timeout
         with self._cond:
             while self._busy or self._pending is not None:
@@ -68,6 +71,7 @@ class LatestOnlyWorker:
         return True
 
     def close(self) -> None:
+        """Stop the thread (what waits is not handled) and join it, 30 s at most."""
         with self._cond:
             self._stopped = True
             self._cond.notify_all()

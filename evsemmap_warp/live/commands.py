@@ -50,6 +50,9 @@ def add_parsers(sub, *, positive, positive_float, port) -> None:
     p.add_argument("--duration", type=positive_float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N or auto")
     p.add_argument("--workers", type=positive, default=None, help="CPU threads scattering into map shards (default: up to 2 on the CPU)")
+    p.add_argument("--store", type=Path, default=None, metavar="DIR", help="keep the map as a map store (the batch format) in DIR, "
+                   "rewritten every --store-every seconds and at the end (Ctrl-C too); an existing store is resumed")
+    p.add_argument("--store-every", type=positive_float, default=30.0, metavar="S", help="with --store: seconds between writes (default 30)")
     p.add_argument("--report", type=Path, default=None, help="also write the final report (counts, latencies) to this JSON file")
     p.add_argument("--view", action="store_true", help="show the map in a browser while it is made (the live viewer)")
     p.add_argument("--view-every", type=positive, default=10, help="with --view: scans between updates (default 10)")
@@ -127,12 +130,14 @@ def run_live(args) -> int:
     from ..files import check_not_inside
 
     check_not_inside(args.out, list(run.sources), "live --out")
+    if args.store is not None:
+        check_not_inside(args.store, list(run.sources), "live --store")
     store = typestore()
     session = open_session(_options(args))
     stop = threading.Event()
     _stop_on_signals(stop)
     queue = ScanQueue(args.queue)
-    feed = node = mapping = live_view = None
+    feed = node = mapping = live_view = live_store = None
     try:
         feed = RobotFeed(session, run.dataset.bag, queue, store, key_format=args.key_format, domain_id=args.domain_id,
                          max_cloud_bytes=int(args.max_cloud_mb * 2**20))
@@ -154,8 +159,11 @@ def run_live(args) -> int:
             if mapping.stats.mapped % args.view_every == 0:
                 live_view.offer(mapping.stats.mapped, scan)
 
+        from .store import LiveStore
+
+        live_store = None if args.store is None else LiveStore(args.store, every_s=args.store_every, sources=list(args.configs))
         mapping = LiveMapping(run, feed, queue, settings, out=args.out, device=args.device, workers=args.workers, node=node,
-                              publisher_factory=None if args.no_publish else publisher, on_mapped=on_mapped)
+                              publisher_factory=None if args.no_publish else publisher, on_mapped=on_mapped, store=live_store)
         topics = ", ".join(f"{t} ({s.msgtype.rsplit('/', 1)[-1]})" for t, s in feed.topics.items())
         say(f"listening for {topics} on domain {args.domain_id} ({args.key_format} keys); Ctrl-C ends the run and writes {args.out}")
         try:
@@ -166,6 +174,8 @@ def run_live(args) -> int:
     finally:
         if mapping is not None:
             mapping.close()
+        elif live_store is not None:
+            live_store.close()
         if live_view is not None:
             live_view.close()
             live_view.viewer.close()
@@ -175,6 +185,7 @@ def run_live(args) -> int:
             node.close()
         session.close()
     report = mapping.diagnostics() | {"method": run.mapping.method, "map_files": [str(p) for p in mapping.maps_written],
+                                      "store": None if live_store is None else str(live_store.path),
                                       "mapping_seconds": round(mapping.stats.mapping_s, 3)}
     if mapping.mapper is not None:
         report["voxels"] = mapping.mapper.voxel_count

@@ -73,6 +73,7 @@ class RobotFeed:
                 self._subscribers.append(session.declare_subscriber(key, lambda sample, t=topic: self.on_sample(t, sample)))
 
     def close(self) -> None:
+        """Undeclare the subscriptions."""
         for subscriber in self._subscribers:
             subscriber.undeclare()
         self._subscribers.clear()

@@ -87,7 +87,7 @@ class LiveMapping:
     in its world frame); ``publisher_factory(mapper)`` gives the MapPublisher (None: publish nothing)."""
 
     def __init__(self, run: RunConfig, feed: RobotFeed, queue: ScanQueue, settings: LiveSettings, *, out: Path | None = None,
-                 device: str = "cpu", workers: int | None = None, node=None, publisher_factory=None, on_mapped=None):
+                 device: str = "cpu", workers: int | None = None, node=None, publisher_factory=None, on_mapped=None, store=None):
         dataset = run.dataset
         if dataset.frame == "first-scan":
             raise ConfigError("dataset.frame: first-scan is a frame of a log's first scan; a live map is made in the robot's fixed frame "
@@ -101,6 +101,8 @@ class LiveMapping:
         self.num_classes = dataset.num_classes or len(self.class_names)
         self.device, self.workers, self.node = device, workers, node
         self.publisher_factory, self.on_mapped = publisher_factory, on_mapped
+        self.store = store  # a LiveStore (--store), or None
+        self.resumed = store.resume(run) if store is not None else None
         self.stats = LiveStats()
         self.mapper: Mapper | None = None
         self.publisher = None
@@ -242,8 +244,18 @@ class LiveMapping:
         return True
 
     def _start_map(self) -> None:
-        self.mapper = Mapper(self.run.mapping, self.num_classes, class_names=self.class_names, device=self.device, workers=self.workers,
-                             frame=self.frame)
+        resumed, self.resumed = self.resumed, None
+        if resumed is not None:
+            if resumed.frame is None or resumed.frame.name != self.frame.name:
+                raise ConfigError(f"--store {self.store.path}: a map in {resumed.frame.describe() if resumed.frame else 'no frame'}, the "
+                                  f"robot's is {self.frame.describe()}; give a new folder")
+            self.frame = resumed.frame  # resuming continues the store's drive: its run too
+        self.mapper = Mapper.for_dataset(self, self.run.mapping, device=self.device, workers=self.workers)
+        if resumed is not None:
+            self.mapper.load_voxels(resumed.voxels().arrays, origin_index=resumed.origin_index)
+            self.mapper.scans_integrated, self.mapper.points_integrated = resumed.scans_integrated, resumed.points_integrated
+            self.mapper.scan_ids = resumed.scan_ids
+            say(f"resuming the store {self.store.path}: {resumed.scans_integrated} scans, {resumed.voxel_count} voxels")
         say(f"mapping {self.bag.cloud_topic} with {self.run.mapping.method} in {self.frame.describe()} (the LiDAR frame "
             f"{self.lidar_frame!r})")
         if self.publisher_factory is not None:
@@ -260,6 +272,8 @@ class LiveMapping:
         self.stats.published_ms += [(wall_ns - origin) / 1e6 for origin in done]
 
     def _offer(self, *, force: bool = False) -> None:
+        if self.store is not None:
+            self.store.offer(self.mapper, force=force)
         if self.publisher is not None and self.mapper is not None:
             with self._pending_lock:
                 pending = len(self._pending)
@@ -341,10 +355,13 @@ class LiveMapping:
     def _finish_map(self, *, reset: bool) -> Path | None:
         if self.mapper is None:
             return None
-        if self.publisher is not None:
-            self.publisher.wait_idle(timeout=30.0)
-            self._offer(force=True)
-            self.publisher.wait_idle(timeout=30.0)
+        workers = [w for w in (self.publisher, self.store) if w is not None]
+        for worker in workers:
+            worker.wait_idle(timeout=60.0)
+        self._offer(force=True)
+        for worker in workers:
+            if not worker.wait_idle(timeout=600.0):
+                say(f"{type(worker).__name__}: still busy after 600 s; ending without it")
         path = None
         if self.out is not None:
             path = self.out.with_name(f"{self.out.stem}.{len(self.maps_written) + 1}{self.out.suffix}") if reset else self.out
@@ -355,5 +372,7 @@ class LiveMapping:
         return path
 
     def close(self) -> None:
-        if self.publisher is not None:
-            self.publisher.close()
+        """Stop the publishing and store threads."""
+        for worker in (self.publisher, self.store):
+            if worker is not None:
+                worker.close()

@@ -146,13 +146,23 @@ class MapPublisher(LatestOnlyWorker):
         if "grid" in kinds and self.window_m > 0:
             from ..terrain.api import compute_layers
 
-            self.template.load_voxels(voxels, origin_index=origin_index)
             half = self.window_m / 2
             bounds = [robot_xy[0] - half, robot_xy[1] - half, robot_xy[0] + half, robot_xy[1] + half]
+            # only the columns of the window: a cell's layers come from the voxels above it alone (no halo)
+            self.template.load_voxels(self._columns_within(voxels, bounds), origin_index=origin_index)
             layers = compute_layers(self.template, bounds=bounds, config=self.terrain_config)
             self.node.publish_message(GRID_MAP_TOPIC, grid_map_message(self.store, layers, stamp_ns, frame_id))
             self.node.publish_message(COSTMAP_TOPIC, occupancy_grid_message(self.store, layers, stamp_ns, frame_id))
             self._published("grid", scans)
+
+    def _columns_within(self, voxels: VoxelArrays, bounds) -> VoxelArrays:
+        """The voxels whose x-y column lies within ``bounds`` [x0, y0, x1, y1] (m), two voxels of margin."""
+        resolution, offset = self.template.config.resolution_m, self.template.grid_offset_m
+        low = np.floor((np.asarray(bounds[:2]) - offset) / resolution).astype(np.int64) - 2
+        high = np.floor((np.asarray(bounds[2:]) - offset) / resolution).astype(np.int64) + 2
+        xy = voxels.index[:, :2]
+        inside = np.all((xy >= low) & (xy <= high), axis=1)
+        return VoxelArrays.from_rows(voxels.index[inside], voxels.rows()[inside])
 
     def _published(self, kind: str, scans: int) -> None:
         self.published[kind] += 1
