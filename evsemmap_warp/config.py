@@ -762,6 +762,13 @@ def load_config(config_paths: list[str | Path], method: str | None = None, *, fr
         dataset["bag"] = dataclass_from_dict(BagConfig, bag, " + ".join(sources) + ": dataset.bag")
     if (frame is not None or crs is not None) and not dataset:
         raise ConfigError(f"{' + '.join(sources) or 'no config'}: --frame / --crs place a dataset's scans, and none is named")
+    if crs is not None:  # a bad flag named as the flag, not as the dataset.crs key it stands for
+        from .frames import FrameError, check_crs
+
+        try:
+            check_crs(crs, "--crs")
+        except FrameError as exc:
+            raise ConfigError(str(exc)) from None
     if dataset:
         # --frame / --crs win over the files' dataset.frame / dataset.crs
         dataset.update({k: v for k, v in (("frame", frame), ("crs", crs)) if v is not None})

@@ -194,6 +194,44 @@ def test_a_given_lidar_extrinsic_stands_in_for_missing_static_transforms(tmp_pat
     np.testing.assert_allclose(seq.pose(seq.frames[0]), with_static.pose(with_static.frames[0]), atol=1e-12)
 
 
+def test_a_lidar_extrinsic_on_a_log_holding_the_mount_is_refused_as_a_conflict(tmp_path):
+    """The extrinsic stands in for a mount the log lacks; given beside the log's own it would either
+    replace it silently (the same parent) or fail as a TF tree with two parents, naming no key."""
+    from evsemmap_warp.config import BagConfig
+
+    path = _hand_made_log(tmp_path / "static.bag")
+    extrinsic = (0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    with pytest.raises(DataError, match=r"dataset.bag.lidar_extrinsic conflicts with the log's own transform 'mast' -> 'lidar'"):
+        LogSequence([path], BagConfig(lidar_extrinsic=extrinsic))
+
+
+def test_a_fixed_frame_that_moves_with_the_robot_is_refused_like_a_robot_standing_still(tmp_path, capsys):
+    """--frame base (the robot's own frame): the LiDAR is fixed to it, so every scan would get one
+    pose, the case refused when the log's own tree says so."""
+    from evsemmap_warp.config import BagConfig
+
+    path = _hand_made_log(tmp_path / "hand.bag")
+    moving = LogSequence([path], BagConfig(fixed_frame="base"))
+    with pytest.raises(DataError, match=r"fixed_frame \(--frame\) 'base' moves with the robot \(the transform 'odom' -> 'base' moves\)"):
+        moving.check_pose_chain()
+    assert main(["map", str(path), "rellis3d", "--frame", "base", "--method", "ebs", "--out", str(tmp_path / "m.npz"),
+                 "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--frame" in err and "'base'" in err and not (tmp_path / "m.npz").exists(), err
+
+
+def test_a_logs_run_frames_and_run_id(tmp_path):
+    """odom by name, a frame that moves in the TF tree, and the odometry's header frame are one run's;
+    the run id comes from the log's first cloud: the same log gives the same id, another log another."""
+    from evsemmap_warp.config import BagConfig
+
+    path = _hand_made_log(tmp_path / "relocalised.bag", relocalised=True)
+    seq = LogSequence([path])
+    assert seq.is_run_frame("odom") and seq.is_run_frame("base") and seq.is_run_frame("mast") and not seq.is_run_frame("map")
+    assert LogSequence([path]).run_id == seq.run_id and len(seq.run_id) == 16
+    assert LogSequence([_hand_made_log(tmp_path / "vlp.bag", lidar_frame="velodyne")]).run_id != seq.run_id  # another first cloud
+
+
 def test_check_data_explains_a_log_that_cannot_be_mapped(tmp_path, capsys):
     path = _hand_made_log(tmp_path / "broken.bag", lidar_frame="velodyne")  # the cloud's frame is in no TF tree
     report = check_log([path])

@@ -19,7 +19,7 @@ from evsemmap_warp.config import ConfigError, load_config
 from evsemmap_warp.core.map_store import MapStore
 from evsemmap_warp.core.mapper import Mapper, load_map
 from evsemmap_warp.data.datasets import open_dataset
-from evsemmap_warp.data.sequences import DataError, Rellis3DSequence, read_poses
+from evsemmap_warp.data.sequences import DataError, Rellis3DSequence, read_frame_file, read_poses
 from evsemmap_warp.frames import FrameError, WorldFrame, check_crs
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence
@@ -72,7 +72,8 @@ def _copy_folder(folder: Path, out: Path, frames=None, transform=None, frame_fil
 
 def test_a_folder_is_mapped_in_its_poses_frame_as_given(drive):
     mapper = _map([drive])
-    assert mapper.frame == WorldFrame("odom")  # evsemmap synth names its poses' frame in frame.yaml
+    # evsemmap synth names its poses' frame in frame.yaml, and odom's run: the preset's drive
+    assert mapper.frame == WorldFrame("odom", run=read_frame_file(drive).run) and mapper.frame.run
     seq = Rellis3DSequence(drive)
     assert not np.allclose(seq.pose(seq.frames[0]), np.eye(4))  # the synthetic poses are world poses
     # The first scan's points land where its world pose puts them, not at its LiDAR frame.
@@ -95,7 +96,7 @@ def test_first_scan_keeps_the_papers_convention_and_identity_poses_map_as_before
     _assert_same_map(relative, own, evidence_tol=1e-6)
     # and the default is the world frame: the same scans on the world's lattice, other voxels
     world = _map([drive])
-    assert world.frame == WorldFrame("odom") and len(world.voxels()[0].index) != len(relative.voxels()[0].index)
+    assert world.frame == read_frame_file(drive) and len(world.voxels()[0].index) != len(relative.voxels()[0].index)
 
 
 def test_halves_of_a_drive_in_two_folders_of_one_frame_merge_into_the_whole(drive, tmp_path, capsys):
@@ -112,7 +113,7 @@ def test_halves_of_a_drive_in_two_folders_of_one_frame_merge_into_the_whole(driv
     run_batch([str(first), str(second)], BatchOptions(method="s-csm", out=tmp_path / "store", executor="inline", progress=False),
               log=lambda message: None)
     store = MapStore(tmp_path / "store")
-    assert store.frame == WorldFrame("odom")
+    assert store.frame == read_frame_file(drive)
     _assert_same_map(whole, store.to_mapper())
     capsys.readouterr()
 
@@ -130,10 +131,10 @@ def test_a_map_made_in_python_as_the_readme_shows_merges_with_the_command_lines(
     assert main(["map", str(second), "rellis3d", "--method", "ebs", "--out", "second.npz", "--quiet"]) == 0
     capsys.readouterr()
     assert main(["info", "synth_ebs.npz"]) == 0
-    assert json.loads(capsys.readouterr().out)["frame"] == {"name": "odom", "crs": None}
+    assert json.loads(capsys.readouterr().out)["frame"] == {"name": "odom", "crs": None, "run": read_frame_file(drive).run}
     assert main(["merge", "synth_ebs.npz", "second.npz", "--out", "both.npz"]) == 0
     both = load_map(tmp_path / "both.npz")
-    assert both.frame == WorldFrame("odom")
+    assert both.frame == read_frame_file(drive)
     _assert_same_map(both, _map([drive, "rellis3d"], method="ebs"), evidence_tol=1e-6)
     capsys.readouterr()
 
@@ -158,7 +159,12 @@ def test_maps_and_inputs_of_different_frames_are_refused_naming_both(drive, tmp_
     # (with the first half of the drive: odom.npz holds scans 3-5 too, and a merge refuses to count a scan twice)
     first = _copy_folder(drive, tmp_path / "first", frames=range(0, 3))
     assert main(["map", str(first), "--method", "s-csm", "--out", str(tmp_path / "first.npz"), "--quiet"]) == 0
-    assert main(["merge", str(tmp_path / "first.npz"), str(tmp_path / "renamed.npz"), "--out", str(tmp_path / "m.npz")]) == 0
+    # renamed.npz's odom is of a run its folder does not name: one frame only when the user says so
+    capsys.readouterr()
+    assert main(["merge", str(tmp_path / "first.npz"), str(tmp_path / "renamed.npz"), "--out", str(tmp_path / "m.npz")]) == 2
+    assert "of an unknown run" in capsys.readouterr().err and not (tmp_path / "m.npz").exists()
+    assert main(["merge", str(tmp_path / "first.npz"), str(tmp_path / "renamed.npz"), "--same-frame", "--out", str(tmp_path / "m.npz")]) == 0
+    assert load_map(tmp_path / "m.npz").frame == read_frame_file(drive)  # the first input's run
     capsys.readouterr()
 
 
@@ -212,10 +218,10 @@ def test_points_on_tile_faces_far_away_reach_the_voxel_the_mapper_wrote(tmp_path
 
 def test_frame_and_crs_input_is_checked(drive):
     assert check_crs("epsg:32617") == "EPSG:32617" and check_crs(32617) == "EPSG:32617" and check_crs("") is None
-    for bad in ("UTM17N", "EPSG:", "32617", "EPSG:12"):
+    for bad in ("UTM17N", "EPSG:", "32617", "EPSG:12", "EPSG:0000", "EPSG:01000"):  # codes start at 1024
         with pytest.raises(FrameError, match="not an EPSG code"):
             check_crs(bad)
-    with pytest.raises(ConfigError, match="dataset.crs.*not an EPSG code"):
+    with pytest.raises(ConfigError, match="^--crs = 'WGS84 / UTM' is not an EPSG code"):  # the flag, as given
         load_config([str(drive)], crs="WGS84 / UTM")
     with pytest.raises(ConfigError, match="--frame / --crs.*none is named"):
         load_config(["rellis3d"], crs="EPSG:32617")
@@ -226,6 +232,9 @@ def test_frame_and_crs_input_is_checked(drive):
 def test_bad_frames_and_poses_get_one_line(drive, tmp_path, capsys):
     assert main(["map", str(drive), "--method", "s-csm", "--crs", "UTM17N", "--out", str(tmp_path / "x.npz")]) == 2
     assert "UTM17N" in capsys.readouterr().err
+    assert main(["map", str(drive), "--method", "s-csm", "--crs", "EPSG:0000", "--out", str(tmp_path / "x.npz")]) == 2
+    err = capsys.readouterr().err.strip()  # once recorded as EPSG:0 and refused later, naming neither the flag nor the value
+    assert len(err.splitlines()) == 1 and "--crs = 'EPSG:0000'" in err and not (tmp_path / "x.npz").exists(), err
     assert main(["map", str(drive), "--method", "s-csm", "--frame", "first-scan", "--crs", "EPSG:32617", "--out", str(tmp_path / "x.npz")]) == 2
     assert "first-scan" in capsys.readouterr().err
     sheared = _copy_folder(drive, tmp_path / "sheared")
@@ -266,10 +275,10 @@ def test_a_log_maps_in_its_fixed_frame_as_the_same_scans_given_there(drive, tmp_
     assert main(["map", str(log), "rellis3d", "rellis3d-bag", "--method", "s-csm", "--out", str(tmp_path / "log.npz"), "--quiet"]) == 0
     capsys.readouterr()
     from_log = load_map(tmp_path / "log.npz")
-    assert from_log.frame == WorldFrame("odom")
     # the same scans, placed in odom by the log's own TF, as float32 PCD files
     run = load_config([str(log), "rellis3d-bag"], method="s-csm")
     sequence = LogSequence(run.dataset.resolve_logs(), run.dataset.bag)
+    assert from_log.frame == WorldFrame("odom", run=sequence.run_id)  # the log's odom: its run, from its first cloud
     assert not np.allclose(sequence.pose(sequence.frames[0])[:3, :3], np.eye(3))  # a turned mount, a moving robot
     pcd = tmp_path / "pcd"
     pcd.mkdir()
@@ -280,7 +289,7 @@ def test_a_log_maps_in_its_fixed_frame_as_the_same_scans_given_there(drive, tmp_
     config.write_text(f"dataset:\n  kind: pcd_sequence\n  paths: [{pcd}]\n  pattern: 'scan_{{index}}.pcd'\n  first_index: 0\n"
                       f"  last_index: {len(sequence.frames) - 1}\n  payload: label\n  num_classes: 9\n  frame: odom\n")
     from_pcd = _map([config, "rellis3d"])
-    assert from_pcd.frame == WorldFrame("odom")
+    assert from_pcd.frame == WorldFrame("odom")  # points given in odom: of a run they do not name
     (vl, sl), (vp, sp) = from_log.voxels(), from_pcd.voxels()
     log_cells, pcd_cells = {tuple(i) for i in vl.index}, {tuple(i) for i in vp.index}
     # float32 PCD coordinates move a point sitting within ~1e-6 m of a voxel face now and then
@@ -303,9 +312,41 @@ def test_log_halves_in_one_frame_merge_into_the_whole_drive(drive, tmp_path):
     write_log(drive, halves[0], "rosbag1", frames=slice(0, 3))
     write_log(drive, halves[1], "rosbag1", frames=slice(3, None))
     whole = _map([*halves, "rellis3d-bag"], method="ebs")
-    merged = _map([halves[0], "rellis3d-bag"], method="ebs").merge(_map([halves[1], "rellis3d-bag"], method="ebs"))
+    first, second = _map([halves[0], "rellis3d-bag"], method="ebs"), _map([halves[1], "rellis3d-bag"], method="ebs")
+    # each log's odom is of its own run (its first cloud's): one frame only when the caller says so
+    with pytest.raises(FrameError, match="odom' of run .* but the second in frame 'odom' of run .*--same-frame"):
+        first.merge(second)
+    merged = first.merge(second, same_frame=True)
+    assert merged.frame == first.frame
     _assert_same_map(whole, merged)
     _assert_same_map(whole, _map([drive], method="ebs"))  # the folder (3x3 rotations) and the logs (quaternions) agree too
+
+
+def test_merge_of_two_runs_odom_maps_is_refused_naming_both_unless_said_to_share_it(drive, tmp_path, capsys):
+    """Two logs' odom frames (REP 105: one run's each) share a name, not coordinates: merge refuses,
+    naming both maps and both runs; --same-frame merges them. The run comes from the log, so the
+    same command on the same log writes the same bytes."""
+    pytest.importorskip("rosbags")
+    from evsemmap_warp.data.log_writer import write_log
+
+    maps = []
+    for k, frames in enumerate((slice(0, 3), slice(3, None))):
+        write_log(drive, tmp_path / f"{k}.bag", "rosbag1", frames=frames)
+        maps.append(tmp_path / f"{k}.npz")
+        assert main(["map", str(tmp_path / f"{k}.bag"), "rellis3d", "rellis3d-bag", "--method", "ebs", "--out", str(maps[-1]), "--quiet"]) == 0
+    capsys.readouterr()
+    runs = [load_map(m).frame.run for m in maps]
+    assert None not in runs and runs[0] != runs[1]
+    assert main(["merge", *map(str, maps), "--out", str(tmp_path / "both.npz")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and all(str(m) in err and r in err for m, r in zip(maps, runs)) and "--same-frame" in err, err
+    assert not (tmp_path / "both.npz").exists()
+    assert main(["merge", *map(str, maps), "--same-frame", "--out", str(tmp_path / "both.npz")]) == 0
+    assert load_map(tmp_path / "both.npz").frame.run == runs[0]
+    assert main(["map", str(tmp_path / "0.bag"), "rellis3d", "rellis3d-bag", "--method", "ebs", "--out", str(tmp_path / "again.npz"),
+                 "--quiet"]) == 0
+    assert (tmp_path / "again.npz").read_bytes() == maps[0].read_bytes()
+    capsys.readouterr()
 
 
 def test_maps_with_different_origins_merge_exactly_far_from_zero():

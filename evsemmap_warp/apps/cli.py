@@ -203,9 +203,9 @@ def _cmd_merge(args) -> int:
     for path in args.inputs:
         part = _load_map_or_store(path)
         if merged is not None:  # refused before anything is added, naming both inputs and both frames
-            check_same_frame("merge", (str(args.inputs[0]), merged.frame), (str(path), part.frame))
+            check_same_frame("merge", (str(args.inputs[0]), merged.frame), (str(path), part.frame), same_frame=args.same_frame)
         try:
-            merged = part if merged is None else merged.merge(part)
+            merged = part if merged is None else merged.merge(part, same_frame=args.same_frame)
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from None
     if args.out.suffix == ".npz":
@@ -725,6 +725,8 @@ def build_parser() -> argparse.ArgumentParser:
                                              "the maps' frame (not the sensor frame)")
     p.add_argument("--export-html", type=Path, help="write a standalone HTML of the scene: positions relative to the local "
                                                     "origin, whose world coordinates and frame the page states")
+    p.add_argument("--same-frame", action="store_true", help="the inputs' frames of one run (e.g. odom) are one frame: runs that differ or "
+                                                             "are unknown are merged (docs/formats.md, the frame's run)")
     p.add_argument("--export-ply", type=Path, help="write the visible voxels as a PLY point cloud: float64 world coordinates "
                                                    "of the maps' frame, named in the header")
     p.add_argument("--export-dir", type=Path, help="folder for the GUI's export buttons (default: beside the first map)")

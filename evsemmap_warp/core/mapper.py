@@ -673,12 +673,13 @@ class Mapper:
         mapper.scan_ids = None if meta.get("scan_ids") is None else set(meta["scan_ids"])
         return mapper
 
-    def check_mergeable(self, other: "Mapper") -> None:
+    def check_mergeable(self, other: "Mapper", *, same_frame: bool = False) -> None:
         """Raise ValueError naming what differs when the two maps cannot be added up, or when they hold
-        a scan in common (its evidence would count twice: a map merged with itself, or with a part of it)."""
+        a scan in common (its evidence would count twice: a map merged with itself, or with a part of it).
+        ``same_frame``: the caller says two runs' frames of one name (``odom``) are one (``check_same_frame``)."""
         if not isinstance(other, Mapper):
             raise ValueError(f"merge: the second map must be a Mapper, got {type(other).__name__}")
-        check_same_frame("merge", ("the first map", self.frame), ("the second", other.frame))
+        check_same_frame("merge", ("the first map", self.frame), ("the second", other.frame), same_frame=same_frame)
         if self.scan_ids and other.scan_ids:
             common = self.scan_ids & other.scan_ids
             if common:
@@ -696,11 +697,13 @@ class Mapper:
         if differing:
             raise ValueError("merge: the maps' parameters differ: " + ", ".join(f"{k} {mine[k]!r} vs {theirs[k]!r}" for k in differing))
 
-    def merge(self, other: "Mapper") -> "Mapper":
+    def merge(self, other: "Mapper", *, same_frame: bool = False) -> "Mapper":
         """A new map holding the evidence of both (maps of disjoint scan sets): evidence (concentration
         above the prior), weights and counts add, touched is or-ed; a map with another origin on the
-        same lattice is re-indexed. Exact up to float64 summation order: BKI updates are sums."""
-        self.check_mergeable(other)
+        same lattice is re-indexed. Exact up to float64 summation order: BKI updates are sums.
+        ``same_frame``: two runs' ``odom`` frames are one (a drive cut into two logs); the new map
+        records this map's frame and run."""
+        self.check_mergeable(other, same_frame=same_frame)
         out = Mapper(self.config, self.num_classes, class_names=self.class_names, device=self.device, workers=len(self.shards),
                      frame=self.frame)
         out.origin_index = self.origin_index if self.origin_index is not None else other.origin_index

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import BagConfig, ConfigError
+from ..frames import is_run_frame_name, run_id
 from ..geometry.camera import PinholeCamera
 from ..geometry.transform_tree import TransformError, TransformTree, format_stamp
 from .ros_messages import MessageError, camera_from_info, cloud_xyz, decode_cloud, decode_image, header_stamp_ns
@@ -157,6 +158,8 @@ class LogSequence:
         self.tree = TransformTree()
         self._camera_info = None
         self._cloud_fields: tuple[str, ...] = ()
+        self._odometry_frames: set[str] = set()  # the header frames of the odometry: frames of this run
+        self.run_id = ""  # the run's id, from its first cloud (frames.run_id)
         self._index()
         self._poses: dict[int, np.ndarray] = {}
         self._cursors = {}
@@ -270,6 +273,7 @@ class LogSequence:
                 stamps[kind].append((time_ns, header_stamp_ns(raw, self.ros2)))
                 if kind == "cloud" and first_cloud is None:
                     first_cloud = self.reader.deserialize(raw, connection.msgtype)
+                    self.run_id = run_id(str(stamps[kind][0][1]), raw)  # the drive's first sweep identifies its run
                 continue
             msg = self.reader.deserialize(raw, connection.msgtype)
             try:
@@ -277,6 +281,7 @@ class LogSequence:
                     if self._camera_info is None:
                         self._camera_info = camera_from_info(msg, f"{self.describe()} {connection.topic}")
                 elif kind == "odometry":
+                    self._odometry_frames.add(msg.header.frame_id)
                     pose = msg.pose.pose
                     self.tree.add_timed(msg.header.frame_id, msg.child_frame_id, _stamp(msg.header),
                                         [pose.position.x, pose.position.y, pose.position.z],
@@ -296,12 +301,23 @@ class LogSequence:
         c = self.config
         try:
             if c.lidar_extrinsic:
+                self._refuse_second_mount("lidar_extrinsic", self.lidar_frame)
                 base = self._odometry_child()
                 self.tree.add_static(base, self.lidar_frame, c.lidar_extrinsic[:3], c.lidar_extrinsic[3:])
             if c.camera_extrinsic:
+                self._refuse_second_mount("camera_extrinsic", self.camera_frame)
                 self.tree.add_static(self.lidar_frame, self.camera_frame, c.camera_extrinsic[:3], c.camera_extrinsic[3:])
         except TransformError as exc:
             raise DataError(f"dataset.bag extrinsics: {exc}") from None
+
+    def _refuse_second_mount(self, key: str, frame: str) -> None:
+        """An extrinsic stands in for a mount the log lacks; one the log holds would be replaced or
+        contradicted, silently either way."""
+        parent = self.tree.parent(frame)
+        if parent is not None:
+            raise DataError(f"{self.describe()}: dataset.bag.{key} conflicts with the log's own transform {parent!r} -> {frame!r} "
+                            f"(on {self.config.tf_static_topic!r} or {self.config.tf_topic!r}); the extrinsic is for a log without "
+                            f"one: drop dataset.bag.{key} to use the log's")
 
     def _odometry_child(self) -> str:
         children = [f for f in self.tree.frames if self.tree.is_timed(f)]
@@ -349,6 +365,16 @@ class LogSequence:
                             f"dataset.bag.lidar_frame, give dataset.bag.lidar_extrinsic, or set fixed_frame to it for a sensor that never moves")
         return root
 
+    def is_run_frame(self, frame: str) -> bool:
+        """Whether ``frame`` is one run's, not world-fixed: ``odom`` by name (REP 105), the header frame
+        of the log's odometry, or a frame that moves in the log's TF tree (drifts against its root)."""
+        if is_run_frame_name(frame) or frame in self._odometry_frames:
+            return True
+        try:
+            return any(self.tree.is_timed(f) for f in self.tree.path_to_root(frame)[:-1])
+        except TransformError:
+            return False
+
     def check_pose_chain(self) -> None:
         """Refuse, before any mapping, a drive that is not posed in the fixed frame throughout: the
         LiDAR frame not connected to it, or a moving transform of the chain recorded for part of the
@@ -361,8 +387,10 @@ class LogSequence:
         except TransformError as exc:
             raise DataError(f"{self.describe()}: no pose of the LiDAR in the fixed frame: {exc}") from None
         first, last = self.frames[0].stamp_ns, self.frames[-1].stamp_ns
-        if not self.config.fixed_frame and not any(self.tree.is_timed(f) for f in up_lidar[:-1] + up_fixed[:-1]):
-            self._refuse_standing_still(fixed, up_lidar, first)
+        if not any(self.tree.is_timed(f) for f in up_lidar[:-1] + up_fixed[:-1]):
+            if not self.config.fixed_frame:
+                self._refuse_standing_still(fixed, up_lidar, first)
+            self._refuse_moving_fixed_frame(fixed, up_lidar)
         for child in up_lidar[:-1] + up_fixed[:-1]:
             if not self.tree.is_timed(child):
                 continue
@@ -380,6 +408,18 @@ class LogSequence:
                             f"{self.tree.parent(child)!r} -> {child!r} is recorded from {format_stamp(start)} to {format_stamp(end)}, "
                             f"but the clouds run from {format_stamp(first)} to {format_stamp(last)} ({unposed} of {len(self.frames)} "
                             f"clouds have no pose in {fixed!r}){hint}")
+
+    def _refuse_moving_fixed_frame(self, fixed: str, up_lidar: list[str]) -> None:
+        """A fixed frame the user named, static to the LiDAR but moving in the log (a frame of the
+        robot, e.g. base_link): every scan would get the same pose, as in ``_refuse_standing_still``."""
+        moving = next((f for f in self.tree.path_to_root(fixed)[:-1] if self.tree.is_timed(f)), None)
+        if moving is None:  # a sensor that never moves: its frame is world-fixed
+            return
+        chain = " -> ".join(reversed(up_lidar))
+        raise DataError(f"{self.describe()}: dataset.bag.fixed_frame (--frame) {fixed!r} moves with the robot (the transform "
+                        f"{self.tree.parent(moving)!r} -> {moving!r} moves) and the LiDAR is fixed to it ({chain}), so every scan would "
+                        f"get the same pose (a moving robot mapped as standing still); name a frame the robot moves in, e.g. "
+                        f"{self.tree.root(fixed)!r}, or none for the log's TF root")
 
     def _refuse_standing_still(self, root: str, up_lidar: list[str], first_ns: int) -> None:
         """The LiDAR's tree (its root picked as the fixed frame) holds no moving transform: every scan

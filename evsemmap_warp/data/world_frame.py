@@ -11,6 +11,11 @@
 
 ``dataset.frame: first-scan`` keeps the paper's convention instead: coordinates relative to the first
 scan's LiDAR pose, a frame of that source alone (``first-scan of <source>``), never georeferenced.
+
+A frame of one run (``odom`` by name, or one the log's odometry or TF marks as drifting, see
+``LogSequence.is_run_frame``) records its run (``frames.WorldFrame.run``): a log's from its first cloud
+(``LogSequence.run_id``), a folder's from its ``frame.yaml`` (``run:``; ``evsemmap synth`` writes one),
+else unknown (None), which merge and view refuse to combine unless told ``--same-frame``.
 """
 
 from __future__ import annotations
@@ -43,15 +48,19 @@ def place_in_world(config: DatasetConfig, sequence=None) -> Placement:
     """The world frame of ``config``'s data (``sequence``: the opened folder or log, for its poses,
     its frame file and a log's fixed frame)."""
     crs = config.crs or None
+    run = None
     if config.kind == "bag":
         sequence.check_pose_chain()
         name = sequence.fixed_frame
         source = sequence.root.name
+        run = sequence.run_id if sequence.is_run_frame(name) else None
     elif config.kind in ("rellis3d", "semantickitti"):
         own = read_frame_file(sequence.root)
         name = config.frame if config.frame not in ("", FIRST_SCAN) else (own.name if own else f"poses:{sequence.root.name}")
         crs = crs or (own.crs if own else None)
         source = sequence.root.name
+        if own is not None and own.name == name:
+            run = own.run
     else:  # point files: their own frame
         source = config.resolve_path().name
         name = config.frame if config.frame not in ("", FIRST_SCAN) else f"points:{source}"
@@ -63,4 +72,4 @@ def place_in_world(config: DatasetConfig, sequence=None) -> Placement:
         if sequence is not None and len(sequence.frames) and config.kind not in ("pcd_sequence", "bench_npz"):
             reference = sequence.pose(sequence.frames[0])
         return Placement(WorldFrame(f"first-scan of {source}"), reference)
-    return Placement(WorldFrame(name, crs))
+    return Placement(WorldFrame(name, crs, run))

@@ -13,6 +13,7 @@ everything needed to generate the same sequence again).
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from pathlib import Path
 
@@ -26,6 +27,7 @@ from ..geometry.camera import matrix_to_quaternion
 from ..classes import palette, remap_ids
 from ..data.log_writer import LOG_ROOT_FRAME
 from ..data.sequences import FRAME_FILE, Rellis3DSequence
+from ..frames import run_id
 from .preset import SynthPreset
 from .scene import concatenate_worlds, corridor_road, generate_world, poses_along_road, road_trajectory
 from .sensors import RayCaster, camera_model, camera_to_lidar, lidar_directions, render_camera, scan_lidar
@@ -63,8 +65,10 @@ def write_sequence_metadata(out: Path, preset: SynthPreset, poses: np.ndarray) -
     (out / "transforms.yaml").write_text(yaml.safe_dump(transforms, sort_keys=False))
     # every digit: a log written from this folder carries the poses as quaternions, and maps from both agree to rounding
     np.savetxt(out / "poses.txt", poses[:, :3, :].reshape(len(poses), 12), fmt="%.17g")
-    # the poses' frame, by the name the logs written from this folder give their TF root
-    (out / FRAME_FILE).write_text(yaml.safe_dump({"name": LOG_ROOT_FRAME}))
+    # the poses' frame, by the name the logs written from this folder give their TF root; an odom frame is
+    # one run's, and the run is the preset's drive (its halves, copied with this file, stay one run)
+    run = run_id(json.dumps(dataclasses.asdict(preset), sort_keys=True))
+    (out / FRAME_FILE).write_text(yaml.safe_dump({"name": LOG_ROOT_FRAME, "run": run}))
 
 
 class _CorridorWorld:
