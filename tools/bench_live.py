@@ -18,6 +18,7 @@ up). The figures go to a run record (docs/bench/bench_live-<UTC>.json, tools/ben
 the machine's load when it started: other work on the same cores slows mapping down.
 
     python tools/bench_live.py [--world default] [--sweep 0.25 0.5 0.75 1.5]
+    python tools/bench_live.py --markdown docs/bench/bench_live-<UTC>.json   # a record's table, for the docs
 """
 
 from __future__ import annotations
@@ -54,6 +55,23 @@ PERIOD_S = 0.1  # the synthetic drive's LiDAR rate: 10 Hz
 KEYS = ("scans_received", "scans_mapped", "scans_dropped", "integrated_latency_ms_p50", "integrated_latency_ms_p95",
         "integrated_latency_ms_p99", "published_latency_ms_p50", "published_latency_ms_p95", "published_latency_ms_p99",
         "decode_ms_p50", "place_ms_p50", "integrate_ms_p50", "mapping_seconds")
+
+
+def markdown(record_path: Path) -> str:
+    """The docs' table of a run record (docs/robot.md shows it as printed here)."""
+    record = json.loads(Path(record_path).read_text())
+    results = record["results"]
+    rows = [(name, run) for name, run in results["runs"].items()] + [("network", run) for run in results["sweep"]]
+    lines = [f"<!-- record: docs/bench/{Path(record_path).name} -->",
+             "| run | rate (Hz) | mapped of received | integrated p50 / p95 / p99 (ms) | published p99 (ms) "
+             "| decode / place / integrate, median (ms) | busy share of the period |",
+             "|---|---|---|---|---|---|---|"]
+    for name, run in sorted(rows, key=lambda r: (r[0] != "network+publish", r[0] != "direct", r[1]["rate_hz"])):
+        published = run["published_latency_ms_p99"] if run["published_latency_ms_p99"] is not None else "-"
+        lines.append(f"| {name} | {run['rate_hz']:g} | {run['scans_mapped']} of {run['scans_received']} | {run['integrated_latency_ms_p50']} / "
+                     f"{run['integrated_latency_ms_p95']} / {run['integrated_latency_ms_p99']} | {published} | {run['decode_ms_p50']} / "
+                     f"{run['place_ms_p50']} / {run['integrate_ms_p50']} | {run['busy_share_of_period']} |")
+    return "\n".join(lines)
 
 
 def free_port() -> int:
@@ -134,7 +152,11 @@ def main_bench() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--world", default="default")
     parser.add_argument("--sweep", type=float, nargs="*", default=[0.25, 0.5, 0.75, 1.5], help="factors of the recorded rate")
+    parser.add_argument("--markdown", type=Path, default=None, metavar="RECORD", help="print a record's table and exit")
     args = parser.parse_args()
+    if args.markdown is not None:
+        print(markdown(args.markdown))
+        return
     started = time.time()
     load_at_start = list(os.getloadavg())
     with tempfile.TemporaryDirectory(prefix="bench_live-") as tmp:
