@@ -42,8 +42,11 @@ def drive(tmp_path_factory):
     root = tmp_path_factory.mktemp("live_drive")
     folder = root / "folder"
     generate_sequence(load_preset("tiny"), folder, progress=False, camera=False)
-    logs = {"whole": root / "whole", "first": root / "first", "second": root / "second"}
+    logs = {"whole": root / "whole", "first": root / "first", "second": root / "second", "ros1": root / "whole.bag",
+            "mcap": root / "whole.mcap"}
     write_log(folder, logs["whole"], "rosbag2")
+    write_log(folder, logs["ros1"], "rosbag1")
+    write_log(folder, logs["mcap"], "mcap")
     write_log(folder, logs["first"], "rosbag2", frames=slice(0, 3))
     write_log(folder, logs["second"], "rosbag2", frames=slice(3, None))
     return logs
@@ -197,3 +200,23 @@ def test_a_store_written_as_it_goes_is_resumed_by_the_next_run(drive, tmp_path):
         assert MapStore(store).to_mapper().scans_integrated == (3 if half == "first" else 6)
     assert not store.with_name("store.next").exists() and not store.with_name("store.prev").exists()
     assert_same_map(MapStore(store).to_mapper(), batch)
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "mcap"])
+def test_a_ros1_bag_and_an_mcap_file_replay_as_ros2_and_map_the_same(drive, tmp_path, fmt):
+    """A ROS 1 bag's messages are rewritten as their ROS 2 types (the header's seq dropped, ...); an MCAP file's go
+    out as they are; as fast as the replay can (--rate 0), with /clock."""
+    batch = batch_map(drive["whole"], tmp_path)
+    live = LiveRun(tmp_path, "--idle-exit", "3", "--no-publish")
+    listener = open_session(ZenohOptions(connect=[live.endpoint]))
+    clock = []
+    subscriber = listener.declare_subscriber(topic_key("/clock", key_format="rmw_zenoh"), lambda sample: clock.append(sample))
+    try:
+        assert replay(live.endpoint, drive[fmt], "--rate", "0") == 0
+        report = live.result()
+    finally:
+        subscriber.undeclare()
+        listener.close()
+    assert live.code == 0 and report["scans_mapped"] == 6 and report["scans_dropped"] == 0, report
+    assert_same_map(Mapper.load(live.out), batch)
+    assert clock and typestore().deserialize_cdr(clock[-1].payload.to_bytes(), "rosgraph_msgs/msg/Clock").clock.sec == 1_600_000_000
