@@ -220,3 +220,21 @@ def test_a_ros1_bag_and_an_mcap_file_replay_as_ros2_and_map_the_same(drive, tmp_
     assert live.code == 0 and report["scans_mapped"] == 6 and report["scans_dropped"] == 0, report
     assert_same_map(Mapper.load(live.out), batch)
     assert clock and typestore().deserialize_cdr(clock[-1].payload.to_bytes(), "rosgraph_msgs/msg/Clock").clock.sec == 1_600_000_000
+
+
+def test_a_dds_robot_behind_the_zenoh_bridge_is_detected_and_answered_in_its_format(drive, tmp_path):
+    """The bridge's keys (the topic name alone, no attachment): live detects them and publishes the map back so."""
+    live = LiveRun(tmp_path, "--idle-exit", "3")
+    listener = open_session(ZenohOptions(connect=[live.endpoint]))
+    maps = []
+    subscriber = listener.declare_subscriber(topic_key(MAP_TOPIC, key_format="bridge"), lambda sample: maps.append(sample.payload.to_bytes()))
+    try:
+        assert replay(live.endpoint, drive["whole"], "--key-format", "bridge") == 0
+        report = live.result()
+        assert wait_until(lambda: maps, 5)
+    finally:
+        subscriber.undeclare()
+        listener.close()
+    assert live.code == 0 and report["key_format"] == "bridge" and report["scans_mapped"] == 6, report
+    cloud = typestore().deserialize_cdr(maps[-1], "sensor_msgs/msg/PointCloud2")
+    assert cloud.width == report["occupied"]

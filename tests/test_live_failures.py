@@ -2,6 +2,7 @@
 handed to the subscriber callback as Zenoh samples, in the order and at the times a test chooses. Each
 case is said in one line and counted, never mapped silently wrong. Also the wire format's pieces."""
 
+import sys
 import threading
 import time
 
@@ -250,3 +251,25 @@ def test_the_tf_tree_of_a_long_drive_stays_bounded_and_a_jump_forgets_the_old_ti
         tree.lookup("odom", "lidar", 600)
     tree.trim(before_ns=10_000, after_ns=0)
     assert not tree.is_timed("base") and tree.parent("lidar") == "base"
+
+
+def test_without_eclipse_zenoh_live_says_how_to_install_it(monkeypatch, capsys):
+    from evsemmap_warp.apps.cli import main
+
+    monkeypatch.setitem(sys.modules, "zenoh", None)  # import zenoh raises ImportError, as without the package
+    assert main(["live", *PRESETS, "--method", "ebs", "--out", "x.npz"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == 'evsemmap: error: live mapping over Zenoh needs the eclipse-zenoh package: pip install "evsemmap_warp[live]"'
+
+
+@pytest.mark.parametrize("flags, says", [(["--connect", "192.168.1.10"], "--connect '192.168.1.10': a Zenoh endpoint is PROTOCOL/HOST:PORT"),
+                                         (["--zenoh-config", "missing.json5"], "--zenoh-config missing.json5: no such file"),
+                                         (["--mode", "client"], "--mode client needs --connect"),
+                                         (["--domain-id", "-1"], "--domain-id -1: a ROS domain id is >= 0")])
+def test_bad_connection_flags_are_one_line_naming_the_flag(flags, says, capsys):
+    pytest.importorskip("zenoh")
+    from evsemmap_warp.apps.cli import main
+
+    assert main(["live", *PRESETS, "--method", "ebs", "--out", "x.npz", *flags]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("evsemmap: error: ") and says in err[0], err

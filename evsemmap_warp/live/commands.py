@@ -137,17 +137,15 @@ def run_live(args) -> int:
     stop = threading.Event()
     _stop_on_signals(stop)
     queue = ScanQueue(args.queue)
-    feed = node = mapping = live_view = live_store = None
+    feed = mapping = live_view = live_store = None
     try:
         feed = RobotFeed(session, run.dataset.bag, queue, store, key_format=args.key_format, domain_id=args.domain_id,
                          max_cloud_bytes=int(args.max_cloud_mb * 2**20))
-        publish_format = args.key_format if args.key_format != "auto" else None
-        if not args.no_publish:
-            node = Ros2Node(session, "evsemmap_live", key_format=publish_format or "rmw_zenoh", domain_id=args.domain_id, store=store)
+        def node(detected_format: str):
+            return Ros2Node(session, "evsemmap_live", key_format=detected_format if args.key_format == "auto" else args.key_format,
+                            domain_id=args.domain_id, store=store)
 
-        def publisher(mapper):
-            if args.no_publish:
-                return None
+        def publisher(mapper, node):
             return MapPublisher(node, mapper, map_period_s=args.map_period, grid_period_s=args.grid_period, window_m=args.window)
 
         def on_mapped(mapping, scan):
@@ -162,8 +160,9 @@ def run_live(args) -> int:
         from .store import LiveStore
 
         live_store = None if args.store is None else LiveStore(args.store, every_s=args.store_every, sources=list(args.configs))
-        mapping = LiveMapping(run, feed, queue, settings, out=args.out, device=args.device, workers=args.workers, node=node,
-                              publisher_factory=None if args.no_publish else publisher, on_mapped=on_mapped, store=live_store)
+        mapping = LiveMapping(run, feed, queue, settings, out=args.out, device=args.device, workers=args.workers,
+                              node_factory=None if args.no_publish else node, publisher_factory=None if args.no_publish else publisher,
+                              on_mapped=on_mapped, store=live_store)
         topics = ", ".join(f"{t} ({s.msgtype.rsplit('/', 1)[-1]})" for t, s in feed.topics.items())
         say(f"listening for {topics} on domain {args.domain_id} ({args.key_format} keys); Ctrl-C ends the run and writes {args.out}")
         try:
@@ -181,8 +180,8 @@ def run_live(args) -> int:
             live_view.viewer.close()
         if feed is not None:
             feed.close()
-        if node is not None:
-            node.close()
+        if mapping is not None and mapping.node is not None:
+            mapping.node.close()
         session.close()
     report = mapping.diagnostics() | {"method": run.mapping.method, "map_files": [str(p) for p in mapping.maps_written],
                                       "store": None if live_store is None else str(live_store.path),

@@ -52,7 +52,7 @@ class RobotFeed:
 
             raise ConfigError("dataset.bag.cloud_topic: live mapping subscribes to one named PointCloud2 topic; set it (the "
                               "rellis3d-bag preset names RELLIS-3D's)")
-        self.config, self.queue, self.store = config, queue, store
+        self.session, self.config, self.queue, self.store = session, config, queue, store
         self.domain_id, self.max_cloud_bytes = domain_id, max_cloud_bytes
         self.detected_format = None if key_format == "auto" else key_format
         self.tree = TransformTree()

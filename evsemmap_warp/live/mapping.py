@@ -84,10 +84,11 @@ class LiveStats:
 
 class LiveMapping:
     """Maps what ``feed`` receives with ``run``'s mapping method into a Mapper (made at the first posed scan,
-    in its world frame); ``publisher_factory(mapper)`` gives the MapPublisher (None: publish nothing)."""
+    in its world frame); ``node_factory(key_format)`` gives the ROS 2 node publishing back in the robot's key
+    format, ``publisher_factory(mapper, node)`` the MapPublisher (None: publish nothing)."""
 
     def __init__(self, run: RunConfig, feed: RobotFeed, queue: ScanQueue, settings: LiveSettings, *, out: Path | None = None,
-                 device: str = "cpu", workers: int | None = None, node=None, publisher_factory=None, on_mapped=None, store=None):
+                 device: str = "cpu", workers: int | None = None, node_factory=None, publisher_factory=None, on_mapped=None, store=None):
         dataset = run.dataset
         if dataset.frame == "first-scan":
             raise ConfigError("dataset.frame: first-scan is a frame of a log's first scan; a live map is made in the robot's fixed frame "
@@ -99,7 +100,9 @@ class LiveMapping:
         self.table, names = label_table(self.bag.label_ontology, dataset.num_classes)
         self.class_names = dataset.class_names or names
         self.num_classes = dataset.num_classes or len(self.class_names)
-        self.device, self.workers, self.node = device, workers, node
+        self.device, self.workers = device, workers
+        # node_factory(key_format) -> Ros2Node: made once the robot's key format is known (or the topics' wait is over)
+        self.node, self._node_factory = None, node_factory
         self.publisher_factory, self.on_mapped = publisher_factory, on_mapped
         self.store = store  # a LiveStore (--store), or None
         self.resumed = store.resume(run) if store is not None else None
@@ -261,7 +264,7 @@ class LiveMapping:
         if self.publisher_factory is not None:
             if self.publisher is not None:
                 self.publisher.close()
-            self.publisher = self.publisher_factory(self.mapper)
+            self.publisher = self.publisher_factory(self.mapper, self.ensure_node(force=True))
             self.publisher.on_published = self._published
 
     def _published(self, kind: str, scans: int, wall_ns: int) -> None:
@@ -301,7 +304,7 @@ class LiveMapping:
             now = time.monotonic()
             if s.duration_s is not None and now - started >= s.duration_s:
                 break
-            if self.node is not None and now >= next_diagnostics:
+            if now >= next_diagnostics and self.ensure_node(force=now - started >= s.topic_timeout_s) is not None:
                 self._publish_diagnostics()
                 next_diagnostics = now + s.diagnostics_period_s
             item = self.queue.get(timeout=0.05)
@@ -323,7 +326,7 @@ class LiveMapping:
                 break
 
     def _topics_seen(self) -> str:
-        session = getattr(self.node, "session", None)
+        session = getattr(self.feed, "session", None)
         if session is None:
             return ""
         from .ros2_wire import ADMIN_SPACE, parse_token
@@ -338,6 +341,13 @@ class LiveMapping:
             return ""
         return f"; topics published on domain {self.feed.domain_id}: {sorted(topics) or 'none'}"
 
+    def ensure_node(self, *, force: bool = False):
+        """The node publishing back, made in the key format the robot speaks (``force``: rmw_zenoh's when that is
+        not known yet); None without a node_factory, or while the format is not known and not ``force``."""
+        if self.node is None and self._node_factory is not None and (self.feed.detected_format or force):
+            self.node = self._node_factory(self.feed.detected_format or "rmw_zenoh")
+        return self.node
+
     def _publish_diagnostics(self) -> None:
         from .publish import DIAGNOSTICS_TOPIC, diagnostics_message
 
@@ -348,7 +358,7 @@ class LiveMapping:
 
     def finish(self) -> Path | None:
         """After the loop: the last map published, the map written to ``out``; returns its path (None: no scan mapped)."""
-        if self.node is not None:
+        if self.ensure_node(force=True) is not None:
             self._publish_diagnostics()
         return self._finish_map(reset=False)
 
