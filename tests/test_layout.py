@@ -12,7 +12,7 @@ PACKAGE = REPO / "evsemmap_warp"
 # Lower layers never import higher ones; the same layer may import itself.
 LAYERS = {
     "kernels": 0, "reference": 0,
-    "config": 1, "classes": 1, "voxel_keys": 1, "frames": 1, "files": 1,
+    "config": 1, "classes": 1, "voxel_keys": 1, "frames": 1, "files": 1, "limits": 1,
     "geometry": 2,
     "data": 3,
     "methods": 4,
