@@ -406,7 +406,7 @@ def test_terrain_layer_as_a_colored_height_surface_with_picking(open_page, tmp_p
     viewer = MapViewer([tmp_path / "m.npz"], port=free_port(), terrain=True)
     try:
         page = open_page(viewer)
-        assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000)
+        page.get_by_text("voxels hidden: the terrain surface is drawn instead").first.wait_for(timeout=20_000)  # by default
         _choose(page, "Draw", "surface instead of the voxels")
         assert _wait(lambda: viewer.gui_terrain_mode.value == vl.TERRAIN_MODES[1])
         _choose(page, "Layer", "surface_class")
