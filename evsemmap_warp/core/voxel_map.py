@@ -106,8 +106,9 @@ class TableBudget:
                 shards = f" beside {describe_bytes(others)} of the map's other shards" if others else ""
                 raise MemoryBudgetError(
                     f"the voxel table would need {describe_bytes(need)} ({what}){shards}, over the memory budget of "
-                    f"{describe_bytes(budget)}, {source}: the input reaches far more voxels than a map holds (check the "
-                    f"sensor origin, the units of the points and lengths, mapping.sbki.max_range_m)")
+                    f"{describe_bytes(budget)}, {source}: the input reaches far more voxels than a map should (check the "
+                    f"sensor origin, the units of the points and lengths, mapping.sbki.max_range_m), or the budget is too small "
+                    f"for this map")
             if record:
                 self._held[table] = int(need)
 
