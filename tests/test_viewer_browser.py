@@ -815,6 +815,73 @@ def test_store_first_frame_fills_in_and_shows_tiles_in_full_on_approach(open_pag
         viewer.close()
 
 
+# --- issue 45 item 3: stores you can walk --------------------------------------------------------------------------
+def test_store_walk_tiles_come_in_near_the_camera_and_a_chosen_tile_is_flown_to(open_page, tmp_path):
+    """Issue 45 item 3: zooming in with the mouse wheel brings the tiles near the camera in full, no click needed;
+    choosing a tile from the list (labelled by where it is, in order along the store) moves the camera to it."""
+    from evsemmap_warp.apps.cli import main
+
+    make_map(tmp_path / "a.npz")
+    make_map(tmp_path / "b.npz", seed=1, offset=(0.3, 0, 0))
+    assert main(["merge", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--out", str(tmp_path / "store"), "--tile-voxels", "8"]) == 0
+    viewer = MapViewer([tmp_path / "store"], port=free_port(), max_voxels=150)
+    overview = viewer.stores[0]
+    try:
+        page = open_page(viewer)
+        client = next(iter(viewer.server.get_clients().values()))
+        assert _wait(lambda: viewer.scale_bar is not None)  # the browser has reported the viewer's camera
+        time.sleep(1.0)
+        assert overview.detail == ()  # framed whole, the store is not near
+        # looking at the ground just beside the store's east edge (as after panning along it), then the wheel: the
+        # camera comes near the store's edge, while the point it looks at has no tile
+        low, high = overview.bounds
+        beside = np.array([high[0] + 1.2, (low[1] + high[1]) / 2, low[2]]) - viewer.origin
+        client.camera.position = tuple(beside + [0.0, -6.0, 5.0])
+        client.camera.look_at = tuple(beside)
+        assert _wait(lambda: np.linalg.norm(np.asarray(client.camera.look_at) - beside) < 1e-3)
+        time.sleep(1.0)
+        assert overview.detail == ()
+        page.mouse.move(450, 400)
+        for _ in range(40):
+            if overview.detail:
+                break
+            page.mouse.wheel(0, -300)
+            time.sleep(0.4)
+        assert _wait(lambda: len(overview.detail) > 0, 20), "zooming in brought no tile in full"
+        page.get_by_text("tile(s) in full").first.wait_for(timeout=20_000)
+        assert viewer.last_point is None  # no click
+        time.sleep(1.0)  # the wheel's last steps settle
+
+        def gap(name, point):  # from a point to a tile's voxels' box
+            low, high = overview.boxes[name]
+            return float(np.linalg.norm(np.maximum(low - point, 0) + np.maximum(point - high, 0)))
+
+        camera = np.asarray(client.camera.position, np.float64) + viewer.origin
+        nearest = min((name for name in overview.store.tiles if overview.decimated(name)), key=lambda name: gap(name, camera))
+        assert _wait(lambda: nearest in overview.detail), (nearest, overview.detail)  # the tile nearest the camera, in full
+        look_at = np.asarray(client.camera.look_at, np.float64) + viewer.origin
+
+        # the list: tiles by where they are, in order along the store; the first (a corner, away from the middle)
+        labels = [label for label in viewer.gui_tile.options if label.startswith("tile (")]
+        assert len(labels) == len(overview.store.tiles) and labels == list(viewer.tile_choices)
+        label = next(label for label in labels if overview.decimated(viewer.tile_choices[label][1]))
+        name = viewer.tile_choices[label][1]
+        low, high = overview.boxes[name]
+        assert not np.all((look_at[:2] >= low[:2]) & (look_at[:2] <= high[:2]))
+        _choose(page, "Store tile in full", label)
+        assert _wait(lambda: name in overview.detail)
+        centre = r"under the screen's center \([^)]*\): x=([-\d.]+), y=([-\d.]+)"
+
+        def seen_over_the_tile():  # what the browser's camera, as it reports it, looks at
+            found = re.search(centre, page.inner_text("body"))
+            return found is not None and np.all((np.array(found.groups(), float) >= low[:2] - 0.2) & (np.array(found.groups(), float) <= high[:2] + 0.2))
+
+        assert _wait(seen_over_the_tile), re.search(centre, page.inner_text("body"))
+        assert name in overview.detail
+    finally:
+        viewer.close()
+
+
 # --- issue 30 item 7: the docs' screenshots ------------------------------------------------------------------------
 def test_the_docs_screenshots_come_from_the_screenshot_tool(tmp_path):
     """docs/viewer/*.png are made by tools/viewer_screenshots.py; here it runs every mode on tiny data, and each

@@ -1,6 +1,7 @@
 """Stores in the viewer at scale (issue 30 item 6): a first frame before the store is read, the overview filling in,
 tiles in full near the camera or where a click lands, and memory bounded by what is shown."""
 
+import re
 import time
 from types import SimpleNamespace
 
@@ -70,13 +71,16 @@ def test_tiles_in_full_near_the_camera_and_where_a_click_lands(store):
         box = layer.centers[layer.label == 3].mean(axis=0)
         look_at = box - viewer.origin
         far = SimpleNamespace(position=look_at + [0, -20.0, 20.0], look_at=look_at)
-        viewer._approach(far)  # 28 m away: more than a tile (1.6 m) from it, nothing happens
+        viewer._approach(far)  # 28 m away, further than 4 tile edges (6.4 m) from every tile: nothing happens
         time.sleep(0.5)
         assert overview.detail == ()
         near = SimpleNamespace(position=look_at + [0, -0.5, 0.8], look_at=look_at)
         viewer._approach(near)
-        column = overview.tiles_at(box)
-        assert _wait(lambda: overview.detail == tuple(column))
+        # the column it looks at (its tiles the overview thins out), and the tiles nearest it, up to the store's
+        # limit; the nearest asked for last, to be kept longest
+        column = [name for name in overview.tiles_at(box) if overview.decimated(name)]
+        assert 0 < len(column) < overview.max_detail_tiles
+        assert _wait(lambda: len(overview.detail) == overview.max_detail_tiles and set(overview.detail[-len(column):]) == set(column))
         assert _wait(lambda: "tile(s) in full" in viewer.gui_status.content)
         shown = viewer.layers[0]
         index = shown.voxel_index
@@ -91,6 +95,50 @@ def test_tiles_in_full_near_the_camera_and_where_a_click_lands(store):
         assert "voxel" in viewer.gui_selection.content
         clicked = overview.tiles_at(ground)
         assert _wait(lambda: set(clicked) <= set(overview.detail) and set(column) <= set(overview.detail))
+    finally:
+        viewer.close()
+
+
+def test_a_click_beside_an_overview_point_picks_it_and_its_tile(store):
+    """Issue 45: a decimated overview's points stand apart, so a click ray passes between them; one passing within a
+    few pixels of a point picks it (and brings its tile in full), not the ground grid's plane under it."""
+    viewer = MapViewer([store], port=free_port(), max_voxels=300)
+    overview = viewer.stores[0]
+    try:
+        layer = viewer.layers[0]
+        viewer.scale_bar = (1.0, 10.0, 0.1)  # 0.1 m a pixel at the orbit center: CLICK_RADIUS_PX is 0.6 m
+        shown = layer.centers[viewer.visible_rows[0]]
+        # a point whose column 0.4 m east holds no overview point: a ray straight down there met none before
+        lonely = next(c for c in shown if not np.any(np.all(np.abs(shown[:, :2] - (c[:2] + [0.4, 0.0])) < 0.1, axis=1)))
+        ray_origin = lonely + [0.4, 0.0, 30.0] - viewer.origin
+        hit = viewer.pick_point(ray_origin, (0.0, 0.0, -1.0))
+        assert hit is not None and hit["kind"] == "voxel", hit
+        picked = layer.centers[hit["row"]]
+        assert np.linalg.norm(picked[:2] - lonely[:2] - [0.4, 0.0]) <= 0.6 and picked[2] >= lonely[2]
+        viewer._on_click(SimpleNamespace(ray_origin=ray_origin, ray_direction=(0.0, 0.0, -1.0)))
+        assert "ground grid" not in viewer.gui_selection.content and "voxel" in viewer.gui_selection.content
+        assert _wait(lambda: set(overview.tiles_at(picked)) & set(overview.detail))
+    finally:
+        viewer.close()
+
+
+def test_tiles_are_listed_along_the_store_by_where_they_are_and_flown_to(store):
+    """Issue 45: the *Store tile in full* list names tiles by their key and place ("tile (x, y, z) at E.. m N.. m"), in
+    order along the store, and choosing one puts every browser's camera over it."""
+    viewer = MapViewer([store], port=free_port(), max_voxels=300)
+    overview = viewer.stores[0]
+    try:
+        labels = list(viewer.tile_choices)
+        assert viewer.gui_tile.options[1:] == tuple(labels) and len(labels) == len(overview.store.tiles)
+        assert all(re.fullmatch(r"tile \(-?\d+, -?\d+, -?\d+\) at E-?\d+ m N-?\d+ m, \d+ m along", label) for label in labels)
+        along = [overview.along[viewer.tile_choices[label][1]] for label in labels]
+        assert along == sorted(along) and along[0] == 0.0 and along[-1] > 4.0
+        middle = labels[len(labels) // 2]
+        name = viewer.tile_choices[middle][1]
+        east, north, _ = overview.boxes[name].mean(axis=0)
+        assert middle.startswith(f"tile {tuple(int(v) for v in name.split('_'))} at E{east:.0f} m N{north:.0f} m")
+        viewer.show_tile(middle)
+        assert overview.detail == (name,)
     finally:
         viewer.close()
 

@@ -14,6 +14,8 @@ tests/test_viewer_browser.py drives it, opens the page. Measured:
 - ``control_round_trip_s``: a click on *Show FREE* until the page's counter changes (during the filling
   in when it is still under way, and after it);
 - ``approach_s``: zooming in with the mouse wheel until the page says a tile is shown in full;
+- ``fly_to_tile_s``: choosing the first tile along the store in *Store tile in full* until the page's line on
+  what lies under the screen's center names a point over that tile (the camera flown there);
 - memory: the server process's resident set (``VmRSS``, and its peak ``VmHWM``) at each stage, the
   browser's processes' resident sets summed, and the page's JavaScript heap.
 
@@ -129,6 +131,24 @@ def click_round_trip(page, timeout: float = 120.0) -> float | None:
     return None
 
 
+def fly_to_first_tile(page, index, timeout: float = 120.0) -> tuple[str, float | None]:
+    """Choose the first tile along the store in *Store tile in full*: (its label, seconds until the page says the
+    screen's center is over it; None: not within ``timeout``)."""
+    page.get_by_label("Store tile in full", exact=True).click()
+    option = page.get_by_role("option").filter(has_text="tile (").first
+    label = option.inner_text().strip()
+    name = "_".join(re.search(r"tile \((-?\d+), (-?\d+), (-?\d+)\)", label).groups())
+    low, high = (np.asarray(corner, np.float64) for corner in index.tiles[name]["bounds_m"])
+    started = time.perf_counter()
+    option.click()
+    while time.perf_counter() - started < timeout:
+        found = re.search(r"under the screen's center \([^)]*\): x=([-\d.]+), y=([-\d.]+)", page.inner_text("body"))
+        if found and np.all((np.array(found.groups(), float) >= low[:2]) & (np.array(found.groups(), float) <= high[:2])):
+            return label, round(time.perf_counter() - started, 2)
+        time.sleep(0.1)
+    return label, None
+
+
 def measure(store: Path, max_voxels: int, port: int) -> dict:
     from playwright.sync_api import sync_playwright
 
@@ -195,6 +215,7 @@ def measure(store: Path, max_voxels: int, port: int) -> dict:
             time.sleep(2.0)
             stages["tile_in_full"] = {"server": memory_kb(server.pid), "browser_rss_mb": browser_rss_mb(server.pid),
                                       "js_heap_mb": page.evaluate("() => performance.memory.usedJSHeapSize / 2**20")}
+            results["chosen_tile"], results["fly_to_tile_s"] = fly_to_first_tile(page, index)
             for stage in stages.values():
                 stage["server_rss_mb"] = round(stage["server"].pop("VmRSS") / 1024, 1)
                 stage["server_peak_rss_mb"] = round(stage["server"].pop("VmHWM") / 1024, 1)

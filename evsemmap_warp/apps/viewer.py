@@ -199,8 +199,10 @@ class StoreOverview:
         self.max_voxels, self.max_detail_tiles = int(max_voxels), int(max_detail_tiles)
         self.total_voxels = self.store.voxel_count  # in the store's tiles (the overview holds a share of them)
         boxes = {name: np.asarray(info["bounds_m"], np.float64) for name, info in self.store.tiles.items()}
+        self.boxes = boxes  # tile -> the box its voxels fill, [[x0, y0, z0], [x1, y1, z1]] (m, world)
         self.bounds = (np.min([b[0] for b in boxes.values()], axis=0), np.max([b[1] for b in boxes.values()], axis=0))
         center = (self.bounds[0] + self.bounds[1]) / 2
+        self.along = along_the_strip(boxes)  # tile -> metres along the store's long axis
         # the tiles nearest the middle of the first view first
         self.unread = sorted(boxes, key=lambda name: (float(np.linalg.norm(boxes[name].mean(axis=0)[:2] - center[:2])), name))
         self.parts: dict[str, dict] = {}  # tile -> its overview rows
@@ -293,6 +295,39 @@ class StoreOverview:
                 names.append(name)
         return names
 
+    def tiles_along(self) -> list[str]:
+        """The store's tiles in order along its long axis (a drive's strip from one end to the other), lowest first."""
+        from ..core.map_store import parse_tile_name
+
+        return sorted(self.store.tiles, key=lambda name: (self.along[name], parse_tile_name(name)[::-1]))
+
+    def tile_label(self, name: str) -> str:
+        """A tile as a user finds it: "tile (3, -1, 0) at E512 m N-140 m, 830 m along" (its box's middle, world frame)."""
+        from ..core.map_store import parse_tile_name
+
+        east, north, _ = self.boxes[name].mean(axis=0)
+        return f"tile {parse_tile_name(name)} at E{east:.0f} m N{north:.0f} m, {self.along[name]:.0f} m along"
+
+    def decimated(self, name: str) -> bool:
+        """Whether the overview holds only a share of this tile's voxels (showing it in full would add some)."""
+        n = self.store.tiles[name]["voxels"]
+        return self._share(n) < n
+
+    def tiles_near(self, point_world, reach_m: float, *, around=None) -> list[str]:
+        """The tiles whose voxel box lies within ``reach_m`` of ``point_world`` (a camera), nearest ``around`` (what
+        the camera looks at; the camera itself without it) first: by the horizontal gap to it, then the vertical."""
+        names = list(self.boxes)
+        low, high = np.array([self.boxes[n][0] for n in names]), np.array([self.boxes[n][1] for n in names])
+
+        def gaps(point):
+            point = np.asarray(point, np.float64).reshape(3)
+            return np.maximum(low - point, 0.0) + np.maximum(point - high, 0.0)
+
+        near = np.linalg.norm(gaps(point_world), axis=1) < reach_m
+        order = gaps(point_world if around is None else around)
+        ranked = sorted(np.flatnonzero(near), key=lambda k: (float(np.linalg.norm(order[k, :2])), float(order[k, 2]), names[k]))
+        return [names[k] for k in ranked]
+
     def layer(self) -> MapLayer:
         """The overview read so far, with the detail tiles in full."""
         with self._lock:
@@ -315,6 +350,24 @@ class StoreOverview:
         layer.weight = joined["weight"]
         layer.present = present
         return layer
+
+
+def along_the_strip(boxes: dict[str, np.ndarray]) -> dict[str, float]:
+    """Each tile's place along the tiles' long horizontal axis (m from the first; the principal axis of their
+    columns' middles, so that the tiles of a column share it): a drive's strip, end to end. The axis points
+    east, or north where it runs north-south."""
+    from ..core.map_store import parse_tile_name
+
+    names = list(boxes)
+    columns: dict[tuple, list] = {}
+    for name in names:
+        columns.setdefault(parse_tile_name(name)[:2], []).append(boxes[name].mean(axis=0)[:2])
+    middles = np.array([np.mean(columns[parse_tile_name(n)[:2]], axis=0) for n in names]).reshape(-1, 2)
+    centred = middles - middles.mean(axis=0)
+    axis = np.linalg.svd(centred, full_matrices=False)[2][0] if len(names) > 1 else np.array([1.0, 0.0])
+    axis = axis if axis[np.argmax(np.abs(axis))] > 0 else -axis
+    along = centred @ axis
+    return {name: float(a - along.min()) for name, a in zip(names, along)}
 
 
 def load_trajectory(path) -> np.ndarray:
@@ -563,8 +616,8 @@ class MapViewer:
             self.gui_show_unknown = gui.add_checkbox("Show UNKNOWN", initial_value=False)
             self.gui_full_map = gui.add_checkbox("Full map (no decimation)", initial_value=False)
             self.gui_tile = None
-            if self.stores:  # a store: its overview, and one tile in full detail
-                tiles = ("(overview only)",) + tuple(f"{i}: {t}" for i, o in self.stores.items() for t in sorted(o.store.tiles))
+            if self.stores:  # a store: its overview, and a tile in full detail, flown to
+                tiles = ("(overview only)",) + tuple(self.tile_choices)
                 self.gui_tile = gui.add_dropdown("Store tile in full", options=tiles, initial_value=tiles[0])
                 self.gui_tile.on_update(lambda _event: self.show_tile(self.gui_tile.value))
         self.gui_classes_folder = gui.add_folder("Classes")
@@ -949,15 +1002,42 @@ class MapViewer:
                         handle.point_size = size
 
     # ------------------------------------------------------------------ layers shown
+    @property
+    def tile_choices(self) -> dict[str, tuple[int, str]]:
+        """The *Store tile in full* list: each store's tiles in order along it, labelled by where they are
+        (``StoreOverview.tile_label``, after "i: " where there are several maps) -> (map, tile)."""
+        prefix = len(self.layers) > 1
+        return {(f"{i}: " if prefix else "") + overview.tile_label(name): (i, name)
+                for i, overview in self.stores.items() for name in overview.tiles_along()}
+
     def show_tile(self, choice: str) -> None:
-        """Show a store's tile ("i: X_Y_Z", or "(overview only)") in full detail over its overview, and no other."""
-        chosen = None if choice.startswith("(") else (int(choice.split(":")[0]), choice.split(": ")[1])
+        """Show a store's tile (a ``tile_choices`` label, "i: X_Y_Z", or "(overview only)") in full detail over its
+        overview, and no other, and fly every browser's camera to it."""
+        chosen = None if choice.startswith("(") else self.tile_choices.get(choice) or (int(choice.split(":")[0]), choice.split(": ")[1])
         for i, overview in self.stores.items():
             if overview.set_detail([chosen[1]] if chosen and chosen[0] == i else []):
                 self.replace_layer(i, overview.layer())
+        if chosen is not None:
+            self.fly_to_tile(*chosen)
+
+    def fly_to_tile(self, i: int, name: str) -> None:
+        """Move every browser's camera to store ``i``'s tile ``name``: looking at its middle from the south, above,
+        near enough that the tile fills most of the view (and so nearer than ``APPROACH_TILES``: its neighbours
+        come in full as well)."""
+        box = self.stores[i].boxes[name]
+        look_at = box.mean(axis=0) - self.origin + self._shift(i)
+        distance = max(float(np.max(box[1, :2] - box[0, :2])), 4.0 * self.layers[i].resolution)
+        position = look_at + distance * np.array([0.0, -0.6, 0.8])
+        for client in self.server.get_clients().values():
+            client.camera.position = tuple(position)  # (this moves look_at along: it is set after)
+            client.camera.look_at = tuple(look_at)
 
     # ------------------------------------------------------------------ store tiles in the background
-    APPROACH_TILES = 1.0  # a camera nearer a store tile's column than this many tile edges shows it in full
+    # A browser's camera nearer a store's tile than this many tile edges brings tiles in full: from a long drive's
+    # store (tiles 51 m across, an overview of 1 voxel in 50), 4 edges is where its points stand apart on screen.
+    APPROACH_TILES = 4.0
+    # ... and nearer than this share of the store's length: a camera that frames a small store whole is not near it
+    APPROACH_EXTENT = 0.25
 
     def request_detail(self, i: int, names: list[str]) -> None:
         """Have store ``i``'s tiles ``names`` shown in full (read on the loader thread)."""
@@ -967,7 +1047,10 @@ class MapViewer:
                 self._store_wake.notify_all()
 
     def _approach(self, camera) -> None:
-        """Tiles in full where a browser's camera has come near a store (its orbit center's tile column)."""
+        """Tiles in full where a browser's camera has come near a store: of the tiles within ``APPROACH_TILES``
+        tile edges (and ``APPROACH_EXTENT`` of the store's length) of the camera, those nearest its orbit center
+        (its column first), up to the store's ``max_detail_tiles``. Only tiles the overview decimates: the
+        others are there in full already."""
         try:
             position, look_at = np.asarray(camera.position, np.float64), np.asarray(camera.look_at, np.float64)
         except (AttributeError, TypeError, ValueError):
@@ -975,9 +1058,11 @@ class MapViewer:
         for i, overview in self.stores.items():
             if i not in self._shown_layers():
                 continue
-            tile_m = overview.store.tile_voxels * self.layers[i].resolution
-            if np.linalg.norm(position - look_at) < self.APPROACH_TILES * tile_m:
-                self.request_detail(i, overview.tiles_at(look_at + self.origin - self._shift(i)))
+            length = float(np.max(overview.bounds[1][:2] - overview.bounds[0][:2]))
+            reach = min(self.APPROACH_TILES * overview.store.tile_voxels * self.layers[i].resolution, self.APPROACH_EXTENT * length)
+            to_world = self.origin - self._shift(i)
+            near = [name for name in overview.tiles_near(position + to_world, reach, around=look_at + to_world) if overview.decimated(name)]
+            self.request_detail(i, near[: overview.max_detail_tiles][::-1])  # the nearest asked for last: kept longest
 
     def _load_stores(self) -> None:
         sent = {i: len(self.layers[i].state) for i in self.stores}  # rows each store's overview had when last sent
@@ -1292,6 +1377,10 @@ class MapViewer:
                 continue
             layer = self.layers[i]
             o = np.asarray(ray_origin, np.float64) + self.origin - self._shift(i)  # world frame
+            if layer.weight is not None:  # a decimated overview: a ray passes between its points, a click beside one picks it
+                point = self._pick_overview_point(i, o, d)
+                if point is not None and (best is None or point[0] < best[0]):
+                    best = (point[0], i, point[1])
             lo = layer.centers[rows].min(axis=0) - layer.resolution
             hi = layer.centers[rows].max(axis=0) + layer.resolution
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -1314,6 +1403,24 @@ class MapViewer:
                 entry = float(np.nanmax(np.minimum(a, b)))
                 best = (max(entry, 0.0) if np.isfinite(entry) else float(ts[good[0]]), i, row)
         return best
+
+    CLICK_RADIUS_PX = 6.0  # a click this many pixels (at the orbit center's scale) from an overview's point picks it
+
+    def _pick_overview_point(self, i: int, ray_origin_world: np.ndarray, direction: np.ndarray) -> tuple[float, int] | None:
+        """(distance along the ray, row) of the nearest visible decimated point of layer ``i`` (one standing for several
+        voxels; a tile in full is picked voxel by voxel) that the ray (world frame, unit direction) passes within
+        its drawn size or ``CLICK_RADIUS_PX`` of."""
+        layer, rows = self.layers[i], self.visible_rows[i]
+        rows = rows[layer.weight[rows] > 1.0]
+        offsets = layer.centers[rows] - ray_origin_world
+        along = offsets @ direction
+        beside = np.linalg.norm(offsets - along[:, None] * direction, axis=1)
+        radius = max(self._point_size(i), self.CLICK_RADIUS_PX * self.scale_bar[2] if self.scale_bar is not None else 0.0)
+        near = np.flatnonzero((along > 0) & (beside <= radius))
+        if len(near) == 0:
+            return None
+        k = near[np.argmin(along[near])]
+        return max(float(along[k]) - layer.resolution / 2, 0.0), int(rows[k])
 
     def pick(self, ray_origin, ray_direction) -> tuple[int, int] | None:
         """(layer, row) of the first visible voxel along a ray given in display coordinates."""
