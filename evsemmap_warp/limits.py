@@ -16,7 +16,7 @@ from pathlib import Path
 from .kernels.hash_table import INDEX_LIMIT
 
 __all__ = ["INDEX_LIMIT", "MAX_TILE_VOXELS", "MIN_CHUNK_FRAMES", "MemoryBudgetError", "available_memory", "check_chunk_frames",
-           "check_memory_bytes", "check_tile_voxels", "parse_memory_size"]
+           "check_memory_bytes", "check_tile_voxels", "describe_bytes", "parse_memory_size"]
 
 # A voxel index lies in [-INDEX_LIMIT, INDEX_LIMIT) on every axis (21 bits a key field, kernels/hash_table.py),
 # so a tile wider than INDEX_LIMIT voxels holds nothing a tile of INDEX_LIMIT cannot. The limit also keeps the
