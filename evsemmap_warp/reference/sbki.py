@@ -16,6 +16,8 @@ BLOCK_AND_FACE_NEIGHBOURS = [(0, 0, 0), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1
 
 
 def blocks_containing(p: np.ndarray, size: np.float32) -> list[tuple[int, int, int]]:
+    """The blocks of edge ``size`` whose closed box holds point ``p``, in float32 as the C++ tests it (a point on a
+    face lies in both blocks)."""
     half = np.float32(size / np.float32(2.0))
     per_axis = []
     for axis in range(3):
