@@ -1014,11 +1014,11 @@ class MapViewer:
         """Show a store's tile (a ``tile_choices`` label, "i: X_Y_Z", or "(overview only)") in full detail over its
         overview, and no other, and fly every browser's camera to it."""
         chosen = None if choice.startswith("(") else self.tile_choices.get(choice) or (int(choice.split(":")[0]), choice.split(": ")[1])
+        if chosen is not None:  # first: the camera moves at once, while the tile is read and sent
+            self.fly_to_tile(*chosen)
         for i, overview in self.stores.items():
             if overview.set_detail([chosen[1]] if chosen and chosen[0] == i else []):
                 self.replace_layer(i, overview.layer())
-        if chosen is not None:
-            self.fly_to_tile(*chosen)
 
     def fly_to_tile(self, i: int, name: str) -> None:
         """Move every browser's camera to store ``i``'s tile ``name``: looking at its middle from the south, above,
