@@ -1011,13 +1011,19 @@ class MapViewer:
                 for i, overview in self.stores.items() for name in overview.tiles_along()}
 
     def show_tile(self, choice: str) -> None:
-        """Show a store's tile (a ``tile_choices`` label, "i: X_Y_Z", or "(overview only)") in full detail over its
-        overview, and no other, and fly every browser's camera to it."""
+        """Show a store's tile (a ``tile_choices`` label, or "i: X_Y_Z") in full detail over its overview and fly
+        every browser's camera to it; "(overview only)": no tile of any store in full."""
         chosen = None if choice.startswith("(") else self.tile_choices.get(choice) or (int(choice.split(":")[0]), choice.split(": ")[1])
         if chosen is not None:  # first: the camera moves at once, while the tile is read and sent
             self.fly_to_tile(*chosen)
         for i, overview in self.stores.items():
-            if overview.set_detail([chosen[1]] if chosen and chosen[0] == i else []):
+            if chosen is None:
+                changed = overview.set_detail([])
+            elif chosen[0] == i:  # added to the tiles the camera's new place brings in (_approach), not in place of them
+                changed = overview.add_detail([chosen[1]])
+            else:
+                continue
+            if changed:
                 self.replace_layer(i, overview.layer())
 
     def fly_to_tile(self, i: int, name: str) -> None:
