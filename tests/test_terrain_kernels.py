@@ -146,10 +146,10 @@ def test_filters_match_twin(device, unknown, radius):
 
 
 def test_filter_edge_cases(device):
-    from evsemmap_warp.terrain.config import TerrainConfig
+    from evsemmap_warp.terrain.config import LayerSettings, TerrainConfig
     from evsemmap_warp.terrain.layers import neighbourhood_filters
 
-    config = TerrainConfig()  # 5 x 5 plane fit needing 6 cells, 3 x 3 step
+    config = TerrainConfig(LayerSettings(plane_window_cells=5, step_window_cells=3, min_plane_cells=6))
     unknown = np.full((4, 5), np.nan)
     got = neighbourhood_filters(unknown, unknown, cell_m=0.2, config=config, device=device)
     assert all(np.isnan(v).all() for v in got.values())

@@ -74,8 +74,9 @@ def config_files() -> list[ConfigFile]:
              Section("pipeline", RunConfig, ("bin_frames",)))),
         ConfigFile(
             "Terrain layers and costs",
-            "The cost table of `evsemmap layers --costs FILE` (default `configs/terrain/costs_v3.yaml`, whose "
-            "values differ from the built-in defaults below; [Terrain layers](terrain.md) §4 gives the cost model).",
+            "The cost table of `evsemmap layers --costs FILE`, laid over `configs/terrain/costs_v3.yaml`: a file "
+            "overrides exactly the keys it names (class costs one by one); the layers' defaults below are that file's "
+            "([Terrain layers](terrain.md) §4 gives the cost model).",
             (Section("layers", LayerSettings), Section("costs", CostSettings))),
         ConfigFile(
             "Synthetic worlds",

@@ -9,7 +9,10 @@ map`` does, computes the layers, and compares them with what the world knows, pe
 
 Reported: elevation error (layer - truth) in the cells with a layer elevation (cells the LiDAR saw):
 median, 95th percentile of |error| and the median signed error; surface-class accuracy there; the
-class error rate by decile of the semantic variance; and an A* plan on the traversability cost from
+class error rate by decile of the semantic variance, of the winning probability, of the uncommitted mass and of the
+surface doubt; the road-vs-rest ROC AUC of the cost; the slope error against the true terrain's (the same plane
+fit on the true heights); the median cost of well-observed cells (u < 0.1) by true class, for each cost rule;
+and an A* plan on the traversability cost from
 the drive's first pose to its last (8-connected, step cost = length x (BASE_COST + cost), lethal and
 unknown cells impassable): its length, its share on the true road, and its clearance from the true
 obstacles. The minimum-evidence setting is swept (0 keeps every OCCUPIED voxel). Figures go to
@@ -155,7 +158,43 @@ def _connected(passable: np.ndarray, seed: tuple[int, int]) -> np.ndarray:
     return reached
 
 
-def evaluate(layers, truth, road, poses, classes, costs_of_classes: np.ndarray) -> dict:
+def _opinion_bands(bands, classes, prior: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per cell, from the support voxel's probabilities and semantic variance: its uncommitted mass u = K prior / S
+    and its doubt 1 - b_max (b = (alpha - prior) / S), S = p (1 - p) / variance - 1 (p the winning class's)."""
+    p = bands["surface_probability"]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        total = p * (1 - p) / bands["semantic_variance"] - 1.0
+        uncommitted = len(classes) * prior / total
+        doubt = 1.0 - (p - prior / total)
+    return uncommitted, doubt
+
+
+def _road_auc(bands, ground_class, classes) -> float:
+    """ROC AUC of the traversability cost separating the cells whose true surface is road (paved, unpaved) from
+    every other cell the layers know (lower cost: road), by ranks (Mann-Whitney; ties count half)."""
+    cost = bands["traversability_cost"]
+    known = np.isfinite(cost)
+    road = np.isin(ground_class, [classes.index("paved"), classes.index("unpaved")])[known]
+    score = -cost[known]
+    order = np.argsort(score, kind="stable")
+    ranks = np.empty(len(score))
+    sorted_score = score[order]
+    first = np.r_[0, np.flatnonzero(np.diff(sorted_score)) + 1]
+    last = np.r_[first[1:], len(score)]
+    for a, b in zip(first, last):  # average ranks of ties
+        ranks[order[a:b]] = (a + b + 1) / 2
+    positives, negatives = int(road.sum()), int((~road).sum())
+    return round(float((ranks[road].sum() - positives * (positives + 1) / 2) / (positives * negatives)), 4)
+
+
+def _slope_error(slope: np.ndarray, true_slope: np.ndarray) -> dict:
+    both = np.isfinite(slope) & np.isfinite(true_slope)
+    error = slope[both] - true_slope[both]
+    return {"cells": int(both.sum()), "rms": round(float(np.sqrt(np.mean(error ** 2))), 3),
+            "p95_abs": round(float(np.quantile(np.abs(error), 0.95)), 3), "median_signed": round(float(np.median(error)), 3)}
+
+
+def evaluate(layers, truth, road, poses, classes, costs_of_classes: np.ndarray, true_slope: np.ndarray, prior: float) -> dict:
     height, ground_class, obstacle = truth
     bands = layers.bands
     seen = np.isfinite(bands["elevation"]) & np.isfinite(height)
@@ -174,6 +213,12 @@ def evaluate(layers, truth, road, poses, classes, costs_of_classes: np.ndarray) 
     variance_rates, variance_edges = by_decile(bands["semantic_variance"][classified])
     # the winning class's probability, least sure first: the same Dirichlet read another way
     probability_rates, probability_edges = by_decile(bands["surface_probability"][classified])
+    # subjective logic's reading of the support voxel (derived from p and the variance p (1 - p) / (S + 1), so
+    # that layers of any version can be judged): the uncommitted mass u = K prior / S, and 1 - b_max, the mass
+    # not committed to the winning class (vacuity and conflict together)
+    uncommitted, doubt = _opinion_bands(bands, classes, prior)
+    uncommitted_rates, uncommitted_edges = by_decile(uncommitted[classified])
+    doubt_rates, doubt_edges = by_decile(doubt[classified])
     per_class = {classes[c]: {"cells": int((true == c).sum()), "recall": round(float(correct[true == c].mean()), 4)}
                  for c in np.unique(true)}
     result = {
@@ -183,7 +228,19 @@ def evaluate(layers, truth, road, poses, classes, costs_of_classes: np.ndarray) 
         "surface_class_accuracy": round(float(correct.mean()), 4), "per_class": per_class,
         "class_error_rate_by_variance_decile": variance_rates, "variance_decile_edges": variance_edges,
         "class_error_rate_by_probability_decile": probability_rates, "probability_decile_edges": probability_edges,
+        "class_error_rate_by_uncommitted_decile": uncommitted_rates, "uncommitted_decile_edges": uncommitted_edges,
+        "class_error_rate_by_doubt_decile": doubt_rates, "doubt_decile_edges": doubt_edges,
     }
+    result["road_vs_rest_auc"] = _road_auc(bands, ground_class, classes)
+    result["slope_error_deg"] = _slope_error(bands["slope"], true_slope)
+    road_class = np.isin(ground_class, [classes.index("paved"), classes.index("unpaved")])
+    well_observed = np.isfinite(uncommitted) & (uncommitted < 0.1)
+    flat_road = road_class & (true_slope < 1.0) & well_observed & np.isfinite(bands["slope"])
+    result["slope_on_flat_road_deg"] = {"cells": int(flat_road.sum()), "median": round(float(np.median(bands["slope"][flat_road])), 3),
+                                        "p95": round(float(np.quantile(bands["slope"][flat_road], 0.95)), 3)} if flat_road.any() else None
+    result["median_cost_by_true_class_well_observed"] = {
+        classes[c]: round(float(np.median(bands["traversability_cost"][(ground_class == c) & well_observed & np.isfinite(bands["traversability_cost"])])), 4)
+        for c in np.unique(ground_class[well_observed & np.isfinite(bands["traversability_cost"])]) if c >= 0}
     known_cost = np.isfinite(bands["traversability_cost"])
     result["median_cost_on_road"] = round(float(np.median(bands["traversability_cost"][known_cost & road])), 4)
     result["median_cost_off_road"] = round(float(np.median(bands["traversability_cost"][known_cost & ~road])), 4)
@@ -284,8 +341,8 @@ def _figures(out: Path, layers, truth, road, result, poses, classes, colors, swe
     axes[1].set_title("elevation error by minimum evidence")
     axes[2].bar(np.arange(1, 11) - 0.2, result["class_error_rate_by_variance_decile"], width=0.4, color="tab:red",
                 label="by semantic variance p(1-p)/(S+1), lowest first")
-    axes[2].bar(np.arange(1, 11) + 0.2, result["class_error_rate_by_probability_decile"], width=0.4, color="tab:blue",
-                label="by winning probability p, lowest first")
+    axes[2].bar(np.arange(1, 11) + 0.2, result["class_error_rate_by_doubt_decile"], width=0.4, color="tab:blue",
+                label="by surface doubt 1 - b_label, lowest first")
     axes[2].set_xlabel("decile")
     axes[2].set_ylabel("surface class error rate")
     axes[2].legend(fontsize=8)
@@ -336,6 +393,8 @@ def main() -> None:
     from evsemmap_warp.synthetic.scene import generate_world
     from evsemmap_warp.synthetic.writer import generate_sequence
     from evsemmap_warp.terrain import compute_layers, load_terrain_config
+    from evsemmap_warp.terrain.config import COST_RULES
+    from evsemmap_warp.terrain.layers import dirichlet_prior, neighbourhood_filters
     from evsemmap_warp.terrain.pipeline import class_colors
 
     preset = load_preset(args.world)
@@ -373,7 +432,11 @@ def main() -> None:
         if truth is None:
             truth = _world_truth(world, layers.grid, base.layers.clearance_m, args.device)
             road = _road_mask(world, layers.grid)
-        result = evaluate(layers, truth, road, poses, classes, np.array([base.costs.classes[n] for n in classes]))
+            # the true terrain's slope, by the same plane fit over the same window as the layers' (a slope's
+            # magnitude reads the same north-up)
+            true_slope = neighbourhood_filters(truth[0], truth[0], cell_m=layers.grid.cell_m, config=base, device=args.device)["slope"]
+        result = evaluate(layers, truth, road, poses, classes, np.array([base.costs.classes[n] for n in classes]), true_slope,
+                          dirichlet_prior(mapper))
         result["layer_seconds"] = round(seconds, 3)
         seen = np.isfinite(layers.bands["elevation"]) & np.isfinite(truth[0])
         sweep[setting] = {"result": result, "errors": (layers.bands["elevation"] - truth[0])[seen]}
@@ -384,6 +447,15 @@ def main() -> None:
     if chosen is None:
         raise SystemExit(f"terrain_truth: the default min_evidence {base.layers.min_evidence} is not in the sweep {SWEEP}")
     layers, result = chosen
+    # the cost rules side by side on the same map and settings (terrain/config.py COST_RULES): what each gives a planner
+    rules = {}
+    for rule in COST_RULES:
+        ruled = compute_layers(mapper, config=replace(base, costs=replace(base.costs, rule=rule)), device=args.device)
+        scored = evaluate(ruled, truth, road, poses, classes, np.array([base.costs.classes[n] for n in classes]), true_slope,
+                          dirichlet_prior(mapper))
+        rules[rule] = {key: scored[key] for key in ("road_vs_rest_auc", "median_cost_on_road", "median_cost_off_road",
+                                                     "median_cost_by_true_class_well_observed")} \
+            | {"plan": {key: val for key, val in (scored["plan"] or {}).items() if key != "cells"}}
     args.out.mkdir(parents=True, exist_ok=True)
     figures = _figures(args.out, layers, truth, road, result, poses, classes, class_colors(classes), sweep)
     summary = {
@@ -392,6 +464,7 @@ def main() -> None:
         "result": {k: v for k, v in result.items() if k != "plan"} | {"plan": {k: v for k, v in (result["plan"] or {}).items() if k != "cells"}},
         "sweep": {str(k): {key: v["result"][key] for key in ("cells_seen", "elevation_error_m", "surface_class_accuracy")}
                   | {"plan": {key: val for key, val in (v["result"]["plan"] or {}).items() if key != "cells"}} for k, v in sweep.items()},
+        "cost_rules": rules,
         "figures": [str(p.relative_to(REPO)) if p.is_relative_to(REPO) else str(p) for p in figures],
     }
     (args.out / "truth.json").write_text(json.dumps(summary, indent=1) + "\n")

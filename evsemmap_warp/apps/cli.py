@@ -522,8 +522,17 @@ def _cmd_dump_config(args) -> int:
         out["dataset"] = {k: plain(v) for k, v in vars(run.dataset).items() if k != "bag" or run.dataset.kind == "bag"}
     if run.bin_frames != 1:
         out["pipeline"] = {"bin_frames": run.bin_frames}
+    from ..terrain import load_terrain_config
+
+    terrain = load_terrain_config(args.costs)
+    out["terrain"] = {"source": terrain.source, "layers": _plain_dataclass(terrain.layers), "costs": _plain_dataclass(terrain.costs)}
     print(yaml.safe_dump(out, sort_keys=False), end="")
     return 0
+
+
+def _plain_dataclass(value) -> dict:
+    """A settings dataclass as YAML-ready values (tuples as lists)."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(value).items()}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -865,9 +874,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("map", type=Path)
     p.set_defaults(func=_cmd_info)
 
-    p = sub.add_parser("dump-config", help="print the resolved configuration")
+    p = sub.add_parser("dump-config", help="print the resolved configuration (mapping, dataset, terrain layers and costs)")
     p.add_argument("configs", nargs="*")
     p.add_argument("--method", default=None)
+    p.add_argument("--costs", type=Path, default=None, help="a terrain cost file laid over the default table (as evsemmap layers --costs)")
     p.set_defaults(func=_cmd_dump_config)
     return parser
 

@@ -1,13 +1,16 @@
 """The terrain layers' settings: which classes support a robot, the filter windows, and the cost table
 (docs/terrain.md). One YAML file holds both sections; ``configs/terrain/costs_v3.yaml`` is the
-default for the remap-v3 / RELLIS-3D classes, and ``evsemmap layers --costs FILE`` names another.
+default for the remap-v3 / RELLIS-3D classes, and ``evsemmap layers --costs FILE`` lays another over it:
+a file overrides exactly the keys it names (``costs.classes`` class by class), the rest keep the defaults.
 
-    layers:  {surface_classes: [...], clearance_m: 1.5, plane_window_cells: 5, step_window_cells: 3, min_plane_cells: 6}
-    costs:   {classes: {name: cost, ...}, lethal_classes: [...], lethal_probability: 0.5,
-              uncertainty_weight: 1.0, max_slope_deg: 25, slope_weight: 0.3, max_step_m: 0.3, free_step_m: 0.2,
-              step_weight: 0.3}
+    layers:  {surface_classes: [...], clearance_m: 1.5, min_evidence: 0.2, plane_window_cells: 9,
+              step_window_cells: 3, min_plane_cells: 20}
+    costs:   {rule: evidential, classes: {name: cost, ...}, unknown_cost: 0.5, lethal_classes: [...],
+              lethal_probability: 0.5, uncertainty_weight: 1.0, max_slope_deg: 25, slope_weight: 0.3,
+              max_step_m: 0.3, free_step_m: 0.2, step_weight: 0.3}
 
-A file's class names are checked against the map's when the layers are computed (``check_classes``).
+The class names a file gives are checked against the map's when the layers are computed
+(``check_classes``); the default table's names that a map lacks are left out silently.
 """
 
 from __future__ import annotations
@@ -40,12 +43,13 @@ class LayerSettings:
     cells a plane fit needs. ``min_evidence``: evidence (summed over classes) an OCCUPIED voxel needs to
     count; below it a voxel holds only the tails of kernels centered elsewhere."""
 
+    # the defaults are configs/terrain/costs_v3.yaml's layers section (tests/test_terrain_costs.py holds them equal)
     surface_classes: tuple = ("water", "paved", "unpaved", "dirt", "grass")  # classes whose occupied voxels support a robot
     clearance_m: float = 1.5  # occupied voxels up to this far above the support meet a robot; higher ones are overhangs
-    min_evidence: float = 0.0  # evidence (summed over classes) an OCCUPIED voxel needs to count
-    plane_window_cells: int = 5  # odd window edge of the plane fit (slope, roughness), cells
+    min_evidence: float = 0.2  # evidence (summed over classes) an OCCUPIED voxel needs to count
+    plane_window_cells: int = 9  # odd window edge of the plane fit (slope, roughness), cells
     step_window_cells: int = 3  # odd window edge of the step, cells
-    min_plane_cells: int = 6  # known cells a plane fit needs
+    min_plane_cells: int = 20  # known cells a plane fit needs
 
     def __post_init__(self):
         for key in ("plane_window_cells", "step_window_cells"):
@@ -64,18 +68,27 @@ class LayerSettings:
             raise ConfigError(f"layers.surface_classes = {list(self.surface_classes)} must be a non-empty list of class names")
 
 
+COST_RULES = ("evidential", "expected")
+
+
 @dataclass(frozen=True)
 class CostSettings:
-    """The cost model (docs/terrain.md): per-class costs (>= 0) under the Dirichlet of the voxel a robot
-    meets, ``uncertainty_weight`` standard deviations above their mean, plus slope and step terms; a
-    cell is lethal when that voxel's class is a lethal class, or the lethal classes' expected
-    probability reaches ``lethal_probability`` (two lethal classes sharing a voxel), or its slope or
+    """The cost model (docs/terrain.md), read on the voxel a robot meets. The ``evidential`` rule (the
+    default) splits its Dirichlet as subjective logic does, into a belief per class b_c = e_c / S and an
+    uncommitted mass u = W / S (W the prior's total weight): class cost sum_c b_c cost_c + u unknown_cost,
+    so a well-observed cell costs what the table says for its class and a barely observed one costs
+    ``unknown_cost``. The ``expected`` rule takes the costs' mean under the Dirichlet plus
+    ``uncertainty_weight`` standard deviations. Slope and step terms are added; a cell is lethal when
+    that voxel's class is a lethal class, or the lethal classes' belief (``expected``: expected
+    probability) reaches ``lethal_probability`` (two lethal classes sharing a voxel), or its slope or
     step passes its limit."""
 
     classes: dict = field(default_factory=dict)  # class name -> cost >= 0; every class of the map needs one
+    rule: str = "evidential"  # evidential: belief masses plus unknown_cost for the uncommitted mass; expected: mean + k std
+    unknown_cost: float = 0.5  # evidential rule: the cost of the uncommitted mass (what nothing has been seen to be)
     lethal_classes: tuple = ()  # classes a robot must not meet
-    lethal_probability: float = 0.5  # lethal when the lethal classes' expected probability reaches this
-    uncertainty_weight: float = 1.0  # standard deviations of the class cost added to its mean
+    lethal_probability: float = 0.5  # lethal when the lethal classes' belief (expected rule: expected probability) reaches this
+    uncertainty_weight: float = 1.0  # expected rule: standard deviations of the class cost added to its mean
     max_slope_deg: float = 25.0  # steeper is lethal; below it the slope adds slope_weight * slope / max_slope_deg
     slope_weight: float = 0.3  # cost of a slope just below max_slope_deg
     max_step_m: float = 0.3  # a larger step is lethal
@@ -88,6 +101,10 @@ class CostSettings:
                 raise ConfigError(f"costs.classes: key {name!r} is not a class name")
             if isinstance(cost, bool) or not isinstance(cost, (int, float)) or not math.isfinite(cost) or cost < 0:
                 raise ConfigError(f"costs.classes.{name} = {cost!r} must be a finite cost >= 0")
+        if self.rule not in COST_RULES:
+            raise ConfigError(f"costs.rule = {self.rule!r} is not a cost rule; known: {list(COST_RULES)}")
+        if not (math.isfinite(self.unknown_cost) and self.unknown_cost >= 0):
+            raise ConfigError(f"costs.unknown_cost = {self.unknown_cost} must be a finite cost >= 0")
         for key in ("uncertainty_weight", "slope_weight", "step_weight"):
             if getattr(self, key) < 0:
                 raise ConfigError(f"costs.{key} = {getattr(self, key)} must be >= 0")
@@ -108,24 +125,37 @@ class TerrainConfig:
     layers: LayerSettings = field(default_factory=LayerSettings)
     costs: CostSettings = field(default_factory=CostSettings)
     source: str = "defaults"  # the file it was read from
+    # the keys the file named (``layers.min_evidence``, ``costs.classes.grass``), as laid over the default table:
+    # class names the file gives must be the map's; those the defaults give may be missing from it
+    named: frozenset = frozenset()
 
     def check_classes(self, class_names) -> None:
         """Raise a ConfigError naming the file, the key and the names when the file names classes the
-        map lacks, or leaves a map class without a cost."""
+        map lacks, leaves a map class without a cost, or leaves the map no surface class."""
         names = list(class_names)
-        for key, given in (("layers.surface_classes", self.layers.surface_classes), ("costs.classes", list(self.costs.classes)),
-                           ("costs.lethal_classes", self.costs.lethal_classes)):
+        named_costs = [n for n in self.costs.classes if f"costs.classes.{n}" in self.named]
+        for key, given in (("layers.surface_classes", self.layers.surface_classes if key_named(self, "layers.surface_classes") else ()),
+                           ("costs.classes", named_costs),
+                           ("costs.lethal_classes", self.costs.lethal_classes if key_named(self, "costs.lethal_classes") else ())):
             unknown = [n for n in given if n not in names]
             if unknown:
                 raise ConfigError(f"{self.source}: {key} names classes the map does not have: {unknown}; the map's classes: {names}")
         missing = [n for n in names if n not in self.costs.classes]
         if missing:
             raise ConfigError(f"{self.source}: costs.classes gives no cost for the map's classes {missing}")
+        if not any(n in names for n in self.layers.surface_classes):
+            raise ConfigError(f"{self.source}: layers.surface_classes {list(self.layers.surface_classes)} holds none of the map's "
+                              f"classes {names}: name the classes a robot stands on")
 
 
-def load_terrain_config(path=None) -> TerrainConfig:
-    """The terrain settings of a YAML file (the default cost table without one); errors name the file and key."""
-    path = Path(path) if path is not None else default_costs_path()
+def key_named(config: TerrainConfig, key: str) -> bool:
+    """Whether ``key`` came from the config's own file, not from the defaults it is laid over. A config built
+    in Python (``named`` empty, ``source`` "defaults") names every key."""
+    return key in config.named or (not config.named and config.source == "defaults")
+
+
+def _read_sections(path: Path) -> dict:
+    """A cost file's ``layers`` and ``costs`` sections as dicts (absent ones empty); errors name the file."""
     try:
         text = path.read_text()
     except UnicodeDecodeError:
@@ -139,10 +169,37 @@ def load_terrain_config(path=None) -> TerrainConfig:
     unknown = sorted(set(map(str, data)) - {"layers", "costs"})
     if unknown:
         raise ConfigError(f"{path}: unknown section(s) {unknown}; known: ['costs', 'layers']")
+    sections = {}
+    for section in ("layers", "costs"):
+        values = data.get(section) or {}
+        if not isinstance(values, dict):
+            raise ConfigError(f"{path}: {section} must be a mapping, got {type(values).__name__}")
+        sections[section] = dict(values)
+    if sections["costs"].get("classes") is not None and not isinstance(sections["costs"]["classes"], dict):
+        raise ConfigError(f"{path}: costs.classes must be a mapping of class name to cost, got {type(sections['costs']['classes']).__name__}")
+    return sections
+
+
+def load_terrain_config(path=None) -> TerrainConfig:
+    """The terrain settings: the default table (configs/terrain/costs_v3.yaml), with the keys the YAML file
+    ``path`` names laid over it (``costs.classes`` class by class); errors name the file and key."""
+    default = default_costs_path()
+    merged = _read_sections(default)
+    named: set[str] = set()
+    path = Path(path) if path is not None else default
+    if path.resolve() != default.resolve():
+        for section, values in _read_sections(path).items():
+            for key, value in values.items():
+                if section == "costs" and key == "classes":
+                    merged["costs"]["classes"] = {**merged["costs"]["classes"], **value}
+                    named |= {f"costs.classes.{name}" for name in value}
+                else:
+                    merged[section][key] = value
+                named.add(f"{section}.{key}")
     try:
-        layers = dataclass_from_dict(LayerSettings, data.get("layers"), f"{path}: layers")
-        costs = dataclass_from_dict(CostSettings, data.get("costs"), f"{path}: costs")
+        layers = dataclass_from_dict(LayerSettings, merged["layers"], f"{path}: layers")
+        costs = dataclass_from_dict(CostSettings, merged["costs"], f"{path}: costs")
     except ConfigError as exc:
         message = str(exc)
         raise ConfigError(message if message.startswith(str(path)) else f"{path}: {message}") from None
-    return TerrainConfig(layers, costs, str(path))
+    return TerrainConfig(layers, costs, str(path), frozenset(named))

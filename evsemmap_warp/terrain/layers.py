@@ -29,12 +29,12 @@ from ..kernels import terrain as tk  # noqa: E402
 # Band order of every output (GeoTIFF bands, npz arrays, grid_map layers); per-class probability bands follow.
 SCALAR_BANDS = (
     "elevation", "elevation_top", "cover_height", "slope", "roughness", "step", "surface_class", "surface_probability",
-    "semantic_variance", "input_uncertainty", "cover_class", "lethal_class_probability", "observations", "known",
+    "semantic_variance", "surface_doubt", "input_uncertainty", "cover_class", "lethal_class_probability", "observations", "known",
     "class_cost_mean", "class_cost_std", "traversability_cost", "lethal",
 )
 UNITS = {
     "elevation": "m", "elevation_top": "m", "cover_height": "m", "slope": "deg", "roughness": "m", "step": "m",
-    "surface_class": "class index", "surface_probability": "1", "semantic_variance": "1", "input_uncertainty": "1",
+    "surface_class": "class index", "surface_probability": "1", "semantic_variance": "1", "surface_doubt": "1", "input_uncertainty": "1",
     "cover_class": "class index", "lethal_class_probability": "1", "observations": "contributions", "known": "0/1",
     "class_cost_mean": "cost", "class_cost_std": "cost", "traversability_cost": "cost in [0, 1]", "lethal": "0/1",
 }
@@ -233,6 +233,11 @@ class VoxelColumns:
                    evidence=cat(lambda a, s: a.evidence))
 
 
+def dirichlet_prior(mapper: Mapper) -> float:
+    """The prior concentration per class of ``dirichlet_concentrations``: the map's prior, 1 for Dempster-Shafer."""
+    return 1.0 if mapper.config.fusion is Fusion.DEMPSTER else float(mapper.config.prior)
+
+
 def dirichlet_concentrations(mapper: Mapper, evidence: np.ndarray) -> np.ndarray:
     """[n, K] Dirichlet concentrations of voxels: prior + evidence; for the Dempster-Shafer method the
     subjective-logic Dirichlet of its masses (alpha = m S + 1, S = K / u, u the uncommitted mass)."""
@@ -295,7 +300,7 @@ def column_reduction(voxels: VoxelColumns, grid: LayerGrid, *, voxel_m: float, o
 
 
 def base_layers(voxels: VoxelColumns, reduced: dict[str, np.ndarray], grid: LayerGrid, *, voxel_m: float, offset_m: float,
-                concentrations, config: TerrainConfig, class_names) -> dict[str, np.ndarray]:
+                concentrations, prior: float, config: TerrainConfig, class_names) -> dict[str, np.ndarray]:
     """Everything a cell gets from its own column: [height, width] float64 bands, row j northward."""
     shape = (grid.height, grid.width)
     k = len(class_names)
@@ -321,6 +326,10 @@ def base_layers(voxels: VoxelColumns, reduced: dict[str, np.ndarray], grid: Laye
     bands["surface_class"] = per_support(label)
     bands["surface_probability"] = per_support(voxels.probabilities[rows, label])
     bands["semantic_variance"] = per_support(voxels.variance[rows])
+    # 1 - b_label: the mass not committed to the label, the uncommitted mass and the other classes' belief together;
+    # it ranks the surface class's errors where the variance and u alone rank them backwards (docs/terrain.md §3)
+    belief, _ = subjective_opinion(concentrations(voxels.evidence[rows]), prior) if len(rows) else (np.zeros((0, k)), None)
+    bands["surface_doubt"] = per_support(1.0 - belief[np.arange(len(rows)), label])
     weight = voxels.weight_sum[rows]
     with np.errstate(invalid="ignore", divide="ignore"):
         bands["input_uncertainty"] = per_support(np.where(weight > 0, voxels.weighted_uncertainty_sum[rows] / weight, np.nan))
@@ -335,7 +344,7 @@ def base_layers(voxels: VoxelColumns, reduced: dict[str, np.ndarray], grid: Laye
 
     bands["cover_class"] = per_cover(voxels.label[cover_rows])
     alpha = concentrations(voxels.evidence[cover_rows]) if len(cover_rows) else np.zeros((0, k))
-    mean, std, lethal_p = class_cost(alpha, config, class_names)
+    mean, std, lethal_p = class_cost(alpha, config, class_names, prior)
     bands["lethal_class_probability"] = per_cover(lethal_p)
     bands["class_cost_mean"] = per_cover(mean)
     bands["class_cost_std"] = per_cover(std)
@@ -348,18 +357,34 @@ def base_layers(voxels: VoxelColumns, reduced: dict[str, np.ndarray], grid: Laye
     return bands
 
 
-def class_cost(alpha: np.ndarray, config: TerrainConfig, class_names) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mean and standard deviation of a cell's class cost c . theta under theta ~ Dir(alpha), and the
-    expected probability of the lethal classes (docs/terrain.md):
-    E = sum_k c_k p_k, Var = (sum_k c_k^2 p_k - E^2) / (S + 1), p = alpha / S."""
+def subjective_opinion(alpha: np.ndarray, prior: float) -> tuple[np.ndarray, np.ndarray]:
+    """Subjective logic's reading of Dirichlets alpha = prior + e [n, K]: the belief per class b = e / S and
+    the uncommitted mass u = K prior / S (S = sum alpha), which add up to 1."""
+    alpha = np.asarray(alpha, np.float64)
+    total = alpha.sum(axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (alpha - prior) / total, (alpha.shape[1] * prior) / total[:, 0]
+
+
+def class_cost(alpha: np.ndarray, config: TerrainConfig, class_names, prior: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A cell's class cost, its standard deviation under the Dirichlet, and the lethal classes' share
+    (docs/terrain.md), for concentrations ``alpha`` = ``prior`` + evidence.
+
+    The standard deviation of c . theta, theta ~ Dir(alpha): Var = (sum_k c_k^2 p_k - E^2) / (S + 1),
+    p = alpha / S, E = sum_k c_k p_k. The ``evidential`` rule's cost is sum_k b_k c_k + u unknown_cost and
+    its lethal share the lethal classes' belief (``subjective_opinion``); the ``expected`` rule's cost is E
+    and its lethal share the lethal classes' expected probability."""
     alpha = np.asarray(alpha, np.float64)
     costs = np.array([float(config.costs.classes[name]) for name in class_names])
     lethal = np.array([name in config.costs.lethal_classes for name in class_names])
     total = alpha.sum(axis=1)
     p = alpha / total[:, None] if len(alpha) else alpha
-    mean = p @ costs
-    variance = np.maximum(p @ (costs * costs) - mean * mean, 0.0) / (total + 1.0)
-    return mean, np.sqrt(variance), p[:, lethal].sum(axis=1)
+    expected = p @ costs
+    std = np.sqrt(np.maximum(p @ (costs * costs) - expected * expected, 0.0) / (total + 1.0))
+    if config.costs.rule == "expected":
+        return expected, std, p[:, lethal].sum(axis=1)
+    belief, uncommitted = subjective_opinion(alpha, prior) if len(alpha) else (alpha, total)
+    return belief @ costs + uncommitted * config.costs.unknown_cost, std, belief[:, lethal].sum(axis=1)
 
 
 # The neighbourhood filters -------------------------------------------------------------------------------
@@ -397,7 +422,8 @@ def finish_layers(bands: dict[str, np.ndarray], config: TerrainConfig, class_nam
     lethal_ids = [c for c, name in enumerate(class_names) if name in costs.lethal_classes]
     slope = np.nan_to_num(bands["slope"], nan=0.0)
     step = np.nan_to_num(bands["step"], nan=0.0)
-    semantic = bands["class_cost_mean"] + costs.uncertainty_weight * bands["class_cost_std"]
+    # the evidential rule's cost holds its uncertainty already, as the uncommitted mass's cost
+    semantic = bands["class_cost_mean"] + (costs.uncertainty_weight * bands["class_cost_std"] if costs.rule == "expected" else 0.0)
     geometric = (costs.slope_weight * np.clip(slope / costs.max_slope_deg, 0, 1)
                  + costs.step_weight * np.clip((step - costs.free_step_m) / (costs.max_step_m - costs.free_step_m), 0, 1))
     with np.errstate(invalid="ignore"):
@@ -459,5 +485,5 @@ def own_bands(voxels: VoxelColumns, grid: LayerGrid, *, mapper: Mapper, config: 
                                surface_mask=surface_mask(config, mapper.class_names), clearance_m=config.layers.clearance_m,
                                z_range_m=z_range, device=device)
     return base_layers(voxels, reduced, grid, voxel_m=voxel_m, offset_m=mapper.grid_offset_m,
-                       concentrations=lambda evidence: dirichlet_concentrations(mapper, evidence), config=config,
-                       class_names=mapper.class_names)
+                       concentrations=lambda evidence: dirichlet_concentrations(mapper, evidence), prior=dirichlet_prior(mapper),
+                       config=config, class_names=mapper.class_names)
