@@ -287,3 +287,26 @@ def test_a_damaged_or_lying_version_3_file_is_refused(tmp_path, tiny_map_file, c
     with pytest.raises(MapFileError, match=pattern) as err:
         load_map(bad)
     assert str(bad) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_saving_holds_a_column_at_a_time_not_copies_of_the_map(small_map):
+    import tracemalloc
+
+    from evsemmap_warp.core.map_file import encode_map
+    from evsemmap_warp.core.tile_codec import compress_columns, decompress_columns, index_dtype
+
+    contents = small_map.contents_of(small_map.voxels().arrays, read_out=False)
+    sums = contents.voxels().rows().nbytes
+    tracemalloc.start()
+    data = encode_map(contents)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < sums / 2 + 2 * len(data), (peak, sums, len(data))  # the one-shot payload took three copies of the sums
+    # the payload is compress_columns's (the store's tiles'), only compressed column by column
+    head, start = json.loads(data[12:12 + int.from_bytes(data[8:12], "little")]), 12 + int.from_bytes(data[8:12], "little")
+    dtype = index_dtype(max(head["index_extent"]))
+    local, rows = decompress_columns(data[start:], head["voxels"], head["columns"], dtype, "x")
+    same = compress_columns(contents.index - head["index_low"], contents.voxels().rows(), dtype)
+    other_local, other_rows = decompress_columns(same, head["voxels"], head["columns"], dtype, "x")
+    np.testing.assert_array_equal(local, other_local)
+    assert rows.tobytes() == other_rows.tobytes()

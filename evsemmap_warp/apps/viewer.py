@@ -1,6 +1,6 @@
 """Browser-based map inspection with viser: ``MapViewer`` and ``evsemmap view``.
 
-The viewer reads map files only (``map_file.read_map_arrays``); it launches no kernel. Voxels are drawn as
+The viewer reads map files only (``map_file.read_map_file``); it launches no kernel. Voxels are drawn as
 point sprites or instanced boxes, in float32 positions relative to a local origin (viser's default
 float16 would quantise a map a few hundred metres from its origin). Everything a control changes
 goes through ``refresh()``, so the same code serves the browser and the tests.
@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ..classes import named_colors
-from ..core.map_file import file_arrays, lattice_index, read_map_arrays
+from ..core.map_file import file_arrays, lattice_index, read_map_file, reader_mapper
 from ..data.point_files import read_npy, read_point_file
 from ..frames import WorldFrame, check_same_frame, describe_frame
 from ..voxel_keys import voxel_index_of
@@ -134,9 +134,23 @@ class MapLayer:
 
     @classmethod
     def from_file(cls, path) -> "MapLayer":
-        """A map file as a layer (read and validated by map_file.read_map_arrays)."""
-        arrays, meta = read_map_arrays(path)
-        return cls.from_arrays(Path(path).stem, Path(path), arrays, meta)
+        """A map file as a layer (read and validated by map_file.read_map_file), read out as ``from_voxels``."""
+        contents = read_map_file(path)
+        return cls.from_voxels(Path(path).stem, Path(path), reader_mapper(contents), contents.voxels())
+
+    @classmethod
+    def from_voxels(cls, name: str, path, reader, voxels, summary=None) -> "MapLayer":
+        """A layer of ``voxels`` (VoxelArrays, global indices in key order) read out with ``reader``'s (a
+        Mapper's) parameters, classes, origin and frame; ``summary``: their read-out when at hand. The
+        layer holds what is drawn or reported, not the sums (evidence, weights) it was read out of."""
+        summary = summary if summary is not None else reader.summarize(voxels.evidence, voxels.touched)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean_unc = np.where(voxels.weight_sum > 0, voxels.weighted_uncertainty_sum / voxels.weight_sum, np.nan)
+        resolution = reader.config.resolution_m
+        return cls(name, Path(path), list(reader.class_names), resolution, reader.grid_offset_m, reader.voxel_centers(voxels.index),
+                   np.asarray(voxels.index, np.int64), reader.concentrations(voxels.evidence), summary.label.astype(np.int32, copy=False),
+                   summary.state.astype(np.int8, copy=False), summary.variance, voxels.hits, mean_unc, reader.config.method,
+                   reader.frame, lattice_index(reader.origin, resolution))
 
     @classmethod
     def from_arrays(cls, name: str, path: Path, arrays: dict, meta: dict) -> "MapLayer":
@@ -152,8 +166,8 @@ class MapLayer:
     def from_mapper(cls, name: str, path, mapper, voxels=None) -> "MapLayer":
         """A map in memory, as its map file would show it: ``mapper``'s voxels, or ``voxels`` (a copy of
         them, global indices) read out with ``mapper``'s parameters, origin and frame."""
-        contents = mapper.contents_of(*(mapper.voxels() if voxels is None else (voxels,)))
-        return cls.from_arrays(name, Path(path), file_arrays(contents), contents.meta)
+        arrays, summary = mapper.voxels() if voxels is None else (voxels, None)
+        return cls.from_voxels(name, path, mapper, arrays, summary)
 
     def voxel_at(self, points_world: np.ndarray) -> np.ndarray:
         """Row of the voxel containing each point, -1 where none is stored (map files are sorted by key)."""

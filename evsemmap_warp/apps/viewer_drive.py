@@ -481,13 +481,14 @@ def open_drive(map_path, sources, *, checkpoint=None, alpha_dir=None, bin_frames
     for ``evsemmap map``), placed in the map's world frame and replayed with the map's mapping parameters.
     Refused (ValueError / ConfigError naming both) when the drive cannot have made the map."""
     from ..config import available_methods, load_config
-    from ..core.map_file import mapping_config, read_map_arrays
+    from ..core.map_file import mapping_config, read_map_file
     from ..frames import FIRST_SCAN, check_same_frame
     from .scan_sources import open_scan_source
     from .viewer import frame_of
 
     map_path = Path(map_path)
-    arrays, meta = read_map_arrays(map_path)
+    contents = read_map_file(map_path)  # its origin and meta: the read-out is not needed
+    meta = contents.meta
     where = " ".join(str(s) for s in sources)
     frame = frame_of(meta, map_path)
     # the drive is placed in the map's own frame (a folder's poses frame by name, or the first scan's)
@@ -511,5 +512,5 @@ def open_drive(map_path, sources, *, checkpoint=None, alpha_dir=None, bin_frames
             raise ValueError(f"--drive {where}: its first scan is not one of the scans {map_path} holds: the map was not made from "
                              "this drive (or with other --checkpoint / --alpha-dir / --bin-frames)")
     config = mapping_config(map_path, meta)
-    replay = DriveReplay(source, config, origin_m=arrays["origin"], snapshot_every=snapshot_every, device=device)
+    replay = DriveReplay(source, config, origin_m=contents.origin, snapshot_every=snapshot_every, device=device)
     return drive, replay

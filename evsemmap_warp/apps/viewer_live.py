@@ -91,6 +91,7 @@ class LatestOnlyWorker:
                 self.errors.append(f"{type(exc).__name__}: {exc}")
                 self._show_error(self.errors[-1])
             finally:
+                item = None  # a map's copy is not held while waiting for the next one
                 with self._cond:
                     self._busy = False
                     self._cond.notify_all()

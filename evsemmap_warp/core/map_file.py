@@ -109,19 +109,32 @@ def encode_map(contents: MapContents) -> bytes:
     is not stored). The same contents give the same bytes."""
     voxels = contents.voxels()
     index = np.asarray(voxels.index, np.int64).reshape(-1, 3)
-    rows = voxels.rows()
     if len(index) > 1 and np.any(np.diff(pack_voxel_keys(index - lattice_index(contents.origin, contents.resolution))) <= 0):
         order = np.lexsort(index.T[::-1])  # key order, as a Mapper's voxels come
-        index, rows = index[order], rows[order]
+        voxels = VoxelArrays.from_rows(index[order], voxels.rows()[order])
+        index = voxels.index
     low = index.min(axis=0) if len(index) else np.zeros(3, np.int64)
     extent = index.max(axis=0) - low + 1 if len(index) else np.ones(3, np.int64)
-    payload = tile_codec.compress_columns(index - low, rows, tile_codec.index_dtype(int(extent.max())))
-    header = {"format": FORMAT_NAME, "format_version": FORMAT_VERSION, "voxels": len(index), "columns": rows.shape[1],
+    dtype = np.dtype(tile_codec.index_dtype(int(extent.max())))
+    columns = voxels.evidence.shape[1] + EXTRA_COLUMNS
+    total = 3 * len(index) * dtype.itemsize + (columns - 1) * len(index) * 8 + (len(index) + 7) // 8
+    payload = tile_codec.compress_parts(_payload_parts(voxels, low, dtype), total)
+    header = {"format": FORMAT_NAME, "format_version": FORMAT_VERSION, "voxels": len(index), "columns": columns,
               "resolution": float(contents.resolution), "origin": [float(v) for v in contents.origin],
               "index_low": [int(v) for v in low], "index_extent": [int(v) for v in extent], "payload_bytes": len(payload),
               "payload_crc32": zlib.crc32(payload), "meta": contents.meta | {"format_version": FORMAT_VERSION}}
     text = json.dumps(header, sort_keys=True).encode()
     return MAGIC + struct.pack("<I", len(text)) + text + payload
+
+
+def _payload_parts(voxels: VoxelArrays, low: np.ndarray, dtype: np.dtype):
+    """tile_codec.compress_columns's payload of ``voxels`` (indices minus ``low``), one column at a time:
+    a map's save holds one column beside the compressed bytes, not copies of the whole map."""
+    for axis in range(3):
+        yield (voxels.index[:, axis] - low[axis]).astype(dtype)
+    for values in (*voxels.evidence.T, voxels.weight_sum, voxels.weighted_uncertainty_sum, voxels.hits):
+        yield np.ascontiguousarray(values, "<f8")
+    yield np.packbits(np.asarray(voxels.touched, bool))
 
 
 def file_arrays(contents: MapContents) -> dict[str, np.ndarray]:

@@ -28,6 +28,7 @@ from __future__ import annotations
 import json
 import struct
 import zlib
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -69,6 +70,19 @@ def compress_columns(local: np.ndarray, rows: np.ndarray, dtype) -> bytes:
     parts.append(np.ascontiguousarray(rows[:, :-1].T, dtype="<f8").tobytes())  # column by column: a class's zeros run together
     parts.append(np.packbits(rows[:, -1] > 0).tobytes())
     return zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True).compress(b"".join(parts))
+
+
+def compress_parts(parts: Iterable, total: int) -> bytes:
+    """One zstd frame (content size and checksum in its header) of the concatenation of ``parts`` (byte
+    buffers, ``total`` bytes in all), compressed as they come, so that the concatenation is never held:
+    ``compress_columns``'s payload, given its parts column by column, decompresses to the same bytes
+    (zstd may split the frame's blocks otherwise, so the compressed bytes may differ)."""
+    import zstandard
+
+    compressor = zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True).compressobj(size=total)
+    out = [compressor.compress(part) for part in parts]
+    out.append(compressor.flush())
+    return b"".join(out)
 
 
 def decompress_columns(payload: bytes, count: int, columns: int, dtype, where) -> tuple[np.ndarray, np.ndarray]:
