@@ -17,6 +17,7 @@ pytest.importorskip("rosbags")
 from conftest import wait_until  # noqa: E402
 
 from evsemmap_warp.apps.cli import main  # noqa: E402
+from evsemmap_warp.config import load_config  # noqa: E402
 from evsemmap_warp.core.mapper import Mapper, VoxelState  # noqa: E402
 from evsemmap_warp.data.log_writer import write_log  # noqa: E402
 from evsemmap_warp.live.publish import COSTMAP_TOPIC, GRID_MAP_TOPIC, MAP_TOPIC  # noqa: E402
@@ -205,21 +206,61 @@ def test_a_store_written_as_it_goes_is_resumed_by_the_next_run(drive, tmp_path):
 @pytest.mark.parametrize("fmt", ["ros1", "mcap"])
 def test_a_ros1_bag_and_an_mcap_file_replay_as_ros2_and_map_the_same(drive, tmp_path, fmt):
     """A ROS 1 bag's messages are rewritten as their ROS 2 types (the header's seq dropped, ...); an MCAP file's go
-    out as they are; as fast as the replay can (--rate 0), with /clock."""
+    out as they are; as fast as the replay can (--rate 0)."""
     batch = batch_map(drive["whole"], tmp_path)
     live = LiveRun(tmp_path, "--idle-exit", "3", "--no-publish")
-    listener = open_session(ZenohOptions(connect=[live.endpoint]))
+    assert replay(live.endpoint, drive[fmt], "--rate", "0") == 0
+    report = live.result()
+    assert live.code == 0 and report["scans_mapped"] == 6 and report["scans_dropped"] == 0, report
+    assert_same_map(Mapper.load(live.out), batch)
+
+
+def test_replay_publishes_the_log_time_on_clock(drive):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    listener = open_session(ZenohOptions(listen=[endpoint]))
     clock = []
-    subscriber = listener.declare_subscriber(topic_key("/clock", key_format="rmw_zenoh"), lambda sample: clock.append(sample))
+    subscriber = listener.declare_subscriber(topic_key("/clock", key_format="rmw_zenoh"), lambda sample: clock.append(sample.payload.to_bytes()))
     try:
-        assert replay(live.endpoint, drive[fmt], "--rate", "0") == 0
-        report = live.result()
+        assert replay(endpoint, drive["whole"], "--rate", "0", "--topics", "/tf_static") == 0
+        assert wait_until(lambda: clock, 5)
     finally:
         subscriber.undeclare()
         listener.close()
-    assert live.code == 0 and report["scans_mapped"] == 6 and report["scans_dropped"] == 0, report
-    assert_same_map(Mapper.load(live.out), batch)
-    assert clock and typestore().deserialize_cdr(clock[-1].payload.to_bytes(), "rosgraph_msgs/msg/Clock").clock.sec == 1_600_000_000
+    assert typestore().deserialize_cdr(clock[-1], "rosgraph_msgs/msg/Clock").clock.sec == 1_600_000_000
+
+
+def test_tf_static_published_before_the_mapper_subscribed_still_reaches_it():
+    """/tf_static is TRANSIENT_LOCAL: a robot published it long before the mapper started; the feed's subscriber asks
+    the publisher's cache for it (Zenoh's advanced publisher and subscriber, as rmw_zenoh keeps latched topics)."""
+    from evsemmap_warp.live.feed import RobotFeed
+    from evsemmap_warp.live.node import Ros2Node
+    from evsemmap_warp.live.scan_queue import ScanQueue
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    robot = open_session(ZenohOptions(listen=[endpoint]))
+    mapper = feed = None
+    store = typestore()
+    T = store.types
+    try:
+        node = Ros2Node(robot, "robot", store=store)
+        node.advertise("/tf_static", "tf2_msgs/msg/TFMessage", latched=True)
+        stamp = T["builtin_interfaces/msg/Time"](sec=1, nanosec=0)
+        transform = T["geometry_msgs/msg/TransformStamped"](
+            header=T["std_msgs/msg/Header"](stamp=stamp, frame_id="base_link"), child_frame_id="lidar",
+            transform=T["geometry_msgs/msg/Transform"](translation=T["geometry_msgs/msg/Vector3"](0.0, 0.0, 1.0),
+                                                       rotation=T["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0)))
+        node.publish_message("/tf_static", T["tf2_msgs/msg/TFMessage"](transforms=[transform]))
+        mapper = open_session(ZenohOptions(connect=[endpoint]))
+        feed = RobotFeed(mapper, load_config(PRESETS, method="ebs").dataset.bag, ScanQueue(2), store, key_format="rmw_zenoh")
+        assert wait_until(lambda: feed.topics["/tf_static"].received == 1, 10)
+        assert feed.tree.parent("lidar") == "base_link"
+        node.close()
+    finally:
+        if feed is not None:
+            feed.close()
+        if mapper is not None:
+            mapper.close()
+        robot.close()
 
 
 def test_a_dds_robot_behind_the_zenoh_bridge_is_detected_and_answered_in_its_format(drive, tmp_path):
@@ -238,3 +279,40 @@ def test_a_dds_robot_behind_the_zenoh_bridge_is_detected_and_answered_in_its_for
     assert live.code == 0 and report["key_format"] == "bridge" and report["scans_mapped"] == 6, report
     cloud = typestore().deserialize_cdr(maps[-1], "sensor_msgs/msg/PointCloud2")
     assert cloud.width == report["occupied"]
+
+
+@pytest.fixture(scope="module")
+def camera_drive(tmp_path_factory):
+    """The tiny drive with its camera, as a ROS 2 bag, and an untrained tiny segmentation checkpoint."""
+    import torch
+
+    from evsemmap_warp.classes import class_set
+    from evsemmap_warp.segmentation.config import ModelConfig
+    from evsemmap_warp.segmentation.model import build_model
+    from evsemmap_warp.segmentation.train import TrainConfig, save_checkpoint
+
+    root = tmp_path_factory.mktemp("live_camera")
+    generate_sequence(load_preset("tiny"), root / "folder", progress=False)
+    write_log(root / "folder", root / "bag", "rosbag2")
+    torch.manual_seed(0)
+    names = class_set().names
+    config = TrainConfig(model=ModelConfig(num_classes=len(names), width=8, aspp_channels=8), input_size=(32, 64))
+    model = build_model(config.model)
+    save_checkpoint(root / "net.pt", model, torch.optim.SGD(model.parameters(), lr=0.1), 1, config, names, [])
+    return root / "bag", root / "net.pt"
+
+
+def test_camera_labelled_scans_map_live_as_map_checkpoint_maps_the_log(camera_drive, tmp_path):
+    """--checkpoint: each scan's image through the network, the scan projected into it, bins of frames: the map
+    of `evsemmap map LOG --checkpoint` (one image per inference batch in both: the same network outputs)."""
+    log, checkpoint = camera_drive
+    out = tmp_path / "batch.npz"
+    assert main(["map", str(log), *PRESETS, "--method", "prob", "--checkpoint", str(checkpoint), "--bin-frames", "4", "--batch-size", "1",
+                 "--out", str(out), "--quiet"]) == 0
+    live = LiveRun(tmp_path, "--idle-exit", "3", "--no-publish", "--checkpoint", str(checkpoint), "--bin-frames", "4", "--method", "prob")
+    assert replay(live.endpoint, log) == 0
+    report = live.result()
+    assert live.code == 0 and report["scans_mapped"] == 6 and report["scans_dropped"] == 0, report
+    mapped = Mapper.load(live.out)
+    assert mapped.scans_integrated == 2  # a bin of 4 frames and the last, short one of 2
+    assert_same_map(mapped, Mapper.load(out))

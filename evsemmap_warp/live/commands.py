@@ -50,6 +50,10 @@ def add_parsers(sub, *, positive, positive_float, port) -> None:
     p.add_argument("--duration", type=positive_float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N or auto")
     p.add_argument("--workers", type=positive, default=None, help="CPU threads scattering into map shards (default: up to 2 on the CPU)")
+    p.add_argument("--checkpoint", type=Path, default=None, help="label the scans from the camera with this segmentation checkpoint, as "
+                                                                 "evsemmap map --checkpoint does (dataset.bag.image_topic, camera_info_topic)")
+    p.add_argument("--bin-frames", type=positive, default=None, help="with --checkpoint: frames integrated together (default: the preset's "
+                                                                     "pipeline.bin_frames, else 1)")
     p.add_argument("--store", type=Path, default=None, metavar="DIR", help="keep the map as a map store (the batch format) in DIR, "
                    "rewritten every --store-every seconds and at the end (Ctrl-C too); an existing store is resumed")
     p.add_argument("--store-every", type=positive_float, default=30.0, metavar="S", help="with --store: seconds between writes (default 30)")
@@ -139,8 +143,15 @@ def run_live(args) -> int:
     queue = ScanQueue(args.queue)
     feed = mapping = live_view = live_store = None
     try:
+        labeller = None
+        if args.checkpoint is not None:
+            from .camera import CameraLabeller
+
+            labeller = CameraLabeller(args.checkpoint, run.dataset.bag, store, bin_frames_=args.bin_frames or run.bin_frames)
+        elif args.bin_frames is not None:
+            raise ConfigError("--bin-frames applies to camera-labelled scans (--checkpoint)")
         feed = RobotFeed(session, run.dataset.bag, queue, store, key_format=args.key_format, domain_id=args.domain_id,
-                         max_cloud_bytes=int(args.max_cloud_mb * 2**20))
+                         max_cloud_bytes=int(args.max_cloud_mb * 2**20), labeller=labeller)
         def node(detected_format: str):
             return Ros2Node(session, "evsemmap_live", key_format=detected_format if args.key_format == "auto" else args.key_format,
                             domain_id=args.domain_id, store=store)
@@ -162,7 +173,7 @@ def run_live(args) -> int:
         live_store = None if args.store is None else LiveStore(args.store, every_s=args.store_every, sources=list(args.configs))
         mapping = LiveMapping(run, feed, queue, settings, out=args.out, device=args.device, workers=args.workers,
                               node_factory=None if args.no_publish else node, publisher_factory=None if args.no_publish else publisher,
-                              on_mapped=on_mapped, store=live_store)
+                              on_mapped=on_mapped, store=live_store, labeller=labeller)
         topics = ", ".join(f"{t} ({s.msgtype.rsplit('/', 1)[-1]})" for t, s in feed.topics.items())
         say(f"listening for {topics} on domain {args.domain_id} ({args.key_format} keys); Ctrl-C ends the run and writes {args.out}")
         try:

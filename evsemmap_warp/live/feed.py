@@ -15,9 +15,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import BagConfig
-from ..data.logs import CLOUD_TYPE, ODOMETRY_TYPE, TF_TYPE
+from ..data.logs import CAMERA_INFO_TYPE, CLOUD_TYPE, IMAGE_TYPES, ODOMETRY_TYPE, TF_TYPE
+from ..data.sequences import DataError
 from ..geometry.transform_tree import TransformError, TransformTree
-from .ros2_wire import WireError, decode_attachment, parse_key, topic_key
+from .ros2_wire import LATCHED_DEPTH, WireError, decode_attachment, is_latched, parse_key, topic_key
 from .scan_queue import ReceivedScan, ScanQueue
 
 
@@ -46,7 +47,7 @@ class RobotFeed:
     counted, before it is queued."""
 
     def __init__(self, session, config: BagConfig, queue: ScanQueue, store, *, key_format: str = "auto", domain_id: int = 0,
-                 max_cloud_bytes: int = 256 << 20):
+                 max_cloud_bytes: int = 256 << 20, labeller=None):
         if not config.cloud_topic:
             from ..config import ConfigError
 
@@ -62,6 +63,11 @@ class RobotFeed:
         self.topics: dict[str, TopicState] = {}
         roles = [("cloud", config.cloud_topic, CLOUD_TYPE), ("tf_static", config.tf_static_topic, TF_TYPE)]
         roles.append(("odometry", config.odometry_topic, ODOMETRY_TYPE) if config.pose_source == "odometry" else ("tf", config.tf_topic, TF_TYPE))
+        self.labeller = labeller  # camera.CameraLabeller with --checkpoint: the camera's images and info go to it
+        if labeller is not None:
+            # a bridge's key names no type: an image topic named .../compressed carries CompressedImage, by ROS convention
+            image_type = IMAGE_TYPES[1] if config.image_topic.rstrip("/").endswith("compressed") else IMAGE_TYPES[0]
+            roles += [("image", config.image_topic, image_type), ("info", config.camera_info_topic, CAMERA_INFO_TYPE)]
         self._subscribers = []
         formats = ("rmw_zenoh", "bridge") if key_format == "auto" else (key_format,)
         for role, topic, msgtype in roles:
@@ -70,7 +76,19 @@ class RobotFeed:
             self.topics[topic] = TopicState(role, topic, msgtype)
             for fmt in formats:
                 key = topic_key(topic, key_format=fmt, domain_id=domain_id)
-                self._subscribers.append(session.declare_subscriber(key, lambda sample, t=topic: self.on_sample(t, sample)))
+                self._subscribers.append(self._subscribe(session, key, topic))
+
+    def _subscribe(self, session, key: str, topic: str):
+        """A subscriber of ``key`` handing samples to ``on_sample``; for a latched topic (/tf_static) one that also asks
+        the publishers that joined before it for what they keep (Zenoh's advanced subscriber with history)."""
+        callback = lambda sample: self.on_sample(topic, sample)  # noqa: E731 - one line, named by its use
+        from .session import zenoh_module
+
+        zenoh = zenoh_module()
+        if is_latched(topic) and isinstance(session, zenoh.Session):
+            return zenoh.ext.declare_advanced_subscriber(session, key, callback,
+                                                         history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=LATCHED_DEPTH))
+        return session.declare_subscriber(key, callback)
 
     def close(self) -> None:
         """Undeclare the subscriptions."""
@@ -93,8 +111,9 @@ class RobotFeed:
             if self.detected_format is None:
                 self.detected_format = key.key_format
                 say(f"the robot speaks {key.key_format} (first sample on {str(sample.key_expr)!r})")
-            if key.msgtype and key.msgtype != state.msgtype:
-                return self._refuse(state, f"a message of type {key.msgtype}, expected {state.msgtype}")
+            accepted = IMAGE_TYPES if state.role == "image" else (state.msgtype,)
+            if key.msgtype and key.msgtype not in accepted:
+                return self._refuse(state, f"a message of type {key.msgtype}, expected {' or '.join(accepted)}")
             attachment = decode_attachment(None if sample.attachment is None else sample.attachment.to_bytes())
             payload = sample.payload.to_bytes()
         except WireError as exc:
@@ -110,13 +129,18 @@ class RobotFeed:
                                            f"{self.max_cloud_bytes / 2**20:.0f}")
             sequence, sent = (attachment[0], attachment[1]) if attachment else (None, None)
             return self.queue.put(ReceivedScan(payload, now, sent, sequence))
+        if state.role == "image":
+            return self.labeller.images.add_image(key.msgtype or state.msgtype, payload)
         try:
             msg = self.store.deserialize_cdr(payload, state.msgtype)
         except Exception as exc:  # noqa: BLE001 - rosbags raises assorted errors for bytes that are no such message
             return self._refuse(state, f"a message that is no {state.msgtype} ({type(exc).__name__}: {exc})")
         try:
-            self._add_transforms(state.role, msg)
-        except TransformError as exc:
+            if state.role == "info":
+                self.labeller.add_camera_info(msg, state.topic)
+            else:
+                self._add_transforms(state.role, msg)
+        except (TransformError, DataError) as exc:
             self._refuse(state, str(exc))
 
     def _add_transforms(self, role: str, msg) -> None:

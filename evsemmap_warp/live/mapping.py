@@ -36,7 +36,7 @@ from ..geometry.transform_tree import TransformError, format_stamp
 from .feed import RobotFeed, say
 from .scan_queue import ReceivedScan, ScanQueue
 
-DROP_REASONS = ("queue_full", "no_pose", "time_jump", "malformed", "too_large")
+DROP_REASONS = ("queue_full", "no_pose", "no_image", "time_jump", "malformed", "too_large")
 TIME_JUMP_POLICIES = ("refuse", "reset")
 
 
@@ -88,7 +88,8 @@ class LiveMapping:
     format, ``publisher_factory(mapper, node)`` the MapPublisher (None: publish nothing)."""
 
     def __init__(self, run: RunConfig, feed: RobotFeed, queue: ScanQueue, settings: LiveSettings, *, out: Path | None = None,
-                 device: str = "cpu", workers: int | None = None, node_factory=None, publisher_factory=None, on_mapped=None, store=None):
+                 device: str = "cpu", workers: int | None = None, node_factory=None, publisher_factory=None, on_mapped=None, store=None,
+                 labeller=None):
         dataset = run.dataset
         if dataset.frame == "first-scan":
             raise ConfigError("dataset.frame: first-scan is a frame of a log's first scan; a live map is made in the robot's fixed frame "
@@ -97,9 +98,13 @@ class LiveMapping:
             raise ConfigError("dataset.bag.lidar_extrinsic / camera_extrinsic: live mapping takes the mounts from the robot's /tf_static")
         self.run, self.feed, self.queue, self.settings, self.out = run, feed, queue, settings, out
         self.bag = dataset.bag
-        self.table, names = label_table(self.bag.label_ontology, dataset.num_classes)
-        self.class_names = dataset.class_names or names
-        self.num_classes = dataset.num_classes or len(self.class_names)
+        self.labeller = labeller  # a camera.CameraLabeller (--checkpoint), or None: the clouds' own labels
+        if labeller is not None:
+            self.table, self.class_names, self.num_classes = None, labeller.class_names, labeller.num_classes
+        else:
+            self.table, names = label_table(self.bag.label_ontology, dataset.num_classes)
+            self.class_names = dataset.class_names or names
+            self.num_classes = dataset.num_classes or len(self.class_names)
         self.device, self.workers = device, workers
         # node_factory(key_format) -> Ros2Node: made once the robot's key format is known (or the topics' wait is over)
         self.node, self._node_factory = None, node_factory
@@ -115,6 +120,7 @@ class LiveMapping:
         self.robot_xy = np.zeros(2)
         self.maps_written: list[Path] = []
         self._pending: list[int] = []  # origin_ns of scans mapped but not yet in a published map
+        self._binned: list[int] = []  # origin_ns of scans taken but not integrated yet (a bin still filling)
         self._pending_lock = threading.Lock()
         self._jump_said = False
         queue.on_drop = self._queue_drop
@@ -197,54 +203,91 @@ class LiveMapping:
         return False
 
     def map_scan(self, item: ReceivedScan) -> bool:
-        """Decode, pose, label and integrate one received cloud; returns whether it was mapped."""
+        """Decode, pose, label and integrate one received cloud; returns whether it was mapped (with --checkpoint:
+        taken into the bin being filled, integrated when the bin is full)."""
         started = time.perf_counter()
-        topic = self.bag.cloud_topic
-        try:
-            stamp = header_stamp_ns(item.cdr, True) if len(item.cdr) >= 12 else None
-            msg = self.feed.store.deserialize_cdr(item.cdr, CLOUD_TYPE)
-        except Exception as exc:  # noqa: BLE001 - rosbags raises assorted errors for bytes that are no PointCloud2
-            self._drop("malformed", f"{topic}: a message that is no PointCloud2 ({type(exc).__name__}: {exc})")
+        decoded = self._decode(item)
+        if decoded is None:
             return False
-        where = f"{topic} scan at {format_stamp(stamp)}"
-        if not self._check_time(stamp, where):
-            return False
-        if not self.lidar_frame:
-            self.lidar_frame = msg.header.frame_id
-        if self.mapper is None:
-            self._first_run_id = run_id(str(stamp), item.cdr)
-        try:
-            scan, raw_labels = cloud_points(msg, self.bag.label_field, where)
-            labels = remap_point_labels(raw_labels, self.table, f"{where} field {self.bag.label_field!r}")
-        except (DataError, ConfigError) as exc:
-            self._drop("malformed", str(exc))
-            return False
+        stamp, where, scan, labels = decoded
         wait_started = time.perf_counter()
         pose = self._wait_for_pose(stamp, where)
-        waited = time.perf_counter() - wait_started
         if pose is None:
             return False
-        if self.mapper is None:
-            self._start_map()
-        placed = labelled_scan(where, scan, labels, pose)
+        placed, waited = self._label_and_place(stamp, where, scan, labels, pose, wait_started)
+        if placed is False:
+            return False
         placed_at = time.perf_counter()
-        self.mapper.integrate_many([placed])
-        done_ns = time.time_ns()
+        with self._pending_lock:
+            self._binned.append(item.origin_ns)
+        if placed is not None:
+            self._integrate(placed)
         stages = self.stats.stage_ms
         stages["decode"].append((wait_started - started) * 1e3)
         stages["place"].append((placed_at - wait_started - waited) * 1e3)
         stages["integrate"].append((time.perf_counter() - placed_at) * 1e3)
         self.last_stamp = stamp
         self.feed.trim(before_ns=stamp)
-        self.robot_xy = placed.sensor_origin[:2]
         self.stats.mapped += 1
-        self.stats.integrated_ms.append((done_ns - item.origin_ns) / 1e6)
         self.stats.mapping_s += time.perf_counter() - started - waited
+        return True
+
+    def _decode(self, item: ReceivedScan):
+        """(stamp, name, scan [N, 4], class labels or None) of a received cloud; None when it is dropped."""
+        topic = self.bag.cloud_topic
+        try:
+            stamp = header_stamp_ns(item.cdr, True) if len(item.cdr) >= 12 else None
+            msg = self.feed.store.deserialize_cdr(item.cdr, CLOUD_TYPE)
+        except Exception as exc:  # noqa: BLE001 - rosbags raises assorted errors for bytes that are no PointCloud2
+            self._drop("malformed", f"{topic}: a message that is no PointCloud2 ({type(exc).__name__}: {exc})")
+            return None
+        where = f"{topic} scan at {format_stamp(stamp)}"
+        if not self._check_time(stamp, where):
+            return None
+        if not self.lidar_frame:
+            self.lidar_frame = msg.header.frame_id
+        if self.mapper is None:
+            self._first_run_id = run_id(str(stamp), item.cdr)
+        try:
+            if self.labeller is not None:
+                return stamp, where, cloud_points(msg, None, where)[0], None
+            scan, raw_labels = cloud_points(msg, self.bag.label_field, where)
+            return stamp, where, scan, remap_point_labels(raw_labels, self.table, f"{where} field {self.bag.label_field!r}")
+        except (DataError, ConfigError) as exc:
+            self._drop("malformed", str(exc))
+            return None
+
+    def _label_and_place(self, stamp: int, where: str, scan, labels, pose, wait_started: float):
+        """(the insertion for the map, or None while a bin fills, or False when the scan is dropped; the seconds waited)."""
+        if self.mapper is None:
+            self._start_map()
+        if self.labeller is None:
+            return labelled_scan(where, scan, labels, pose), time.perf_counter() - wait_started
+        paired = self.labeller.image_for(stamp, time.monotonic() + self.settings.tf_wait_s)
+        waited = time.perf_counter() - wait_started
+        if paired is None:
+            self._drop("no_image", f"{where}: no image on {self.bag.image_topic!r} within {self.bag.image_tolerance_s:g} s "
+                                   f"(dataset.bag.image_tolerance_s)")
+            return False, waited
+        try:
+            with self.feed.tree_lock:
+                camera, lidar_to_camera = self.labeller.camera(self.feed.tree, self.lidar_frame, stamp)
+        except DataError as exc:
+            self._drop("no_image", f"{where}: {exc}")
+            return False, waited
+        return self.labeller.add_frame(where, scan, pose, paired[0], camera, lidar_to_camera), waited
+
+    def _integrate(self, placed) -> None:
+        """Integrate one insertion (a scan, or a bin of camera-labelled frames); its scans' latencies counted."""
+        self.mapper.integrate_many([placed])
+        done_ns = time.time_ns()
+        self.robot_xy = placed.sensor_origin[:2]
         with self._pending_lock:
-            self._pending.append(item.origin_ns)
+            binned, self._binned = self._binned, []
+            self._pending += binned
+        self.stats.integrated_ms += [(done_ns - origin) / 1e6 for origin in binned]
         if self.on_mapped is not None:
             self.on_mapped(self, placed)
-        return True
 
     def _start_map(self) -> None:
         resumed, self.resumed = self.resumed, None
@@ -365,6 +408,9 @@ class LiveMapping:
     def _finish_map(self, *, reset: bool) -> Path | None:
         if self.mapper is None:
             return None
+        last_bin = self.labeller.flush() if self.labeller is not None else None
+        if last_bin is not None:  # the frames of a bin not full yet: integrated as the log's last, short bin is
+            self._integrate(last_bin)
         workers = [w for w in (self.publisher, self.store) if w is not None]
         for worker in workers:
             worker.wait_idle(timeout=60.0)

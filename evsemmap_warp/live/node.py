@@ -10,7 +10,7 @@ import itertools
 import threading
 import time
 
-from .ros2_wire import encode_attachment, node_token, publisher_token, topic_key, typestore
+from .ros2_wire import DEFAULT_QOS, LATCHED_DEPTH, LATCHED_QOS, encode_attachment, node_token, publisher_token, topic_key, typestore
 
 _NODE_IDS = itertools.count(1)
 
@@ -32,8 +32,10 @@ class Ros2Node:
         if key_format == "rmw_zenoh":
             self._tokens.append(session.liveliness().declare_token(node_token(domain_id, self.session_id, self.node_id, name)))
 
-    def advertise(self, topic: str, msgtype: str) -> None:
-        """Declare a publisher of ``msgtype`` on ``topic`` (and its liveliness token), once per topic."""
+    def advertise(self, topic: str, msgtype: str, *, latched: bool = False) -> None:
+        """Declare a publisher of ``msgtype`` on ``topic`` (and its liveliness token), once per topic. ``latched``:
+        TRANSIENT_LOCAL durability, as ``/tf_static``: the last ``LATCHED_DEPTH`` messages are kept for subscribers
+        that join later (Zenoh's advanced publisher with a cache and publisher detection, as rmw_zenoh does)."""
         with self._lock:
             if topic in self._publishers:
                 return
@@ -41,13 +43,21 @@ class Ros2Node:
             key = topic_key(topic, key_format=self.key_format, domain_id=self.domain_id, msgtype=msgtype, type_hash=type_hash)
             entity = next(self._entities)
             if self.key_format == "rmw_zenoh":
-                token = publisher_token(self.domain_id, self.session_id, self.node_id, entity, self.name, topic, msgtype, type_hash)
+                token = publisher_token(self.domain_id, self.session_id, self.node_id, entity, self.name, topic, msgtype, type_hash,
+                                        qos=LATCHED_QOS if latched else DEFAULT_QOS)
                 self._tokens.append(self.session.liveliness().declare_token(token))
             gid = hashlib.blake2b(f"{self.session_id}/{self.node_id}/{entity}".encode(), digest_size=16).digest()
             from .session import zenoh_module
 
-            congestion = zenoh_module().CongestionControl
-            publisher = self.session.declare_publisher(key, congestion_control=congestion.BLOCK if self.block else congestion.DROP)
+            zenoh = zenoh_module()
+            congestion = zenoh.CongestionControl.BLOCK if self.block else zenoh.CongestionControl.DROP
+            if latched:
+                # samples sequenced by number (miss detection), so the session needs no timestamping
+                publisher = zenoh.ext.declare_advanced_publisher(self.session, key, congestion_control=congestion, publisher_detection=True,
+                                                                 cache=zenoh.ext.CacheConfig(LATCHED_DEPTH),
+                                                                 sample_miss_detection=zenoh.ext.MissDetectionConfig())
+            else:
+                publisher = self.session.declare_publisher(key, congestion_control=congestion)
             self._publishers[topic] = (publisher, msgtype, gid, itertools.count(1))
 
     def wait_for_subscribers(self, timeout: float, settle: float = 0.3) -> list[str]:
@@ -56,7 +66,8 @@ class Ros2Node:
         end = time.monotonic() + timeout
         matched, since = [], time.monotonic()
         while time.monotonic() < end:
-            now_matched = [t for t, (publisher, *_) in self._publishers.items() if publisher.matching_status.matching]
+            now_matched = [t for t, (publisher, *_) in self._publishers.items()
+                           if hasattr(publisher, "matching_status") and publisher.matching_status.matching]
             if now_matched != matched:
                 matched, since = now_matched, time.monotonic()
             elif matched and time.monotonic() - since >= settle:

@@ -16,7 +16,7 @@ from ..config import ConfigError
 from ..data.logs import open_reader
 from ..data.sequences import DataError
 from .node import Ros2Node
-from .ros2_wire import typestore
+from .ros2_wire import is_latched, typestore
 
 CLOCK_TOPIC = "/clock"
 CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
@@ -72,7 +72,7 @@ def replay_log(session, logs, *, rate: float = 1.0, topics: tuple[str, ...] = ()
             print(f"evsemmap replay: not published (types unknown to rosbags' ROS 2 store): {unknown}", file=sys.stderr)
             connections = [c for c in connections if c.msgtype in store.types]
         for c in connections:
-            node.advertise(c.topic, c.msgtype)
+            node.advertise(c.topic, c.msgtype, latched=is_latched(c.topic))
         if clock:
             node.advertise(CLOCK_TOPIC, CLOCK_TYPE)
         counts = {c.topic: 0 for c in connections}

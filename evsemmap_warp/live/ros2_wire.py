@@ -31,6 +31,14 @@ GID_BYTES = 16
 # A liveliness token's QoS field (rmw_zenoh's qos_to_keyexpr: reliability:durability:history,depth:deadline s,ns:
 # lifespan s,ns:liveliness,lease s,ns, a value equal to the default left empty): reliable, volatile, keep last 10
 DEFAULT_QOS = "::,10:,:,:,,"
+# /tf_static's durability: TRANSIENT_LOCAL (1), keep the last LATCHED_DEPTH for subscribers that join later
+LATCHED_DEPTH = 100
+LATCHED_QOS = f":1:,{LATCHED_DEPTH}:,:,:,,"
+
+
+def is_latched(topic: str) -> bool:
+    """Whether a topic is TRANSIENT_LOCAL by ROS convention: ``/tf_static`` (under any namespace)."""
+    return topic.rstrip("/").rsplit("/", 1)[-1] == "tf_static"
 ATTACHMENT = struct.Struct("<qqB16s")  # sequence number, source timestamp, GID length (16), GID
 
 # grid_map_msgs for ROS 2 (ANYbotics/grid_map, branches humble / jazzy / rolling): the header moved from the
