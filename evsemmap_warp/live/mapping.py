@@ -378,7 +378,7 @@ class LiveMapping:
         try:
             for reply in session.liveliness().get(f"{ADMIN_SPACE}/{self.feed.domain_id}/**", timeout=1.0):
                 token = parse_token(str(reply.ok.key_expr)) if reply.ok is not None else None
-                if token is not None and token["kind"] == "MP":
+                if token is not None and token["kind"] == "MP" and token["node"] != "evsemmap_live":  # not what this run publishes
                     topics.add(f"{token['topic']} ({token['msgtype']})")
         except Exception:  # noqa: BLE001 - listing the graph is a courtesy; the line above says what is missing either way
             return ""
