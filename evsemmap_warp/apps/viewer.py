@@ -1434,9 +1434,10 @@ class MapViewer:
         rows = rows[layer.weight[rows] > 1.0]
         offsets = layer.centers[rows] - ray_origin_world
         along = offsets @ direction
-        beside = np.linalg.norm(offsets - along[:, None] * direction, axis=1)
+        # squared distances from the ray, without an [N, 3] temporary: this runs on every camera move (the center line)
+        beside2 = np.einsum("ij,ij->i", offsets, offsets) - along * along
         radius = max(self._point_size(i), self.CLICK_RADIUS_PX * self.scale_bar[2] if self.scale_bar is not None else 0.0)
-        near = np.flatnonzero((along > 0) & (beside <= radius))
+        near = np.flatnonzero((along > 0) & (beside2 <= radius * radius))
         if len(near) == 0:
             return None
         k = near[np.argmin(along[near])]
