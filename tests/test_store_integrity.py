@@ -156,6 +156,37 @@ def test_a_tile_that_does_not_belong_is_refused_naming_it(drive, store, tmp_path
     assert str(tile) in line and "not a store voxel file" in line, line
 
 
+def test_a_tile_file_the_index_does_not_list_is_refused_naming_it(store, tmp_path, capsys):
+    """store.json without one tile whose file is still there: every read-out (export, merge, layers, view,
+    info) lacked its voxels and exited 0; a listed tile missing on disk was already refused, naming it."""
+    copy = _copy(store, tmp_path / "store")
+    index = json.loads((copy / "store.json").read_text())
+    name = sorted(index["tiles"])[0]
+    del index["tiles"][name]
+    (copy / "store.json").write_text(json.dumps(index))
+    tile = copy / "tiles" / f"{name}.vox"
+    for argv in (["export", copy, "--out", tmp_path / "out.npz"], ["merge", copy, store, "--out", tmp_path / "out.npz"],
+                 ["layers", copy, "--out", tmp_path / "layers"], ["view", copy, "--no-serve", "--port", "18411"], ["info", copy]):
+        line = _cli_error(capsys, *argv)
+        assert line.startswith(f"evsemmap: error: {tile}: a tile file that {copy / 'store.json'} does not list"), (argv[0], line)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["store"]
+
+
+def test_a_store_a_batch_run_is_still_writing_is_named_so_by_every_reader(drive, tmp_path, capsys):
+    """A folder batch has begun (work/, tiles/, no store.json yet), or a copy taken of one: view, layers
+    and merge said "cannot read the map file (Is a directory)"; every reader now says what it is."""
+    unfinished = tmp_path / "unfinished"
+    (unfinished / "work").mkdir(parents=True)
+    (unfinished / "tiles").mkdir()
+    other = _copy(unfinished, tmp_path / "other")
+    for argv in (["export", unfinished, "--out", tmp_path / "out.npz"], ["merge", unfinished, other, "--out", tmp_path / "out.npz"],
+                 ["layers", unfinished, "--out", tmp_path / "layers"], ["view", unfinished, "--no-serve", "--port", "18412"],
+                 ["info", unfinished]):
+        line = _cli_error(capsys, *argv)
+        assert f"{unfinished}: not a map store, no store.json (a batch run still writing it" in line, (argv[0], line)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other", "unfinished"]
+
+
 STORE_INDEX_CASES = {
     "origin-2^70": (lambda i: i.update(origin_index=[2**70, 0, 0]), "origin_index must be 3 whole numbers"),
     "origin-short": (lambda i: i.update(origin_index=[0, 0]), "origin_index must be 3 whole numbers"),

@@ -485,6 +485,53 @@ def test_a_store_refuses_cells_that_do_not_tile_it(drive_store, tmp_path, capsys
         compute_layers(MapStore(drive_store), config=load_terrain_config(wide))
 
 
+def test_layers_replace_their_folder_whole_and_leave_the_last_whole_when_stopped(drive_store, tmp_path, monkeypatch, capsys):
+    """A rerun with other bounds leaves none of the first run's tile columns (they stayed beside the new
+    one, layers.json listing only the new); a run interrupted (Ctrl-C) or failing (a full disk) halfway
+    leaves the last run's output byte for byte and no staging folder; a second run into a folder being
+    written is refused; a folder of other files is not replaced."""
+    import errno
+    import fcntl
+    import os
+
+    from evsemmap_warp.terrain import pipeline
+
+    out = tmp_path / "L"
+    first = write_layers(drive_store, out, previews=False, bag=False)
+    second = write_layers(drive_store, out, bounds=[0, 0, 3, 3], previews=False, bag=False)
+    assert len(second["tile_columns"]) < len(first["tile_columns"])
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()) == sorted(second["files"] + ["layers.json"])
+    assert json.loads((out / "layers.json").read_text())["out"] == str(out)
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    real_write_npz = pipeline.write_npz
+    for failure in (KeyboardInterrupt(), OSError(errno.ENOSPC, "No space left on device")):
+        calls = []
+
+        def write_npz_then_fail(path, layers):
+            calls.append(path)
+            if len(calls) > 1:  # the first tile column written, then stopped
+                raise failure
+            return real_write_npz(path, layers)
+
+        monkeypatch.setattr(pipeline, "write_npz", write_npz_then_fail)
+        with pytest.raises(type(failure)) as raised:
+            write_layers(drive_store, out, previews=False, bag=False)
+        if isinstance(failure, OSError):  # named as the folder asked for, not the staging one
+            assert raised.value.errno == errno.ENOSPC and raised.value.filename == str(out)
+        assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["L"]
+    monkeypatch.setattr(pipeline, "write_npz", real_write_npz)
+    handle = os.open(out, os.O_RDONLY)
+    fcntl.flock(handle, fcntl.LOCK_EX)  # what a run writing the folder holds
+    try:
+        assert "another layers run is writing this folder now" in run_cli(capsys, "layers", drive_store, "--out", out)
+    finally:
+        os.close(handle)
+    (tmp_path / "notes.txt").write_text("mine")
+    assert "exists and is not a layers folder" in run_cli(capsys, "layers", drive_store, "--out", tmp_path)
+    assert (tmp_path / "notes.txt").read_text() == "mine"
+
+
 @pytest.mark.parametrize("stride", [1, 3, 7])
 def test_the_preview_mosaic_is_the_whole_grid_decimated_whatever_the_parts(stride):
     """A store's previews are drawn from a mosaic filled part by part (tile columns at any offset, on the grid's

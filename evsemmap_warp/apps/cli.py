@@ -151,7 +151,8 @@ def _load_map_or_store(path: Path):
     from ..core.map_store import MapStore, is_store
     from ..core.mapper import load_map
 
-    return MapStore(path).to_mapper() if is_store(path) else load_map(path)
+    # a folder is a store, or one not written yet (MapStore names why it is not one)
+    return MapStore(path).to_mapper() if is_store(path) or Path(path).is_dir() else load_map(path)
 
 
 def _cmd_export(args) -> int:
@@ -270,6 +271,11 @@ def _cmd_view(args) -> int:
         for flag, value in (("--checkpoint", args.checkpoint), ("--alpha-dir", args.alpha_dir), ("--bin-frames", args.bin_frames)):
             if value is not None:
                 raise ValueError(f"{flag} labels the scans of a --drive: give --drive too")
+    from ..core.map_store import MapStore, is_store
+
+    for path in args.maps:  # a folder that is not (yet) a store: MapStore names why, e.g. a batch run still writing it
+        if path.is_dir() and not is_store(path):
+            MapStore(path)
     viewer = MapViewer(args.maps, host=args.host, port=args.port, style=args.style, max_voxels=args.max_voxels,
                        trajectory=args.trajectory, scan=args.scan, export_dir=args.export_dir, terrain=args.layers,
                        terrain_resolution=args.layers_resolution_m, costs=args.costs, truth=args.truth)
@@ -719,6 +725,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("inputs", nargs="+", type=Path, help="map files (.npz) and map stores, at least two")
     p.add_argument("--out", type=Path, required=True, help="a map file (.npz) or a map store (a folder)")
     p.add_argument("--tile-voxels", type=_TILE_VOXELS, default=256, help=f"tile edge in voxels when writing a store, 1..{limits.MAX_TILE_VOXELS}")
+    p.add_argument("--same-frame", action="store_true", help="the inputs' frames of one run (e.g. odom) are one frame: runs that differ or "
+                                                             "are unknown are merged (docs/formats.md, the frame's run)")
     p.set_defaults(func=_cmd_merge)
 
     p = sub.add_parser("view", help="inspect map files and map stores in a browser (viser)")
@@ -734,8 +742,6 @@ def build_parser() -> argparse.ArgumentParser:
                                              "the maps' frame (not the sensor frame)")
     p.add_argument("--export-html", type=Path, help="write a standalone HTML of the scene: positions relative to the local "
                                                     "origin, whose world coordinates and frame the page states")
-    p.add_argument("--same-frame", action="store_true", help="the inputs' frames of one run (e.g. odom) are one frame: runs that differ or "
-                                                             "are unknown are merged (docs/formats.md, the frame's run)")
     p.add_argument("--export-ply", type=Path, help="write the visible voxels as a PLY point cloud: float64 world coordinates "
                                                    "of the maps' frame, named in the header")
     p.add_argument("--export-dir", type=Path, help="folder for the GUI's export buttons (default: beside the first map)")

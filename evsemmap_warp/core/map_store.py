@@ -250,7 +250,8 @@ class MapStore:
         self.path = Path(path)
         index_path = self.path / INDEX_NAME
         if not index_path.is_file():
-            hint = " (a batch run that has not finished: run the same command again to complete it)" if (self.path / "work").is_dir() else ""
+            hint = (" (a batch run still writing it, or stopped before the end: wait for it to finish, or run the same command "
+                    "again to complete it)") if (self.path / "work").is_dir() else ""
             raise StoreError(f"{self.path}: not a map store, no {INDEX_NAME}{hint}")
         try:
             self.index = json.loads(index_path.read_text())
@@ -276,9 +277,21 @@ class MapStore:
             raise StoreError(f"{index_path}: its method, parameters, classes, frame, origin or tiling were changed after it was written "
                              f"(identity {str(self.index['identity'])[:16]}... vs {self.identity[:16]}... of its content)")
         self.scan_ids = None if self.index.get("scan_ids") is None else set(self.index["scan_ids"])
+        self._refuse_unlisted_tiles(index_path)
         self._cache: OrderedDict[str, Mapper] = OrderedDict()
         self.cache_tiles = int(cache_tiles)
         self.tiles_loaded = 0  # how many tile files were read (tests hold queries to the tiles they need)
+
+    def _refuse_unlisted_tiles(self, index_path: Path) -> None:
+        """A tile file the index does not list: the index was edited or belongs to other tiles, and
+        every read-out would silently lack its voxels (a listed tile missing on disk is refused on reading)."""
+        suffix = TILE_SUFFIX[self.format_version]
+        unlisted = sorted(p.name for p in (self.path / "tiles").glob(f"*{suffix}") if not p.name.startswith(".") and p.stem not in self.tiles)
+        if unlisted:
+            raise StoreError(f"{self.path / 'tiles' / unlisted[0]}: a tile file that {index_path} does not list ({len(unlisted)} such: "
+                             f"{', '.join(unlisted[:4])}{', ...' if len(unlisted) > 4 else ''}); the index was edited or is not the one "
+                             f"these tiles were written with, and its read-outs would lack their voxels: write the store again "
+                             f"(batch, merge) or remove the files that do not belong")
 
     def _validate(self) -> None:
         where = self.path / INDEX_NAME

@@ -12,14 +12,18 @@ traversability cost as 0..99, lethal 100, unknown -1, row 0 at the southern edge
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import secrets
+import shutil
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
 from .. import __version__
-from ..files import write_atomically, write_json_atomically
+from ..files import error_naming, write_atomically, write_json_atomically
 from ..frames import WorldFrame
 from .layers import CLASS_BANDS, LayerGrid, TerrainLayers, band_names, band_units
 
@@ -77,6 +81,47 @@ def check_output_folder(out) -> Path:
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: exists and is a file; the layers are written into a folder (give a new path or a folder)")
     return out
+
+
+@contextlib.contextmanager
+def staged_output_folder(out, marker: str) -> Iterator[Path]:
+    """A folder to write a whole output into, beside ``out``, that replaces ``out`` when the block ends
+    without error and is removed otherwise: a rerun with other bounds leaves none of the last run's
+    files, and a run interrupted (Ctrl-C) or failing (a full disk) leaves the last run's output whole.
+    ``out`` must be new, empty, or an earlier output (holding ``marker``, e.g. layers.json): other
+    files there would be replaced with it. One run at a time per folder (a lock on ``out``)."""
+    import fcntl
+
+    out = check_output_folder(out)
+    if out.is_dir() and any(out.iterdir()) and not (out / marker).is_file():
+        raise ValueError(f"--out {out}: exists and is not a layers folder (no {marker}); the layers replace the folder's content "
+                         f"whole: give a new path or an empty folder")
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    handle = os.open(out, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    token = f"{os.getpid()}-{secrets.token_hex(4)}"
+    staging = out.parent / f".{out.name}.writing-{token}"
+    try:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"--out {out}: another layers run is writing this folder now; wait for it to finish, or give "
+                             f"another --out") from None
+        staging.mkdir()
+        try:
+            yield staging
+            previous = out.parent / f".{out.name}.previous-{token}"
+            os.rename(out, previous)
+            os.rename(staging, out)
+        except OSError as exc:  # a full disk names the folder asked for, not the staging one
+            raise error_naming(exc, out, "writing the layers") from None
+        created = False
+        shutil.rmtree(previous, ignore_errors=True)
+    finally:
+        os.close(handle)  # releases the lock
+        shutil.rmtree(staging, ignore_errors=True)
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
 
 
 def frame_id(frame: WorldFrame | None) -> str:

@@ -28,7 +28,7 @@ from ..files import check_not_inside
 from .config import TerrainConfig, load_terrain_config
 from .api import compute_layers
 from .layers import TerrainLayers, band_names
-from .outputs import (BAG_NAME, GEOTIFF_NAME, NPZ_NAME, PREVIEW_DIR, UNREACHED_ZERO_BANDS, BagWriter, GeoTiffWriter, check_output_folder,
+from .outputs import (BAG_NAME, GEOTIFF_NAME, NPZ_NAME, PREVIEW_DIR, UNREACHED_ZERO_BANDS, BagWriter, GeoTiffWriter, staged_output_folder,
                       occupancy_values, preview_stride, write_npz, write_previews, write_summary)
 from .stores import iterate_store_layers, plan_store_layers, tile_name_of
 
@@ -74,22 +74,29 @@ def write_layers(source, out, *, resolution_m=None, bounds=None, costs=None, dev
                  bag: bool = True, log=None) -> dict:
     """Compute the layers of a map file or store (a path, a Mapper or a MapStore) and write them into
     the folder ``out``; returns the summary also written to ``OUT/layers.json``. ``costs``: a cost
-    table YAML (default configs/terrain/costs_v3.yaml) or a TerrainConfig."""
+    table YAML (default configs/terrain/costs_v3.yaml) or a TerrainConfig. The folder is replaced
+    whole when all is written (``outputs.staged_output_folder``): nothing of an earlier run stays."""
     started = time.perf_counter()
-    out = check_output_folder(out)
+    out = Path(out)
     config = costs if isinstance(costs, TerrainConfig) else load_terrain_config(costs)
     if isinstance(source, (str, Path)):
         check_not_inside(out, [source], "layers --out")
-        source = MapStore(source, cache_tiles=4) if is_store(source) else load_map(source)
-    if isinstance(source, MapStore):
-        summary = _write_store(source, out, resolution_m=resolution_m, bounds=bounds, config=config, device=device, previews=previews,
-                               bag=bag, log=log)
-    elif isinstance(source, Mapper):
-        summary = _write_map(source, out, resolution_m=resolution_m, bounds=bounds, config=config, device=device, previews=previews, bag=bag)
-    else:
+        if out.resolve() in Path(source).resolve().parents:  # replacing the folder would delete the map inside it
+            raise ValueError(f"layers --out {out}: holds the map {source}, and the layers replace the folder whole; give another --out")
+        # a folder is a store, or one not written yet (MapStore names why it is not one)
+        source = MapStore(source, cache_tiles=4) if is_store(source) or Path(source).is_dir() else load_map(source)
+    if not isinstance(source, (MapStore, Mapper)):
         raise ValueError(f"write_layers takes a map file, a store, a Mapper or a MapStore, got {type(source).__name__}")
-    summary["seconds"] = round(time.perf_counter() - started, 3)
-    write_summary(out / SUMMARY_NAME, summary)
+    with staged_output_folder(out, SUMMARY_NAME) as staging:
+        if isinstance(source, MapStore):
+            summary = _write_store(source, staging, resolution_m=resolution_m, bounds=bounds, config=config, device=device,
+                                   previews=previews, bag=bag, log=log)
+        else:
+            summary = _write_map(source, staging, resolution_m=resolution_m, bounds=bounds, config=config, device=device,
+                                 previews=previews, bag=bag)
+        summary["out"] = str(out)
+        summary["seconds"] = round(time.perf_counter() - started, 3)
+        write_summary(staging / SUMMARY_NAME, summary)
     return summary
 
 
