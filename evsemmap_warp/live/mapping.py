@@ -214,9 +214,11 @@ class LiveMapping:
         pose = self._wait_for_pose(stamp, where)
         if pose is None:
             return False
-        placed, waited = self._label_and_place(stamp, where, scan, labels, pose, wait_started)
+        pose_wait = time.perf_counter() - wait_started
+        placed, image_wait = self._label_and_place(stamp, where, scan, labels, pose)
         if placed is False:
             return False
+        waited = pose_wait + image_wait
         placed_at = time.perf_counter()
         with self._pending_lock:
             self._binned.append(item.origin_ns)
@@ -257,14 +259,16 @@ class LiveMapping:
             self._drop("malformed", str(exc))
             return None
 
-    def _label_and_place(self, stamp: int, where: str, scan, labels, pose, wait_started: float):
-        """(the insertion for the map, or None while a bin fills, or False when the scan is dropped; the seconds waited)."""
+    def _label_and_place(self, stamp: int, where: str, scan, labels, pose):
+        """(the insertion for the map, or None while a bin fills, or False when the scan is dropped; the seconds spent
+        waiting for its image)."""
         if self.mapper is None:
             self._start_map()
         if self.labeller is None:
-            return labelled_scan(where, scan, labels, pose), time.perf_counter() - wait_started
+            return labelled_scan(where, scan, labels, pose), 0.0
+        image_wait = time.perf_counter()
         paired = self.labeller.image_for(stamp, time.monotonic() + self.settings.tf_wait_s)
-        waited = time.perf_counter() - wait_started
+        waited = time.perf_counter() - image_wait
         if paired is None:
             self._drop("no_image", f"{where}: no image on {self.bag.image_topic!r} within {self.bag.image_tolerance_s:g} s "
                                    f"(dataset.bag.image_tolerance_s)")
