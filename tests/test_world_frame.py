@@ -343,6 +343,13 @@ def test_merge_of_two_runs_odom_maps_is_refused_naming_both_unless_said_to_share
     assert not (tmp_path / "both.npz").exists()
     assert main(["merge", *map(str, maps), "--same-frame", "--out", str(tmp_path / "both.npz")]) == 0
     assert load_map(tmp_path / "both.npz").frame.run == runs[0]
+    from evsemmap_warp.apps.viewer import free_port
+
+    capsys.readouterr()
+    assert main(["view", *map(str, maps), "--no-serve", "--port", str(free_port())]) == 2  # the viewer's comparison: the same check
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "view together" in err and runs[1] in err, err
+    assert main(["view", *map(str, maps), "--same-frame", "--no-serve", "--port", str(free_port())]) == 0
     assert main(["map", str(tmp_path / "0.bag"), "rellis3d", "rellis3d-bag", "--method", "ebs", "--out", str(tmp_path / "again.npz"),
                  "--quiet"]) == 0
     assert (tmp_path / "again.npz").read_bytes() == maps[0].read_bytes()

@@ -278,7 +278,7 @@ def _cmd_view(args) -> int:
             MapStore(path)
     viewer = MapViewer(args.maps, host=args.host, port=args.port, style=args.style, max_voxels=args.max_voxels,
                        trajectory=args.trajectory, scan=args.scan, export_dir=args.export_dir, terrain=args.layers,
-                       terrain_resolution=args.layers_resolution_m, costs=args.costs, truth=args.truth)
+                       terrain_resolution=args.layers_resolution_m, costs=args.costs, truth=args.truth, same_frame=args.same_frame)
     if args.export_html is not None or args.export_ply is not None:
         viewer.wait_for_stores()  # a store's whole overview, not its first frame's tiles
     for path, export in ((args.export_html, viewer.export_html), (args.export_ply, viewer.export_ply)):
@@ -732,6 +732,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("view", help="inspect map files and map stores in a browser (viser)")
     p.add_argument("maps", nargs="+", type=Path, help="map files or stores (a store: a decimated overview, any tile in full); several "
                                                       "are switchable or side by side, only when their world frames agree")
+    p.add_argument("--same-frame", action="store_true", help="maps of one run frame (e.g. odom) whose runs differ or are unknown are "
+                                                             "shown in one frame (docs/formats.md, the frame's run)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=_port, default=8080)
     p.add_argument("--style", choices=("points", "boxes"), default="points", help="voxels as point sprites or instanced boxes")

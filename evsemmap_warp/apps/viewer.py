@@ -488,7 +488,7 @@ class MapViewer:
 
     def __init__(self, map_paths, *, host: str = "127.0.0.1", port: int = 8080, style: str = "points",
                  max_voxels: int = 500_000, trajectory=None, scan=None, export_dir=None, terrain: bool = False,
-                 terrain_resolution=None, costs=None, truth=None, store_first_voxels: int = 1_000_000):
+                 terrain_resolution=None, costs=None, truth=None, store_first_voxels: int = 1_000_000, same_frame: bool = False):
         import viser
 
         if style not in ("points", "boxes"):
@@ -503,8 +503,10 @@ class MapViewer:
             overview.read_first(store_first_voxels, self.FIRST_FRAME_ROWS)
         self.layers = [p if isinstance(p, MapLayer) else self.stores[i].layer() if i in self.stores else MapLayer.from_file(p)
                        for i, p in enumerate(map_paths)]
+        self.same_frame = same_frame  # two runs' odom frames shown as one, the user says (frames.check_same_frame)
         for layer in self.layers[1:]:  # switchable or side by side: only maps of one frame share the scene
-            check_same_frame("view together", (str(self.layers[0].path), self.layers[0].frame), (str(layer.path), layer.frame))
+            check_same_frame("view together", (str(self.layers[0].path), self.layers[0].frame), (str(layer.path), layer.frame),
+                             same_frame=same_frame)
         self.frame = self.layers[0].frame
         self.style = style
         self.max_voxels = int(max_voxels)
@@ -711,7 +713,8 @@ class MapViewer:
         with self._lock:
             if self._closed.is_set():  # a loader, a replay or a live map still at work after close()
                 return
-            check_same_frame("view together", (str(self.layers[i].path), self.layers[i].frame), (str(layer.path), layer.frame))
+            check_same_frame("view together", (str(self.layers[i].path), self.layers[i].frame), (str(layer.path), layer.frame),
+                             same_frame=self.same_frame)
             was_at_top = self.gui_max_variance.value >= self.gui_max_variance.max - 0.5 * self.gui_max_variance.step
             threshold = self.max_variance
             if self.voxel_handles[i] is not None and layer.name != self.layers[i].name:
