@@ -143,6 +143,28 @@ def test_tiles_are_listed_along_the_store_by_where_they_are_and_flown_to(store):
         viewer.close()
 
 
+def test_the_tile_nearest_the_view_is_shown_before_the_others(store):
+    """Tiles asked for together (a camera's approach, nearest last) are read and sent nearest first, then the rest
+    with it: the tile a user looks at is not kept waiting for its neighbours' reads and the larger send."""
+    viewer = MapViewer([store], port=free_port(), max_voxels=300)
+    overview = viewer.stores[0]
+    shown = []
+    replace_layer = viewer.replace_layer
+
+    def recording(i, layer):
+        shown.append(overview.detail)
+        replace_layer(i, layer)
+
+    viewer.replace_layer = recording
+    try:
+        names = sorted(overview.store.tiles)[:4]
+        viewer.request_detail(0, names)
+        assert _wait(lambda: len(shown) == 2)
+        assert shown == [(names[-1],), tuple(names[:-1]) + (names[-1],)]
+    finally:
+        viewer.close()
+
+
 def test_memory_is_bounded_by_the_tiles_shown(store):
     viewer = MapViewer([store], port=free_port(), max_voxels=300)
     overview = viewer.stores[0]

@@ -1096,8 +1096,10 @@ class MapViewer:
                 wanted, self._detail_wanted = self._detail_wanted, {}
             try:
                 for i, names in wanted.items():
-                    if self.stores[i].add_detail(names):
-                        self.replace_layer(i, self.stores[i].layer())
+                    # the tile asked for last (nearest what the camera looks at) shown first, then the rest with it
+                    for batch in (names[-1:], names):
+                        if self.stores[i].add_detail(batch):
+                            self.replace_layer(i, self.stores[i].layer())
                 for i, overview in self.stores.items():
                     if overview.complete or wanted:
                         continue  # detail first: what the user is looking at
