@@ -350,6 +350,16 @@ def test_merge_of_two_runs_odom_maps_is_refused_naming_both_unless_said_to_share
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "view together" in err and runs[1] in err, err
     assert main(["view", *map(str, maps), "--same-frame", "--no-serve", "--port", str(free_port())]) == 0
+    # playing a drive back: its own map, and one written before maps recorded runs (its scan ids decide); not another run's
+    from evsemmap_warp.apps.viewer_drive import open_drive
+
+    old = load_map(maps[0])
+    old.frame = WorldFrame("odom")
+    old.save(tmp_path / "old.npz")
+    for made in (maps[0], tmp_path / "old.npz"):
+        open_drive(made, [tmp_path / "0.bag", "rellis3d", "rellis3d-bag"])
+    with pytest.raises(FrameError, match=f"play back: .*1.npz is in frame 'odom' of run {runs[1]} but .*0.bag .*in frame 'odom' of run {runs[0]}"):
+        open_drive(maps[1], [tmp_path / "0.bag", "rellis3d", "rellis3d-bag"])
     assert main(["map", str(tmp_path / "0.bag"), "rellis3d", "rellis3d-bag", "--method", "ebs", "--out", str(tmp_path / "again.npz"),
                  "--quiet"]) == 0
     assert (tmp_path / "again.npz").read_bytes() == maps[0].read_bytes()

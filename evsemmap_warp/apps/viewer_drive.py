@@ -500,7 +500,8 @@ def open_drive(map_path, sources, *, checkpoint=None, alpha_dir=None, bin_frames
         raise ConfigError(f"--drive {where}: no dataset: name a sequence folder or a robot log (with its preset)")
     source = open_scan_source(run, checkpoint=checkpoint, alpha_dir=alpha_dir, bin_frames=bin_frames)
     drive = Drive(source, f"--drive {where}")
-    check_same_frame("play back", (str(map_path), frame), (where, source.frame))
+    # a map written before runs were recorded takes the drive's run: its scan ids below tell whether the drive made it
+    check_same_frame("play back", (str(map_path), frame), (where, source.frame), same_frame=frame is not None and frame.run is None)
     classes = list(meta["classes"])
     if source.num_classes != len(classes):
         raise ValueError(f"--drive {where}: {source.num_classes} classes, but {map_path} has {len(classes)}")
