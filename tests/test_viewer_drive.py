@@ -152,9 +152,9 @@ def test_bad_drive_input_is_one_line(drive, tmp_path, capsys):
     shutil.copytree(drive / "seq", tmp_path / "noposes")
     (tmp_path / "noposes" / "poses.txt").unlink()
     _one_line_error(capsys, ["view", labels, "--drive", str(tmp_path / "noposes"), "rellis3d", *port], "noposes")
-    # another drive than the map's
+    # another drive than the map's: its odom is another run's (before runs were recorded, its scans were not the map's)
     generate_sequence(load_preset("tiny", seed=11), tmp_path / "other", progress=False)
-    _one_line_error(capsys, ["view", labels, "--drive", str(tmp_path / "other"), "rellis3d", *port], "not one of the scans", "labels.npz")
+    _one_line_error(capsys, ["view", labels, "--drive", str(tmp_path / "other"), "rellis3d", *port], "play back", "of run", "labels.npz")
     # the map's drive labelled otherwise than when mapping
     _one_line_error(capsys, ["view", labels, "--drive", str(drive / "seq"), "rellis3d", "--alpha-dir", str(drive / "alpha"), *port],
                     "not one of the scans")
