@@ -97,10 +97,10 @@ class RobotFeed:
         self._subscribers.clear()
 
     # Receiving ---------------------------------------------------------------------------------
-    def _refuse(self, state: TopicState, text: str) -> None:
+    def _refuse(self, state: TopicState, text: str, kind: str | None = None) -> None:
         state.refused += 1
-        if text not in state.problems:  # each kind of problem said once per topic, then counted
-            state.problems.append(text)
+        if (kind or text) not in state.problems:  # each kind of problem said once per topic, then counted
+            state.problems.append(kind or text)
             say(f"{state.topic}: {text}; not mapped (counted in the diagnostics)")
 
     def on_sample(self, topic: str, sample) -> None:
@@ -126,15 +126,17 @@ class RobotFeed:
             if len(payload) > self.max_cloud_bytes:
                 self.too_large += 1
                 return self._refuse(state, f"a cloud of {len(payload) / 2**20:.1f} MiB, over --max-cloud-mb "
-                                           f"{self.max_cloud_bytes / 2**20:.0f}")
+                                           f"{self.max_cloud_bytes / 2**20:.0f}", kind="too_large")
             sequence, sent = (attachment[0], attachment[1]) if attachment else (None, None)
             return self.queue.put(ReceivedScan(payload, now, sent, sequence))
         if state.role == "image":
+            if len(payload) < 12:  # not even a header stamp
+                return self._refuse(state, f"a message of {len(payload)} bytes, no image", kind="short")
             return self.labeller.images.add_image(key.msgtype or state.msgtype, payload)
         try:
             msg = self.store.deserialize_cdr(payload, state.msgtype)
         except Exception as exc:  # noqa: BLE001 - rosbags raises assorted errors for bytes that are no such message
-            return self._refuse(state, f"a message that is no {state.msgtype} ({type(exc).__name__}: {exc})")
+            return self._refuse(state, f"a message that is no {state.msgtype} ({type(exc).__name__}: {exc})", kind=type(exc).__name__)
         try:
             if state.role == "info":
                 self.labeller.add_camera_info(msg, state.topic)
