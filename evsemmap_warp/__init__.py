@@ -7,20 +7,20 @@ deprecation release, the old name kept for one release with a warning. The subpa
 documented for contributors, but free to change; a leading underscore marks a module as private to its
 package.
 
-Importing the package initialises Warp but compiles nothing; kernels build on their first launch.
+Importing the package loads nothing heavy: each public name imports its module (and Warp, for those that
+launch kernels) on first use, so that ``evsemmap`` can answer Ctrl-C in one line from its first moment.
+Kernels build on their first launch.
 """
 
 __version__ = "0.1.0"
 
-from .config import (  # noqa: E402
-    Compat, ConfigError, Fusion, Kernel, MappingConfig, Media, PayloadType, available_methods, load_config, preset_path,
-)
-from .core.map_file import MapFileError  # noqa: E402
-from .core.mapper import UNKNOWN_LABEL, Mapper, MapVoxels, QueryResult, VoxelState, load_map, save_map  # noqa: E402
-from .data.pcd import PcdError, read_pcd  # noqa: E402
-
-# Public names imported on first use: modules that others import from the package itself.
+# Public names -> the module that holds them, imported on first use (None: the subpackage itself).
 _LAZY = {
+    **dict.fromkeys(("Compat", "ConfigError", "Fusion", "Kernel", "MappingConfig", "Media", "PayloadType", "available_methods",
+                     "load_config", "preset_path"), "config"),
+    "MapFileError": "core.map_file",
+    **dict.fromkeys(("UNKNOWN_LABEL", "Mapper", "MapVoxels", "QueryResult", "VoxelState", "load_map", "save_map"), "core.mapper"),
+    "PcdError": "data.pcd", "read_pcd": "data.pcd",
     "MapStore": "core.map_store", "StoreError": "core.map_store", "open_dataset": "data.datasets", "terrain": None,
 }
 

@@ -1,6 +1,7 @@
 """The command line, run in-process the way a user types it."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -47,3 +48,27 @@ def test_a_warning_is_one_line_without_a_source_line(tmp_path, capsys):
                  "--quiet"]) == 0
     lines = [line for line in capsys.readouterr().err.splitlines() if "column" in line or ".py:" in line]
     assert len(lines) == 1 and lines[0].startswith("evsemmap: warning: ") and "more columns" in lines[0], lines
+
+
+@pytest.mark.parametrize("after_s", [0.15, 0.35, 2.0])
+def test_ctrl_c_at_any_moment_is_one_line_and_exit_130(tmp_path, after_s):
+    # while the command line's imports load (Warp, torch) as much as while it works (the default world takes ~30 s): no traceback
+    import shutil
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    command = shutil.which("evsemmap", path=str(Path(sys.executable).parent))
+    process = subprocess.Popen([command, "synth", "--world", "default", "--out", str(tmp_path / "seq"), "--quiet"],
+                               stderr=subprocess.PIPE, text=True)
+    time.sleep(after_s)
+    # Warp's native start-up (the CUDA driver probe, a few ms) can swallow a SIGINT that lands inside it: sent again
+    for _ in range(10):
+        process.send_signal(signal.SIGINT)
+        try:
+            _, err = process.communicate(timeout=3)
+            break
+        except subprocess.TimeoutExpired:
+            continue
+    assert process.returncode == 130 and err.strip().splitlines()[-1:] == ["evsemmap: interrupted"] and "Traceback" not in err, err

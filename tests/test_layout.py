@@ -19,7 +19,7 @@ LAYERS = {
     "core": 5,
     "synthetic": 6, "segmentation": 6, "terrain": 6,
     "apps": 7, "live": 7,
-    "__init__": 8,
+    "__init__": 8, "__main__": 8,
 }
 
 
