@@ -437,15 +437,18 @@ class LocalControl:
 
     @property
     def value(self):
+        """The control's value; setting it runs the ``on_update`` callbacks, as a browser's change would."""
         return self._value
 
     @value.setter
     def value(self, value) -> None:
+        """Set the value and run the callbacks."""
         self._value = value
         for callback in self._callbacks:
             callback(None)
 
     def on_update(self, callback):
+        """Run ``callback(None)`` whenever ``value`` is set (a viser handle's decorator); returns it."""
         self._callbacks.append(callback)
         return callback
 
