@@ -682,10 +682,6 @@ class MapViewer:
         self.gui_export_html.on_click(lambda _event: self._export_from_gui("html"))
         self.gui_export_ply.on_click(lambda _event: self._export_from_gui("ply"))
 
-        self.gui_terrain_compute.on_click(lambda _event: self._compute_terrain_from_gui())
-        self.gui_export_html.on_click(lambda _event: self._export_from_gui("html"))
-        self.gui_export_ply.on_click(lambda _event: self._export_from_gui("ply"))
-
     def _on_control(self) -> None:
         # replace_layer sets several controls, then refreshes once; a change made on another thread meanwhile refreshes itself
         if self._refresh_held_by != threading.get_ident():

@@ -630,11 +630,6 @@ class Mapper:
         budget does not hold the tables they need; changes nothing."""
         self.shards[0].check_room(-(-int(new_voxels) // len(self.shards)))
 
-    def check_room(self, new_voxels: int) -> None:
-        """Refuse (MemoryBudgetError) ``new_voxels`` more voxels, spread over the shards, where the memory
-        budget does not hold the tables they need; changes nothing."""
-        self.shards[0].check_room(-(-int(new_voxels) // len(self.shards)))
-
     def _check_writable(self) -> None:
         if self.read_only is not None:
             raise ValueError(f"this map is read-only: {self.read_only}")
