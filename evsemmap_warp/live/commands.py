@@ -113,7 +113,6 @@ def run_replay(args) -> int:
 
 def run_live(args) -> int:
     """``evsemmap live``."""
-    from ..core.mapper import VoxelState
     from .feed import RobotFeed, say
     from .mapping import LiveMapping, LiveSettings
     from .node import Ros2Node
@@ -194,6 +193,17 @@ def run_live(args) -> int:
         if mapping is not None and mapping.node is not None:
             mapping.node.close()
         session.close()
+    _report(args, run, mapping, live_store)
+    if written is None:
+        say(f"no scan was mapped, so no map was written to {args.out}")
+        return 1
+    return 0
+
+
+def _report(args, run, mapping, live_store) -> None:
+    """The run's final report (counts, latencies, files) on stdout, and in ``--report`` when given."""
+    from ..core.mapper import VoxelState
+
     report = mapping.diagnostics() | {"method": run.mapping.method, "map_files": [str(p) for p in mapping.maps_written],
                                       "store": None if live_store is None else str(live_store.path),
                                       "mapping_seconds": round(mapping.stats.mapping_s, 3)}
@@ -203,10 +213,6 @@ def run_live(args) -> int:
     print(json.dumps(report, indent=1))
     if args.report is not None:
         args.report.write_text(json.dumps(report, indent=1) + "\n")
-    if written is None:
-        say(f"no scan was mapped, so no map was written to {args.out}")
-        return 1
-    return 0
 
 
 def _live_view(args, mapper):
