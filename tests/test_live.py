@@ -4,6 +4,7 @@ rmw_zenoh would; ``evsemmap live`` maps it; the live map equals ``evsemmap map``
 it publishes back decodes with rosbags into the map and its terrain layers."""
 
 import json
+from pathlib import Path
 import socket
 import threading
 import time
@@ -316,3 +317,30 @@ def test_camera_labelled_scans_map_live_as_map_checkpoint_maps_the_log(camera_dr
     mapped = Mapper.load(live.out)
     assert mapped.scans_integrated == 2  # a bin of 4 frames and the last, short one of 2
     assert_same_map(mapped, Mapper.load(out))
+
+
+def test_ctrl_c_writes_the_map_and_the_store(drive, tmp_path):
+    """Nothing lost when the run ends: Ctrl-C (SIGINT) to a live run that was told no end writes --out and --store."""
+    import shutil
+    import signal
+    import subprocess
+    import sys
+
+    from evsemmap_warp.core.map_store import MapStore
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    command = shutil.which("evsemmap", path=str(Path(sys.executable).parent))
+    live = subprocess.Popen([command, "live", *PRESETS, "--method", "ebs", "--out", str(tmp_path / "live.npz"), "--listen", endpoint,
+                             "--no-publish", "--store", str(tmp_path / "store"), "--store-every", "3600"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert replay(endpoint, drive["whole"]) == 0
+        time.sleep(1.0)
+        live.send_signal(signal.SIGINT)
+        out, err = live.communicate(timeout=60)
+    finally:
+        if live.poll() is None:
+            live.kill()
+    assert live.returncode == 0 and "interrupted: writing the map" in err, err
+    assert json.loads(out)["scans_mapped"] == 6
+    assert Mapper.load(tmp_path / "live.npz").scans_integrated == 6 and MapStore(tmp_path / "store").to_mapper().scans_integrated == 6

@@ -83,10 +83,19 @@ def _options(args) -> ZenohOptions:
                         multicast=args.multicast)
 
 
-def _stop_on_signals(stop: threading.Event) -> None:
-    """SIGTERM ends a run as Ctrl-C does: the map written, not lost."""
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+def _stop_on_signals(stop: threading.Event):
+    """Ctrl-C (SIGINT) and SIGTERM end a run after the scan being mapped (never halfway through one), and the map is
+    written; a second Ctrl-C interrupts at once. Returns what puts the previous handlers back."""
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+
+    def ending(signum, frame):
+        if stop.is_set() and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        stop.set()
+
+    previous = {sig: signal.signal(sig, ending) for sig in (signal.SIGTERM, signal.SIGINT)}
+    return lambda: [signal.signal(sig, handler) for sig, handler in previous.items()]
 
 
 def run_replay(args) -> int:
@@ -98,12 +107,13 @@ def run_replay(args) -> int:
         raise ConfigError(f"--domain-id {args.domain_id}: a ROS domain id is >= 0")
     session = open_session(_options(args))
     stop = threading.Event()
-    _stop_on_signals(stop)
+    restore_signals = _stop_on_signals(stop)
     try:
         stats = replay_log(session, args.logs, rate=args.rate, topics=tuple(args.topics), key_format=args.key_format,
                            domain_id=args.domain_id, loops=args.loops, clock=not args.no_clock, stop=stop,
                            wait_for_subscribers_s=max(args.wait_subscribers, 0.0))
     finally:
+        restore_signals()
         session.close()
     if not args.quiet:
         print(json.dumps({"messages": stats.messages, "log_seconds": round(stats.log_seconds, 3), "wall_seconds": round(stats.wall_seconds, 3),
@@ -138,7 +148,7 @@ def run_live(args) -> int:
     store = typestore()
     session = open_session(_options(args))
     stop = threading.Event()
-    _stop_on_signals(stop)
+    restore_signals = _stop_on_signals(stop)
     queue = ScanQueue(args.queue)
     feed = mapping = live_view = live_store = None
     try:
@@ -175,9 +185,8 @@ def run_live(args) -> int:
                               on_mapped=on_mapped, store=live_store, labeller=labeller)
         topics = ", ".join(f"{t} ({s.msgtype.rsplit('/', 1)[-1]})" for t, s in feed.topics.items())
         say(f"listening for {topics} on domain {args.domain_id} ({args.key_format} keys); Ctrl-C ends the run and writes {args.out}")
-        try:
-            mapping.run_until_stopped(stop)
-        except KeyboardInterrupt:
+        mapping.run_until_stopped(stop)
+        if stop.is_set():
             say("interrupted: writing the map")
         written = mapping.finish()
     finally:
@@ -193,6 +202,7 @@ def run_live(args) -> int:
         if mapping is not None and mapping.node is not None:
             mapping.node.close()
         session.close()
+        restore_signals()
     _report(args, run, mapping, live_store)
     if written is None:
         say(f"no scan was mapped, so no map was written to {args.out}")
