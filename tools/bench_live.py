@@ -5,7 +5,7 @@ Runs, each a fresh ``evsemmap live`` in this process and, for the network ones, 
 process (the robot), both Zenoh peers on 127.0.0.1 (explicit endpoints, no multicast):
 
 1. ``network+publish``: the drive at 10 Hz over Zenoh, the map cloud published every second and the terrain
-   layers every two (the defaults);
+   layers every two (the defaults); ``network+publish/5s``: both every five seconds;
 2. ``network``: the same without publishing back;
 3. ``direct``: no network: the bag's messages handed to the subscriber callback on the recorded schedule;
 4. ``sweep``: the network run at other rates (``--sweep`` factors of the recorded rate), for the highest rate
@@ -66,7 +66,7 @@ def markdown(record_path: Path) -> str:
              "| run | rate (Hz) | mapped of received | integrated p50 / p95 / p99 (ms) | published p99 (ms) "
              "| decode / place / integrate, median (ms) | busy share of the period |",
              "|---|---|---|---|---|---|---|"]
-    for name, run in sorted(rows, key=lambda r: (r[0] != "network+publish", r[0] != "direct", r[1]["rate_hz"])):
+    for name, run in sorted(rows, key=lambda r: (not r[0].startswith("network+publish"), r[0] != "direct", r[1]["rate_hz"], r[0])):
         published = run["published_latency_ms_p99"] if run["published_latency_ms_p99"] is not None else "-"
         lines.append(f"| {name} | {run['rate_hz']:g} | {run['scans_mapped']} of {run['scans_received']} | {run['integrated_latency_ms_p50']} / "
                      f"{run['integrated_latency_ms_p95']} / {run['integrated_latency_ms_p99']} | {published} | {run['decode_ms_p50']} / "
@@ -89,12 +89,14 @@ def summary(report: dict, rate_factor: float) -> dict:
     return out
 
 
-def network_run(log: Path, folder: Path, rate_factor: float, publish: bool) -> dict:
-    """``evsemmap live`` here, ``evsemmap replay`` in a second process."""
+def network_run(log: Path, folder: Path, rate_factor: float, publish: bool, period_s: float | None = None) -> dict:
+    """``evsemmap live`` here, ``evsemmap replay`` in a second process; ``period_s``: the map's and the layers' period
+    (None: the defaults)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    report = folder / f"live-{rate_factor}-{publish}.json"
+    report = folder / f"live-{rate_factor}-{publish}-{period_s}.json"
+    periods = [] if period_s is None else ["--map-period", str(period_s), "--grid-period", str(period_s)]
     argv = ["live", *PRESETS, "--method", "ebs", "--out", str(folder / "live.npz"), "--listen", endpoint, "--idle-exit", "3",
-            "--report", str(report), *([] if publish else ["--no-publish"])]
+            "--report", str(report), *([] if publish else ["--no-publish"]), *periods]
     live = threading.Thread(target=main, args=(argv,), daemon=True)
     live.start()
     env = os.environ | {"PYTHONPATH": str(REPO)}
@@ -167,6 +169,7 @@ def main_bench() -> None:
         results = {"world": args.world, "method": "ebs", "device": "cpu", "recorded_rate_hz": 1 / PERIOD_S, "load_average_at_start": load_at_start,
                    "runs": {}}
         results["runs"]["network+publish"] = network_run(log, folder, 1.0, publish=True)
+        results["runs"]["network+publish/5s"] = network_run(log, folder, 1.0, publish=True, period_s=5.0)
         results["runs"]["network"] = network_run(log, folder, 1.0, publish=False)
         results["runs"]["direct"] = direct_run(log, folder, 1.0)
         results["sweep"] = [network_run(log, folder, factor, publish=False) for factor in sorted(args.sweep)]
