@@ -144,13 +144,14 @@ class MapLayer:
         Mapper's) parameters, classes, origin and frame; ``summary``: their read-out when at hand. The
         layer holds what is drawn or reported, not the sums (evidence, weights) it was read out of."""
         summary = summary if summary is not None else reader.summarize(voxels.evidence, voxels.touched)
+        label, state, variance = summary.label.astype(np.int32, copy=False), summary.state.astype(np.int8, copy=False), summary.variance
+        del summary  # its class probabilities [V, K] are not drawn: gone before the concentrations are made
         with np.errstate(invalid="ignore", divide="ignore"):
             mean_unc = np.where(voxels.weight_sum > 0, voxels.weighted_uncertainty_sum / voxels.weight_sum, np.nan)
         resolution = reader.config.resolution_m
         return cls(name, Path(path), list(reader.class_names), resolution, reader.grid_offset_m, reader.voxel_centers(voxels.index),
-                   np.asarray(voxels.index, np.int64), reader.concentrations(voxels.evidence), summary.label.astype(np.int32, copy=False),
-                   summary.state.astype(np.int8, copy=False), summary.variance, voxels.hits, mean_unc, reader.config.method,
-                   reader.frame, lattice_index(reader.origin, resolution))
+                   np.asarray(voxels.index, np.int64), reader.concentrations(voxels.evidence), label, state, variance, voxels.hits,
+                   mean_unc, reader.config.method, reader.frame, lattice_index(reader.origin, resolution))
 
     @classmethod
     def from_arrays(cls, name: str, path: Path, arrays: dict, meta: dict) -> "MapLayer":

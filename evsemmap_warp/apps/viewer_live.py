@@ -136,7 +136,7 @@ class LiveMap(LatestOnlyWorker):
         origin_index = None if self.mapper.origin_index is None else np.array(self.mapper.origin_index)
         self.copy_seconds += time.perf_counter() - started
         points = None if last_scan is None else np.array(last_scan.points, np.float64)
-        self.hand_over(("copy", shards, origin_index, scans_done, points, list(self.sensor_path)))
+        self.hand_over(["copy", shards, origin_index, scans_done, points, list(self.sensor_path)])
         return True
 
     def show_final(self) -> MapLayer:
@@ -153,7 +153,9 @@ class LiveMap(LatestOnlyWorker):
         if origin_index is None:  # nothing mapped yet
             return
         self.template.origin_index = origin_index
+        item[1] = None  # the copy's rows, once summed, are not held while the layer is made
         voxels = sum_shard_rows(shards)
+        del shards
         voxels = VoxelArrays(voxels.index + origin_index, voxels.evidence, voxels.weight_sum, voxels.weighted_uncertainty_sum,
                              voxels.hits, voxels.touched)
         self._show(MapLayer.from_mapper(self.name, self.path, self.template, voxels), scans_done, points, sensor_path)
