@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from evsemmap_warp.apps.cli import main
-from evsemmap_warp.core.map_file import read_map_arrays
+from evsemmap_warp.core.mapper import read_map_arrays
 
 from conftest import REPO
 

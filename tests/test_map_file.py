@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from evsemmap_warp.config import legacy_flat_dict, load_config
-from evsemmap_warp.core.map_file import FORMAT_VERSION, MAGIC, MapFileError, read_map_arrays, read_map_file
+from evsemmap_warp.core.map_file import FORMAT_VERSION, MAGIC, MapFileError, read_map_file
+from evsemmap_warp.core.mapper import read_map_arrays
 from evsemmap_warp.core.mapper import Mapper, load_map, save_map
 
 from conftest import REPO

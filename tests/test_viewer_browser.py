@@ -685,7 +685,7 @@ def test_map_being_made_updates_in_the_browser_and_ends_as_written(open_page, tm
     from evsemmap_warp.apps.viewer import MapLayer
     from evsemmap_warp.apps.viewer_live import LiveMap, map_live
     from evsemmap_warp.config import load_config
-    from evsemmap_warp.core.map_file import read_map_arrays
+    from evsemmap_warp.core.mapper import read_map_arrays
     from evsemmap_warp.synthetic.preset import load_preset
     from evsemmap_warp.synthetic.writer import generate_sequence
 
@@ -870,13 +870,13 @@ def test_store_walk_tiles_come_in_near_the_camera_and_a_chosen_tile_is_flown_to(
         assert not np.all((look_at[:2] >= low[:2]) & (look_at[:2] <= high[:2]))
         _choose(page, "Store tile in full", label)
         assert _wait(lambda: name in overview.detail)
-        centre = r"under the screen's center \([^)]*\): x=([-\d.]+), y=([-\d.]+)"
+        center_line = r"under the screen's center \([^)]*\): x=([-\d.]+), y=([-\d.]+)"
 
         def seen_over_the_tile():  # what the browser's camera, as it reports it, looks at
-            found = re.search(centre, page.inner_text("body"))
+            found = re.search(center_line, page.inner_text("body"))
             return found is not None and np.all((np.array(found.groups(), float) >= low[:2] - 0.2) & (np.array(found.groups(), float) <= high[:2] + 0.2))
 
-        assert _wait(seen_over_the_tile), re.search(centre, page.inner_text("body"))
+        assert _wait(seen_over_the_tile), re.search(center_line, page.inner_text("body"))
         assert name in overview.detail
     finally:
         viewer.close()

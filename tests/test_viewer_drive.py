@@ -9,7 +9,7 @@ from evsemmap_warp.apps.scan_sources import open_scan_source
 from evsemmap_warp.apps.viewer import MapViewer, colormap, free_port
 from evsemmap_warp.apps.viewer_drive import DrivePlayback, at_image_size, open_drive, pixel_values
 from evsemmap_warp.config import PayloadType, load_config
-from evsemmap_warp.core.map_file import read_map_arrays
+from evsemmap_warp.core.mapper import read_map_arrays
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence, write_stand_in_alpha
 

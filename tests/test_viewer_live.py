@@ -11,7 +11,7 @@ from evsemmap_warp.apps.scan_sources import map_scans, open_scan_source
 from evsemmap_warp.apps.viewer import MapLayer, MapViewer, free_port
 from evsemmap_warp.apps.viewer_live import LiveMap, LiveTiles, map_live, reading_template
 from evsemmap_warp.config import load_config
-from evsemmap_warp.core.map_file import read_map_arrays
+from evsemmap_warp.core.mapper import read_map_arrays
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence
 

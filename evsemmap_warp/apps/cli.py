@@ -220,7 +220,8 @@ def _cmd_merge(args) -> int:
 
 
 def _cmd_info(args) -> int:
-    from ..core.map_file import read_map_file, reader_mapper
+    from ..core.map_file import read_map_file
+    from ..core.mapper import reader_mapper
     from ..core.map_store import MapStore, is_store, voxel_bounds
 
     if is_store(args.map) or (args.map.is_dir() and (args.map / "work").is_dir()):

@@ -40,7 +40,8 @@ from pathlib import Path
 import numpy as np
 
 from ..classes import named_colors
-from ..core.map_file import file_arrays, lattice_index, read_map_file, reader_mapper
+from ..core.map_file import file_arrays, lattice_index, read_map_file
+from ..core.mapper import reader_mapper
 from ..data.point_files import read_npy, read_point_file
 from ..frames import WorldFrame, check_same_frame, describe_frame
 from ..voxel_keys import voxel_index_of
@@ -378,10 +379,10 @@ def along_the_strip(boxes: dict[str, np.ndarray]) -> dict[str, float]:
     for name in names:
         columns.setdefault(parse_tile_name(name)[:2], []).append(boxes[name].mean(axis=0)[:2])
     middles = np.array([np.mean(columns[parse_tile_name(n)[:2]], axis=0) for n in names]).reshape(-1, 2)
-    centred = middles - middles.mean(axis=0)
-    axis = np.linalg.svd(centred, full_matrices=False)[2][0] if len(names) > 1 else np.array([1.0, 0.0])
+    centered = middles - middles.mean(axis=0)
+    axis = np.linalg.svd(centered, full_matrices=False)[2][0] if len(names) > 1 else np.array([1.0, 0.0])
     axis = axis if axis[np.argmax(np.abs(axis))] > 0 else -axis
-    along = centred @ axis
+    along = centered @ axis
     return {name: float(a - along.min()) for name, a in zip(names, along)}
 
 

@@ -440,7 +440,8 @@ def load_truth(path, layer, frame=None) -> np.ndarray:
     - a map file: its label where it has an OCCUPIED voxel.
 
     Class names are matched by name; a frame recorded in the file must be ``frame``."""
-    from ..core.map_file import is_compact, read_map_arrays
+    from ..core.map_file import is_compact
+    from ..core.mapper import read_map_arrays
     from ..frames import WorldFrame, check_same_frame
 
     path = Path(path)

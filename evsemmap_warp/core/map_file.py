@@ -14,8 +14,8 @@ needs once, compressed as a store's tiles are (core/tile_codec.py's columns in o
         maps holding a scan in common) and, in a format-1 store's tile, tile (core/map_store.py).
 
 Centers, concentrations (alpha), labels, states and variance are derived on reading, as a Mapper derives
-them (``read_map_arrays`` gives them in the schema of versions 1 and 2; ``read_map_file`` does not derive
-them). Voxel i's center is (i + 0.5) * resolution + grid offset. A round trip is exact.
+them (``core.mapper.read_map_arrays`` gives them in the schema of versions 1 and 2; ``read_map_file`` does
+not derive them). Voxel i's center is (i + 0.5) * resolution + grid offset. A round trip is exact.
 
 Versions 1 and 2 are one ``.npz`` (no pickle) holding every array, derived ones included (V voxels, K classes):
   centers [V, 3] float64                         voxel_index [V, 3] int64 global grid indices
@@ -39,7 +39,7 @@ import json
 import struct
 import zipfile
 import zlib
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -73,7 +73,7 @@ class MapFileError(ValueError):
 @dataclass
 class MapContents:
     """A map file's content, validated. ``index`` holds global voxel indices. The read-out (``alpha``,
-    ``centers``, ``summary``) is derived, not stored: None where no one asked for it (``with_read_out``)."""
+    ``centers``, ``summary``) is derived, not stored: None where no one asked for it (``core.mapper.with_read_out``)."""
 
     meta: dict
     origin: np.ndarray
@@ -139,7 +139,7 @@ def _payload_parts(voxels: VoxelArrays, low: np.ndarray, dtype: np.dtype):
 
 def file_arrays(contents: MapContents) -> dict[str, np.ndarray]:
     """Every array of the map-file schema (versions 1 and 2 stored them all; ``read_map_arrays`` gives
-    them back) of ``contents`` with its read-out (``with_read_out``), in the schema's types: for readers
+    them back) of ``contents`` with its read-out (``core.mapper.with_read_out``), in the schema's types: for readers
     that want every array of a map."""
     meta = contents.meta | {"format_version": FORMAT_VERSION}
     return dict(
@@ -159,27 +159,6 @@ def file_arrays(contents: MapContents) -> dict[str, np.ndarray]:
         format_version=np.int64(FORMAT_VERSION),
         meta=np.array(json.dumps(meta)),
     )
-
-
-def reader_mapper(contents: MapContents):
-    """An empty Mapper with the map's parameters, classes, frame and origin: the read-out of its voxels
-    without a table of its own to speak of."""
-    from .mapper import Mapper  # the Mapper writes map files: imported here, not at the top
-
-    reader = Mapper(contents.config, int(contents.meta["num_classes"]), class_names=tuple(contents.meta["classes"]), workers=1,
-                    initial_capacity=1, frame=contents.frame)
-    reader.origin_index = None if contents.origin_index is None else np.asarray(contents.origin_index, np.int64)
-    return reader
-
-
-def with_read_out(contents: MapContents) -> MapContents:
-    """``contents`` with its read-out (concentrations, centers, labels, states, variance) derived as a
-    Mapper of its parameters derives them."""
-    if contents.alpha is not None and contents.centers is not None and contents.summary is not None:
-        return contents
-    reader = reader_mapper(contents)
-    return replace(contents, alpha=reader.concentrations(contents.evidence), centers=reader.voxel_centers(contents.index),
-                   summary=reader.summarize(contents.evidence, contents.touched))
 
 
 def write_npz(file, **arrays: np.ndarray) -> None:
@@ -217,23 +196,13 @@ def _check_member_sizes(path: Path) -> None:
                                        f"but holds {available:,} bytes: truncated or corrupt")
 
 
-def read_map_arrays(path) -> tuple[dict[str, np.ndarray], dict]:
-    """Every array of the map-file schema (versions 1 and 2 hold them; a version-3 file's read-out is
-    derived) and the parsed meta, validated (see the module docstring)."""
-    path = Path(path)
-    if is_compact(path):
-        contents = _read_compact(path)
-        return file_arrays(with_read_out(contents)), contents.meta
-    return _read_npz(path)
-
-
 def read_map_file(path) -> MapContents:
     """A validated map file (any readable version) with its mapping config, ready to become a Mapper;
-    the read-out of a version-3 file is not derived (``with_read_out``)."""
+    the read-out of a version-3 file is not derived (``core.mapper.with_read_out``)."""
     path = Path(path)
     if is_compact(path):
         return _read_compact(path)
-    arrays, meta = _read_npz(path)
+    arrays, meta = read_npz_arrays(path)
     config = mapping_config(path, meta)
     origin = arrays["origin"].astype(np.float64)
     return MapContents(
@@ -356,9 +325,6 @@ def _validate_compact(path: Path, contents: MapContents) -> None:
             at = int(np.flatnonzero(steps <= 0)[0]) + 1
             what = "appears more than once" if steps[at - 1] == 0 else "is out of key order (x, then y, then z)"
             fail(f"voxel index {contents.index[at].tolist()} {what}")
-    grid_offset = reader_mapper(contents).grid_offset_m
-    if float(contents.meta["grid_offset_m"]) != grid_offset:
-        fail(f"meta.grid_offset_m {contents.meta['grid_offset_m']} disagrees with the method's grid offset {grid_offset}")
 
 
 def _check_lattice(path: Path, meta: dict, resolution: float, origin: np.ndarray) -> None:
@@ -373,7 +339,7 @@ def _check_lattice(path: Path, meta: dict, resolution: float, origin: np.ndarray
         raise MapFileError(f"{path}: origin {origin.tolist()} is not on the voxel lattice (a whole number of {resolution} m voxels)")
 
 
-def _read_npz(path: Path) -> tuple[dict[str, np.ndarray], dict]:
+def read_npz_arrays(path: Path) -> tuple[dict[str, np.ndarray], dict]:
     """Every array of a version 1 or 2 file and its parsed meta, validated."""
     try:
         _check_member_sizes(path)

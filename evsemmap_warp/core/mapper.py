@@ -23,7 +23,7 @@ import threading
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -657,6 +657,9 @@ class Mapper:
         """A map file's validated contents (``map_file.read_map_file(path)``) as a Mapper."""
         meta = contents.meta
         mapper = cls(contents.config, int(meta["num_classes"]), class_names=meta["classes"], device=device, frame=contents.frame)
+        if float(meta["grid_offset_m"]) != mapper.grid_offset_m:
+            raise map_file.MapFileError(f"{path}: meta.grid_offset_m {meta['grid_offset_m']} disagrees with the method's grid offset "
+                                        f"{mapper.grid_offset_m}")
         try:
             mapper.load_voxels(VoxelArrays(index=contents.index, evidence=contents.evidence, weight_sum=contents.weight_sum,
                                            weighted_uncertainty_sum=contents.weighted_uncertainty_sum, hits=contents.hits,
@@ -761,3 +764,32 @@ def load_map(path, *, device: str | None = "cpu") -> Mapper:
     """``Mapper.load(path)``: a map file as a Mapper on ``device``. Raises MapFileError naming the file when
     its content is missing, truncated or does not add up."""
     return Mapper.load(path, device=device)
+
+
+def reader_mapper(contents: "map_file.MapContents") -> Mapper:
+    """An empty Mapper with a map file's parameters, classes, frame and origin: the read-out of its voxels
+    without a table of its own to speak of."""
+    reader = Mapper(contents.config, int(contents.meta["num_classes"]), class_names=tuple(contents.meta["classes"]), workers=1,
+                    initial_capacity=1, frame=contents.frame)
+    reader.origin_index = None if contents.origin_index is None else np.asarray(contents.origin_index, np.int64)
+    return reader
+
+
+def with_read_out(contents: "map_file.MapContents") -> "map_file.MapContents":
+    """``contents`` with its read-out (concentrations, centers, labels, states, variance) derived as a
+    Mapper of its parameters derives them."""
+    if contents.alpha is not None and contents.centers is not None and contents.summary is not None:
+        return contents
+    reader = reader_mapper(contents)
+    return replace(contents, alpha=reader.concentrations(contents.evidence), centers=reader.voxel_centers(contents.index),
+                   summary=reader.summarize(contents.evidence, contents.touched))
+
+
+def read_map_arrays(path) -> tuple[dict[str, np.ndarray], dict]:
+    """Every array of the map-file schema (versions 1 and 2 hold them; a version-3 file's read-out is
+    derived) and the parsed meta, validated (``core/map_file.py``)."""
+    path = Path(path)
+    if map_file.is_compact(path):
+        contents = map_file.read_map_file(path)
+        return map_file.file_arrays(with_read_out(contents)), contents.meta
+    return map_file.read_npz_arrays(path)
