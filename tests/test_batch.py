@@ -211,6 +211,20 @@ def test_a_worker_killed_in_the_middle_of_a_chunk_changes_nothing(drive, tmp_pat
     _assert_same_bytes(tmp_path / "clean", tmp_path / "killed")
 
 
+@pytest.mark.parametrize("executor", ["local", "ray"])
+def test_a_stuck_worker_stops_the_run_in_one_line_and_the_rerun_resumes(drive, tmp_path, capsys, executor):
+    if executor == "ray":
+        pytest.importorskip("ray")
+    started = time.monotonic()
+    with pytest.raises(TimeoutError, match=r"no chunk finished in 4 s \(--chunk-timeout-s\): a worker or a node is stuck"):
+        _batch([drive], tmp_path / "stuck", executor=executor, workers=1, chunk_frames=2, chunk_timeout_s=4,
+               _fault=batch._FaultPlan(kill_chunk=-1, hang_chunk=1))
+    assert time.monotonic() - started < 60  # not the hour the stuck worker sleeps
+    _batch([drive], tmp_path / "stuck", executor="inline", chunk_frames=2)  # resumes: the same store as a clean run
+    _batch([drive], tmp_path / "clean", executor="inline", chunk_frames=2)
+    _assert_same_bytes(tmp_path / "clean", tmp_path / "stuck")
+
+
 def test_the_fault_plan_is_a_test_seam_not_an_environment_variable():
     source = Path(batch.__file__).read_text()
     assert "EVSEMMAP_BATCH_FAULT" not in source and not hasattr(batch, "FAULT_VARIABLE")

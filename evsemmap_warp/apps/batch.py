@@ -64,6 +64,9 @@ MAX_AUTO_CHUNK_FRAMES = 100
 # How long --ray-address's host:port may take to accept a connection (--ray-connect-timeout-s): ray.init
 # retries an address where nothing answers for many minutes ("Failed to connect to GCS").
 RAY_CONNECT_TIMEOUT_S = 30.0
+# How long a run waits for some chunk to finish before it stops as stuck (a worker or node that hangs); a chunk of
+# the default size maps in seconds, one labelled by a network on the CPU in minutes.
+CHUNK_TIMEOUT_S = 3600.0
 
 
 @dataclass(frozen=True)
@@ -72,6 +75,7 @@ class _FaultPlan:
     chunk ``kill_chunk`` dies halfway through its first attempt, as a killed process would."""
 
     kill_chunk: int
+    hang_chunk: int | None = None  # the worker that maps this chunk sleeps instead, as a stuck one would
 
 
 @dataclass(frozen=True)
@@ -85,6 +89,7 @@ class BatchOptions:
     chunk_frames: int | None = None  # None: automatic (choose_chunk_frames), from the inputs' frames
     ray_address: str | None = None
     ray_connect_timeout_s: float = RAY_CONNECT_TIMEOUT_S
+    chunk_timeout_s: float = CHUNK_TIMEOUT_S  # --chunk-timeout-s: the run stops when no chunk finishes for this long
     max_memory: int | None = None  # --max-memory: each worker's voxel table budget (Mapper max_memory); None: the memory available
     checkpoint: Path | None = None
     alpha: Path | None = None
@@ -367,6 +372,8 @@ def _chunk_dir(store: Path, number: int) -> Path:
 
 
 def _inject_fault(context: Context, chunk: Chunk, partial_dir: Path) -> None:
+    if context.fault is not None and context.fault.hang_chunk == chunk.number:
+        time.sleep(3600)
     if context.fault is not None and context.fault.kill_chunk == chunk.number:
         marker = context.store / "work" / f".fault-{chunk.number}"
         if not marker.exists():
@@ -609,16 +616,23 @@ class InlineExecutor:
 _MATH_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
+def stuck_error(timeout_s: float) -> TimeoutError:
+    """The run's end when no chunk finished for ``timeout_s`` (a worker or a node stuck): the chunks mapped so far stay."""
+    return TimeoutError(f"no chunk finished in {timeout_s:g} s (--chunk-timeout-s): a worker or a node is stuck; "
+                        "the chunks mapped so far are kept, and a rerun resumes from them")
+
+
 class LocalExecutor:
     """A process pool, one worker per core by default; a pool whose worker died is replaced and the
     unfinished tasks are run again (each at most ``retries`` more times)."""
 
     name = "local"
 
-    def __init__(self, workers: int, context: Context, retries: int = 3, log=None):
+    def __init__(self, workers: int, context: Context, retries: int = 3, log=None, chunk_timeout_s: float = CHUNK_TIMEOUT_S):
         import multiprocessing
 
         self.workers, self.context, self.retries, self.log = workers, context, retries, log or (lambda m: None)
+        self.chunk_timeout_s = chunk_timeout_s
         self._mp = multiprocessing.get_context("spawn")  # no fork of a process with Warp and threads loaded
         self._threads = max(1, (os.cpu_count() or 1) // workers)
         self._pool = None
@@ -664,7 +678,10 @@ class LocalExecutor:
                     while queue and len(flight) < 2 * self.workers:
                         item = queue.pop(0)
                         flight[self._submit(fn, item)] = item
-                    finished, _ = wait(flight, return_when=FIRST_COMPLETED)
+                    finished, _ = wait(flight, timeout=self.chunk_timeout_s, return_when=FIRST_COMPLETED)
+                    if not finished:
+                        self._interrupt_workers()
+                        raise stuck_error(self.chunk_timeout_s)
                     for future in finished:
                         item = flight.pop(future)
                         on_done(item, future.result())
@@ -756,14 +773,15 @@ class RayExecutor:
 
     name = "ray"
 
-    def __init__(self, workers: int | None, address: str | None, log=None, connect_timeout_s: float = RAY_CONNECT_TIMEOUT_S):
+    def __init__(self, workers: int | None, address: str | None, log=None, connect_timeout_s: float = RAY_CONNECT_TIMEOUT_S,
+                 chunk_timeout_s: float = CHUNK_TIMEOUT_S):
         """Start (or join) Ray; ``attach`` gives it the run's context. Apart, so that a run starts Ray while it
         plans (_run_batch). ``connect_timeout_s``: how long ``address`` may take to answer (check_ray_address)."""
         try:
             import ray
         except ImportError:
             raise ConfigError('--executor ray needs Ray: pip install "evsemmap_warp[ray]"') from None
-        self.ray, self.log = ray, log or (lambda m: None)
+        self.ray, self.log, self.chunk_timeout_s = ray, log or (lambda m: None), chunk_timeout_s
         self.started = not ray.is_initialized()
         self.own_instance = self.started and not address  # a local instance of exactly ``workers`` CPUs
         if self.started:
@@ -819,7 +837,11 @@ class RayExecutor:
 
         submit()
         while flight:
-            finished, _ = self.ray.wait(list(flight), num_returns=1)
+            finished, _ = self.ray.wait(list(flight), num_returns=1, timeout=self.chunk_timeout_s)
+            if not finished:
+                for ref in flight:
+                    self.ray.cancel(ref, force=True)
+                raise stuck_error(self.chunk_timeout_s)
             results = [(flight.pop(ref), self.ray.get(ref)) for ref in finished]
             submit()
             for item, result in results:
@@ -984,7 +1006,7 @@ def _run_batch(paths: list[str], options: BatchOptions, log=None, *, on_tile=Non
         # Ray takes seconds to start its processes: the run is planned meanwhile (reading and hashing the inputs)
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="evsemmap-batch-plan") as planner:
             planning = planner.submit(plan_batch, paths, options)
-            executor = RayExecutor(options.workers, options.ray_address, log, options.ray_connect_timeout_s)
+            executor = RayExecutor(options.workers, options.ray_address, log, options.ray_connect_timeout_s, options.chunk_timeout_s)
             try:
                 inputs, sources, config, chunks, identity = planning.result()
             except BaseException:
@@ -1030,7 +1052,7 @@ def _map_and_write(options: BatchOptions, log, on_tile, _fault, times: dict, sta
     elif options.executor == "inline":
         executor = InlineExecutor(context)
     else:
-        executor = LocalExecutor(workers, context, log=log)
+        executor = LocalExecutor(workers, context, log=log, chunk_timeout_s=options.chunk_timeout_s)
     folder = TileFolder(out, context, chunks, on_tile)
     try:
         from tqdm import tqdm
