@@ -36,7 +36,6 @@ meta agreeing, meta keys present with the right types.
 from __future__ import annotations
 
 import json
-import struct
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -123,8 +122,7 @@ def encode_map(contents: MapContents) -> bytes:
               "resolution": float(contents.resolution), "origin": [float(v) for v in contents.origin],
               "index_low": [int(v) for v in low], "index_extent": [int(v) for v in extent], "payload_bytes": len(payload),
               "payload_crc32": zlib.crc32(payload), "meta": contents.meta | {"format_version": FORMAT_VERSION}}
-    text = json.dumps(header, sort_keys=True).encode()
-    return MAGIC + struct.pack("<I", len(text)) + text + payload
+    return tile_codec.framed(MAGIC, header, payload)
 
 
 def _payload_parts(voxels: VoxelArrays, low: np.ndarray, dtype: np.dtype):
@@ -260,18 +258,10 @@ def _read_compact(path: Path) -> MapContents:
 
 def _compact_header(path: Path, data: bytes) -> tuple[dict, int]:
     """A version-3 file's header (its keys present, of the right types) and where its payload starts."""
-    start = len(MAGIC) + 4
-    if len(data) < start:
-        raise MapFileError(f"{path}: corrupt or truncated map file ({len(data)} bytes)")
-    (length,) = struct.unpack_from("<I", data, len(MAGIC))
-    if length > _HEADER_LIMIT or start + length > len(data):
-        raise MapFileError(f"{path}: corrupt or truncated map file ({len(data) - start} bytes left for a {length}-byte header)")
-    try:
-        header = json.loads(data[start:start + length])
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise MapFileError(f"{path}: corrupt map file: the header is not valid JSON ({exc})") from None
-    if not isinstance(header, dict):
-        raise MapFileError(f"{path}: corrupt map file: the header is not a JSON object")
+    def fail(text):
+        raise MapFileError(f"{path}: corrupt or truncated map file: {text}")
+
+    header, start = tile_codec.split_framed(data, MAGIC, _HEADER_LIMIT, fail)
     for key in ("format_version", "voxels", "columns", "payload_bytes", "payload_crc32"):
         value = header.get(key)
         if isinstance(value, bool) or not isinstance(value, int) or value < 0:
@@ -289,7 +279,7 @@ def _compact_header(path: Path, data: bytes) -> tuple[dict, int]:
         raise MapFileError(f"{path}: header format is {header.get('format')!r}, not {FORMAT_NAME!r}")
     if not isinstance(header.get("meta"), dict):
         raise MapFileError(f"{path}: field 'meta' must be a JSON object, got {type(header.get('meta')).__name__}")
-    return header, start + length
+    return header, start
 
 
 def _check_sums(path: Path, rows: np.ndarray) -> None:

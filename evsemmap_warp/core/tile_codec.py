@@ -140,23 +140,41 @@ def encode_voxels(index: np.ndarray, rows: np.ndarray, tile: tuple[int, int, int
     head = header | {"format": CODEC_FORMAT, "version": CODEC_VERSION, "voxels": count, "columns": columns,
                      "tile": [int(t) for t in tile_key], "tile_voxels": int(tile_voxels), "payload_bytes": len(payload),
                      "payload_crc32": zlib.crc32(payload)}
-    text = json.dumps(head, sort_keys=True).encode()
-    return MAGIC + struct.pack("<I", len(text)) + text + payload
+    return framed(MAGIC, head, payload)
+
+
+def framed(magic: bytes, header: dict, payload: bytes) -> bytes:
+    """Bytes framed as the store's voxel files and the map files are: ``magic``, a little-endian uint32 header
+    length, the header as JSON (keys sorted, so that the same header gives the same bytes), the payload."""
+    text = json.dumps(header, sort_keys=True).encode()
+    return magic + struct.pack("<I", len(text)) + text + payload
+
+
+def split_framed(data: bytes, magic: bytes, header_limit: int, fail) -> tuple[dict, int]:
+    """The header (a JSON object) of ``framed`` bytes and where their payload starts; ``fail(text)`` raises the
+    caller's error for bytes without the signature, a header cut short or beyond ``header_limit``, or not JSON."""
+    start = len(magic) + 4
+    if len(data) < start or data[:len(magic)] != magic:
+        fail(f"no {magic.decode()} signature ({len(data)} bytes: truncated, or another format)")
+    (length,) = struct.unpack_from("<I", data, len(magic))
+    if length > header_limit or start + length > len(data):
+        fail(f"truncated header ({len(data) - start} bytes left for a {length}-byte header)")
+    try:
+        header, problem = json.loads(data[start:start + length]), None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        header, problem = None, f"the header is not valid JSON ({exc})"
+    if problem is not None or not isinstance(header, dict):
+        fail(problem or "the header is not a JSON object")
+    return header, start + length
 
 
 def decode_header(data: bytes, where) -> tuple[dict, int]:
     """The header of a voxel file's bytes (checked), and where its payload starts."""
-    if len(data) < len(MAGIC) + 4 or data[:len(MAGIC)] != MAGIC:
-        raise VoxelFileError(f"{where}: not a store voxel file (no {MAGIC.decode()} signature; truncated, or another format)")
-    (length,) = struct.unpack_from("<I", data, len(MAGIC))
-    start = len(MAGIC) + 4
-    if length > _HEADER_LIMIT or start + length > len(data):
-        raise VoxelFileError(f"{where}: truncated header ({len(data) - start} bytes left for a {length}-byte header)")
-    try:
-        header = json.loads(data[start:start + length])
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise VoxelFileError(f"{where}: header is not valid JSON ({exc})") from None
-    if not isinstance(header, dict) or header.get("format") != CODEC_FORMAT or header.get("version") != CODEC_VERSION:
+    def fail(text):
+        raise VoxelFileError(f"{where}: not a store voxel file: {text}")
+
+    header, start = split_framed(data, MAGIC, _HEADER_LIMIT, fail)
+    if header.get("format") != CODEC_FORMAT or header.get("version") != CODEC_VERSION:
         raise VoxelFileError(f"{where}: header of another format or version ({str(header)[:120]})")
     for key in ("voxels", "columns", "tile_voxels", "payload_bytes", "payload_crc32"):
         value = header.get(key)
@@ -171,7 +189,7 @@ def decode_header(data: bytes, where) -> tuple[dict, int]:
         check_tile_voxels(header["tile_voxels"], "header key 'tile_voxels'")
     except ValueError as exc:
         raise VoxelFileError(f"{where}: {exc}") from None
-    return header, start + length
+    return header, start
 
 
 def check_payload(payload: bytes, header: dict, where) -> None:
