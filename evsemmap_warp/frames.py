@@ -128,7 +128,7 @@ def check_same_frame(what: str, first: tuple[str, WorldFrame | None], second: tu
         raise FrameError(f"{what}: {where_a} is in {frame_a.describe()} but {where_b} in {frame_b.describe()}: {frame_a.name!r} is "
                          f"a frame of one run (REP 105: odometry drifts with its run), so two runs' {frame_a.name!r} frames share a "
                          f"name, not their coordinates; map both in a world-fixed frame (a localiser's map frame), or, if they "
-                         f"are one run's frame (a drive cut into two logs), say so: merge --same-frame, view --same-frame")
+                         f"are one run's frame (a drive cut into two logs), say so: batch --same-frame, merge --same-frame, view --same-frame")
     if frame_a != frame_b:
         raise FrameError(f"{what}: {where_a} is in {describe_frame(frame_a)} but {where_b} in {describe_frame(frame_b)}; "
                           f"maps of different frames cannot be combined (map both in one frame: dataset.frame / --frame "

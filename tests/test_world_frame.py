@@ -319,6 +319,16 @@ def test_log_halves_in_one_frame_merge_into_the_whole_drive(drive, tmp_path):
     merged = first.merge(second, same_frame=True)
     assert merged.frame == first.frame
     _assert_same_map(whole, merged)
+    # batch takes the halves as two inputs: the same check, and the same word to say they are one drive
+    from evsemmap_warp.apps.batch import BatchOptions, run_batch
+    from evsemmap_warp.core.map_store import MapStore
+
+    inputs = [str(halves[0]), str(halves[1]), "rellis3d-bag"]
+    with pytest.raises(FrameError, match="batch: .* of run .*batch --same-frame"):
+        run_batch(inputs, BatchOptions(method="ebs", out=tmp_path / "store", executor="inline", progress=False), log=lambda m: None)
+    run_batch(inputs, BatchOptions(method="ebs", out=tmp_path / "store", executor="inline", progress=False, same_frame=True),
+              log=lambda m: None)
+    _assert_same_map(whole, MapStore(tmp_path / "store").to_mapper())
     _assert_same_map(whole, _map([drive], method="ebs"))  # the folder (3x3 rotations) and the logs (quaternions) agree too
 
 

@@ -90,6 +90,7 @@ class BatchOptions:
     ray_address: str | None = None
     ray_connect_timeout_s: float = RAY_CONNECT_TIMEOUT_S
     chunk_timeout_s: float = CHUNK_TIMEOUT_S  # --chunk-timeout-s: the run stops when no chunk finishes for this long
+    same_frame: bool = False  # --same-frame: the inputs' run frames (odom) are one run's, a drive cut into several logs
     max_memory: int | None = None  # --max-memory: each worker's voxel table budget (Mapper max_memory); None: the memory available
     checkpoint: Path | None = None
     alpha: Path | None = None
@@ -214,7 +215,8 @@ def plan_batch(paths: list[str], options: BatchOptions):
                               + ", ".join(f"{k} {mine[k]!r} vs {theirs[k]!r}" for k in mine if mine[k] != theirs[k]))
         if source.num_classes != sources[0].num_classes:
             raise ConfigError(f"{text}: {source.num_classes} classes, {inputs[0]} has {sources[0].num_classes}")
-        check_same_frame("batch", (inputs[0], sources[0].frame), (text, source.frame))  # inputs combine only in one frame
+        # inputs combine only in one frame; a drive cut into several logs is one run's, when the user says so
+        check_same_frame("batch", (inputs[0], sources[0].frame), (text, source.frame), same_frame=options.same_frame)
     chunk_frames, _ = choose_chunk_frames(options.chunk_frames, sum(source.frames_in(0, len(source)) for source in sources))
     chunks = []
     for s, source in enumerate(sources):

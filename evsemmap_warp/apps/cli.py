@@ -107,7 +107,8 @@ def _cmd_batch(args) -> int:
                            ray_address=args.ray_address, checkpoint=args.checkpoint, alpha=args.alpha_dir, bin_frames=args.bin_frames,
                            batch_size=args.batch_size, tile_voxels=args.tile_voxels, discard_partials=args.discard_partials,
                            progress=not args.quiet, frame=args.frame, crs=args.crs, max_memory=args.max_memory,
-                           ray_connect_timeout_s=args.ray_connect_timeout_s, chunk_timeout_s=args.chunk_timeout_s)
+                           ray_connect_timeout_s=args.ray_connect_timeout_s, chunk_timeout_s=args.chunk_timeout_s,
+                           same_frame=args.same_frame)
     if args.ray_address and args.executor != "ray":
         raise ConfigError("--ray-address needs --executor ray")
     if not args.view and (args.host, args.port) != (None, None):
@@ -683,6 +684,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ray-address", default=None, help="an existing Ray cluster: auto, ray://host:port, or its head's host:port (with RAY_AUTH_MODE=token for token authentication, Ray's default; default: a local Ray instance)")
     p.add_argument("--ray-connect-timeout-s", type=_positive_float, default=30.0, metavar="S",
                    help="with --ray-address host:port: seconds it may take to accept a connection before the run is refused (default 30)")
+    p.add_argument("--same-frame", action="store_true", help="the inputs' run frames (e.g. odom) are one run's, a drive cut into several "
+                                                             "logs: runs that differ or are unknown are mapped together (docs/formats.md)")
     p.add_argument("--chunk-timeout-s", type=_positive_float, default=3600.0, metavar="S",
                    help="stop when no chunk finishes for this long, as a stuck worker or node (default 3600; the chunks mapped are kept)")
     p.add_argument("--checkpoint", type=Path, help="label the scans from the camera with this segmentation checkpoint (inference in each task)")
