@@ -176,7 +176,8 @@ def test_the_mapper_starts_before_the_robot_which_stops_and_comes_back(drive, tm
     """The robot's publisher session ends after the first half of the drive and a new one brings the second:
     the live map is the map of the whole log."""
     batch = batch_map(drive["whole"], tmp_path)
-    live = LiveRun(tmp_path, "--idle-exit", "6", "--no-publish")
+    # the run ends with the drive's sixth scan; --idle-exit only ends a run that lost scans, however busy the machine
+    live = LiveRun(tmp_path, "--max-scans", "6", "--idle-exit", "60", "--no-publish")
     time.sleep(1.0)  # nobody publishes yet: live waits
     assert replay(live.endpoint, drive["first"]) == 0
     time.sleep(1.0)  # the robot is gone
@@ -184,6 +185,45 @@ def test_the_mapper_starts_before_the_robot_which_stops_and_comes_back(drive, tm
     report = live.result()
     assert live.code == 0 and report["scans_mapped"] == 6 and report["scans_dropped"] == 0, report
     assert_same_map(Mapper.load(live.out), batch)
+
+
+def test_a_run_stopped_by_an_error_still_writes_the_map_it_made(drive, tmp_path, monkeypatch, capsys):
+    """A memory budget that stops holding (other processes on the robot grew) ends the run in one line, exit 2,
+    and the scans mapped before it are written, not lost."""
+    from evsemmap_warp.limits import MemoryBudgetError
+    from evsemmap_warp.live.mapping import LiveMapping
+
+    real = LiveMapping.map_scan
+
+    def map_scan(self, item):
+        if self.stats.mapped == 2:
+            raise MemoryBudgetError("the voxel table would need 9.0 GB, over the memory budget of 1.0 GB (--max-memory)")
+        return real(self, item)
+
+    monkeypatch.setattr(LiveMapping, "map_scan", map_scan)
+    live = LiveRun(tmp_path, "--idle-exit", "30", "--no-publish")
+    assert replay(live.endpoint, drive["whole"]) == 0
+    live.result()
+    assert live.code == 2
+    err = capsys.readouterr().err
+    assert "stopped: the voxel table would need 9.0 GB" in err and "evsemmap: error: the voxel table would need" in err, err
+    assert Mapper.load(live.out).scans_integrated == 2
+
+
+def test_ctrl_c_ends_a_replay_within_a_long_gap_of_the_log(drive):
+    """At 1e-4 of the recorded rate messages milliseconds apart are tens of seconds apart: a stop (Ctrl-C) ends the replay
+    then, not after the gap, and no later loop starts."""
+    from evsemmap_warp.live.replay import replay_log
+
+    session = open_session(ZenohOptions(listen=[f"tcp/127.0.0.1:{free_port()}"]))
+    stop = threading.Event()
+    threading.Timer(1.0, stop.set).start()
+    started = time.monotonic()
+    try:
+        replay_log(session, [drive["whole"]], rate=1e-4, loops=3, stop=stop, linger_s=0.0)
+    finally:
+        session.close()
+    assert time.monotonic() - started < 10
 
 
 def test_a_store_written_as_it_goes_is_resumed_by_the_next_run(drive, tmp_path):
@@ -335,7 +375,7 @@ def test_ctrl_c_writes_the_map_and_the_store(drive, tmp_path):
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert replay(endpoint, drive["whole"]) == 0
-        time.sleep(1.0)
+        time.sleep(5.0)  # the six scans are in its queue once replay returns (it waited for the subscriber): mapped by now
         live.send_signal(signal.SIGINT)
         out, err = live.communicate(timeout=60)
     finally:

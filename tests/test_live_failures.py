@@ -203,6 +203,24 @@ def test_another_type_a_malformed_message_and_a_huge_cloud_are_refused_counted(m
     assert mapping.stats.mapped == 1
 
 
+def test_an_image_that_does_not_decode_drops_its_scan_not_the_run(messages, tmp_path, capsys):
+    from evsemmap_warp.data.sequences import DataError
+
+    class BrokenCamera:  # what CameraLabeller.image_for raises for an image that does not decode
+        def image_for(self, stamp, deadline):
+            raise DataError("/camera/image (1.000 s): not an image (decoding failed)")
+
+    static, pairs = frames(messages[0])
+    feed, mapping, scans = rig(tmp_path)
+    mapping.labeller = BrokenCamera()
+    for message in static + [m for pair in pairs[:2] for m in pair[::-1]]:
+        send(feed, *message)
+    map_queued(mapping, scans)
+    values = mapping.diagnostics()
+    assert values["dropped_no_image"] == 2 and values["scans_mapped"] == 0
+    assert "not an image (decoding failed); dropped (2 no image so far)" in capsys.readouterr().err
+
+
 def test_a_dds_bridge_robot_is_detected_and_maps_as_rmw_zenoh_does(messages, tmp_path):
     static, pairs = frames(messages[0])
     maps = {}

@@ -592,3 +592,26 @@ def test_the_geotiff_holds_zero_counts_and_masks_where_no_part_reached():
     assert np.all(np.isnan(bands["elevation"][~reached])) and np.all(bands["elevation"][reached] == 2.0)
     for name in ("observations", "known", "lethal"):
         assert np.all(bands[name][~reached] == 0.0) and np.all(bands[name][reached] == 2.0), name
+
+
+def test_a_swap_that_fails_halfway_puts_the_last_output_back(tmp_path, monkeypatch):
+    import errno
+    import os
+
+    from evsemmap_warp.terrain.outputs import staged_output_folder
+
+    out = tmp_path / "L"
+    with staged_output_folder(out, "layers.json") as staging:
+        (staging / "layers.json").write_text("first\n")
+    real = os.rename
+
+    def rename(src, dst):  # the new output cannot take the folder's name (a full disk, a quota)
+        if ".writing-" in str(src):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "rename", rename)
+    with pytest.raises(OSError, match="No space left"):
+        with staged_output_folder(out, "layers.json") as staging:
+            (staging / "layers.json").write_text("second\n")
+    assert (out / "layers.json").read_text() == "first\n" and sorted(p.name for p in tmp_path.iterdir()) == ["L"]

@@ -126,6 +126,8 @@ def test_a_file_for_another_class_set_is_checked_against_its_map_only(tmp_path):
         load_terrain_config(missing).check_classes(names)
     with pytest.raises(ConfigError, match=r"costs.rule = 'cheapest' is not a cost rule"):
         load_terrain_config(_write(tmp_path, "costs:\n  rule: cheapest\n"))
+    with pytest.raises(ConfigError, match=r"costs.classes must be a mapping of class name to cost, got NoneType"):
+        load_terrain_config(_write(tmp_path, "costs:\n  classes:\n"))
 
 
 def test_dump_config_shows_the_resolved_terrain_settings(tmp_path, capsys):

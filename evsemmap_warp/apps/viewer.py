@@ -1051,10 +1051,7 @@ class MapViewer:
         box = self.stores[i].boxes[name]
         look_at = box.mean(axis=0) - self.origin + self._shift(i)
         distance = max(float(np.max(box[1, :2] - box[0, :2])), 4.0 * self.layers[i].resolution)
-        position = look_at + distance * np.array([0.0, -0.6, 0.8])
-        for client in self.server.get_clients().values():
-            client.camera.position = tuple(position)  # (this moves look_at along: it is set after)
-            client.camera.look_at = tuple(look_at)
+        self._place_cameras(None, look_at + distance * np.array([0.0, -0.6, 0.8]), look_at)
 
     # ------------------------------------------------------------------ store tiles in the background
     # A browser's camera nearer a store's tile than this many tile edges brings tiles in full: from a long drive's

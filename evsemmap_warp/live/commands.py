@@ -173,6 +173,9 @@ def run_live(args) -> int:
             if not args.view:
                 return
             if live_view is None or live_view.mapper is not mapping.mapper:
+                if live_view is not None:  # a new map (time ran back, --on-time-jump reset): the old map's server ends, its port freed
+                    live_view.close()
+                    live_view.viewer.close()
                 live_view = _live_view(args, mapping.mapper)
             if mapping.stats.mapped % args.view_every == 0:
                 live_view.offer(mapping.stats.mapped, scan)
@@ -185,7 +188,13 @@ def run_live(args) -> int:
                               on_mapped=on_mapped, store=live_store, labeller=labeller)
         topics = ", ".join(f"{t} ({s.msgtype.rsplit('/', 1)[-1]})" for t, s in feed.topics.items())
         say(f"listening for {topics} on domain {args.domain_id} ({args.key_format} keys); Ctrl-C ends the run and writes {args.out}")
-        mapping.run_until_stopped(stop)
+        try:
+            mapping.run_until_stopped(stop)
+        except Exception as exc:  # a run stopped by an error (a memory budget that no longer holds) keeps its map
+            if mapping.mapper is not None:
+                say(f"stopped: {exc}; writing the map made so far")
+                mapping.finish()
+            raise
         if stop.is_set():
             say("interrupted: writing the map")
         written = mapping.finish()

@@ -267,7 +267,11 @@ class LiveMapping:
         if self.labeller is None:
             return labelled_scan(where, scan, labels, pose), 0.0
         image_wait = time.perf_counter()
-        paired = self.labeller.image_for(stamp, time.monotonic() + self.settings.tf_wait_s)
+        try:
+            paired = self.labeller.image_for(stamp, time.monotonic() + self.settings.tf_wait_s)
+        except DataError as exc:  # an image that does not decode: this scan goes, not the run
+            self._drop("no_image", f"{where}: {exc}")
+            return False, time.perf_counter() - image_wait
         waited = time.perf_counter() - image_wait
         if paired is None:
             self._drop("no_image", f"{where}: no image on {self.bag.image_topic!r} within {self.bag.image_tolerance_s:g} s "

@@ -81,6 +81,8 @@ def replay_log(session, logs, *, rate: float = 1.0, topics: tuple[str, ...] = ()
         started, late = time.perf_counter(), 0.0
         first = last = None
         for _ in range(loops):
+            if stop is not None and stop.is_set():
+                break
             first_this_loop, loop_start = None, time.perf_counter()
             for connection, log_time, raw in reader.messages(connections=connections):
                 if stop is not None and stop.is_set():
@@ -92,7 +94,10 @@ def replay_log(session, logs, *, rate: float = 1.0, topics: tuple[str, ...] = ()
                     due = loop_start + (log_time - first_this_loop) / 1e9 / rate
                     wait = due - time.perf_counter()
                     if wait > 0:
-                        time.sleep(wait)
+                        if stop is not None and stop.wait(wait):  # Ctrl-C within a long gap of the log ends it now
+                            break
+                        if stop is None:
+                            time.sleep(wait)
                     else:
                         late = max(late, -wait)
                 if clock:

@@ -175,7 +175,7 @@ def _read_sections(path: Path) -> dict:
         if not isinstance(values, dict):
             raise ConfigError(f"{path}: {section} must be a mapping, got {type(values).__name__}")
         sections[section] = dict(values)
-    if sections["costs"].get("classes") is not None and not isinstance(sections["costs"]["classes"], dict):
+    if "classes" in sections["costs"] and not isinstance(sections["costs"]["classes"], dict):
         raise ConfigError(f"{path}: costs.classes must be a mapping of class name to cost, got {type(sections['costs']['classes']).__name__}")
     return sections
 

@@ -112,7 +112,11 @@ def staged_output_folder(out, marker: str) -> Iterator[Path]:
             yield staging
             previous = out.parent / f".{out.name}.previous-{token}"
             os.rename(out, previous)
-            os.rename(staging, out)
+            try:
+                os.rename(staging, out)
+            except OSError:  # the last output back where it was: never no output at all
+                os.rename(previous, out)
+                raise
         except OSError as exc:  # a full disk names the folder asked for, not the staging one
             raise error_naming(exc, out, "writing the layers") from None
         created = False
