@@ -6,12 +6,14 @@ import sys
 
 
 def main() -> int:
+    # the command line answers an interrupt while it works itself; this one, one while it loads or reads its flags
     try:
         from .apps.cli import main as run
+
+        return run()
     except KeyboardInterrupt:
         print("evsemmap: interrupted", file=sys.stderr)
         return 130
-    return run()
 
 
 if __name__ == "__main__":

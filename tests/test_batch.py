@@ -158,7 +158,7 @@ def test_ray_keeps_at_most_workers_tasks_running_on_an_instance_it_joins(own_ins
 
     class FakeRay:
         @staticmethod
-        def wait(refs, num_returns):
+        def wait(refs, num_returns, timeout=None):  # ray.wait
             seen.append(len(in_flight))
             in_flight.remove(refs[0])
             return [refs[0]], refs[1:]

@@ -774,6 +774,7 @@ class RayExecutor:
     "auto" or "ray://host:port"). Ray retries a task whose worker died."""
 
     name = "ray"
+    chunk_timeout_s = CHUNK_TIMEOUT_S  # how long run() waits for some task to finish (__init__ sets the run's)
 
     def __init__(self, workers: int | None, address: str | None, log=None, connect_timeout_s: float = RAY_CONNECT_TIMEOUT_S,
                  chunk_timeout_s: float = CHUNK_TIMEOUT_S):
