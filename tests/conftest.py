@@ -48,6 +48,20 @@ def pytest_runtest_logreport(report):
             out.write(report.nodeid + "\n")
 
 
+def run_cli(capsys, *argv) -> str:
+    """Run the CLI in this process; assert exit 2 and one line on stderr without a traceback; return that line."""
+    from evsemmap_warp.apps.cli import main
+
+    try:
+        code = main([str(a) for a in argv])
+    except SystemExit as exc:  # argparse
+        code = exc.code
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if not line.startswith("Warp CUDA warning")]
+    assert code == 2, err
+    assert len(err) == 1 and "Traceback" not in err[0], err
+    return err[0]
+
+
 def wait_until(predicate, timeout: float, interval: float = 0.05) -> bool:
     """Whether ``predicate()`` came true within ``timeout`` seconds (asked every ``interval``): the viewer tests wait
     on threads, servers and browsers this way."""

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_cli
 
 from evsemmap_warp.apps.cli import main
 from evsemmap_warp.config import ConfigError, MappingConfig, load_config
@@ -21,18 +22,6 @@ REPO = Path(__file__).resolve().parents[1]
 PRESET = REPO / "configs/presets/offroad.yaml"
 
 
-def run_cli(capsys, *argv) -> str:
-    """Run the CLI; assert exit 2 and one line on stderr without a traceback; return that line."""
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as exc:  # argparse
-        code = exc.code
-    err = capsys.readouterr().err.strip().splitlines()
-    err = [line for line in err if not line.startswith("Warp CUDA warning")]
-    assert code == 2, err
-    assert len(err) == 1, err
-    assert "Traceback" not in err[0]
-    return err[0]
 
 
 # ------------------------------------------------------------------------------------- configs

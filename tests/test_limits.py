@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import run_cli
 
 from evsemmap_warp import limits
 from evsemmap_warp.apps import batch
 from evsemmap_warp.apps.batch import BatchOptions, run_batch
-from evsemmap_warp.apps.cli import main
 from evsemmap_warp.config import ConfigError, load_config
 from evsemmap_warp.core import tile_codec, voxel_map
 from evsemmap_warp.core.mapper import Mapper
@@ -23,15 +23,6 @@ REPO = Path(__file__).resolve().parents[1]
 TOY = REPO / "configs/datasets/sbki_toy.yaml"
 
 
-def _cli_error(capsys, *argv) -> str:
-    """Run the CLI; assert exit 2 and one line on stderr without a traceback; return that line."""
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as exc:  # argparse
-        code = exc.code
-    err = [line for line in capsys.readouterr().err.strip().splitlines() if not line.startswith("Warp CUDA warning")]
-    assert code == 2 and len(err) == 1 and "Traceback" not in err[0], err
-    return err[0]
 
 
 def _toy_without_range_filter(tmp_path) -> Path:
@@ -85,10 +76,10 @@ def test_sbki_asks_the_budget_before_it_lists_the_blocks_it_will_fill(tmp_path):
 
 def test_map_max_memory_is_one_line_and_writes_nothing(tmp_path, capsys):
     out = tmp_path / "m.npz"
-    line = _cli_error(capsys, "map", TOY, "--method", "s-bki", "--out", out, "--quiet", "--max-memory", "1M")
+    line = run_cli(capsys, "map", TOY, "--method", "s-bki", "--out", out, "--quiet", "--max-memory", "1M")
     assert "over the memory budget of 1 MB, max_memory (--max-memory)" in line
     assert not out.exists()
-    assert "--max-memory '12Q' is not a size" in _cli_error(capsys, "map", TOY, "--method", "s-bki", "--out", out, "--max-memory", "12Q")
+    assert "--max-memory '12Q' is not a size" in run_cli(capsys, "map", TOY, "--method", "s-bki", "--out", out, "--max-memory", "12Q")
 
 
 def test_memory_sizes():
@@ -104,7 +95,7 @@ def test_batch_refuses_a_tile_size_its_readers_refuse_before_writing_anything(tm
     """Item 2 (2^32 and more wrapped the tile-local key: the run stopped on its own partial) and item 7
     (2^20 + 1 wrote stores that info and export refused)."""
     out = tmp_path / "store"
-    line = _cli_error(capsys, "batch", TOY, "--method", "s-csm", "--out", out, "--tile-voxels", tile_voxels)
+    line = run_cli(capsys, "batch", TOY, "--method", "s-csm", "--out", out, "--tile-voxels", tile_voxels)
     assert f"--tile-voxels {tile_voxels} must lie in 1..{limits.MAX_TILE_VOXELS}" in line
     with pytest.raises(ValueError, match=f"--tile-voxels {tile_voxels} must lie in 1..{limits.MAX_TILE_VOXELS}"):
         run_batch([str(TOY)], BatchOptions(method="s-csm", out=out, executor="inline", tile_voxels=tile_voxels, progress=False))
@@ -112,7 +103,7 @@ def test_batch_refuses_a_tile_size_its_readers_refuse_before_writing_anything(tm
 
 
 def test_merge_refuses_a_tile_size_its_readers_refuse(tmp_path, capsys):
-    line = _cli_error(capsys, "merge", tmp_path / "a.npz", tmp_path / "b.npz", "--out", tmp_path / "S", "--tile-voxels", 1048577)
+    line = run_cli(capsys, "merge", tmp_path / "a.npz", tmp_path / "b.npz", "--out", tmp_path / "S", "--tile-voxels", 1048577)
     assert "--tile-voxels 1048577 must lie in 1..1048576" in line
     with pytest.raises(ValueError, match="--tile-voxels 1048577 must lie in"):
         batch.write_store_from_mapper(None, tmp_path / "S", 1048577, [])
@@ -140,7 +131,7 @@ def test_an_unreachable_ray_address_is_refused_within_its_timeout(tmp_path, caps
     """Item 3: ray.init retried "Failed to connect to GCS" at 127.0.0.1:9 for more than 10 minutes. No Ray
     instance is started here: the address is refused before Ray is asked."""
     started = time.monotonic()
-    line = _cli_error(capsys, "batch", TOY, "--method", "s-csm", "--out", tmp_path / "store", "--executor", "ray",
+    line = run_cli(capsys, "batch", TOY, "--method", "s-csm", "--out", tmp_path / "store", "--executor", "ray",
                       "--ray-address", "127.0.0.1:9", "--ray-connect-timeout-s", "5")
     assert time.monotonic() - started < 60
     assert "--ray-address 127.0.0.1:9: could not join the Ray instance (nothing accepted a connection at 127.0.0.1:9 within 5 s" in line

@@ -7,6 +7,7 @@ import shutil
 
 import numpy as np
 import pytest
+from conftest import run_cli
 
 from evsemmap_warp.apps.batch import write_store_from_mapper
 from evsemmap_warp.apps.cli import main
@@ -386,16 +387,6 @@ def test_a_store_writes_tiles_and_the_mosaic(drive_map, drive_store, tmp_path):
 
 
 # The command line and bad input -----------------------------------------------------------------------------
-def run_cli(capsys, *argv) -> str:
-    """Run the CLI; assert exit 2 and one line on stderr without a traceback; return that line."""
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as exc:  # argparse
-        code = exc.code
-    err = [line for line in capsys.readouterr().err.strip().splitlines() if not line.startswith("Warp CUDA warning")]
-    assert code == 2, err
-    assert len(err) == 1 and "Traceback" not in err[0], err
-    return err[0]
 
 
 @pytest.fixture(scope="module")
