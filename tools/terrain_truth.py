@@ -158,15 +158,12 @@ def _connected(passable: np.ndarray, seed: tuple[int, int]) -> np.ndarray:
     return reached
 
 
-def _opinion_bands(bands, classes, prior: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per cell, from the support voxel's probabilities and semantic variance: its uncommitted mass u = K prior / S
-    and its doubt 1 - b_max (b = (alpha - prior) / S), S = p (1 - p) / variance - 1 (p the winning class's)."""
+def _uncommitted_mass(bands, classes, prior: float) -> np.ndarray:
+    """Per cell, the support voxel's uncommitted mass u = K prior / S, with S = p (1 - p) / variance - 1 from the
+    winning class's probability p and the semantic variance p (1 - p) / (S + 1) (the layers have no band of it)."""
     p = bands["surface_probability"]
     with np.errstate(invalid="ignore", divide="ignore"):
-        total = p * (1 - p) / bands["semantic_variance"] - 1.0
-        uncommitted = len(classes) * prior / total
-        doubt = 1.0 - (p - prior / total)
-    return uncommitted, doubt
+        return len(classes) * prior / (p * (1 - p) / bands["semantic_variance"] - 1.0)
 
 
 def _road_auc(bands, ground_class, classes) -> float:
@@ -213,12 +210,11 @@ def evaluate(layers, truth, road, poses, classes, costs_of_classes: np.ndarray, 
     variance_rates, variance_edges = by_decile(bands["semantic_variance"][classified])
     # the winning class's probability, least sure first: the same Dirichlet read another way
     probability_rates, probability_edges = by_decile(bands["surface_probability"][classified])
-    # subjective logic's reading of the support voxel (derived from p and the variance p (1 - p) / (S + 1), so
-    # that layers of any version can be judged): the uncommitted mass u = K prior / S, and 1 - b_max, the mass
-    # not committed to the winning class (vacuity and conflict together)
-    uncommitted, doubt = _opinion_bands(bands, classes, prior)
+    # subjective logic's reading of the support voxel: the uncommitted mass u = K prior / S alone, and the surface
+    # doubt 1 - b_label, the mass not committed to the label (vacuity and conflict together)
+    uncommitted = _uncommitted_mass(bands, classes, prior)
     uncommitted_rates, uncommitted_edges = by_decile(uncommitted[classified])
-    doubt_rates, doubt_edges = by_decile(doubt[classified])
+    doubt_rates, doubt_edges = by_decile(bands["surface_doubt"][classified])
     per_class = {classes[c]: {"cells": int((true == c).sum()), "recall": round(float(correct[true == c].mean()), 4)}
                  for c in np.unique(true)}
     result = {
