@@ -52,13 +52,13 @@ def config_files() -> list[ConfigFile]:
     """The config files a user writes, each with the dataclasses that read its sections."""
     from evsemmap_warp.apps.experiment import (AblationSpec, ConditionSpec, ConvBkiTraining, ExperimentConfig, NetworkSpec,
                                                SequenceSpec)
-    from evsemmap_warp.config import _MAPPING_SECTIONS, _METHOD_KEYS, BagConfig, DatasetConfig, MappingConfig, RunConfig
+    from evsemmap_warp.config import MAPPING_SECTIONS, METHOD_KEYS, BagConfig, DatasetConfig, MappingConfig, RunConfig
     from evsemmap_warp.geometry.projection import ProjectionConfig
     from evsemmap_warp.synthetic.preset import (AppearanceParams, CameraParams, LidarParams, SynthPreset, TrajectoryParams,
                                                 WorldParams)
     from evsemmap_warp.terrain.config import CostSettings, LayerSettings
 
-    method_keys = tuple(sorted("method" if key == "name" else key for key in _METHOD_KEYS))
+    method_keys = tuple(sorted("method" if key == "name" else key for key in METHOD_KEYS))
     return [
         ConfigFile(
             "Mapping runs",
@@ -67,8 +67,8 @@ def config_files() -> list[ConfigFile]:
             "merged in order, later files winning key by key. A method file's `method` section sets the switches "
             "below; every other number lives in `mapping`.",
             (Section("method", MappingConfig, method_keys, renamed=(("method", "name"),)),
-             Section("mapping", MappingConfig, tuple(f.name for f in dataclasses.fields(MappingConfig) if f.name not in _MAPPING_SECTIONS)),
-             *(Section(f"mapping.{name}", cls) for name, cls in _MAPPING_SECTIONS.items()),
+             Section("mapping", MappingConfig, tuple(f.name for f in dataclasses.fields(MappingConfig) if f.name not in MAPPING_SECTIONS)),
+             *(Section(f"mapping.{name}", cls) for name, cls in MAPPING_SECTIONS.items()),
              Section("dataset", DatasetConfig, tuple(f.name for f in dataclasses.fields(DatasetConfig) if f.name != "config_dir")),
              Section("dataset.bag", BagConfig),
              Section("pipeline", RunConfig, ("bin_frames",)))),

@@ -16,7 +16,7 @@ import numpy as np
 import yaml
 
 from .. import limits
-from ..config import ConfigError, available_methods, load_config, warn_deprecated
+from ..config import ConfigError, available_methods, load_config
 
 
 def _cmd_map(args) -> int:
@@ -555,25 +555,6 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-class _RenamedFlag(argparse.Action):
-    """A flag renamed in this release: still read one release long, into the new flag's value, with a
-    one-line warning on stderr."""
-
-    def __init__(self, option_strings, dest, new_flag: str = "", **kwargs):
-        self.new_flag = new_flag
-        super().__init__(option_strings, dest, **kwargs)
-
-    def __call__(self, parser, namespace, values, option_string=None):
-        warn_deprecated(option_string, self.new_flag)
-        setattr(namespace, self.dest, values)
-
-
-def _renamed_flag(parser, old: str, new: str, **kwargs) -> None:
-    """Let ``parser`` read the old flag ``old`` as ``new`` (hidden from --help)."""
-    parser.add_argument(old, dest=new.lstrip("-").replace("-", "_"), action=_RenamedFlag, new_flag=new, help=argparse.SUPPRESS,
-                        default=argparse.SUPPRESS, **kwargs)
-
-
 def _port(text: str) -> int:
     value = _int(text)
     if not 1 <= value <= 65535:
@@ -656,7 +637,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--alpha-dir", type=Path, metavar="DIR", help="label the scans from the camera with the per-image alpha files "
                                                                    "`evsemmap infer` wrote into this folder (NAME.npy per image, or "
                                                                    "NNNNNN.npy per frame)")
-    _renamed_flag(p, "--alpha", "--alpha-dir", type=Path)
     p.add_argument("--bin-frames", type=_positive, default=None, help="with --checkpoint or --alpha-dir: frames integrated together "
                                                                     "(default: the preset's pipeline.bin_frames, else 1)")
     p.add_argument("--batch-size", type=_positive, default=4, help="with --checkpoint: images per inference batch")
@@ -691,7 +671,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", type=Path, help="label the scans from the camera with this segmentation checkpoint (inference in each task)")
     p.add_argument("--alpha-dir", type=Path, metavar="DIR", help="label the scans from the camera with the alpha files of `evsemmap infer` "
                                                                    "in this folder")
-    _renamed_flag(p, "--alpha", "--alpha-dir", type=Path)
     p.add_argument("--bin-frames", type=_positive, default=None, help="with --checkpoint or --alpha-dir: frames per insertion (default: the preset's)")
     p.add_argument("--batch-size", type=_positive, default=4, help="with --checkpoint: images per inference batch")
     p.add_argument("--tile-voxels", type=_TILE_VOXELS, default=256, help=f"tile edge in voxels, 1..{limits.MAX_TILE_VOXELS} (default 256: 51.2 m at 0.2 m)")
@@ -716,7 +695,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="folder to write layers.tif, layers.npz (a store: tiles/X_Y.npz), "
                                                            "layers.bag, previews/ and layers.json into")
     p.add_argument("--resolution-m", type=float, default=None, help="cell edge (m; default: the map's voxel size; a store's must divide its tiles)")
-    _renamed_flag(p, "--resolution", "--resolution-m", type=float)
     p.add_argument("--bounds", type=float, nargs="+", metavar="M", help="the region: X0 Y0 X1 Y1, or X0 Y0 Z0 X1 Y1 Z1 to count only "
                                                                         "voxels whose centers lie between Z0 and Z1 (m, the map's world frame)")
     p.add_argument("--costs", type=Path, default=None, help="surface classes and cost table YAML (default: configs/terrain/costs_v3.yaml, "
@@ -766,7 +744,6 @@ def build_parser() -> argparse.ArgumentParser:
                                                                   "the scan, the camera and the map as it stood after each scan")
     p.add_argument("--checkpoint", type=Path, help="with --drive: the segmentation checkpoint that labelled the map's scans")
     p.add_argument("--alpha-dir", type=Path, metavar="DIR", help="with --drive: the folder of alpha files that labelled the map's scans")
-    _renamed_flag(p, "--alpha", "--alpha-dir", type=Path)
     p.add_argument("--bin-frames", type=_positive, default=None, help="with --drive and --checkpoint or --alpha-dir: frames per insertion, "
                                                                     "as when mapping")
     p.add_argument("--snapshot-every", type=_positive, default=10, help="with --drive: keep a copy of the replayed map every N scans "
@@ -795,7 +772,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--kl-schedule", choices=("paper", "release"), default="paper")
     p.add_argument("--val-fraction", type=float, default=0.1)
     p.add_argument("--time-budget-s", type=_positive_float, default=None, help="stop after the epoch that passes this many seconds")
-    _renamed_flag(p, "--time-budget", "--time-budget-s", type=_positive_float)
     p.add_argument("--logit-clamp", type=_positive_float, default=10.0, help="evidence = exp(clamp(logit, -c, c))")
     p.add_argument("--normalization", choices=("imagenet", "caffe"), default="imagenet")
     p.add_argument("--backbone-weights", type=Path, help="backbone state dict to start from (nothing is downloaded)")
@@ -821,7 +797,6 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("synth", help="generate a synthetic off-road sequence in the RELLIS-3D layout")
     p.add_argument("--world", default="default", help="the world preset: tiny, demo, default, long (a 2 km drive) or a YAML file "
                                                       "(configs/synthetic/)")
-    _renamed_flag(p, "--preset", "--world")
     p.add_argument("--out", type=Path, required=True, help="sequence folder to write")
     p.add_argument("--domain", default=None, help="appearance domain (summer, autumn, dusk); default: the preset's")
     p.add_argument("--seed", type=int, default=None, help="world seed; default: the preset's")
@@ -847,7 +822,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--zbuffer", action="store_true", help="drop points hidden behind nearer points")
     p.add_argument("--overlays", type=_non_negative, default=3, help="overlay images to write")
     p.add_argument("--color-by", choices=("label", "depth"), default="label", help="overlay points in their label's color or by range")
-    _renamed_flag(p, "--colour-by", "--color-by", choices=("label", "depth"))
     p.add_argument("--max-frames", type=_positive, default=None)
     _add_frame_args(p)
     p.set_defaults(func=_cmd_project)
@@ -855,10 +829,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train-convbki", help="learn ConvBKI's per-class length scales from a projected, labelled sequence")
     p.add_argument("sequence", type=Path, help="RELLIS-3D-layout sequence with per-point labels")
     p.add_argument("--alpha-dir", type=Path, metavar="DIR", help="folder of per-frame alpha .npy (evsemmap infer output; required)")
-    _renamed_flag(p, "--alpha", "--alpha-dir", type=Path)
     p.add_argument("--out", type=Path, required=True, help="length-scale file to write (.json; use as mapping.convbki.lengths_file)")
     p.add_argument("--resolution-m", type=_positive_float, default=0.3, help="voxel size of the map it will be used with (m)")
-    _renamed_flag(p, "--resolution", "--resolution-m", type=_positive_float)
     p.add_argument("--epochs", type=_positive, default=15)
     p.add_argument("--window-scans", type=_positive, default=10)
     p.add_argument("--queries", type=_positive, default=4000, help="ground-truth points scored per window")

@@ -42,8 +42,8 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import __version__, files
-from ..config import (ConfigError, Kernel, PayloadType, dataclass_from_dict, is_robot_log, legacy_flat_dict, load_config, preset_path,
-                      read_yaml_file, warn_deprecated)
+from ..config import (MAPPING_SECTIONS, ConfigError, Kernel, MappingConfig, PayloadType, dataclass_from_dict, is_robot_log, load_config,
+                      preset_path, read_yaml_file)
 from .evaluation import PAPER_SCORED_CLASSES, MapScores, evaluate_map, markdown_table, pool_scores
 from ..classes import class_set
 from ..data.datasets import Scan
@@ -148,17 +148,6 @@ def experiments_dir() -> Path:
     return Path(str(resources.files("evsemmap_warp.configs") / "experiments"))
 
 
-def _renamed_sequence_keys(entry, where: str):
-    """A sequence entry with the keys renamed in this release under their new names (``preset`` is now
-    ``world``), each told once on stderr."""
-    if not isinstance(entry, dict) or "preset" not in entry:
-        return entry
-    if "world" in entry:
-        raise ConfigError(f"{where}: give world only (preset is its old name)")
-    warn_deprecated(f"{where}.preset", f"{where}.world")
-    return {("world" if k == "preset" else k): v for k, v in entry.items()}
-
-
 def load_experiment(name_or_path, *, quick: bool = False) -> tuple[ExperimentConfig, Path]:
     """An experiment config by path or built-in name, and its path; ``quick``: with its ``quick`` overrides
     applied. Networks and conditions come once per seed when it lists ``seeds``. Raises ConfigError naming the
@@ -178,8 +167,6 @@ def load_experiment(name_or_path, *, quick: bool = False) -> tuple[ExperimentCon
         if not isinstance(data.get(section, {}), dict):
             raise ConfigError(f"{src}: {section} must be a mapping of names")
         entries = data.get(section) or {}
-        if section == "sequences":
-            entries = {k: _renamed_sequence_keys(v, f"{src}: sequences.{k}") for k, v in entries.items()}
         data[section] = {k: dataclass_from_dict(cls, v, f"{src}: {section}.{k}") for k, v in entries.items()}
     config = dataclass_from_dict(ExperimentConfig, data, src)
     if quick:
@@ -255,6 +242,35 @@ def _quick(config: ExperimentConfig, src: str) -> ExperimentConfig:
     networks = {k: dataclass_from_dict(NetworkSpec, dataclasses.asdict(v) | dict(quick.get("networks") or {}), f"{src}: quick.networks")
                 for k, v in config.networks.items()}
     return dataclasses.replace(config, sequences=sequences, networks=networks, seeds=tuple(quick.get("seeds", config.seeds)))
+
+
+# The mode sections' keys as the map cache key names them, one level deep: cache key -> (section, key).
+_CACHE_KEY_FIELDS = {
+    "block_depth": ("sbki", "block_depth"), "ds_resolution_m": ("sbki", "ds_resolution_m"),
+    "free_resolution_m": ("sbki", "free_resolution_m"), "max_range_m": ("sbki", "max_range_m"),
+    "scatter_strategy": ("clean", "scatter_strategy"), "ds_multiplier": ("release", "ds_multiplier"),
+    "convbki_lengths_file": ("convbki", "lengths_file"), "convbki_stencil_half": ("convbki", "stencil_half"),
+}
+
+
+def map_cache_fields(mapping: MappingConfig) -> dict:
+    """The mapping parameters as a cached map's key holds them: one level of keys, the mode sections'
+    under their ``_CACHE_KEY_FIELDS`` names (any other as section.key), None as -1 (max_range_m -1.0, ds_multiplier -1), and
+    threshold_scope only when it is not its default ``insertion``. The form is fixed: a key built any
+    other way would change every cached map's key, and a rerun would map them all again."""
+    nested = mapping.as_dict()
+    out = {k: v for k, v in nested.items() if k not in MAPPING_SECTIONS}
+    named = {place: name for name, place in _CACHE_KEY_FIELDS.items()}
+    for section in MAPPING_SECTIONS:
+        for key, value in nested[section].items():  # a key added to a section later is in the key as section.key
+            out[named.get((section, key), f"{section}.{key}")] = value
+    if out["max_range_m"] is None:
+        out["max_range_m"] = -1.0
+    if out["ds_multiplier"] is None:
+        out["ds_multiplier"] = -1
+    if out["threshold_scope"] == "insertion":
+        del out["threshold_scope"]
+    return out
 
 
 def _digest(*parts) -> str:
@@ -516,11 +532,7 @@ class Experiment:
         if mapping.kernel is Kernel.COMPOUND and not mapping.convbki.lengths_file:
             lengths = self.convbki_lengths(self.config.conditions[condition].network, mapping.resolution_m)
             mapping = mapping.replace(convbki={"lengths_file": str(lengths)})
-        # the flat form of before the mode sections: maps cached then keep their keys
-        described = legacy_flat_dict(mapping.as_dict())
-        if described["threshold_scope"] == "insertion":  # the key maps had before the option: their caches stay valid
-            del described["threshold_scope"]
-        key = _digest(described, str(self.alpha_dir(condition)), dataclasses.asdict(self.config.projection), bins.frame.as_dict(),
+        key = _digest(map_cache_fields(mapping), str(self.alpha_dir(condition)), dataclasses.asdict(self.config.projection), bins.frame.as_dict(),
                       __version__)
         map_path = self.out / "maps" / condition / f"{method}.npz"
         record_path = map_path.with_suffix(".json")

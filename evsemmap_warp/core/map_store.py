@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import files
-from ..config import MappingConfig, flat_items, upgrade_mapping_dict
+from ..config import MappingConfig, flat_items
 from ..frames import FrameError, WorldFrame, describe_frame
 from ..limits import check_tile_voxels
 from ..voxel_keys import pack_voxel_keys, voxel_index_of
@@ -438,8 +438,8 @@ class MapStore:
         if header.get("kind") != "tile":
             refuse(f"it is a {header.get('kind')!r} file, not a tile")
         if header.get("store") != self.identity:
-            mine = flat_items(upgrade_mapping_dict(self.index["mapping"]))
-            theirs = flat_items(upgrade_mapping_dict(header["mapping"])) if isinstance(header.get("mapping"), dict) else {}
+            mine = flat_items(self.index["mapping"])
+            theirs = flat_items(header["mapping"]) if isinstance(header.get("mapping"), dict) else {}
             differing = [f"{k} {theirs.get(k)!r} vs {mine[k]!r}" for k in mine if theirs.get(k) != mine[k]]
             if header.get("classes") != list(self.class_names):
                 differing.append(f"classes {header.get('classes')} vs {list(self.class_names)}")
