@@ -1,0 +1,45 @@
+"""``evsemmap dump-config``: print the resolved configuration (mapping, dataset, terrain layers and costs)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import yaml
+
+from ...config import load_config
+
+
+def add_parser(sub) -> None:
+    """Add ``dump-config`` to the ``evsemmap`` subcommands."""
+    p = sub.add_parser("dump-config", help="print the resolved configuration (mapping, dataset, terrain layers and costs)")
+    p.add_argument("configs", nargs="*")
+    p.add_argument("--method", default=None)
+    p.add_argument("--costs", type=Path, default=None, help="a terrain cost file laid over the default table (as evsemmap layers --costs)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    """Print the resolved configuration (mapping, dataset, pipeline, terrain layers and costs) as YAML."""
+    run = load_config(args.configs, method=args.method)
+    out = {"mapping": run.mapping.as_dict()}
+    if run.dataset is not None:
+        def plain(value):
+            if dataclasses.is_dataclass(value):
+                return {k: plain(v) for k, v in vars(value).items()}
+            return list(value) if isinstance(value, tuple) else getattr(value, "value", value)
+
+        out["dataset"] = {k: plain(v) for k, v in vars(run.dataset).items() if k != "bag" or run.dataset.kind == "bag"}
+    if run.bin_frames != 1:
+        out["pipeline"] = {"bin_frames": run.bin_frames}
+    from ...terrain import load_terrain_config
+
+    terrain = load_terrain_config(args.costs)
+    out["terrain"] = {"source": terrain.source, "layers": _plain_dataclass(terrain.layers), "costs": _plain_dataclass(terrain.costs)}
+    print(yaml.safe_dump(out, sort_keys=False), end="")
+    return 0
+
+
+def _plain_dataclass(value) -> dict:
+    """A settings dataclass as YAML-ready values (tuples as lists)."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(value).items()}
