@@ -1,18 +1,16 @@
 """Map files: exact round trips and clear errors for files that are not what they claim."""
 
 import json
-import zipfile
 
 import numpy as np
 import pytest
 
-from evsemmap_warp.config import legacy_flat_dict, load_config
+from evsemmap_warp.config import load_config
 from evsemmap_warp.core.map_file import FORMAT_VERSION, MAGIC, MapFileError, read_map_file
 from evsemmap_warp.core.mapper import read_map_arrays
 from evsemmap_warp.core.mapper import Mapper, load_map, save_map
 
 from conftest import REPO
-from legacy_maps import v2_arrays, write_v2_map
 
 
 @pytest.fixture
@@ -45,91 +43,54 @@ def test_round_trip_is_exact(tmp_path, small_map, device):
     np.testing.assert_array_equal(a.variance, b.variance)
 
 
-def test_a_map_written_before_the_mode_sections_loads_silently(tmp_path, small_map, capsys):
-    # map files record MappingConfig.as_dict(); before the sections it was flat, with -1 for "none"
-    data = v2_arrays(small_map)
-    meta = json.loads(str(data["meta"]))
-    assert meta["mapping"]["sbki"]["max_range_m"] is None and "block_depth" not in meta["mapping"]
-    meta["mapping"] = legacy_flat_dict(meta["mapping"])
-    data["meta"] = np.array(json.dumps(meta))
-    np.savez(tmp_path / "old.npz", **data)
-    capsys.readouterr()
-    old = load_map(tmp_path / "old.npz")
-    assert old.config == small_map.config and old.config.sbki.max_range_m is None and old.config.release.ds_multiplier is None
-    assert old.voxels().arrays.rows().tobytes() == small_map.voxels().arrays.rows().tobytes()
-    assert "deprecated" not in capsys.readouterr().err
-
 def test_saving_to_a_name_without_npz_suffix_keeps_the_name(tmp_path, small_map):
     path = save_map(tmp_path / "map.evsem", small_map)
     assert path.exists() and not (tmp_path / "map.evsem.npz").exists()
 
 
+def test_voxels_is_a_named_result_that_unpacks(small_map):
+    voxels = small_map.voxels()
+    arrays, summary = voxels
+    assert arrays is voxels.arrays is voxels[0] and summary is voxels.summary is voxels[1]
+    assert len(voxels.summary.label) == len(voxels.arrays.index) == small_map.voxel_count
+
+
 def test_truncated_file(tmp_path, small_map):
-    for write in (save_map, lambda path, mapper: write_v2_map(path, mapper)):
-        data = write(tmp_path / "m.npz", small_map).read_bytes()
-        cut = tmp_path / "cut.npz"
-        cut.write_bytes(data[: len(data) // 2])
-        with pytest.raises(MapFileError, match="truncated") as err:
-            load_map(cut)
-        assert "cut.npz" in str(err.value)
+    data = save_map(tmp_path / "m.npz", small_map).read_bytes()
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(MapFileError, match="truncated") as err:
+        load_map(cut)
+    assert "cut.npz" in str(err.value)
 
 
 def test_not_a_map_file(tmp_path):
     junk = tmp_path / "junk.npz"
     junk.write_bytes(b"definitely not a zip")
-    with pytest.raises(MapFileError, match="corrupt or truncated"):
+    with pytest.raises(MapFileError, match=r"junk.npz: not an evsemmap map file \(a version-3 map file begins with EVSMMAP3\)"):
         load_map(junk)
     other = tmp_path / "other.npz"
-    np.savez(other, a=np.zeros(3))
+    np.savez(other, a=np.zeros(3), format_version=np.zeros(10**5, np.int64))  # no map's version, and too big to be one
     with pytest.raises(MapFileError, match="not an evsemmap map file"):
         load_map(other)
     with pytest.raises(MapFileError, match="no such map file"):
         load_map(tmp_path / "missing.npz")
 
 
-def _rewrite(path, out, **changes):
-    with np.load(path, allow_pickle=False) as d:
-        arrays = {k: d[k] for k in d.files}
-    arrays.update(changes)
-    np.savez(out, **arrays)
-    return out
+@pytest.mark.parametrize("version", [1, 2])
+def test_an_npz_map_of_an_earlier_version_is_refused_naming_it(tmp_path, version):
+    """Versions 1 and 2 (one npz of every array) were written only by this repository's earlier versions."""
+    old = tmp_path / f"v{version}.npz"
+    np.savez(old, format_version=np.int64(version), meta=np.array("{}"), evidence=np.zeros((1, 3)))
+    with pytest.raises(MapFileError, match=rf"v{version}.npz: map format version {version}; this evsemmap_warp reads version 3 only"):
+        load_map(old)
 
 
-def test_other_format_version_is_refused(tmp_path, small_map):
-    path = write_v2_map(tmp_path / "m.npz", small_map)
-    meta = json.loads(str(np.load(path)["meta"]))
-    meta["format_version"] = 99
-    bad = _rewrite(path, tmp_path / "v99.npz", meta=np.array(json.dumps(meta)), format_version=np.int64(99))
-    with pytest.raises(MapFileError, match="format version 99.*reads versions 1, 2, 3"):
+def test_another_format_version_in_the_header_is_refused(tmp_path, tiny_map_file):
+    head, _ = _parts(tiny_map_file)
+    bad = _rewrite_v3(tiny_map_file, tmp_path / "v99.npz", {"format_version": 99, "meta": head["meta"] | {"format_version": 99}})
+    with pytest.raises(MapFileError, match=r"v99.npz: map format version 99; this evsemmap_warp reads version 3 only"):
         load_map(bad)
-
-
-def test_inconsistent_shapes_and_pickled_objects_are_refused(tmp_path, small_map):
-    path = write_v2_map(tmp_path / "m.npz", small_map)
-    bad = _rewrite(path, tmp_path / "shape.npz", alpha=np.zeros((3, 9), np.float32))
-    with pytest.raises(MapFileError, match="field 'alpha' has shape"):
-        load_map(bad)
-    pickled = _rewrite(path, tmp_path / "pickle.npz", meta=np.array([{"a": 1}], dtype=object))
-    with pytest.raises(MapFileError, match="holds Python objects"):
-        load_map(pickled)
-    with zipfile.ZipFile(path) as z:
-        assert all(not n.endswith(".pkl") for n in z.namelist())
-
-
-def test_version_1_files_still_load(tmp_path, small_map):
-    """The first format: float32 values, int32 indices, no origin (the map sat at 0)."""
-    arrays = {k: v for k, v in v2_arrays(small_map).items() if k != "origin"}
-    meta = json.loads(str(arrays["meta"])) | {"format_version": 1}
-    arrays |= {"meta": np.array(json.dumps(meta)), "format_version": np.int64(1), "voxel_index": arrays["voxel_index"].astype(np.int32)}
-    for name in ("alpha", "evidence", "variance", "weight_sum", "weighted_uncertainty_sum"):
-        arrays[name] = arrays[name].astype(np.float32)
-    old = tmp_path / "v1.npz"
-    np.savez(old, **arrays)
-    loaded = load_map(old)
-    (a, sa), (b, sb) = small_map.voxels(), loaded.voxels()
-    np.testing.assert_array_equal(a.index, b.index)
-    np.testing.assert_allclose(a.evidence, b.evidence, rtol=1e-6)
-    assert (sa.label != sb.label).sum() <= 2  # float32 rounding may decide a near-tie
 
 
 # ------------------------------------------------------------------------------------- version 3
@@ -143,18 +104,6 @@ def test_a_round_trip_gives_the_same_bytes_and_sums(tmp_path, small_map):
     assert contents.voxels().rows().tobytes() == arrays.rows().tobytes()
     again = save_map(tmp_path / "again.npz", load_map(path))
     assert again.read_bytes() == path.read_bytes()
-
-
-def test_version_2_files_read_as_the_same_map(tmp_path, small_map):
-    new, old = save_map(tmp_path / "new.npz", small_map), write_v2_map(tmp_path / "old.npz", small_map)
-    (a, meta_a), (b, meta_b) = read_map_arrays(new), read_map_arrays(old)
-    assert a.keys() == b.keys() and meta_b["format_version"] == 2
-    assert {k: v for k, v in meta_a.items() if k != "format_version"} == {k: v for k, v in meta_b.items() if k != "format_version"}
-    for name in a:
-        if name not in ("format_version", "meta"):
-            assert a[name].dtype == b[name].dtype and a[name].tobytes() == b[name].tobytes(), name
-    assert save_map(tmp_path / "resaved.npz", load_map(old)).read_bytes() == new.read_bytes()
-    assert new.stat().st_size * 2 < old.stat().st_size  # random sums: the drive test measures the real ratio
 
 
 def _parts(path):

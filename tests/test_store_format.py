@@ -1,7 +1,7 @@
-"""The store format (issue 32): format-2 tiles and partials are compact and exact, the streaming
-reduction's fold gives the bits a one-shot sum gives, format-1 stores still read, a new run refuses an
-old store naming its format, and a full disk (a real one, where this test may mount a small tmpfs)
-loses nothing: the rerun resumes to the store an uninterrupted run writes."""
+"""The store format: format-2 tiles and partials are compact and exact, the streaming reduction's fold
+gives the bits a one-shot sum gives, a format-1 store is refused naming its format (and so is a new run
+into one), and a full disk (a real one, where this test may mount a small tmpfs) loses nothing: the
+rerun resumes to the store an uninterrupted run writes."""
 
 import json
 import os
@@ -102,26 +102,22 @@ def test_a_map_file_costs_about_what_its_store_costs(drive, tmp_path, capsys):
     assert np.all(high - low > 5) and np.all(low < high)
 
 
-def test_a_format_1_store_still_reads_as_it_was_written(tmp_path, capsys):
-    store = MapStore(V1 / "store")
-    assert store.format_version == 1 and store.voxel_count == 1050
-    expected = load_map(V1 / "map.npz")
-    # both recorded the flat mapping keys of before the mode sections; the -1 sentinels read None
-    assert "block_depth" in json.loads((V1 / "store" / "store.json").read_text())["mapping"]
-    assert (store.config.sbki.max_range_m, store.config.release.ds_multiplier) == (None, None) and store.config == expected.config
-    (a, sa), (b, sb) = store.to_mapper().voxels(), expected.voxels()
-    np.testing.assert_array_equal(a.index, b.index)
-    assert a.rows().tobytes() == b.rows().tobytes()
-    np.testing.assert_array_equal(sa.label, sb.label)
-    points = expected.voxel_centers(b.index[::7])
-    np.testing.assert_array_equal(store.query(points).probabilities, expected.query(points).probabilities)
-    assert main(["info", str(V1 / "store")]) == 0
-    assert json.loads(capsys.readouterr().out)["format_version"] == 1
-    assert main(["export", str(V1 / "store"), "--out", str(tmp_path / "export.npz")]) == 0
-    capsys.readouterr()
-    assert load_map(tmp_path / "export.npz").voxels()[0].rows().tobytes() == b.rows().tobytes()
-    contents = store.tile_contents(sorted(store.tiles)[0])  # the viewer's reader of tiles
-    assert len(contents.index) == store.tiles[sorted(store.tiles)[0]]["voxels"]
+def test_a_format_1_store_and_a_version_2_map_file_are_refused_naming_their_version(capsys):
+    """What this repository's earlier writers left (tests/data/store_v1) is refused in one line that names
+    the file, its version and the version this release reads."""
+    from evsemmap_warp.core.map_file import MapFileError
+    from evsemmap_warp.core.map_store import StoreError
+
+    index = V1 / "store" / "store.json"
+    with pytest.raises(StoreError, match=r"store format version 1; this evsemmap_warp reads version 2 only") as err:
+        MapStore(V1 / "store")
+    assert str(index) in str(err.value)
+    with pytest.raises(MapFileError, match=r"map format version 2; this evsemmap_warp reads version 3 only") as err:
+        load_map(V1 / "map.npz")
+    assert str(V1 / "map.npz") in str(err.value)
+    for command in (["info", V1 / "store"], ["export", V1 / "store", "--out", "never.npz"], ["info", V1 / "map.npz"]):
+        line = _cli_error(capsys, *command)
+        assert str(command[1]) in line and "reads version" in line
 
 
 def test_a_new_run_refuses_an_old_store_naming_its_format(drive, tmp_path, capsys):

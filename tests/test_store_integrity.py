@@ -15,7 +15,6 @@ import pytest
 from evsemmap_warp.apps.batch import BatchOptions, run_batch
 from evsemmap_warp.apps.cli import main
 from evsemmap_warp.config import ConfigError, load_config
-from evsemmap_warp.core.map_file import write_npz
 from evsemmap_warp.core.map_store import MapStore, StoreError
 from evsemmap_warp.core.mapper import Mapper, load_map
 from evsemmap_warp.synthetic.preset import load_preset

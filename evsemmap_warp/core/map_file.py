@@ -9,28 +9,19 @@ needs once, compressed as a store's tiles are (core/tile_codec.py's columns in o
           ``VoxelArrays.rows()`` (evidence, weight sum, weighted-uncertainty sum, contribution count,
           touched), voxels in ascending key order (x, then y, then z index), each once.
   meta: classes, the method and all its parameters, the grid offset, the world frame ({"name", "crs"}:
-        the frame centers and origin are in, docs/algorithm.md §6.6), provenance, scan_ids (the
+        the frame centers and origin are in, docs/algorithm.md §6.6), provenance and scan_ids (the
         fingerprints of the scans the map holds, core/mapper.scan_fingerprint; optional: a merge refuses
-        maps holding a scan in common) and, in a format-1 store's tile, tile (core/map_store.py).
+        maps holding a scan in common).
 
 Centers, concentrations (alpha), labels, states and variance are derived on reading, as a Mapper derives
-them (``core.mapper.read_map_arrays`` gives them in the schema of versions 1 and 2; ``read_map_file`` does
-not derive them). Voxel i's center is (i + 0.5) * resolution + grid offset. A round trip is exact.
-
-Versions 1 and 2 are one ``.npz`` (no pickle) holding every array, derived ones included (V voxels, K classes):
-  centers [V, 3] float64                         voxel_index [V, 3] int64 global grid indices
-  alpha [V, K] float64 concentrations            label [V] int32 argmax class (lowest on ties)
-  evidence [V, K] float64 alpha - prior          state [V] int8 0 UNKNOWN, 1 FREE, 2 OCCUPIED
-  variance [V] float64 of the label's class      weight_sum, weighted_uncertainty_sum [V] float64
-  hits [V] int64 number of contributions         touched [V] bool updated at least once
-  resolution float64 (m)                         origin [3] float64 (version 1: none, float32 values)
-  format_version int                             meta: JSON string, as above
-They are still read.
+them (``file_arrays`` gives every array of a map, derived ones included; ``read_map_file`` does not derive
+them). Voxel i's center is (i + 0.5) * resolution + grid offset. A round trip is exact.
 
 Reading validates the content, not only the shapes: every declared size against what the file holds
 (before anything of that size is allocated), finite non-negative sums, unique integer indices within
-the key range around the origin (in key order, version 3), the origin on the lattice, resolution and
-meta agreeing, meta keys present with the right types.
+the key range around the origin, in key order, the origin on the lattice, resolution and meta agreeing,
+meta keys present with the right types. A file of another format version (the ``.npz`` of every array
+that versions 1 and 2 were) is refused, naming its version.
 """
 
 from __future__ import annotations
@@ -52,12 +43,8 @@ from .voxel_map import EXTRA_COLUMNS, VoxelArrays
 
 FORMAT_NAME = "evsemmap_warp.map"
 FORMAT_VERSION = 3
-READABLE_VERSIONS = (1, 2, 3)
 MAGIC = b"EVSMMAP3"
 _HEADER_LIMIT = 1 << 26  # a header beyond 64 MB (meta with its scan ids) is not one this writes
-_PER_VOXEL = ("centers", "voxel_index", "alpha", "evidence", "label", "state", "variance", "weight_sum",
-              "weighted_uncertainty_sum", "hits", "touched")
-_REQUIRED = _PER_VOXEL + ("resolution", "format_version", "meta")
 # meta key -> accepted types
 _META_TYPES = {"format": (str,), "classes": (list,), "num_classes": (int,), "method": (str,), "mapping": (dict,),
                "grid_offset_m": (int, float), "scans_integrated": (int,), "points_integrated": (int,), "format_version": (int,)}
@@ -136,9 +123,17 @@ def _payload_parts(voxels: VoxelArrays, low: np.ndarray, dtype: np.dtype):
 
 
 def file_arrays(contents: MapContents) -> dict[str, np.ndarray]:
-    """Every array of the map-file schema (versions 1 and 2 stored them all; ``read_map_arrays`` gives
-    them back) of ``contents`` with its read-out (``core.mapper.with_read_out``), in the schema's types: for readers
-    that want every array of a map."""
+    """Every array of a map (V voxels, K classes), derived ones included, of ``contents`` with its read-out
+    (``core.mapper.with_read_out``): for readers that want them all (``core.mapper.read_map_arrays``).
+
+      centers [V, 3] float64                         voxel_index [V, 3] int64 global grid indices
+      alpha [V, K] float64 concentrations            label [V] int32 argmax class (lowest on ties)
+      evidence [V, K] float64 alpha - prior          state [V] int8 0 UNKNOWN, 1 FREE, 2 OCCUPIED
+      variance [V] float64 of the label's class      weight_sum, weighted_uncertainty_sum [V] float64
+      hits [V] int64 number of contributions         touched [V] bool updated at least once
+      resolution float64 (m)                         origin [3] float64 (m)
+      format_version int                             meta: JSON string, as the file's
+    """
     meta = contents.meta | {"format_version": FORMAT_VERSION}
     return dict(
         centers=contents.centers,
@@ -159,61 +154,41 @@ def file_arrays(contents: MapContents) -> dict[str, np.ndarray]:
     )
 
 
-def write_npz(file, **arrays: np.ndarray) -> None:
-    """np.savez's format (an uncompressed zip of .npy members, readable by np.load) with fixed member
-    timestamps, so that the same arrays give the same bytes: np.savez stamps each member with the
-    time of writing, and stores and maps are compared byte for byte."""
-    with zipfile.ZipFile(file, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as archive:
-        for name, value in arrays.items():
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.external_attr = 0o644 << 16
-            with archive.open(info, "w", force_zip64=True) as member:
-                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
-
-
 def lattice_index(origin: np.ndarray, resolution: float) -> np.ndarray:
     """[3] int64: the voxel-lattice index nearest a map origin (m)."""
     return np.round(np.asarray(origin, np.float64) / resolution).astype(np.int64)
 
 
-def _check_member_sizes(path: Path) -> None:
-    """Refuse a member whose .npy header declares more data than the member holds (a lying or
-    corrupt header would otherwise make numpy allocate it), or an object array (pickle)."""
-    with zipfile.ZipFile(path) as archive:
-        for info in archive.infolist():
-            with archive.open(info) as member:
-                version = np.lib.format.read_magic(member)
-                read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-                shape, _, dtype = read_header(member)
-                if dtype.hasobject:
-                    raise MapFileError(f"{path}: member {info.filename!r} holds Python objects (pickle); map files never do")
-                declared = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
-                available = info.file_size - member.tell()
-                if declared > available:
-                    raise MapFileError(f"{path}: member {info.filename!r} declares shape {list(shape)} ({declared:,} bytes) "
-                                       f"but holds {available:,} bytes: truncated or corrupt")
-
-
 def read_map_file(path) -> MapContents:
-    """A validated map file (any readable version) with its mapping config, ready to become a Mapper;
-    the read-out of a version-3 file is not derived (``core.mapper.with_read_out``)."""
+    """A validated map file with its mapping config, ready to become a Mapper; its read-out is not
+    derived (``core.mapper.with_read_out``). A file of another format is refused in one line."""
     path = Path(path)
-    if is_compact(path):
-        return _read_compact(path)
-    arrays, meta = read_npz_arrays(path)
-    config = mapping_config(path, meta)
-    origin = arrays["origin"].astype(np.float64)
-    return MapContents(
-        meta=meta, origin=origin, index=arrays["voxel_index"].astype(np.int64), evidence=arrays["evidence"].astype(np.float64),
-        alpha=arrays["alpha"], centers=arrays["centers"], weight_sum=arrays["weight_sum"].astype(np.float64),
-        weighted_uncertainty_sum=arrays["weighted_uncertainty_sum"].astype(np.float64), hits=arrays["hits"].astype(np.int64),
-        touched=arrays["touched"].astype(bool), resolution=float(arrays["resolution"]), config=config,
-        origin_index=lattice_index(origin, float(arrays["resolution"])), frame=WorldFrame.from_dict(meta.get("frame"), str(path)),
-    )
+    if not is_compact(path):
+        version = _npz_format_version(path)
+        if version is not None:
+            raise MapFileError(f"{path}: map format version {version}; this evsemmap_warp reads version {FORMAT_VERSION} only "
+                               f"(map the data again with it)")
+        raise MapFileError(f"{path}: not an evsemmap map file (a version-{FORMAT_VERSION} map file begins with {MAGIC.decode()})")
+    return _read_compact(path)
+
+
+def _npz_format_version(path: Path) -> int | None:
+    """The format version an ``.npz`` map of versions 1 and 2 states in its format_version member, or None
+    when ``path`` is no such file (the member is read only when it is a scalar's few bytes)."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            info = archive.getinfo("format_version.npy")
+            if info.file_size > 1024:
+                return None
+            with archive.open(info) as member:
+                value = np.lib.format.read_array(member, allow_pickle=False)
+    except (zipfile.BadZipFile, KeyError, OSError, ValueError, EOFError):
+        return None
+    return int(value) if value.shape == () and np.issubdtype(value.dtype, np.integer) else None
 
 
 def is_compact(path: Path) -> bool:
-    """Whether ``path`` is a version-3 map file by its signature (else it is read as a version 1 or 2 npz)."""
+    """Whether ``path`` begins with a version-3 map file's signature."""
     try:
         with open(path, "rb") as f:
             return f.read(len(MAGIC)) == MAGIC
@@ -225,7 +200,7 @@ def is_compact(path: Path) -> bool:
 
 def _read_compact(path: Path) -> MapContents:
     """A version-3 file, validated: header, payload size and checksums, sizes before decompressing, then
-    the voxels and the meta as a version 1 or 2 file's are."""
+    the voxels and the meta."""
     try:
         data = path.read_bytes()
     except OSError as exc:
@@ -329,58 +304,16 @@ def _check_lattice(path: Path, meta: dict, resolution: float, origin: np.ndarray
         raise MapFileError(f"{path}: origin {origin.tolist()} is not on the voxel lattice (a whole number of {resolution} m voxels)")
 
 
-def read_npz_arrays(path: Path) -> tuple[dict[str, np.ndarray], dict]:
-    """Every array of a version 1 or 2 file and its parsed meta, validated."""
-    try:
-        _check_member_sizes(path)
-        with np.load(path, allow_pickle=False) as data:
-            missing = [k for k in _REQUIRED if k not in data.files]
-            if missing:
-                raise MapFileError(f"{path}: not an evsemmap map file (missing {missing})")
-            arrays = {k: data[k] for k in data.files}
-    except MapFileError:
-        raise
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as exc:
-        raise MapFileError(f"{path}: corrupt or truncated map file ({type(exc).__name__}: {exc})") from None
-    meta = _read_meta(path, arrays)
-    version = int(meta["format_version"])
-    if version == 1:
-        arrays["origin"] = np.zeros(3)
-    elif "origin" not in arrays:
-        raise MapFileError(f"{path}: not an evsemmap map file (missing ['origin'])")
-    _validate_arrays(path, arrays, meta)
-    mapping_config(path, meta)
-    return arrays, meta
-
-
 def mapping_config(path, meta: dict) -> MappingConfig:
-    """The map's MappingConfig from meta.mapping (flat keys of before the mode sections included), or a
-    MapFileError naming what is wrong."""
+    """The map's MappingConfig from meta.mapping, or a MapFileError naming what is wrong."""
     try:
         return MappingConfig.from_dict(meta["mapping"], "meta.mapping")
     except ConfigError as exc:
         raise MapFileError(f"{path}: field 'meta.mapping' is not a valid mapping config ({exc})") from None
 
 
-def _read_meta(path: Path, arrays: dict) -> dict:
-    """A version 1 or 2 file's meta member, parsed and checked, agreeing with its format_version member."""
-    try:
-        meta = json.loads(str(arrays["meta"]))
-    except json.JSONDecodeError as exc:
-        raise MapFileError(f"{path}: field 'meta' is not valid JSON ({exc})") from None
-    if not isinstance(meta, dict):
-        raise MapFileError(f"{path}: field 'meta' must be a JSON object, got {type(meta).__name__}")
-    file_version = arrays["format_version"]
-    if file_version.shape != () or not np.issubdtype(file_version.dtype, np.integer):
-        raise MapFileError(f"{path}: format_version {file_version!r} is not a whole number")
-    meta = _check_meta(path, meta, int(file_version))
-    if meta["format_version"] == FORMAT_VERSION:
-        raise MapFileError(f"{path}: an npz says format version {FORMAT_VERSION}, whose files are not npz (corrupt)")
-    return meta
-
-
 def _check_meta(path: Path, meta: dict, file_version: int) -> dict:
-    """``meta`` checked: every key of the right type, the format and a readable version agreeing with the
+    """``meta`` checked: every key of the right type, the format and this version agreeing with the
     file's own ``file_version``, classes, counts, scan ids and frame."""
     for key, types in _META_TYPES.items():
         if key not in meta:
@@ -392,9 +325,9 @@ def _check_meta(path: Path, meta: dict, file_version: int) -> dict:
         raise MapFileError(f"{path}: meta.format is {meta['format']!r}, not {FORMAT_NAME!r}")
     if file_version != meta["format_version"]:
         raise MapFileError(f"{path}: format_version {file_version!r} disagrees with meta.format_version {meta['format_version']}")
-    if meta["format_version"] not in READABLE_VERSIONS:
-        raise MapFileError(f"{path}: map format version {meta['format_version']}; this evsemmap_warp reads versions "
-                           f"{', '.join(map(str, READABLE_VERSIONS))}")
+    if meta["format_version"] != FORMAT_VERSION:
+        raise MapFileError(f"{path}: map format version {meta['format_version']}; this evsemmap_warp reads version {FORMAT_VERSION} "
+                           f"only (map the data again with it)")
     if meta["num_classes"] < 2 or len(meta["classes"]) != meta["num_classes"] or not all(isinstance(c, str) for c in meta["classes"]):
         raise MapFileError(f"{path}: meta lists {len(meta['classes'])} class names for {meta['num_classes']} classes "
                            f"(names must be strings, at least 2 classes)")
@@ -408,50 +341,3 @@ def _check_meta(path: Path, meta: dict, file_version: int) -> dict:
     except FrameError as exc:
         raise MapFileError(str(exc)) from None
     return meta
-
-
-def _validate_arrays(path: Path, arrays: dict, meta: dict) -> None:
-    def fail(text: str):
-        raise MapFileError(f"{path}: {text}")
-
-    v = len(arrays["voxel_index"]) if arrays["voxel_index"].ndim else -1
-    k = meta["num_classes"]
-    expected = {"centers": (v, 3), "voxel_index": (v, 3), "alpha": (v, k), "evidence": (v, k), "label": (v,), "state": (v,),
-                "variance": (v,), "weight_sum": (v,), "weighted_uncertainty_sum": (v,), "hits": (v,), "touched": (v,),
-                "resolution": (), "origin": (3,)}
-    for name, shape in expected.items():
-        if arrays[name].shape != shape:
-            fail(f"field {name!r} has shape {list(arrays[name].shape)}, expected {list(shape)} ({v} voxels, {k} classes)")
-    for name in ("voxel_index", "label", "state", "hits"):
-        if not np.issubdtype(arrays[name].dtype, np.integer):
-            fail(f"field {name!r} must hold integers, got {arrays[name].dtype}")
-    for name in ("centers", "alpha", "evidence", "variance", "weight_sum", "weighted_uncertainty_sum", "resolution", "origin"):
-        if not np.issubdtype(arrays[name].dtype, np.floating):
-            fail(f"field {name!r} must hold floats, got {arrays[name].dtype}")
-        bad = ~np.isfinite(arrays[name])
-        if bad.any():
-            fail(f"field {name!r} holds {int(bad.sum())} NaN/inf values")
-    for name in ("evidence", "weight_sum", "hits"):
-        if v and arrays[name].min() < 0:
-            fail(f"field {name!r} holds negative values (min {arrays[name].min()}); evidence, weights and counts only grow")
-    if v and (arrays["label"].min() < 0 or arrays["label"].max() >= k):
-        fail(f"field 'label' holds values outside [0, {k - 1}]")
-    if v and not np.isin(arrays["state"], (0, 1, 2)).all():
-        fail("field 'state' holds values other than 0 (UNKNOWN), 1 (FREE), 2 (OCCUPIED)")
-    resolution = float(arrays["resolution"])
-    _check_lattice(path, meta, resolution, arrays["origin"])
-    origin_index = lattice_index(arrays["origin"], resolution)
-    index = arrays["voxel_index"].astype(np.int64)
-    try:
-        check_index_range(index - origin_index, "voxel indices")
-    except ValueError as exc:
-        fail(str(exc))
-    if v:
-        order = np.lexsort(index.T[::-1])
-        sorted_index = index[order]
-        repeated = np.all(sorted_index[1:] == sorted_index[:-1], axis=1)
-        if repeated.any():
-            fail(f"voxel index {sorted_index[1:][repeated][0].tolist()} appears more than once")
-        centers = (index + 0.5) * resolution + float(meta["grid_offset_m"])
-        if np.abs(centers - arrays["centers"]).max() > _LATTICE_TOLERANCE * resolution + 1e-9 * np.abs(centers).max():
-            fail("field 'centers' disagrees with voxel_index, resolution and meta.grid_offset_m")

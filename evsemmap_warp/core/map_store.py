@@ -14,11 +14,11 @@ process's memory (written by ``evsemmap batch``, read here).
     STORE/work/             a batch run's plan and chunk records, and the partial maps (chunk_N/X_Y_Z.vox,
                             same codec) of chunks not yet folded into the tiles, so that a rerun resumes
 
-Format 1 stores (tiles/X_Y_Z.npz in the map-file schema, 230 B a voxel) are still read. Every file is
-written under a temporary name and renamed, so a killed writer never leaves a file that looks whole;
-files hold no pickle, and the same content gives the same bytes. Opening a store reads the index only; a
-query loads the tiles its points fall in, nothing else; the read-out (centers, concentrations, labels,
-states, variance) is derived from the sums on reading, as a Mapper derives it.
+A store of another format version is refused, naming its version. Every file is written under a
+temporary name and renamed, so a killed writer never leaves a file that looks whole; files hold no
+pickle, and the same content gives the same bytes. Opening a store reads the index only; a query loads
+the tiles its points fall in, nothing else; the read-out (centers, concentrations, labels, states,
+variance) is derived from the sums on reading, as a Mapper derives it.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ import numpy as np
 
 from .. import files
 from ..config import MappingConfig, flat_items
-from ..frames import FrameError, WorldFrame, describe_frame
+from ..frames import FrameError, WorldFrame
 from ..limits import check_tile_voxels
 from ..voxel_keys import pack_voxel_keys, voxel_index_of
 from . import map_file, tile_codec
@@ -42,8 +42,7 @@ from .voxel_map import EXTRA_COLUMNS, VoxelArrays
 
 STORE_FORMAT = "evsemmap_warp.store"
 STORE_VERSION = 2
-READABLE_STORE_VERSIONS = (1, 2)
-TILE_SUFFIX = {1: ".npz", 2: ".vox"}  # by store format version
+TILE_SUFFIX = {STORE_VERSION: ".vox"}  # by store format version
 PARTIAL_SUFFIX = ".vox"
 INDEX_NAME = "store.json"
 DEFAULT_TILE_VOXELS = 256  # 51.2 m at 0.2 m: a few MB per tile of a LiDAR map
@@ -181,17 +180,6 @@ def template_identity(template: Mapper, tile_voxels: int) -> str:
                           template.origin_index, tile_voxels, template.grid_offset_m)
 
 
-def voxel_checksum(voxels: VoxelArrays) -> str:
-    """SHA-256 of a format-1 tile's voxels (indices and every accumulated column, as the map file stores them)."""
-    digest = hashlib.sha256()
-    for array, dtype in ((voxels.index, np.int64), (voxels.evidence, np.float64), (voxels.weight_sum, np.float64),
-                         (voxels.weighted_uncertainty_sum, np.float64), (voxels.hits, np.int64), (voxels.touched, bool)):
-        array = np.ascontiguousarray(array, dtype)
-        digest.update(str(array.shape).encode())
-        digest.update(array.tobytes())
-    return digest.hexdigest()
-
-
 def tile_entry(template: Mapper, voxels: VoxelArrays) -> dict:
     """A tile's entry in store.json: its voxel count, the box its voxels fill (m) and its voxels per state."""
     summary = template.summarize(voxels.evidence, voxels.touched)
@@ -258,7 +246,6 @@ class MapStore:
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise StoreError(f"{index_path}: not a readable store index ({exc})") from None
         self._validate()
-        # stores written before the mode sections hold flat keys; their identity stays what they recorded
         self.config = MappingConfig.from_dict(self.index["mapping"], f"{index_path}: mapping")
         self.class_names = tuple(self.index["classes"])
         self.num_classes = len(self.class_names)
@@ -273,7 +260,7 @@ class MapStore:
         self.template = template_mapper(self.config, self.class_names, self.index["origin_index"], self.frame)
         self.identity = store_identity(self.index["mapping"], self.class_names, self.index.get("frame"), self.index["origin_index"],
                                        self.tile_voxels, self.index.get("grid_offset_m", self.template.grid_offset_m))
-        if "identity" in self.index and self.index["identity"] != self.identity:
+        if self.index["identity"] != self.identity:
             raise StoreError(f"{index_path}: its method, parameters, classes, frame, origin or tiling were changed after it was written "
                              f"(identity {str(self.index['identity'])[:16]}... vs {self.identity[:16]}... of its content)")
         self.scan_ids = None if self.index.get("scan_ids") is None else set(self.index["scan_ids"])
@@ -285,7 +272,7 @@ class MapStore:
     def _refuse_unlisted_tiles(self, index_path: Path) -> None:
         """A tile file the index does not list: the index was edited or belongs to other tiles, and
         every read-out would silently lack its voxels (a listed tile missing on disk is refused on reading)."""
-        suffix = TILE_SUFFIX[self.format_version]
+        suffix = TILE_SUFFIX[STORE_VERSION]
         unlisted = sorted(p.name for p in (self.path / "tiles").glob(f"*{suffix}") if not p.name.startswith(".") and p.stem not in self.tiles)
         if unlisted:
             raise StoreError(f"{self.path / 'tiles' / unlisted[0]}: a tile file that {index_path} does not list ({len(unlisted)} such: "
@@ -298,11 +285,11 @@ class MapStore:
         index = self.index
         if not isinstance(index, dict) or index.get("format") != STORE_FORMAT:
             raise StoreError(f"{where}: not an {STORE_FORMAT} index")
-        if index.get("format_version") not in READABLE_STORE_VERSIONS or isinstance(index.get("format_version"), bool):
-            raise StoreError(f"{where}: store format version {index.get('format_version')!r}; this version of evsemmap_warp reads "
-                             f"{', '.join(map(str, READABLE_STORE_VERSIONS))}")
-        if index["format_version"] >= 2 and not isinstance(index.get("identity"), str):
-            raise StoreError(f"{where}: key 'identity' missing or not a string (every format-{index['format_version']} store records it)")
+        if index.get("format_version") != STORE_VERSION or isinstance(index.get("format_version"), bool):
+            raise StoreError(f"{where}: store format version {index.get('format_version')!r}; this evsemmap_warp reads version "
+                             f"{STORE_VERSION} only (map the data again with it)")
+        if not isinstance(index.get("identity"), str):
+            raise StoreError(f"{where}: key 'identity' missing or not a string (every format-{STORE_VERSION} store records it)")
         for key, kind in (("mapping", dict), ("classes", list), ("tiles", dict), ("origin_index", list), ("tile_voxels", int),
                           ("scans", int), ("points", int)):
             if not isinstance(index.get(key), kind) or isinstance(index.get(key), bool):
@@ -366,12 +353,12 @@ class MapStore:
 
     @property
     def format_version(self) -> int:
-        """The store's format: 2 (compact tiles, written now) or 1 (map-file tiles, read only)."""
+        """The store's format version (the one this evsemmap_warp writes: others are refused on opening)."""
         return int(self.index["format_version"])
 
     def tile_path(self, name: str) -> Path:
-        """Where tile ``name``'s file is (its suffix depends on the store's format)."""
-        return self.path / "tiles" / f"{name}{TILE_SUFFIX[self.format_version]}"
+        """Where tile ``name``'s file is."""
+        return self.path / "tiles" / f"{name}{TILE_SUFFIX[STORE_VERSION]}"
 
     def tile(self, name: str) -> Mapper:
         """Tile ``name`` as a read-only Mapper (validated on reading; its origin, frame and scan counts
@@ -414,14 +401,6 @@ class MapStore:
         if name not in self.tiles:
             raise StoreError(f"{self.path}: no tile {name}")
         path = self.tile_path(name)
-        if self.format_version == 1:
-            try:
-                contents = map_file.read_map_file(path)
-            except (map_file.MapFileError, OSError, ValueError) as exc:
-                raise StoreError(str(exc) if str(path) in str(exc) else f"{path}: {exc}") from None
-            self._check_tile(name, path, contents)
-            return VoxelArrays(index=contents.index, evidence=contents.evidence, weight_sum=contents.weight_sum,
-                               weighted_uncertainty_sum=contents.weighted_uncertainty_sum, hits=contents.hits, touched=contents.touched)
         try:
             header, index, rows = tile_codec.read_voxel_file(path)
         except tile_codec.VoxelFileError as exc:
@@ -431,7 +410,7 @@ class MapStore:
         return VoxelArrays.from_rows(index, rows)
 
     def _check_tile_header(self, name: str, path: Path, header: dict, voxels: int, columns: int) -> None:
-        """Refuse a format-2 tile that does not belong to this store, naming what differs."""
+        """Refuse a tile that does not belong to this store, naming what differs."""
         def refuse(text: str):
             raise StoreError(f"{path}: {text}; this tile does not belong to the store {self.path}")
 
@@ -455,40 +434,6 @@ class MapStore:
         expected = self.tiles[name]["voxels"]
         if voxels != expected:
             raise StoreError(f"{path}: {voxels} voxels, the index says {expected}")
-
-    def _check_tile(self, name: str, path: Path, contents: "map_file.MapContents") -> None:
-        """Refuse a format-1 tile that does not belong to this store, naming what differs: another store's (its
-        recorded identity, or its method, parameters, classes or frame), another tile's place, voxels
-        changed since writing (the checksum), or a voxel count other than the index's."""
-        def refuse(text: str):
-            raise StoreError(f"{path}: {text}; this tile does not belong to the store {self.path}")
-
-        record = contents.meta.get("tile")
-        if record is not None and not (isinstance(record, dict) and all(isinstance(record.get(k), str) for k in ("store", "name", "checksum"))):
-            refuse(f"meta.tile must name its store, tile and checksum, got {str(record)[:80]}")
-        if contents.config != self.config or tuple(contents.meta["classes"]) != self.class_names:
-            mine, theirs = flat_items(self.config.as_dict()), flat_items(contents.config.as_dict())
-            differing = [f"{k} {theirs[k]!r} vs {mine[k]!r}" for k in mine if mine[k] != theirs[k]]
-            refuse("its " + (", ".join(differing) if differing else f"classes {contents.meta['classes']} vs {list(self.class_names)}"))
-        if contents.frame != self.frame:
-            refuse(f"the tile is in {describe_frame(contents.frame)}, its store in {describe_frame(self.frame)}")
-        if record is None and "identity" in self.index:
-            refuse("it records no store (a tile of a store written before tiles recorded theirs, or a map file)")
-        if record is not None:
-            if record["store"] != self.identity:
-                refuse(f"it was written for another store (identity {record['store'][:16]}..., this store's {self.identity[:16]}...: "
-                       f"another origin, tiling or parameters)")
-            if record["name"] != name:
-                refuse(f"it is tile {record['name']}, not {name}")
-        if len(contents.index) and (tile_keys(contents.index, self.tile_voxels) != parse_tile_name(name)).any():
-            refuse(f"it holds voxels outside tile {name} (tile_voxels {self.tile_voxels})")
-        voxels = VoxelArrays(index=contents.index, evidence=contents.evidence, weight_sum=contents.weight_sum,
-                             weighted_uncertainty_sum=contents.weighted_uncertainty_sum, hits=contents.hits, touched=contents.touched)
-        if record is not None and voxel_checksum(voxels) != record["checksum"]:
-            refuse("its voxels do not match the checksum written with them (changed or damaged since)")
-        expected = self.tiles[name]["voxels"]
-        if len(contents.index) != expected:
-            raise StoreError(f"{path}: {len(contents.index)} voxels, the index says {expected}")
 
     def voxel_index_of(self, points: np.ndarray) -> np.ndarray:
         """The global voxel index of each point, as the mapper that wrote the store computed it."""

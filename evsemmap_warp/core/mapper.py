@@ -786,10 +786,7 @@ def with_read_out(contents: "map_file.MapContents") -> "map_file.MapContents":
 
 
 def read_map_arrays(path) -> tuple[dict[str, np.ndarray], dict]:
-    """Every array of the map-file schema (versions 1 and 2 hold them; a version-3 file's read-out is
-    derived) and the parsed meta, validated (``core/map_file.py``)."""
-    path = Path(path)
-    if map_file.is_compact(path):
-        contents = map_file.read_map_file(path)
-        return map_file.file_arrays(with_read_out(contents)), contents.meta
-    return map_file.read_npz_arrays(path)
+    """Every array of a map file (``map_file.file_arrays``: the read-out derived) and the parsed meta,
+    validated (``core/map_file.py``)."""
+    contents = map_file.read_map_file(Path(path))
+    return map_file.file_arrays(with_read_out(contents)), contents.meta
