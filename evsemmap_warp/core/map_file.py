@@ -333,10 +333,10 @@ def _check_meta(path: Path, meta: dict, file_version: int) -> dict:
                            f"(names must be strings, at least 2 classes)")
     if meta["scans_integrated"] < 0 or meta["points_integrated"] < 0:
         raise MapFileError(f"{path}: meta.scans_integrated / points_integrated must be >= 0")
-    ids = meta.get("scan_ids")  # optional: files written before maps recorded their scans have none
+    ids = meta.get("scan_ids")  # null or absent: a map that does not know its scans
     if ids is not None and not (isinstance(ids, list) and all(isinstance(i, str) for i in ids) and len(set(ids)) == len(ids)):
         raise MapFileError(f"{path}: meta.scan_ids must be a list of distinct scan ids (strings), got {str(ids)[:80]}")
-    try:  # optional: files written before maps recorded their world frame have none
+    try:  # null: a map of no known world frame
         WorldFrame.from_dict(meta.get("frame"), f"{path}: meta.frame")
     except FrameError as exc:
         raise MapFileError(str(exc)) from None

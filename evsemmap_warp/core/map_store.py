@@ -251,7 +251,7 @@ class MapStore:
         self.num_classes = len(self.class_names)
         self.tile_voxels = int(self.index["tile_voxels"])
         self.tiles = {name: info for name, info in self.index["tiles"].items()}
-        try:  # stores written before maps recorded their world frame have none
+        try:  # null: a store of no known world frame
             self.frame = WorldFrame.from_dict(self.index.get("frame"), f"{index_path}: frame")
         except FrameError as exc:
             raise StoreError(str(exc)) from None

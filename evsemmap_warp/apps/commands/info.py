@@ -33,7 +33,7 @@ def run(args) -> int:
         "format_version": meta["format_version"],
         "resolution_m": contents.resolution,
         "origin_m": contents.origin.tolist(),
-        "frame": meta.get("frame"),  # None: written before maps recorded their world frame
+        "frame": meta.get("frame"),  # None: a map of no known world frame
         "voxels": int(len(state)),
         "bounds_m": voxel_bounds(reader, contents.index),  # [[x0, y0, z0], [x1, y1, z1]] in the frame, None when empty
         "states": {"UNKNOWN": int((state == 0).sum()), "FREE": int((state == 1).sum()), "OCCUPIED": int((state == 2).sum())},
