@@ -3,7 +3,7 @@ the chunk size and the memory a map's voxel table may take. The writers, the rea
 line's flags all check through the functions here, so a writer never accepts what a reader refuses.
 
 Each ``check_*`` raises ValueError naming ``what`` (a flag, a file's key) and the range; the command
-line turns them into argparse types (``apps/cli.py``)."""
+line turns them into argparse types (``apps/commands/args.py``)."""
 
 from __future__ import annotations
 
