@@ -176,3 +176,18 @@ def test_the_map_cache_fields_are_one_level_and_a_new_section_key_is_in_them():
     grown = MappingConfig().as_dict()
     grown["sbki"]["new_key"] = 3
     assert map_cache_fields(SimpleNamespace(as_dict=lambda: grown)) == fields | {"sbki.new_key": 3}
+
+
+def test_each_enum_is_one_class_whichever_module_names_it():
+    """The dataclasses' enum fields take the members ``evsemmap_warp.config`` exports (one class per enum)."""
+    import dataclasses
+    import enum
+
+    from evsemmap_warp import config
+    from evsemmap_warp.config import CleanSettings, DatasetConfig
+
+    for cls in (MappingConfig, CleanSettings, DatasetConfig):
+        for f in dataclasses.fields(cls):
+            if isinstance(f.default, enum.Enum):
+                assert type(f.default) is getattr(config, type(f.default).__name__), f"{cls.__name__}.{f.name}"
+    assert MappingConfig(clean=CleanSettings(scatter_strategy=ScatterStrategy.SORTED)).clean.scatter_strategy is ScatterStrategy.SORTED

@@ -19,22 +19,6 @@ from .errors import ConfigError
 MAX_VOXELS_PER_POINT = 50_000
 
 
-class PayloadType(str, enum.Enum):
-    """What a scan's per-point payload holds, and so how ``Mapper.integrate`` reads it (``Media`` says what
-    a point then contributes to the map)."""
-    ALPHA = "alpha"  # evidential Dirichlet parameters, [N, K], alpha >= 1
-    PROB = "prob"  # class probabilities, [N, K], rows sum to 1
-    LABEL = "label"  # integer class ids, [N]
-
-
-class ScatterStrategy(str, enum.Enum):
-    """How the radius kernel (clean mode, Bayes fusion) reaches the map (``mapping.clean.scatter_strategy``);
-    sorted and gather sum each voxel in a fixed order (docs/kernel_study.md)."""
-    ATOMIC = "atomic"  # scatter with atomic adds
-    SORTED = "sorted"  # sort-then-reduce
-    GATHER = "gather"  # per voxel, through a hash grid of the points
-
-
 @dataclass(frozen=True)
 class SbkiSettings:
     """S-BKI's point preparation and blocks (``mapping.sbki``), which the sbki and release compatibility
