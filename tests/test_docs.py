@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import os
+import pkgutil
 import re
 import shlex
 import shutil
@@ -381,8 +382,6 @@ def test_the_configuration_reference_names_every_key():
     assert not missing, f"keys missing from the configuration reference: {missing}"
     assert not unexplained, f"config fields without a comment beside them in the code (the reference's meaning column): {unexplained}"
     # every config dataclass of the config modules is on the page (a new section cannot be left out)
-    import pkgutil
-
     from evsemmap_warp import config as run_config
     from evsemmap_warp.apps import experiment
     from evsemmap_warp.synthetic import preset

@@ -255,9 +255,10 @@ _CACHE_KEY_FIELDS = {
 
 def map_cache_fields(mapping: MappingConfig) -> dict:
     """The mapping parameters as a cached map's key holds them: one level of keys, the mode sections'
-    under their ``_CACHE_KEY_FIELDS`` names (any other as section.key), None as -1 (max_range_m -1.0, ds_multiplier -1), and
-    threshold_scope only when it is not its default ``insertion``. The form is fixed: a key built any
-    other way would change every cached map's key, and a rerun would map them all again."""
+    under their ``_CACHE_KEY_FIELDS`` names (any other as section.key), None as -1 (max_range_m -1.0,
+    ds_multiplier -1), and threshold_scope only when it is not its default ``insertion``. The form is
+    fixed: a key built any other way would change every cached map's key, and a rerun would map them
+    all again."""
     nested = mapping.as_dict()
     out = {k: v for k, v in nested.items() if k not in MAPPING_SECTIONS}
     named = {place: name for name, place in _CACHE_KEY_FIELDS.items()}
@@ -532,8 +533,8 @@ class Experiment:
         if mapping.kernel is Kernel.COMPOUND and not mapping.convbki.lengths_file:
             lengths = self.convbki_lengths(self.config.conditions[condition].network, mapping.resolution_m)
             mapping = mapping.replace(convbki={"lengths_file": str(lengths)})
-        key = _digest(map_cache_fields(mapping), str(self.alpha_dir(condition)), dataclasses.asdict(self.config.projection), bins.frame.as_dict(),
-                      __version__)
+        key = _digest(map_cache_fields(mapping), str(self.alpha_dir(condition)), dataclasses.asdict(self.config.projection),
+                      bins.frame.as_dict(), __version__)
         map_path = self.out / "maps" / condition / f"{method}.npz"
         record_path = map_path.with_suffix(".json")
         if record_path.exists() and map_path.exists() and json.loads(record_path.read_text()).get("key") == key:
