@@ -191,3 +191,26 @@ def test_each_enum_is_one_class_whichever_module_names_it():
             if isinstance(f.default, enum.Enum):
                 assert type(f.default) is getattr(config, type(f.default).__name__), f"{cls.__name__}.{f.name}"
     assert MappingConfig(clean=CleanSettings(scatter_strategy=ScatterStrategy.SORTED)).clean.scatter_strategy is ScatterStrategy.SORTED
+
+
+@pytest.mark.parametrize("text, message", [
+    ("mapping:\n  kernel: convbki\n", r"bad.yaml: mapping: kernel = 'convbki' is not a valid Kernel \(one of sparse, count, compound, triangular\)$"),
+    ("mapping:\n  media: prob\n", r"bad.yaml: mapping: media = 'prob' is not a valid Media \(one of onehot, soft\)$"),
+    ("mapping:\n  compat: evsemmap\n", r"bad.yaml: mapping: compat = 'evsemmap' is not a valid Compat \(one of clean, sbki, release\)$"),
+])
+def test_a_value_that_is_not_one_of_an_enums_is_named_with_the_ones_it_may_be(tmp_path, text, message):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=message):
+        load_config([path])
+
+
+def test_an_unknown_preset_and_an_unknown_experiment_key_are_one_line_naming_them(tmp_path):
+    from evsemmap_warp.apps.experiment import load_experiment
+
+    with pytest.raises(ConfigError, match=r"^unknown mapping preset 'evsemmap-release'; available: .*release"):
+        load_config(["evsemmap-release"], method="ebs")
+    study = tmp_path / "study.yaml"
+    study.write_text("name: s\nsequences:\n  a: {preset: tiny}\n")
+    with pytest.raises(ConfigError, match=r"study.yaml: sequences.a: unknown key\(s\) \['preset'\]; known: \[.*'world'"):
+        load_experiment(study)

@@ -71,7 +71,8 @@ def convert_value(cls, name: str, value: Any, source: str) -> Any:
             return value
         return value
     except (TypeError, ValueError):
-        raise ConfigError(f"{source}: {name} = {value!r} is not a valid {ftype}") from None
+        allowed = f" (one of {', '.join(m.value for m in type(default))})" if isinstance(default, enum.Enum) else ""
+        raise ConfigError(f"{source}: {name} = {value!r} is not a valid {ftype}{allowed}") from None
 
 
 
