@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ... import limits
 from ...config import ConfigError, available_methods
-from .args import port, positive, positive_float, TILE_VOXELS, CHUNK_FRAMES, MAX_MEMORY, MAX_MEMORY_HELP, add_frame_args
+from .args import CHUNK_FRAMES, MAX_MEMORY, MAX_MEMORY_HELP, TILE_VOXELS, add_frame_args, port, positive, positive_float
 
 
 def add_parser(sub) -> None:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ...config import ConfigError, available_methods, load_config
-from .args import port, positive, MAX_MEMORY, MAX_MEMORY_HELP, add_frame_args
+from .args import MAX_MEMORY, MAX_MEMORY_HELP, add_frame_args, port, positive
 
 
 def add_parser(sub) -> None:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .args import non_negative, positive, add_frame_args
+from .args import add_frame_args, non_negative, positive
 
 
 def add_parser(sub) -> None:

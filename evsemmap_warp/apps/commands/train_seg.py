@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .args import positive, positive_float, add_dataset_args, segmentation_source
+from .args import add_dataset_args, positive, positive_float, segmentation_source
 
 
 def add_parser(sub) -> None:
