@@ -21,17 +21,17 @@ def add_parser(sub) -> None:
 
 def run(args) -> int:
     """Print the resolved configuration (mapping, dataset, pipeline, terrain layers and costs) as YAML."""
-    run = load_config(args.configs, method=args.method)
-    out = {"mapping": run.mapping.as_dict()}
-    if run.dataset is not None:
+    resolved = load_config(args.configs, method=args.method)
+    out = {"mapping": resolved.mapping.as_dict()}
+    if resolved.dataset is not None:
         def plain(value):
             if dataclasses.is_dataclass(value):
                 return {k: plain(v) for k, v in vars(value).items()}
             return list(value) if isinstance(value, tuple) else getattr(value, "value", value)
 
-        out["dataset"] = {k: plain(v) for k, v in vars(run.dataset).items() if k != "bag" or run.dataset.kind == "bag"}
-    if run.bin_frames != 1:
-        out["pipeline"] = {"bin_frames": run.bin_frames}
+        out["dataset"] = {k: plain(v) for k, v in vars(resolved.dataset).items() if k != "bag" or resolved.dataset.kind == "bag"}
+    if resolved.bin_frames != 1:
+        out["pipeline"] = {"bin_frames": resolved.bin_frames}
     from ...terrain import load_terrain_config
 
     terrain = load_terrain_config(args.costs)

@@ -47,17 +47,17 @@ def run(args) -> int:
     from ...core.mapper import Mapper, VoxelState, save_map
     from ..scan_sources import map_scans, open_scan_source
 
-    run = load_config(args.configs, method=args.method, frame=args.frame, crs=args.crs)
-    if run.dataset is None:
+    resolved = load_config(args.configs, method=args.method, frame=args.frame, crs=args.crs)
+    if resolved.dataset is None:
         raise ConfigError(f"none of {list(args.configs)} has a 'dataset' section: name a dataset config, e.g. configs/datasets/sbki_toy.yaml")
     from ...files import check_not_inside
 
-    data = run.dataset.resolve_logs() if run.dataset.kind == "bag" else [run.dataset.resolve_path()]
+    data = resolved.dataset.resolve_logs() if resolved.dataset.kind == "bag" else [resolved.dataset.resolve_path()]
     # never over a log, a config file or a checkpoint, nor into a sequence folder or the alpha files
-    read = [*run.sources, *data, *(p for p in (args.checkpoint, args.alpha_dir) if p is not None)]
+    read = [*resolved.sources, *data, *(p for p in (args.checkpoint, args.alpha_dir) if p is not None)]
     check_not_inside(args.out, read, "map --out")
-    dataset = open_scan_source(run, checkpoint=args.checkpoint, alpha_dir=args.alpha_dir, bin_frames=args.bin_frames, batch_size=args.batch_size)
-    mapper = Mapper.for_dataset(dataset, run.mapping, device=args.device, workers=args.workers, max_memory=args.max_memory)
+    dataset = open_scan_source(resolved, checkpoint=args.checkpoint, alpha_dir=args.alpha_dir, bin_frames=args.bin_frames, batch_size=args.batch_size)
+    mapper = Mapper.for_dataset(dataset, resolved.mapping, device=args.device, workers=args.workers, max_memory=args.max_memory)
     live = None
     if args.view:
         live = _live_viewer(args, mapper, len(dataset))
@@ -65,7 +65,7 @@ def run(args) -> int:
         raise ConfigError("--host, --port and --view-every serve the map while it is made: give --view too")
     if not args.quiet:
         what = f"{len(dataset)} bins of camera-labelled frames" if args.checkpoint or args.alpha_dir else f"{len(dataset)} scans"
-        print(f"mapping {what} with {run.mapping.method} ({run.mapping.compat.value} mode) on {mapper.device}, "
+        print(f"mapping {what} with {resolved.mapping.method} ({resolved.mapping.compat.value} mode) on {mapper.device}, "
               f"{len(mapper.shards)} worker(s), in {dataset.frame.describe()}", file=sys.stderr)
     start = time.perf_counter()
     try:
@@ -90,7 +90,7 @@ def run(args) -> int:
     occupied = summary.state == VoxelState.OCCUPIED
     per_class = np.bincount(summary.label[occupied], minlength=mapper.num_classes)
     report = {
-        "method": run.mapping.method,
+        "method": resolved.mapping.method,
         "frame": dataset.frame.as_dict(),
         "scans": len(dataset),
         "input_points": points,
