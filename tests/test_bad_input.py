@@ -21,8 +21,6 @@ REPO = Path(__file__).resolve().parents[1]
 PRESET = REPO / "configs/presets/offroad.yaml"
 
 
-
-
 # ------------------------------------------------------------------------------------- configs
 CONFIG_CASES = {
     "not-a-mapping": ("- 1\n- 2\n", "expected a mapping"),

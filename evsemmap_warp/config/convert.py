@@ -75,7 +75,6 @@ def convert_value(cls, name: str, value: Any, source: str) -> Any:
         raise ConfigError(f"{source}: {name} = {value!r} is not a valid {ftype}{allowed}") from None
 
 
-
 def dataclass_from_dict(cls, data: Any, source: str):
     """Build a (possibly nested) frozen dataclass from a YAML mapping: unknown keys and wrongly typed
     values raise a ConfigError naming ``source`` and the dotted key; missing keys keep the defaults."""

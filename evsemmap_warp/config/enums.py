@@ -58,4 +58,3 @@ class ScatterStrategy(str, enum.Enum):
     ATOMIC = "atomic"  # scatter with atomic adds
     SORTED = "sorted"  # sort-then-reduce
     GATHER = "gather"  # per voxel, through a hash grid of the points
-

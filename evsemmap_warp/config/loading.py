@@ -108,8 +108,6 @@ def is_robot_log(path) -> bool:
     return (path.is_file() and path.suffix in LOG_SUFFIXES) or (path.is_dir() and (path / "metadata.yaml").is_file())
 
 
-
-
 @dataclass
 class _Merged:
     """What the inputs and files read so far set, key by key (a later file's key wins)."""
