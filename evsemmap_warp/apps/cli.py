@@ -52,7 +52,7 @@ def _cmd_map(args) -> int:
             if live is None:
                 stats = map_scans(mapper, dataset, progress=lambda scan, _: bar.update(1))
             else:
-                from .viewer_live import map_live
+                from .viewer.live import map_live
 
                 stats = map_live(mapper, dataset, live, every=args.view_every or 10, progress=lambda scan, _: bar.update(1))
     except BaseException:
@@ -91,7 +91,7 @@ def _cmd_map(args) -> int:
 def _live_viewer(args, mapper, scan_total: int):
     """The browser view of a map being made (``map --view``), serving before the first scan."""
     from .viewer import MapLayer, MapViewer
-    from .viewer_live import LiveMap
+    from .viewer.live import LiveMap
 
     viewer = MapViewer([MapLayer.from_mapper(args.out.stem, args.out, mapper)], host=args.host or "127.0.0.1", port=args.port or 8080)
     live = LiveMap(viewer, mapper, name=args.out.stem, path=args.out, scan_total=scan_total)
@@ -137,7 +137,7 @@ def _live_tiles(args, options):
     from ..core.mapper import Mapper
     from .batch import plan_batch
     from .viewer import MapLayer, MapViewer
-    from .viewer_live import LiveTiles
+    from .viewer.live import LiveTiles
 
     _, sources, config, _, _ = plan_batch(list(args.configs), options)  # the store's classes, frame and parameters
     template = Mapper.for_dataset(sources[0], config, workers=1)
@@ -262,7 +262,7 @@ def _cmd_view(args) -> int:
     drive = None
     if args.drive:
         from ..core.map_store import is_store
-        from .viewer_drive import open_drive
+        from .viewer.drive import open_drive
 
         if len(args.maps) != 1 or is_store(args.maps[0]):
             raise ValueError(f"--drive plays back the drive of one map file (.npz), got {' '.join(map(str, args.maps))}")
@@ -290,7 +290,7 @@ def _cmd_view(args) -> int:
         viewer.close()
         return 0
     if drive is not None:
-        from .viewer_drive import DrivePlayback
+        from .viewer.drive import DrivePlayback
 
         DrivePlayback(viewer, *drive)
     print(f"evsemmap viewer: open {viewer.url} in a browser (Ctrl-C to stop); maps in {describe_frame(viewer.frame)}, "
