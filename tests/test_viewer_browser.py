@@ -1087,3 +1087,44 @@ def test_a_new_tab_starts_from_the_defaults(open_page, tmp_path):
         assert "on the ground grid's plane" not in first.inner_text("body")
     finally:
         viewer.server.stop()
+
+
+def test_each_tab_keeps_its_own_color_mode(open_page, tmp_path):
+    """Issue 45 item 6: a new browser tab inherited the previous tab's *Color by* (the drawn voxels, the legend and
+    the color range were shared): each tab now has its own. A second tab opens with the default whatever the first
+    chose, and a change in one tab leaves the other's voxels and legend as they were."""
+    make_map(tmp_path / "m.npz")
+    viewer = MapViewer([tmp_path / "m.npz"], port=free_port())
+    try:
+        def grass(page) -> int:
+            return int(_near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum())
+
+        def views():
+            return list(viewer.tabs.views.values())
+
+        first = open_page(viewer)
+        assert _wait(lambda: grass(first) >= 2000)
+        _choose(first, "Color by", "variance")
+        assert _wait(lambda: grass(first) < 200), "the first tab's voxels never took the variance colors"
+        second = open_page(viewer)
+        assert _wait(lambda: len(views()) == 2)
+        assert _wait(lambda: grass(second) >= 2000), "the second tab did not open with the class colors"
+        one, two = views()
+        assert (one.color_by.value, two.color_by.value) == ("variance", "semantic")
+        assert one.legend.image.shape[0] == 46 and two.legend.image.shape[0] != 46  # a color bar; the class swatches
+        time.sleep(1.0)
+        assert grass(first) < 200  # the second tab's connecting changed nothing in the first
+        # a change in the second tab: the first keeps its coloring and its legend
+        before = _image(first.screenshot())[:, :900]
+        _choose(second, "Color by", "observations")
+        assert _wait(lambda: grass(second) < 200 and two.color_by.value == "observations")
+        time.sleep(1.5)
+        after = _image(first.screenshot())[:, :900]
+        assert (np.abs(before - after).max(axis=2) > 40).sum() < 50, "the first tab's voxels changed with the second tab's choice"
+        assert one.color_by.value == "variance" and one.legend.image.shape[0] == 46
+        # and back: the first tab's choice of the class colors shows them again in it, not in the second
+        _choose(first, "Color by", "semantic")
+        assert _wait(lambda: grass(first) >= 2000)
+        assert grass(second) < 200 and two.color_by.value == "observations"
+    finally:
+        viewer.server.stop()
