@@ -1122,6 +1122,18 @@ def test_each_tab_keeps_its_own_color_mode(open_page, tmp_path):
         after = _image(first.screenshot())[:, :900]
         assert (np.abs(before - after).max(axis=2) > 40).sum() < 50, "the first tab's voxels changed with the second tab's choice"
         assert one.color_by.value == "variance" and one.legend.image.shape[0] == 46
+        # each tab's export button writes the scene in its own coloring, and leaves the shared scene as it was
+        from test_viewer import read_ply
+
+        first.get_by_role("button", name="PLY point cloud").click()
+        ply = tmp_path / "m_view.ply"
+        assert _wait(lambda: ply.exists() and "written" in viewer.gui_export_status.content)
+        rows = viewer.visible_rows[0]
+        _, vertex = read_ply(ply)
+        written = np.c_[vertex["red"], vertex["green"], vertex["blue"]]
+        assert np.array_equal(written, viewer.voxels.colors(0, rows, "variance"))
+        assert not np.array_equal(written, viewer.voxels.colors(0, rows))  # the shared scene's: the class colors
+        assert viewer.tabs.local.color_by.value == "semantic"
         # and back: the first tab's choice of the class colors shows them again in it, not in the second
         _choose(first, "Color by", "semantic")
         assert _wait(lambda: grass(first) >= 2000)

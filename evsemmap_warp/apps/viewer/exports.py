@@ -1,7 +1,8 @@
 """What the viewer writes: a standalone HTML page of the shared scene (positions relative to the local origin,
 which the page states with the frame, beside the legend and a summary of the view) and a PLY point cloud of
-the visible voxels (float64 world coordinates). Both hold the scene as every tab shares it, colored as the
-local view (``MapViewer.gui_color_by`` without a browser) asks."""
+the visible voxels (float64 world coordinates). Both hold the scene every tab shares, colored as the local
+view (``MapViewer.gui_color_by`` without a browser) asks; the panel's buttons write it in the coloring of the
+tab that clicks them."""
 
 from __future__ import annotations
 
@@ -131,8 +132,10 @@ def write_ply(viewer, path) -> Path:
     return write_bytes_atomically(Path(path), ("\n".join(header) + "\n").encode("utf-8") + vertex.tobytes())
 
 
-def export_from_gui(viewer, kind: str) -> None:
-    """The *Export* folder's buttons: ``kind`` "html" or "ply", written beside the first map shown."""
+def export_from_gui(viewer, kind: str, client=None) -> None:
+    """The *Export* folder's buttons: ``kind`` "html" or "ply", written beside the first map shown, in the coloring
+    of the tab that clicked (``client``)."""
     stem = viewer.export_dir / f"{viewer.layers[viewer.comparison.shown_layers()[0]].name}_view"
-    path = write_html(viewer, stem.with_suffix(".html")) if kind == "html" else write_ply(viewer, stem.with_suffix(".ply"))
+    with viewer.tabs.scene_colored_as(viewer.tabs.view_of(client)):
+        path = write_html(viewer, stem.with_suffix(".html")) if kind == "html" else write_ply(viewer, stem.with_suffix(".ply"))
     viewer.gui_export_status.content = f"written: `{path}`"

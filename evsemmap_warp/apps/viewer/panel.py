@@ -118,5 +118,5 @@ def _connect(viewer) -> None:
     viewer.gui_view.on_click(lambda event: viewer.cameras.set_view(event.target.value, event.client))
     viewer.gui_side_by_side.on_update(lambda event: viewer.cameras.frame_shown(event.client))
     viewer.gui_terrain_compute.on_click(lambda _event: viewer.terrain.compute_from_gui())
-    viewer.gui_export_html.on_click(lambda _event: export_from_gui(viewer, "html"))
-    viewer.gui_export_ply.on_click(lambda _event: export_from_gui(viewer, "ply"))
+    viewer.gui_export_html.on_click(lambda event: export_from_gui(viewer, "html", event.client))
+    viewer.gui_export_ply.on_click(lambda event: export_from_gui(viewer, "ply", event.client))

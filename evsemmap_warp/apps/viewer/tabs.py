@@ -5,6 +5,7 @@ as tabs connect; scripts and tests, which have no tab, act through a view of ``L
 from __future__ import annotations
 
 import threading
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -86,6 +87,20 @@ class Tabs:
         if client is None:
             return self.local
         return self.views.get(client.client_id) or self.local
+
+    @contextmanager
+    def scene_colored_as(self, view: ClientView):
+        """The shared scene in ``view``'s coloring for the while (an export from that tab), then as before."""
+        with self.viewer.lock:
+            previous, acting = self.local.color_by.value, self.acting
+            if view.color_by.value != previous:
+                self.local.color_by.value = view.color_by.value
+            try:
+                yield
+            finally:
+                if self.local.color_by.value != previous:
+                    self.local.color_by.value = previous
+                self.acting = acting
 
     def _recolor_scene(self) -> None:
         self.acting = self.local
