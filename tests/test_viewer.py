@@ -278,7 +278,7 @@ def test_html_export_states_the_frame_and_the_local_origin(far_viewer, tmp_path)
     assert f'<meta name="evsemmap-local-origin" content="{x:.3f} {y:.3f} {z:.3f}" />' in page
     note = f"positions are relative to the local origin at x={x:.3f} y={y:.3f} z={z:.3f} m in frame 'map' (EPSG:32617)"
     assert f"<!-- evsemmap_warp map viewer export: {note}" in page
-    assert f'<div id="evsemmap-frame-note"' in page and page.index("evsemmap-frame-note") < page.rindex("</body>")
+    assert '<div id="evsemmap-frame-note"' in page and page.index("evsemmap-frame-note") < page.rindex("</body>")
     assert html.unescape(page).count(note) >= 3  # the meta element, the comment, the visible note
     assert page.startswith("<!") and len(page) > 100_000
 
@@ -519,3 +519,14 @@ def test_html_export_holds_the_legend(viewer, tmp_path):
     viewer.gui_color_by.value = "variance"
     page = viewer.export_html(tmp_path / "scene2.html").read_text()
     assert 'alt="color bar' in page and "data:image/png;base64," in page
+
+
+def test_examples_and_the_viewer_tools_use_no_private_names():
+    """Issue 47: examples drove the viewer's private handlers (``_approach``, ``_on_camera``, ``_on_click``); they use
+    its public methods and handles (``tiles.approach``, ``cameras.report``, ``picking.click``), as a user's script would."""
+    import ast
+
+    files = sorted((REPO / "examples").glob("*.py")) + [REPO / "tools/viewer_screenshots.py", REPO / "tools/bench_viewer.py"]
+    wrong = [f"{path.name}:{node.lineno} .{node.attr}" for path in files for node in ast.walk(ast.parse(path.read_text()))
+             if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")]
+    assert not wrong, f"private names used: {wrong}"

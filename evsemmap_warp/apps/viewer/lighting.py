@@ -117,4 +117,3 @@ def configure_lighting(scene) -> None:
     scene.configure_default_lights(enabled=False)
     scene.add_light_ambient("/lights/ambient", intensity=AMBIENT_INTENSITY)
     scene.add_light_directional("/lights/sun", intensity=SUN_INTENSITY, position=SUN_POSITION)
-

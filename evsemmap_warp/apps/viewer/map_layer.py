@@ -124,5 +124,3 @@ class MapLayer:
         keys = pack(np.where(inside[:, None], index, lo).astype(np.int64))
         rows = np.clip(np.searchsorted(stored, keys), 0, len(stored) - 1)
         return np.where(inside & (stored[rows] == keys), rows, -1)
-
-

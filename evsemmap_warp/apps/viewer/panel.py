@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from .camera import VIEW_BUTTONS
 from .colors import swatch_image
 from .comparison import DIFF_MODES
