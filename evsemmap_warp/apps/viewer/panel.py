@@ -13,8 +13,6 @@ from .comparison import DIFF_MODES
 from .exports import export_from_gui
 from .terrain import TERRAIN_MODES
 
-BLANK = swatch_image([("", (255, 255, 255))])
-
 
 def variance_slider_range(layers) -> tuple[float, float, float, str]:
     """(unit, step, top, label) of the variance slider for the maps' largest variance."""
@@ -64,14 +62,14 @@ def _add_map_and_legend(viewer, gui, names: tuple[str, ...]) -> None:
     with viewer.gui_map_folder:
         viewer.gui_map = gui.add_dropdown("Map", options=names, initial_value=names[0])
         viewer.gui_side_by_side = gui.add_checkbox("Side by side", initial_value=False, disabled=len(viewer.layers) == 1)
-        # (each tab's own *Color by* comes here) here, not in the terrain folder: with terrain layers, what is
-        # drawn is the first thing a user switches
+        # each tab's own *Color by* comes next (tabs); *Draw* is here, not in the terrain folder: with terrain
+        # layers, what is drawn is the first thing a user switches
         viewer.gui_terrain_mode = gui.add_dropdown("Draw", options=TERRAIN_MODES, initial_value=TERRAIN_MODES[1], visible=False)
         viewer.gui_status = gui.add_markdown("")
     viewer.gui_legend_folder = gui.add_folder("Legend")
     with viewer.gui_legend_folder:
-        # (each tab's own legend comes first) the terrain surface's color bar or class legend, once layers are computed
-        viewer.gui_terrain_legend = gui.add_image(BLANK, label=None, visible=False)
+        # each tab's own legend comes first (tabs); then the terrain surface's color bar or class legend, once computed
+        viewer.gui_terrain_legend = gui.add_image(swatch_image([("", (255, 255, 255))]), label=None, visible=False)
         viewer.gui_scale_bar = gui.add_html('<div id="evsemmap-scale-bar" style="font:12px sans-serif">scale: waiting for the camera</div>')
         viewer.gui_view_center = gui.add_markdown("under the screen's center: waiting for the camera")
     # filled by a drive's playback (drive.DrivePlayback) or a live map (live): kept next to the legend
