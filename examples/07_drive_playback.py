@@ -12,7 +12,7 @@ from pathlib import Path
 
 from evsemmap_warp.apps.cli import main as evsemmap
 from evsemmap_warp.apps.viewer import MapViewer
-from evsemmap_warp.apps.viewer_drive import DrivePlayback, open_drive
+from evsemmap_warp.apps.viewer.drive import DrivePlayback, open_drive
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence, write_stand_in_alpha
 

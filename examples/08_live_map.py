@@ -14,7 +14,7 @@ import numpy as np
 from evsemmap_warp import Mapper, load_config
 from evsemmap_warp.apps.scan_sources import open_scan_source
 from evsemmap_warp.apps.viewer import MapLayer, MapViewer
-from evsemmap_warp.apps.viewer_live import LiveMap, map_live
+from evsemmap_warp.apps.viewer.live import LiveMap, map_live
 from evsemmap_warp.core.mapper import read_map_arrays
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence

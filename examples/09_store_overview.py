@@ -45,7 +45,7 @@ def main() -> None:
         layer = viewer.layers[0]
         middle = (overview.bounds[0] + overview.bounds[1]) / 2 - viewer.origin
         middle[2] = float(layer.centers[:, 2].min()) - viewer.origin[2]
-        viewer._approach(SimpleNamespace(position=middle + [0, -1.0, 3.0], look_at=middle))
+        viewer.tiles.approach(SimpleNamespace(position=middle + [0, -1.0, 3.0], look_at=middle))
         while "tile(s) in full" not in viewer.gui_status.content:  # read and drawn on the viewer's loader thread
             time.sleep(0.05)
         print(f"near the middle: tiles {', '.join(overview.detail)} in full, {overview.held_rows:,} rows held")

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from evsemmap_warp.apps import viewer_layers
 from evsemmap_warp.apps.cli import main as evsemmap
 from evsemmap_warp.apps.viewer import MapViewer
+from evsemmap_warp.apps.viewer.comparison import DIFF_COLORS, load_truth
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence, write_stand_in_alpha
 
@@ -47,11 +47,11 @@ def main() -> None:
         print(f"open {viewer.url}: the Compare maps folder's Show picks the comparison (Ctrl-C to stop)")
         viewer.serve_forever()
         return
-    diff = viewer.diff()
+    diff = viewer.comparison.diff()
     counts = diff.counts()
     print(f"{counts['compared']:,} voxels in both maps; labels differ in {counts['differ']:,}; "
           f"{len(viewer.visible_rows[0]):,} of them drawn (occupied in the first map)")
-    for name in viewer_layers.DIFF_COLORS:
+    for name in DIFF_COLORS:
         print(f"  {name}: {counts[name]:,}")
     print(f"where the truth says ({counts['with truth']:,} voxels): the camera's map is right in {counts['first map right']:,}, "
           f"the LiDAR's in {counts['second map right']:,}")
@@ -60,11 +60,11 @@ def main() -> None:
     at = second.voxel_at(first.centers)
     both = np.flatnonzero(at >= 0)
     a, b = first.label[both].astype(int), second.label[at[both]].astype(int)
-    t = viewer_layers.load_truth(truth, first, viewer.frame)[both]
+    t = load_truth(truth, first, viewer.frame)[both]
     differ, known = a != b, t >= 0
     expected = [int((differ & known & (a == t)).sum()), int((differ & known & (b == t)).sum()),
                 int((differ & known & (a != t) & (b != t)).sum()), int((differ & ~known).sum())]
-    print("the counts checked against numpy:", expected == [counts[name] for name in viewer_layers.DIFF_COLORS]
+    print("the counts checked against numpy:", expected == [counts[name] for name in DIFF_COLORS]
           and int(differ.sum()) == counts["differ"])
 
     viewer.gui_diff.value = "variance difference"

@@ -16,9 +16,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from evsemmap_warp.apps import viewer_layers
 from evsemmap_warp.apps.cli import main as evsemmap
 from evsemmap_warp.apps.viewer import MapViewer
+from evsemmap_warp.apps.viewer.orientation import metres_per_pixel, scale_bar_html
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence
 
@@ -47,8 +47,8 @@ def main() -> None:
           f"(finer every {grid.cell:g} m); labels: " + ", ".join(labels))
     # the scale bar a browser window 720 pixels tall gets at the viewer's initial camera
     camera = viewer.server.initial_camera
-    m_per_px = viewer_layers.metres_per_pixel(camera.position, camera.look_at, camera.fov, 720)
-    _, meters, pixels = viewer_layers.scale_bar_html(m_per_px)
+    m_per_px = metres_per_pixel(camera.position, camera.look_at, camera.fov, 720)
+    _, meters, pixels = scale_bar_html(m_per_px)
     print(f"scale bar at the initial camera: {meters:g} m drawn {pixels:.0f} px long ({m_per_px * 1000:.1f} mm per pixel)")
 
     layer = viewer.layers[0]
@@ -57,7 +57,7 @@ def main() -> None:
     # a browser's camera moved to 20 m above the highest voxel, looking down at it (display coordinates, relative
     # to the local origin): the legend names what lies under the screen's center, in world coordinates
     look_at = layer.centers[top] - viewer.origin
-    viewer._on_camera(0, SimpleNamespace(position=look_at + [0.0, -0.1, 20.0], look_at=look_at, fov=camera.fov, image_height=720))
+    viewer.cameras.report(SimpleNamespace(position=look_at + [0.0, -0.1, 20.0], look_at=look_at, fov=camera.fov, image_height=720))
     while viewer.center_hit is None:  # picked off the camera's callback, on the viewer's own thread
         time.sleep(0.05)
     print(viewer.gui_view_center.content)
@@ -69,8 +69,7 @@ def main() -> None:
     far = column[np.argmax(layer.centers[column, 2])]  # the voxel of that column a ray from above meets first
     viewer.gui_measure.value = True
     for row in (top, far):
-        viewer._on_click(SimpleNamespace(ray_origin=tuple(layer.centers[row] - viewer.origin + [0.0, 0.0, 10.0]),
-                                         ray_direction=(0.0, 0.0, -1.0)))
+        viewer.picking.click(layer.centers[row] - viewer.origin + [0.0, 0.0, 10.0], (0.0, 0.0, -1.0))
         print(viewer.gui_selection.content.splitlines()[0])
     print(viewer.gui_measure_result.content.split("\n\n")[0].replace("**", ""))
     a, b = viewer.measure_points

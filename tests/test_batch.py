@@ -360,7 +360,7 @@ def test_export_bounds_info_merge_and_view_of_stores(tmp_path, capsys):
         overview = len(viewer.layers[0].centers)
         assert overview <= 2000 + len(viewer.stores[0].parts)
         tile = sorted(viewer.stores[0].store.tiles, key=lambda t: -viewer.stores[0].store.tiles[t]["voxels"])[0]
-        viewer.show_tile(f"0: {tile}")
+        viewer.tiles.show(f"0: {tile}")
         assert len(viewer.layers[0].centers) >= overview + viewer.stores[0].store.tiles[tile]["voxels"] - len(viewer.stores[0].parts[tile]["state"])
         layer = viewer.layers[0]
         np.testing.assert_array_equal(layer.voxel_at(layer.centers[::37]), np.arange(len(layer.centers))[::37])  # picking works

@@ -9,7 +9,8 @@ import trimesh
 from evsemmap_warp.apps.cli import main
 from evsemmap_warp.config import load_config
 from evsemmap_warp.core.mapper import Mapper
-from evsemmap_warp.apps.viewer import CLASS_COLORS, MapViewer, colormap, free_port, load_points, load_trajectory
+from evsemmap_warp.apps.viewer import MapViewer, free_port, load_points, load_trajectory
+from evsemmap_warp.apps.viewer.colors import CLASS_COLORS, colormap
 from evsemmap_warp.frames import WorldFrame
 
 from conftest import REPO, wait_until
@@ -77,12 +78,12 @@ def test_class_toggle_and_variance_slider(viewer):
 
 def test_colorings(viewer):
     rows = viewer.visible_rows[0]
-    semantic = viewer.colors(0, rows)
+    semantic = viewer.voxels.colors(0, rows)
     labels = viewer.layers[0].label[rows]
     assert (semantic[labels == 3] == CLASS_COLORS["object"]).all() and (semantic[labels == 7] == CLASS_COLORS["grass"]).all()
     for mode in ("variance", "mean uncertainty", "observations"):
         viewer.gui_color_by.value = mode
-        colors = viewer.colors(0, rows)
+        colors = viewer.voxels.colors(0, rows)
         assert len(np.unique(colors, axis=0)) > 5, mode
         assert viewer.gui_legend.image.shape[0] == 46  # a color bar instead of the class legend
     np.testing.assert_array_equal(colormap(np.array([0.0, 1.0, np.nan]), 0, 1), [[68, 1, 84], [253, 231, 37], [128, 128, 128]])
@@ -93,13 +94,13 @@ def test_several_maps_switchable_and_side_by_side(viewer):
     assert len(viewer.visible_rows[0]) == 0 and len(viewer.visible_rows[1]) > 0
     viewer.gui_side_by_side.value = True
     assert len(viewer.visible_rows[0]) > 0 and len(viewer.visible_rows[1]) > 0
-    assert viewer._shift(1)[0] > 6.0  # the second map sits beside the first, not on top
+    assert viewer.comparison.shift(1)[0] > 6.0  # the second map sits beside the first, not on top
 
 
 def test_positions_are_float32_relative_to_a_local_origin(viewer):
     np.testing.assert_array_equal(viewer.origin, np.round(viewer.origin))
     assert np.abs(viewer.origin[:2] - 103).max() < 1.0
-    points = viewer.voxel_handles[0].points
+    points = viewer.voxels.handles[0].points
     assert points.dtype == np.float32 and np.abs(points).max() < 10
 
 
@@ -119,14 +120,11 @@ def test_clicking_a_voxel_describes_it(viewer):
     top = rows[np.argmax(layer.centers[rows, 2])]  # the highest visible voxel: nothing above it
     origin = layer.centers[top] - viewer.origin + np.array([0.0, 0.0, 10.0])
 
-    class Click:
-        ray_origin, ray_direction = tuple(origin), (0.0, 0.0, -1.0)
-
-    viewer._on_click(Click)
+    viewer.picking.click(origin, (0.0, 0.0, -1.0))
     text = viewer.gui_selection.content
     assert f"voxel {tuple(int(v) for v in layer.voxel_index[top])}" in text and "| object |" in text
     assert f"label: **{CLASSES[layer.label[top]]}**" in text
-    assert viewer.pick(origin + np.array([500.0, 0, 0]), (0, 0, -1)) is None
+    assert viewer.picking.pick(origin + np.array([500.0, 0, 0]), (0, 0, -1)) is None
 
 
 def test_exports(viewer, tmp_path):
@@ -200,8 +198,8 @@ def test_far_map_shows_its_frame_and_the_local_origin_in_world_coordinates(far_v
     x, y, z = v.origin
     assert 500_000 < x < 500_010 and 4_000_000 < y < 4_000_010
     label = f"map: x={x:.3f}, y={y:.3f}, z={z:.3f} m"
-    assert label in v.gui_frame.content and v.origin_label.text == label
-    points = v.voxel_handles[0].points  # still float32, small, relative to the local origin
+    assert label in v.gui_frame.content and v.orientation.origin_label.text == label
+    points = v.voxels.handles[0].points  # still float32, small, relative to the local origin
     assert points.dtype == np.float32 and np.abs(points).max() < 10
 
 
@@ -211,12 +209,8 @@ def test_clicked_voxel_is_described_in_world_coordinates_of_its_frame(far_viewer
     rows = v.visible_rows[0]
     top = rows[np.argmax(layer.centers[rows, 2])]
     start = layer.centers[top] - v.origin + np.array([0.0, 0.0, 10.0])
-    assert v.pick(start, (0.0, 0.0, -1.0)) == (0, top)
-
-    class Click:
-        ray_origin, ray_direction = tuple(start), (0.0, 0.0, -1.0)
-
-    v._on_click(Click)
+    assert v.picking.pick(start, (0.0, 0.0, -1.0)) == (0, top)
+    v.picking.click(start, (0.0, 0.0, -1.0))
     cx, cy, cz = layer.centers[top]
     assert cx > 500_000 and cy > 4_000_000
     assert f"center in frame 'map' (EPSG:32617): x={cx:.3f}, y={cy:.3f}, z={cz:.3f} m" in v.gui_selection.content
@@ -236,26 +230,26 @@ def test_the_panel_follows_what_lies_under_the_screen_center_as_the_camera_moves
     def camera(at, height=10.0):
         return SimpleNamespace(position=at + np.array([0.0, -0.01, height]), look_at=at, fov=1.0, image_height=800)
 
-    v.center_hit = None
-    v._on_camera(1, camera(look_at))
+    v.cameras.center_hit = None
+    v.cameras.report(camera(look_at), client_id=1)
     assert wait_until(lambda: v.center_hit is not None and v.center_hit["kind"] == "voxel", 10.0)
     assert v.center_hit["row"] == top
     cx, cy = layer.centers[top][:2]
     assert f"(a voxel of utm, {layer.classes[layer.label[top]]}): x={cx:.3f}" in v.gui_view_center.content
     assert "in frame 'map' (EPSG:32617)" in v.gui_view_center.content and cy > 4_000_000
-    assert np.allclose(v.crosshair_handle.position, look_at) and v.crosshair_handle.visible
+    assert np.allclose(v.cameras.crosshair.position, look_at) and v.cameras.crosshair.visible
     # beside the map, the ground grid's plane, 30 m further east in world coordinates
     beside = look_at + np.array([30.0, 0.0, 0.0])
     beside[2] = v.ground.z - v.origin[2] + 1.0
-    v._on_camera(1, camera(beside))
+    v.cameras.report(camera(beside), client_id=1)
     assert wait_until(lambda: v.center_hit is not None and v.center_hit["kind"] == "ground", 10.0)
     assert v.center_hit["point"][0] == pytest.approx(beside[0] + v.origin[0], abs=0.05)
     assert "(the ground grid's plane)" in v.gui_view_center.content
     # the crosshair keeps a fixed size on screen: 8 pixels' worth of metres at the orbit center
-    near = v.crosshair_handle.scale
-    v.center_hit = None
-    v._on_camera(1, camera(beside, height=100.0))
-    assert v.crosshair_handle.scale == pytest.approx(10 * near, rel=0.01)
+    near = v.cameras.crosshair.scale
+    v.cameras.center_hit = None
+    v.cameras.report(camera(beside, height=100.0), client_id=1)
+    assert v.cameras.crosshair.scale == pytest.approx(10 * near, rel=0.01)
     assert wait_until(lambda: v.center_hit is not None and v.center_hit["kind"] == "ground", 10.0)
 
 
@@ -284,7 +278,7 @@ def test_html_export_states_the_frame_and_the_local_origin(far_viewer, tmp_path)
     assert f'<meta name="evsemmap-local-origin" content="{x:.3f} {y:.3f} {z:.3f}" />' in page
     note = f"positions are relative to the local origin at x={x:.3f} y={y:.3f} z={z:.3f} m in frame 'map' (EPSG:32617)"
     assert f"<!-- evsemmap_warp map viewer export: {note}" in page
-    assert f'<div id="evsemmap-frame-note"' in page and page.index("evsemmap-frame-note") < page.rindex("</body>")
+    assert '<div id="evsemmap-frame-note"' in page and page.index("evsemmap-frame-note") < page.rindex("</body>")
     assert html.unescape(page).count(note) >= 3  # the meta element, the comment, the visible note
     assert page.startswith("<!") and len(page) > 100_000
 
@@ -321,7 +315,7 @@ def test_a_store_shows_its_frame_and_is_refused_beside_another(tmp_path):
     try:
         assert v.layers[0].frame == UTM and "frame: **map (EPSG:32617)** (all 2 maps)" in v.gui_frame.content
         v.gui_side_by_side.value = True
-        assert "side by side" in v.gui_frame.content and "shifted" in v.offset_note()
+        assert "side by side" in v.gui_frame.content and "shifted" in offset_note(v)
     finally:
         v.server.stop()
     with pytest.raises(ValueError, match="store is in frame 'map' \\(EPSG:32617\\) but .*odom.npz in frame 'odom'"):
@@ -329,7 +323,9 @@ def test_a_store_shows_its_frame_and_is_refused_beside_another(tmp_path):
 
 
 # --- issue 30 (defects, orientation, diff) and issue 26 item 5 (terrain layers), in-process ------------------------
-from evsemmap_warp.apps import viewer_layers as vl
+from evsemmap_warp.apps.viewer import comparison, lighting, orientation
+from evsemmap_warp.apps.viewer.exports import offset_note
+from evsemmap_warp.apps.viewer.terrain import TERRAIN_MODES
 
 
 def test_lit_mesh_colors_render_as_the_palette():
@@ -337,12 +333,12 @@ def test_lit_mesh_colors_render_as_the_palette():
     the compensated colors back onto the palette, within what ACES can render (saturated yellow the furthest)."""
     names = ["grass", "object", "dirt", "vegetation", "unpaved", "water", "sky", "paved"]
     palette = np.array([CLASS_COLORS[n] for n in names], np.uint8)
-    shown = vl.rendered_top_color(vl.mesh_colors(palette)).astype(int)
+    shown = lighting.rendered_top_color(lighting.mesh_colors(palette)).astype(int)
     error = np.abs(shown - palette).max(axis=1)
     assert (error[:-1] <= 30).all() and error[-1] <= 60, dict(zip(names, error))
     # viser's defaults (the instance color itself, as the boxes were drawn) wash them out far more
-    assert (np.abs(vl.rendered_top_color(palette).astype(int) - palette).max(axis=1)[:5] > 60).all()
-    np.testing.assert_allclose(vl.aces(vl.aces_inverse(np.array([[0.2, 0.3, 0.1]]))), [[0.2, 0.3, 0.1]], atol=1e-6)
+    assert (np.abs(lighting.rendered_top_color(palette).astype(int) - palette).max(axis=1)[:5] > 60).all()
+    np.testing.assert_allclose(lighting.aces(lighting.aces_inverse(np.array([[0.2, 0.3, 0.1]]))), [[0.2, 0.3, 0.1]], atol=1e-6)
 
 
 def test_store_overview_counter_and_present_classes(tmp_path):
@@ -377,15 +373,15 @@ def test_terrain_surface_picking_and_cli(tmp_path, capsys):
     make_map(tmp_path / "m.npz")
     v = MapViewer([tmp_path / "m.npz"], port=free_port(), terrain=True)
     try:
-        surface = v.terrain[0]
+        surface = v.terrain.surfaces[0]
         assert v.gui_terrain_band.options[0] == "traversability_cost" and "elevation" in v.gui_terrain_band.options
-        assert len(v.terrain_handles[0].batched_positions) == len(surface.rows) > 500
-        v.gui_terrain_mode.value = vl.TERRAIN_MODES[1]
+        assert len(v.terrain.handles[0].batched_positions) == len(surface.rows) > 500
+        v.gui_terrain_mode.value = TERRAIN_MODES[1]
         assert all(len(rows) == 0 for rows in v.visible_rows) and "terrain surface is drawn instead" in v.gui_status.content
         # a ray straight down onto a known cell hits that cell, at its height
         row, col = surface.rows[len(surface.rows) // 2], surface.cols[len(surface.rows) // 2]
         x, y = surface.grid.cell_centers()[0][col], surface.grid.cell_centers()[1][row]
-        hit = v.pick_point(np.array([x, y, 20.0]) - v.origin, (0, 0, -1))
+        hit = v.picking.pick_point(np.array([x, y, 20.0]) - v.origin, (0, 0, -1))
         assert hit["kind"] == "cell" and (hit["row"], hit["column"]) == (row, col)
         assert abs(hit["point"][2] - surface.height[row, col]) < 0.06
         text = surface.describe(row, col, v.layers[0].classes, "frame")
@@ -409,18 +405,14 @@ def test_orientation_grid_and_measuring(viewer):
     # an even number of sections (viser draws a grid about its center), and every line labelled: the line added
     # to make the number even had none
     for lo, hi in ((np.array([0.0, 0.0, 0.0]), np.array([25.0, 31.0, 2.0])), (np.array([-3.0, 1.0, 0.0]), np.array([5.0, 2.5, 1.0]))):
-        grid = vl.ground_grid(lo, hi, 0.0)
+        grid = orientation.ground_grid(lo, hi, 0.0)
         sections_x, sections_y = round((grid.x1 - grid.x0) / grid.section), round((grid.y1 - grid.y0) / grid.section)
         assert sections_x % 2 == 0 and sections_y % 2 == 0
         assert len(grid.labels) == sections_x + 1 + sections_y + 1
-        assert f"y {vl.format_metres(grid.y1, grid.section)}" in [t for t, _ in grid.labels]
-    assert vl.nice_length(7.3) == 5.0 and vl.nice_length(0.034) == 0.02 and vl.nice_length(1.0) == 1.0
-    html_text, metres, pixels = vl.scale_bar_html(0.05)
+        assert f"y {orientation.format_metres(grid.y1, grid.section)}" in [t for t, _ in grid.labels]
+    assert orientation.nice_length(7.3) == 5.0 and orientation.nice_length(0.034) == 0.02 and orientation.nice_length(1.0) == 1.0
+    html_text, metres, pixels = orientation.scale_bar_html(0.05)
     assert metres == 5.0 and pixels == 100.0 and 'data-metres="5"' in html_text
-
-    class Click:
-        def __init__(self, origin):
-            self.ray_origin, self.ray_direction = tuple(origin), (0.0, 0.0, -1.0)
 
     layer = viewer.layers[0]
     rows = viewer.visible_rows[0]
@@ -430,7 +422,7 @@ def test_orientation_grid_and_measuring(viewer):
     ground = column[np.argmax(layer.centers[column, 2])]  # the highest voxel of that column: the one a ray from above meets
     viewer.gui_measure.value = True
     for row in (ground, top):
-        viewer._on_click(Click(layer.centers[row] - viewer.origin + [0, 0, 10]))
+        viewer.picking.click(layer.centers[row] - viewer.origin + [0, 0, 10], (0, 0, -1))
     a, b = viewer.measure_points
     np.testing.assert_allclose(a[:2], layer.centers[ground, :2])
     assert abs(a[2] - (layer.centers[ground, 2] + layer.resolution / 2)) < 1e-6  # the top face the ray enters
@@ -443,11 +435,11 @@ def test_orientation_grid_and_measuring(viewer):
 
 def test_a_long_map_framed_whole_is_inside_the_far_clipping_plane(viewer):
     """viser clips at 1 km by default: a 1.9 km store, framed whole, drew nothing (its camera 2.2 km away)."""
-    viewer._frame_camera(np.array([-50.0, -50.0, -4.0]), np.array([1837.0, 50.0, 12.0]))
-    position, look_at = viewer._auto_camera
+    viewer.cameras.frame(np.array([-50.0, -50.0, -4.0]), np.array([1837.0, 50.0, 12.0]))
+    position, look_at = viewer.cameras.auto_camera
     farthest = np.linalg.norm(position - look_at) + 1887.0  # to the far end of the map, at most
     assert viewer.server.initial_camera.far >= 2 * farthest
-    assert viewer.far_plane_m(10.0) == 1000.0  # small maps keep viser's default
+    assert viewer.cameras.far_plane_m(10.0) == 1000.0  # small maps keep viser's default
 
 
 def test_points_keep_a_visible_size_when_the_camera_is_far(viewer):
@@ -459,16 +451,16 @@ def test_points_keep_a_visible_size_when_the_camera_is_far(viewer):
             self.look_at, self.position = np.zeros(3), np.array([0.0, 0.0, distance])
             self.fov, self.image_height = 1.0, 800
 
-    layer, handle = viewer.layers[0], viewer.voxel_handles[0]
-    viewer._update_scale_bar(Camera(5.0))
+    layer, handle = viewer.layers[0], viewer.voxels.handles[0]
+    viewer.cameras.update_scale_bar(Camera(5.0))
     assert handle.point_size == pytest.approx(layer.resolution)
-    viewer._update_scale_bar(Camera(2000.0))
-    m_per_px = vl.metres_per_pixel(np.array([0.0, 0.0, 2000.0]), np.zeros(3), 1.0, 800)
-    assert handle.point_size == pytest.approx(viewer.MIN_POINT_PX * m_per_px) and handle.point_size > 10 * layer.resolution
-    viewer._draw_layer(0, viewer.visible_rows[0])  # a layer drawn again (new tiles, a control) keeps the size
-    assert viewer.voxel_handles[0].point_size == pytest.approx(viewer.MIN_POINT_PX * m_per_px)
-    viewer._update_scale_bar(Camera(5.0))
-    assert viewer.voxel_handles[0].point_size == pytest.approx(layer.resolution)
+    viewer.cameras.update_scale_bar(Camera(2000.0))
+    m_per_px = orientation.metres_per_pixel(np.array([0.0, 0.0, 2000.0]), np.zeros(3), 1.0, 800)
+    assert handle.point_size == pytest.approx(viewer.voxels.MIN_POINT_PX * m_per_px) and handle.point_size > 10 * layer.resolution
+    viewer.refresh()  # a layer drawn again (new tiles, a control) keeps the size
+    assert viewer.voxels.handles[0].point_size == pytest.approx(viewer.voxels.MIN_POINT_PX * m_per_px)
+    viewer.cameras.update_scale_bar(Camera(5.0))
+    assert viewer.voxels.handles[0].point_size == pytest.approx(layer.resolution)
 
 
 def _projection(path, dirt_below_x):
@@ -488,7 +480,7 @@ def test_diff_counts_against_a_projection_and_a_map(tmp_path, capsys):
     v = MapViewer([tmp_path / "a.npz", tmp_path / "b.npz"], port=free_port(), truth=truth)
     try:
         v.gui_diff.value = "labels differ"
-        diff = v.diff()
+        diff = v.comparison.diff()
         a, b = v.layers
         x = a.centers[diff.a_rows, 0]
         category = diff.category()
@@ -506,16 +498,16 @@ def test_diff_counts_against_a_projection_and_a_map(tmp_path, capsys):
         assert "variance of the first minus the second" in v.gui_diff_status.content
         np.testing.assert_allclose(diff.variance_difference, a.variance[diff.a_rows] - b.variance[diff.b_rows])
         # a map as the truth: its labels where it is occupied
-        truth_map = vl.load_truth(tmp_path / "b.npz", a, WorldFrame("odom"))
+        truth_map = comparison.load_truth(tmp_path / "b.npz", a, WorldFrame("odom"))
         occupied = b.state[diff.b_rows] == 2
         np.testing.assert_array_equal(truth_map[diff.a_rows][occupied], b.label[diff.b_rows][occupied])
     finally:
         v.server.stop()
     with pytest.raises(ValueError, match="compare with the truth.*'map'.*'odom'|'odom'.*'map'"):
-        vl.load_truth(_projection(tmp_path / "gt.npz", 0.75), a, WorldFrame("map"))
+        comparison.load_truth(_projection(tmp_path / "gt.npz", 0.75), a, WorldFrame("map"))
     np.savez(tmp_path / "junk.npz", x=np.zeros(3))
     with pytest.raises(ValueError, match="not a ground truth"):
-        vl.load_truth(tmp_path / "junk.npz", a, WorldFrame("odom"))
+        comparison.load_truth(tmp_path / "junk.npz", a, WorldFrame("odom"))
     assert main(["view", str(tmp_path / "a.npz"), "--truth", str(tmp_path / "none.npz"), "--no-serve", "--port", str(free_port())]) == 2
     assert "no such ground-truth file" in capsys.readouterr().err
 
@@ -527,3 +519,14 @@ def test_html_export_holds_the_legend(viewer, tmp_path):
     viewer.gui_color_by.value = "variance"
     page = viewer.export_html(tmp_path / "scene2.html").read_text()
     assert 'alt="color bar' in page and "data:image/png;base64," in page
+
+
+def test_examples_and_the_viewer_tools_use_no_private_names():
+    """Issue 47: examples drove the viewer's private handlers (``_approach``, ``_on_camera``, ``_on_click``); they use
+    its public methods and handles (``tiles.approach``, ``cameras.report``, ``picking.click``), as a user's script would."""
+    import ast
+
+    files = sorted((REPO / "examples").glob("*.py")) + [REPO / "tools/viewer_screenshots.py", REPO / "tools/bench_viewer.py"]
+    wrong = [f"{path.name}:{node.lineno} .{node.attr}" for path in files for node in ast.walk(ast.parse(path.read_text()))
+             if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")]
+    assert not wrong, f"private names used: {wrong}"

@@ -11,7 +11,8 @@ from io import BytesIO
 import numpy as np
 import pytest
 
-from evsemmap_warp.apps.viewer import CLASS_COLORS, SELECTION_COLOR, MapViewer, colormap, faded, free_port
+from evsemmap_warp.apps.viewer import MapViewer, free_port
+from evsemmap_warp.apps.viewer.colors import CLASS_COLORS, SELECTION_COLOR, colormap, diverging, faded
 
 from conftest import REPO, wait_until
 from test_viewer import make_map
@@ -94,7 +95,8 @@ def test_far_map_shows_its_frame_origin_and_world_coordinates_of_a_click(tmp_pat
 import colorsys
 import re
 
-from evsemmap_warp.apps import viewer_layers as vl
+from evsemmap_warp.apps.viewer.comparison import DIFF_COLORS
+from evsemmap_warp.apps.viewer.terrain import TERRAIN_MODES
 
 
 @pytest.fixture(scope="module")
@@ -331,7 +333,7 @@ def test_orientation_grid_scale_bar_world_coordinates_and_measuring(open_page, t
         client = next(iter(viewer.server.get_clients().values()))
         assert _wait(lambda: abs(np.linalg.norm(client.camera.position - client.camera.look_at) - 9.0) < 0.05)
         time.sleep(2.0)
-        assert viewer.scale_bar is not None
+        assert viewer.cameras.scale_bar is not None
         bar = page.locator("#evsemmap-scale-bar")
         metres, pixels = float(bar.get_attribute("data-metres")), float(bar.get_attribute("data-pixels"))
         assert f"{metres:g} m" in bar.inner_text()
@@ -408,7 +410,7 @@ def test_terrain_layer_as_a_colored_height_surface_with_picking(open_page, tmp_p
         page = open_page(viewer)
         page.get_by_text("voxels hidden: the terrain surface is drawn instead").first.wait_for(timeout=20_000)  # by default
         _choose(page, "Draw", "surface instead of the voxels")
-        assert _wait(lambda: viewer.gui_terrain_mode.value == vl.TERRAIN_MODES[1])
+        assert _wait(lambda: viewer.gui_terrain_mode.value == TERRAIN_MODES[1])
         _choose(page, "Layer", "surface_class")
         assert _wait(lambda: viewer.gui_terrain_band.value == "surface_class")
         assert all(len(rows) == 0 for rows in viewer.visible_rows)  # no voxel is drawn: the colors come from the surface
@@ -428,7 +430,7 @@ def test_terrain_layer_as_a_colored_height_surface_with_picking(open_page, tmp_p
         box = img[int(bar["top"]):int(bar["bottom"]), int(bar["left"]):int(bar["right"])]
         assert _near(box, (253, 231, 37), 30).sum() > 20 and _near(box, (68, 1, 84), 30).sum() > 20, "no color bar"
         # a click on the surface: that cell's values
-        surface = viewer.terrain[0]
+        surface = viewer.terrain.surfaces[0]
         for x, y in ((450, 470), (420, 500), (480, 520), (400, 450), (500, 430)):
             page.mouse.click(x, y)
             if _wait(lambda: "terrain cell" in viewer.gui_selection.content, timeout=5):
@@ -454,10 +456,10 @@ def test_terrain_layers_of_a_store_computed_on_demand(open_page, tmp_path):
     viewer = MapViewer([tmp_path / "store"], port=free_port())
     try:
         page = open_page(viewer)
-        assert not viewer.terrain
+        assert not viewer.terrain.surfaces
         page.get_by_role("button", name="Compute terrain layers").click()
-        assert _wait(lambda: 0 in viewer.terrain, timeout=120)
-        assert len(viewer.stores[0].store.tiles) > 1 and viewer.terrain[0].grid.width * viewer.terrain[0].grid.cell_m > 5.5
+        assert _wait(lambda: 0 in viewer.terrain.surfaces, timeout=120)
+        assert len(viewer.stores[0].store.tiles) > 1 and viewer.terrain.surfaces[0].grid.width * viewer.terrain.surfaces[0].grid.cell_m > 5.5
         _choose(page, "Draw", "surface instead of the voxels")
         _choose(page, "Layer", "surface_class")
         assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000), \
@@ -493,10 +495,10 @@ def test_diff_of_two_maps_against_a_ground_truth(open_page, tmp_path):
         assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum() >= 2000)
         _choose(page, "Show", "labels differ")
         assert _wait(lambda: viewer.gui_diff.value == "labels differ")
-        counts = viewer.diff().counts(viewer.visible_mask(0)[viewer.diff().a_rows])
+        counts = viewer.comparison.diff().counts(viewer.voxels.visible_mask(0)[viewer.comparison.diff().a_rows])
         first, second = counts["first map agrees with the truth"], counts["second map agrees with the truth"]
         assert first > 20 and second > 20 and counts["differ"] >= first + second
-        colors = list(vl.DIFF_COLORS.values())
+        colors = list(DIFF_COLORS.values())
         assert _wait(lambda: _near(_image(page.screenshot())[:, :900], colors[0], 25).sum() > 300), "no 'first agrees' voxels"
         img = _image(page.screenshot())[:, :900]
         assert _near(img, colors[1], 25).sum() > 300, "no 'second agrees' voxels"
@@ -507,10 +509,10 @@ def test_diff_of_two_maps_against_a_ground_truth(open_page, tmp_path):
         _choose(page, "Show", "variance difference")
         assert _wait(lambda: viewer.gui_diff.value == "variance difference")
         page.get_by_text("variance of the first minus the second").first.wait_for(timeout=10_000)
-        diff = viewer.diff()
+        diff = viewer.comparison.diff()
         assert np.abs(diff.variance_difference).max() > 0
         img = _image(page.screenshot())[:, :900]
-        colors = vl.diverging(diff.variance_difference, np.abs(diff.variance_difference).max())
+        colors = diverging(diff.variance_difference, np.abs(diff.variance_difference).max())
         shown = {tuple(c) for c in colors}
         assert sum(_near(img, c, 6).sum() for c in list(shown)[:50]) > 500, "no variance-difference colors"
     finally:
@@ -558,7 +560,7 @@ def alpha_drive(tmp_path_factory):
 def test_drive_playback_scrubs_the_map_and_shows_the_scan_and_the_camera(open_page, alpha_drive):
     """Issue 30 item 3: a time slider over the drive; the map as it stood after the chosen scan, the scan by
     label or input uncertainty, and the camera image with its predicted labels and uncertainty beside it."""
-    from evsemmap_warp.apps.viewer_drive import DrivePlayback, open_drive
+    from evsemmap_warp.apps.viewer.drive import DrivePlayback, open_drive
 
     drive, replay = open_drive(alpha_drive / "map.npz", [alpha_drive / "seq", "rellis3d"], alpha_dir=alpha_drive / "alpha",
                                bin_frames=1, snapshot_every=2)
@@ -634,7 +636,7 @@ def log_drive(tmp_path_factory):
 def test_drive_playback_of_a_robot_log_labelled_by_a_checkpoint(open_page, log_drive):
     """Issue 30 item 3 for a log and a network: the log's scans, its camera image and the checkpoint's labels and
     uncertainty in the panel, the map scrubbed back to the first scan."""
-    from evsemmap_warp.apps.viewer_drive import DrivePlayback, open_drive, pixel_values
+    from evsemmap_warp.apps.viewer.drive import DrivePlayback, open_drive, pixel_values
 
     drive, replay = open_drive(log_drive / "map.npz", [log_drive / "drive_ros2", "rellis3d-bag"], checkpoint=log_drive / "net.pt",
                                bin_frames=1, snapshot_every=2)
@@ -671,7 +673,7 @@ def test_drive_playback_of_a_robot_log_labelled_by_a_checkpoint(open_page, log_d
 
 # --- issue 30 item 5: maps watched while they are made -------------------------------------------------------------
 def _visible_count(viewer) -> int:
-    return int(viewer.visible_mask(0).sum())
+    return int(viewer.voxels.visible_mask(0).sum())
 
 
 @pytest.mark.parametrize("source_kind", ["folder", "log"])
@@ -683,7 +685,7 @@ def test_map_being_made_updates_in_the_browser_and_ends_as_written(open_page, tm
     from evsemmap_warp import Mapper
     from evsemmap_warp.apps.scan_sources import open_scan_source
     from evsemmap_warp.apps.viewer import MapLayer
-    from evsemmap_warp.apps.viewer_live import LiveMap, map_live
+    from evsemmap_warp.apps.viewer.live import LiveMap, map_live
     from evsemmap_warp.config import load_config
     from evsemmap_warp.core.mapper import read_map_arrays
     from evsemmap_warp.synthetic.preset import load_preset
@@ -745,7 +747,7 @@ def test_batch_tiles_fill_in_the_overview(open_page, tmp_path):
     from test_viewer_live import _store_tiles
 
     from evsemmap_warp.apps.viewer import MapLayer
-    from evsemmap_warp.apps.viewer_live import LiveTiles, reading_template
+    from evsemmap_warp.apps.viewer.live import LiveTiles, reading_template
 
     store, tiles = _store_tiles(tmp_path)
     template = reading_template(store.tile(next(iter(tiles))))
@@ -799,13 +801,13 @@ def test_store_first_frame_fills_in_and_shows_tiles_in_full_on_approach(open_pag
         # the camera comes down over the ground, away from the box: that tile column in full, densely drawn
         layer = viewer.layers[0]
         spot = layer.centers[(layer.label == 7) & (layer.centers[:, 0] < 101.0) & (layer.centers[:, 1] < 101.0)].mean(axis=0)
-        viewer.APPROACH_TILES = 0.0  # first the overview from there, for comparison
+        viewer.tiles.APPROACH_TILES = 0.0  # first the overview from there, for comparison
         _top_down(viewer, 1.2, spot - viewer.origin)  # nearer than a tile edge (1.6 m)
         time.sleep(2.0)
         window = (slice(300, 500), slice(540, 740))  # around the orbit center (640, 400)
         sparse = _near(_image(page.screenshot())[window], CLASS_COLORS["grass"]).mean()
         assert overview.detail == () and sparse < 0.6, sparse
-        viewer.APPROACH_TILES = 1.0
+        viewer.tiles.APPROACH_TILES = 1.0
         _top_down(viewer, 1.1, spot - viewer.origin)
         assert _wait(lambda: len(overview.detail) > 0, 30), "no tile in full near the camera"
         page.get_by_text("tile(s) in full").first.wait_for(timeout=20_000)
@@ -829,7 +831,7 @@ def test_store_walk_tiles_come_in_near_the_camera_and_a_chosen_tile_is_flown_to(
     try:
         page = open_page(viewer)
         client = next(iter(viewer.server.get_clients().values()))
-        assert _wait(lambda: viewer.scale_bar is not None)  # the browser has reported the viewer's camera
+        assert _wait(lambda: viewer.cameras.scale_bar is not None)  # the browser has reported the viewer's camera
         time.sleep(1.0)
         assert overview.detail == ()  # framed whole, the store is not near
         # looking at the ground just beside the store's east edge (as after panning along it), then the wheel: the
@@ -863,9 +865,9 @@ def test_store_walk_tiles_come_in_near_the_camera_and_a_chosen_tile_is_flown_to(
 
         # the list: tiles by where they are, in order along the store; the first (a corner, away from the middle)
         labels = [label for label in viewer.gui_tile.options if label.startswith("tile (")]
-        assert len(labels) == len(overview.store.tiles) and labels == list(viewer.tile_choices)
-        label = next(label for label in labels if overview.decimated(viewer.tile_choices[label][1]))
-        name = viewer.tile_choices[label][1]
+        assert len(labels) == len(overview.store.tiles) and labels == list(viewer.tiles.choices)
+        label = next(label for label in labels if overview.decimated(viewer.tiles.choices[label][1]))
+        name = viewer.tiles.choices[label][1]
         low, high = overview.boxes[name]
         assert not np.all((look_at[:2] >= low[:2]) & (look_at[:2] <= high[:2]))
         _choose(page, "Store tile in full", label)
@@ -925,7 +927,7 @@ def test_layers_show_the_terrain_surface_with_one_control_at_the_top(open_page, 
     viewer = MapViewer([tmp_path / "m.npz"], port=free_port(), terrain=True)
     try:
         page = open_page(viewer)
-        assert viewer.gui_terrain_mode.value == vl.TERRAIN_MODES[1]
+        assert viewer.gui_terrain_mode.value == TERRAIN_MODES[1]
         assert all(len(rows) == 0 for rows in viewer.visible_rows), "voxels drawn over the terrain surface"
         page.get_by_text("voxels hidden: the terrain surface is drawn instead").first.wait_for(timeout=20_000)
         # the cost surface (viridis), not the class colors of the voxels
@@ -935,7 +937,7 @@ def test_layers_show_the_terrain_surface_with_one_control_at_the_top(open_page, 
         draw = page.get_by_label("Draw", exact=True)
         box = draw.bounding_box()
         assert box is not None and box["y"] + box["height"] < 400, f"the Draw control is not near the panel's top: {box}"
-        _choose(page, "Draw", vl.TERRAIN_MODES[0])
+        _choose(page, "Draw", TERRAIN_MODES[0])
         assert _wait(lambda: len(viewer.visible_rows[0]) > 0)
         assert _wait(lambda: _near(_image(page.screenshot())[:, :900], CLASS_COLORS["object"]).sum() > 500), "the voxels never came back"
     finally:
@@ -974,7 +976,7 @@ def test_top_down_and_reset_view_buttons(open_page, tmp_path):
     try:
         page = open_page(viewer)
         client = next(iter(viewer.server.get_clients().values()))
-        start_position, start_look_at = viewer._auto_camera
+        start_position, start_look_at = viewer.cameras.auto_camera
 
         def looks_down():
             view = np.asarray(client.camera.look_at) - np.asarray(client.camera.position)
@@ -1012,7 +1014,7 @@ def test_side_by_side_keeps_both_maps_in_view(open_page, tmp_path):
         time.sleep(2.0)
         drawn = []
         for i in (0, 1):
-            handle = viewer.voxel_handles[i]
+            handle = viewer.voxels.handles[i]
             # the whole page: a map under the (opaque) panel changes no pixel there
             changed = _scene_changed_by(page, lambda: setattr(handle, "visible", False), lambda: setattr(handle, "visible", True), width=1280)
             columns = np.flatnonzero(changed.any(axis=0))
@@ -1028,7 +1030,7 @@ def test_side_by_side_keeps_both_maps_in_view(open_page, tmp_path):
 def test_drive_scan_shows_over_the_map(open_page, alpha_drive):
     """Issue 45 item 6: in playback the current scan was hidden under the map's voxels (the same colors, smaller
     points, in them): now it is drawn over a faded map, larger than a voxel; the old drawing is one tick away."""
-    from evsemmap_warp.apps.viewer_drive import DrivePlayback, open_drive
+    from evsemmap_warp.apps.viewer.drive import DrivePlayback, open_drive
 
     drive, replay = open_drive(alpha_drive / "map.npz", [alpha_drive / "seq", "rellis3d"], alpha_dir=alpha_drive / "alpha",
                                bin_frames=1, snapshot_every=2)
@@ -1083,5 +1085,58 @@ def test_a_new_tab_starts_from_the_defaults(open_page, tmp_path):
         second.mouse.click(640, 760)
         assert _wait(lambda: "on the ground grid's plane" in second.inner_text("body"))
         assert "on the ground grid's plane" not in first.inner_text("body")
+    finally:
+        viewer.server.stop()
+
+
+def test_each_tab_keeps_its_own_color_mode(open_page, tmp_path):
+    """Issue 45 item 6: a new browser tab inherited the previous tab's *Color by* (the drawn voxels, the legend and
+    the color range were shared): each tab now has its own. A second tab opens with the default whatever the first
+    chose, and a change in one tab leaves the other's voxels and legend as they were."""
+    make_map(tmp_path / "m.npz")
+    viewer = MapViewer([tmp_path / "m.npz"], port=free_port())
+    try:
+        def grass(page) -> int:
+            return int(_near(_image(page.screenshot())[:, :900], CLASS_COLORS["grass"]).sum())
+
+        def views():
+            return list(viewer.tabs.views.values())
+
+        first = open_page(viewer)
+        assert _wait(lambda: grass(first) >= 2000)
+        _choose(first, "Color by", "variance")
+        assert _wait(lambda: grass(first) < 200), "the first tab's voxels never took the variance colors"
+        second = open_page(viewer)
+        assert _wait(lambda: len(views()) == 2)
+        assert _wait(lambda: grass(second) >= 2000), "the second tab did not open with the class colors"
+        one, two = views()
+        assert (one.color_by.value, two.color_by.value) == ("variance", "semantic")
+        assert one.legend.image.shape[0] == 46 and two.legend.image.shape[0] != 46  # a color bar; the class swatches
+        time.sleep(1.0)
+        assert grass(first) < 200  # the second tab's connecting changed nothing in the first
+        # a change in the second tab: the first keeps its coloring and its legend
+        before = _image(first.screenshot())[:, :900]
+        _choose(second, "Color by", "observations")
+        assert _wait(lambda: grass(second) < 200 and two.color_by.value == "observations")
+        time.sleep(1.5)
+        after = _image(first.screenshot())[:, :900]
+        assert (np.abs(before - after).max(axis=2) > 40).sum() < 50, "the first tab's voxels changed with the second tab's choice"
+        assert one.color_by.value == "variance" and one.legend.image.shape[0] == 46
+        # each tab's export button writes the scene in its own coloring, and leaves the shared scene as it was
+        from test_viewer import read_ply
+
+        first.get_by_role("button", name="PLY point cloud").click()
+        ply = tmp_path / "m_view.ply"
+        assert _wait(lambda: ply.exists() and "written" in viewer.gui_export_status.content)
+        rows = viewer.visible_rows[0]
+        _, vertex = read_ply(ply)
+        written = np.c_[vertex["red"], vertex["green"], vertex["blue"]]
+        assert np.array_equal(written, viewer.voxels.colors(0, rows, "variance"))
+        assert not np.array_equal(written, viewer.voxels.colors(0, rows))  # the shared scene's: the class colors
+        assert viewer.tabs.local.color_by.value == "semantic"
+        # and back: the first tab's choice of the class colors shows them again in it, not in the second
+        _choose(first, "Color by", "semantic")
+        assert _wait(lambda: grass(first) >= 2000)
+        assert grass(second) < 200 and two.color_by.value == "observations"
     finally:
         viewer.server.stop()

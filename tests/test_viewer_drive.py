@@ -6,8 +6,9 @@ import pytest
 from evsemmap_warp.apps.cli import main
 from evsemmap_warp import Mapper
 from evsemmap_warp.apps.scan_sources import open_scan_source
-from evsemmap_warp.apps.viewer import MapViewer, colormap, free_port
-from evsemmap_warp.apps.viewer_drive import DrivePlayback, at_image_size, open_drive, pixel_values
+from evsemmap_warp.apps.viewer import MapViewer, free_port
+from evsemmap_warp.apps.viewer.colors import colormap
+from evsemmap_warp.apps.viewer.drive import DrivePlayback, at_image_size, open_drive, pixel_values
 from evsemmap_warp.config import PayloadType, load_config
 from evsemmap_warp.core.mapper import read_map_arrays
 from evsemmap_warp.synthetic.preset import load_preset

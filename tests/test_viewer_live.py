@@ -9,7 +9,7 @@ from evsemmap_warp.apps.cli import main
 from evsemmap_warp import Mapper
 from evsemmap_warp.apps.scan_sources import map_scans, open_scan_source
 from evsemmap_warp.apps.viewer import MapLayer, MapViewer, free_port
-from evsemmap_warp.apps.viewer_live import LiveMap, LiveTiles, map_live, reading_template
+from evsemmap_warp.apps.viewer.live import LiveMap, LiveTiles, map_live, reading_template
 from evsemmap_warp.config import load_config
 from evsemmap_warp.core.mapper import read_map_arrays
 from evsemmap_warp.synthetic.preset import load_preset
@@ -142,7 +142,7 @@ def test_live_tiles_overview_of_running_sums(tmp_path):
         assert len(names) > 2
         first = tiles[names[0]]
         half = len(first.index) // 2
-        from evsemmap_warp.apps.viewer_live import _decimated
+        from evsemmap_warp.apps.viewer.live import _decimated
 
         live(names[0], _decimated(first, half))  # the tile's sum after its first chunk: some of its voxels
         assert live.wait_idle()
@@ -218,15 +218,15 @@ def test_cameras_follow_the_growing_map_despite_late_reports_and_stop_once_moved
     source, mapper = _source_and_mapper(sequence)
     viewer = _empty_viewer(mapper, tmp_path / "live.npz")
     try:
-        first = viewer._auto_camera
+        first = viewer.cameras.auto_camera
         lagging = _Camera(*first)  # reports the first placement while the viewer moves on twice
         moved = _Camera(first[0] + np.array([5.0, 0.0, 0.0]), first[1])
         monkeypatch.setattr(viewer.server, "get_clients", lambda: {1: _Client(lagging), 2: _Client(moved)})
-        viewer._frame_camera(np.zeros(3), np.full(3, 10.0))
-        second = viewer._auto_camera
+        viewer.cameras.frame(np.zeros(3), np.full(3, 10.0))
+        second = viewer.cameras.auto_camera
         lagging.position, lagging.look_at = first[0].copy(), first[1].copy()  # its report of the first placement arrives late
-        viewer._frame_camera(np.zeros(3), np.full(3, 40.0))
-        third = viewer._auto_camera
+        viewer.cameras.frame(np.zeros(3), np.full(3, 40.0))
+        third = viewer.cameras.auto_camera
         assert not np.allclose(second[0], third[0])
         np.testing.assert_allclose(lagging.position, third[0])
         np.testing.assert_allclose(lagging.look_at, third[1])

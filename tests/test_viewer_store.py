@@ -71,11 +71,11 @@ def test_tiles_in_full_near_the_camera_and_where_a_click_lands(store):
         box = layer.centers[layer.label == 3].mean(axis=0)
         look_at = box - viewer.origin
         far = SimpleNamespace(position=look_at + [0, -20.0, 20.0], look_at=look_at)
-        viewer._approach(far)  # 28 m away, further than 4 tile edges (6.4 m) from every tile: nothing happens
+        viewer.tiles.approach(far)  # 28 m away, further than 4 tile edges (6.4 m) from every tile: nothing happens
         time.sleep(0.5)
         assert overview.detail == ()
         near = SimpleNamespace(position=look_at + [0, -0.5, 0.8], look_at=look_at)
-        viewer._approach(near)
+        viewer.tiles.approach(near)
         # the column it looks at (its tiles the overview thins out), and the tiles nearest it, up to the store's
         # limit; the nearest asked for last, to be kept longest
         column = [name for name in overview.tiles_at(box) if overview.decimated(name)]
@@ -91,7 +91,7 @@ def test_tiles_in_full_near_the_camera_and_where_a_click_lands(store):
         # a click on a voxel of another tile: that tile's column in full as well
         ground = shown.centers[(shown.label == 7) & np.all(np.abs(shown.centers[:, :2] - box[:2]) > 2.0, axis=1)][0]
         ray_origin = ground - viewer.origin + [0, 0, 5.0]
-        viewer._on_click(SimpleNamespace(ray_origin=ray_origin, ray_direction=(0.0, 0.0, -1.0)))
+        viewer.picking.click(ray_origin, (0.0, 0.0, -1.0))
         assert "voxel" in viewer.gui_selection.content
         clicked = overview.tiles_at(ground)
         assert _wait(lambda: set(clicked) <= set(overview.detail) and set(column) <= set(overview.detail))
@@ -106,16 +106,16 @@ def test_a_click_beside_an_overview_point_picks_it_and_its_tile(store):
     overview = viewer.stores[0]
     try:
         layer = viewer.layers[0]
-        viewer.scale_bar = (1.0, 10.0, 0.1)  # 0.1 m a pixel at the orbit center: CLICK_RADIUS_PX is 0.6 m
+        viewer.cameras.scale_bar = (1.0, 10.0, 0.1)  # 0.1 m a pixel at the orbit center: CLICK_RADIUS_PX is 0.6 m
         shown = layer.centers[viewer.visible_rows[0]]
         # a point whose column 0.4 m east holds no overview point: a ray straight down there met none before
         lonely = next(c for c in shown if not np.any(np.all(np.abs(shown[:, :2] - (c[:2] + [0.4, 0.0])) < 0.1, axis=1)))
         ray_origin = lonely + [0.4, 0.0, 30.0] - viewer.origin
-        hit = viewer.pick_point(ray_origin, (0.0, 0.0, -1.0))
+        hit = viewer.picking.pick_point(ray_origin, (0.0, 0.0, -1.0))
         assert hit is not None and hit["kind"] == "voxel", hit
         picked = layer.centers[hit["row"]]
         assert np.linalg.norm(picked[:2] - lonely[:2] - [0.4, 0.0]) <= 0.6 and picked[2] >= lonely[2]
-        viewer._on_click(SimpleNamespace(ray_origin=ray_origin, ray_direction=(0.0, 0.0, -1.0)))
+        viewer.picking.click(ray_origin, (0.0, 0.0, -1.0))
         assert "ground grid" not in viewer.gui_selection.content and "voxel" in viewer.gui_selection.content
         assert _wait(lambda: set(overview.tiles_at(picked)) & set(overview.detail))
     finally:
@@ -128,16 +128,16 @@ def test_tiles_are_listed_along_the_store_by_where_they_are_and_flown_to(store):
     viewer = MapViewer([store], port=free_port(), max_voxels=300)
     overview = viewer.stores[0]
     try:
-        labels = list(viewer.tile_choices)
+        labels = list(viewer.tiles.choices)
         assert viewer.gui_tile.options[1:] == tuple(labels) and len(labels) == len(overview.store.tiles)
         assert all(re.fullmatch(r"tile \(-?\d+, -?\d+, -?\d+\) at E-?\d+ m N-?\d+ m, \d+ m along", label) for label in labels)
-        along = [overview.along[viewer.tile_choices[label][1]] for label in labels]
+        along = [overview.along[viewer.tiles.choices[label][1]] for label in labels]
         assert along == sorted(along) and along[0] == 0.0 and along[-1] > 4.0
         middle = labels[len(labels) // 2]
-        name = viewer.tile_choices[middle][1]
+        name = viewer.tiles.choices[middle][1]
         east, north, _ = overview.boxes[name].mean(axis=0)
         assert middle.startswith(f"tile {tuple(int(v) for v in name.split('_'))} at E{east:.0f} m N{north:.0f} m")
-        viewer.show_tile(middle)
+        viewer.tiles.show(middle)
         assert overview.detail == (name,)
     finally:
         viewer.close()
@@ -158,7 +158,7 @@ def test_the_tile_nearest_the_view_is_shown_before_the_others(store):
     viewer.replace_layer = recording
     try:
         names = sorted(overview.store.tiles)[:4]
-        viewer.request_detail(0, names)
+        viewer.tiles.request(0, names)
         assert _wait(lambda: len(shown) == 2)
         assert shown == [(names[-1],), tuple(names[:-1]) + (names[-1],)]
     finally:
@@ -173,12 +173,12 @@ def test_memory_is_bounded_by_the_tiles_shown(store):
         sizes = sorted((info["voxels"] for info in overview.store.tiles.values()), reverse=True)
         overview_rows = sum(len(p["state"]) for p in overview.parts.values())
         for name in sorted(overview.store.tiles):  # a drive over the whole store, tile by tile
-            viewer.request_detail(0, [name])
+            viewer.tiles.request(0, [name])
             assert _wait(lambda: name in overview.detail)
             assert len(overview.detail) <= 3
             assert overview.held_rows <= overview_rows + sum(sizes[:3])
             assert len(viewer.layers[0].state) <= overview_rows + sum(sizes[:3])
-        viewer.show_tile("(overview only)")
+        viewer.tiles.show("(overview only)")
         assert overview.detail == () and overview.held_rows == overview_rows
     finally:
         viewer.close()
@@ -224,12 +224,12 @@ def test_a_browsers_first_default_camera_is_not_an_approach(store, tmp_path):
     viewer = MapViewer([tmp_path / "store"], port=free_port(), max_voxels=300)
     overview = viewer.stores[0]
     try:
-        viewer._on_camera(7, SimpleNamespace(position=np.array([3.0, 3.0, 3.0]), look_at=np.zeros(3), fov=1.0, image_height=800))
+        viewer.cameras.report(SimpleNamespace(position=np.array([3.0, 3.0, 3.0]), look_at=np.zeros(3), fov=1.0, image_height=800), client_id=7)
         time.sleep(0.5)
         assert overview.detail == ()
-        position, look_at = viewer._auto_camera  # then the viewer's camera arrives; from there on, the user moves
-        viewer._on_camera(7, SimpleNamespace(position=position, look_at=look_at, fov=1.0, image_height=800))
-        viewer._on_camera(7, SimpleNamespace(position=np.array([0.0, -0.5, 1.0]), look_at=np.zeros(3), fov=1.0, image_height=800))
+        position, look_at = viewer.cameras.auto_camera  # then the viewer's camera arrives; from there on, the user moves
+        viewer.cameras.report(SimpleNamespace(position=position, look_at=look_at, fov=1.0, image_height=800), client_id=7)
+        viewer.cameras.report(SimpleNamespace(position=np.array([0.0, -0.5, 1.0]), look_at=np.zeros(3), fov=1.0, image_height=800), client_id=7)
         assert _wait(lambda: overview.detail != ())
     finally:
         viewer.close()

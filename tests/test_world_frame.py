@@ -361,7 +361,7 @@ def test_merge_of_two_runs_odom_maps_is_refused_naming_both_unless_said_to_share
     assert len(err.splitlines()) == 1 and "view together" in err and runs[1] in err, err
     assert main(["view", *map(str, maps), "--same-frame", "--no-serve", "--port", str(free_port())]) == 0
     # playing a drive back: its own map, and one written before maps recorded runs (its scan ids decide); not another run's
-    from evsemmap_warp.apps.viewer_drive import open_drive
+    from evsemmap_warp.apps.viewer.drive import open_drive
 
     old = load_map(maps[0])
     old.frame = WorldFrame("odom")

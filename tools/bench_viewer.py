@@ -152,7 +152,7 @@ def fly_to_first_tile(page, index, timeout: float = 120.0) -> tuple[str, float |
 def measure(store: Path, max_voxels: int, port: int) -> dict:
     from playwright.sync_api import sync_playwright
 
-    from evsemmap_warp.apps.viewer import CLASS_COLORS
+    from evsemmap_warp.apps.viewer.colors import CLASS_COLORS
     from evsemmap_warp.core.map_store import MapStore
 
     index = MapStore(store)

@@ -63,7 +63,7 @@ def class_pixels(png: bytes) -> int:
     """Pixels of the scene (left of the GUI panel) within 30 of a class color."""
     from PIL import Image
 
-    from evsemmap_warp.apps.viewer import CLASS_COLORS
+    from evsemmap_warp.apps.viewer.colors import CLASS_COLORS
 
     image = np.asarray(Image.open(BytesIO(png)).convert("RGB")).astype(int)[:, :900]
     near = np.zeros(image.shape[:2], bool)
@@ -101,7 +101,7 @@ def shoot(mode: str, data: SimpleNamespace, browser, out: Path) -> Path:
         finally:
             viewer.close()
     if mode == "drive":
-        from evsemmap_warp.apps.viewer_drive import DrivePlayback, open_drive
+        from evsemmap_warp.apps.viewer.drive import DrivePlayback, open_drive
 
         drive, replay = open_drive(data.alpha_map, [data.sequence, "rellis3d"], alpha_dir=data.alpha, bin_frames=1, snapshot_every=4)
         viewer = MapViewer([data.alpha_map], port=free_port())
@@ -118,7 +118,7 @@ def shoot(mode: str, data: SimpleNamespace, browser, out: Path) -> Path:
     if mode == "live":
         from evsemmap_warp import Mapper
         from evsemmap_warp.apps.scan_sources import open_scan_source
-        from evsemmap_warp.apps.viewer_live import LiveMap, map_live
+        from evsemmap_warp.apps.viewer.live import LiveMap, map_live
         from evsemmap_warp.config import load_config
 
         run = load_config([str(data.sequence), "rellis3d"], method="ebs")
@@ -153,7 +153,7 @@ def shoot(mode: str, data: SimpleNamespace, browser, out: Path) -> Path:
             page = _open(browser, viewer)
             assert _wait(lambda: overview.complete)
             middle = viewer.layers[0].centers.mean(axis=0)
-            viewer.request_detail(0, overview.tiles_at(middle))
+            viewer.tiles.request(0, overview.tiles_at(middle))
             assert _wait(lambda: "tile(s) in full" in viewer.gui_status.content)
             return _shoot(page, path)
         finally:
@@ -165,13 +165,13 @@ def shoot(mode: str, data: SimpleNamespace, browser, out: Path) -> Path:
             page = _open(browser, viewer)
             viewer.gui_diff.value = "labels differ"
             page.get_by_text("labels differ in").first.scroll_into_view_if_needed()
-            from evsemmap_warp.apps import viewer_layers as vl
+            from evsemmap_warp.apps.viewer.comparison import DIFF_COLORS
 
             def drawn(png):
                 from PIL import Image
 
                 image = np.asarray(Image.open(BytesIO(png)).convert("RGB")).astype(int)[:, :900]
-                return sum(int((np.abs(image - np.array(c)).max(axis=2) < 30).sum()) for c in vl.DIFF_COLORS.values()) > 200
+                return sum(int((np.abs(image - np.array(c)).max(axis=2) < 30).sum()) for c in DIFF_COLORS.values()) > 200
 
             return _shoot(page, path, drawn=drawn)
         finally:

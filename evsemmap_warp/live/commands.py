@@ -236,7 +236,7 @@ def _report(args, run, mapping, live_store) -> None:
 
 def _live_view(args, mapper):
     from ..apps.viewer import MapLayer, MapViewer
-    from ..apps.viewer_live import LiveMap
+    from ..apps.viewer.live import LiveMap
 
     viewer = MapViewer([MapLayer.from_mapper(args.out.stem, args.out, mapper)], host=args.host, port=args.port)
     print(f"evsemmap viewer: open {viewer.url} in a browser to watch the live map", file=sys.stderr)

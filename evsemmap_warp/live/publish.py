@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from ..apps.viewer_live import LatestOnlyWorker, reading_template
+from ..apps.viewer.live import LatestOnlyWorker, reading_template
 from ..core.mapper import VoxelState
 from ..core.voxel_map import VoxelArrays, sum_shard_rows
 from ..data.ros_messages import encode_cloud

@@ -14,7 +14,7 @@ import shutil
 import time
 from pathlib import Path
 
-from ..apps.viewer_live import LatestOnlyWorker, reading_template
+from ..apps.viewer.live import LatestOnlyWorker, reading_template
 from ..config import ConfigError
 from ..core import map_store
 from ..core.voxel_map import VoxelArrays, sum_shard_rows

@@ -86,7 +86,7 @@ def _live_tiles(args, options):
     from ...core.mapper import Mapper
     from ..batch import plan_batch
     from ..viewer import MapLayer, MapViewer
-    from ..viewer_live import LiveTiles
+    from ..viewer.live import LiveTiles
 
     _, sources, config, _, _ = plan_batch(list(args.configs), options)  # the store's classes, frame and parameters
     template = Mapper.for_dataset(sources[0], config, workers=1)

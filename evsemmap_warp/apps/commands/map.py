@@ -74,7 +74,7 @@ def run(args) -> int:
             if live is None:
                 stats = map_scans(mapper, dataset, progress=lambda scan, _: bar.update(1))
             else:
-                from ..viewer_live import map_live
+                from ..viewer.live import map_live
 
                 stats = map_live(mapper, dataset, live, every=args.view_every or 10, progress=lambda scan, _: bar.update(1))
     except BaseException:
@@ -113,7 +113,7 @@ def run(args) -> int:
 def _live_viewer(args, mapper, scan_total: int):
     """The browser view of a map being made (``map --view``), serving before the first scan."""
     from ..viewer import MapLayer, MapViewer
-    from ..viewer_live import LiveMap
+    from ..viewer.live import LiveMap
 
     viewer = MapViewer([MapLayer.from_mapper(args.out.stem, args.out, mapper)], host=args.host or "127.0.0.1", port=args.port or 8080)
     live = LiveMap(viewer, mapper, name=args.out.stem, path=args.out, scan_total=scan_total)

@@ -63,7 +63,7 @@ def run(args) -> int:
     drive = None
     if args.drive:
         from ...core.map_store import is_store
-        from ..viewer_drive import open_drive
+        from ..viewer.drive import open_drive
 
         if len(args.maps) != 1 or is_store(args.maps[0]):
             raise ValueError(f"--drive plays back the drive of one map file (.npz), got {' '.join(map(str, args.maps))}")
@@ -91,7 +91,7 @@ def run(args) -> int:
         viewer.close()
         return 0
     if drive is not None:
-        from ..viewer_drive import DrivePlayback
+        from ..viewer.drive import DrivePlayback
 
         DrivePlayback(viewer, *drive)
     print(f"evsemmap viewer: open {viewer.url} in a browser (Ctrl-C to stop); maps in {describe_frame(viewer.frame)}, "

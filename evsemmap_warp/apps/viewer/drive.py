@@ -30,10 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import ConfigError, PayloadType
-from ..core.integrators import ScanPayload
-from ..core.mapper import Mapper, prepare_payload, scan_fingerprint
-from .viewer import TRAJECTORY_COLOR, MapLayer, colormap
+from ...config import ConfigError, PayloadType
+from ...core.integrators import ScanPayload
+from ...core.mapper import Mapper, prepare_payload, scan_fingerprint
+from .colors import TRAJECTORY_COLOR, colormap
+from .map_layer import MapLayer, frame_of
 
 SCAN_COLORINGS = ("label", "input uncertainty")
 PLAYBACK_BUTTONS = ("◀", "play", "pause", "▶")  # previous scan, play, pause, next scan
@@ -49,8 +50,8 @@ class Drive:
     poses: a ValueError naming ``where`` says so."""
 
     def __init__(self, source, where: str):
-        from ..data.datasets import LabelledSequence
-        from .scan_sources import AlphaFileScans, CheckpointScans
+        from ...data.datasets import LabelledSequence
+        from ..scan_sources import AlphaFileScans, CheckpointScans
 
         self.source = source
         if isinstance(source, (CheckpointScans, AlphaFileScans)):
@@ -480,11 +481,10 @@ def open_drive(map_path, sources, *, checkpoint=None, alpha_dir=None, bin_frames
     made the map file ``map_path``, labelled as it was (``checkpoint`` / ``alpha_dir`` / ``bin_frames`` as
     for ``evsemmap map``), placed in the map's world frame and replayed with the map's mapping parameters.
     Refused (ValueError / ConfigError naming both) when the drive cannot have made the map."""
-    from ..config import available_methods, load_config
-    from ..core.map_file import mapping_config, read_map_file
-    from ..frames import FIRST_SCAN, check_same_frame
-    from .scan_sources import open_scan_source
-    from .viewer import frame_of
+    from ...config import available_methods, load_config
+    from ...core.map_file import mapping_config, read_map_file
+    from ...frames import FIRST_SCAN, check_same_frame
+    from ..scan_sources import open_scan_source
 
     map_path = Path(map_path)
     contents = read_map_file(map_path)  # its origin and meta: the read-out is not needed

@@ -20,15 +20,16 @@ from itertools import islice
 
 import numpy as np
 
-from ..core.map_file import file_arrays
-from ..core.voxel_map import VoxelArrays, sum_shard_rows
-from .viewer import TRAJECTORY_COLOR, MapLayer
+from ...core.map_file import file_arrays
+from ...core.voxel_map import VoxelArrays, sum_shard_rows
+from .colors import TRAJECTORY_COLOR
+from .map_layer import MapLayer
 
 
 def reading_template(mapper):
     """A Mapper with ``mapper``'s parameters, classes, frame and origin, holding nothing: it reads copies
     of ``mapper``'s voxels out (``contents_of``) on another thread without touching ``mapper``."""
-    from ..core.mapper import Mapper
+    from ...core.mapper import Mapper
 
     template = Mapper(mapper.config, mapper.num_classes, class_names=mapper.class_names, device="cpu", workers=1,
                       initial_capacity=1, frame=mapper.frame)
@@ -183,7 +184,7 @@ class LiveMap(LatestOnlyWorker):
 def map_live(mapper, scans, live: LiveMap, *, every: int, progress=None) -> list:
     """``scan_sources.map_scans`` in segments of ``every`` scans, offering ``live`` the map after each
     (the same map: integrate_many maps scans in order, whatever the segments); returns the per-scan stats."""
-    from .scan_sources import map_scans
+    from ..scan_sources import map_scans
 
     if every < 1:
         raise ValueError(f"every must be at least 1, got {every}")
