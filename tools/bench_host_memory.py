@@ -18,7 +18,7 @@ falls on every variant alike; each time is the median over the rounds. Each repe
 process's minor page faults, and its map's digest (every stored voxel's index and values) must be the
 same for every variant, or the tool exits 1 after writing its record (docs/bench/bench_host_memory-<UTC>.json).
 
-    python tools/bench_host_memory.py [--repeats 5] [--free-resolution 4] [--scans N]
+    python tools/bench_host_memory.py [--repeats 5] [--free-resolution 4] [--scans N] [--variants engine tables_from_numpy ...]
 """
 
 from __future__ import annotations
@@ -128,6 +128,7 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--free-resolution", type=float, default=4.0)
     parser.add_argument("--scans", type=int, default=None, help="map the first N scans only (a trial)")
+    parser.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS), help="the variants to run (engine always runs)")
     parser.add_argument("--record-dir", type=Path, default=RECORDS, help="where the run's record goes (default docs/bench)")
     args = parser.parse_args()
     started = time.time()
@@ -136,9 +137,9 @@ def main() -> int:
     scans, labels = scans[:args.scans], labels[:args.scans]
     config = compat_config(args.free_resolution)
     one_repeat("engine", config, scans[:1], labels[:1])  # compiles the kernels
-    runs = {variant: [] for variant in VARIANTS}
+    runs = {variant: [] for variant in VARIANTS if variant == "engine" or variant in args.variants}
     for round_ in range(args.repeats):
-        for variant in VARIANTS:
+        for variant in runs:
             runs[variant].append(one_repeat(variant, config, scans, labels))
             print(f"round {round_ + 1} {variant}: " + json.dumps({k: v for k, v in runs[variant][-1].items() if k != "digest"}), file=sys.stderr)
     results = {"workload": {"scans": len(scans), "points": sum(len(s.points) for s in scans), "free_resolution": args.free_resolution,
