@@ -1,8 +1,7 @@
 """Fresh table rows are faulted in once, by a write: on Linux a page of the CPU row reservation that a kernel
-reads first maps the shared zero page and faults again on the write that follows. The S-BKI block gather
-read its rows first (the class sums) and wrote the touched flag last, which doubled its page faults; two
-shards' faults contend in the kernel, so the like-for-like S-BKI mode on two threads took 1.77 s instead
-of 0.97-1.06 s (docs/performance.md). Counted with the launching thread's minor faults (one worker: the
+reads first maps the shared zero page and faults again on the write that follows, and two shards' faults
+contend in the kernel, so every kernel that adds to a row marks it touched first (docs/performance.md,
+``kernels/scatter.py``, ``touch_row``). Counted with the launching thread's minor faults (one worker: the
 launches run on the calling thread)."""
 
 from __future__ import annotations
