@@ -84,13 +84,10 @@ def savez_atomically(path, *, compressed: bool = False, **arrays) -> Path:
 
 
 # Identity by content --------------------------------------------------------------------------------
-# What a resumable run (evsemmap batch) must find unchanged: the SHA-256 of every file it may read.
-# The trade-off, measured on the tiny synthetic drive (36 files, 0.57 MB as a folder; a 1.65 MB bag):
-# size + mtime + path per file costs 0.7 ms (folder) and 0.01 ms (bag), the content hashes 2.3 and
-# 2.4 ms (~700 MB/s), against ~1.5 s to map it: 0.2 %, and at the pipeline's reading rate (tens of MB/s
-# of scans) about 2 % of any drive's mapping time. Stat-only identity is O(files) instead of O(bytes),
-# but an edit that keeps a file's size and mtime (cp -p, rsync -t, tar x, a clock step back) would
-# resume a run over the old data, silently; a run that reads every byte anyway can afford to hash them.
+# What a resumable run (evsemmap batch) must find unchanged: the SHA-256 of every file it may read. A
+# file's size and mtime would be cheaper, but an edit that keeps both (cp -p, rsync -t, tar x, a clock
+# step back) would resume a run over the old data, silently; a run that reads every byte anyway hashes
+# them for a small share of its time (docs/performance.md, "Measurements behind the code's choices").
 _HASH_BLOCK = 1 << 20
 
 

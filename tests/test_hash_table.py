@@ -202,14 +202,12 @@ def test_edge_of_the_key_range_hashes_like_the_twin():
 
 @pytest.mark.parametrize("reserved", [True, False])
 def test_cpu_rows_stay_in_place_when_reserved_and_are_copied_otherwise(reserved, monkeypatch):
-    import sys
+    from evsemmap_warp.core import host_memory
 
-    from evsemmap_warp.core import _host_memory
-
-    if reserved and not sys.platform.startswith("linux"):
-        pytest.skip("the row reservation is made on Linux only")
-    if not reserved:  # a platform or overcommit policy that refuses the reservation
-        monkeypatch.setattr(_host_memory, "reserved_zeros", lambda rows, columns: None)
+    if reserved and not host_memory.reservation_allowed():
+        pytest.skip("this process may not reserve address space (not Linux, ulimit -v or strict overcommit)")
+    if not reserved:  # a platform, limit or overcommit policy that refuses the reservation
+        monkeypatch.setattr(host_memory, "reserved_zeros", lambda rows, columns: None)
     vm = VoxelMap(3, 0.5, initial_capacity=16)
     rng = np.random.default_rng(4)
     index = np.unique(rng.integers(-20, 20, size=(300, 3)), axis=0)
@@ -219,6 +217,28 @@ def test_cpu_rows_stay_in_place_when_reserved_and_are_copied_otherwise(reserved,
     vm.grow(vm.capacity * 8)
     assert (vm.data.ptr == before) == reserved
     np.testing.assert_array_equal(vm.data.numpy()[vm.lookup_points((index + 0.5) * 0.5), 0], np.arange(len(index)))
+
+
+def test_no_row_reservation_under_an_address_space_limit():
+    # Under ulimit -v a reservation counts against the limit, and so against the tables' memory budget
+    # (limits.available_memory): each shard's 16 GiB left a 20 GiB limit's map about 3 GiB to grow in.
+    import subprocess
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("ulimit -v and the reservation are Linux's")
+    script = """
+import resource
+resource.setrlimit(resource.RLIMIT_AS, (20 << 30, resource.getrlimit(resource.RLIMIT_AS)[1]))
+from evsemmap_warp.core.voxel_map import VoxelMap
+from evsemmap_warp.limits import available_memory
+before = available_memory()
+maps = [VoxelMap(9, 0.2, initial_capacity=1024) for _ in range(2)]
+print(before - available_memory())
+"""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert int(done.stdout.split()[-1]) < 1 << 30, "the tables took the address space of a reservation"
 
 
 @pytest.mark.parametrize("rows", [1, 255, 256, 257, 5000])

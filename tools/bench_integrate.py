@@ -167,9 +167,8 @@ class MapperRow:
                 "voxels": mapper.voxel_count, "free": counts["FREE"], "occupied": counts["OCCUPIED"],
                 "bytes_per_voxel": round(mapper.device_bytes / max(mapper.voxel_count, 1), 1), "workers": len(mapper.shards),
             }
-        # Each map is released before the next one is made: on this project's VMs memory the process has
-        # not touched before faults in ~1.5x slower (fr4, 1 thread: 1.9 s with the earlier maps released,
-        # 3.0 s with them kept), which made every repeat after the first slower than the first.
+        # Each map is released before the next one is made: memory the process has not touched before
+        # faults in more slowly, which would make every repeat after the first slower than the first.
         del mapper, all_stats
         gc.collect()
 
@@ -259,35 +258,14 @@ def main() -> int:
     except ValueError as exc:
         print(exc, file=sys.stderr)
         return 2
-    alphas = [s.payload for s in scans]
-
-    timed = {}
     thread_counts = (1, 2) if args.device == "cpu" else (1,)
     like_for_like = [f"s-bki-compat@fr{fr}" for fr in args.free_resolutions] + [f"{m}-release" for m in RELEASE_METHODS]
-    for method in METHODS:
-        cfg = load_config([PRESET], method=method).mapping
-        timed[method] = MapperRow(cfg, scans, alphas, "alpha", args.device, pipelined=True)
-        if not args.skip_numpy and method in ("ebs", "s-bki"):  # the numpy twin times the radius rules
-            timed[f"numpy:{method}"] = NumpyRow(cfg, scans, alphas)
-    for threads in thread_counts:
-        for fr in args.free_resolutions:
-            timed[f"s-bki-compat@fr{fr}@{threads}t"] = MapperRow(compat_config(float(fr)), scans, labels, "label", args.device, workers=threads,
-                                                                 pipelined=threads > 1)
-        for method in RELEASE_METHODS:
-            timed[f"{method}-release@{threads}t"] = MapperRow(load_config([RELEASE_PRESET], method=method).mapping, scans, alphas, "alpha",
-                                                              args.device, workers=threads, pipelined=threads > 1)
+    timed = table_rows(args, scans, labels, thread_counts)
     with tqdm(total=len(timed) * args.repeats * n_points, unit="pt", unit_scale=True, desc="integrating", file=sys.stderr) as progress:
         rows = time_rows(timed, args.repeats, progress)
         release_after_cut = {m: release_counts(load_config([RELEASE_PRESET], method=m).mapping, scans) for m in RELEASE_METHODS}
 
-    # The C++ on one thread and at its best thread count (1 or 2): input points / median summed insert time.
-    cpp_rate, cpp_row = {}, {}
-    for name, results, key in [(f"{m}-release", evsemmap, m) for m in RELEASE_METHODS] + [(f"s-bki-compat@fr{fr}", sbki, k) for fr, k in CPP_SBKI.items()]:
-        for t in (1, 2):
-            cpp_rate[(name, t)] = n_points / statistics.median(results[f"{key}_t{t}"]["totals"])
-        cpp_row[name] = results[f"{key}_t1"]
-    cpp_rate[("ebs", 2)] = max(cpp_rate[("ebs-release", 1)], cpp_rate[("ebs-release", 2)])  # other map semantics
-
+    cpp_rate, cpp_row = cpp_rates(sbki, evsemmap, n_points)
     print(f"{n_points:,} input points in {len(scans)} scans, device {args.device}, median of {args.repeats}")
     print(f"C++ figures: {cpp_source}")
     print(f"{'row':28s} {'s':>7s} {'input pts/s':>12s} {'voxel upd/s':>12s} {'voxels':>9s} {'B/voxel':>8s}  vs numpy  "
@@ -301,22 +279,8 @@ def main() -> int:
             vs_cpp += " other map semantics"
         print(f"{name:28s} {row['seconds']:7.2f} {row['input_points_per_s']:12,.0f} {row['voxel_updates_per_s']:12,.0f} "
               f"{row['voxels']:9,d} {row.get('bytes_per_voxel', float('nan')):8.1f}  {vs_numpy:8s}  {vs_cpp}")
-    problems = []
-    for name in like_for_like:
-        row = rows[f"{name}@{thread_counts[-1]}t"]
-        want_row = cpp_row[name]
-        line = f"{name}: {row['voxels']:,} cells (C++ {want_row['cells']:,}), FREE {row['free']:,}, OCCUPIED {row['occupied']:,}"
-        if "free" in want_row:
-            line += f" (C++ {want_row['free']:,} and {want_row['occupied']:,})"
-        if name.endswith("-release"):
-            want = (want_row["after_unc"], want_row["after_ds"])
-            got = (release_after_cut[name.removesuffix("-release")], row["kept_or_training_points"])
-            line += f"; after the cut {got[0]:,} (C++ {want[0]:,}), after ds {got[1]:,} (C++ {want[1]:,})"
-            if got != want:
-                problems.append(f"{name}: counts {got} differ from the C++'s {want}")
-        if row["voxels"] != want_row["cells"]:
-            problems.append(f"{name}: {row['voxels']:,} cells, the C++ has {want_row['cells']:,}")
-        print(line)
+    problems = [problem for name in like_for_like
+                for problem in check_counts(name, rows[f"{name}@{thread_counts[-1]}t"], cpp_row[name], release_after_cut)]
     print("details: " + json.dumps(rows, default=lambda o: None))
     if args.plot:
         plot(throughput, references, args.plot)
@@ -330,6 +294,56 @@ def main() -> int:
         print("MISMATCH: " + "; ".join(problems), file=sys.stderr)
         return 1
     return 0
+
+
+def table_rows(args, scans, labels, thread_counts) -> dict:
+    """Name -> the row that times it: each method with the RELLIS-3D preset (and the numpy twin of the radius
+    rules unless --skip-numpy), then the like-for-like modes at each thread count."""
+    alphas = [s.payload for s in scans]
+    timed = {}
+    for method in METHODS:
+        cfg = load_config([PRESET], method=method).mapping
+        timed[method] = MapperRow(cfg, scans, alphas, "alpha", args.device, pipelined=True)
+        if not args.skip_numpy and method in ("ebs", "s-bki"):  # the numpy twin times the radius rules
+            timed[f"numpy:{method}"] = NumpyRow(cfg, scans, alphas)
+    for threads in thread_counts:
+        for fr in args.free_resolutions:
+            timed[f"s-bki-compat@fr{fr}@{threads}t"] = MapperRow(compat_config(float(fr)), scans, labels, "label", args.device, workers=threads,
+                                                                 pipelined=threads > 1)
+        for method in RELEASE_METHODS:
+            timed[f"{method}-release@{threads}t"] = MapperRow(load_config([RELEASE_PRESET], method=method).mapping, scans, alphas, "alpha",
+                                                              args.device, workers=threads, pipelined=threads > 1)
+    return timed
+
+
+def cpp_rates(sbki: dict, evsemmap: dict, n_points: int) -> tuple[dict, dict]:
+    """(the C++ rates, (row, threads) -> input points / the median summed insert time, at 1 and 2 threads;
+    row -> the C++'s 1-thread results, whose counts the run is checked against)."""
+    cpp_rate, cpp_row = {}, {}
+    for name, results, key in [(f"{m}-release", evsemmap, m) for m in RELEASE_METHODS] + [(f"s-bki-compat@fr{fr}", sbki, k) for fr, k in CPP_SBKI.items()]:
+        for t in (1, 2):
+            cpp_rate[(name, t)] = n_points / statistics.median(results[f"{key}_t{t}"]["totals"])
+        cpp_row[name] = results[f"{key}_t1"]
+    cpp_rate[("ebs", 2)] = max(cpp_rate[("ebs-release", 1)], cpp_rate[("ebs-release", 2)])  # other map semantics
+    return cpp_rate, cpp_row
+
+
+def check_counts(name: str, row: dict, want_row: dict, release_after_cut: dict) -> list[str]:
+    """Print a like-for-like row's counts beside the C++'s; the mismatches, one line each."""
+    problems = []
+    line = f"{name}: {row['voxels']:,} cells (C++ {want_row['cells']:,}), FREE {row['free']:,}, OCCUPIED {row['occupied']:,}"
+    if "free" in want_row:
+        line += f" (C++ {want_row['free']:,} and {want_row['occupied']:,})"
+    if name.endswith("-release"):
+        want = (want_row["after_unc"], want_row["after_ds"])
+        got = (release_after_cut[name.removesuffix("-release")], row["kept_or_training_points"])
+        line += f"; after the cut {got[0]:,} (C++ {want[0]:,}), after ds {got[1]:,} (C++ {want[1]:,})"
+        if got != want:
+            problems.append(f"{name}: counts {got} differ from the C++'s {want}")
+    if row["voxels"] != want_row["cells"]:
+        problems.append(f"{name}: {row['voxels']:,} cells, the C++ has {want_row['cells']:,}")
+    print(line)
+    return problems
 
 
 def compare_rows(rows: dict, n_points: int, cpp_rate: dict) -> dict:

@@ -191,46 +191,35 @@ def _slope_error(slope: np.ndarray, true_slope: np.ndarray) -> dict:
             "p95_abs": round(float(np.quantile(np.abs(error), 0.95)), 3), "median_signed": round(float(np.median(error)), 3)}
 
 
-def evaluate(layers, truth, road, poses, classes, costs_of_classes: np.ndarray, true_slope: np.ndarray, prior: float) -> dict:
-    height, ground_class, obstacle = truth
-    bands = layers.bands
-    seen = np.isfinite(bands["elevation"]) & np.isfinite(height)
-    error = (bands["elevation"] - height)[seen]
-    classified = seen & (ground_class >= 0)
-    predicted = bands["surface_class"][classified].astype(int)
-    true = ground_class[classified]
-    correct = predicted == true
-    def by_decile(values):
-        """Class error rate per decile of ``values`` (ranks, so that ties split evenly), and the decile edges."""
-        rank = np.argsort(np.argsort(values, kind="stable"), kind="stable")
-        decile = rank * 10 // len(values)
-        rates = [round(float(1 - correct[decile == d].mean()), 4) for d in range(10)]
-        return rates, [float(f"{np.quantile(values, q):.3g}") for q in np.linspace(0, 1, 11)]
+def _by_decile(values: np.ndarray, correct: np.ndarray):
+    """Class error rate per decile of ``values`` (ranks, so that ties split evenly), and the decile edges."""
+    rank = np.argsort(np.argsort(values, kind="stable"), kind="stable")
+    decile = rank * 10 // len(values)
+    rates = [round(float(1 - correct[decile == d].mean()), 4) for d in range(10)]
+    return rates, [float(f"{np.quantile(values, q):.3g}") for q in np.linspace(0, 1, 11)]
 
-    variance_rates, variance_edges = by_decile(bands["semantic_variance"][classified])
+
+def _class_errors(bands, classified, correct, uncommitted) -> dict:
+    """The surface class's error rate by decile of each reading of its uncertainty."""
+    variance_rates, variance_edges = _by_decile(bands["semantic_variance"][classified], correct)
     # the winning class's probability, least sure first: the same Dirichlet read another way
-    probability_rates, probability_edges = by_decile(bands["surface_probability"][classified])
+    probability_rates, probability_edges = _by_decile(bands["surface_probability"][classified], correct)
     # subjective logic's reading of the support voxel: the uncommitted mass u = K prior / S alone, and the surface
     # doubt 1 - b_label, the mass not committed to the label (vacuity and conflict together)
-    uncommitted = _uncommitted_mass(bands, classes, prior)
-    uncommitted_rates, uncommitted_edges = by_decile(uncommitted[classified])
-    doubt_rates, doubt_edges = by_decile(bands["surface_doubt"][classified])
-    per_class = {classes[c]: {"cells": int((true == c).sum()), "recall": round(float(correct[true == c].mean()), 4)}
-                 for c in np.unique(true)}
-    result = {
-        "cells_seen": int(seen.sum()), "cells_with_truth": int(np.isfinite(height).sum()),
-        "elevation_error_m": {"median_abs": round(float(np.median(np.abs(error))), 4), "p95_abs": round(float(np.quantile(np.abs(error), 0.95)), 4),
-                              "median_signed": round(float(np.median(error)), 4)},
-        "surface_class_accuracy": round(float(correct.mean()), 4), "per_class": per_class,
+    uncommitted_rates, uncommitted_edges = _by_decile(uncommitted[classified], correct)
+    doubt_rates, doubt_edges = _by_decile(bands["surface_doubt"][classified], correct)
+    return {
         "class_error_rate_by_variance_decile": variance_rates, "variance_decile_edges": variance_edges,
         "class_error_rate_by_probability_decile": probability_rates, "probability_decile_edges": probability_edges,
         "class_error_rate_by_uncommitted_decile": uncommitted_rates, "uncommitted_decile_edges": uncommitted_edges,
         "class_error_rate_by_doubt_decile": doubt_rates, "doubt_decile_edges": doubt_edges,
     }
-    result["road_vs_rest_auc"] = _road_auc(bands, ground_class, classes)
-    result["slope_error_deg"] = _slope_error(bands["slope"], true_slope)
+
+
+def _costs(bands, ground_class, road, classes, true_slope, well_observed) -> dict:
+    """Slope on the flat road and the traversability cost by true class, on the road and off it."""
+    result = {}
     road_class = np.isin(ground_class, [classes.index("paved"), classes.index("unpaved")])
-    well_observed = np.isfinite(uncommitted) & (uncommitted < 0.1)
     flat_road = road_class & (true_slope < 1.0) & well_observed & np.isfinite(bands["slope"])
     result["slope_on_flat_road_deg"] = {"cells": int(flat_road.sum()), "median": round(float(np.median(bands["slope"][flat_road])), 3),
                                         "p95": round(float(np.quantile(bands["slope"][flat_road], 0.95)), 3)} if flat_road.any() else None
@@ -240,57 +229,85 @@ def evaluate(layers, truth, road, poses, classes, costs_of_classes: np.ndarray, 
     known_cost = np.isfinite(bands["traversability_cost"])
     result["median_cost_on_road"] = round(float(np.median(bands["traversability_cost"][known_cost & road])), 4)
     result["median_cost_off_road"] = round(float(np.median(bands["traversability_cost"][known_cost & ~road])), 4)
+    return result
+
+
+def _plan(layers, road, obstacle, poses) -> dict:
+    """A* on the layers' traversability cost from the first pose to the last: how far the endpoints moved to
+    passable cells, and the plan (None where there is none)."""
+    bands, grid = layers.bands, layers.grid
     cost = np.nan_to_num(bands["traversability_cost"], nan=1.0)
-    grid = layers.grid
     passable = (bands["known"] > 0) & ~_inflate(bands["lethal"] > 0, ROBOT_RADIUS_M / grid.cell_m)
     # the cells of the first and last poses, or the nearest cells connected to each other where a pose's own
     # cell is unknown or lethal (the cells around the first pose are only seen from behind it)
     goal = _nearest(passable, _cell_of(grid, poses[-1, 0, 3], poses[-1, 1, 3]))
     start_cell = _cell_of(grid, poses[0, 0, 3], poses[0, 1, 3])
     start = _nearest(_connected(passable, goal), start_cell)
-    result["plan_endpoints_moved_m"] = [round(math.dist(start, start_cell) * grid.cell_m, 2),
-                                        round(math.dist(goal, _cell_of(grid, poses[-1, 0, 3], poses[-1, 1, 3])) * grid.cell_m, 2)]
+    result = {"plan_endpoints_moved_m": [round(math.dist(start, start_cell) * grid.cell_m, 2),
+                                         round(math.dist(goal, _cell_of(grid, poses[-1, 0, 3], poses[-1, 1, 3])) * grid.cell_m, 2)]}
     path = astar(cost, passable, start, goal, grid.cell_m)
-    if path:
-        cells = np.array(path)
-        steps = np.hypot(*np.diff(cells, axis=0).T) * grid.cell_m
-        on_road = road[cells[:, 0], cells[:, 1]]
-        obstacle_cells = np.argwhere(obstacle)
-        clearance = min(float(np.min(np.hypot(obstacle_cells[:, 0] - r, obstacle_cells[:, 1] - c))) for r, c in path) * grid.cell_m
-        result["plan"] = {"length_m": round(float(steps.sum()), 2),
-                          "straight_line_m": round(float(math.hypot(poses[-1, 0, 3] - poses[0, 0, 3], poses[-1, 1, 3] - poses[0, 1, 3])), 2),
-                          "share_on_road": round(float(on_road.mean()), 4), "cells_on_true_obstacles": int(obstacle[cells[:, 0], cells[:, 1]].sum()),
-                          "clearance_from_obstacles_m": round(clearance, 2), "cells": [list(map(int, p)) for p in path]}
-    else:
-        result["plan"] = None
-    # the same plan on the cost the true classes would give (no uncertainty, true obstacles lethal): what the cost
-    # table asks for when the map is perfect
+    if not path:
+        return result | {"plan": None}
+    cells = np.array(path)
+    steps = np.hypot(*np.diff(cells, axis=0).T) * grid.cell_m
+    on_road = road[cells[:, 0], cells[:, 1]]
+    obstacle_cells = np.argwhere(obstacle)
+    clearance = min(float(np.min(np.hypot(obstacle_cells[:, 0] - r, obstacle_cells[:, 1] - c))) for r, c in path) * grid.cell_m
+    return result | {"plan": {"length_m": round(float(steps.sum()), 2),
+                              "straight_line_m": round(float(math.hypot(poses[-1, 0, 3] - poses[0, 0, 3], poses[-1, 1, 3] - poses[0, 1, 3])), 2),
+                              "share_on_road": round(float(on_road.mean()), 4), "cells_on_true_obstacles": int(obstacle[cells[:, 0], cells[:, 1]].sum()),
+                              "clearance_from_obstacles_m": round(clearance, 2), "cells": [list(map(int, p)) for p in path]}}
+
+
+def _plan_on_true_classes(grid, truth, road, poses, costs_of_classes: np.ndarray) -> dict:
+    """The same plan on the cost the true classes would give (no uncertainty, true obstacles lethal): what the
+    cost table asks for when the map is perfect ({} where there is no such plan)."""
+    height, ground_class, obstacle = truth
     true_cost = np.where(ground_class >= 0, costs_of_classes[np.clip(ground_class, 0, None)], 1.0)
     true_passable = np.isfinite(height) & ~_inflate(obstacle, ROBOT_RADIUS_M / grid.cell_m)
     true_goal = _nearest(true_passable, _cell_of(grid, poses[-1, 0, 3], poses[-1, 1, 3]))
     true_start = _nearest(_connected(true_passable, true_goal), _cell_of(grid, poses[0, 0, 3], poses[0, 1, 3]))
     true_path = np.array(astar(true_cost, true_passable, true_start, true_goal, grid.cell_m))
-    if len(true_path):
-        steps = np.hypot(*np.diff(true_path, axis=0).T) * grid.cell_m
-        result["plan_on_true_classes"] = {"length_m": round(float(steps.sum()), 2), "share_on_road": round(float(road[true_path[:, 0], true_path[:, 1]].mean()), 4)}
-    return result
+    if not len(true_path):
+        return {}
+    steps = np.hypot(*np.diff(true_path, axis=0).T) * grid.cell_m
+    return {"plan_on_true_classes": {"length_m": round(float(steps.sum()), 2),
+                                     "share_on_road": round(float(road[true_path[:, 0], true_path[:, 1]].mean()), 4)}}
 
 
-def _figures(out: Path, layers, truth, road, result, poses, classes, colors, sweep) -> list[Path]:
-    import matplotlib
+def evaluate(layers, truth, road, poses, classes, costs_of_classes: np.ndarray, true_slope: np.ndarray, prior: float) -> dict:
+    height, ground_class, obstacle = truth
+    bands = layers.bands
+    seen = np.isfinite(bands["elevation"]) & np.isfinite(height)
+    error = (bands["elevation"] - height)[seen]
+    classified = seen & (ground_class >= 0)
+    true = ground_class[classified]
+    correct = bands["surface_class"][classified].astype(int) == true
+    uncommitted = _uncommitted_mass(bands, classes, prior)
+    result = {
+        "cells_seen": int(seen.sum()), "cells_with_truth": int(np.isfinite(height).sum()),
+        "elevation_error_m": {"median_abs": round(float(np.median(np.abs(error))), 4), "p95_abs": round(float(np.quantile(np.abs(error), 0.95)), 4),
+                              "median_signed": round(float(np.median(error)), 4)},
+        "surface_class_accuracy": round(float(correct.mean()), 4),
+        "per_class": {classes[c]: {"cells": int((true == c).sum()), "recall": round(float(correct[true == c].mean()), 4)} for c in np.unique(true)},
+    }
+    result |= _class_errors(bands, classified, correct, uncommitted)
+    result["road_vs_rest_auc"] = _road_auc(bands, ground_class, classes)
+    result["slope_error_deg"] = _slope_error(bands["slope"], true_slope)
+    well_observed = np.isfinite(uncommitted) & (uncommitted < 0.1)
+    result |= _costs(bands, ground_class, road, classes, true_slope, well_observed)
+    result |= _plan(layers, road, obstacle, poses)
+    return result | _plan_on_true_classes(layers.grid, truth, road, poses, costs_of_classes)
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+
+def _overview_figure(plt, layers, result, poses, classes, colors):
+    """The layers side by side, the A* plan and the drive over the cost."""
     from matplotlib.colors import ListedColormap
     from matplotlib.patches import Patch
 
-    height, ground_class, obstacle = truth
-    grid = layers.grid
+    grid, bands = layers.grid, layers.bands
     extent = (grid.x0_m, grid.x1_m, grid.y0_m, grid.y1_m)
-    written = []
-    bands = layers.bands
     palette = ListedColormap(np.asarray(colors) / 255.0)
-
     fig, axes = plt.subplots(2, 3, figsize=(16, 10))
     panels = [("elevation", "terrain", "m"), ("slope", "magma", "deg"), ("step", "magma", "m"),
               ("surface_class", None, None), ("semantic_variance", "inferno", "1"), ("traversability_cost", "RdYlGn_r", "[0, 1]")]
@@ -318,10 +335,14 @@ def _figures(out: Path, layers, truth, road, result, poses, classes, colors, swe
         ax.set_title(name.replace("_", " "))
     fig.suptitle(f"Terrain layers of a synthetic drive ({layers.grid.cell_m} m cells); black: lethal")
     fig.tight_layout()
-    written.append(out / "layers_overview.png")
-    fig.savefig(written[-1], dpi=72)
-    plt.close(fig)
+    return fig
 
+
+def _truth_check_figure(plt, layers, truth, result, sweep):
+    """The elevation error against the true terrain, its spread by minimum evidence, class errors by uncertainty."""
+    grid, bands = layers.grid, layers.bands
+    extent = (grid.x0_m, grid.x1_m, grid.y0_m, grid.y1_m)
+    height = truth[0]
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
     seen = np.isfinite(bands["elevation"]) & np.isfinite(height)
     error = np.where(seen, bands["elevation"] - height, np.nan)
@@ -344,59 +365,63 @@ def _figures(out: Path, layers, truth, road, result, poses, classes, colors, swe
     axes[2].legend(fontsize=8)
     axes[2].set_title(f"class errors by uncertainty decile (accuracy {result['surface_class_accuracy']:.3f})")
     fig.tight_layout()
-    written.append(out / "truth_check.png")
-    fig.savefig(written[-1], dpi=72)
-    plt.close(fig)
+    return fig
 
-    if result["plan"]:
-        fig, ax = plt.subplots(figsize=(9, 9))
-        ax.imshow(np.ma.masked_invalid(bands["traversability_cost"]), extent=extent, cmap="RdYlGn_r", vmin=0, vmax=1, interpolation="nearest")
-        ax.imshow(np.ma.masked_where(~road, road.astype(float)), extent=extent, cmap=ListedColormap([(0.2, 0.2, 1.0)]), alpha=0.15,
-                  interpolation="nearest")
-        ax.imshow(np.ma.masked_where(~obstacle, obstacle.astype(float)), extent=extent, cmap=ListedColormap(["k"]), interpolation="nearest")
-        cells = np.array(result["plan"]["cells"])
-        x, y = grid.cell_centers()
-        ax.plot(x[cells[:, 1]], y[cells[:, 0]], color="blue", lw=2)
-        ax.plot(poses[:, 0, 3], poses[:, 1, 3], color="magenta", lw=1, ls="--")
-        ax.legend(handles=[Patch(color="blue", label="A* plan on traversability_cost"), Patch(color="magenta", label="the drive"),
-                           Patch(color="k", label="true obstacles"), Patch(color=(0.2, 0.2, 1.0), alpha=0.3, label="true road")],
-                  loc="lower right", fontsize=8)
-        plan = result["plan"]
-        ax.set_title(f"A* plan: {plan['length_m']} m, {plan['share_on_road'] * 100:.0f} % on the road, "
-                     f"{plan['clearance_from_obstacles_m']} m from the nearest obstacle")
-        fig.tight_layout()
-        written.append(out / "plan.png")
+
+def _plan_figure(plt, layers, truth, road, plan, poses):
+    """The A* plan over the cost, with the true road and obstacles."""
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
+    grid, bands = layers.grid, layers.bands
+    extent = (grid.x0_m, grid.x1_m, grid.y0_m, grid.y1_m)
+    obstacle = truth[2]
+    fig, ax = plt.subplots(figsize=(9, 9))
+    ax.imshow(np.ma.masked_invalid(bands["traversability_cost"]), extent=extent, cmap="RdYlGn_r", vmin=0, vmax=1, interpolation="nearest")
+    ax.imshow(np.ma.masked_where(~road, road.astype(float)), extent=extent, cmap=ListedColormap([(0.2, 0.2, 1.0)]), alpha=0.15,
+              interpolation="nearest")
+    ax.imshow(np.ma.masked_where(~obstacle, obstacle.astype(float)), extent=extent, cmap=ListedColormap(["k"]), interpolation="nearest")
+    cells = np.array(plan["cells"])
+    x, y = grid.cell_centers()
+    ax.plot(x[cells[:, 1]], y[cells[:, 0]], color="blue", lw=2)
+    ax.plot(poses[:, 0, 3], poses[:, 1, 3], color="magenta", lw=1, ls="--")
+    ax.legend(handles=[Patch(color="blue", label="A* plan on traversability_cost"), Patch(color="magenta", label="the drive"),
+                       Patch(color="k", label="true obstacles"), Patch(color=(0.2, 0.2, 1.0), alpha=0.3, label="true road")],
+              loc="lower right", fontsize=8)
+    ax.set_title(f"A* plan: {plan['length_m']} m, {plan['share_on_road'] * 100:.0f} % on the road, "
+                 f"{plan['clearance_from_obstacles_m']} m from the nearest obstacle")
+    fig.tight_layout()
+    return fig
+
+
+def _figures(out: Path, layers, truth, road, result, poses, classes, colors, sweep) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    written = []
+
+    def save(fig, name):
+        written.append(out / f"{name}.png")
         fig.savefig(written[-1], dpi=72)
         plt.close(fig)
+
+    save(_overview_figure(plt, layers, result, poses, classes, colors), "layers_overview")
+    save(_truth_check_figure(plt, layers, truth, result, sweep), "truth_check")
+    if result["plan"]:
+        save(_plan_figure(plt, layers, truth, road, result["plan"], poses), "plan")
     return written
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--world", default="default", help="a synthetic world preset with one square world (not a corridor)")
-    parser.add_argument("--work", type=Path, default=Path("/tmp/evsemmap_terrain_truth"), help="drive and map here (kept and reused)")
-    parser.add_argument("--out", type=Path, default=None, help="figures and truth.json (default: docs/terrain/PRESET)")
-    parser.add_argument("--method", default="ebs")
-    parser.add_argument("--device", default="cpu")
-    args = parser.parse_args()
-
-    from evsemmap_warp.classes import class_set
+def _drive_and_map(args, preset):
+    """(the drive's folder, its map, the seconds rendering and mapping took where this run did them): the
+    drive and map under ``--work`` are kept and reused."""
     from evsemmap_warp.config import load_config
     from evsemmap_warp.core.mapper import Mapper, load_map
     from evsemmap_warp.data.datasets import open_dataset
-    from evsemmap_warp.data.sequences import read_poses
-    from evsemmap_warp.synthetic.preset import load_preset
-    from evsemmap_warp.synthetic.scene import generate_world
     from evsemmap_warp.synthetic.writer import generate_sequence
-    from evsemmap_warp.terrain import compute_layers, load_terrain_config
-    from evsemmap_warp.terrain.config import COST_RULES
-    from evsemmap_warp.terrain.layers import dirichlet_prior, neighbourhood_filters
-    from evsemmap_warp.terrain.pipeline import class_colors
 
-    preset = load_preset(args.world)
-    args.out = args.out or REPO / "docs" / "terrain" / args.world
-    if preset.world.corridor_tiles:
-        raise SystemExit("terrain_truth: give a preset of one square world (demo, default, tiny), not a corridor")
     drive = args.work / f"{args.world}_drive"
     map_path = args.work / f"{args.world}_{args.method}.npz"
     timings = {}
@@ -412,25 +437,29 @@ def main() -> None:
         mapper.integrate_many(dataset)
         timings["map_s"] = round(time.perf_counter() - started, 1)
         mapper.save(map_path)
-    mapper = load_map(map_path, device=args.device)
-    poses = read_poses(drive / "poses.txt")
-    classes = class_set().names
-    world = generate_world(preset.world, preset.seed)
-    base = load_terrain_config()
-    truth = road = None
-    sweep = {}
-    chosen = None
+    return drive, load_map(map_path, device=args.device), timings
+
+
+def _sweep(mapper, world, poses, classes, base, device):
+    """The layers at each SWEEP minimum evidence, scored against the world's truth: (the truth (height,
+    class, obstacle), the road mask, the true slope, setting -> {result, elevation errors}, (layers,
+    result) of the default setting)."""
+    from evsemmap_warp.terrain import compute_layers
+    from evsemmap_warp.terrain.layers import dirichlet_prior, neighbourhood_filters
+
+    truth = road = true_slope = None
+    sweep, chosen = {}, None
     for setting in SWEEP:
         config = replace(base, layers=replace(base.layers, min_evidence=setting))
         started = time.perf_counter()
-        layers = compute_layers(mapper, config=config, device=args.device)
+        layers = compute_layers(mapper, config=config, device=device)
         seconds = time.perf_counter() - started
         if truth is None:
-            truth = _world_truth(world, layers.grid, base.layers.clearance_m, args.device)
+            truth = _world_truth(world, layers.grid, base.layers.clearance_m, device)
             road = _road_mask(world, layers.grid)
             # the true terrain's slope, by the same plane fit over the same window as the layers' (a slope's
             # magnitude reads the same north-up)
-            true_slope = neighbourhood_filters(truth[0], truth[0], cell_m=layers.grid.cell_m, config=base, device=args.device)["slope"]
+            true_slope = neighbourhood_filters(truth[0], truth[0], cell_m=layers.grid.cell_m, config=base, device=device)["slope"]
         result = evaluate(layers, truth, road, poses, classes, np.array([base.costs.classes[n] for n in classes]), true_slope,
                           dirichlet_prior(mapper))
         result["layer_seconds"] = round(seconds, 3)
@@ -442,16 +471,53 @@ def main() -> None:
               f"plan {json.dumps({k: v for k, v in (result['plan'] or {}).items() if k != 'cells'})}", file=sys.stderr)
     if chosen is None:
         raise SystemExit(f"terrain_truth: the default min_evidence {base.layers.min_evidence} is not in the sweep {SWEEP}")
-    layers, result = chosen
-    # the cost rules side by side on the same map and settings (terrain/config.py COST_RULES): what each gives a planner
+    return truth, road, true_slope, sweep, chosen
+
+
+def _cost_rules(mapper, truth, road, true_slope, poses, classes, base, device) -> dict:
+    """The cost rules side by side on the same map and settings (terrain/config.py COST_RULES): what each gives a planner."""
+    from evsemmap_warp.terrain import compute_layers
+    from evsemmap_warp.terrain.config import COST_RULES
+    from evsemmap_warp.terrain.layers import dirichlet_prior
+
     rules = {}
     for rule in COST_RULES:
-        ruled = compute_layers(mapper, config=replace(base, costs=replace(base.costs, rule=rule)), device=args.device)
+        ruled = compute_layers(mapper, config=replace(base, costs=replace(base.costs, rule=rule)), device=device)
         scored = evaluate(ruled, truth, road, poses, classes, np.array([base.costs.classes[n] for n in classes]), true_slope,
                           dirichlet_prior(mapper))
         rules[rule] = {key: scored[key] for key in ("road_vs_rest_auc", "median_cost_on_road", "median_cost_off_road",
                                                      "median_cost_by_true_class_well_observed")} \
             | {"plan": {key: val for key, val in (scored["plan"] or {}).items() if key != "cells"}}
+    return rules
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--world", default="default", help="a synthetic world preset with one square world (not a corridor)")
+    parser.add_argument("--work", type=Path, default=Path("/tmp/evsemmap_terrain_truth"), help="drive and map here (kept and reused)")
+    parser.add_argument("--out", type=Path, default=None, help="figures and truth.json (default: docs/terrain/PRESET)")
+    parser.add_argument("--method", default="ebs")
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args()
+
+    from evsemmap_warp.classes import class_set
+    from evsemmap_warp.data.sequences import read_poses
+    from evsemmap_warp.synthetic.preset import load_preset
+    from evsemmap_warp.synthetic.scene import generate_world
+    from evsemmap_warp.terrain import load_terrain_config
+    from evsemmap_warp.terrain.pipeline import class_colors
+
+    preset = load_preset(args.world)
+    args.out = args.out or REPO / "docs" / "terrain" / args.world
+    if preset.world.corridor_tiles:
+        raise SystemExit("terrain_truth: give a preset of one square world (demo, default, tiny), not a corridor")
+    drive, mapper, timings = _drive_and_map(args, preset)
+    poses = read_poses(drive / "poses.txt")
+    classes = class_set().names
+    base = load_terrain_config()
+    truth, road, true_slope, sweep, (layers, result) = _sweep(mapper, generate_world(preset.world, preset.seed), poses, classes, base,
+                                                               args.device)
+    rules = _cost_rules(mapper, truth, road, true_slope, poses, classes, base, args.device)
     args.out.mkdir(parents=True, exist_ok=True)
     figures = _figures(args.out, layers, truth, road, result, poses, classes, class_colors(classes), sweep)
     summary = {

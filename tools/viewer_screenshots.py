@@ -24,7 +24,6 @@ from types import SimpleNamespace
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-MODES = ("map", "drive", "live", "store", "compare", "terrain")
 CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--disable-gpu",
                  "--disable-background-networking", "--disable-component-update", "--no-first-run"]
 
@@ -90,102 +89,130 @@ def _shoot(page, path: Path, *, drawn=lambda png: class_pixels(png) > 2000) -> P
     return path
 
 
-def shoot(mode: str, data: SimpleNamespace, browser, out: Path) -> Path:
+def _shoot_map(data: SimpleNamespace, browser, path: Path) -> Path:
+    from evsemmap_warp.apps.viewer import MapViewer, free_port
+
+    viewer = MapViewer([data.ebs], port=free_port(), trajectory=data.sequence / "poses.txt")
+    try:
+        return _shoot(_open(browser, viewer), path)
+    finally:
+        viewer.close()
+
+
+def _shoot_drive(data: SimpleNamespace, browser, path: Path) -> Path:
+    from evsemmap_warp.apps.viewer import MapViewer, free_port
+    from evsemmap_warp.apps.viewer.drive import DrivePlayback, open_drive
+
+    drive, replay = open_drive(data.alpha_map, [data.sequence, "rellis3d"], alpha_dir=data.alpha, bin_frames=1, snapshot_every=4)
+    viewer = MapViewer([data.alpha_map], port=free_port())
+    playback = DrivePlayback(viewer, drive, replay, precompute=False)
+    try:
+        page = _open(browser, viewer)
+        playback.show(len(drive) // 2)
+        assert playback.wait_until_drawn(len(drive) // 2, 120), playback.errors
+        page.get_by_text("predicted labels").first.scroll_into_view_if_needed()
+        return _shoot(page, path)
+    finally:
+        playback.close()
+        viewer.close()
+
+
+def _shoot_live(data: SimpleNamespace, browser, path: Path) -> Path:
+    """The live map half way through the drive: its mapping held there until the screenshot is taken."""
+    from evsemmap_warp import Mapper
+    from evsemmap_warp.apps.scan_sources import open_scan_source
     from evsemmap_warp.apps.viewer import MapLayer, MapViewer, free_port
+    from evsemmap_warp.apps.viewer.live import LiveMap, map_live
+    from evsemmap_warp.config import load_config
 
-    path = out / f"{mode}.png"
-    if mode == "map":
-        viewer = MapViewer([data.ebs], port=free_port(), trajectory=data.sequence / "poses.txt")
-        try:
-            return _shoot(_open(browser, viewer), path)
-        finally:
-            viewer.close()
-    if mode == "drive":
-        from evsemmap_warp.apps.viewer.drive import DrivePlayback, open_drive
+    run = load_config([str(data.sequence), "rellis3d"], method="ebs")
+    source = open_scan_source(run)
+    mapper = Mapper.for_dataset(source, run.mapping)
+    target = data.ebs.with_name("live.npz")
+    viewer = MapViewer([MapLayer.from_mapper("live", target, mapper)], port=free_port())
+    live = LiveMap(viewer, mapper, name="live", path=target, scan_total=len(source))
+    half = threading.Event()
 
-        drive, replay = open_drive(data.alpha_map, [data.sequence, "rellis3d"], alpha_dir=data.alpha, bin_frames=1, snapshot_every=4)
-        viewer = MapViewer([data.alpha_map], port=free_port())
-        playback = DrivePlayback(viewer, drive, replay, precompute=False)
-        try:
-            page = _open(browser, viewer)
-            playback.show(len(drive) // 2)
-            assert playback.wait_until_drawn(len(drive) // 2, 120), playback.errors
-            page.get_by_text("predicted labels").first.scroll_into_view_if_needed()
-            return _shoot(page, path)
-        finally:
-            playback.close()
-            viewer.close()
-    if mode == "live":
-        from evsemmap_warp import Mapper
-        from evsemmap_warp.apps.scan_sources import open_scan_source
-        from evsemmap_warp.apps.viewer.live import LiveMap, map_live
-        from evsemmap_warp.config import load_config
+    def held_at_half():
+        for k, scan in enumerate(source):
+            if k == len(source) // 2:
+                half.wait(300)
+            yield scan
 
-        run = load_config([str(data.sequence), "rellis3d"], method="ebs")
-        source = open_scan_source(run)
-        mapper = Mapper.for_dataset(source, run.mapping)
-        target = data.ebs.with_name("live.npz")
-        viewer = MapViewer([MapLayer.from_mapper("live", target, mapper)], port=free_port())
-        live = LiveMap(viewer, mapper, name="live", path=target, scan_total=len(source))
-        half = threading.Event()
+    mapping = threading.Thread(target=map_live, args=(mapper, held_at_half(), live), kwargs={"every": 2}, daemon=True)
+    try:
+        page = _open(browser, viewer)
+        mapping.start()
+        assert _wait(lambda: live.updates >= 1 and not live.busy, 120), live.errors
+        return _shoot(page, path)
+    finally:
+        half.set()
+        mapping.join(300)
+        live.close()
+        viewer.close()
 
-        def held_at_half():
-            for k, scan in enumerate(source):
-                if k == len(source) // 2:
-                    half.wait(300)
-                yield scan
 
-        mapping = threading.Thread(target=map_live, args=(mapper, held_at_half(), live), kwargs={"every": 2}, daemon=True)
-        try:
-            page = _open(browser, viewer)
-            mapping.start()
-            assert _wait(lambda: live.updates >= 1 and not live.busy, 120), live.errors
-            return _shoot(page, path)
-        finally:
-            half.set()
-            mapping.join(300)
-            live.close()
-            viewer.close()
-    if mode == "store":
-        viewer = MapViewer([data.store], port=free_port(), max_voxels=20_000)
-        overview = viewer.stores[0]
-        try:
-            page = _open(browser, viewer)
-            assert _wait(lambda: overview.complete)
-            middle = viewer.layers[0].centers.mean(axis=0)
-            viewer.tiles.request(0, overview.tiles_at(middle))
-            assert _wait(lambda: "tile(s) in full" in viewer.gui_status.content)
-            return _shoot(page, path)
-        finally:
-            viewer.close()
-    if mode == "compare":
-        # the map from the camera's labels against the map from the LiDAR's, and who agrees with the projected truth
-        viewer = MapViewer([data.alpha_map, data.sbki], port=free_port(), truth=data.truth)
-        try:
-            page = _open(browser, viewer)
-            viewer.gui_diff.value = "labels differ"
-            page.get_by_text("labels differ in").first.scroll_into_view_if_needed()
-            from evsemmap_warp.apps.viewer.comparison import DIFF_COLORS
+def _shoot_store(data: SimpleNamespace, browser, path: Path) -> Path:
+    from evsemmap_warp.apps.viewer import MapViewer, free_port
 
-            def drawn(png):
-                from PIL import Image
+    viewer = MapViewer([data.store], port=free_port(), max_voxels=20_000)
+    overview = viewer.stores[0]
+    try:
+        page = _open(browser, viewer)
+        assert _wait(lambda: overview.complete)
+        middle = viewer.layers[0].centers.mean(axis=0)
+        viewer.tiles.request(0, overview.tiles_at(middle))
+        assert _wait(lambda: "tile(s) in full" in viewer.gui_status.content)
+        return _shoot(page, path)
+    finally:
+        viewer.close()
 
-                image = np.asarray(Image.open(BytesIO(png)).convert("RGB")).astype(int)[:, :900]
-                return sum(int((np.abs(image - np.array(c)).max(axis=2) < 30).sum()) for c in DIFF_COLORS.values()) > 200
 
-            return _shoot(page, path, drawn=drawn)
-        finally:
-            viewer.close()
-    if mode == "terrain":
-        viewer = MapViewer([data.ebs], port=free_port(), terrain=True)
-        try:
-            page = _open(browser, viewer)
-            viewer.gui_terrain_mode.value = "surface instead of the voxels"
-            viewer.gui_terrain_band.value = "traversability_cost"
-            return _shoot(page, path, drawn=lambda png: _drawn_surface(png))
-        finally:
-            viewer.close()
-    raise ValueError(f"mode {mode!r}: one of {', '.join(MODES)}")
+def _shoot_compare(data: SimpleNamespace, browser, path: Path) -> Path:
+    """The map from the camera's labels against the map from the LiDAR's, and who agrees with the projected truth."""
+    from evsemmap_warp.apps.viewer.comparison import DIFF_COLORS
+    from evsemmap_warp.apps.viewer import MapViewer, free_port
+
+    viewer = MapViewer([data.alpha_map, data.sbki], port=free_port(), truth=data.truth)
+    try:
+        page = _open(browser, viewer)
+        viewer.gui_diff.value = "labels differ"
+        page.get_by_text("labels differ in").first.scroll_into_view_if_needed()
+
+        def drawn(png):
+            from PIL import Image
+
+            image = np.asarray(Image.open(BytesIO(png)).convert("RGB")).astype(int)[:, :900]
+            return sum(int((np.abs(image - np.array(c)).max(axis=2) < 30).sum()) for c in DIFF_COLORS.values()) > 200
+
+        return _shoot(page, path, drawn=drawn)
+    finally:
+        viewer.close()
+
+
+def _shoot_terrain(data: SimpleNamespace, browser, path: Path) -> Path:
+    from evsemmap_warp.apps.viewer import MapViewer, free_port
+
+    viewer = MapViewer([data.ebs], port=free_port(), terrain=True)
+    try:
+        page = _open(browser, viewer)
+        viewer.gui_terrain_mode.value = "surface instead of the voxels"
+        viewer.gui_terrain_band.value = "traversability_cost"
+        return _shoot(page, path, drawn=lambda png: _drawn_surface(png))
+    finally:
+        viewer.close()
+
+
+SHOTS = {"map": _shoot_map, "drive": _shoot_drive, "live": _shoot_live, "store": _shoot_store, "compare": _shoot_compare,
+         "terrain": _shoot_terrain}
+MODES = tuple(SHOTS)
+
+
+def shoot(mode: str, data: SimpleNamespace, browser, out: Path) -> Path:
+    """The screenshot of ``mode`` (one of MODES) written to ``out``/MODE.png."""
+    if mode not in SHOTS:
+        raise ValueError(f"mode {mode!r}: one of {', '.join(MODES)}")
+    return SHOTS[mode](data, browser, out / f"{mode}.png")
 
 
 def _drawn_surface(png: bytes) -> bool:

@@ -36,7 +36,6 @@ from ..kernels import load_once
 from ..limits import check_memory_bytes
 from ..voxel_keys import check_index_range, voxel_index_of
 from . import map_file
-from ._host_memory import without_huge_page_advice
 from .integrators import IntegrationStats, Launch, ScanPayload, SensorOrigin, make_integrator
 from ._shards import PendingUpdates, ShardLanes
 from .voxel_map import EXTRA_COLUMNS, TableBudget, VoxelArrays, VoxelMap, add_duplicate_voxels, sum_shard_rows
@@ -553,13 +552,10 @@ class Mapper:
         """All stored voxels in key order, with global indices (``.arrays``), and their read-out
         (``.summary``); cached until the next integrate."""
         if self._summary_cache is None:
-            # The read-out allocates the map's size several times over, once: huge pages cost it more than
-            # they save on this project's VMs (docs/performance.md).
-            with without_huge_page_advice():
-                arrays = self._local_voxels()
-                if self.origin_index is not None:
-                    arrays.index = arrays.index + self.origin_index
-                self._summary_cache = MapVoxels(arrays, self.summarize(arrays.evidence, arrays.touched))
+            arrays = self._local_voxels()
+            if self.origin_index is not None:
+                arrays.index = arrays.index + self.origin_index
+            self._summary_cache = MapVoxels(arrays, self.summarize(arrays.evidence, arrays.touched))
         return self._summary_cache
 
     def concentrations(self, evidence: np.ndarray) -> np.ndarray:

@@ -35,11 +35,8 @@ import numpy as np
 from ..files import write_atomically
 from ..limits import check_tile_voxels
 
-# The encoding was first chosen on 763 k voxels (300 frames of the ``long`` drive, EBS, 13 tiles; measured
-# before records were kept, docs/formats.md): the map-file npz 230 B/voxel; the same minimal arrays in an
-# npz 95 B, deflated (np.savez_compressed) 20.7 B at 0.5 M voxels/s written; zstd of the voxel rows
-# 19.8 B; Parquet 17.3 B, read at 1.9 M voxels/s; zstd of the columns 10.9 B (byte-shuffled first, as
-# blosc does: 11.2 B).
+# Zstd of the columns: near the smallest of the encodings tools/bench_store_codec.py compares, with
+# zstandard and numpy only (docs/formats.md, "Why this encoding", with its record).
 MAGIC = b"EVSMVOX2"
 CODEC_FORMAT = "evsemmap_warp.voxels"
 CODEC_VERSION = 1

@@ -30,7 +30,7 @@ import numpy as np
 from ..methods.device_scratch import DeviceScratch, counts_with_room, inclusive_scan, last_value, offsets_and_total
 from ..limits import MemoryBudgetError, available_memory, describe_bytes
 from ..voxel_keys import check_index_range, column_bounds, pack_voxel_keys, take_rows, unpack_voxel_keys, within_index_range
-from . import _host_memory
+from . import host_memory
 from ._staging import Staging
 from .warp_runtime import init_warp, resolve_device
 
@@ -185,10 +185,10 @@ class VoxelMap:
 
     # ------------------------------------------------------------------ storage
     def _filled(self, shape, value, dtype, *, populate: bool = False):
-        """``populate``: the memory will nearly all be written soon (see _host_memory.lazily_zeroed)."""
+        """``populate``: the memory will nearly all be written soon (see host_memory.lazily_zeroed)."""
         if self.device == "cpu":
             # Wrapping host memory (lazily zeroed pages) is ~10x faster than wp.full here.
-            host = _host_memory.lazily_zeroed(shape, wp.dtype_to_numpy(dtype), populate=populate or value != 0)
+            host = host_memory.lazily_zeroed(shape, wp.dtype_to_numpy(dtype), populate=populate or value != 0)
             if value != 0:
                 host.fill(value)
             return wp.array(host, dtype=dtype, device="cpu", copy=False)
@@ -255,14 +255,14 @@ class VoxelMap:
         """(keys, slot rows) of a table of ``capacity`` slots holding the old table's keys and rows."""
         keys = self._filled(capacity, ht.EMPTY_KEY, wp.int64)
         # A grown table is at least a quarter full once what it was grown for is in: its slot rows are
-        # written all over, so they are mapped at once (see _host_memory.lazily_zeroed).
+        # written all over, so they are mapped at once (see host_memory.lazily_zeroed).
         slot_rows = self._filled(capacity, 0, wp.int32, populate=True)
         wp.launch(ht.rehash, dim=len(old_keys), inputs=[old_keys, old_slot_rows, keys, slot_rows], device=self.device)
         return keys, slot_rows
 
     def _row_array(self, capacity: int, used_rows: int, old):
         """A zeroed [capacity, K + 4] row array holding the first ``used_rows`` rows of ``old``: on the CPU
-        a view of the table's row reservation (_host_memory.ROW_RESERVATION_BYTES), which a grown table reuses in place."""
+        a view of the table's row reservation (host_memory.ROW_RESERVATION_BYTES), which a grown table reuses in place."""
         columns = self.num_classes + EXTRA_COLUMNS
         if self.device != "cpu":
             rows = wp.zeros((capacity, columns), dtype=wp.float64, device=self.device)
@@ -271,9 +271,9 @@ class VoxelMap:
             return rows
         store = self._row_store
         if store is None or len(store) < capacity or (old is not None and old.ptr != store.ctypes.data):
-            store = _host_memory.reserved_zeros(max(capacity, _host_memory.ROW_RESERVATION_BYTES // (8 * columns)), columns)
+            store = host_memory.reserved_zeros(max(capacity, host_memory.ROW_RESERVATION_BYTES // (8 * columns)), columns)
             if store is None:
-                store = _host_memory.lazily_zeroed((capacity, columns), np.float64)
+                store = host_memory.lazily_zeroed((capacity, columns), np.float64)
             if used_rows:
                 store[:used_rows] = old.numpy()[:used_rows]
             self._row_store = store

@@ -121,17 +121,11 @@ def run_replay(args) -> int:
     return 0
 
 
-def run_live(args) -> int:
-    """``evsemmap live``."""
-    from .feed import RobotFeed, say
-    from .mapping import LiveMapping, LiveSettings
-    from .node import Ros2Node
-    from .publish import MapPublisher
-    from .ros2_wire import typestore
-    from .scan_queue import ScanQueue
-    from .session import open_session, zenoh_module
+def _live_run(args):
+    """(the run config, the LiveSettings) of ``evsemmap live``'s arguments; ConfigError for what they cannot be."""
+    from ..files import check_not_inside
+    from .mapping import LiveSettings
 
-    zenoh_module()  # the install line before anything else
     run = load_config(list(args.configs), method=args.method)
     if run.dataset is None or run.dataset.kind != "bag":
         raise ConfigError(f"{' '.join(args.configs)}: live mapping reads a robot's topics as a log's: name a dataset config or preset of kind "
@@ -140,79 +134,122 @@ def run_live(args) -> int:
         raise ConfigError(f"--domain-id {args.domain_id}: a ROS domain id is >= 0")
     settings = LiveSettings(tf_wait_s=args.tf_wait, topic_timeout_s=args.topic_timeout, on_time_jump=args.on_time_jump,
                             max_scans=args.max_scans, idle_exit_s=args.idle_exit, duration_s=args.duration)
-    from ..files import check_not_inside
-
     check_not_inside(args.out, list(run.sources), "live --out")
     if args.store is not None:
         check_not_inside(args.store, list(run.sources), "live --store")
+    return run, settings
+
+
+def _labeller(args, run, store):
+    """The camera labeller of ``--checkpoint``, or None."""
+    if args.checkpoint is not None:
+        from .camera import CameraLabeller
+
+        return CameraLabeller(args.checkpoint, run.dataset.bag, store, bin_frames_=args.bin_frames or run.bin_frames)
+    if args.bin_frames is not None:
+        raise ConfigError("--bin-frames applies to camera-labelled scans (--checkpoint)")
+    return None
+
+
+class _FollowingView:
+    """``--view``: the browser viewer of the live map, offered every ``--view-every``-th mapped scan (``on_mapped``)."""
+
+    def __init__(self, args):
+        self.args, self.live_view = args, None
+
+    def on_mapped(self, mapping, scan) -> None:
+        if not self.args.view:
+            return
+        if self.live_view is None or self.live_view.mapper is not mapping.mapper:
+            self.close()  # a new map (time ran back, --on-time-jump reset): the old map's server ends, its port freed
+            self.live_view = _live_view(self.args, mapping.mapper)
+        if mapping.stats.mapped % self.args.view_every == 0:
+            self.live_view.offer(mapping.stats.mapped, scan)
+
+    def close(self) -> None:
+        if self.live_view is not None:
+            self.live_view.close()
+            self.live_view.viewer.close()
+            self.live_view = None
+
+
+def _mapping(args, run, settings, session, feed, queue, store, view: _FollowingView, labeller):
+    """The LiveMapping of the run, publishing unless ``--no-publish``, writing ``--store`` when given."""
+    from .mapping import LiveMapping
+    from .node import Ros2Node
+    from .publish import MapPublisher
+    from .store import LiveStore
+
+    def node(detected_format: str):
+        return Ros2Node(session, "evsemmap_live", key_format=detected_format if args.key_format == "auto" else args.key_format,
+                        domain_id=args.domain_id, store=store)
+
+    def publisher(mapper, node):
+        return MapPublisher(node, mapper, map_period_s=args.map_period, grid_period_s=args.grid_period, window_m=args.window)
+
+    live_store = None if args.store is None else LiveStore(args.store, every_s=args.store_every, sources=list(args.configs))
+    try:
+        return LiveMapping(run, feed, queue, settings, out=args.out, device=args.device, workers=args.workers,
+                           node_factory=None if args.no_publish else node, publisher_factory=None if args.no_publish else publisher,
+                           on_mapped=view.on_mapped, store=live_store, labeller=labeller)
+    except BaseException:
+        if live_store is not None:
+            live_store.close()
+        raise
+
+
+def _map_until_stopped(mapping, stop: threading.Event):
+    """Map until ``stop`` or the run's end, then write the map: what ``LiveMapping.finish`` wrote (None: no scan).
+    A run stopped by an error (a memory budget that no longer holds) writes the map made so far, then raises."""
+    from .feed import say
+
+    try:
+        mapping.run_until_stopped(stop)
+    except Exception as exc:
+        if mapping.mapper is not None:
+            say(f"stopped: {exc}; writing the map made so far")
+            mapping.finish()
+        raise
+    if stop.is_set():
+        say("interrupted: writing the map")
+    return mapping.finish()
+
+
+def run_live(args) -> int:
+    """``evsemmap live``."""
+    from .feed import RobotFeed, say
+    from .ros2_wire import typestore
+    from .scan_queue import ScanQueue
+    from .session import open_session, zenoh_module
+
+    zenoh_module()  # the install line before anything else
+    run, settings = _live_run(args)
     store = typestore()
     session = open_session(_options(args))
     stop = threading.Event()
     restore_signals = _stop_on_signals(stop)
     queue = ScanQueue(args.queue)
-    feed = mapping = live_view = live_store = None
+    view = _FollowingView(args)
+    feed = mapping = None
     try:
-        labeller = None
-        if args.checkpoint is not None:
-            from .camera import CameraLabeller
-
-            labeller = CameraLabeller(args.checkpoint, run.dataset.bag, store, bin_frames_=args.bin_frames or run.bin_frames)
-        elif args.bin_frames is not None:
-            raise ConfigError("--bin-frames applies to camera-labelled scans (--checkpoint)")
+        labeller = _labeller(args, run, store)
         feed = RobotFeed(session, run.dataset.bag, queue, store, key_format=args.key_format, domain_id=args.domain_id,
                          max_cloud_bytes=int(args.max_cloud_mb * 2**20), labeller=labeller)
-        def node(detected_format: str):
-            return Ros2Node(session, "evsemmap_live", key_format=detected_format if args.key_format == "auto" else args.key_format,
-                            domain_id=args.domain_id, store=store)
-
-        def publisher(mapper, node):
-            return MapPublisher(node, mapper, map_period_s=args.map_period, grid_period_s=args.grid_period, window_m=args.window)
-
-        def on_mapped(mapping, scan):
-            nonlocal live_view
-            if not args.view:
-                return
-            if live_view is None or live_view.mapper is not mapping.mapper:
-                if live_view is not None:  # a new map (time ran back, --on-time-jump reset): the old map's server ends, its port freed
-                    live_view.close()
-                    live_view.viewer.close()
-                live_view = _live_view(args, mapping.mapper)
-            if mapping.stats.mapped % args.view_every == 0:
-                live_view.offer(mapping.stats.mapped, scan)
-
-        from .store import LiveStore
-
-        live_store = None if args.store is None else LiveStore(args.store, every_s=args.store_every, sources=list(args.configs))
-        mapping = LiveMapping(run, feed, queue, settings, out=args.out, device=args.device, workers=args.workers,
-                              node_factory=None if args.no_publish else node, publisher_factory=None if args.no_publish else publisher,
-                              on_mapped=on_mapped, store=live_store, labeller=labeller)
+        mapping = _mapping(args, run, settings, session, feed, queue, store, view, labeller)
         topics = ", ".join(f"{t} ({s.msgtype.rsplit('/', 1)[-1]})" for t, s in feed.topics.items())
         say(f"listening for {topics} on domain {args.domain_id} ({args.key_format} keys); Ctrl-C ends the run and writes {args.out}")
-        try:
-            mapping.run_until_stopped(stop)
-        except Exception as exc:  # a run stopped by an error (a memory budget that no longer holds) keeps its map
-            if mapping.mapper is not None:
-                say(f"stopped: {exc}; writing the map made so far")
-                mapping.finish()
-            raise
-        if stop.is_set():
-            say("interrupted: writing the map")
-        written = mapping.finish()
+        written = _map_until_stopped(mapping, stop)
     finally:
         if mapping is not None:
             mapping.close()
-        elif live_store is not None:
-            live_store.close()
-        if live_view is not None:
-            live_view.close()
-            live_view.viewer.close()
+        view.close()
         if feed is not None:
             feed.close()
         if mapping is not None and mapping.node is not None:
             mapping.node.close()
         session.close()
         restore_signals()
-    _report(args, run, mapping, live_store)
+    _report(args, run, mapping, None if mapping is None else mapping.store)
     if written is None:
         say(f"no scan was mapped, so no map was written to {args.out}")
         return 1

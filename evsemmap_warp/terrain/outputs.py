@@ -163,10 +163,8 @@ class GeoTiffWriter:
         self.dataset = rasterio.open(
             self._temporary, "w", driver="GTiff", width=grid.width, height=grid.height, count=len(self.names), dtype="float32",
             nodata=float("nan"), crs=CRS.from_string(frame.crs) if frame is not None and frame.crs else None,
-            # DEFLATE, which every GeoTIFF reader knows, at level 1: half the time of the default level 6
-            # for 4 % more bytes (ZSTD was faster still, but older readers lack it). No predictor: on the long
-            # drive's store (mostly NaN, masks, class indices) the floating-point one (3) made the file 16 % larger
-            # and its close 1.6 times slower (68.0 against 58.6 MB, 1.36 against 0.86 s)
+            # DEFLATE, which every GeoTIFF reader knows (ZSTD is not known to older ones), at level 1 and with
+            # no predictor (docs/performance.md, "Measurements behind the code's choices")
             transform=Affine(*grid.transform()), compress="deflate", zlevel=1, predictor=1, tiled=tiled,
             **({"blockxsize": 256, "blockysize": 256} if tiled else {}), BIGTIFF="IF_SAFER")
         self.dataset.update_tags(FRAME=frame_id(frame), FRAME_CRS=(frame.crs if frame is not None and frame.crs else ""),
@@ -290,75 +288,61 @@ def _pixels_of(fig, ax) -> tuple[int, int]:
     return max(1, int(np.ceil(box.height * height))), max(1, int(np.ceil(box.width * width)))
 
 
-def write_previews(folder, bands: dict[str, np.ndarray], grid: LayerGrid, class_names, class_colors: np.ndarray, *,
-                   frame: WorldFrame | None, stride: int = 1) -> list[Path]:
-    """One PNG per band (scalar bands with a color bar and unit, class bands and masks with legends),
-    plus ``class_probabilities.png`` with every class's probability. ``bands`` may be decimated by
-    ``stride`` (cells per pixel) from ``grid``.
+UNKNOWN_COLOR = (0.85, 0.85, 0.85)  # cells no layer knows: the maps' background
 
-    The bands share one figure (building one per band cost more than drawing it): its frame is drawn once, and
-    each band draws over a copy of it only its image (colored here, at the pixels the map covers: matplotlib
-    would resample the whole float band and its mask), title, color bar and legend."""
-    import matplotlib
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import ListedColormap, Normalize
-    from matplotlib.figure import Figure
-    from matplotlib.patches import Patch
-    from matplotlib.ticker import FixedLocator
-    from PIL import Image
 
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    extent = (grid.x0_m, grid.x1_m, grid.y0_m, grid.y1_m)
-    where = f"{frame_id(frame)}" + (f" ({frame.crs})" if frame is not None and frame.crs else "")
-    aspect = grid.height / max(grid.width, 1)
-    size = (9.0, float(np.clip(9.0 * aspect, 3.0, 12.0)))
-    written = []
-    colors = np.asarray(class_colors, np.float64) / 255.0
-    unknown = (0.85, 0.85, 0.85)
-    suffix = f" (one cell in {stride} along each axis)" if stride > 1 else ""
+class _BandFigure:
+    """The one figure every band's preview is drawn on (building one per band costs more than drawing it):
+    fixed places for the map and its color bar or legend (a layout engine would draw every figure twice),
+    its frame (axes, ticks, labels) drawn once, and each band drawn over a copy of it with only its own
+    image (colored here, at the pixels the map covers: matplotlib would resample the whole float band and
+    its mask), title, color bar and legend."""
 
-    def save(fig, name):
-        path = folder / f"{name}.png"
-        # the figure is opaque: RGB, a quarter fewer bytes to compress than savefig's RGBA
-        Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3]).save(path, compress_level=PREVIEW_PNG_LEVEL)
-        written.append(path)
+    def __init__(self, grid: LayerGrid, frame: WorldFrame | None, stride: int):
+        import matplotlib
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.cm import ScalarMappable
+        from matplotlib.colors import Normalize
+        from matplotlib.figure import Figure
+        from matplotlib.ticker import FixedLocator
 
-    def rgba(values, cmap, norm, shape):
-        return cmap(norm(_nearest(np.asarray(values, np.float32), shape)), bytes=True)  # NaN: the colormap's bad color, transparent
+        where = f"{frame_id(frame)}" + (f" ({frame.crs})" if frame is not None and frame.crs else "")
+        aspect = grid.height / max(grid.width, 1)
+        self.suffix = f" (one cell in {stride} along each axis)" if stride > 1 else ""
+        self.fig = fig = Figure(figsize=(9.0, float(np.clip(9.0 * aspect, 3.0, 12.0))), dpi=100)
+        FigureCanvasAgg(fig)
+        self.ax = ax = fig.add_axes((0.08, 0.1, 0.66, 0.8))
+        ax.set_facecolor(UNKNOWN_COLOR)
+        ax.set_xlabel(f"x (m, {where})")
+        ax.set_ylabel("y (m)")
+        self.cax = fig.add_axes((0.8, 0.15, 0.025, 0.7))
+        self.image = ax.imshow(np.zeros((1, 1, 4), np.uint8), extent=(grid.x0_m, grid.x1_m, grid.y0_m, grid.y1_m), origin="upper",
+                               interpolation="nearest")
+        self.shape = _pixels_of(fig, ax)
+        for axis in (ax.xaxis, ax.yaxis):  # the same ticks on every band: not located again at each draw
+            axis.set_major_locator(FixedLocator(axis.get_majorticklocs()))
+        self.scale = ScalarMappable(Normalize(0.0, 1.0), matplotlib.colormaps["viridis"])
+        self.bar = fig.colorbar(self.scale, cax=self.cax)
+        self.image.set_visible(False)
+        self.cax.set_visible(False)
+        fig.canvas.draw()
+        self.frame_pixels = fig.canvas.copy_from_bbox(fig.bbox)
+        self.image.set_visible(True)
+        self.cax.set_visible(True)
 
-    # fixed places for the map and its color bar or legend: a layout engine would draw every figure twice
-    fig = Figure(figsize=size, dpi=100)
-    FigureCanvasAgg(fig)
-    ax = fig.add_axes((0.08, 0.1, 0.66, 0.8))
-    ax.set_facecolor(unknown)  # unknown cells
-    ax.set_xlabel(f"x (m, {where})")
-    ax.set_ylabel("y (m)")
-    cax = fig.add_axes((0.8, 0.15, 0.025, 0.7))
-    image = ax.imshow(np.zeros((1, 1, 4), np.uint8), extent=extent, origin="upper", interpolation="nearest")
-    shape = _pixels_of(fig, ax)
-    for axis in (ax.xaxis, ax.yaxis):  # the same ticks on every band: not located again at each draw
-        axis.set_major_locator(FixedLocator(axis.get_majorticklocs()))
-    scale = ScalarMappable(Normalize(0.0, 1.0), matplotlib.colormaps["viridis"])
-    bar = fig.colorbar(scale, cax=cax)
-    # the frame (axes, ticks, labels) is the same for every band: drawn once, then each band draws only its
-    # own artists over a copy of it (drawing the whole figure per band cost most of a preview)
-    canvas = fig.canvas
-    image.set_visible(False)
-    cax.set_visible(False)
-    canvas.draw()
-    frame_pixels = canvas.copy_from_bbox(fig.bbox)
-    image.set_visible(True)
-    cax.set_visible(True)
+    def rgba(self, values, cmap, norm) -> np.ndarray:
+        """``values`` colored at the map's pixels; NaN: the colormap's bad color, transparent."""
+        return cmap(norm(_nearest(np.asarray(values, np.float32), self.shape)), bytes=True)
 
-    def show(name, values, cmap, norm, *, handles=None, legend=None, color_bar=False):
-        canvas.restore_region(frame_pixels)
-        image.set_data(values if values.ndim == 3 else rgba(values, cmap, norm, shape))
-        ax.draw_artist(image)
+    def draw(self, name, values, cmap, norm, *, handles=None, legend=None, color_bar=False) -> None:
+        """The band ``name`` over the frame: ``values`` colored by ``cmap`` and ``norm`` (or RGBA already)."""
+        ax, fig = self.ax, self.fig
+        fig.canvas.restore_region(self.frame_pixels)
+        self.image.set_data(values if values.ndim == 3 else self.rgba(values, cmap, norm))
+        ax.draw_artist(self.image)
         for spine in ax.spines.values():  # over the image's edge, as in a whole draw
             ax.draw_artist(spine)
-        ax.title.set_text(name.replace("_", " ") + suffix)
+        ax.title.set_text(name.replace("_", " ") + self.suffix)
         ax.draw_artist(ax.title)
         if ax.legend_ is not None:
             ax.legend_.remove()
@@ -366,16 +350,22 @@ def write_previews(folder, bands: dict[str, np.ndarray], grid: LayerGrid, class_
             ax.draw_artist(ax.legend(handles=handles, **legend))
         if color_bar:
             # the bar's own norm keeps its ticks (a new norm would rebuild them); one update, not one per change
-            with scale.callbacks.blocked():
-                scale.set_cmap(cmap)
-                scale.set_clim(norm.vmin, norm.vmax)
-            bar.update_normal(scale)
-            bar.set_label(f"{name} ({band_units(name)})")
-            fig.draw_artist(cax)
-        save(fig, name)
+            with self.scale.callbacks.blocked():
+                self.scale.set_cmap(cmap)
+                self.scale.set_clim(norm.vmin, norm.vmax)
+            self.bar.update_normal(self.scale)
+            self.bar.set_label(f"{name} ({band_units(name)})")
+            fig.draw_artist(self.cax)
 
-    scalar = [n for n in band_names(class_names) if n in PREVIEW_COLORMAPS]
-    for name in scalar:
+
+def _band_previews(figure: _BandFigure, bands: dict[str, np.ndarray], class_names, colors: np.ndarray):
+    """(name, values, cmap, norm, options of ``_BandFigure.draw``) of each band's preview, in order: the
+    scalar bands with color bars, the class bands and the masks with legends."""
+    import matplotlib
+    from matplotlib.colors import ListedColormap, Normalize
+    from matplotlib.patches import Patch
+
+    for name in [n for n in band_names(class_names) if n in PREVIEW_COLORMAPS]:
         values = bands[name]
         if name in ("traversability_cost", "class_cost_mean", "surface_probability", "lethal_class_probability"):
             low, high = 0.0, 1.0
@@ -383,29 +373,40 @@ def write_previews(folder, bands: dict[str, np.ndarray], grid: LayerGrid, class_
             finite = values[np.isfinite(values)]
             low, high = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
         cmap, norm = matplotlib.colormaps[PREVIEW_COLORMAPS[name]], Normalize(low, high)
-        handles = legend = None
+        options = {"color_bar": True}
         if name == "traversability_cost" and "lethal" in bands:
-            colored = rgba(values, cmap, norm, shape)
-            colored[_nearest(np.asarray(bands["lethal"]), shape) > 0] = (26, 26, 26, 255)  # lethal, (0.1, 0.1, 0.1), over the costs
+            colored = figure.rgba(values, cmap, norm)
+            colored[_nearest(np.asarray(bands["lethal"]), figure.shape) > 0] = (26, 26, 26, 255)  # lethal, (0.1, 0.1, 0.1), over the costs
             values = colored
-            handles = [Patch(color=(0.1, 0.1, 0.1), label="lethal"), Patch(color=unknown, label="unknown")]
-            legend = {"loc": "lower left", "bbox_to_anchor": (1.0, 1.0), "fontsize": 8}
-        show(name, values, cmap, norm, handles=handles, legend=legend, color_bar=True)
-    classes = ListedColormap(colors)
+            options |= {"handles": [Patch(color=(0.1, 0.1, 0.1), label="lethal"), Patch(color=UNKNOWN_COLOR, label="unknown")],
+                        "legend": {"loc": "lower left", "bbox_to_anchor": (1.0, 1.0), "fontsize": 8}}
+        yield name, values, cmap, norm, options
     for name in CLASS_BANDS:
         values = bands[name]
         index = values[np.isfinite(values)].astype(np.intp)
         present = np.flatnonzero(np.bincount(index[(index >= 0) & (index < len(class_names))], minlength=len(class_names)))
         handles = [Patch(facecolor=colors[c], edgecolor="k", label=class_names[c]) for c in present]
-        handles.append(Patch(color=unknown, label="unknown"))
-        show(name, values, classes, Normalize(-0.5, len(class_names) - 0.5), handles=handles,
-             legend={"loc": "center left", "bbox_to_anchor": (1.01, 0.5), "fontsize": 8, "title": "class"})
+        handles.append(Patch(color=UNKNOWN_COLOR, label="unknown"))
+        yield name, values, ListedColormap(colors), Normalize(-0.5, len(class_names) - 0.5), {
+            "handles": handles, "legend": {"loc": "center left", "bbox_to_anchor": (1.01, 0.5), "fontsize": 8, "title": "class"}}
     mask = ListedColormap([(1, 1, 1), (0.15, 0.15, 0.15)])
     for name, label in (("known", "known (an occupied voxel in the column)"), ("lethal", "lethal")):
-        show(name, bands[name], mask, Normalize(0, 1), legend={"loc": "center left", "bbox_to_anchor": (1.01, 0.5), "fontsize": 8},
-             handles=[Patch(facecolor=(0.15, 0.15, 0.15), label=label), Patch(facecolor=(1, 1, 1), edgecolor="k", label="not")])
+        yield name, bands[name], mask, Normalize(0, 1), {
+            "legend": {"loc": "center left", "bbox_to_anchor": (1.01, 0.5), "fontsize": 8},
+            "handles": [Patch(facecolor=(0.15, 0.15, 0.15), label=label), Patch(facecolor=(1, 1, 1), edgecolor="k", label="not")]}
+
+
+def _class_probabilities_figure(bands: dict[str, np.ndarray], grid: LayerGrid, class_names):
+    """One figure of every class's probability band, three to a row, with one color bar."""
+    import matplotlib
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+    from matplotlib.figure import Figure
+
     columns = 3
     rows = int(np.ceil(len(class_names) / columns))
+    aspect = grid.height / max(grid.width, 1)
     fig = Figure(figsize=(12, max(3.0, 12 * aspect * rows / columns + 1)), dpi=100)
     FigureCanvasAgg(fig)
     axes = fig.subplots(rows, columns, squeeze=False)
@@ -415,15 +416,40 @@ def write_previews(folder, bands: dict[str, np.ndarray], grid: LayerGrid, class_
         if c >= len(class_names):
             ax.axis("off")
             continue
-        ax.set_facecolor(unknown)
-        ax.imshow(np.zeros((1, 1, 4), np.uint8), extent=extent, origin="upper", interpolation="nearest")
-        ax.images[0].set_data(rgba(bands[f"probability_{class_names[c]}"], probability, norm, _pixels_of(fig, ax)))
+        ax.set_facecolor(UNKNOWN_COLOR)
+        ax.imshow(np.zeros((1, 1, 4), np.uint8), extent=(grid.x0_m, grid.x1_m, grid.y0_m, grid.y1_m), origin="upper", interpolation="nearest")
+        values = np.asarray(bands[f"probability_{class_names[c]}"], np.float32)
+        ax.images[0].set_data(probability(norm(_nearest(values, _pixels_of(fig, ax))), bytes=True))
         ax.set_title(f"p({class_names[c]})", fontsize=9)
         ax.tick_params(labelsize=7)
     fig.colorbar(ScalarMappable(norm, probability), cax=fig.add_axes((0.9, 0.2, 0.02, 0.6)),
                  label="probability of the surface voxel's class")
     fig.canvas.draw()
-    save(fig, "class_probabilities")
+    return fig
+
+
+def write_previews(folder, bands: dict[str, np.ndarray], grid: LayerGrid, class_names, class_colors: np.ndarray, *,
+                   frame: WorldFrame | None, stride: int = 1) -> list[Path]:
+    """One PNG per band (scalar bands with a color bar and unit, class bands and masks with legends),
+    plus ``class_probabilities.png`` with every class's probability. ``bands`` may be decimated by
+    ``stride`` (cells per pixel) from ``grid``. The bands share one figure (``_BandFigure``)."""
+    from PIL import Image
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+
+    def save(fig, name):
+        path = folder / f"{name}.png"
+        # the figure is opaque: RGB, a quarter fewer bytes to compress than savefig's RGBA
+        Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3]).save(path, compress_level=PREVIEW_PNG_LEVEL)
+        written.append(path)
+
+    figure = _BandFigure(grid, frame, stride)
+    for name, values, cmap, norm, options in _band_previews(figure, bands, class_names, np.asarray(class_colors, np.float64) / 255.0):
+        figure.draw(name, values, cmap, norm, **options)
+        save(figure.fig, name)
+    save(_class_probabilities_figure(bands, grid, class_names), "class_probabilities")
     return written
 
 

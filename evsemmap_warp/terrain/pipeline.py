@@ -170,8 +170,7 @@ def _write_store(store: MapStore, out: Path, *, resolution_m, bounds, config: Te
 
         # A column's files are compressed and written on a second thread (zlib and GDAL release the GIL) while the
         # next columns are computed, in order, at most WRITES_IN_FLIGHT columns queued: computing and writing a
-        # column take about as long, but not column by column, and with one in flight each side waited for the
-        # other (the long drive's store: 10.5 s for 8.1 s of computing and 8.5 s of writing).
+        # column take about as long, but not column by column, so with one in flight each side waits for the other.
         # After the last one, that thread draws the previews while this one finishes the GeoTIFF and the bag.
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="evsemmap-layers-write") as pool:
             pending = collections.deque()
