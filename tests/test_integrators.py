@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evsemmap_warp.config import Compat, Kernel, load_config
+from evsemmap_warp.config import Compat, Kernel, PayloadType, load_config
 from evsemmap_warp.core import integrators as ig
 from evsemmap_warp.core.mapper import Mapper
 
@@ -45,7 +45,7 @@ class _Recorder:
     seen = []
 
     def __init__(self, config, num_classes):
-        self.needs = ig.ScanNeeds(ig.SensorOrigin.REQUIRED, "the recorder measures from it", frozenset({ig.PayloadType.LABEL}), "labels only")
+        self.needs = ig.ScanNeeds(ig.SensorOrigin.REQUIRED, "the recorder measures from it", frozenset({PayloadType.LABEL}), "labels only")
 
     def prepare(self, scan, device):
         _Recorder.seen.append(scan)
