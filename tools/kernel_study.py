@@ -171,13 +171,13 @@ def gather_forms(scans, device, repeats):
         config = compat_config(0.5) if sbki else load_config([RELEASE], method="ebs").mapping
         preparing = Mapper(config, 9, device=device, workers=1)
         preparing.integrator.gather_kernel = functools.partial(block_gather.gather_sbki_kernel if sbki else release.gather_release_kernel, **options)
-        launches = [preparing._prepare(pts, np.argmax(alpha, axis=1) if sbki else alpha, "label" if sbki else "alpha", origin)
+        launches = [preparing.prepare(pts, np.argmax(alpha, axis=1) if sbki else alpha, "label" if sbki else "alpha", origin)
                     for pts, alpha, origin in scans]
         holder = {}
 
         def run():
             mapper = Mapper(config, 9, device=device, workers=1, origin=preparing.origin)
-            holder["updates"] = sum(mapper._launch(launch).voxel_updates for launch in launches)
+            holder["updates"] = sum(mapper.launch(launch).voxel_updates for launch in launches)
             holder["mapper"] = mapper
 
         seconds = timed(run, repeats)
