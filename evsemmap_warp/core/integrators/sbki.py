@@ -135,8 +135,8 @@ class SbkiCompatIntegrator:
         # for them before the tables of their neighbours (several times larger) are built.
         tables = sbki_compat.gather_tables(owners, None if check_room is None else lambda blocks: check_room(blocks * self.cells_per_block**3))
         sorted_points = np.take(point_ids, tables.pair_order)
-        # numpy's takes here measured faster than the sorted_block_points kernel on Warp's CPU backend (free_res 0.5,
-        # 30 bench scans: ~0.19 s against 0.27 s); scaled in place, as scale_points scales
+        # numpy's takes rather than the sorted_block_points kernel on Warp's CPU backend (docs/performance.md,
+        # "Measurements behind the code's choices"); scaled in place, as scale_points scales
         scaled = take_rows(np.asarray(points, np.float32), sorted_points)
         scaled_points = wp.array(np.divide(scaled, np.float32(c.length_m), out=scaled), dtype=wp.vec3, device=d, copy=False)
         point_start = wp.array(tables.point_start.astype(np.int32), dtype=int, device=d, copy=False)
