@@ -14,7 +14,7 @@ from evsemmap_warp.core.mapper import load_map, save_map
 from evsemmap_warp.core.mapper import Mapper, VoxelState
 from evsemmap_warp.reference import dempster as dempster_ref
 from evsemmap_warp.reference import scatter as ref
-from evsemmap_warp.core.integrators.scatter import scatter
+from evsemmap_warp.core.integrators.convbki import scatter_stencil
 from evsemmap_warp.core.integrators.see_csom import scatter_block_targets
 from evsemmap_warp.core.voxel_map import VoxelMap
 from test_scatter import _compare
@@ -51,12 +51,11 @@ def test_stencil_kernel_matches_twin(device):
     table = convbki.stencil_weights(convbki.ConvBkiLengths(rng.uniform(0.1, 0.6, k), rng.uniform(0.1, 0.6, k)), 0.2, 2)
     unc = rng.uniform(0, 1, len(points))
     vm = VoxelMap(k, 0.2, device=device, initial_capacity=64)  # grows during the launch
-    updates = scatter(vm, points, np.full(len(points), 0.2), unc, mode=sc.MODE_STENCIL, sigma0=1.0, class_weights=weights, stencil_weights=table)
+    updates = scatter_stencil(vm, points, np.full(len(points), 0.2), unc, weights, table)
     _compare(vm, updates, ref.scatter_points(points, None, weights, np.full(len(points), 0.2), unc, None, ref.MODE_STENCIL, 0.2, 0.0, 1.0, 1, k,
                                              stencil_weights=table))
     empty = VoxelMap(k, 0.2, device=device)
-    assert scatter(empty, np.zeros((0, 3)), np.zeros(0), np.zeros(0), mode=sc.MODE_STENCIL, sigma0=1.0,
-                         class_weights=np.zeros((0, k)), stencil_weights=table) == 0
+    assert scatter_stencil(empty, np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros((0, k)), table) == 0
 
 
 def test_convbki_map_equals_a_dense_depthwise_conv3d():

@@ -113,6 +113,7 @@ class TableBudget:
 
 
 def next_pow2(n: int) -> int:
+    """The least power of two >= n (1 for n <= 1)."""
     return 1 << max(int(n) - 1, 0).bit_length()
 
 
@@ -125,10 +126,10 @@ def _block_cells_bounds(blocks: np.ndarray, cells_per_block: int) -> tuple[np.nd
 
 class VoxelMap:
     """One sparse voxel map on one device: a hash table of voxel keys and a float64 value row per voxel, and
-    the protocol the integrators' launches add evidence to it through (see the module's description). ``num_classes`` K >= 2;
-    ``resolution_m`` the voxel edge (m); ``grid_offset_m`` the lattice's offset (m, 0 but for S-CSM's
-    half-shifted grid); ``prior`` alpha0; ``device`` a Warp device name; ``initial_capacity`` slots
-    (rounded up to a power of two); ``max_load`` the fill the table grows at, in [0.05, 0.75];
+    the protocol through which the integrators' launches add evidence to it (see the module's
+    description). ``num_classes`` K >= 2; ``resolution_m`` the voxel edge (m); ``grid_offset_m`` the
+    lattice's offset (m, 0 but for S-CSM's half-shifted grid); ``prior`` alpha0; ``device`` a Warp device
+    name; ``initial_capacity`` slots (rounded up to a power of two); ``max_load`` the fill the table grows at, in [0.05, 0.75];
     ``memory_budget`` the ``TableBudget`` it shares with the map's other shards (None: one of its own,
     of the memory available). Raises ValueError for values outside those ranges, MemoryBudgetError
     for a table the budget does not hold."""

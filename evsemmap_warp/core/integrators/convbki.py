@@ -4,6 +4,7 @@ scattered onto its per-class stencil (the scatter family's MODE_STENCIL)."""
 from __future__ import annotations
 
 import numpy as np
+import warp as wp
 
 from ...config import MappingConfig, Media
 from ...kernels import scatter as sc
@@ -51,8 +52,24 @@ class ConvBkiIntegrator:
         mean_uncertainty = summed[:, k] / summed[:, k + 1]
 
         def job(shard: VoxelMap, part: np.ndarray) -> int:
-            return scatter(shard, centers[part], np.full(len(part), c.resolution_m), mean_uncertainty[part], mode=sc.MODE_STENCIL,
-                                 sigma0=1.0, class_weights=summed[part, :k], stencil_weights=self.weights)
+            return scatter_stencil(shard, centers[part], np.full(len(part), c.resolution_m), mean_uncertainty[part], summed[part, :k],
+                                   self.weights)
 
         stats.voxel_updates = total_updates(split_over_shards(shards, lanes, len(centers), job))
         return stats
+
+
+def scatter_stencil(shard: VoxelMap, centers: np.ndarray, lengths: np.ndarray, uncertainty: np.ndarray, class_weights: np.ndarray,
+                    stencil_weights: np.ndarray) -> int:
+    """Each point of ``centers`` [N, 3] (m) adds its class weights [N, K], times the stencil's weights
+    [(2h + 1)^3, K] at each offset, to the voxels within h cells of its own (the scatter family's
+    MODE_STENCIL) in ``shard``; returns updates."""
+    side = round(len(stencil_weights) ** (1 / 3))
+    if side**3 != len(stencil_weights) or side % 2 == 0:
+        raise ValueError(f"stencil_weights must have (2h + 1)^3 rows, got {len(stencil_weights)}")
+    if len(centers) == 0:
+        return 0
+    half = side // 2
+    stencil = shard.staging.upload("stencil_weights", stencil_weights, wp.float64, np.float64)
+    return scatter(shard, centers, lengths, uncertainty, mode=sc.MODE_STENCIL, sigma0=1.0, reach=(half + 1) * shard.resolution_m,
+                   class_weights=class_weights, stencil_weights=stencil, stencil_half=half)

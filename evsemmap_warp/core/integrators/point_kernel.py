@@ -89,7 +89,8 @@ class PointKernelIntegrator:
                 return scatter_sorted(shard, points[part], lengths[part], unc[part], sigma0=sigma0, **kw)
             if strategy is ScatterStrategy.GATHER:
                 return scatter_hashgrid(shard, points[part], lengths[part], unc[part], sigma0=sigma0, **kw)
-            return scatter(shard, points[part], lengths[part], unc[part], mode=mode, sigma0=sigma0, fusion=fusion, **kw)
+            reach = float(np.max(lengths[part], initial=0.0))
+            return scatter(shard, points[part], lengths[part], unc[part], mode=mode, sigma0=sigma0, fusion=fusion, reach=reach, **kw)
 
         stats.voxel_updates = total_updates(split_over_shards(shards, lanes, len(points), job))
         return stats

@@ -122,7 +122,7 @@ class SbkiCompatIntegrator:
             insert_blocks(shard, sbki_compat.test_blocks(owners[part]), self.cells_per_block, mark_touched=False)
             ids = point_ids[part]
             return scatter(shard, points[ids].astype(np.float64), np.full(len(ids), c.resolution_m), np.zeros(len(ids)),
-                           mode=sc.MODE_SBKI_OWN_BLOCK, sigma0=1.0, labels=labels[ids], owner_blocks=owners[part],
+                           mode=sc.MODE_SBKI_OWN_BLOCK, sigma0=1.0, reach=None, labels=labels[ids], owner_blocks=owners[part],
                            cells_per_block=self.cells_per_block)
 
         return total_updates(split_over_shards(shards, lanes, len(point_ids), job))

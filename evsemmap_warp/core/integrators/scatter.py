@@ -1,6 +1,7 @@
 """The scatter family's launch (``kernels.scatter``): each point adds its kernel's weights to the voxels
 it reaches, one kernel per (mode, fusion, media), relaunched where it ran out of table room. The clean
-point kernels, ConvBKI's stencil and S-CSM's own-block counts all run through ``scatter``."""
+point kernels, ConvBKI's stencil and S-CSM's own-block counts all run through ``scatter``, each
+integrator handing it its mode's reach and parameters."""
 
 from __future__ import annotations
 
@@ -29,15 +30,17 @@ def scatter(
     *,
     mode: int,
     sigma0: float,
+    reach: float | None,
     labels: np.ndarray | None = None,
     class_weights: np.ndarray | None = None,
     owner_blocks: np.ndarray | None = None,
-    cells_per_block: int = 1,
     fusion: int = sc.FUSION_BAYES,
-    stencil_weights: np.ndarray | None = None,
+    **params,
 ) -> int:
     """One scatter launch over all points into ``shard`` (relaunching failed ones after growth); returns
-    updates. ``stencil_weights`` [(2h + 1)^3, K] only with MODE_STENCIL."""
+    updates. ``reach``: how far (m) the points' kernels reach, checked against the key range before
+    anything is written (None: the caller's inserted blocks hold every target); ``params``: the mode's
+    further ``kernels.scatter.scatter_params`` (its blocks' cells per side, the stencil)."""
     n = len(points)
     if n == 0:
         return 0
@@ -45,28 +48,17 @@ def scatter(
         raise ValueError("the stencil mode and Dempster fusion read per-class weights: pass class_weights, not labels")
     kernel = sc.scatter_kernel(mode, fusion, labels is not None)
     load_once(kernel.module, shard.device)
-    stencil_half = 0
-    if mode == sc.MODE_STENCIL:
-        side = round(len(stencil_weights) ** (1 / 3))
-        if side**3 != len(stencil_weights) or side % 2 == 0:
-            raise ValueError(f"stencil_weights must have (2h + 1)^3 rows, got {len(stencil_weights)}")
-        stencil_half = side // 2
-    if mode != sc.MODE_SBKI_OWN_BLOCK:
-        reach = float(np.max(lengths)) * (sc.SBKI_REACH_FACTOR if mode == sc.MODE_SBKI_BLOCKS else 1.0)
-        if mode == sc.MODE_STENCIL:
-            reach = (stencil_half + 1) * shard.resolution_m
+    if reach is not None:
         shard.check_reach(points, reach)
     d = shard.device
     scan = radius_scan(shard, points, lengths, point_uncertainty, labels, class_weights)
     if owner_blocks is not None:
         scan.owner_blocks = shard.staging.upload("owner_blocks", owner_blocks, wp.vec3i, np.int32)
-    params = sc.scatter_params(resolution=shard.resolution_m, grid_offset=shard.grid_offset_m, sigma0=sigma0, cells_per_block=cells_per_block,
-                               stencil_weights=None if stencil_weights is None else shard.staging.upload("stencil_weights", stencil_weights, wp.float64, np.float64),
-                               stencil_half=stencil_half)
+    scatter_params = sc.scatter_params(resolution=shard.resolution_m, grid_offset=shard.grid_offset_m, sigma0=sigma0, **params)
 
     def launch(ids, failed):
         scan.point_ids = ids
-        wp.launch(kernel, dim=len(ids), device=d, inputs=[scan, params, shard.target(failed)])
+        wp.launch(kernel, dim=len(ids), device=d, inputs=[scan, scatter_params, shard.target(failed)])
 
     inserts = sc.scatter_inserts(mode)  # the other modes' points fail only where a target was never inserted (a bug): always read
     return shard.launch_until_done(n, launch, may_insert=inserts, kind=f"scatter{mode}", most_new=n, fails_only_when_full=inserts, resumes=inserts)
