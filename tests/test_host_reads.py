@@ -172,7 +172,7 @@ def test_see_csoms_launch_reads_once_per_shard_and_allocates_nothing(workers):
     for _ in range(3):
         mapper.integrate(points, alpha, payload_type="alpha", sensor_origin=origin)
     for _ in range(3):
-        prepared = mapper.prepare(points, alpha, "alpha", origin)
+        prepared = mapper.prepare(points, alpha, payload_type="alpha", sensor_origin=origin)
         with counting() as counts:
             stats = mapper.launch(prepared)
         assert stats.voxel_updates > 0

@@ -175,7 +175,8 @@ def gather_forms(scans, device, repeats):
         config = compat_config(0.5) if sbki else load_config([RELEASE], method="ebs").mapping
         preparing = Mapper(config, 9, device=device, workers=1)
         preparing.integrator.gather_kernel = functools.partial(block_gather.gather_sbki_kernel if sbki else release.gather_release_kernel, **options)
-        launches = [preparing.prepare(pts, np.argmax(alpha, axis=1) if sbki else alpha, "label" if sbki else "alpha", origin)
+        launches = [preparing.prepare(pts, np.argmax(alpha, axis=1) if sbki else alpha, payload_type="label" if sbki else "alpha",
+                                      sensor_origin=origin)
                     for pts, alpha, origin in scans]
         holder = {}
 

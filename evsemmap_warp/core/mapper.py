@@ -378,7 +378,7 @@ class Mapper:
         """Add one scan or bin. points [N, 3] world frame (m); payload [N, K] alpha or
         probabilities, or [N] integer labels, as ``payload_type`` says. An empty scan is a no-op.
         ``sensor_origin`` [3] is needed by the sbki mode (free-space rays)."""
-        return self.launch(self.prepare(points, payload, payload_type, sensor_origin))
+        return self.launch(self.prepare(points, payload, payload_type=payload_type, sensor_origin=sensor_origin))
 
     def _load_kernels(self) -> None:
         """Compile or load the integrator's kernel modules once, in the calling thread, before its first
@@ -480,9 +480,9 @@ class Mapper:
             raise ValueError(f"{name}: {exc}") from None
 
     def _prepare_scan(self, scan):
-        return self.prepare(scan.points, scan.payload, scan.payload_type, scan.sensor_origin)
+        return self.prepare(scan.points, scan.payload, payload_type=scan.payload_type, sensor_origin=scan.sensor_origin)
 
-    def prepare(self, points, payload, payload_type, sensor_origin=None) -> PreparedScan | None:
+    def prepare(self, points, payload, *, payload_type: PayloadType | str, sensor_origin=None) -> PreparedScan | None:
         """Validation and the integrator's host work for one scan, ``integrate``'s first half (the map is
         not touched, except that the first non-empty scan sets the origin); returns the scan ready to
         ``launch``, None for an empty scan."""
@@ -515,9 +515,10 @@ class Mapper:
             raise
 
     def launch(self, prepared: "PreparedScan | None", *, wait: bool = True) -> IntegrationStats:
-        """Run a prepared scan's launch (``prepare``), ``integrate``'s second half; ``wait=False`` may return while its shard jobs still run (``_finish``
-        waits for them). A launch refused before any write (the key range, checked for the whole scan)
-        changes nothing: no counts, no scan id, no origin it set."""
+        """Run a prepared scan's launch (``prepare``), ``integrate``'s second half; ``wait=False`` may
+        return while its shard jobs still run (``_finish`` waits for them). A launch refused before any
+        write (the key range, checked for the whole scan) changes nothing: no counts, no scan id, no
+        origin it set."""
         if prepared is None:
             return IntegrationStats()
         try:
