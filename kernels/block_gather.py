@@ -257,6 +257,9 @@ def gather_sbki_kernel(num_classes: int, cells_per_block: int, *, branch_free: b
     cell_floats = wp.types.vector(length=n3, dtype=wp.float32)
     cell_rows = block_rows_type(n3)
 
+    # One function over ~80 lines, and its per-block work one Warp function: the cell sums are local
+    # vectors and matrices, which a Warp function takes and returns by value, so a helper per step would
+    # copy the block's sums in and out for every point instead of adding to them in registers.
     @wp.func
     def gather_sbki_block(scan: SbkiBlocks, b: int, first: wp.vec3i, rows: cell_rows, voxel_data: wp.array2d(dtype=wp.float64)) -> wp.float64:
         """Test block b (first cell ``first``, its cells' ``rows``): for each of its 7 source blocks

@@ -16,10 +16,8 @@ from . import MODULE_OPTIONS
 
 wp.set_module_options(MODULE_OPTIONS)
 
-# Measured on the CPU (one bench scan's 327 k free-sample sort values, ns per value): radix_scatter 3.3 as
-# a range loop, 2.4 with nonnegative indices, 1.4 as a while loop with them (a plain C loop: 1.1); the
-# free_res 0.5 row's single-thread kernels over 30 scans, 0.88 -> 0.60 s. The S-BKI and release gathers
-# stay range loops: their time is arithmetic, and the release's measured slower as a while loop.
+# The one-thread host kernels loop with while and index through ``nonnegative``; the gathers stay range
+# loops (docs/performance.md, "Measurements behind the code's choices").
 _NON_NEGATIVE_INT = wp.constant(0x7FFFFFFF)
 
 

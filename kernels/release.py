@@ -139,6 +139,9 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, fusion:
     cell_rows = block_rows_type(n3)
     cell_centers = wp.types.matrix(shape=(n3, 3), dtype=wp.float32)
 
+    # One function over ~80 lines, and its per-block work one Warp function: the cell sums are local
+    # vectors and matrices, which a Warp function takes and returns by value, so a helper per step would
+    # copy the block's sums in and out for every point instead of adding to them in registers.
     @wp.func
     def gather_release_block(scan: Inputs, b: int, first: wp.vec3i, rows: cell_rows, voxel_data: wp.array2d(dtype=wp.float64)) -> wp.float64:
         """Target block b, holding its n^3 cells' sums: the points of its source blocks (one row per (point,
@@ -188,8 +191,8 @@ def gather_release_kernel(num_classes: int, cells_per_block: int = 2, *, fusion:
                         d2 = dx * dx + dy * dy + dz * dz
                         weights[j] = wp.where(d2 < reach2, f64(release_sparse_kernel(d2, inverse_length, sigma0)), ZERO64)
                     if wp.static(dempster):
-                        # Cell by cell, only where the kernel is positive: as vectors over all cells
-                        # (ratios of exactly 1 out of reach) this loop measured 1.7x slower.
+                        # Cell by cell, only where the kernel is positive: faster than as vectors over
+                        # all cells (docs/performance.md, "Measurements behind the code's choices").
                         for j in range(n3):
                             w = weights[j]
                             if w > ZERO64:

@@ -67,8 +67,7 @@ def packed_leaf_indices(points: wp.array(dtype=wp.vec3), inverse_leaf: wp.float3
     packed[i] = (_leaf_index(points[i], inverse_leaf, lowest, leaves_x, leaves_y) << wp.int64(position_bits)) | wp.int64(i)
 
 
-# leaf_centroids asks for the point this many places ahead in sorted order (16 to 128 measured alike;
-# free_res 0.5, 30 bench scans: 0.34 -> 0.23 s).
+# leaf_centroids asks for the point this many places ahead in sorted order (docs/performance.md, "Measurements behind the code's choices").
 POINTS_AHEAD = wp.constant(32)
 
 
@@ -110,8 +109,8 @@ def leaf_centroids(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int
         leaf += 1
 
 
-# leaf_centroids_of_sorted in place of listing the order and the runs' starts, then leaf_centroids: free_res
-# 0.5, 30 bench scans' free samples, 0.31 -> 0.18 s.
+# leaf_centroids_of_sorted in place of listing the order and the runs' starts, then leaf_centroids
+# (docs/performance.md, "Measurements behind the code's choices").
 @wp.kernel
 def leaf_centroids_of_sorted(points: wp.array(dtype=wp.vec3), packed: wp.array(dtype=wp.int64), position_bits: int,
                              centroids: wp.array(dtype=wp.vec3), leaf_count: wp.array(dtype=int)):

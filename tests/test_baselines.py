@@ -14,6 +14,8 @@ from evsemmap_warp.core.mapper import load_map, save_map
 from evsemmap_warp.core.mapper import Mapper, VoxelState
 from evsemmap_warp.reference import dempster as dempster_ref
 from evsemmap_warp.reference import scatter as ref
+from evsemmap_warp.core.integrators.convbki import scatter_stencil
+from evsemmap_warp.core.integrators.see_csom import scatter_block_targets
 from evsemmap_warp.core.voxel_map import VoxelMap
 from test_scatter import _compare
 
@@ -49,12 +51,11 @@ def test_stencil_kernel_matches_twin(device):
     table = convbki.stencil_weights(convbki.ConvBkiLengths(rng.uniform(0.1, 0.6, k), rng.uniform(0.1, 0.6, k)), 0.2, 2)
     unc = rng.uniform(0, 1, len(points))
     vm = VoxelMap(k, 0.2, device=device, initial_capacity=64)  # grows during the launch
-    updates = vm.scatter(points, np.full(len(points), 0.2), unc, mode=sc.MODE_STENCIL, sigma0=1.0, class_weights=weights, stencil_weights=table)
+    updates = scatter_stencil(vm, points, np.full(len(points), 0.2), unc, weights, table)
     _compare(vm, updates, ref.scatter_points(points, None, weights, np.full(len(points), 0.2), unc, None, ref.MODE_STENCIL, 0.2, 0.0, 1.0, 1, k,
                                              stencil_weights=table))
     empty = VoxelMap(k, 0.2, device=device)
-    assert empty.scatter(np.zeros((0, 3)), np.zeros(0), np.zeros(0), mode=sc.MODE_STENCIL, sigma0=1.0,
-                         class_weights=np.zeros((0, k)), stencil_weights=table) == 0
+    assert scatter_stencil(empty, np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros((0, k)), table) == 0
 
 
 def test_convbki_map_equals_a_dense_depthwise_conv3d():
@@ -155,9 +156,9 @@ def test_block_target_kernel_matches_twin(device):
     owners, lengths = see_csom.block_targets(points, labels, 4, 0.25)
     unc = rng.uniform(0, 1, len(points))
     vm = VoxelMap(4, 0.25, device=device, initial_capacity=32)
-    updates = vm.scatter_block_targets(points, labels, unc, owners, lengths, see_csom.CELLS_PER_BLOCK)
+    updates = scatter_block_targets(vm, points, labels, unc, owners, lengths, see_csom.CELLS_PER_BLOCK)
     _compare(vm, updates, ref.scatter_block_targets(points, labels, unc, owners, lengths, 0.25, 0.0, see_csom.CELLS_PER_BLOCK, 4))
-    assert VoxelMap(4, 0.25, device=device).scatter_block_targets(np.zeros((0, 3)), np.zeros(0, int), np.zeros(0), np.zeros((0, 3), int), np.zeros((0, 7)), 2) == 0
+    assert scatter_block_targets(VoxelMap(4, 0.25, device=device), np.zeros((0, 3)), np.zeros(0, int), np.zeros(0), np.zeros((0, 3), int), np.zeros((0, 7)), 2) == 0
 
 
 def test_block_target_points_stopped_in_their_adding_pass_resume_where_they_stopped(device, overfill_next_launch):
@@ -170,9 +171,9 @@ def test_block_target_points_stopped_in_their_adding_pass_resume_where_they_stop
     owners, lengths = see_csom.block_targets(points, labels, 4, 0.25)
     vm = VoxelMap(4, 0.25, device=device, initial_capacity=32)
     first, second = slice(0, 100), slice(100, None)
-    updates = vm.scatter_block_targets(points[first], labels[first], unc[first], owners[first], lengths[first], see_csom.CELLS_PER_BLOCK)
+    updates = scatter_block_targets(vm, points[first], labels[first], unc[first], owners[first], lengths[first], see_csom.CELLS_PER_BLOCK)
     resumed_after, launches = overfill_next_launch()
-    updates += vm.scatter_block_targets(points[second], labels[second], unc[second], owners[second], lengths[second], see_csom.CELLS_PER_BLOCK)
+    updates += scatter_block_targets(vm, points[second], labels[second], unc[second], owners[second], lengths[second], see_csom.CELLS_PER_BLOCK)
     assert len(launches) >= 2 and np.count_nonzero(np.array(resumed_after) > 0) >= 20, "points must stop part way and be relaunched"
     _compare(vm, updates, ref.scatter_block_targets(points, labels, unc, owners, lengths, 0.25, 0.0, see_csom.CELLS_PER_BLOCK, 4))
 

@@ -172,9 +172,9 @@ def test_see_csoms_launch_reads_once_per_shard_and_allocates_nothing(workers):
     for _ in range(3):
         mapper.integrate(points, alpha, payload_type="alpha", sensor_origin=origin)
     for _ in range(3):
-        prepared = mapper._prepare(points, alpha, "alpha", origin)
+        prepared = mapper.prepare(points, alpha, payload_type="alpha", sensor_origin=origin)
         with counting() as counts:
-            stats = mapper._launch(prepared)
+            stats = mapper.launch(prepared)
         assert stats.voxel_updates > 0
         for field, per_shard in budget_of("see-csom").items():
             assert getattr(counts, field) <= per_shard * workers, f"see-csom, {workers} worker(s): {counts}"

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evsemmap_warp.config import Compat, Kernel, load_config
+from evsemmap_warp.config import Compat, Kernel, PayloadType, load_config
 from evsemmap_warp.core import integrators as ig
 from evsemmap_warp.core.mapper import Mapper
 
@@ -45,7 +45,7 @@ class _Recorder:
     seen = []
 
     def __init__(self, config, num_classes):
-        self.needs = ig.ScanNeeds(ig.SensorOrigin.REQUIRED, "the recorder measures from it", frozenset({ig.PayloadType.LABEL}), "labels only")
+        self.needs = ig.ScanNeeds(ig.SensorOrigin.REQUIRED, "the recorder measures from it", frozenset({PayloadType.LABEL}), "labels only")
 
     def prepare(self, scan, device):
         _Recorder.seen.append(scan)
@@ -106,3 +106,38 @@ def test_production_code_never_imports_a_numpy_twin():
     assert len(files) > 30
     offenders = {str(p.relative_to(REPO)): n for p in files for n in _imports(p) if "reference" in n.split(".")}
     assert not offenders, f"production modules import numpy twins: {offenders}"
+
+
+def test_the_map_is_storage_and_knows_no_method():
+    # The map holds the table, the rows and the grow-and-relaunch protocol; which kernels a method launches is
+    # its integrator's, so a new method never edits the map.
+    from evsemmap_warp.core import voxel_map
+    from evsemmap_warp.core.voxel_map import VoxelMap
+
+    public = {name for name in vars(VoxelMap) if not name.startswith("_")}
+    assert {"launch_until_done", "launch_reserved", "target", "stored_rows"} <= public
+    methodish = sorted(n for n in public if any(word in n for word in ("scatter", "gather", "block_cells", "insert_blocks", "kernel")))
+    assert not methodish, f"VoxelMap has method-specific entry points: {methodish}"
+    kernel_modules = {n.split(".")[-1] for n in _imports(Path(voxel_map.__file__)) if n.startswith("..kernels")}
+    assert kernel_modules <= {"kernels", "hash_table", "scatter", "load_once"}, kernel_modules
+
+
+def test_each_method_is_one_module_of_the_integrators_package():
+    classes = set(ig.INTEGRATORS.values())
+    modules = {cls.__module__ for cls in classes}
+    assert len(modules) == len(classes) == 5
+    assert all(m.startswith("evsemmap_warp.core.integrators.") for m in modules), modules
+
+
+def test_a_launch_refuses_a_scan_status_longer_than_its_counters_read_back():
+    import warp as wp
+
+    from evsemmap_warp.core.voxel_map import MAX_SCAN_STATUS, VoxelMap
+
+    vm = VoxelMap(3, 0.5)
+    too_long = wp.zeros(MAX_SCAN_STATUS + 1, dtype=int, device=vm.device)
+    with pytest.raises(ValueError, match="at most 8 are read back"):
+        vm.launch_until_done(1, lambda ids, failed: None, may_insert=False, kind="none", most_new=0, scan_status=too_long)
+    status = wp.array(np.arange(3, dtype=np.int32) + 7, dtype=int, device=vm.device)
+    assert vm.launch_until_done(1, lambda ids, failed: None, may_insert=False, kind="none", most_new=0, scan_status=status) == 0
+    assert vm.counted_status.tolist() == [7, 8, 9]

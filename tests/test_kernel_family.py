@@ -10,7 +10,7 @@ import warp as wp
 
 from evsemmap_warp import kernels as kernel_package
 from evsemmap_warp.kernels import MODULE_OPTIONS
-from evsemmap_warp.kernels import block_gather, hashgrid_gather, release, sorted_scatter
+from evsemmap_warp.kernels import block_gather, hashgrid_gather, microbench, release, sorted_scatter
 from evsemmap_warp.kernels import scatter as sc
 from evsemmap_warp.reference import scatter as ref
 
@@ -33,6 +33,7 @@ def _every_kernel():
         "gather_release_blocks": [release.gather_release_kernel(9, 2, fusion=f) for f in (sc.FUSION_BAYES, sc.FUSION_DEMPSTER)],
         "block_models": [release.block_models_kernel(dense) for dense in (True, False)],
         "sorted_rows": [release.sorted_rows_kernel(9, dempster) for dempster in (False, True)],
+        "radix_scatter_form": [microbench.radix_scatter_form(w, m) for w in (True, False) for m in (True, False)],
     }
     out = []
     for module_name in KERNEL_MODULES:

@@ -104,6 +104,25 @@ def test_row_adds_and_stream_copy_match_their_twins():
     np.testing.assert_array_equal(dst.numpy(), mb_ref.stream_copy(w))
 
 
+def test_every_index_form_of_the_radix_scatter_matches_its_twin_and_the_study_times_them():
+    rng = np.random.default_rng(8)
+    values = (rng.integers(0, 1 << 9, 3000).astype(np.int64) << 12) | np.arange(3000)
+    digits = (values >> 12) & 63
+    want = mb_ref.radix_scatter_form(values, 12, 6)
+    assert (np.diff((want >> 12) & 63) >= 0).all() and not (want == values).all()
+    for while_loop in (True, False):
+        for masked in (True, False):
+            slots = wp.array(np.r_[0, np.cumsum(np.bincount(digits, minlength=64))[:-1]].astype(np.int32), dtype=int, device="cpu")
+            out = wp.empty(len(values), dtype=wp.int64, device="cpu")
+            wp.launch(mb.radix_scatter_form(while_loop, masked), dim=1, device="cpu",
+                      inputs=[wp.array(values, dtype=wp.int64, device="cpu"), 12, 6, slots, out])
+            np.testing.assert_array_equal(out.numpy(), want)
+    result = subprocess.run([sys.executable, str(REPO / "tools/kernel_study.py"), "--index-forms", "5000"], capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.count(" ns per value") == 4 and "while loop, masked" in result.stdout
+
+
 def test_sorted_strategy_refuses_what_it_does_not_integrate():
     with pytest.raises(ConfigError, match="mapping.clean.scatter_strategy"):
         dataclasses.replace(load_config([REPO / "configs/presets/rellis3d.yaml"], method="dempster").mapping,

@@ -390,15 +390,15 @@ def test_a_maps_first_gather_is_sized_for_its_blocks_and_launched_once(monkeypat
     from evsemmap_warp.core.voxel_map import VoxelMap
 
     launches = []
-    original = VoxelMap._launch_until_done
+    original = VoxelMap.launch_until_done
 
     def counted(self, n, launch, **kw):
         def counting(ids, failed):
             launches.append((kw["kind"], len(ids)))
             launch(ids, failed)
-        original(self, n, counting, **kw)
+        return original(self, n, counting, **kw)
 
-    monkeypatch.setattr(VoxelMap, "_launch_until_done", counted)
+    monkeypatch.setattr(VoxelMap, "launch_until_done", counted)
     rng = np.random.default_rng(33)
     pts = rng.uniform(0, 12.0, (20000, 3)).astype(np.float32)  # ~20 k test blocks, 160 k cells: 2^16 slots would not do
     cfg = _compat_config(False, resolution_m=0.2, length_m=0.3, sigma0=10.0, prior=0.001,

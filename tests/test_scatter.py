@@ -13,6 +13,9 @@ import warp as wp
 
 from evsemmap_warp.kernels import scatter as sc
 from evsemmap_warp.reference import scatter as ref
+from evsemmap_warp.core.integrators.convbki import scatter_stencil
+from evsemmap_warp.core.integrators.sbki import insert_blocks
+from evsemmap_warp.core.integrators.scatter import scatter
 from evsemmap_warp.core.voxel_map import VoxelMap
 
 MODES = {"radius": sc.MODE_RADIUS, "own_voxel": sc.MODE_OWN_VOXEL}
@@ -20,7 +23,7 @@ MODES = {"radius": sc.MODE_RADIUS, "own_voxel": sc.MODE_OWN_VOXEL}
 
 def _run(points, lengths, unc, *, mode, k, device, labels=None, weights=None, res=0.2, sigma0=1.0, capacity=1 << 12, offset=0.0):
     vm = VoxelMap(k, res, device=device, initial_capacity=capacity, grid_offset_m=offset)
-    updates = vm.scatter(points, lengths, unc, mode=mode, sigma0=sigma0, labels=labels, class_weights=weights)
+    updates = scatter(vm, points, lengths, unc, mode=mode, sigma0=sigma0, reach=float(np.max(lengths, initial=0.0)), labels=labels, class_weights=weights)
     return vm, updates
 
 
@@ -160,7 +163,9 @@ def test_one_pass_points_map_as_two_passes_bit_for_bit(monkeypatch, capacity, mo
 
     def run():
         vm = VoxelMap(5, 0.2, device="cpu", initial_capacity=capacity)
-        updates = vm.scatter(pts, lengths, unc, mode=mode, sigma0=1.0, class_weights=weights, stencil_weights=stencil)
+        if mode == sc.MODE_STENCIL:
+            return vm, scatter_stencil(vm, pts, lengths, unc, weights, stencil)
+        updates = scatter(vm, pts, lengths, unc, mode=mode, sigma0=1.0, reach=float(np.max(lengths)), class_weights=weights)
         return vm, updates
 
     one_pass, one_pass_updates = run()
@@ -184,9 +189,11 @@ def test_points_stopped_in_their_adding_pass_resume_where_they_stopped(device, o
     pts, weights, lengths, unc = pts[keep], weights[keep], lengths[keep], unc[keep]
     first, second = slice(0, int(keep[:300].sum())), slice(int(keep[:300].sum()), None)
     vm = VoxelMap(4, 0.2, device=device, initial_capacity=16)
-    updates = vm.scatter(pts[first], lengths[first], unc[first], mode=sc.MODE_RADIUS, sigma0=1.0, class_weights=weights[first])
+    updates = scatter(vm, pts[first], lengths[first], unc[first], mode=sc.MODE_RADIUS, sigma0=1.0, reach=float(lengths.max()),
+                      class_weights=weights[first])
     resumed_after, launches = overfill_next_launch()
-    updates += vm.scatter(pts[second], lengths[second], unc[second], mode=sc.MODE_RADIUS, sigma0=1.0, class_weights=weights[second])
+    updates += scatter(vm, pts[second], lengths[second], unc[second], mode=sc.MODE_RADIUS, sigma0=1.0, reach=float(lengths.max()),
+                       class_weights=weights[second])
     assert len(launches) >= 2 and np.count_nonzero(np.array(resumed_after) > 0) >= 20, "points must stop part way and be relaunched"
     _compare(vm, updates, ref.scatter_points(pts, None, weights, lengths, unc, None, sc.MODE_RADIUS, 0.2, 0.0, 1.0, 1, 4))
 
@@ -227,8 +234,9 @@ def test_sbki_modes_match_reference_on_random_owners(device):
     vm = VoxelMap(4, 0.1, device=device, initial_capacity=64)
     ext = np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
     blocks = np.unique((np.unique(owners, axis=0)[:, None] + ext[None]).reshape(-1, 3), axis=0)
-    vm.insert_blocks(blocks, 4, mark_touched=True)
-    updates = vm.scatter(pts, np.full(n, 0.3), np.zeros(n), mode=sc.MODE_SBKI_BLOCKS, sigma0=10.0, labels=labels, owner_blocks=owners, cells_per_block=4)
+    insert_blocks(vm, blocks, 4, mark_touched=True)
+    updates = scatter(vm, pts, np.full(n, 0.3), np.zeros(n), mode=sc.MODE_SBKI_BLOCKS, sigma0=10.0, reach=0.3 * sc.SBKI_REACH_FACTOR, labels=labels,
+                      owner_blocks=owners, cells_per_block=4)
     expected = ref.scatter_points(pts, labels, None, np.full(n, 0.3), np.zeros(n), owners, sc.MODE_SBKI_BLOCKS, 0.1, 0.0, 10.0, 4, 4)
     got = vm.arrays()
     assert len(got.index) == len(blocks) * 64
@@ -292,11 +300,11 @@ def test_insert_block_cells_matches_reference(device, cells_per_block, mark_touc
     rng = np.random.default_rng(cells_per_block)
     blocks = np.unique(rng.integers(-20, 20, (300, 3)), axis=0)
     vm = VoxelMap(3, 0.1, device=device, initial_capacity=16)  # grows during the insertion
-    vm.insert_blocks(blocks, cells_per_block, mark_touched=mark_touched)
-    vm.insert_blocks(blocks[:10], cells_per_block, mark_touched=mark_touched)  # idempotent
+    insert_blocks(vm, blocks, cells_per_block, mark_touched=mark_touched)
+    insert_blocks(vm, blocks[:10], cells_per_block, mark_touched=mark_touched)  # idempotent
     expected = ref.insert_block_cells(blocks, cells_per_block)
     got = vm.arrays()
     np.testing.assert_array_equal(got.index, np.unique(expected, axis=0))
     assert len(got.index) == len(blocks) * cells_per_block**3 and vm.grow_count > 0
     assert (got.touched == mark_touched).all() and (got.evidence == 0).all() and (got.hits == 0).all()
-    assert vm.insert_blocks(np.zeros((0, 3), int), 2, mark_touched=True) is None and vm.voxel_count == len(got.index)
+    assert insert_blocks(vm, np.zeros((0, 3), int), 2, mark_touched=True) is None and vm.voxel_count == len(got.index)

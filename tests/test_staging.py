@@ -158,7 +158,7 @@ def test_a_gpu_maps_prepare_thread_and_its_launches_call_warp_in_turn(monkeypatc
     from contextlib import contextmanager
     from types import SimpleNamespace
 
-    from evsemmap_warp.core import integrators
+    from evsemmap_warp.core.integrators import gathers
     from evsemmap_warp.core import mapper as mapper_module
 
     turns = threading.RLock()
@@ -170,7 +170,7 @@ def test_a_gpu_maps_prepare_thread_and_its_launches_call_warp_in_turn(monkeypatc
             callers.append(threading.current_thread().name)
             yield
 
-    monkeypatch.setattr(integrators, "device_calls", recorded)
+    monkeypatch.setattr(gathers, "device_calls", recorded)
     monkeypatch.setattr(mapper_module, "device_calls", recorded)
     rng = np.random.default_rng(9)
     config = load_config([REPO / "configs/presets/release.yaml"], method="ebs").mapping

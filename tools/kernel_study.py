@@ -22,6 +22,10 @@ present, else LiDAR-like synthetic scans (rings of points on a ground plane with
 5. A roofline estimate per strategy: modelled bytes per voxel update x achieved update rate against
    the streaming bandwidth.
 ``--quick`` uses small sizes and one repeat (under a minute; the test suite runs it).
+
+``--index-forms`` times, instead, the radix sort's scatter pass in its four index forms (``while`` or range
+loop, indices through the sign-bit mask ``kernels.indexing.nonnegative`` or as read; rounds interleaved,
+ns per value) and prints them: the one-thread host kernels' form is a choice per CPU model.
 """
 
 from __future__ import annotations
@@ -171,13 +175,14 @@ def gather_forms(scans, device, repeats):
         config = compat_config(0.5) if sbki else load_config([RELEASE], method="ebs").mapping
         preparing = Mapper(config, 9, device=device, workers=1)
         preparing.integrator.gather_kernel = functools.partial(block_gather.gather_sbki_kernel if sbki else release.gather_release_kernel, **options)
-        launches = [preparing._prepare(pts, np.argmax(alpha, axis=1) if sbki else alpha, "label" if sbki else "alpha", origin)
+        launches = [preparing.prepare(pts, np.argmax(alpha, axis=1) if sbki else alpha, payload_type="label" if sbki else "alpha",
+                                      sensor_origin=origin)
                     for pts, alpha, origin in scans]
         holder = {}
 
         def run():
             mapper = Mapper(config, 9, device=device, workers=1, origin=preparing.origin)
-            holder["updates"] = sum(mapper._launch(launch).voxel_updates for launch in launches)
+            holder["updates"] = sum(mapper.launch(launch).voxel_updates for launch in launches)
             holder["mapper"] = mapper
 
         seconds = timed(run, repeats)
@@ -521,13 +526,53 @@ def write_report(out: Path, device, workload, strategy_rows, problems, gather_ro
     out.write_text("\n".join(lines))
 
 
+def index_forms(n: int, rounds: int = 9, repeats: int = 11, seed: int = 0) -> dict[str, dict[str, float]]:
+    """ns per value of ``microbench.radix_scatter_form`` in each form over n packed 25-bit keys (a 13-bit
+    digit, as the free samples' leaf keys sort): the median of ``repeats`` launches, its min and median
+    over ``rounds`` rounds that take the forms in turn. Raises AssertionError where a form's pass differs
+    from its twin's."""
+    from evsemmap_warp.reference import microbench as mb_ref
+
+    rng = np.random.default_rng(seed)
+    shift, bits = 20, 13
+    values = (rng.integers(0, 1 << 25, n).astype(np.int64) << shift) | np.arange(n)
+    digits = (values >> shift) & ((1 << bits) - 1)
+    first_slot = np.r_[0, np.cumsum(np.bincount(digits, minlength=1 << bits))[:-1]].astype(np.int32)
+    values_in = wp.array(values, dtype=wp.int64, device="cpu")
+    forms = {f"{'while' if w else 'range'} loop, {'masked' if m else 'as read'}": mb.radix_scatter_form(w, m)
+             for w in (True, False) for m in (True, False)}
+    want = mb_ref.radix_scatter_form(values, shift, bits)
+
+    def run(kernel) -> tuple[float, np.ndarray]:
+        slots = wp.array(first_slot, dtype=int, device="cpu")
+        out = wp.empty(n, dtype=wp.int64, device="cpu")
+        start = time.perf_counter()
+        wp.launch(kernel, dim=1, inputs=[values_in, shift, bits, slots, out], device="cpu")
+        return time.perf_counter() - start, out
+
+    for name, kernel in forms.items():
+        assert (run(kernel)[1].numpy() == want).all(), f"{name}: not the twin's pass"
+    per_round: dict[str, list[float]] = {name: [] for name in forms}
+    for _ in range(rounds):
+        for name, kernel in forms.items():
+            per_round[name].append(statistics.median(run(kernel)[0] for _ in range(repeats)) / n * 1e9)
+    return {name: {"min": min(times), "median": statistics.median(times)} for name, times in per_round.items()}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--quick", action="store_true", help="small sizes, one repeat: checks the study runs and its strategies agree")
     parser.add_argument("--repeats", type=int, default=None)
     parser.add_argument("--out", type=Path, default=REPO / "docs", help="folder for kernel_study.md and kernel_study/*.png")
+    parser.add_argument("--index-forms", type=int, metavar="N", nargs="?", const=327_000,
+                        help="only time the radix scatter's index forms over N values (default 327000) on the CPU, and print them")
     args = parser.parse_args()
+    if args.index_forms:
+        for name, ns in index_forms(args.index_forms).items():
+            print(f"{name}: {ns['min']:.2f} ns per value (min over rounds), {ns['median']:.2f} (median)")
+        print(machine().get("cpu_model", "CPU model unknown"))
+        return 0
     device = resolve_device(args.device)
     repeats = args.repeats or (1 if args.quick else 3)
     start = time.perf_counter()

@@ -442,9 +442,9 @@ class MapStore:
     def query(self, points) -> QueryResult:
         """Label, probabilities, variance and state at each point [M, 3], as ``Mapper.query``;
         only the tiles the points fall in are read."""
-        from .mapper import _validate_points
+        from .mapper import validate_points
 
-        points = _validate_points(points, "query points", far_ok=True)
+        points = validate_points(points, "query points", far_ok=True)
         m = len(points)
         label = np.full(m, UNKNOWN_LABEL, np.int32)
         # outside the tiles, what a map file answers outside its voxels: the prior's read-out (UNKNOWN)

@@ -127,7 +127,7 @@ def scan_fingerprint(points: np.ndarray, payload: np.ndarray) -> str:
 
 
 @dataclass
-class _Prepared:
+class PreparedScan:
     """A scan ready to launch: the integrator's launch, the scan's fingerprint, and whether the scan
     set the map origin (undone when the launch is refused)."""
 
@@ -180,7 +180,7 @@ def _numeric_array(value, what: str) -> np.ndarray:
     return array
 
 
-def _validate_points(points, what: str = "points", *, far_ok: bool = False) -> np.ndarray:
+def validate_points(points, what: str = "points", *, far_ok: bool = False) -> np.ndarray:
     """[N, 3] finite float64 points, within MAX_COORDINATE_M of (0, 0, 0) unless ``far_ok`` (queries:
     a point however far away is simply in no voxel of the map)."""
     points = _numeric_array(points, what).astype(np.float64, copy=False)
@@ -202,13 +202,13 @@ def _validate_points(points, what: str = "points", *, far_ok: bool = False) -> n
 
 
 def _validate_point(point, what: str) -> np.ndarray:
-    """One [3] position (an origin), as _validate_points checks a scan."""
+    """One [3] position (an origin), as validate_points checks a scan."""
     if isinstance(point, (str, bytes)):
         raise ValueError(f"{what}: expected 3 coordinates (x, y, z), got the text {point!r}")
     values = _numeric_array(point, what).reshape(-1)
     if len(values) != 3:
         raise ValueError(f"{what}: expected 3 coordinates (x, y, z), got {len(values)}")
-    return _validate_points(values.reshape(1, 3), what)[0]
+    return validate_points(values.reshape(1, 3), what)[0]
 
 
 def row_sums(values: np.ndarray) -> np.ndarray:
@@ -241,7 +241,7 @@ def prepare_payload(points, payload, payload_type: PayloadType | str, num_classe
     """Validate a scan and derive its uncertainty from its payload (its probabilities and labels when an
     integrator asks for them)."""
     payload_type = PayloadType(payload_type)
-    points = _validate_points(points)
+    points = validate_points(points)
     n, k = len(points), num_classes
     payload = _numeric_array(payload, f"payload ({payload_type.value})")
     if payload_type is PayloadType.LABEL:
@@ -377,8 +377,7 @@ class Mapper:
         """Add one scan or bin. points [N, 3] world frame (m); payload [N, K] alpha or
         probabilities, or [N] integer labels, as ``payload_type`` says. An empty scan is a no-op.
         ``sensor_origin`` [3] is needed by the sbki mode (free-space rays)."""
-        self._load_kernels()
-        return self._launch(self._prepare(points, payload, payload_type, sensor_origin))
+        return self.launch(self.prepare(points, payload, payload_type=payload_type, sensor_origin=sensor_origin))
 
     def _load_kernels(self) -> None:
         """Compile or load the integrator's kernel modules once, in the calling thread, before its first
@@ -413,7 +412,7 @@ class Mapper:
         results = []
         if not self.prepare_ahead:
             for scan in scans:
-                results.append(self._named(scan, lambda scan=scan: self._launch(self._prepare_scan(scan))))
+                results.append(self._named(scan, lambda scan=scan: self.launch(self._prepare_scan(scan))))
                 if progress:
                     progress(scan, results[-1])
             return results
@@ -460,7 +459,7 @@ class Mapper:
                         submitted += 1
                     while len(in_flight) >= LAUNCHES_IN_FLIGHT:
                         finish_oldest()
-                    in_flight.append((scan, self._named(scan, lambda: self._launch(prepared, wait=False))))
+                    in_flight.append((scan, self._named(scan, lambda: self.launch(prepared, wait=False))))
                 while in_flight:
                     finish_oldest()
         finally:  # on an error, no shard job may still change the map after this returns
@@ -480,11 +479,13 @@ class Mapper:
             raise ValueError(f"{name}: {exc}") from None
 
     def _prepare_scan(self, scan):
-        return self._prepare(scan.points, scan.payload, scan.payload_type, scan.sensor_origin)
+        return self.prepare(scan.points, scan.payload, payload_type=scan.payload_type, sensor_origin=scan.sensor_origin)
 
-    def _prepare(self, points, payload, payload_type, sensor_origin) -> Launch | None:
-        """Validation and the integrator's host work for one scan (the map is not touched, except
-        that the first non-empty scan sets the origin); returns its launch, None for an empty scan."""
+    def prepare(self, points, payload, *, payload_type: PayloadType | str, sensor_origin=None) -> PreparedScan | None:
+        """Validation and the integrator's host work for one scan, ``integrate``'s first half (the map is
+        not touched, except that the first non-empty scan sets the origin); returns the scan ready to
+        ``launch``, None for an empty scan."""
+        self._load_kernels()
         self._check_writable()
         scan = prepare_payload(points, payload, payload_type, self.num_classes)
         needs = self.integrator.needs
@@ -506,16 +507,17 @@ class Mapper:
             if reads_sensor_origin:  # the map origin stands in for an optional one not given
                 scan.sensor_origin = self._local(self.origin if sensor_origin is None else sensor_origin)
             scan.check_room = self.check_room
-            return _Prepared(self.integrator.prepare(scan, self.device), scan_id, sets_origin)
+            return PreparedScan(self.integrator.prepare(scan, self.device), scan_id, sets_origin)
         except BaseException:
             if sets_origin:  # a refused first scan leaves no origin behind: the next one picks it, as in a fresh map
                 self.origin_index = None
             raise
 
-    def _launch(self, prepared: "_Prepared | None", *, wait: bool = True) -> IntegrationStats:
-        """Run a prepared launch; ``wait=False`` may return while its shard jobs still run (``_finish``
-        waits for them). A launch refused before any write (the key range, checked for the whole scan)
-        changes nothing: no counts, no scan id, no origin it set."""
+    def launch(self, prepared: "PreparedScan | None", *, wait: bool = True) -> IntegrationStats:
+        """Run a prepared scan's launch (``prepare``), ``integrate``'s second half; ``wait=False`` may
+        return while its shard jobs still run (``_finish`` waits for them). A launch refused before any
+        write (the key range, checked for the whole scan) changes nothing: no counts, no scan id, no
+        origin it set."""
         if prepared is None:
             return IntegrationStats()
         try:
@@ -579,7 +581,7 @@ class Mapper:
     def query(self, points) -> QueryResult:
         """Label, probabilities, variance and state of the voxel containing each point [M, 3];
         label -1 (UNKNOWN state) for points in no stored voxel, however far away."""
-        points = _validate_points(points, "query points", far_ok=True)
+        points = validate_points(points, "query points", far_ok=True)
         m = len(points)
         rows = np.zeros((m, self.num_classes + EXTRA_COLUMNS))
         found = np.zeros(m, dtype=bool)

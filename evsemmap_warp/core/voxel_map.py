@@ -14,9 +14,10 @@ float64, because evidence on a ground voxel of a long drive passes float32's 2^2
 The table grows (2x: keys and row numbers rehashed; on the CPU the rows stay where they are, elsewhere
 the used ones are copied once) before it passes ``max_load`` and whenever a launch runs out of room;
 the points or blocks that could not be inserted are relaunched, so a voxel is never dropped or
-overwritten. The block-gather kernels also keep a brick cache (a block's first row, by its first
-cell; ``_allocate_brick_cache``). This class only launches kernels; methods, payloads and files live
-elsewhere.
+overwritten (``launch_until_done``). The block-gather kernels also keep a brick cache (a block's first
+row, by its first cell; ``_allocate_brick_cache``). The map is storage: the table, the rows, growth,
+read-out and lookup, and the grow-and-relaunch protocol every launch runs through; which kernels a
+method launches, and how, is its integrator's (``core.integrators``); payloads and files live elsewhere.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..methods.device_scratch import DeviceScratch, counts_with_room, inclusive_scan, last_value, offsets_and_total
+from ..methods.device_scratch import DeviceScratch
 from ..limits import MemoryBudgetError, available_memory, describe_bytes
 from ..voxel_keys import check_index_range, column_bounds, pack_voxel_keys, take_rows, unpack_voxel_keys, within_index_range
 from . import host_memory
@@ -37,10 +38,8 @@ from .warp_runtime import init_warp, resolve_device
 wp = init_warp()
 
 from ..kernels import hash_table as ht  # noqa: E402
-from ..kernels import hashgrid_gather as hg  # noqa: E402
 from ..kernels import load_once  # noqa: E402
 from ..kernels import scatter as sc  # noqa: E402
-from ..kernels import sorted_scatter as ss  # noqa: E402
 
 EXTRA_COLUMNS = sc.EXTRA_COLUMNS
 
@@ -113,7 +112,8 @@ class TableBudget:
                 self._held[table] = int(need)
 
 
-def _next_pow2(n: int) -> int:
+def next_pow2(n: int) -> int:
+    """The least power of two >= n (1 for n <= 1)."""
     return 1 << max(int(n) - 1, 0).bit_length()
 
 
@@ -125,11 +125,11 @@ def _block_cells_bounds(blocks: np.ndarray, cells_per_block: int) -> tuple[np.nd
 
 
 class VoxelMap:
-    """One sparse voxel map on one device: a hash table of voxel keys and a float64 value row per voxel, with
-    the launches that add evidence to it (see the module's description). ``num_classes`` K >= 2;
-    ``resolution_m`` the voxel edge (m); ``grid_offset_m`` the lattice's offset (m, 0 but for S-CSM's
-    half-shifted grid); ``prior`` alpha0; ``device`` a Warp device name; ``initial_capacity`` slots
-    (rounded up to a power of two); ``max_load`` the fill the table grows at, in [0.05, 0.75];
+    """One sparse voxel map on one device: a hash table of voxel keys and a float64 value row per voxel, and
+    the protocol through which the integrators' launches add evidence to it (see the module's
+    description). ``num_classes`` K >= 2; ``resolution_m`` the voxel edge (m); ``grid_offset_m`` the
+    lattice's offset (m, 0 but for S-CSM's half-shifted grid); ``prior`` alpha0; ``device`` a Warp device
+    name; ``initial_capacity`` slots (rounded up to a power of two); ``max_load`` the fill the table grows at, in [0.05, 0.75];
     ``memory_budget`` the ``TableBudget`` it shares with the map's other shards (None: one of its own,
     of the memory available). Raises ValueError for values outside those ranges, MemoryBudgetError
     for a table the budget does not hold."""
@@ -169,19 +169,20 @@ class VoxelMap:
         # block gather's inputs were counted in on the device) in one copy.
         self._failure_flags = None
         self._thread_ids = None
-        self._updates = wp.zeros(1, dtype=wp.int64, device=self.device)
+        self.update_count = wp.zeros(1, dtype=wp.int64, device=self.device)
         self._counters = wp.zeros(3 + MAX_SCAN_STATUS, dtype=wp.int64, device=self.device)
         self._no_scan_status = wp.zeros(0, dtype=int, device=self.device)
         self._scan_status = self._no_scan_status
-        self._counted_status = np.zeros(0, np.int64)
+        self.counted_status = np.zeros(0, np.int64)  # the scan status the last launch given one read back
         self._counted_updates = 0
-        # The scans' inputs reach the device through buffers kept from scan to scan (pinned, on a GPU).
+        # What the integrators' launches on this shard keep from scan to scan (the shard's scans run one
+        # after another on its thread, and a GPU runs a scan's kernels in stream order): the scans' inputs
+        # reach the device through ``staging``'s buffers (pinned, on a GPU); ``scratch`` holds their work
+        # arrays, ``kept`` other objects (a hash grid), by a name their integrator gives.
         self.staging = Staging(self.device)
-        # The sorted and hash-grid strategies' arrays and hash grid, kept from scan to scan (the shard's
-        # scans run one after another on its thread, and a GPU runs a scan's kernels in stream order).
-        self._scratch = DeviceScratch(self.device)
-        self._hash_grid = None
-        self._allocate(max(MIN_CAPACITY, _next_pow2(initial_capacity)))
+        self.scratch = DeviceScratch(self.device)
+        self.kept: dict[str, object] = {}
+        self._allocate(max(MIN_CAPACITY, next_pow2(initial_capacity)))
 
     # ------------------------------------------------------------------ storage
     def _filled(self, shape, value, dtype, *, populate: bool = False):
@@ -298,8 +299,10 @@ class VoxelMap:
         """The brick cache as kernels take it (``_allocate_brick_cache``), with this launch's fill limit."""
         return ht.hash_table(self.brick_keys, self.brick_rows, self.brick_count, self._launch_fill_limit(self.brick_capacity))
 
-    def _target(self, failed, update_count) -> sc.MapTarget:
-        return sc.map_target(self.table(), self.data, failed, update_count)
+    def target(self, failed) -> sc.MapTarget:
+        """Where a launch writes (``kernels.scatter.MapTarget``): the voxel table, the rows, its failure
+        flags ``failed`` and the update count."""
+        return sc.map_target(self.table(), self.data, failed, self.update_count)
 
     @property
     def table_bytes(self) -> int:
@@ -336,7 +339,7 @@ class VoxelMap:
 
     def grow(self, new_capacity: int) -> None:
         """Rehash into a table of ``new_capacity`` slots (a power of two); voxels keep their rows."""
-        new_capacity = _next_pow2(new_capacity)
+        new_capacity = next_pow2(new_capacity)
         count = self.voxel_count
         if new_capacity < count / LAUNCH_FILL_LIMIT:
             raise ValueError(f"cannot shrink the table to {new_capacity} slots: it holds {count} voxels")
@@ -363,7 +366,7 @@ class VoxelMap:
         """Whether every cell of blocks [B, 3] (or of the box their bounds span) lies in the key range."""
         return not len(blocks) or within_index_range(np.stack(_block_cells_bounds(blocks, cells_per_block)))
 
-    def _check_reach(self, points: np.ndarray, reach: float) -> None:
+    def check_reach(self, points: np.ndarray, reach: float) -> None:
         """Refuse points whose kernels, reaching ``reach`` metres, would touch voxels outside the key range."""
         lo, hi = column_bounds(points)
         self._check_index_range(np.floor((lo - reach - self.grid_offset_m) / self.resolution_m),
@@ -372,30 +375,31 @@ class VoxelMap:
     def _failure_flags_for(self, n: int):
         """n failure flags, all zero (a view of the reused buffer)."""
         if self._failure_flags is None or len(self._failure_flags) < n:
-            self._failure_flags = wp.zeros(_next_pow2(n), dtype=int, device=self.device)
+            self._failure_flags = wp.zeros(next_pow2(n), dtype=int, device=self.device)
         return self._failure_flags[:n]
 
-    def _thread_ids_for(self, n: int):
+    def thread_ids(self, n: int):
         """The ids 0..n-1 (a view of the reused buffer)."""
         if self._thread_ids is None or len(self._thread_ids) < n:
-            self._thread_ids = wp.array(np.arange(_next_pow2(n), dtype=np.int32), dtype=int, device=self.device)
+            self._thread_ids = wp.array(np.arange(next_pow2(n), dtype=np.int32), dtype=int, device=self.device)
         return self._thread_ids[:n]
 
     def _read_counters(self) -> int:
         """The key count, the last launches' update count and the brick cache's key count (and the scan
-        status of a ``gather_counted_blocks``), read back in one copy; returns the key count."""
-        wp.launch(ht.read_counters, dim=1, inputs=[self.key_count, self._updates, self.brick_count, self._scan_status, self._counters],
+        status a launch was given), read back in one copy; returns the key count."""
+        wp.launch(ht.read_counters, dim=1, inputs=[self.key_count, self.update_count, self.brick_count, self._scan_status, self._counters],
                   device=self.device)
         counters = self._counters.numpy()
         key_count, self._counted_updates, self._known_bricks = (int(value) for value in counters[:3])
-        self._counted_status = counters[3:3 + self._scan_status.shape[0]].copy()
+        self.counted_status = counters[3:3 + self._scan_status.shape[0]].copy()
         self._known_count = key_count
         return key_count
 
-    def _launch_until_done(self, n: int, launch, *, may_insert: bool, kind: str, most_new: int, exact_most: bool = False,
-                           fails_only_when_full: bool = False, resumes: bool = False) -> None:
-        """launch(ids, failed) over range(n), relaunching the failed ids after the table grew; the updates
-        the launches counted in ``self._updates`` (zeroed first) are then in ``self._counted_updates``.
+    def launch_until_done(self, n: int, launch, *, may_insert: bool, kind: str, most_new: int, exact_most: bool = False,
+                          fails_only_when_full: bool = False, resumes: bool = False, brick_cells: int = 0,
+                          scan_status: wp.array | None = None) -> int:
+        """launch(ids, failed) over range(n), relaunching the failed ids after the table grew; returns the
+        updates the launches counted in ``update_count`` (zeroed first).
 
         The table is first grown for as many new voxels as the previous launch of this kind made, at
         most ``most_new``; for the first launch of a kind, for none, or for ``most_new`` when that is
@@ -410,11 +414,33 @@ class VoxelMap:
         reads its launch's outcome back once (``_read_counters``).
 
         ``resumes``: a relaunched item is handed its flag as the failed launch left it (the scatter's flag
-        says where its point stopped), else a zero flag."""
+        says where its point stopped), else a zero flag.
+
+        ``brick_cells``: the items are whole blocks of that many cells a side, cached in the brick cache
+        (the block gathers): it grows for them before the launch and back under max_load after.
+        ``scan_status``: an int array on the device (at most MAX_SCAN_STATUS values) read back with the
+        launch's counters, into ``counted_status``."""
+        if scan_status is not None and scan_status.shape[0] > MAX_SCAN_STATUS:
+            raise ValueError(f"a scan status of {scan_status.shape[0]} values; at most {MAX_SCAN_STATUS} are read back")
+        if brick_cells:
+            self._grow_brick_cache(n if exact_most else self._last_new_voxels.get(kind, 0) // brick_cells**3)
+        self._scan_status = self._no_scan_status if scan_status is None else scan_status
+        try:
+            self._launch_and_relaunch(n, launch, may_insert=may_insert, kind=kind, most_new=most_new, exact_most=exact_most,
+                                      fails_only_when_full=fails_only_when_full, resumes=resumes)
+        finally:
+            self._scan_status = self._no_scan_status
+        if brick_cells:
+            self._grow_brick_cache()
+        return self._counted_updates
+
+    def _launch_and_relaunch(self, n: int, launch, *, may_insert: bool, kind: str, most_new: int, exact_most: bool,
+                             fails_only_when_full: bool, resumes: bool) -> None:
+        """``launch_until_done``'s launches, the updates then in ``_counted_updates``."""
         first_guess = most_new if exact_most or self.device != "cpu" else 0
         self.reserve(min(most_new, self._last_new_voxels.get(kind, first_guess)) if may_insert else 0)
         before = self.voxel_count
-        self._updates.zero_()
+        self.update_count.zero_()
         pending = None  # None: every item, in order
         resume_flags = None
         try:
@@ -424,7 +450,7 @@ class VoxelMap:
                 if resume_flags is not None:
                     wp.copy(failed, wp.array(resume_flags, dtype=int, device=self.device))
                 limit = self._launch_fill_limit()
-                launch(self._thread_ids_for(n) if pending is None else wp.array(pending, dtype=int, device=self.device, copy=False), failed)
+                launch(self.thread_ids(n) if pending is None else wp.array(pending, dtype=int, device=self.device, copy=False), failed)
                 if fails_only_when_full and self._read_counters() < limit:
                     break
                 flags = failed.numpy()
@@ -446,242 +472,20 @@ class VoxelMap:
         self._last_new_voxels[kind] = self.voxel_count - before
         self.reserve(0)
 
-    def scatter(
-        self,
-        points: np.ndarray,
-        lengths: np.ndarray,
-        point_uncertainty: np.ndarray,
-        *,
-        mode: int,
-        sigma0: float,
-        labels: np.ndarray | None = None,
-        class_weights: np.ndarray | None = None,
-        owner_blocks: np.ndarray | None = None,
-        cells_per_block: int = 1,
-        fusion: int = sc.FUSION_BAYES,
-        stencil_weights: np.ndarray | None = None,
-    ) -> int:
-        """One scatter launch over all points (relaunching failed ones after growth); returns updates.
-        ``stencil_weights`` [(2h + 1)^3, K] only with MODE_STENCIL."""
-        n = len(points)
-        if n == 0:
-            return 0
-        if (mode == sc.MODE_STENCIL or fusion == sc.FUSION_DEMPSTER) and class_weights is None:
-            raise ValueError("the stencil mode and Dempster fusion read per-class weights: pass class_weights, not labels")
-        kernel = sc.scatter_kernel(mode, fusion, labels is not None)
-        load_once(kernel.module, self.device)
-        stencil_half = 0
-        if mode == sc.MODE_STENCIL:
-            side = round(len(stencil_weights) ** (1 / 3))
-            if side**3 != len(stencil_weights) or side % 2 == 0:
-                raise ValueError(f"stencil_weights must have (2h + 1)^3 rows, got {len(stencil_weights)}")
-            stencil_half = side // 2
-        if mode != sc.MODE_SBKI_OWN_BLOCK:
-            reach = float(np.max(lengths)) * (sc.SBKI_REACH_FACTOR if mode == sc.MODE_SBKI_BLOCKS else 1.0)
-            if mode == sc.MODE_STENCIL:
-                reach = (stencil_half + 1) * self.resolution_m
-            self._check_reach(points, reach)
-        d = self.device
-        scan = self._radius_scan(points, lengths, point_uncertainty, labels, class_weights)
-        if owner_blocks is not None:
-            scan.owner_blocks = self.staging.upload("owner_blocks", owner_blocks, wp.vec3i, np.int32)
-        params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, sigma0=sigma0, cells_per_block=cells_per_block,
-                                   stencil_weights=None if stencil_weights is None else self.staging.upload("stencil_weights", stencil_weights, wp.float64, np.float64),
-                                   stencil_half=stencil_half)
-
-        def launch(ids, failed):
-            scan.point_ids = ids
-            wp.launch(kernel, dim=len(ids), device=d, inputs=[scan, params, self._target(failed, self._updates)])
-
-        inserts = sc.scatter_inserts(mode)  # the other modes' points fail only where a target was never inserted (a bug): always read
-        self._launch_until_done(n, launch, may_insert=inserts, kind=f"scatter{mode}", most_new=n, fails_only_when_full=inserts, resumes=inserts)
-        return self._counted_updates
-
-    def _radius_scan(self, points, lengths, point_uncertainty, labels, class_weights) -> sc.ScanPoints:
-        """A scan's points and payload on the device, through the shard's staging buffers."""
-        upload = self.staging.upload
-        return sc.scan_points(points=upload("points", np.reshape(points, (-1, 3)), wp.vec3d, np.float64), lengths=upload("lengths", lengths, wp.float64, np.float64),
-                              uncertainty=upload("uncertainty", point_uncertainty, wp.float64, np.float64),
-                              labels=None if labels is None else upload("labels", labels, wp.int32, np.int32),
-                              class_weights=None if class_weights is None else upload("class_weights", class_weights, wp.float64, np.float64))
-
-    def scatter_sorted(self, points: np.ndarray, lengths: np.ndarray, point_uncertainty: np.ndarray, *, sigma0: float,
-                       labels: np.ndarray | None = None, class_weights: np.ndarray | None = None) -> int:
-        """The radius kernel (MODE_RADIUS, Bayes) by sort-then-reduce (``kernels.sorted_scatter``): the
-        same map as ``scatter``, summed in a fixed order (bit-identical on every device). Returns updates."""
-        n = len(points)
-        if n == 0:
-            return 0
-        self._check_reach(points, float(np.max(lengths)))
-        load_once(ss, self.device)
-        d = self.device
-        scan = self._radius_scan(points, lengths, point_uncertainty, labels, class_weights)
-        params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, sigma0=sigma0)
-        scratch = self._scratch.begin()
-        counts = counts_with_room(n, scratch)
-        wp.launch(ss.count_pairs, dim=n, device=d, inputs=[scan, params, ss.pair_counts(counts)])
-        offsets, pairs = offsets_and_total(counts, scratch)
-        if pairs == 0:
-            return 0
-        keys = scratch.empty(2 * pairs, wp.int64)  # radix_sort_pairs needs room for 2x
-        ids = scratch.empty(2 * pairs, int)
-        pair_point = scratch.empty(pairs, int)
-        pair_weight = scratch.empty(pairs, wp.float64)
-        wp.launch(ss.expand_pairs, dim=n, device=d, inputs=[scan, params, ss.pair_list(offsets=offsets, keys=keys, ids=ids, point=pair_point,
-                                                                                         weight=pair_weight)])
-        wp.utils.radix_sort_pairs(keys, ids, pairs)
-        heads = scratch.empty(pairs, int)
-        wp.launch(ss.mark_heads, dim=pairs, device=d, inputs=[keys, heads])
-        rank = inclusive_scan(heads, scratch)
-        distinct = last_value(rank)
-        starts = scratch.empty(distinct, int)
-        wp.launch(ss.segment_starts, dim=pairs, device=d, inputs=[heads, rank, starts])
-        self.reserve(distinct)  # every distinct voxel fits: the reduction never fails for room
-        sorted_pairs = ss.sorted_pairs(starts=starts, count=pairs, keys=keys, ids=ids, point=pair_point, weight=pair_weight)
-        self._launch_reserved(distinct, lambda failed: wp.launch(ss.reduce_voxels_kernel(labels is not None), dim=distinct, device=d, inputs=[
-            sorted_pairs, scan, params, self._target(failed, self._updates)]), "the sorted reduction")
-        return pairs
-
-    def _launch_reserved(self, n: int, launch, what: str) -> None:
+    def launch_reserved(self, n: int, launch, what: str) -> int:
         """launch(failed) over n items after the table was reserved for every voxel they may insert, then
-        its counters read back once (the update count in ``_counted_updates``); its failure flags only
-        when the key count reached the launch's fill limit, the one case where an insertion can fail (one
-        that did is a bug)."""
+        its counters read back once; returns the updates counted in ``update_count``. Its failure flags
+        are read only when the key count reached the launch's fill limit, the one case where an insertion
+        can fail (one that did is a bug)."""
         limit = self._launch_fill_limit()
         failed = self._failure_flags_for(n)
-        self._updates.zero_()
+        self.update_count.zero_()
         launch(failed)
         if self._read_counters() >= limit and failed.numpy().any():
             self._failure_flags = None  # its flags are never read as a later launch's
             raise RuntimeError(f"{what} ran out of table room after reserving it (a bug)")
         self.reserve(0)
-
-    def scatter_hashgrid(self, points: np.ndarray, lengths: np.ndarray, point_uncertainty: np.ndarray, *, sigma0: float,
-                         labels: np.ndarray | None = None, class_weights: np.ndarray | None = None) -> int:
-        """The radius kernel (MODE_RADIUS, Bayes) in gather form through ``wp.HashGrid``
-        (``kernels.hashgrid_gather``): the same map as ``scatter``, each voxel summed once in the grid's
-        fixed neighbour order. Returns updates."""
-        n = len(points)
-        if n == 0:
-            return 0
-        longest = float(np.max(lengths))
-        self._check_reach(points, longest)
-        load_once(hg, self.device)
-        d = self.device
-        scan = self._radius_scan(points, lengths, point_uncertainty, labels, class_weights)
-        params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, sigma0=sigma0)
-        # The scan's reached voxels, in a key set sized for a voxel per point and grown when it is not enough.
-        scratch = self._scratch.begin()
-        capacity = _next_pow2(4 * n + 16)
-        while True:
-            scan_keys = scratch.full(capacity, ht.EMPTY_KEY, wp.int64)
-            scan_rows = scratch.zeros(capacity, wp.int32)
-            count_and_failed = scratch.zeros(2, int)  # the key set's count and its failure flag, read together
-            reached = hg.reached_keys(ht.hash_table(scan_keys, scan_rows, count_and_failed[0:1], self._launch_fill_limit(capacity)),
-                                      count_and_failed[1:2])
-            wp.launch(hg.mark_reached, dim=n, device=d, inputs=[scan, params, reached])
-            reached_count, key_set_failed = (int(value) for value in count_and_failed.numpy())
-            if not key_set_failed:
-                break
-            capacity *= 4
-        if self._hash_grid is None:
-            self._hash_grid = wp.HashGrid(128, 128, 128, device=d, dtype=wp.float64)
-        self._hash_grid.build(scan.points, longest)
-        self.reserve(reached_count)  # every reached voxel fits: the gather never fails for room
-        self._launch_reserved(capacity, lambda failed: wp.launch(hg.gather_voxels_kernel(labels is not None), dim=capacity, device=d, inputs=[
-            scan_keys, self._hash_grid.id, wp.float64(longest), scan, params, self._target(failed, self._updates)]), "the hash-grid gather")
         return self._counted_updates
-
-    def scatter_block_targets(self, points: np.ndarray, labels: np.ndarray, point_uncertainty: np.ndarray,
-                              owner_blocks: np.ndarray, target_lengths: np.ndarray, cells_per_block: int) -> int:
-        """SEE-CSOM's block-gated scatter (``kernels.scatter.scatter_block_targets``); returns updates."""
-        n = len(points)
-        if n == 0:
-            return 0
-        first = owner_blocks.astype(np.int64) * cells_per_block - cells_per_block // 2
-        self._check_index_range(first.min(axis=0) - cells_per_block, first.max(axis=0) + 2 * cells_per_block - 1)
-        load_once(sc, self.device)
-        d = self.device
-        upload = self.staging.upload
-        scan = sc.scan_points(points=upload("points", np.reshape(points, (-1, 3)), wp.vec3d, np.float64), labels=upload("labels", labels, wp.int32, np.int32),
-                              uncertainty=upload("uncertainty", point_uncertainty, wp.float64, np.float64),
-                              owner_blocks=upload("owner_blocks", owner_blocks, wp.vec3i, np.int32))
-        lengths = upload("target_lengths", target_lengths, wp.float64, np.float64)
-        params = sc.scatter_params(resolution=self.resolution_m, grid_offset=self.grid_offset_m, cells_per_block=cells_per_block)
-
-        def launch(ids, failed):
-            scan.point_ids = ids
-            wp.launch(sc.scatter_block_targets, dim=len(ids), device=d, inputs=[scan, lengths, params, self._target(failed, self._updates)])
-
-        self._launch_until_done(n, launch, may_insert=True, kind="block_targets", most_new=n * 7 * cells_per_block**3,
-                                fails_only_when_full=True, resumes=True)
-        return self._counted_updates
-
-    def load_kernel(self, kernel) -> None:
-        """Compile/load a kernel made on demand (a block-gather kernel for this class count and block
-        size) before worker threads launch it (``kernels.load_once``)."""
-        load_once(kernel.module, self.device)
-
-    def gather_blocks(self, kernel, scan, block_ids: np.ndarray, *, block_count: int, cells_per_block: int, kind: str) -> int:
-        """A block-gather kernel (``kernels.block_gather`` or ``kernels.release``, made for this class
-        count and block size) over the target blocks ``block_ids`` (of the ``block_count`` blocks of
-        ``scan``): each block finds or inserts its cells and adds its sums once; blocks that did not fit
-        are relaunched after the table grew. ``scan``: the kernel's inputs struct (``block_gather.SbkiBlocks``,
-        ``release.release_blocks_struct``; device arrays shared by the shards). Returns updates."""
-        if len(block_ids) == 0:
-            return 0
-        ids = self.staging.upload("block_ids", block_ids, int, np.int32)
-        count = self.staging.upload("block_count", np.array([block_count]), int, np.int32)
-        return self._gather(kernel, scan, len(block_ids), ids, count, cells_per_block=cells_per_block, kind=kind, exact_most=True)
-
-    def gather_counted_blocks(self, kernel, scan, capacity: int, block_count: wp.array, scan_status: wp.array, *, cells_per_block: int,
-                              kind: str) -> tuple[int, np.ndarray]:
-        """``gather_blocks`` over every target block of ``scan`` when a device counted them: block_count
-        (a [1] int array on the device) of at most ``capacity``. Returns updates and ``scan_status`` (an int
-        array on the device, what the scan's preprocessing counted), read back with the launch's counters."""
-        if scan_status.shape[0] > MAX_SCAN_STATUS:
-            raise ValueError(f"a scan status of {scan_status.shape[0]} values; at most {MAX_SCAN_STATUS} are read back")
-        self._scan_status = scan_status
-        try:
-            # The table grows for as many new voxels as the last such launch made (the capacity is a bound,
-            # far above the count on most scans).
-            updates = self._gather(kernel, scan, capacity, self._thread_ids_for(capacity), block_count, cells_per_block=cells_per_block,
-                                   kind=kind, exact_most=False)
-            return updates, self._counted_status
-        finally:
-            self._scan_status = self._no_scan_status
-
-    def _gather(self, kernel, scan, n: int, ids: wp.array, block_count: wp.array, *, cells_per_block: int, kind: str, exact_most: bool) -> int:
-        """The block gather over n launch ids (block ids[launch id]), growing the table and brick cache for it."""
-        d = self.device
-
-        def launch(pending, failed):
-            wp.launch(kernel, dim=len(pending), device=d, inputs=[pending, ids, block_count, scan, self.table(), self.brick_table(), self.data,
-                                                                  failed, self._updates])
-
-        self._grow_brick_cache(n if exact_most else self._last_new_voxels.get(kind, 0) // cells_per_block**3)
-        self._launch_until_done(n, launch, may_insert=True, kind=kind, most_new=n * cells_per_block**3, exact_most=exact_most,
-                                fails_only_when_full=True)
-        updates = self._counted_updates
-        self._grow_brick_cache()
-        return updates
-
-    def insert_blocks(self, blocks: np.ndarray, cells_per_block: int, *, mark_touched: bool) -> None:
-        """Insert every cell of each block [B, 3] (block b holds voxels b n - n/2 ... b n + n/2 - 1)."""
-        if len(blocks) == 0:
-            return
-        blocks = np.ascontiguousarray(blocks, dtype=np.int32)
-        self.check_block_range(blocks, cells_per_block)
-        load_once(sc, self.device)
-        d = self.device
-        blocks_wp = wp.array(blocks, dtype=wp.vec3i, device=d, copy=False)
-
-        def launch(ids, failed):
-            wp.launch(sc.insert_block_cells, dim=len(ids), device=d, inputs=[
-                ids, blocks_wp, int(cells_per_block), int(mark_touched), self.table(), self.data, failed])
-
-        self._launch_until_done(len(blocks), launch, may_insert=True, kind="block_cells", most_new=len(blocks) * cells_per_block**3, exact_most=True,
-                                fails_only_when_full=True)
 
     def insert_voxels(self, voxel_index: np.ndarray) -> np.ndarray:
         """Insert voxel indices [V, 3]; returns their rows (growing as needed)."""
@@ -741,7 +545,7 @@ class VoxelMap:
 
     def load_arrays(self, voxels: VoxelArrays) -> None:
         """Replace the contents with ``voxels`` (exactly: the values are copied, not re-added)."""
-        self._allocate(max(MIN_CAPACITY, _next_pow2(int(len(voxels.index) / self.max_load) + 1)))
+        self._allocate(max(MIN_CAPACITY, next_pow2(int(len(voxels.index) / self.max_load) + 1)))
         rows = self.insert_voxels(voxels.index) if len(voxels.index) else np.zeros(0, np.int64)
         if self.device == "cpu":
             self.data.numpy()[rows] = voxels.rows()  # a view of the host rows

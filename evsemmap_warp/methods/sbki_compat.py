@@ -75,8 +75,7 @@ def voxel_grid_downsample(points: np.ndarray, labels: np.ndarray, leaf_m: float)
     if grid is None:
         return points, labels
     inverse_leaf, ijk_lo, dims = grid
-    # The leaf indices come from a kernel (``kernels.voxel_grid``): numpy's floor passes took a third
-    # of this function (0.34 of 0.97 s over 4 M free samples).
+    # The leaf indices come from a kernel (``kernels.voxel_grid``; docs/performance.md, "Measurements behind the code's choices").
     n = len(points)
     points_wp = wp.array(np.ascontiguousarray(points), dtype=wp.vec3, device="cpu", copy=False)
     position_bits, key_bits = _packing_bits(n, box_cells(dims))
@@ -132,13 +131,8 @@ def _majority_labels(cells: np.ndarray, labels: np.ndarray, n_cells: int) -> np.
     return pair_label[first_of_cell]
 
 
-# Digits of at most this many bits per radix pass: a pass over more write streams is slower per value, but
-# one pass fewer gains more (the free samples' 25-bit leaf keys at free_res 0.5, 30 bench scans: 3 passes
-# of at most 10 bits 0.31 s, 2 passes of 13 bits 0.25 s; at most 14 bits 0.24 s, 16 bits 0.25 s). Below
-# this many keys numpy's sort is faster: the radix sort's launches cost ~0.15 ms (14- to 26-bit keys,
-# measured since its loops index through kernels.indexing: 5 k keys 0.18-0.25 against 0.10-0.13 ms,
-# 10 k 0.19-0.22 against 0.24-0.25 ms, 20 k 0.24-0.43 against 0.56-0.69 ms; the release's ~28 k block
-# memberships a scan took numpy's sort before).
+# Digits of at most this many bits per radix pass, and below this many keys numpy's sort instead
+# (docs/performance.md, "Measurements behind the code's choices").
 MAX_RADIX_DIGIT_BITS = 13
 MIN_RADIX_SORT_KEYS = 10_000
 
@@ -148,10 +142,8 @@ def _packing_bits(n: int, key_limit: int) -> tuple[int, int]:
     return max(1, int(n - 1).bit_length()), int(max(key_limit, 1) - 1).bit_length()
 
 
-# Warp's wp.utils.radix_sort_pairs sorts on the CPU as well, but it moves keys and values as two arrays
-# where kernels.radix_sort moves one packed array: 25-bit keys with int64 positions took it 7.0 ms for
-# 327 k values and 45 ms for 2 M, against 5.0 and 35 ms here (2026-12-06, this project's 2-core AMD EPYC
-# VM, median of 5). The device paths (methods.sbki_device) sort with it, as one thread would not do on a GPU.
+# kernels.radix_sort on the host rather than Warp's wp.utils.radix_sort_pairs (docs/performance.md, "Measurements behind the code's choices"); the device
+# paths (methods.sbki_device) sort with Warp's, as one thread would not do on a GPU.
 def _sort_packed(packed: np.ndarray, position_bits: int, key_bits: int) -> np.ndarray:
     """Values packed as key << position_bits | position, sorted by the key bits (so stably): the radix sort
     for large inputs, numpy's for small ones."""
@@ -269,8 +261,7 @@ def free_space_samples(hits: np.ndarray, origin: np.ndarray, free_resolution_m: 
     per_hit = np.searchsorted(steps, ray_length, side="left")  # how many d_k < l
     rows_per_hit = 1 + per_hit + (ray_length > f)  # origin + samples + the one at l - f
     first_row = np.r_[0, np.cumsum(rows_per_hit)[:-1]]
-    # One thread per hit writes its rows (``kernels.free_space``): 7x faster than numpy's repeat and
-    # fancy-index passes (6 bench scans at free_resolution 0.5, 4 M samples: 0.27 -> 0.04 s).
+    # One thread per hit writes its rows (``kernels.free_space``; docs/performance.md, "Measurements behind the code's choices").
     out = wp.empty(int(rows_per_hit.sum()), dtype=wp.vec3, device="cpu")
     wp.launch(free_space.ray_samples, dim=len(hits), device="cpu", inputs=[
         wp.array(np.ascontiguousarray(direction), dtype=wp.vec3, device="cpu", copy=False),

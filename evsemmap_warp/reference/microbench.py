@@ -21,3 +21,12 @@ def add_rows32(rows: np.ndarray, weights: np.ndarray, data: np.ndarray) -> np.nd
     out = np.array(data, dtype=np.float32)
     np.add.at(out, rows, np.asarray(weights, np.float32)[:, None])
     return out
+
+
+def radix_scatter_form(values: np.ndarray, shift: int, digit_bits: int) -> np.ndarray:
+    """Twin of every form of ``kernels.microbench.radix_scatter_form``: one radix pass, ``values`` stably
+    ordered by their digit (bits shift ... shift + digit_bits - 1), as ``radix_scatter`` leaves them when
+    next_slot starts at the digits' exclusive prefix sum."""
+    values = np.asarray(values, np.int64)
+    digits = (values >> shift) & ((1 << digit_bits) - 1)
+    return values[np.argsort(digits, kind="stable")]
