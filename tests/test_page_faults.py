@@ -83,3 +83,19 @@ def test_the_read_out_leaves_numpys_huge_page_advice_as_the_process_has_it():
     finally:
         Mapper.summarize = real_summarize
         switch(before)
+
+
+def test_the_command_line_turns_the_huge_page_advice_off_for_its_own_process_only_unless_told(tmp_path):
+    # The command line is a program of its own: it makes the read-out's choice for its process (the
+    # environment's NUMPY_MADVISE_HUGEPAGE, which numpy reads at import), and a run that sets the variable keeps it.
+    import os
+    import subprocess
+
+    probe = ("import sys; sys.argv = ['evsemmap', 'dump-config', 'ebs']; import evsemmap_warp.__main__ as m; "
+             "m.main(); import numpy; print('advice', numpy._core.multiarray._set_madvise_hugepage(False))")
+    environment = {key: value for key, value in os.environ.items() if key != "NUMPY_MADVISE_HUGEPAGE"}
+    for setting, expected in ((None, "advice False"), ("1", "advice True")):
+        env = environment if setting is None else environment | {"NUMPY_MADVISE_HUGEPAGE": setting}
+        done = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        assert done.stdout.strip().splitlines()[-1] == expected
