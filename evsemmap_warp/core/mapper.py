@@ -37,7 +37,7 @@ from ..limits import check_memory_bytes
 from ..voxel_keys import check_index_range, voxel_index_of
 from . import map_file
 from .integrators import IntegrationStats, Launch, ScanPayload, SensorOrigin, make_integrator
-from ._shards import PendingUpdates, ShardLanes
+from .shards import PendingUpdates, ShardLanes
 from .voxel_map import EXTRA_COLUMNS, TableBudget, VoxelArrays, VoxelMap, add_duplicate_voxels, sum_shard_rows
 from .warp_runtime import device_calls
 

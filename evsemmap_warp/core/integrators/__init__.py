@@ -17,7 +17,7 @@ runs the kernels on the shards. The map (``core.voxel_map``) is storage and know
   (docs/compatibility.md §4).
 
 Shared by several: ``scatter`` (the scatter family's launch) and ``gathers`` (the block gathers' launch).
-All receive the map as a list of shards (``core._shards``: each CPU worker scatters a contiguous part of
+All receive the map as a list of shards (``core.shards``: each CPU worker scatters a contiguous part of
 the scan into its own shard; the block gathers put each block in the shard its index picks, so their
 maps do not depend on the number of workers). A new method adds its module and one line below.
 """

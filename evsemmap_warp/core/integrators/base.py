@@ -15,7 +15,7 @@ import warp as wp
 
 from ...config import Fusion, MappingConfig, Media, PayloadType, ThresholdScope
 from ...kernels import scatter as sc
-from .._shards import ShardLanes
+from ..shards import ShardLanes
 from ..voxel_map import VoxelMap
 
 

@@ -9,7 +9,7 @@ import warp as wp
 from ...config import MappingConfig, Media
 from ...kernels import scatter as sc
 from ...methods import convbki
-from .._shards import ShardLanes, split_over_shards, total_updates
+from ..shards import ShardLanes, split_over_shards, total_updates
 from ..voxel_map import VoxelMap
 from .base import IntegrationStats, Launch, ScanNeeds, ScanPayload, integrate_at_launch
 from .scatter import scatter

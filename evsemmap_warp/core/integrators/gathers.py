@@ -10,7 +10,7 @@ import warp as wp
 
 from ...kernels import load_once
 from ...methods.device_scratch import STATUS_KEPT_POINTS, STATUS_OVERFLOW, DeviceScratch, ScratchPool
-from .._shards import PendingUpdates, ShardLanes, block_shard, for_each_shard, total_updates, when_done
+from ..shards import PendingUpdates, ShardLanes, block_shard, for_each_shard, total_updates, when_done
 from ..voxel_map import VoxelMap
 from ..warp_runtime import device_calls
 from .base import IntegrationStats, Launch, launch_step

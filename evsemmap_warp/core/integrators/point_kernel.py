@@ -16,7 +16,7 @@ from ...kernels import load_once
 from ...kernels import scatter as sc
 from ...kernels import sorted_scatter as ss
 from ...methods.device_scratch import counts_with_room, inclusive_scan, last_value, offsets_and_total
-from .._shards import ShardLanes, split_over_shards, total_updates
+from ..shards import ShardLanes, split_over_shards, total_updates
 from ..voxel_map import LAUNCH_FILL_LIMIT, VoxelMap, next_pow2
 from .base import IntegrationStats, Launch, ScanNeeds, ScanPayload, dirichlet_beliefs, integrate_at_launch, scatter_fusion, threshold_mask
 from .scatter import radius_scan, scatter

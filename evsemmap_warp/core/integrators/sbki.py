@@ -16,7 +16,7 @@ from ...kernels import scatter as sc
 from ...methods import sbki_compat, sbki_device
 from ...methods.device_scratch import STATUS_OVERFLOW, DeviceScratch, ScratchPool
 from ...voxel_keys import column_bounds, take_rows
-from .._shards import PendingUpdates, split_over_shards, total_updates
+from ..shards import PendingUpdates, split_over_shards, total_updates
 from ..voxel_map import VoxelMap
 from .base import IntegrationStats, Launch, ScanPayload, free_samples_need, launch_step, preprocesses_on_device
 from .gathers import block_gather_run, counted_gather_launch

@@ -12,7 +12,7 @@ from ...kernels import free_space, load_once, radix_sort, voxel_grid
 from ...kernels import scatter as sc
 from ...methods import sbki_compat, see_csom
 from ...voxel_keys import column_bounds
-from .._shards import split_over_shards, total_updates
+from ..shards import split_over_shards, total_updates
 from ..voxel_map import VoxelMap
 from .base import IntegrationStats, Launch, ScanPayload, free_samples_need, launch_step
 
