@@ -16,7 +16,7 @@ import pytest
 
 from conftest import REPO
 from evsemmap_warp.apps import batch
-from evsemmap_warp.apps.batch import BatchOptions, run_batch
+from evsemmap_warp.apps.batch import BatchOptions, planning, ray_executor, run_batch
 from evsemmap_warp.apps.cli import main
 from evsemmap_warp.config import ConfigError, load_config
 from evsemmap_warp.core.map_store import MapStore, StoreError
@@ -46,9 +46,9 @@ def _map(sources, method) -> Mapper:
     return mapper
 
 
-def _batch(sources, out, method="ebs", _fault=None, **options) -> dict:
+def _batch(sources, out, method="ebs", fault=None, **options) -> dict:
     options.setdefault("progress", False)
-    return run_batch([str(s) for s in sources], BatchOptions(method=method, out=out, **options), log=lambda m: None, _fault=_fault)
+    return run_batch([str(s) for s in sources], BatchOptions(method=method, out=out, **options), log=lambda m: None, fault=fault)
 
 
 def _assert_same_map(a: Mapper, b: Mapper, rtol=1e-12):
@@ -191,7 +191,7 @@ def test_a_ray_instance_that_cannot_be_joined_by_address_is_one_line_naming_the_
         raise ConnectionError("Failed to connect to Ray cluster at 10.0.0.9:6379")
 
     monkeypatch.setattr(ray, "init", refused)
-    monkeypatch.setattr(batch, "check_ray_address", lambda address, timeout_s: None)  # something answers there, but not to us
+    monkeypatch.setattr(ray_executor, "check_ray_address", lambda address, timeout_s: None)  # something answers there, but not to us
     with pytest.raises(ConfigError, match=r"--ray-address 10\.0\.0\.9:6379: could not join .*RAY_AUTH_MODE=token"):
         batch.RayExecutor(2, address="10.0.0.9:6379")
     monkeypatch.setenv("RAY_AUTH_MODE", "token")  # asked for already: no hint, the address and Ray's reason
@@ -205,7 +205,7 @@ def test_a_worker_killed_in_the_middle_of_a_chunk_changes_nothing(drive, tmp_pat
         pytest.importorskip("ray")
     _batch([drive], tmp_path / "clean", executor="inline", chunk_frames=2)
     # the fault plan travels in the workers' Context (no environment variable): the pool's and Ray's workers
-    _batch([drive], tmp_path / "killed", executor=executor, workers=2, chunk_frames=2, _fault=batch._FaultPlan(kill_chunk=1))
+    _batch([drive], tmp_path / "killed", executor=executor, workers=2, chunk_frames=2, fault=batch.FaultPlan(kill_chunk=1))
     assert (tmp_path / "killed" / "work" / ".fault-1").exists()  # the worker did die once
     assert not list((tmp_path / "killed" / "work").glob(".chunk_*"))  # and left nothing behind
     _assert_same_bytes(tmp_path / "clean", tmp_path / "killed")
@@ -218,7 +218,7 @@ def test_a_stuck_worker_stops_the_run_in_one_line_and_the_rerun_resumes(drive, t
     started = time.monotonic()
     with pytest.raises(TimeoutError, match=r"no chunk finished in 4 s \(--chunk-timeout-s\): a worker or a node is stuck"):
         _batch([drive], tmp_path / "stuck", executor=executor, workers=1, chunk_frames=2, chunk_timeout_s=4,
-               _fault=batch._FaultPlan(kill_chunk=-1, hang_chunk=1))
+               fault=batch.FaultPlan(kill_chunk=-1, hang_chunk=1))
     assert time.monotonic() - started < 60  # not the hour the stuck worker sleeps
     _batch([drive], tmp_path / "stuck", executor="inline", chunk_frames=2)  # resumes: the same store as a clean run
     _batch([drive], tmp_path / "clean", executor="inline", chunk_frames=2)
@@ -226,11 +226,11 @@ def test_a_stuck_worker_stops_the_run_in_one_line_and_the_rerun_resumes(drive, t
 
 
 def test_the_fault_plan_is_a_test_seam_not_an_environment_variable():
-    source = Path(batch.__file__).read_text()
+    source = "".join(path.read_text() for path in Path(batch.__file__).parent.glob("*.py"))
     assert "EVSEMMAP_BATCH_FAULT" not in source and not hasattr(batch, "FAULT_VARIABLE")
     import pickle
 
-    plan = batch._FaultPlan(kill_chunk=3)
+    plan = batch.FaultPlan(kill_chunk=3)
     assert pickle.loads(pickle.dumps(plan)) == plan  # it reaches the pool's and Ray's workers in the Context
 
 
@@ -262,7 +262,7 @@ def test_short_inputs_give_every_worker_several_chunks_by_default(drive, tmp_pat
 
 def test_the_memory_check_suggests_a_chunk_size_that_fits(monkeypatch, tmp_path):
     per_voxel = batch.bytes_per_voxel(9)
-    monkeypatch.setattr(batch, "available_memory", lambda: batch.DRIVER_OVERHEAD_BYTES + 2 * (batch.WORKER_OVERHEAD_BYTES + 3000 * per_voxel))
+    monkeypatch.setattr(planning, "available_memory", lambda: batch.DRIVER_OVERHEAD_BYTES + 2 * (batch.WORKER_OVERHEAD_BYTES + 3000 * per_voxel))
     options = BatchOptions(method="ebs", out=tmp_path, chunk_frames=10)
     # 1000 voxels for the first scan, 500 new ones per scan after it: 5 scans fit in 3000 voxels a worker
     with pytest.raises(ConfigError, match=r"batch: --chunk-frames 10 with 2 workers needs .* use --chunk-frames 5 or fewer --workers"):
@@ -369,7 +369,7 @@ def test_export_bounds_info_merge_and_view_of_stores(tmp_path, capsys):
 
 
 def test_configurations_that_cannot_work_stop_before_any_work(drive, tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(batch, "available_memory", lambda: 1 << 30)
+    monkeypatch.setattr(planning, "available_memory", lambda: 1 << 30)
     # the automatic chunk size is named as such; not even one-scan chunks fit 4 workers in 1 GB, so only fewer workers help
     with pytest.raises(ConfigError, match=r"--chunk-frames 1 \(chosen automatically\) with 4 workers needs about .* GB .* use fewer --workers"):
         _batch([drive], tmp_path / "small", workers=4)
