@@ -70,24 +70,10 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
     includes Ray's start, which planning overlaps."""
     out = Path(options.out)
     inputs, sources, config, chunks, identity = planned
-    files.check_not_inside(out, [e["path"] for entry in identity["inputs"] for e in entry if "path" in e], "batch --out")
-    check_store(out, identity)
-    origin_index, class_names, first, first_two = probe(sources, config, options.max_memory)
-    workers = options.workers or (os.cpu_count() or 1)
-    insertions = max(c.stop - c.start for c in chunks)
-    chunk_frames = identity["chunk_frames"]
-    chunk_rule = choose_chunk_frames(options.chunk_frames, sum(c.frames for c in chunks))[1]
-    budget = check_memory(dataclasses.replace(options, chunk_frames=chunk_frames), workers, insertions, first, first_two,
-                          sources[0].num_classes, automatic=options.chunk_frames is None)
+    context, budget, workers = _prepare_store(options, fault, identity, sources, config, chunks)
     times["plan"] = time.perf_counter() - started
-    (out / "work").mkdir(parents=True, exist_ok=True)
-    map_store.write_json(out / "work" / "plan.json", identity)
-    remove_unfinished_chunks(out)
-    context = Context(out, sources, config, sources[0].num_classes, class_names, origin_index, options.tile_voxels, frame=sources[0].frame,
-                      fault=fault, max_memory=options.max_memory)
     finished = [c for c in chunks if (chunk_dir(out, c.number) / "done.json").is_file()]
     todo = [c for c in chunks if c not in finished]
-    total_frames = sum(c.frames for c in chunks)
     if finished:
         log(f"resuming: {len(finished)} of {len(chunks)} chunks are mapped already")
     if ray_executor is not None:
@@ -97,14 +83,59 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
     else:
         executor = LocalExecutor(workers, context, log=log, chunk_timeout_s=options.chunk_timeout_s)
     folder = TileFolder(out, context, chunks, on_tile)
-    try:
-        from tqdm import tqdm
+    stage = time.perf_counter()
+    costs = _map_chunks(executor, folder, finished, todo, options.progress)
+    times["map"] = time.perf_counter() - stage
+    stage = time.perf_counter()
+    folder.finish()
+    times["write_tiles"] = time.perf_counter() - stage
+    times["fold"] = folder.seconds
+    stage = time.perf_counter()
+    entries, totals = _write_index(out, options, folder, context, inputs, sources)
+    times["index"] = time.perf_counter() - stage
+    times["total"] = time.perf_counter() - started
+    return {
+        "store": str(out), "executor": executor.name, "workers": executor.workers, "inputs": len(inputs), "frames": sum(c.frames for c in chunks),
+        "chunks": len(chunks), "chunks_resumed": len(finished), "chunk_frames": identity["chunk_frames"],
+        "chunk_frames_rule": choose_chunk_frames(options.chunk_frames, sum(c.frames for c in chunks))[1],
+        "input_points": totals["points"],
+        "voxels": sum(e["voxels"] for e in entries.values()), "tiles": len(entries), "tile_writes": folder.tiles_written,
+        "seconds": {k: round(v, 3) for k, v in times.items()},
+        "frames_per_second": round(sum(c.frames for c in todo) / times["map"], 2) if todo and times["map"] > 0 else None,
+        **_chunk_costs(costs),
+        "memory_budget": budget,
+    }
 
-        stage = time.perf_counter()
-        for chunk in finished:  # a resumed run folds what the killed one mapped but did not fold
+
+def _prepare_store(options: BatchOptions, fault, identity: dict, sources: list, config, chunks: list) -> tuple[Context, dict, int]:
+    """Check the store folder against the plan, probe the inputs, refuse what cannot fit in memory, and write
+    ``work/plan.json``; returns the workers' context, the memory budget and the worker count."""
+    out = Path(options.out)
+    files.check_not_inside(out, [e["path"] for entry in identity["inputs"] for e in entry if "path" in e], "batch --out")
+    check_store(out, identity)
+    origin_index, class_names, first, first_two = probe(sources, config, options.max_memory)
+    workers = options.workers or (os.cpu_count() or 1)
+    insertions = max(c.stop - c.start for c in chunks)
+    budget = check_memory(dataclasses.replace(options, chunk_frames=identity["chunk_frames"]), workers, insertions, first, first_two,
+                          sources[0].num_classes, automatic=options.chunk_frames is None)
+    (out / "work").mkdir(parents=True, exist_ok=True)
+    map_store.write_json(out / "work" / "plan.json", identity)
+    remove_unfinished_chunks(out)
+    context = Context(out, sources, config, sources[0].num_classes, class_names, origin_index, options.tile_voxels, frame=sources[0].frame,
+                      fault=fault, max_memory=options.max_memory)
+    return context, budget, workers
+
+
+def _map_chunks(executor, folder: TileFolder, finished: list, todo: list, progress: bool) -> list[dict]:
+    """Fold what a killed run mapped but did not fold, then map the chunks ``todo`` with ``executor``, folding
+    each as it finishes; returns the tasks' records (their costs). The executor is closed after."""
+    from tqdm import tqdm
+
+    try:
+        for chunk in finished:
             folder.chunk_finished(chunk.number)
-        bar = tqdm(total=total_frames, initial=sum(c.frames for c in finished), unit="frame", desc=f"batch {executor.name} x{executor.workers}",
-                   disable=not options.progress, dynamic_ncols=True)
+        bar = tqdm(total=sum(c.frames for c in folder.chunks), initial=sum(c.frames for c in finished), unit="frame",
+                   desc=f"batch {executor.name} x{executor.workers}", disable=not progress, dynamic_ncols=True)
         costs = []
 
         def chunk_done(item, result):
@@ -116,24 +147,23 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
 
         executor.run(map_chunk, [(c,) for c in todo], chunk_done)
         bar.close()
-        remove_unfinished_chunks(out)
-        times["map"] = time.perf_counter() - stage
+        remove_unfinished_chunks(folder.out)
     finally:
         executor.close()
-    if folder.frontier < len(chunks):  # every chunk is mapped once executor.run returns; this names a broken invariant, not a user error
+    if folder.frontier < len(folder.chunks):  # every chunk is mapped once executor.run returns; this names a broken invariant
         raise RuntimeError(f"batch: chunk {folder.chunks[folder.frontier].number} was mapped but not folded")
-    stage = time.perf_counter()
-    folder.finish()
-    times["write_tiles"] = time.perf_counter() - stage
-    times["fold"] = folder.seconds
-    stage = time.perf_counter()
-    records, entries = folder.records, folder.entries
+    return costs
+
+
+def _write_index(out: Path, options: BatchOptions, folder: TileFolder, context: Context, inputs: list, sources: list) -> tuple[dict, dict]:
+    """store.json, once every tile is written (and tiles no chunk lists removed); returns its tile entries and totals."""
+    records, chunks = folder.records, folder.chunks
     totals = {"scans": sum(r["scans"] for r in records.values()), "points": sum(r["points"] for r in records.values())}
     listed = {name for r in records.values() for name in r["tiles"]}
     for old in (out / "tiles").glob("*"):
         if old.is_file() and old.stem not in listed and not old.name.startswith("."):
             old.unlink()
-    entries = {name: entries[name] for name in sorted(listed)}
+    entries = {name: folder.entries[name] for name in sorted(listed)}
     inputs_entry = [{"source": str(Path(text).resolve()) if Path(text).exists() else text, "insertions": len(s), "frames": s.frames_in(0, len(s))}
                     for text, s in zip(inputs, sources)]
     chunks_entry = [dataclasses.asdict(c) | {k: records[c.number][k] for k in ("scans", "points", "voxels")} for c in chunks]
@@ -142,8 +172,11 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
     map_store.write_json(out / map_store.INDEX_NAME, index)
     if options.discard_partials:
         shutil.rmtree(out / "work", ignore_errors=True)
-    times["index"] = time.perf_counter() - stage
-    times["total"] = time.perf_counter() - started
+    return entries, totals
+
+
+def _chunk_costs(costs: list[dict]) -> dict:
+    """The summary's account of the tasks' costs (their records, as map_chunk and the executors return them)."""
     chunk_seconds = [r["seconds"] for r in costs]
     staged = [r["stage_seconds"] for r in costs if r.get("stage_seconds")]  # not a retried task's (it did nothing)
     handoffs = [r["handoff"] for r in costs if "handoff" in r]  # the local pool's and Ray's tasks, not inline ones
@@ -151,12 +184,6 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
     def median(values):
         return round(float(np.median(values)), 3) if values else None
     return {
-        "store": str(out), "executor": executor.name, "workers": executor.workers, "inputs": len(inputs), "frames": total_frames,
-        "chunks": len(chunks), "chunks_resumed": len(finished), "chunk_frames": chunk_frames, "chunk_frames_rule": chunk_rule,
-        "input_points": totals["points"],
-        "voxels": sum(e["voxels"] for e in entries.values()), "tiles": len(entries), "tile_writes": folder.tiles_written,
-        "seconds": {k: round(v, 3) for k, v in times.items()},
-        "frames_per_second": round(sum(c.frames for c in todo) / times["map"], 2) if todo and times["map"] > 0 else None,
         "chunk_seconds_median": round(float(np.median(chunk_seconds)), 3) if chunk_seconds else None,
         # where a worker's time goes (map_chunk's stages, CHUNK_STAGES): each stage's median over the chunks, and
         # all chunks' together
@@ -173,5 +200,4 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
         } if handoffs else None,
         "peak_rss_mb": {"worker_max": round(max([r["peak_rss_mb"] for r in costs], default=0.0), 1),
                         "driver": round(peak_rss_mb(), 1)},
-        "memory_budget": budget,
     }
