@@ -439,6 +439,22 @@ def test_pool_workers_start_with_math_libraries_at_their_share_of_the_cores(driv
     assert "OPENBLAS_NUM_THREADS" not in os.environ and os.environ["MKL_NUM_THREADS"] == "3"
 
 
+def test_pool_workers_of_a_run_without_a_network_do_not_import_torch(drive, tmp_path):
+    """Importing torch cost every worker process about 1.5 s of CPU, out of the mapping's time where the
+    workers share the cores; only scans labelled by a checkpoint need it."""
+    options = BatchOptions(method="ebs", out=tmp_path / "store")
+    inputs, sources, config, chunks, identity = batch.plan_batch([str(drive)], options)
+    origin_index, class_names, *_ = batch.probe(sources, config)
+    context = batch.Context(tmp_path / "store", sources, config, sources[0].num_classes, class_names, origin_index, 256)
+    executor = batch.LocalExecutor(1, context)
+    seen = []
+    try:
+        executor.run(eval, [("'torch' in __import__('sys').modules",)], lambda item, value: seen.append(value))
+    finally:
+        executor.close()
+    assert seen == [False]
+
+
 def test_a_workers_time_is_told_by_stage(drive, tmp_path):
     """map_chunk's stages (open, read, integrate, extract, write_partial) are all there, none negative,
     and add up to no more than the chunk's seconds; the summary gives their medians and sums, and the

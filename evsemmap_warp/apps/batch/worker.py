@@ -19,7 +19,7 @@ from ...config import MappingConfig
 from ...core import map_store
 from ...core.mapper import Mapper
 from ...frames import WorldFrame
-from ..scan_sources import map_scans
+from ..scan_sources import CheckpointScans, map_scans
 from .planning import Chunk
 from .store import chunk_dir, read_done
 
@@ -113,17 +113,19 @@ def as_task(fn, submitted: float, *args):
 
 
 def init_worker(context: Context, threads: int) -> None:
+    """A worker process's set-up, before its first task: the run's context, Ctrl-C handling, torch's threads."""
     global _CONTEXT
     _CONTEXT = context
     import signal
 
     signal.signal(signal.SIGINT, _worker_interrupt)
-    try:
+    # Only a worker that runs a network imports torch: the import costs each worker process about 1.5 s of
+    # CPU and doubles the objects Python's collector walks, paid out of the mapping's time where the
+    # workers share the cores (docs/performance.md, "Batch mapping").
+    if any(isinstance(source, CheckpointScans) for source in context.sources):
         import torch
 
         torch.set_num_threads(threads)  # workers share the cores: no worker's inference takes them all
-    except ImportError:  # pragma: no cover - torch is a dependency
-        pass
 
 
 def peak_rss_mb() -> float:
