@@ -463,6 +463,9 @@ def test_a_workers_time_is_told_by_stage(drive, tmp_path):
     summary = run_batch([str(drive)], options, log=lambda m: None)
     assert set(summary["chunk_stage_seconds_median"]) == set(batch.CHUNK_STAGES) == set(summary["chunk_stage_seconds_total"])
     assert summary["chunk_handoff"] is None  # inline: no process boundary
+    # the driver's fold rate is voxels_folded / seconds.fold: every chunk's partial voxels, each stored voxel at least once
+    store = json.loads((tmp_path / "inline" / "store.json").read_text())
+    assert summary["voxels_folded"] == sum(c["voxels"] for c in store["chunks"]) > summary["voxels"]
     inputs, sources, config, chunks, identity = batch.plan_batch([str(drive)], options)
     origin_index, class_names, *_ = batch.probe(sources, config)
     context = batch.Context(tmp_path / "direct", sources, config, sources[0].num_classes, class_names, origin_index, 256, frame=sources[0].frame)
@@ -474,6 +477,7 @@ def test_a_workers_time_is_told_by_stage(drive, tmp_path):
         assert sum(stages.values()) <= record["seconds"] + 1e-3, (stages, record["seconds"])
         assert stages["integrate"] > 0 and stages["write_partial"] > 0
     pooled = _batch([drive], tmp_path / "pool", executor="local", workers=1, chunk_frames=2)
+    assert pooled["voxels_folded"] == summary["voxels_folded"]
     handoff = pooled["chunk_handoff"]
     assert handoff["worker_start_s_median"] > 0 and handoff["result_kb_median"] > 0 and handoff["return_s_median"] >= 0
     assert set(pooled["chunk_stage_seconds_median"]) == set(batch.CHUNK_STAGES)

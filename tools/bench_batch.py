@@ -13,11 +13,14 @@ voxel) and the peak disk use during the run (sampled), the speed-up over ``evsem
 worker's time goes (each stage's median over the chunks: open, read, integrate, extract, write_partial; a worker
 process's start, the result's size and its way back to the driver). From
 the measured per-point mapping cost and per-tile fold cost, the tool projects the wall time of a whole
-RELLIS-3D and of a 1,000 km fleet log on a 16-node cluster (the model is printed with the figures).
+RELLIS-3D and of a 1,000 km fleet log on a 16-node cluster (the model is printed with the figures). The
+driver's fold rate (voxels of partials folded into tiles per second) and the worker count from which the one
+driver's fold limits the long drive are the record's ``fold`` (from the 1-worker pool run).
 The results go to a run record (docs/bench/bench_batch-<UTC>.json, tools/bench_record.py); the last
 line printed is its path.
 
-    python tools/bench_batch.py [--frames 2000] [--method ebs] [--data DIR] [--repeats 1]
+    python tools/bench_batch.py [--frames 2000] [--method ebs] [--data DIR] [--repeats 1] [--executors local,ray,ray-cluster]
+    python tools/bench_batch.py --frames 2000 --repeats 3 --executors local   # the pool against `evsemmap map`, and the fold
     python tools/bench_batch.py --markdown docs/bench/bench_batch-<UTC>.json   # a record's table, for the docs
 """
 
@@ -26,6 +29,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import shutil
 import statistics
@@ -49,6 +53,8 @@ RELLIS3D = {"frames": 13_556, "points_per_frame": 131_072 * 0.55, "drive_km": 3.
 FLEET_KM = 1_000.0
 FLEET_FRAME_SPACING_M = 0.5  # 10 Hz at 5 m/s
 CLUSTER = {"nodes": 16, "cores_per_node": 16}
+# the `long` synthetic drive's frames (evsemmap synth --world long), of which --frames renders the first
+LONG_DRIVE_FRAMES = int(yaml.safe_load((REPO / "configs" / "synthetic" / "long.yaml").read_text())["trajectory"]["frames"])
 RAY_CLUSTER_ENV = {"RAY_AUTH_MODE": "token"}
 
 
@@ -171,6 +177,25 @@ def breakdown(row: dict) -> str:
               f"return to driver {handoff.get('return_s_median')} s")
 
 
+def fold_bottleneck(row: dict, frames: int) -> dict:
+    """The driver's fold rate (voxels of partials folded into tiles per second, from a batch row's summary) and
+    the worker count from which it limits the long drive: each worker hands the driver the voxels of its chunks
+    at its own rate (voxels folded / the chunks' mapping seconds, all stages), so the driver keeps up while
+    workers x that rate stays under its fold rate. Both rates are per voxel, so the count holds for any length
+    of the drive; the long drive's figures are the run's scaled to its frames."""
+    worker_s = sum((row.get("chunk_stage_s_total") or {}).values())
+    folded = row.get("voxels_folded") or 0
+    fold_rate = folded / row["fold_s"] if row["fold_s"] else float("inf")
+    per_worker = folded / worker_s if worker_s else 0.0
+    scale = LONG_DRIVE_FRAMES / frames
+    return {
+        "voxels_folded": folded, "fold_s": row["fold_s"], "voxels_per_s": round(fold_rate), "worker_voxels_per_s": round(per_worker),
+        "bottleneck_workers": math.floor(worker_s / row["fold_s"]) if row["fold_s"] else None,  # = fold rate / one worker's rate
+        "long_drive": {"frames": LONG_DRIVE_FRAMES, "fold_s": round(row["fold_s"] * scale, 1), "worker_s": round(worker_s * scale, 1)},
+        "model": "bottleneck workers = floor(fold rate / one worker's rate) = floor(the chunks' mapping seconds / the driver's fold seconds)",
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--markdown", type=Path, metavar="RECORD", help="print the docs' table of a run record and exit")
@@ -247,7 +272,7 @@ def main() -> None:
                         "fold_s": summary["seconds"]["fold"], "index_s": summary["seconds"]["index"], "store_mb": round(store_bytes / 1e6, 1),
                         "store_bytes_per_voxel": round(store_bytes / max(summary["voxels"], 1), 1), "peak_disk_mb": round(peak_disk / 1e6, 1),
                         "work_mb_after": round(folder_size(out / "work") / 1e6, 2), "tiles": summary["tiles"], "voxels": summary["voxels"],
-                        "chunks": summary["chunks"], "chunk_frames": summary["chunk_frames"],
+                        "chunks": summary["chunks"], "chunk_frames": summary["chunk_frames"], "voxels_folded": summary.get("voxels_folded"),
                         "worker_peak_mb": summary["peak_rss_mb"]["worker_max"], "driver_peak_mb": summary["peak_rss_mb"]["driver"],
                         "chunk_s_median": summary["chunk_seconds_median"],
                         "chunk_stage_s_median": summary.get("chunk_stage_seconds_median"),
@@ -301,6 +326,9 @@ def main() -> None:
                      f"{one['chunk_s_median']:.2f} s / w, {one['fold_s']:.1f} s of folding)",
             "predicted_wall_s": {w: round(start_s + max(one["chunks"] * one["chunk_s_median"] / w, one["fold_s"]), 1) for w in (1, 2, 4, 8, 16)},
         }
+        results["fold"] = fold_bottleneck(one, args.frames)
+        print(f"driver's fold: {results['fold']['voxels_per_s']:,} voxels/s; it limits the long drive ({LONG_DRIVE_FRAMES} frames) "
+              f"from {results['fold']['bottleneck_workers']} workers on ({results['fold']['model']})")
         print(f"projection ({results['projection']['model']}): RELLIS-3D {results['projection']['rellis3d']['total_s']} s, "
               f"1,000 km fleet log {results['projection']['fleet_1000km']['total_s']} s "
               f"({results['projection']['fleet_1000km']['limited_by']})")

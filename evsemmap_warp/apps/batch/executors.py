@@ -62,8 +62,8 @@ class LocalExecutor:
         through exec) until init_worker installs its handler, so an interrupt while workers start up
         leaves no traceback of theirs, only the driver's "interrupted". It also starts with its math
         libraries' thread pools (OpenBLAS, OpenMP, MKL) at its share of the cores, which they read once
-        on loading: at their default, every worker's BLAS used every core (the point transforms), and two
-        workers on two cores ran their chunks slower than with one thread each. A user's own setting of
+        on loading: at their default every worker's BLAS takes every core (the point transforms), and
+        workers sharing the cores then map slower than with their share each. A user's own setting of
         those variables is kept."""
         import signal
 

@@ -42,6 +42,7 @@ class TileFolder:
         self._running: OrderedDict[str, tuple[np.ndarray, np.ndarray]] = OrderedDict()  # tile -> (index, rows), in memory
         self._absorbed: dict[str, list[int]] = {}  # tile -> chunks folded into it in memory only: their partials wait for its write
         self.seconds = 0.0
+        self.voxels_folded = 0  # partial rows folded into tiles (the fold's work: its rate is voxels_folded / seconds)
         self.tiles_written = 0
         for path in sorted((out / "tiles").glob(f"*{map_store.TILE_SUFFIX[map_store.STORE_VERSION]}")):
             header = self._tile_header(path)
@@ -91,6 +92,7 @@ class TileFolder:
             index, rows = map_store.read_partial(self._partial_path(chunk.number, name), self.columns, self.tile_voxels, self.identity,
                                                  chunk.number)
             running = map_store.fold(self._running_tile(name), index, rows)
+            self.voxels_folded += len(index)
             self._running[name] = running
             self._running.move_to_end(name)
             self.folded[name] = chunk.number

@@ -100,6 +100,7 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
         "chunk_frames_rule": choose_chunk_frames(options.chunk_frames, sum(c.frames for c in chunks))[1],
         "input_points": totals["points"],
         "voxels": sum(e["voxels"] for e in entries.values()), "tiles": len(entries), "tile_writes": folder.tiles_written,
+        "voxels_folded": folder.voxels_folded,  # the driver's fold: its rate is voxels_folded / seconds.fold
         "seconds": {k: round(v, 3) for k, v in times.items()},
         "frames_per_second": round(sum(c.frames for c in todo) / times["map"], 2) if todo and times["map"] > 0 else None,
         **_chunk_costs(costs),

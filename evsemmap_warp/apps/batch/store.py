@@ -110,7 +110,7 @@ def remove_unfinished_chunks(out: Path) -> None:
 @contextlib.contextmanager
 def store_lock(out: Path):
     """One batch run at a time per store: an exclusive lock on the store folder (created here, and
-    removed again when the run leaves it empty). Two runs into one store used to interleave their chunks,
+    removed again when the run leaves it empty). Two runs into one store would interleave their chunks,
     plans and tiles: a store of one drive's inputs holding another's voxels, both exiting 0."""
     import fcntl
 
