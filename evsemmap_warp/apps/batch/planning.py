@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ... import files
-from ...config import ConfigError, MappingConfig, flat_items, is_robot_log, load_config
+from ...config import ConfigError, MappingConfig, flat_items, is_robot_log, load_config, read_yaml_file
 from ...core import map_store
 from ...core.mapper import Mapper
 from ...core.voxel_map import EXTRA_COLUMNS
@@ -88,8 +88,6 @@ def split_inputs(paths: list[str]) -> tuple[list[str], list[str]]:
 
 def load_yaml_sections(path: Path) -> set:
     """The top-level keys of a YAML file (empty when it holds no mapping)."""
-    from ..config import read_yaml_file
-
     data = read_yaml_file(path)
     return set(data) if isinstance(data, dict) else set()
 
