@@ -18,6 +18,7 @@ from ... import files
 from ...config import MappingConfig
 from ...core import map_store
 from ...core.mapper import Mapper
+from ...core.voxel_map import VoxelArrays, sum_shard_rows
 from ...frames import WorldFrame
 from ..scan_sources import CheckpointScans, map_scans
 from .planning import Chunk
@@ -161,6 +162,15 @@ def _timed(scans, clock: dict):
         yield scan
 
 
+def chunk_voxels(mapper: Mapper) -> VoxelArrays:
+    """The mapper's voxels with global indices, the arrays ``mapper.voxels()`` gives without its read-out
+    (the Dirichlet summary a partial does not store): that read-out was half of a chunk's extract stage."""
+    voxels = sum_shard_rows(mapper.shard_rows())
+    if mapper.origin_index is not None:
+        voxels.index = voxels.index + mapper.origin_index
+    return voxels
+
+
 def map_chunk(chunk: Chunk, context: Context | None = None) -> dict:
     """Map one chunk into its partial map, written per tile; returns its counts and costs: ``seconds``,
     and ``stage_seconds`` (CHUNK_STAGES), which add up to them: "open", the setup (an empty mapper, the
@@ -187,7 +197,7 @@ def map_chunk(chunk: Chunk, context: Context | None = None) -> dict:
     clock["integrate"] = max(0.0, time.perf_counter() - mark - clock["read"])
     mark = time.perf_counter()
     points, scans = sum(s.input_points for s in stats), len(stats)
-    voxels, _ = mapper.voxels()
+    voxels = chunk_voxels(mapper)
     parts = map_store.split_by_tile(voxels.index, voxels.rows(), context.tile_voxels)
     identity = context.identity()
     now = time.perf_counter()
