@@ -440,7 +440,7 @@ def test_pool_workers_start_with_math_libraries_at_their_share_of_the_cores(driv
 
 
 def test_pool_workers_of_a_run_without_a_network_do_not_import_torch(drive, tmp_path):
-    """Importing torch cost every worker process about 1.5 s of CPU, out of the mapping's time where the
+    """Importing torch costs a worker process about 1.5 s of CPU, out of the mapping's time where the
     workers share the cores; only scans labelled by a checkpoint need it."""
     options = BatchOptions(method="ebs", out=tmp_path / "store")
     inputs, sources, config, chunks, identity = batch.plan_batch([str(drive)], options)
