@@ -482,3 +482,16 @@ def test_a_workers_time_is_told_by_stage(drive, tmp_path):
     assert handoff["worker_start_s_median"] > 0 and handoff["result_kb_median"] > 0 and handoff["return_s_median"] >= 0
     assert set(pooled["chunk_stage_seconds_median"]) == set(batch.CHUNK_STAGES)
     _assert_same_bytes(tmp_path / "inline", tmp_path / "pool")  # timing changes nothing in the store
+
+
+def test_bench_batch_gives_the_drivers_fold_rate_and_the_worker_count_it_limits(monkeypatch):
+    """The driver keeps up while workers x one worker's voxel rate stays under its fold rate: with 20 s of
+    mapping against 3 s of folding, from 6 workers on it does not (issue 49's bottleneck count)."""
+    monkeypatch.syspath_prepend(str(REPO / "tools"))
+    import bench_batch
+
+    row = {"fold_s": 3.0, "voxels_folded": 6_000_000, "chunk_stage_s_total": {"open": 0.5, "read": 2.0, "integrate": 15.0, "extract": 2.0,
+                                                                              "write_partial": 0.5}}
+    fold = bench_batch.fold_bottleneck(row, 2000)
+    assert fold["voxels_per_s"] == 2_000_000 and fold["worker_voxels_per_s"] == 300_000 and fold["bottleneck_workers"] == 6
+    assert fold["long_drive"] == {"frames": bench_batch.LONG_DRIVE_FRAMES, "fold_s": 7.5, "worker_s": 50.0}
