@@ -452,10 +452,9 @@ def test_singular_poses_and_calibrations_are_named(tmp_path):
 def test_the_worker_advice_fits(monkeypatch):
     import re
 
-    from evsemmap_warp.apps import batch
-    from evsemmap_warp.apps.batch import BatchOptions, check_memory
+    from evsemmap_warp.apps.batch import BatchOptions, check_memory, planning
 
-    monkeypatch.setattr(batch, "available_memory", lambda: 22 * 2**30)
+    monkeypatch.setattr(planning, "available_memory", lambda: 22 * 2**30)
     with pytest.raises(ConfigError, match=r"use fewer --workers \(at most \d+ fit") as refused:
         check_memory(BatchOptions(method="ebs", out="x", chunk_frames=1), 1000, 1, 13304, 20000, 9, automatic=True)
     fitting = int(re.search(r"at most (\d+) fit", str(refused.value)).group(1))

@@ -16,7 +16,7 @@ import pytest
 
 from conftest import REPO
 from evsemmap_warp.apps import batch
-from evsemmap_warp.apps.batch import BatchOptions, run_batch
+from evsemmap_warp.apps.batch import BatchOptions, planning, ray_executor, run_batch
 from evsemmap_warp.apps.cli import main
 from evsemmap_warp.config import ConfigError, load_config
 from evsemmap_warp.core.map_store import MapStore, StoreError
@@ -46,9 +46,9 @@ def _map(sources, method) -> Mapper:
     return mapper
 
 
-def _batch(sources, out, method="ebs", _fault=None, **options) -> dict:
+def _batch(sources, out, method="ebs", fault=None, **options) -> dict:
     options.setdefault("progress", False)
-    return run_batch([str(s) for s in sources], BatchOptions(method=method, out=out, **options), log=lambda m: None, _fault=_fault)
+    return run_batch([str(s) for s in sources], BatchOptions(method=method, out=out, **options), log=lambda m: None, fault=fault)
 
 
 def _assert_same_map(a: Mapper, b: Mapper, rtol=1e-12):
@@ -191,7 +191,7 @@ def test_a_ray_instance_that_cannot_be_joined_by_address_is_one_line_naming_the_
         raise ConnectionError("Failed to connect to Ray cluster at 10.0.0.9:6379")
 
     monkeypatch.setattr(ray, "init", refused)
-    monkeypatch.setattr(batch, "check_ray_address", lambda address, timeout_s: None)  # something answers there, but not to us
+    monkeypatch.setattr(ray_executor, "check_ray_address", lambda address, timeout_s: None)  # something answers there, but not to us
     with pytest.raises(ConfigError, match=r"--ray-address 10\.0\.0\.9:6379: could not join .*RAY_AUTH_MODE=token"):
         batch.RayExecutor(2, address="10.0.0.9:6379")
     monkeypatch.setenv("RAY_AUTH_MODE", "token")  # asked for already: no hint, the address and Ray's reason
@@ -205,7 +205,7 @@ def test_a_worker_killed_in_the_middle_of_a_chunk_changes_nothing(drive, tmp_pat
         pytest.importorskip("ray")
     _batch([drive], tmp_path / "clean", executor="inline", chunk_frames=2)
     # the fault plan travels in the workers' Context (no environment variable): the pool's and Ray's workers
-    _batch([drive], tmp_path / "killed", executor=executor, workers=2, chunk_frames=2, _fault=batch._FaultPlan(kill_chunk=1))
+    _batch([drive], tmp_path / "killed", executor=executor, workers=2, chunk_frames=2, fault=batch.FaultPlan(kill_chunk=1))
     assert (tmp_path / "killed" / "work" / ".fault-1").exists()  # the worker did die once
     assert not list((tmp_path / "killed" / "work").glob(".chunk_*"))  # and left nothing behind
     _assert_same_bytes(tmp_path / "clean", tmp_path / "killed")
@@ -218,7 +218,7 @@ def test_a_stuck_worker_stops_the_run_in_one_line_and_the_rerun_resumes(drive, t
     started = time.monotonic()
     with pytest.raises(TimeoutError, match=r"no chunk finished in 4 s \(--chunk-timeout-s\): a worker or a node is stuck"):
         _batch([drive], tmp_path / "stuck", executor=executor, workers=1, chunk_frames=2, chunk_timeout_s=4,
-               _fault=batch._FaultPlan(kill_chunk=-1, hang_chunk=1))
+               fault=batch.FaultPlan(kill_chunk=-1, hang_chunk=1))
     assert time.monotonic() - started < 60  # not the hour the stuck worker sleeps
     _batch([drive], tmp_path / "stuck", executor="inline", chunk_frames=2)  # resumes: the same store as a clean run
     _batch([drive], tmp_path / "clean", executor="inline", chunk_frames=2)
@@ -226,11 +226,11 @@ def test_a_stuck_worker_stops_the_run_in_one_line_and_the_rerun_resumes(drive, t
 
 
 def test_the_fault_plan_is_a_test_seam_not_an_environment_variable():
-    source = Path(batch.__file__).read_text()
+    source = "".join(path.read_text() for path in Path(batch.__file__).parent.glob("*.py"))
     assert "EVSEMMAP_BATCH_FAULT" not in source and not hasattr(batch, "FAULT_VARIABLE")
     import pickle
 
-    plan = batch._FaultPlan(kill_chunk=3)
+    plan = batch.FaultPlan(kill_chunk=3)
     assert pickle.loads(pickle.dumps(plan)) == plan  # it reaches the pool's and Ray's workers in the Context
 
 
@@ -262,7 +262,7 @@ def test_short_inputs_give_every_worker_several_chunks_by_default(drive, tmp_pat
 
 def test_the_memory_check_suggests_a_chunk_size_that_fits(monkeypatch, tmp_path):
     per_voxel = batch.bytes_per_voxel(9)
-    monkeypatch.setattr(batch, "available_memory", lambda: batch.DRIVER_OVERHEAD_BYTES + 2 * (batch.WORKER_OVERHEAD_BYTES + 3000 * per_voxel))
+    monkeypatch.setattr(planning, "available_memory", lambda: batch.DRIVER_OVERHEAD_BYTES + 2 * (batch.WORKER_OVERHEAD_BYTES + 3000 * per_voxel))
     options = BatchOptions(method="ebs", out=tmp_path, chunk_frames=10)
     # 1000 voxels for the first scan, 500 new ones per scan after it: 5 scans fit in 3000 voxels a worker
     with pytest.raises(ConfigError, match=r"batch: --chunk-frames 10 with 2 workers needs .* use --chunk-frames 5 or fewer --workers"):
@@ -369,7 +369,7 @@ def test_export_bounds_info_merge_and_view_of_stores(tmp_path, capsys):
 
 
 def test_configurations_that_cannot_work_stop_before_any_work(drive, tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(batch, "available_memory", lambda: 1 << 30)
+    monkeypatch.setattr(planning, "available_memory", lambda: 1 << 30)
     # the automatic chunk size is named as such; not even one-scan chunks fit 4 workers in 1 GB, so only fewer workers help
     with pytest.raises(ConfigError, match=r"--chunk-frames 1 \(chosen automatically\) with 4 workers needs about .* GB .* use fewer --workers"):
         _batch([drive], tmp_path / "small", workers=4)
@@ -439,6 +439,22 @@ def test_pool_workers_start_with_math_libraries_at_their_share_of_the_cores(driv
     assert "OPENBLAS_NUM_THREADS" not in os.environ and os.environ["MKL_NUM_THREADS"] == "3"
 
 
+def test_pool_workers_of_a_run_without_a_network_do_not_import_torch(drive, tmp_path):
+    """Importing torch costs a worker process about 1.5 s of CPU, out of the mapping's time where the
+    workers share the cores; only scans labelled by a checkpoint need it."""
+    options = BatchOptions(method="ebs", out=tmp_path / "store")
+    inputs, sources, config, chunks, identity = batch.plan_batch([str(drive)], options)
+    origin_index, class_names, *_ = batch.probe(sources, config)
+    context = batch.Context(tmp_path / "store", sources, config, sources[0].num_classes, class_names, origin_index, 256)
+    executor = batch.LocalExecutor(1, context)
+    seen = []
+    try:
+        executor.run(eval, [("'torch' in __import__('sys').modules",)], lambda item, value: seen.append(value))
+    finally:
+        executor.close()
+    assert seen == [False]
+
+
 def test_a_workers_time_is_told_by_stage(drive, tmp_path):
     """map_chunk's stages (open, read, integrate, extract, write_partial) are all there, none negative,
     and add up to no more than the chunk's seconds; the summary gives their medians and sums, and the
@@ -447,6 +463,9 @@ def test_a_workers_time_is_told_by_stage(drive, tmp_path):
     summary = run_batch([str(drive)], options, log=lambda m: None)
     assert set(summary["chunk_stage_seconds_median"]) == set(batch.CHUNK_STAGES) == set(summary["chunk_stage_seconds_total"])
     assert summary["chunk_handoff"] is None  # inline: no process boundary
+    # the driver's fold rate is voxels_folded / seconds.fold: every chunk's partial voxels, each stored voxel at least once
+    store = json.loads((tmp_path / "inline" / "store.json").read_text())
+    assert summary["voxels_folded"] == sum(c["voxels"] for c in store["chunks"]) > summary["voxels"]
     inputs, sources, config, chunks, identity = batch.plan_batch([str(drive)], options)
     origin_index, class_names, *_ = batch.probe(sources, config)
     context = batch.Context(tmp_path / "direct", sources, config, sources[0].num_classes, class_names, origin_index, 256, frame=sources[0].frame)
@@ -458,7 +477,21 @@ def test_a_workers_time_is_told_by_stage(drive, tmp_path):
         assert sum(stages.values()) <= record["seconds"] + 1e-3, (stages, record["seconds"])
         assert stages["integrate"] > 0 and stages["write_partial"] > 0
     pooled = _batch([drive], tmp_path / "pool", executor="local", workers=1, chunk_frames=2)
+    assert pooled["voxels_folded"] == summary["voxels_folded"]
     handoff = pooled["chunk_handoff"]
     assert handoff["worker_start_s_median"] > 0 and handoff["result_kb_median"] > 0 and handoff["return_s_median"] >= 0
     assert set(pooled["chunk_stage_seconds_median"]) == set(batch.CHUNK_STAGES)
     _assert_same_bytes(tmp_path / "inline", tmp_path / "pool")  # timing changes nothing in the store
+
+
+def test_bench_batch_gives_the_drivers_fold_rate_and_the_worker_count_it_limits(monkeypatch):
+    """The driver keeps up while workers x one worker's voxel rate stays under its fold rate: with 20 s of
+    mapping against 3 s of folding, from 6 workers on it does not (issue 49's bottleneck count)."""
+    monkeypatch.syspath_prepend(str(REPO / "tools"))
+    import bench_batch
+
+    row = {"fold_s": 3.0, "voxels_folded": 6_000_000, "chunk_stage_s_total": {"open": 0.5, "read": 2.0, "integrate": 15.0, "extract": 2.0,
+                                                                              "write_partial": 0.5}}
+    fold = bench_batch.fold_bottleneck(row, 2000)
+    assert fold["voxels_per_s"] == 2_000_000 and fold["worker_voxels_per_s"] == 300_000 and fold["bottleneck_workers"] == 6
+    assert fold["long_drive"] == {"frames": bench_batch.LONG_DRIVE_FRAMES, "fold_s": 7.5, "worker_s": 50.0}

@@ -168,12 +168,12 @@ def test_tiles_leaving_memory_early_and_a_run_killed_while_folding_give_the_same
     """With room for one tile in memory, tiles are written and read back at every turn of the drive;
     a run stopped halfway through folding (here: at the first partial of chunk 3) resumes from the tiles
     and partials it left, and both give the store, byte for byte, of an uninterrupted run."""
-    from evsemmap_warp.apps import batch
+    from evsemmap_warp.apps.batch import reduction
     from evsemmap_warp.core import map_store
 
     reference = tmp_path / "reference"
     _batch([drive], reference, chunk_frames=1)
-    monkeypatch.setattr(batch, "FOLD_CACHE_TILES", 1)
+    monkeypatch.setattr(reduction, "FOLD_CACHE_TILES", 1)
     summary = _batch([drive], tmp_path / "evicting", chunk_frames=1)
     assert summary["tile_writes"] > summary["tiles"]  # tiles were written before the end and folded into again
 

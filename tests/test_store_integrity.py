@@ -372,15 +372,15 @@ def test_bounds_that_mean_nothing_are_refused_and_minus_inf_is_a_value(store, tm
 def test_a_second_batch_run_into_a_store_being_written_is_refused(drive, tmp_path):
     """Two runs into one store interleaved their plans, chunks and tiles: a store listing one drive
     held the other's voxels, both runs exiting 0."""
-    from evsemmap_warp.apps.batch import _store_lock
+    from evsemmap_warp.apps.batch import store_lock
 
     out = tmp_path / "store"
-    with _store_lock(out):  # a run in progress
+    with store_lock(out):  # a run in progress
         with pytest.raises(ConfigError, match="another batch run is writing this store now"):
             _batch([drive], out)
     _batch([drive], out)  # once it is done, the store is free
     assert MapStore(out).voxel_count > 0
-    with _store_lock(tmp_path / "unused"):
+    with store_lock(tmp_path / "unused"):
         pass
     assert not (tmp_path / "unused").exists()  # a refused or failed run leaves no empty folder behind
 

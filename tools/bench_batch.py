@@ -13,11 +13,14 @@ voxel) and the peak disk use during the run (sampled), the speed-up over ``evsem
 worker's time goes (each stage's median over the chunks: open, read, integrate, extract, write_partial; a worker
 process's start, the result's size and its way back to the driver). From
 the measured per-point mapping cost and per-tile fold cost, the tool projects the wall time of a whole
-RELLIS-3D and of a 1,000 km fleet log on a 16-node cluster (the model is printed with the figures).
+RELLIS-3D and of a 1,000 km fleet log on a 16-node cluster (the model is printed with the figures). The
+driver's fold rate (voxels of partials folded into tiles per second) and the worker count from which the one
+driver's fold limits the long drive are the record's ``fold`` (from the 1-worker pool run).
 The results go to a run record (docs/bench/bench_batch-<UTC>.json, tools/bench_record.py); the last
 line printed is its path.
 
-    python tools/bench_batch.py [--frames 2000] [--method ebs] [--data DIR] [--repeats 1]
+    python tools/bench_batch.py [--frames 2000] [--method ebs] [--data DIR] [--repeats 1] [--executors local,ray,ray-cluster]
+    python tools/bench_batch.py --frames 2000 --repeats 3 --executors local   # the pool against `evsemmap map`, and the fold
     python tools/bench_batch.py --markdown docs/bench/bench_batch-<UTC>.json   # a record's table, for the docs
 """
 
@@ -26,6 +29,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import shutil
 import statistics
@@ -49,6 +53,8 @@ RELLIS3D = {"frames": 13_556, "points_per_frame": 131_072 * 0.55, "drive_km": 3.
 FLEET_KM = 1_000.0
 FLEET_FRAME_SPACING_M = 0.5  # 10 Hz at 5 m/s
 CLUSTER = {"nodes": 16, "cores_per_node": 16}
+# the `long` synthetic drive's frames (evsemmap synth --world long), of which --frames renders the first
+LONG_DRIVE_FRAMES = int(yaml.safe_load((REPO / "configs" / "synthetic" / "long.yaml").read_text())["trajectory"]["frames"])
 RAY_CLUSTER_ENV = {"RAY_AUTH_MODE": "token"}
 
 
@@ -171,6 +177,107 @@ def breakdown(row: dict) -> str:
               f"return to driver {handoff.get('return_s_median')} s")
 
 
+def describe(row: dict) -> str:
+    """A batch row in one line: its wall time against `evsemmap map` and the pool's, the fold, the store, the memory."""
+    return (f"{row['wall_s']:.1f} s ({row['speedup_vs_map']:.2f}x map"
+            + (f", {row['behind_local_pct']} % behind local" if "behind_local_pct" in row else "")
+            + f"), {row['frames_per_s']} frames/s, fold {row['fold_s']:.1f} s, store {row['store_mb']} MB "
+            f"({row['store_bytes_per_voxel']} B/voxel) in {row['tiles']} tiles, peak disk {row['peak_disk_mb']} MB, "
+            f"worker peak {row['worker_peak_mb']:.0f} MB, driver {row['driver_peak_mb']:.0f} MB")
+
+
+def models(results: dict) -> str:
+    """The record's fold rate and bottleneck, projection and scaling model, as printed."""
+    fold, projection, scaling = results["fold"], results["projection"], results["scaling_model"]
+    return (f"driver's fold: {fold['voxels_per_s']:,} voxels/s; it limits the long drive ({LONG_DRIVE_FRAMES} frames) from "
+            f"{fold['bottleneck_workers']} workers on ({fold['model']})\n"
+            f"projection ({projection['model']}): RELLIS-3D {projection['rellis3d']['total_s']} s, 1,000 km fleet log "
+            f"{projection['fleet_1000km']['total_s']} s ({projection['fleet_1000km']['limited_by']})\n"
+            f"scaling model ({scaling['model']}): {scaling['predicted_wall_s']}")
+
+
+def batch_row(summary: dict, seconds: float, peak_disk: int, out: Path, points: int, frames: int, map_seconds: float, all_walls: list) -> dict:
+    """A batch configuration's row of the record: its wall time (the median over the repeats), the run's own
+    stages and costs from its summary (the last repeat's), the store's size and the peak disk use."""
+    store_bytes = folder_size(out / "tiles")
+    return {
+        "wall_s": round(seconds, 2), "all_wall_s": all_walls, "frames_per_s": round(frames / seconds, 1),
+        "input_points_per_s": round(points / seconds), "speedup_vs_map": round(map_seconds / seconds, 2),
+        # the run's own stages (the last repeat's): planning (Ray's start overlaps it), mapping, writing the tiles
+        "plan_s": summary["seconds"]["plan"], "map_stage_s": summary["seconds"]["map"],
+        "write_tiles_s": summary["seconds"]["write_tiles"], "run_total_s": summary["seconds"]["total"],
+        "fold_s": summary["seconds"]["fold"], "index_s": summary["seconds"]["index"], "store_mb": round(store_bytes / 1e6, 1),
+        "store_bytes_per_voxel": round(store_bytes / max(summary["voxels"], 1), 1), "peak_disk_mb": round(peak_disk / 1e6, 1),
+        "work_mb_after": round(folder_size(out / "work") / 1e6, 2), "tiles": summary["tiles"], "voxels": summary["voxels"],
+        "chunks": summary["chunks"], "chunk_frames": summary["chunk_frames"], "voxels_folded": summary.get("voxels_folded"),
+        "worker_peak_mb": summary["peak_rss_mb"]["worker_max"], "driver_peak_mb": summary["peak_rss_mb"]["driver"],
+        "chunk_s_median": summary["chunk_seconds_median"],
+        "chunk_stage_s_median": summary.get("chunk_stage_seconds_median"),
+        "chunk_stage_s_total": summary.get("chunk_stage_seconds_total"),
+        "chunk_handoff": summary.get("chunk_handoff"),
+        "memory_budget_per_worker_mb": summary["memory_budget"]["per_worker_mb"],
+    }
+
+
+def projections(one: dict, points: int, drive_km: float) -> tuple[dict, dict]:
+    """From one batch row (the 1-worker pool's): the projection of a whole RELLIS-3D and a 1,000 km fleet log
+    on a cluster, and the model of more workers on one machine."""
+    # Projection: mapping cost per input point (one worker, median chunk) and fold cost per tile,
+    # spread over every core of the cluster; tiles grow with the distance driven.
+    chunk_points = points / max(1, one["chunks"])
+    fold_per_tile = one["fold_s"] / max(1, one["tiles"])
+    per_point = one["chunk_s_median"] / chunk_points
+    tiles_per_km = one["tiles"] / drive_km
+    cores = CLUSTER["nodes"] * CLUSTER["cores_per_node"]
+
+    # The fold runs in the driver, one tile after another, beside the workers: it does not spread
+    # over the cluster's cores, so the model takes the larger of the two (they overlap).
+    def projected(frames: float, points_per_frame: float, km: float) -> dict:
+        mapping = frames * points_per_frame * per_point / cores
+        folding = km * tiles_per_km * fold_per_tile
+        return {"frames": int(frames), "mapping_s": round(mapping, 1), "folding_s": round(folding, 1),
+                "total_s": round(max(mapping, folding), 1), "limited_by": "mapping" if mapping >= folding else "the driver's fold"}
+
+    fleet_frames = FLEET_KM * 1000 / FLEET_FRAME_SPACING_M
+    projection = {
+        "model": (f"wall = max(frames x points/frame x {per_point * 1e9:.1f} ns/point (one worker, measured) / {cores} cores, "
+                  f"km x {tiles_per_km:.1f} tiles/km x {fold_per_tile:.3f} s of folding/tile in the one driver); "
+                  f"{CLUSTER['nodes']} nodes x {CLUSTER['cores_per_node']} cores, perfect scaling of the workers, start-up, "
+                  f"storage and network not counted"),
+        "rellis3d": projected(RELLIS3D["frames"], RELLIS3D["points_per_frame"], RELLIS3D["drive_km"]),
+        "fleet_1000km": projected(fleet_frames, RELLIS3D["points_per_frame"], FLEET_KM),
+    }
+    # Workers on one machine beyond this one's cores: predicted from the measured 1-worker chunk time,
+    # not measured (this machine has os.cpu_count() cores).
+    start_s = max(0.0, one["wall_s"] - one["chunks"] * one["chunk_s_median"])
+    scaling = {
+        "measured_up_to_workers": os.cpu_count(),
+        "model": f"wall(w) = {start_s:.1f} s (start-up and tail, measured at 1 worker) + max({one['chunks']} chunks x "
+                 f"{one['chunk_s_median']:.2f} s / w, {one['fold_s']:.1f} s of folding)",
+        "predicted_wall_s": {w: round(start_s + max(one["chunks"] * one["chunk_s_median"] / w, one["fold_s"]), 1) for w in (1, 2, 4, 8, 16)},
+    }
+    return projection, scaling
+
+
+def fold_bottleneck(row: dict, frames: int) -> dict:
+    """The driver's fold rate (voxels of partials folded into tiles per second, from a batch row's summary) and
+    the worker count from which it limits the long drive: each worker hands the driver the voxels of its chunks
+    at its own rate (voxels folded / the chunks' mapping seconds, all stages), so the driver keeps up while
+    workers x that rate stays under its fold rate. Both rates are per voxel, so the count holds for any length
+    of the drive; the long drive's figures are the run's scaled to its frames."""
+    worker_s = sum((row.get("chunk_stage_s_total") or {}).values())
+    folded = row.get("voxels_folded") or 0
+    fold_rate = folded / row["fold_s"] if row["fold_s"] else float("inf")
+    per_worker = folded / worker_s if worker_s else 0.0
+    scale = LONG_DRIVE_FRAMES / frames
+    return {
+        "voxels_folded": folded, "fold_s": row["fold_s"], "voxels_per_s": round(fold_rate), "worker_voxels_per_s": round(per_worker),
+        "bottleneck_workers": math.floor(worker_s / row["fold_s"]) if row["fold_s"] else None,  # = fold rate / one worker's rate
+        "long_drive": {"frames": LONG_DRIVE_FRAMES, "fold_s": round(row["fold_s"] * scale, 1), "worker_s": round(worker_s * scale, 1)},
+        "model": "bottleneck workers = floor(fold rate / one worker's rate) = floor(the chunks' mapping seconds / the driver's fold seconds)",
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--markdown", type=Path, metavar="RECORD", help="print the docs' table of a run record and exit")
@@ -237,74 +344,17 @@ def main() -> None:
                     seconds, summary, peak_disk = repeat(f"{executor}{workers}", [
                         "batch", str(data), "--method", args.method, "--out", str(out), "--executor", "local" if executor == "local" else "ray",
                         *joining, "--workers", str(workers), *chunking, "--quiet"], out, env)
-                    store_bytes = folder_size(out / "tiles")
-                    row = {
-                        "wall_s": round(seconds, 2), "all_wall_s": walls[f"{executor}{workers}"], "frames_per_s": round(args.frames / seconds, 1),
-                        "input_points_per_s": round(points / seconds), "speedup_vs_map": round(map_seconds / seconds, 2),
-                        # the run's own stages (the last repeat's): planning (Ray's start overlaps it), mapping, writing the tiles
-                        "plan_s": summary["seconds"]["plan"], "map_stage_s": summary["seconds"]["map"],
-                        "write_tiles_s": summary["seconds"]["write_tiles"], "run_total_s": summary["seconds"]["total"],
-                        "fold_s": summary["seconds"]["fold"], "index_s": summary["seconds"]["index"], "store_mb": round(store_bytes / 1e6, 1),
-                        "store_bytes_per_voxel": round(store_bytes / max(summary["voxels"], 1), 1), "peak_disk_mb": round(peak_disk / 1e6, 1),
-                        "work_mb_after": round(folder_size(out / "work") / 1e6, 2), "tiles": summary["tiles"], "voxels": summary["voxels"],
-                        "chunks": summary["chunks"], "chunk_frames": summary["chunk_frames"],
-                        "worker_peak_mb": summary["peak_rss_mb"]["worker_max"], "driver_peak_mb": summary["peak_rss_mb"]["driver"],
-                        "chunk_s_median": summary["chunk_seconds_median"],
-                        "chunk_stage_s_median": summary.get("chunk_stage_seconds_median"),
-                        "chunk_stage_s_total": summary.get("chunk_stage_seconds_total"),
-                        "chunk_handoff": summary.get("chunk_handoff"),
-                        "memory_budget_per_worker_mb": summary["memory_budget"]["per_worker_mb"],
-                    }
+                    row = batch_row(summary, seconds, peak_disk, out, points, args.frames, map_seconds, walls[f"{executor}{workers}"])
                     local = results["runs"].get(f"localx{workers}")
                     if executor != "local" and local:
                         row["behind_local_pct"] = round(100 * (seconds / local["wall_s"] - 1), 1)
                     results["runs"][f"{executor}x{workers}"] = row
-                    print(f"batch {executor} x{workers}: {seconds:.1f} s ({row['speedup_vs_map']:.2f}x map"
-                          + (f", {row['behind_local_pct']} % behind local" if "behind_local_pct" in row else "")
-                          + f"), {row['frames_per_s']} frames/s, fold {row['fold_s']:.1f} s, store {row['store_mb']} MB "
-                          f"({row['store_bytes_per_voxel']} B/voxel) in {row['tiles']} tiles, peak disk {row['peak_disk_mb']} MB, "
-                          f"worker peak {row['worker_peak_mb']:.0f} MB, driver {row['driver_peak_mb']:.0f} MB", flush=True)
-                    print(breakdown(row), flush=True)
-        # Projection: mapping cost per input point (one worker, median chunk) and fold cost per tile,
-        # spread over every core of the cluster; tiles grow with the distance driven.
+                    print(f"batch {executor} x{workers}: {describe(row)}\n{breakdown(row)}", flush=True)
         one = results["runs"].get("localx1") or next(iter(v for k, v in results["runs"].items() if k != "map"))
-        chunk_points = points / max(1, one["chunks"])
-        fold_per_tile = one["fold_s"] / max(1, one["tiles"])
-        per_point = one["chunk_s_median"] / chunk_points
         drive_km = float(yaml.safe_load((data / "synth.yaml").read_text())["summary"]["drive_m"]) / 1000
-        tiles_per_km = one["tiles"] / drive_km
-        cores = CLUSTER["nodes"] * CLUSTER["cores_per_node"]
-
-        # The fold runs in the driver, one tile after another, beside the workers: it does not spread
-        # over the cluster's cores, so the model takes the larger of the two (they overlap).
-        def projected(frames: float, points_per_frame: float, km: float) -> dict:
-            mapping = frames * points_per_frame * per_point / cores
-            folding = km * tiles_per_km * fold_per_tile
-            return {"frames": int(frames), "mapping_s": round(mapping, 1), "folding_s": round(folding, 1),
-                    "total_s": round(max(mapping, folding), 1), "limited_by": "mapping" if mapping >= folding else "the driver's fold"}
-
-        fleet_frames = FLEET_KM * 1000 / FLEET_FRAME_SPACING_M
-        results["projection"] = {
-            "model": (f"wall = max(frames x points/frame x {per_point * 1e9:.1f} ns/point (one worker, measured) / {cores} cores, "
-                      f"km x {tiles_per_km:.1f} tiles/km x {fold_per_tile:.3f} s of folding/tile in the one driver); "
-                      f"{CLUSTER['nodes']} nodes x {CLUSTER['cores_per_node']} cores, perfect scaling of the workers, start-up, "
-                      f"storage and network not counted"),
-            "rellis3d": projected(RELLIS3D["frames"], RELLIS3D["points_per_frame"], RELLIS3D["drive_km"]),
-            "fleet_1000km": projected(fleet_frames, RELLIS3D["points_per_frame"], FLEET_KM),
-        }
-        # Workers on one machine beyond this one's cores: predicted from the measured 1-worker chunk time,
-        # not measured (this machine has os.cpu_count() cores).
-        start_s = max(0.0, one["wall_s"] - one["chunks"] * one["chunk_s_median"])
-        results["scaling_model"] = {
-            "measured_up_to_workers": os.cpu_count(),
-            "model": f"wall(w) = {start_s:.1f} s (start-up and tail, measured at 1 worker) + max({one['chunks']} chunks x "
-                     f"{one['chunk_s_median']:.2f} s / w, {one['fold_s']:.1f} s of folding)",
-            "predicted_wall_s": {w: round(start_s + max(one["chunks"] * one["chunk_s_median"] / w, one["fold_s"]), 1) for w in (1, 2, 4, 8, 16)},
-        }
-        print(f"projection ({results['projection']['model']}): RELLIS-3D {results['projection']['rellis3d']['total_s']} s, "
-              f"1,000 km fleet log {results['projection']['fleet_1000km']['total_s']} s "
-              f"({results['projection']['fleet_1000km']['limited_by']})")
-        print(f"scaling model ({results['scaling_model']['model']}): {results['scaling_model']['predicted_wall_s']}")
+        results["projection"], results["scaling_model"] = projections(one, points, drive_km)
+        results["fold"] = fold_bottleneck(one, args.frames)
+        print(models(results))
         print(write_record("bench_batch", results))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
