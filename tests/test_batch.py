@@ -5,6 +5,7 @@ configurations stop before any work."""
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -152,7 +153,7 @@ def test_ray_keeps_at_most_workers_tasks_running_on_an_instance_it_joins(own_ins
 
     class FakeTask:
         @staticmethod
-        def remote(fn, threads, context, submitted, item):
+        def remote(fn, threads, context, submitted, sent, item):
             in_flight.append(item)
             return item
 
@@ -168,7 +169,8 @@ def test_ray_keeps_at_most_workers_tasks_running_on_an_instance_it_joins(own_ins
             return ref * 10
 
     executor.ray, executor._task, executor.context_ref = FakeRay, FakeTask, None
-    executor.workers, executor.own_instance = 2, own_instance
+    executor.workers, executor.own_instance, executor.inputs = 2, own_instance, ray_executor.SAME_PATH
+    executor._receive = FakeRay.get
     done, in_flight_while_folding = {}, []
 
     def fold(item, result):  # the driver's fold: a finished task's successor already runs meanwhile
@@ -206,7 +208,11 @@ def test_a_worker_killed_in_the_middle_of_a_chunk_changes_nothing(drive, tmp_pat
     _batch([drive], tmp_path / "clean", executor="inline", chunk_frames=2)
     # the fault plan travels in the workers' Context (no environment variable): the pool's and Ray's workers
     _batch([drive], tmp_path / "killed", executor=executor, workers=2, chunk_frames=2, fault=batch.FaultPlan(kill_chunk=1))
-    assert (tmp_path / "killed" / "work" / ".fault-1").exists()  # the worker did die once
+    # the worker did die once (Ray's tasks map in their node's scratch folder, the pool's in the store)
+    marked = (ray_executor.node_scratch(tmp_path / "killed") if executor == "ray" else tmp_path / "killed") / "work" / ".fault-1"
+    assert marked.exists()
+    if executor == "ray":
+        shutil.rmtree(ray_executor.node_scratch(tmp_path / "killed"))
     assert not list((tmp_path / "killed" / "work").glob(".chunk_*"))  # and left nothing behind
     _assert_same_bytes(tmp_path / "clean", tmp_path / "killed")
 

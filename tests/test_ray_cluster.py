@@ -47,12 +47,14 @@ def _driver(cluster, out, *flags) -> subprocess.Popen:
 def _finish(driver: subprocess.Popen) -> dict:
     out, err = driver.communicate(timeout=RUN_TIMEOUT_S)
     assert driver.returncode == 0, err
-    return json.loads(out)
+    return json.loads(out), err
 
 
 def test_a_cluster_whose_second_node_sees_no_files_writes_the_local_pools_store(cluster):
-    summary = _finish(_driver(cluster, cluster.stores / "ray"))
+    summary, _ = _finish(_driver(cluster, cluster.stores / "ray"))
     _assert_same_bytes(cluster.stores / "local", cluster.stores / "ray")
+    assert summary["cluster"]["nodes"] == 2 and summary["cluster"]["inputs"] == "from the driver"
+    assert len(summary["cluster"]["chunks_per_node"]) == 2  # both nodes mapped chunks
 
 
 def test_a_node_stopped_mid_run_costs_its_chunks_a_retry_and_nothing_else(cluster):
@@ -63,5 +65,7 @@ def test_a_node_stopped_mid_run_costs_its_chunks_a_retry_and_nothing_else(cluste
         assert driver.poll() is None and time.monotonic() < deadline, driver.communicate()
         time.sleep(0.05)
     cluster.stop_node()
-    _finish(driver)
+    summary, err = _finish(driver)
     _assert_same_bytes(cluster.stores / "local", out)
+    assert "will be retried" in err  # Ray's own notice (on stderr: stdout carries the summary alone) of the lost node's task
+    assert sum(summary["cluster"]["chunks_per_node"].values()) == summary["chunks"]
