@@ -42,8 +42,8 @@ def _free_port() -> int:
 
 
 class TwoNodeCluster:
-    """The head (``num_cpus`` 1) and a second node (``num_cpus`` 1) that sees none of ``hidden`` (each an empty
-    tmpfs there); ``address`` joins it. ``env``: what a driver needs in its environment to join (the token)."""
+    """The head and a second node (``node``), one CPU each; the second node sees none of ``hidden`` (each an empty
+    tmpfs there). ``address`` joins it; ``env``: what a driver needs in its environment to join (the token)."""
 
     def __init__(self, hidden: list[Path]):
         self.hidden = [Path(h) for h in hidden]
@@ -52,44 +52,50 @@ class TwoNodeCluster:
         self.port = _free_port()
         self.address = f"127.0.0.1:{self.port}"
         self.env = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
+        self.started = 0
         self.head = self.node = None
-        self.head = self._start(["--head", "--port", str(self.port),
-                                 "--include-dashboard", "false", "--temp-dir", str(self.temp_dir)], "head", [])
+        self.head = self._start(["--head", "--port", str(self.port), "--include-dashboard", "false", "--temp-dir", str(self.temp_dir)])
         self.node = self.start_node()
 
-    def _start(self, flags: list[str], name: str, hidden: list[Path]) -> subprocess.Popen:
-        command = ["ray", "start", "--block", "--node-ip-address", "127.0.0.1", "--num-cpus", "1", "--disable-usage-stats",
-                   "--object-store-memory", str(OBJECT_STORE_BYTES), "--dashboard-agent-listen-port", str(_free_port()),
-                   "--node-manager-port", str(_free_port()), "--object-manager-port", str(_free_port()), *flags]
-        command[0] = str(Path(sys.executable).with_name("ray"))
-        if hidden:
-            mounts = " && ".join(f"mount -t tmpfs evsemmap-hidden '{h}'" for h in hidden)
-            command = ["unshare", "--mount", "--propagation", "private", "sh", "-c", f"{mounts} && exec \"$@\"", "sh", *command]
-        log = self.temp_dir / f"{name}.log"
+    def _start(self, flags: list[str], shell: str = "") -> subprocess.Popen:
+        """A ``ray start --block`` with ``flags``; ``shell``: commands run before it in a private mount namespace."""
+        command = [str(Path(sys.executable).with_name("ray")), "start", "--block", "--node-ip-address", "127.0.0.1", "--num-cpus", "1",
+                   "--disable-usage-stats", "--object-store-memory", str(OBJECT_STORE_BYTES), "--dashboard-agent-listen-port",
+                   str(_free_port()), "--node-manager-port", str(_free_port()), "--object-manager-port", str(_free_port()), *flags]
+        if shell:
+            command = ["unshare", "--mount", "--propagation", "private", "sh", "-c", f"{shell} && exec \"$@\"", "sh", *command]
+        self.started += 1
+        log = self.temp_dir / f"node{self.started}.log"
         process = subprocess.Popen(command, stdout=log.open("w"), stderr=subprocess.STDOUT, env=os.environ | self.env,
                                    start_new_session=True)
         deadline = time.monotonic() + START_TIMEOUT_S
         while "Ray runtime started" not in log.read_text():
             if process.poll() is not None or time.monotonic() > deadline:
                 said = log.read_text()[-2000:]
-                self._stop(process)
+                self.stop(process)
                 self.close()
-                raise RuntimeError(f"ray start ({name}) did not start the node: {said}")
+                raise RuntimeError(f"ray start did not start the node: {said}")
             time.sleep(0.2)
         return process
 
-    def start_node(self) -> subprocess.Popen:
-        """A (new) second node, in its own mount namespace."""
-        return self._start(["--address", self.address], "node", self.hidden)
-
-    def stop_node(self) -> None:
-        """The second node gone at once (SIGKILL to its raylet, agents and workers), as a machine that fails."""
-        self._stop(self.node)
-        self.node = None
+    def start_node(self, *, replicated: Path | None = None, installed: dict | None = None) -> subprocess.Popen:
+        """A node that sees none of the hidden folders, joined to the head; ``replicated``: one of them, which it
+        sees instead as a copy of its own (replicated data at the same path); ``installed``: path -> what the node
+        sees there instead (a file bound over a file, or None: an empty folder over a folder)."""
+        mounts = [f"mount -t tmpfs evsemmap-hidden '{h}'" for h in self.hidden]
+        mounts += [f"mount --bind '{other}' '{path}'" if other else f"mount -t tmpfs evsemmap-hidden '{path}'"
+                   for path, other in (installed or {}).items()]
+        if replicated is not None:
+            stage = self.temp_dir / f"stage{self.started}"
+            stage.mkdir()
+            mounts = [f"mount -t tmpfs evsemmap-stage '{stage}'", f"cp -a '{replicated}/.' '{stage}'", *mounts,
+                      f"cp -a '{stage}/.' '{replicated}'"]
+        return self._start(["--address", self.address], " && ".join(mounts))
 
     @staticmethod
-    def _stop(process) -> None:
-        # SIGKILL: a node told to stop (SIGTERM) drains for up to 30 s first; these nodes hold nothing to keep
+    def stop(process) -> None:
+        """A node gone at once (SIGKILL to its raylet, agents and workers), as a machine that fails. SIGKILL: a node
+        told to stop (SIGTERM) drains for up to 30 s first, and these nodes hold nothing to keep."""
         if process is None or process.poll() is not None:
             return
         try:
@@ -100,7 +106,7 @@ class TwoNodeCluster:
 
     def close(self) -> None:
         """Both nodes stopped (their process groups), the session folder removed."""
-        self._stop(self.node)
-        self._stop(self.head)
+        self.stop(self.node)
+        self.stop(self.head)
         self.node = self.head = None
         shutil.rmtree(self.temp_dir, ignore_errors=True)

@@ -1,21 +1,27 @@
-"""Batch on a real two-node Ray cluster whose second node shares no files with the driver (tests/ray_cluster.py):
-the store is byte-identical to the local pool's, with every node up and with a node stopped mid-run. The driver
-is the command line, in a process of its own, as a user runs it."""
+"""Batch on a real Ray cluster of two nodes on the loopback, whose second node shares no files with the driver
+(tests/ray_cluster.py): the store is byte-identical to the local pool's with every node up, with replicated inputs,
+with a node stopped mid-run and after the driver was killed; a node with another version of the project, a lost
+head and a lost input are one line each. The driver is the command line, in a process of its own, as a user runs it."""
 
 import json
 import os
+import re
+import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
 from ray_cluster import TwoNodeCluster, mount_namespaces_refused
 from test_batch import _assert_same_bytes, _batch
+import evsemmap_warp
+from evsemmap_warp.apps.batch import BatchOptions, ray_executor, run_batch
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence
 
-pytest.importorskip("ray")
+ray = pytest.importorskip("ray")
 RUN_TIMEOUT_S = 300
 
 
@@ -38,34 +44,133 @@ def cluster(tmp_path_factory):
     cluster.close()
 
 
-def _driver(cluster, out, *flags) -> subprocess.Popen:
+def _driver(cluster, out) -> subprocess.Popen:
     command = [sys.executable, "-m", "evsemmap_warp", "batch", str(cluster.data / "drive"), "--method", "ebs", "--out", str(out),
-               "--executor", "ray", "--ray-address", cluster.address, "--workers", "2", "--chunk-frames", "1", "--quiet", *flags]
+               "--executor", "ray", "--ray-address", cluster.address, "--workers", "2", "--chunk-frames", "1", "--quiet"]
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ | cluster.env)
 
 
-def _finish(driver: subprocess.Popen) -> dict:
+def _finish(driver: subprocess.Popen) -> tuple[dict, str]:
     out, err = driver.communicate(timeout=RUN_TIMEOUT_S)
     assert driver.returncode == 0, err
     return json.loads(out), err
+
+
+def _failure(driver: subprocess.Popen) -> str:
+    """The one line a failed run says (exit 2, no traceback)."""
+    _, err = driver.communicate(timeout=RUN_TIMEOUT_S)
+    lines = [line for line in err.splitlines() if line.startswith("evsemmap: error:")]
+    assert driver.returncode == 2 and len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def _wait_for_a_chunk(driver: subprocess.Popen, out) -> None:
+    """Until the driver has written its first chunk (the others are in flight, or queued)."""
+    deadline = time.monotonic() + RUN_TIMEOUT_S
+    while not list((out / "work").glob("chunk_*")):
+        assert driver.poll() is None and time.monotonic() < deadline, driver.communicate()
+        time.sleep(0.05)
 
 
 def test_a_cluster_whose_second_node_sees_no_files_writes_the_local_pools_store(cluster):
     summary, _ = _finish(_driver(cluster, cluster.stores / "ray"))
     _assert_same_bytes(cluster.stores / "local", cluster.stores / "ray")
     assert summary["cluster"]["nodes"] == 2 and summary["cluster"]["inputs"] == "from the driver"
+    assert "does not see " + str(cluster.data / "drive") in summary["cluster"]["inputs_why"]
     assert len(summary["cluster"]["chunks_per_node"]) == 2  # both nodes mapped chunks
+
+
+def test_replicated_inputs_are_read_at_the_same_path(cluster):
+    """A node with its own copy of the inputs at the driver's paths (replicated data, not shared) reads them there."""
+    cluster.stop(cluster.node)
+    cluster.node = cluster.start_node(replicated=cluster.data)
+    summary, _ = _finish(_driver(cluster, cluster.stores / "replicated"))
+    _assert_same_bytes(cluster.stores / "local", cluster.stores / "replicated")
+    assert summary["cluster"]["inputs"] == "same path" and len(summary["cluster"]["chunks_per_node"]) == 2
+
+
+@pytest.mark.parametrize("version, said", [
+    ("0.0.9", rf"node .* has evsemmap_warp 0\.0\.9, the driver {evsemmap_warp.__version__}: install the same version"),
+    (None, rf"node .* cannot run this project's tasks \(.*\): install evsemmap_warp {evsemmap_warp.__version__}, the driver's"),
+])
+def test_a_node_with_another_version_or_none_is_refused_at_the_start_naming_it(cluster, tmp_path, version, said):
+    """A third node sees, at the project's path, its code under another version number (its __init__.py bound over),
+    or an empty folder."""
+    package = Path(evsemmap_warp.__file__).parent
+    if version:
+        (tmp_path / "init.py").write_text((package / "__init__.py").read_text() + f"\n__version__ = {version!r}\n")
+    third = cluster.start_node(installed={package / "__init__.py": tmp_path / "init.py"} if version else {package: None})
+    out = cluster.stores / f"refused_{version}"
+    try:
+        line = _failure(_driver(cluster, out))
+    finally:
+        cluster.stop(third)
+    assert re.search(said, line), line
+    assert not list(out.rglob("chunk_*"))  # refused before any chunk
+
+
+def test_a_killed_driver_s_rerun_resumes_into_the_local_pools_store(cluster):
+    out = cluster.stores / "driver_killed"
+    driver = _driver(cluster, out)
+    _wait_for_a_chunk(driver, out)
+    driver.send_signal(signal.SIGKILL)
+    driver.wait(timeout=30)
+    summary, _ = _finish(_driver(cluster, out))
+    assert summary["chunks_resumed"] >= 1
+    _assert_same_bytes(cluster.stores / "local", out)
 
 
 def test_a_node_stopped_mid_run_costs_its_chunks_a_retry_and_nothing_else(cluster):
     out = cluster.stores / "node_stopped"
     driver = _driver(cluster, out)
-    deadline = time.monotonic() + RUN_TIMEOUT_S
-    while not list((out / "work").glob("chunk_*")):  # the first chunk is in: the second node holds others
-        assert driver.poll() is None and time.monotonic() < deadline, driver.communicate()
-        time.sleep(0.05)
-    cluster.stop_node()
+    _wait_for_a_chunk(driver, out)  # the second node holds a chunk now
+    cluster.stop(cluster.node)
     summary, err = _finish(driver)
     _assert_same_bytes(cluster.stores / "local", out)
     assert "will be retried" in err  # Ray's own notice (on stderr: stdout carries the summary alone) of the lost node's task
     assert sum(summary["cluster"]["chunks_per_node"].values()) == summary["chunks"]
+
+
+def test_a_lost_head_is_one_line_and_keeps_the_chunks_mapped(cluster):
+    """The last test of the module: the cluster is gone after it."""
+    out = cluster.stores / "head_lost"
+    driver = _driver(cluster, out)
+    _wait_for_a_chunk(driver, out)
+    cluster.stop(cluster.head)
+    line = _failure(driver)
+    assert "lost the connection to the Ray cluster" in line and "rerun resumes" in line, line
+    assert list((out / "work").glob("chunk_*"))
+
+
+def test_an_input_gone_from_a_node_that_had_it_is_one_line_naming_the_node_and_the_file(tmp_path):
+    """The probe found the inputs at the same path on every node; a node that lacks one later (here: the file deleted
+    after the first chunk, on a local instance) stops the run naming the node and the file, not Ray's traceback."""
+    generate_sequence(load_preset("tiny"), tmp_path / "drive", progress=False)
+    gone = sorted((tmp_path / "drive").rglob("*.bin"))[-1]
+
+    def delete_once(name, voxels):
+        gone.unlink(missing_ok=True)
+
+    with pytest.raises(ray_executor.ClusterError, match=rf"node .* does not see the input file {gone}, which the probe"):
+        run_batch([str(tmp_path / "drive")], BatchOptions(method="ebs", out=tmp_path / "store", executor="ray", workers=1,
+                                                          chunk_frames=1, progress=False), log=lambda m: None, on_tile=delete_once)
+
+
+def test_a_full_object_store_is_one_line_saying_what_to_change():
+    """Ray's ObjectStoreFullError, from the driver's put (scans sent) or a task's result, as one line."""
+    executor = object.__new__(ray_executor.RayExecutor)
+
+    class FullRay:
+        exceptions = ray.exceptions
+
+        @staticmethod
+        def put(value):
+            raise ray.exceptions.ObjectStoreFullError("Failed to put object ffff in object store because it is full. Object size is 9 MB.")
+
+        get = put
+
+    executor.ray = FullRay
+    for call in (executor._put, executor._receive):
+        with pytest.raises(ray_executor.ClusterError, match=r"^Ray's object store is full \(ObjectStoreFullError: Failed to put object "
+                                                            r"ffff in object store because it is full\): .* fewer --workers"):
+            call(None)

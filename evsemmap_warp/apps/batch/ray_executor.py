@@ -31,6 +31,10 @@ from .planning import CHUNK_TIMEOUT_S, RAY_CONNECT_TIMEOUT_S
 from .store import chunk_dir
 from .worker import Context, handoff_recorder, init_worker, reset_tasks_started
 
+# While waiting for chunks, the driver asks the head every HEAD_CHECK_S whether it still answers, and stops in one line
+# when it has not for HEAD_SILENT_S (Ray itself ends the driver after 60 s, without a line of ours).
+HEAD_CHECK_S = 2.0
+HEAD_SILENT_S = 10.0
 SAME_PATH = "same path"  # the inputs' modes (RayExecutor.cluster["inputs"])
 FROM_DRIVER = "from the driver"
 
@@ -204,6 +208,7 @@ class RayExecutor:
         if self.started:  # Ray prints a task's retry (a node lost) on stdout, which carries the run's summary alone
             self._stdout, sys.stdout = sys.stdout, sys.stderr
         self.workers = workers or int(ray.cluster_resources().get("CPU", 1))
+        self.gcs_address = ray.get_runtime_context().gcs_address  # the head, which run() checks still answers
         self._task = ray.remote(num_cpus=1, max_retries=3)(_ray_task)
         self.context_ref = None
 
@@ -243,6 +248,8 @@ class RayExecutor:
         for ref in ready:
             try:
                 answer = self.ray.get(ref)
+            except (self.ray.exceptions.TaskUnschedulableError, self.ray.exceptions.NodeDiedError):
+                continue  # a node that died since Ray listed it as alive: no task goes there
             except self.ray.exceptions.RayError as exc:
                 cause = getattr(exc, "cause", None) or exc
                 raise ClusterError(f"node {_describe(refs[ref])} cannot run this project's tasks ({_first_line(cause)}): install "
@@ -258,6 +265,8 @@ class RayExecutor:
             return self.ray.put(value)
         except (self.ray.exceptions.ObjectStoreFullError, self.ray.exceptions.OutOfDiskError) as exc:
             raise _object_store_full(exc) from None
+        except OSError as exc:
+            raise _connection_lost(exc) from None
 
     def run(self, fn, items: list, on_done) -> None:
         """``fn(*item)`` for every item as Ray tasks (``fn``: map_chunk; each item a chunk, whose files the task returns
@@ -280,7 +289,7 @@ class RayExecutor:
 
         submit()
         while flight:
-            finished, _ = self.ray.wait(list(flight), num_returns=1, timeout=self.chunk_timeout_s)
+            finished = self._wait(list(flight))
             if not finished:
                 for ref in flight:
                     self.ray.cancel(ref, force=True)
@@ -289,6 +298,25 @@ class RayExecutor:
             submit()
             for item, result in results:
                 on_done(item, result)
+
+    def _wait(self, refs: list) -> list:
+        """The first of ``refs`` to finish (ray.wait), or none after the chunk timeout. Asked in short waits, between
+        which the head must answer: Ray ends a driver whose head has gone after a minute, from its C++ core, with a
+        message of its own and exit code 1, which no Python code can turn into the run's one line."""
+        deadline, silent_since = time.monotonic() + self.chunk_timeout_s, None
+        while True:
+            try:
+                finished, _ = self.ray.wait(refs, num_returns=1, timeout=max(0.0, min(HEAD_CHECK_S, deadline - time.monotonic())))
+            except OSError as exc:  # Ray's calls fail so ("Broken pipe") once this machine's Ray node is gone
+                raise _connection_lost(exc) from None
+            if finished or time.monotonic() >= deadline:
+                return finished
+            if _answers(self.gcs_address):
+                silent_since = None
+            elif silent_since is None:
+                silent_since = time.monotonic()
+            elif time.monotonic() - silent_since > HEAD_SILENT_S:
+                raise _connection_lost(ConnectionError(f"the head at {self.gcs_address} has not answered for {HEAD_SILENT_S:g} s"))
 
     def _sent(self, chunk):
         """The chunk's scans in the object store, read here, when the nodes do not see the inputs; else None."""
@@ -309,9 +337,11 @@ class RayExecutor:
             raise ClusterError(f"a task failed on node {exc.ip}: {_first_line(exc.cause or exc)}") from None
         except (self.ray.exceptions.ObjectStoreFullError, self.ray.exceptions.OutOfDiskError) as exc:
             raise _object_store_full(exc) from None
-        except self.ray.exceptions.RayError as exc:  # the retries spent (nodes lost), the driver's connection lost
+        except self.ray.exceptions.RayError as exc:  # the retries spent (nodes lost)
             raise ClusterError(f"Ray could not finish a task ({_first_line(exc)}); the chunks mapped so far are kept, and a rerun "
                                f"resumes from them") from None
+        except OSError as exc:
+            raise _connection_lost(exc) from None
         write_chunk_files(self.context.store, result["number"], result.pop("files"))
         self.cluster["chunks_per_node"][result["node"]] += 1
         return result
@@ -350,8 +380,24 @@ def _describe(node: dict) -> str:
 
 
 def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return f"{type(exc).__name__}: {text[0] if text else ''}"
+    """``exc`` as its type and first sentence: Ray's messages run on for lines (a worker's sys.path, advice)."""
+    lines = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {lines[0].split('. ')[0] if lines else ''}"
+
+
+def _answers(address: str) -> bool:
+    """Whether ``address`` (host:port) accepts a connection within HEAD_CHECK_S."""
+    host, _, port = address.rpartition(":")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=HEAD_CHECK_S).close()
+    except OSError:
+        return False
+    return True
+
+
+def _connection_lost(exc: OSError) -> ClusterError:
+    return ClusterError(f"lost the connection to the Ray cluster ({_first_line(exc)}): its head, or this machine's Ray node, stopped; "
+                        f"the chunks mapped so far are kept, and a rerun resumes from them once the cluster is back")
 
 
 def _object_store_full(exc: BaseException) -> ClusterError:
