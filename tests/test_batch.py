@@ -168,7 +168,7 @@ def test_ray_keeps_at_most_workers_tasks_running_on_an_instance_it_joins(own_ins
         def get(ref):
             return ref * 10
 
-    executor.ray, executor._task, executor.context_ref = FakeRay, FakeTask, None
+    executor.ray, executor._task, executor.context_box = FakeRay, FakeTask, None
     executor.workers, executor.own_instance, executor.inputs = 2, own_instance, ray_executor.SAME_PATH
     executor._receive = FakeRay.get
     done, in_flight_while_folding = {}, []

@@ -85,11 +85,17 @@ def read_scans(source, chunk) -> SentScans:
                      source.class_names, source.frame)
 
 
+def scratch_name(store) -> str:
+    """The name of the folder, in each node's temporary folder, where the tasks of a run into ``store`` map their
+    chunks: one per driver machine and store path (two drivers' runs never share one), the same for every worker
+    process of a node (the tests' fault plan marks a killed attempt there)."""
+    digest = hashlib.sha256(f"{socket.gethostname()}:{Path(store).resolve()}".encode()).hexdigest()[:16]
+    return f"evsemmap-batch-{digest}"
+
+
 def node_scratch(store) -> Path:
-    """The folder a node's tasks map their chunks into for the store ``store`` (the driver's path, as a name):
-    in the node's temporary folder, one per store, so that the tests' fault plan marks a killed attempt there."""
-    digest = hashlib.sha256(str(Path(store).resolve()).encode()).hexdigest()[:16]
-    return Path(tempfile.gettempdir()) / f"evsemmap-batch-{digest}"
+    """That folder (scratch_name) on this machine."""
+    return Path(tempfile.gettempdir()) / scratch_name(store)
 
 
 def _node_name() -> str:
@@ -112,8 +118,8 @@ _RAY_CONTEXTS: dict = {}  # object id -> the context with the node's scratch fol
 def _ray_task(fn, threads: int, context_box: list, submitted: float, sent: SentScans | None, chunk):
     """A Ray task: ``fn`` (map_chunk) maps ``chunk`` into the node's scratch folder; returns its result with the
     chunk's files (``files``: name -> bytes) and the node (``node``). ``sent``: the chunk's scans, when the driver
-    sends them. The context (put once by the driver) comes boxed in a list, so Ray does not fetch and unpickle it
-    for every task: each worker process fetches it once (unboxed, unpickling the sources for every task made short
+    sends them. The context (put once by the driver) comes boxed in a list with the scratch folder's name
+    (scratch_name), so Ray does not fetch and unpickle it for every task: each worker process fetches it once (unboxed, unpickling the sources for every task made short
     tasks several times slower, docs/performance.md). ``submitted``: when the driver submitted it (time.time()),
     for the hand-off costs (handoff_recorder)."""
     import ray
@@ -124,8 +130,7 @@ def _ray_task(fn, threads: int, context_box: list, submitted: float, sent: SentS
     handoff = handoff_recorder(submitted)  # before fetching the context: a worker's start includes it
     if key not in _RAY_CONTEXTS:
         _RAY_CONTEXTS.clear()
-        context = ray.get(context_box[0])
-        _RAY_CONTEXTS[key] = replace(context, store=node_scratch(context.store))
+        _RAY_CONTEXTS[key] = replace(ray.get(context_box[0]), store=Path(tempfile.gettempdir()) / context_box[1])
         init_worker(_RAY_CONTEXTS[key], threads)
     context = _RAY_CONTEXTS[key]
     if sent is not None:
@@ -229,6 +234,7 @@ class RayExecutor:
         self.log(f"inputs: {self.inputs} ({why})")
         self.cluster = {"nodes": len(nodes), "inputs": self.inputs, "inputs_why": why, "chunks_per_node": Counter()}
         self.context_ref = self._put(context)
+        self.context_box = [self.context_ref, scratch_name(context.store)]
         return self
 
     def _probe(self, inputs: dict) -> list[dict]:
@@ -285,7 +291,7 @@ class RayExecutor:
         def submit():
             while queue and len(flight) < most_in_flight:
                 item = queue.pop(0)
-                flight[self._task.remote(fn, threads, [self.context_ref], time.time(), self._sent(item[0]), *item)] = item
+                flight[self._task.remote(fn, threads, self.context_box, time.time(), self._sent(item[0]), *item)] = item
 
         submit()
         while flight:
