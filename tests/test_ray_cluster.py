@@ -17,6 +17,7 @@ import pytest
 from ray_cluster import TwoNodeCluster, mount_namespaces_refused
 from test_batch import _assert_same_bytes, _batch
 import evsemmap_warp
+import evsemmap_warp.files
 from evsemmap_warp.apps.batch import BatchOptions, ray_executor, run_batch
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence
@@ -174,3 +175,23 @@ def test_a_full_object_store_is_one_line_saying_what_to_change():
         with pytest.raises(ray_executor.ClusterError, match=r"^Ray's object store is full \(ObjectStoreFullError: Failed to put object "
                                                             r"ffff in object store because it is full\): .* fewer --workers"):
             call(None)
+
+
+def test_inputs_are_read_at_the_same_path_only_where_every_node_holds_the_same_content(tmp_path):
+    """A stale copy at the driver's path (other content) counts as no copy: the driver sends the scans."""
+    (tmp_path / "drive").mkdir()
+    (tmp_path / "drive" / "000000.bin").write_bytes(b"scan")
+    plan = {"inputs": [[evsemmap_warp.files.content_identity(tmp_path / "drive"), {"path": str(tmp_path / "preset.yaml")}]],
+            "payload": {"checkpoint": None, "alpha": None, "bin_frames": None}}
+    inputs = ray_executor.probed_inputs(plan)
+    assert list(inputs) == [str(tmp_path / "drive")]  # the configs are the driver's to read
+    executor = object.__new__(ray_executor.RayExecutor)
+    executor.own_instance = False
+    same = {"node": "a", "inputs": {str(tmp_path / "drive"): evsemmap_warp.files.content_identity(tmp_path / "drive")}}
+    executor._probe = lambda probed: [same, same | {"node": "b"}]
+    assert executor._choose_inputs(inputs)[:2] == (2, "same path")
+    (tmp_path / "drive" / "000000.bin").write_bytes(b"another scan")
+    stale = {"node": "b", "inputs": {str(tmp_path / "drive"): evsemmap_warp.files.content_identity(tmp_path / "drive")}}
+    executor._probe = lambda probed: [same, stale]
+    assert executor._choose_inputs(inputs) == (2, "from the driver", f"node b sees other content at {tmp_path / 'drive'}: the driver "
+                                                                      f"reads and sends each chunk's scans")

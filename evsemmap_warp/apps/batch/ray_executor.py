@@ -218,24 +218,29 @@ class RayExecutor:
         self.context_ref = None
 
     def attach(self, context: Context, identity: dict) -> "RayExecutor":
-        """Probe every node (``identity``: the run's plan, whose inputs a node must see to read them at the same
-        path), then put the run's context in Ray's object store, once for all tasks."""
+        """Choose how the inputs reach the workers (``identity``: the run's plan, which records the inputs' content),
+        then put the run's context in Ray's object store, once for all tasks."""
         self.context, self.read_seconds = context, 0.0
-        inputs = probed_inputs(identity)
-        nodes = self._probe(inputs)
-        missing = [(node, path) for node in nodes for path, entry in inputs.items() if not _same_content(node["inputs"][path], entry)]
-        self.inputs = FROM_DRIVER if missing else SAME_PATH
-        if missing:
-            (node, path), more = missing[0], len(missing) - 1
-            seen = "sees other content at" if "sha256" in node["inputs"][path] else "does not see"
-            why = f"node {node['node']} {seen} {path}" + (f" ({more} more such)" if more else "") + ": the driver reads and sends each chunk's scans"
-        else:
-            why = f"every node ({len(nodes)}) sees the inputs at the driver's paths, with the same content"
+        nodes, self.inputs, why = self._choose_inputs(probed_inputs(identity))
         self.log(f"inputs: {self.inputs} ({why})")
-        self.cluster = {"nodes": len(nodes), "inputs": self.inputs, "inputs_why": why, "chunks_per_node": Counter()}
+        self.cluster = {"nodes": nodes, "inputs": self.inputs, "inputs_why": why, "chunks_per_node": Counter()}
         self.context_ref = self._put(context)
         self.context_box = [self.context_ref, scratch_name(context.store)]
         return self
+
+    def _choose_inputs(self, inputs: dict) -> tuple[int, str, str]:
+        """The nodes, how the inputs reach their workers (SAME_PATH or FROM_DRIVER) and why: at the same path when
+        every node sees ``inputs`` (path -> the plan's content identity) there with the same content (probe_node)."""
+        if self.own_instance:  # its one node is this machine, in this process's view of the files: nothing to probe
+            return 1, SAME_PATH, "a local Ray instance, started by this run: this machine's files"
+        nodes = self._probe(inputs)
+        missing = [(node, path) for node in nodes for path, entry in inputs.items() if not _same_content(node["inputs"][path], entry)]
+        if not missing:
+            return len(nodes), SAME_PATH, f"every node ({len(nodes)}) sees the inputs at the driver's paths, with the same content"
+        (node, path), more = missing[0], len(missing) - 1
+        seen = "sees other content at" if "sha256" in node["inputs"][path] else "does not see"
+        return len(nodes), FROM_DRIVER, (f"node {node['node']} {seen} {path}" + (f" ({more} more such)" if more else "")
+                                         + ": the driver reads and sends each chunk's scans")
 
     def _probe(self, inputs: dict) -> list[dict]:
         """probe_node's answer from every node with CPUs; a node that cannot import this project, has another
