@@ -119,9 +119,9 @@ def _ray_task(fn, threads: int, context_box: list, submitted: float, sent: SentS
     """A Ray task: ``fn`` (map_chunk) maps ``chunk`` into the node's scratch folder; returns its result with the
     chunk's files (``files``: name -> bytes) and the node (``node``). ``sent``: the chunk's scans, when the driver
     sends them. The context (put once by the driver) comes boxed in a list with the scratch folder's name
-    (scratch_name), so Ray does not fetch and unpickle it for every task: each worker process fetches it once (unboxed, unpickling the sources for every task made short
-    tasks several times slower, docs/performance.md). ``submitted``: when the driver submitted it (time.time()),
-    for the hand-off costs (handoff_recorder)."""
+    (scratch_name), so Ray does not fetch and unpickle it for every task: each worker process fetches it once
+    (unboxed, unpickling the sources for every task made short tasks several times slower, docs/performance.md).
+    ``submitted``: when the driver submitted it (time.time()), for the hand-off costs (handoff_recorder)."""
     import ray
 
     key = context_box[0].hex()
@@ -209,13 +209,13 @@ class RayExecutor:
                 # the first tasks instead of using those (0.5 s more before the first chunk ran).
                 with _environment(env):
                     ray.init(num_cpus=workers or os.cpu_count(), **options)
-        self._stdout = None
-        if self.started:  # Ray prints a task's retry (a node lost) on stdout, which carries the run's summary alone
-            self._stdout, sys.stdout = sys.stdout, sys.stderr
         self.workers = workers or int(ray.cluster_resources().get("CPU", 1))
         self.gcs_address = ray.get_runtime_context().gcs_address  # the head, which run() checks still answers
         self._task = ray.remote(num_cpus=1, max_retries=3)(_ray_task)
-        self.context_ref = None
+        self.context_box = None  # attach's: the context's object reference and the scratch folder's name
+        self._stdout = None
+        if self.started:  # Ray prints a task's retry (a node lost) on stdout, which carries the run's summary alone
+            self._stdout, sys.stdout = sys.stdout, sys.stderr
 
     def attach(self, context: Context, identity: dict) -> "RayExecutor":
         """Choose how the inputs reach the workers (``identity``: the run's plan, which records the inputs' content),
@@ -224,8 +224,7 @@ class RayExecutor:
         nodes, self.inputs, why = self._choose_inputs(probed_inputs(identity))
         self.log(f"inputs: {self.inputs} ({why})")
         self.cluster = {"nodes": nodes, "inputs": self.inputs, "inputs_why": why, "chunks_per_node": Counter()}
-        self.context_ref = self._put(context)
-        self.context_box = [self.context_ref, scratch_name(context.store)]
+        self.context_box = [self._put(context), scratch_name(context.store)]
         return self
 
     def _choose_inputs(self, inputs: dict) -> tuple[int, str, str]:
