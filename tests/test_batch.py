@@ -108,6 +108,7 @@ def test_the_ray_executor_on_a_local_instance_it_starts_and_stops(drive, tmp_pat
     assert summary["executor"] == "ray" and summary["workers"] == 2
     assert not ray.is_initialized()  # the instance it started is gone
     _assert_same_bytes(tmp_path / "inline", tmp_path / "ray")
+    assert not ray_executor.node_scratch(tmp_path / "ray").exists()  # where its tasks mapped, gone with them
 
 
 def test_ray_workers_start_with_their_share_of_the_math_threads(monkeypatch):
