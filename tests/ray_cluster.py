@@ -93,6 +93,21 @@ class TwoNodeCluster:
         return self._start(["--address", self.address], " && ".join(mounts))
 
     @staticmethod
+    def runs_a_task(node) -> bool:
+        """Whether a worker of ``node`` (a child of its raylet, which is in the node's process group; workers have
+        groups of their own) runs a batch task now: Ray titles a worker ``ray::FUNCTION`` while it runs one."""
+        for entry in Path("/proc").iterdir():
+            try:
+                if not entry.name.isdigit() or not (entry / "cmdline").read_bytes().startswith(b"ray::_ray_task"):
+                    continue
+                parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+                if os.getpgid(parent) == node.pid:
+                    return True
+            except (OSError, ValueError, IndexError):  # a process that ended meanwhile
+                continue
+        return False
+
+    @staticmethod
     def stop(process) -> None:
         """A node gone at once (SIGKILL to its raylet, agents and workers), as a machine that fails. SIGKILL: a node
         told to stop (SIGTERM) drains for up to 30 s first, and these nodes hold nothing to keep."""

@@ -15,7 +15,6 @@ from pathlib import Path
 import pytest
 
 from ray_cluster import TwoNodeCluster, mount_namespaces_refused
-from test_batch import _assert_same_bytes, _batch
 import evsemmap_warp
 import evsemmap_warp.files
 from evsemmap_warp.apps.batch import BatchOptions, ray_executor, run_batch
@@ -38,16 +37,29 @@ def cluster(tmp_path_factory):
     if refused:
         pytest.skip(refused)
     generate_sequence(load_preset("tiny"), data / "drive", progress=False)
-    _batch([data / "drive"], stores / "local", executor="local", workers=2, chunk_frames=1)
+    run_batch([str(data / "drive")], BatchOptions(method="ebs", out=stores / "local", workers=2, chunk_frames=1, progress=False),
+              log=lambda m: None)
     cluster = TwoNodeCluster([data, stores])
     cluster.data, cluster.stores = data, stores
     yield cluster
     cluster.close()
 
 
-def _driver(cluster, out) -> subprocess.Popen:
-    command = [sys.executable, "-m", "evsemmap_warp", "batch", str(cluster.data / "drive"), "--method", "ebs", "--out", str(out),
-               "--executor", "ray", "--ray-address", cluster.address, "--workers", "2", "--chunk-frames", "1", "--quiet"]
+def _assert_same_bytes(a: Path, b: Path) -> None:
+    """Stores ``a`` and ``b`` hold the same files, byte for byte."""
+    def read(store):
+        return {str(p.relative_to(store)): p.read_bytes() for p in sorted(store.rglob("*")) if p.is_file()}
+
+    files_a, files_b = read(a), read(b)
+    assert sorted(files_a) == sorted(files_b)
+    assert [name for name in files_a if files_a[name] != files_b[name]] == []
+
+
+def _driver(cluster, out, drive=None, chunk_frames=1) -> subprocess.Popen:
+    """``evsemmap batch`` of ``drive`` (default: the tiny drive) on the cluster, two workers."""
+    command = [sys.executable, "-m", "evsemmap_warp", "batch", str(drive or cluster.data / "drive"), "--method", "ebs", "--out", str(out),
+               "--executor", "ray", "--ray-address", cluster.address, "--workers", "2", "--quiet"]
+    command += ["--chunk-frames", str(chunk_frames)] if chunk_frames else []
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ | cluster.env)
 
 
@@ -122,12 +134,21 @@ def test_a_killed_driver_s_rerun_resumes_into_the_local_pools_store(cluster):
 
 
 def test_a_node_stopped_mid_run_costs_its_chunks_a_retry_and_nothing_else(cluster):
+    """Stopped while it runs a chunk: the ``default`` drive (15 chunks of about half a second), whose tasks last long
+    enough to see one running on the second node."""
+    generate_sequence(load_preset("default"), cluster.data / "default", progress=False)
+    run_batch([str(cluster.data / "default")], BatchOptions(method="ebs", out=cluster.stores / "default_local", workers=2,
+                                                            progress=False), log=lambda m: None)
     out = cluster.stores / "node_stopped"
-    driver = _driver(cluster, out)
-    _wait_for_a_chunk(driver, out)  # the second node holds a chunk now
+    driver = _driver(cluster, out, cluster.data / "default", chunk_frames=None)
+    _wait_for_a_chunk(driver, out)
+    deadline = time.monotonic() + RUN_TIMEOUT_S
+    while not cluster.runs_a_task(cluster.node):
+        assert driver.poll() is None and time.monotonic() < deadline, "the second node ran no chunk after the first"
+        time.sleep(0.05)
     cluster.stop(cluster.node)
     summary, err = _finish(driver)
-    _assert_same_bytes(cluster.stores / "local", out)
+    _assert_same_bytes(cluster.stores / "default_local", out)
     assert "will be retried" in err  # Ray's own notice (on stderr: stdout carries the summary alone) of the lost node's task
     assert sum(summary["cluster"]["chunks_per_node"].values()) == summary["chunks"]
 
