@@ -5,6 +5,7 @@ configurations stop before any work."""
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -107,6 +108,7 @@ def test_the_ray_executor_on_a_local_instance_it_starts_and_stops(drive, tmp_pat
     assert summary["executor"] == "ray" and summary["workers"] == 2
     assert not ray.is_initialized()  # the instance it started is gone
     _assert_same_bytes(tmp_path / "inline", tmp_path / "ray")
+    assert not ray_executor.node_scratch(tmp_path / "ray").exists()  # where its tasks mapped, gone with them
 
 
 def test_ray_workers_start_with_their_share_of_the_math_threads(monkeypatch):
@@ -152,7 +154,7 @@ def test_ray_keeps_at_most_workers_tasks_running_on_an_instance_it_joins(own_ins
 
     class FakeTask:
         @staticmethod
-        def remote(fn, threads, context, submitted, item):
+        def remote(fn, threads, context, submitted, sent, item):
             in_flight.append(item)
             return item
 
@@ -167,8 +169,9 @@ def test_ray_keeps_at_most_workers_tasks_running_on_an_instance_it_joins(own_ins
         def get(ref):
             return ref * 10
 
-    executor.ray, executor._task, executor.context_ref = FakeRay, FakeTask, None
-    executor.workers, executor.own_instance = 2, own_instance
+    executor.ray, executor._task, executor.context_box = FakeRay, FakeTask, None
+    executor.workers, executor.own_instance, executor.inputs = 2, own_instance, ray_executor.SAME_PATH
+    executor._receive = FakeRay.get
     done, in_flight_while_folding = {}, []
 
     def fold(item, result):  # the driver's fold: a finished task's successor already runs meanwhile
@@ -206,7 +209,11 @@ def test_a_worker_killed_in_the_middle_of_a_chunk_changes_nothing(drive, tmp_pat
     _batch([drive], tmp_path / "clean", executor="inline", chunk_frames=2)
     # the fault plan travels in the workers' Context (no environment variable): the pool's and Ray's workers
     _batch([drive], tmp_path / "killed", executor=executor, workers=2, chunk_frames=2, fault=batch.FaultPlan(kill_chunk=1))
-    assert (tmp_path / "killed" / "work" / ".fault-1").exists()  # the worker did die once
+    # the worker did die once (Ray's tasks map in their node's scratch folder, the pool's in the store)
+    marked = (ray_executor.node_scratch(tmp_path / "killed") if executor == "ray" else tmp_path / "killed") / "work" / ".fault-1"
+    assert marked.exists()
+    if executor == "ray":
+        shutil.rmtree(ray_executor.node_scratch(tmp_path / "killed"))
     assert not list((tmp_path / "killed" / "work").glob(".chunk_*"))  # and left nothing behind
     _assert_same_bytes(tmp_path / "clean", tmp_path / "killed")
 
@@ -220,6 +227,7 @@ def test_a_stuck_worker_stops_the_run_in_one_line_and_the_rerun_resumes(drive, t
         _batch([drive], tmp_path / "stuck", executor=executor, workers=1, chunk_frames=2, chunk_timeout_s=4,
                fault=batch.FaultPlan(kill_chunk=-1, hang_chunk=1))
     assert time.monotonic() - started < 60  # not the hour the stuck worker sleeps
+    shutil.rmtree(ray_executor.node_scratch(tmp_path / "stuck"), ignore_errors=True)  # Ray's tasks keep the fault plan's folder
     _batch([drive], tmp_path / "stuck", executor="inline", chunk_frames=2)  # resumes: the same store as a clean run
     _batch([drive], tmp_path / "clean", executor="inline", chunk_frames=2)
     _assert_same_bytes(tmp_path / "clean", tmp_path / "stuck")

@@ -1,17 +1,48 @@
 """The Ray executor: a batch's tasks on a local Ray instance it starts and stops, or on a running instance or
-cluster it joins by address."""
+cluster it joins by address.
+
+The nodes need not share files with the driver. A task maps its chunk into a scratch folder of its node
+(map_chunk, as everywhere) and returns the chunk's files, encoded as the store encodes them, through Ray's
+object store; the driver alone writes them into the store's ``work/`` (then folds them as the other executors'
+chunks), so resuming and the streaming reduction are the same. The inputs reach the workers at the same path
+(a shared or replicated folder) when a probe at the start finds them, by content, on every node; otherwise the
+driver reads each chunk's scans and sends them through the object store. The probe also refuses a node that
+cannot import this project or has another version of it."""
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
+import shutil
 import socket
+import sys
+import tempfile
 import time
+from collections import Counter
+from dataclasses import dataclass, replace
+from pathlib import Path
 
+from ... import __version__, files
 from ...config import ConfigError
+from ...frames import WorldFrame
 from .executors import MATH_THREAD_VARIABLES, stuck_error
 from .planning import CHUNK_TIMEOUT_S, RAY_CONNECT_TIMEOUT_S
+from .store import chunk_dir
 from .worker import Context, handoff_recorder, init_worker, reset_tasks_started
+
+# While waiting for chunks, the driver asks the head every HEAD_CHECK_S whether it still answers, and stops in one line
+# when it has not for HEAD_SILENT_S (Ray itself ends the driver after 60 s, without a line of ours).
+HEAD_CHECK_S = 2.0
+HEAD_SILENT_S = 10.0
+SAME_PATH = "same path"  # the inputs' modes (RayExecutor.cluster["inputs"])
+FROM_DRIVER = "from the driver"
+
+
+class ClusterError(OSError):
+    """The cluster cannot run the batch (a node without the project or with another version of it, without the
+    inputs it was found to have, out of object store memory, gone with the driver's connection): one line naming
+    the node and what to do. An OSError, as a missing file: the command line reports it in one line."""
 
 
 @contextlib.contextmanager
@@ -29,14 +60,68 @@ def _environment(values: dict):
                 os.environ[name] = value
 
 
-_RAY_CONTEXTS: dict = {}  # object id -> context, per Ray worker process
+@dataclass
+class SentScans:
+    """A chunk's scans as the driver read them (``items``, insertions ``start..stop-1`` of its input), with what
+    Mapper.for_dataset needs of the input: the source of a task on a node that does not see the inputs."""
+
+    items: list
+    start: int
+    stop: int
+    num_classes: int
+    class_names: tuple | None
+    frame: WorldFrame | None
+
+    def scans(self, start: int, stop: int):
+        """The scans read for insertions ``start..stop-1`` (the chunk's; no others were sent)."""
+        if (start, stop) != (self.start, self.stop):
+            raise ValueError(f"insertions {start}..{stop - 1} asked of the scans sent for {self.start}..{self.stop - 1}")
+        return iter(self.items)
 
 
-def _ray_task(fn, threads: int, context_box: list, submitted: float, *args):
-    """A Ray task. The context (put once by the driver) comes boxed in a list, so Ray does not fetch
-    and unpickle it for every task: each worker process fetches it once (unboxed, unpickling the
-    sources for every task made short tasks several times slower, docs/performance.md). ``submitted``:
-    when the driver submitted it (time.time()), for the hand-off costs (handoff_recorder)."""
+def read_scans(source, chunk) -> SentScans:
+    """The driver's reading of ``chunk``'s scans from ``source``, to send to a node that does not see the inputs."""
+    return SentScans(list(source.scans(chunk.start, chunk.stop)), chunk.start, chunk.stop, source.num_classes,
+                     source.class_names, source.frame)
+
+
+def scratch_name(store) -> str:
+    """The name of the folder, in each node's temporary folder, where the tasks of a run into ``store`` map their
+    chunks: one per driver machine and store path (two drivers' runs never share one), the same for every worker
+    process of a node (the tests' fault plan marks a killed attempt there)."""
+    digest = hashlib.sha256(f"{socket.gethostname()}:{Path(store).resolve()}".encode()).hexdigest()[:16]
+    return f"evsemmap-batch-{digest}"
+
+
+def node_scratch(store) -> Path:
+    """That folder (scratch_name) on this machine."""
+    return Path(tempfile.gettempdir()) / scratch_name(store)
+
+
+def _node_name() -> str:
+    """This worker's node as the messages and the summary name it: host, address and Ray's node id (nodes on one
+    host share the first two)."""
+    import ray
+
+    return f"{socket.gethostname()} ({ray.util.get_node_ip_address()}, node {ray.get_runtime_context().get_node_id()[:8]})"
+
+
+def probe_node(paths: list[str]) -> dict:
+    """A probe task, run once on every node at the start: this node's name, its version of the project and the
+    content identity (files.content_identity) of each of ``paths`` (the inputs the workers read) as it sees them."""
+    return {"node": _node_name(), "version": __version__, "inputs": {path: files.content_identity(path) for path in paths}}
+
+
+_RAY_CONTEXTS: dict = {}  # object id -> the context with the node's scratch folder as its store, per Ray worker process
+
+
+def _ray_task(fn, threads: int, context_box: list, submitted: float, sent: SentScans | None, chunk):
+    """A Ray task: ``fn`` (map_chunk) maps ``chunk`` into the node's scratch folder; returns its result with the
+    chunk's files (``files``: name -> bytes) and the node (``node``). ``sent``: the chunk's scans, when the driver
+    sends them. The context (put once by the driver) comes boxed in a list with the scratch folder's name
+    (scratch_name), so Ray does not fetch and unpickle it for every task: each worker process fetches it once
+    (unboxed, unpickling the sources for every task made short tasks several times slower, docs/performance.md).
+    ``submitted``: when the driver submitted it (time.time()), for the hand-off costs (handoff_recorder)."""
     import ray
 
     key = context_box[0].hex()
@@ -45,9 +130,44 @@ def _ray_task(fn, threads: int, context_box: list, submitted: float, *args):
     handoff = handoff_recorder(submitted)  # before fetching the context: a worker's start includes it
     if key not in _RAY_CONTEXTS:
         _RAY_CONTEXTS.clear()
-        _RAY_CONTEXTS[key] = ray.get(context_box[0])
+        _RAY_CONTEXTS[key] = replace(ray.get(context_box[0]), store=Path(tempfile.gettempdir()) / context_box[1])
         init_worker(_RAY_CONTEXTS[key], threads)
-    return handoff(fn(*args, context=_RAY_CONTEXTS[key]))
+    context = _RAY_CONTEXTS[key]
+    if sent is not None:
+        context = replace(context, sources=[sent if i == chunk.sequence else s for i, s in enumerate(context.sources)])
+    folder = chunk_dir(context.store, chunk.number)
+    shutil.rmtree(folder, ignore_errors=True)  # never an earlier run's chunk: this attempt maps it
+    (context.store / "work").mkdir(parents=True, exist_ok=True)
+    try:
+        result = fn(chunk, context=context)
+        chunk_files = {path.name: path.read_bytes() for path in sorted(folder.iterdir())}
+    except FileNotFoundError as exc:
+        if sent is not None or exc.filename is None:
+            raise
+        raise ClusterError(f"node {_node_name()} does not see the input file {exc.filename}, which the probe at the start found "
+                           f"at the same path on every node (a node that joined since?): give every node the inputs at the same "
+                           f"path, or rerun (a node without them makes the driver send the scans)") from None
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+        if context.fault is None:  # the scratch folder goes once empty (the tests' fault plan keeps its marks there)
+            for empty in (context.store / "work", context.store):
+                with contextlib.suppress(OSError):  # not empty: another task of the node maps into it
+                    empty.rmdir()
+    return handoff(result | {"files": chunk_files, "node": _node_name()})
+
+
+def write_chunk_files(store: Path, number: int, chunk_files: dict[str, bytes]) -> None:
+    """A chunk's files, as a task returned them, written into the store's ``work/`` as map_chunk writes them: under a
+    temporary folder renamed into place, so the chunk counts all of it or nothing."""
+    temporary = store / "work" / f".chunk_{number:06d}.{os.getpid()}.tmp"
+    shutil.rmtree(temporary, ignore_errors=True)
+    try:
+        for name, data in chunk_files.items():
+            files.write_bytes_atomically(temporary / name, data)
+        os.rename(temporary, chunk_dir(store, number))
+    except OSError as exc:  # a full disk: nothing of the chunk stays
+        shutil.rmtree(temporary, ignore_errors=True)
+        raise files.error_naming(exc, store, f"writing chunk {number}'s partial maps; the mapped chunks are kept, rerun to resume") from None
 
 
 class RayExecutor:
@@ -94,21 +214,83 @@ class RayExecutor:
                 with _environment(env):
                     ray.init(num_cpus=workers or os.cpu_count(), **options)
         self.workers = workers or int(ray.cluster_resources().get("CPU", 1))
+        self.gcs_address = ray.get_runtime_context().gcs_address  # the head, which run() checks still answers
         self._task = ray.remote(num_cpus=1, max_retries=3)(_ray_task)
-        self.context_ref = None
+        self.context_box = None  # attach's: the context's object reference and the scratch folder's name
+        self._stdout = None
+        if self.started:  # Ray prints a task's retry (a node lost) on stdout, which carries the run's summary alone
+            self._stdout, sys.stdout = sys.stdout, sys.stderr
 
-    def attach(self, context: Context) -> "RayExecutor":
-        """Put the run's context in Ray's object store, once for all tasks."""
-        self.context_ref = self.ray.put(context)
+    def attach(self, context: Context, identity: dict) -> "RayExecutor":
+        """Choose how the inputs reach the workers (``identity``: the run's plan, which records the inputs' content),
+        then put the run's context in Ray's object store, once for all tasks."""
+        self.context, self.read_seconds = context, 0.0
+        nodes, self.inputs, why = self._choose_inputs(probed_inputs(identity))
+        self.log(f"inputs: {self.inputs} ({why})")
+        self.cluster = {"nodes": nodes, "inputs": self.inputs, "inputs_why": why, "chunks_per_node": Counter()}
+        self.context_box = [self._put(context), scratch_name(context.store)]
         return self
 
+    def _choose_inputs(self, inputs: dict) -> tuple[int, str, str]:
+        """The nodes, how the inputs reach their workers (SAME_PATH or FROM_DRIVER) and why: at the same path when
+        every node sees ``inputs`` (path -> the plan's content identity) there with the same content (probe_node)."""
+        if self.own_instance:  # its one node is this machine, in this process's view of the files: nothing to probe
+            return 1, SAME_PATH, "a local Ray instance, started by this run: this machine's files"
+        nodes = self._probe(inputs)
+        missing = [(node, path) for node in nodes for path, entry in inputs.items() if not _same_content(node["inputs"][path], entry)]
+        if not missing:
+            return len(nodes), SAME_PATH, f"every node ({len(nodes)}) sees the inputs at the driver's paths, with the same content"
+        (node, path), more = missing[0], len(missing) - 1
+        seen = "sees other content at" if "sha256" in node["inputs"][path] else "does not see"
+        return len(nodes), FROM_DRIVER, (f"node {node['node']} {seen} {path}" + (f" ({more} more such)" if more else "")
+                                         + ": the driver reads and sends each chunk's scans")
+
+    def _probe(self, inputs: dict) -> list[dict]:
+        """probe_node's answer from every node with CPUs; a node that cannot import this project, has another
+        version of it or does not answer within the chunk timeout stops the run (ClusterError)."""
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+        nodes = [n for n in self.ray.nodes() if n.get("Alive") and n.get("Resources", {}).get("CPU", 0) > 0]
+        task = self.ray.remote(num_cpus=0, max_retries=0)(probe_node)
+        refs = {task.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)).remote(list(inputs)): n
+                for n in nodes}
+        ready, late = self.ray.wait(list(refs), num_returns=len(refs), timeout=self.chunk_timeout_s)
+        if late:
+            raise ClusterError(f"node {_describe(refs[late[0]])} did not answer the probe at the start in {self.chunk_timeout_s:g} s "
+                               f"(--chunk-timeout-s): is it overloaded or cut off from the driver?")
+        answers = []
+        for ref in ready:
+            try:
+                answer = self.ray.get(ref)
+            except (self.ray.exceptions.TaskUnschedulableError, self.ray.exceptions.NodeDiedError):
+                continue  # a node that died since Ray listed it as alive: no task goes there
+            except self.ray.exceptions.RayError as exc:
+                cause = getattr(exc, "cause", None) or exc
+                raise ClusterError(f"node {_describe(refs[ref])} cannot run this project's tasks ({_first_line(cause)}): install "
+                                   f"evsemmap_warp {__version__}, the driver's version, on every node") from None
+            if answer["version"] != __version__:
+                raise ClusterError(f"node {answer['node']} has evsemmap_warp {answer['version']}, the driver {__version__}: install "
+                                   f"the same version on every node")
+            answers.append(answer)
+        return answers
+
+    def _put(self, value):
+        try:
+            return self.ray.put(value)
+        except (self.ray.exceptions.ObjectStoreFullError, self.ray.exceptions.OutOfDiskError) as exc:
+            raise _object_store_full(exc) from None
+        except OSError as exc:
+            raise _connection_lost(exc) from None
+
     def run(self, fn, items: list, on_done) -> None:
-        """``fn(*item)`` for every item as Ray tasks; ``on_done(item, result)``. A local instance has as many
+        """``fn(*item)`` for every item as Ray tasks (``fn``: map_chunk; each item a chunk, whose files the task returns
+        and this driver writes, write_chunk_files); ``on_done(item, result)``. A local instance has as many
         CPUs as workers, so two tasks per worker are in flight (the next one waits in Ray, not in this loop);
         on a running instance or a cluster, which may have more CPUs, one per worker, so that ``workers``
         bounds what the run takes of it (two per worker ran a 1-worker run on both CPUs of a 2-CPU instance).
         A finished task's successor is submitted before ``on_done`` folds its result, so that no worker waits for
-        the driver's fold (with one task per worker in flight a worker idled through every fold; docs/performance.md)."""
+        the driver's fold (with one task per worker in flight a worker idled through every fold; docs/performance.md).
+        Ray runs a task again (up to 3 times) when its worker or node dies; its chunk is written only once, here."""
         queue = list(items)
         flight = {}
         threads = max(1, (os.cpu_count() or 1) // self.workers)
@@ -117,19 +299,72 @@ class RayExecutor:
         def submit():
             while queue and len(flight) < most_in_flight:
                 item = queue.pop(0)
-                flight[self._task.remote(fn, threads, [self.context_ref], time.time(), *item)] = item
+                flight[self._task.remote(fn, threads, self.context_box, time.time(), self._sent(item[0]), *item)] = item
 
         submit()
         while flight:
-            finished, _ = self.ray.wait(list(flight), num_returns=1, timeout=self.chunk_timeout_s)
+            finished = self._wait(list(flight))
             if not finished:
                 for ref in flight:
                     self.ray.cancel(ref, force=True)
                 raise stuck_error(self.chunk_timeout_s)
-            results = [(flight.pop(ref), self.ray.get(ref)) for ref in finished]
+            results = [(flight.pop(ref), self._receive(ref)) for ref in finished]
             submit()
             for item, result in results:
                 on_done(item, result)
+
+    def _wait(self, refs: list) -> list:
+        """The first of ``refs`` to finish (ray.wait), or none after the chunk timeout. Asked in short waits, between
+        which the head must answer: Ray ends a driver whose head has gone after a minute, from its C++ core, with a
+        message of its own and exit code 1, which no Python code can turn into the run's one line."""
+        deadline, silent_since = time.monotonic() + self.chunk_timeout_s, None
+        while True:
+            try:
+                finished, _ = self.ray.wait(refs, num_returns=1, timeout=max(0.0, min(HEAD_CHECK_S, deadline - time.monotonic())))
+            except OSError as exc:  # Ray's calls fail so ("Broken pipe") once this machine's Ray node is gone
+                raise _connection_lost(exc) from None
+            if finished or time.monotonic() >= deadline:
+                return finished
+            if _answers(self.gcs_address):
+                silent_since = None
+            elif silent_since is None:
+                silent_since = time.monotonic()
+            elif time.monotonic() - silent_since > HEAD_SILENT_S:
+                raise _connection_lost(ConnectionError(f"the head at {self.gcs_address} has not answered for {HEAD_SILENT_S:g} s"))
+
+    def _sent(self, chunk):
+        """The chunk's scans in the object store, read here, when the nodes do not see the inputs; else None."""
+        if self.inputs == SAME_PATH:
+            return None
+        started = time.perf_counter()
+        scans = read_scans(self.context.sources[chunk.sequence], chunk)
+        self.read_seconds += time.perf_counter() - started
+        return self._put(scans)
+
+    def _receive(self, ref) -> dict:
+        """A finished task's result, its chunk's files written into the store; a task's failure as one line."""
+        try:
+            result = self.ray.get(ref)
+        except self.ray.exceptions.RayTaskError as exc:
+            if isinstance(exc.cause, (ValueError, OSError)):  # bad data, a missing input, a full disk: as the task said it
+                raise exc.cause from None
+            raise ClusterError(f"a task failed on node {exc.ip}: {_first_line(exc.cause or exc)}") from None
+        except (self.ray.exceptions.ObjectStoreFullError, self.ray.exceptions.OutOfDiskError) as exc:
+            raise _object_store_full(exc) from None
+        except self.ray.exceptions.RayError as exc:  # the retries spent (nodes lost)
+            raise ClusterError(f"Ray could not finish a task ({_first_line(exc)}); the chunks mapped so far are kept, and a rerun "
+                               f"resumes from them") from None
+        except OSError as exc:
+            raise _connection_lost(exc) from None
+        write_chunk_files(self.context.store, result["number"], result.pop("files"))
+        self.cluster["chunks_per_node"][result["node"]] += 1
+        return result
+
+    def summary(self) -> dict:
+        """What the run's summary says of the cluster: its nodes, how the inputs reached them and why, the chunks each
+        mapped, and the driver's time reading scans to send."""
+        return self.cluster | {"chunks_per_node": dict(sorted(self.cluster["chunks_per_node"].items())),
+                               "driver_read_s": round(self.read_seconds, 3)}
 
     def close(self) -> None:
         """Shut down the Ray instance this executor started (a cluster given by address is left running); once.
@@ -138,6 +373,50 @@ class RayExecutor:
         if self.started:
             self.started = False
             self.ray.shutdown()
+            sys.stdout = self._stdout
+
+
+def probed_inputs(identity: dict) -> dict:
+    """What a worker reads of the run's inputs (a plan's identity entries that have a path, but not the configs, which
+    the driver alone reads): path -> the driver's content identity of it (files.content_identity)."""
+    payload = [entries for entries in identity["payload"].values() if isinstance(entries, list)]  # checkpoint, alpha files
+    entries = [e for entries in identity["inputs"] + payload for e in entries]
+    return {e["path"]: e for e in entries if "path" in e and Path(e["path"]).suffix not in (".yaml", ".yml")}
+
+
+def _same_content(seen: dict, expected: dict) -> bool:
+    return all(seen.get(k) == expected.get(k) for k in ("files", "bytes", "sha256"))
+
+
+def _describe(node: dict) -> str:
+    """A node of ray.nodes() named as _node_name names it."""
+    return f"{node.get('NodeManagerHostname', '?')} ({node.get('NodeManagerAddress', '?')}, node {node['NodeID'][:8]})"
+
+
+def _first_line(exc: BaseException) -> str:
+    """``exc`` as its type and first sentence: Ray's messages run on for lines (a worker's sys.path, advice)."""
+    lines = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {lines[0].split('. ')[0] if lines else ''}"
+
+
+def _answers(address: str) -> bool:
+    """Whether ``address`` (host:port) accepts a connection within HEAD_CHECK_S."""
+    host, _, port = address.rpartition(":")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=HEAD_CHECK_S).close()
+    except OSError:
+        return False
+    return True
+
+
+def _connection_lost(exc: OSError) -> ClusterError:
+    return ClusterError(f"lost the connection to the Ray cluster ({_first_line(exc)}): its head, or this machine's Ray node, stopped; "
+                        f"the chunks mapped so far are kept, and a rerun resumes from them once the cluster is back")
+
+
+def _object_store_full(exc: BaseException) -> ClusterError:
+    return ClusterError(f"Ray's object store is full ({_first_line(exc)}): the chunks mapped so far are kept; rerun with fewer --workers "
+                        f"or a smaller --chunk-frames, or give the nodes more object store memory (ray start --object-store-memory)")
 
 
 def check_ray_address(address: str, timeout_s: float) -> None:

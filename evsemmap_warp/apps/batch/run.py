@@ -77,7 +77,7 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
     if finished:
         log(f"resuming: {len(finished)} of {len(chunks)} chunks are mapped already")
     if ray_executor is not None:
-        executor = ray_executor.attach(context)
+        executor = ray_executor.attach(context, identity)
     elif options.executor == "inline":
         executor = InlineExecutor(context)
     else:
@@ -105,7 +105,7 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
         "frames_per_second": round(sum(c.frames for c in todo) / times["map"], 2) if todo and times["map"] > 0 else None,
         **_chunk_costs(costs),
         "memory_budget": budget,
-    }
+    } | ({"cluster": ray_executor.summary()} if ray_executor is not None else {})  # its nodes, and how the inputs reached them
 
 
 def _prepare_store(options: BatchOptions, fault, identity: dict, sources: list, config, chunks: list) -> tuple[Context, dict, int]:

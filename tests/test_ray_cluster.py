@@ -1,0 +1,218 @@
+"""Batch on a real Ray cluster of two nodes on the loopback, whose second node shares no files with the driver
+(tests/ray_cluster.py): the store is byte-identical to the local pool's with every node up, with replicated inputs,
+with a node stopped mid-run and after the driver was killed; a node with another version of the project, a lost
+head and a lost input are one line each. The driver is the command line, in a process of its own, as a user runs it."""
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from ray_cluster import TwoNodeCluster, mount_namespaces_refused
+import evsemmap_warp
+import evsemmap_warp.files
+from evsemmap_warp.apps.batch import BatchOptions, ray_executor, run_batch
+from evsemmap_warp.synthetic.preset import load_preset
+from evsemmap_warp.synthetic.writer import generate_sequence
+
+ray = pytest.importorskip("ray")
+RUN_TIMEOUT_S = 300
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    """The cluster, the driver's input folder (the tiny drive in it) and store folder, both hidden from the second
+    node, and the local pool's store of the drive to compare with."""
+    root = tmp_path_factory.mktemp("cluster")
+    data, stores = root / "data", root / "stores"
+    data.mkdir()
+    stores.mkdir()
+    refused = mount_namespaces_refused(data)
+    if refused:
+        pytest.skip(refused)
+    generate_sequence(load_preset("tiny"), data / "drive", progress=False)
+    run_batch([str(data / "drive")], BatchOptions(method="ebs", out=stores / "local", workers=2, chunk_frames=1, progress=False),
+              log=lambda m: None)
+    cluster = TwoNodeCluster([data, stores])
+    cluster.data, cluster.stores = data, stores
+    yield cluster
+    cluster.close()
+
+
+def _assert_same_bytes(a: Path, b: Path) -> None:
+    """Stores ``a`` and ``b`` hold the same files, byte for byte."""
+    def read(store):
+        return {str(p.relative_to(store)): p.read_bytes() for p in sorted(store.rglob("*")) if p.is_file()}
+
+    files_a, files_b = read(a), read(b)
+    assert sorted(files_a) == sorted(files_b)
+    assert [name for name in files_a if files_a[name] != files_b[name]] == []
+
+
+def _driver(cluster, out, drive=None, chunk_frames=1) -> subprocess.Popen:
+    """``evsemmap batch`` of ``drive`` (default: the tiny drive) on the cluster, two workers."""
+    command = [sys.executable, "-m", "evsemmap_warp", "batch", str(drive or cluster.data / "drive"), "--method", "ebs", "--out", str(out),
+               "--executor", "ray", "--ray-address", cluster.address, "--workers", "2", "--quiet"]
+    command += ["--chunk-frames", str(chunk_frames)] if chunk_frames else []
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ | cluster.env)
+
+
+def _finish(driver: subprocess.Popen) -> tuple[dict, str]:
+    out, err = driver.communicate(timeout=RUN_TIMEOUT_S)
+    assert driver.returncode == 0, err
+    return json.loads(out), err
+
+
+def _failure(driver: subprocess.Popen) -> str:
+    """The one line a failed run says (exit 2, no traceback)."""
+    _, err = driver.communicate(timeout=RUN_TIMEOUT_S)
+    lines = [line for line in err.splitlines() if line.startswith("evsemmap: error:")]
+    assert driver.returncode == 2 and len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def _wait_for_a_chunk(driver: subprocess.Popen, out) -> None:
+    """Until the driver has written its first chunk (the others are in flight, or queued)."""
+    deadline = time.monotonic() + RUN_TIMEOUT_S
+    while not list((out / "work").glob("chunk_*")):
+        assert driver.poll() is None and time.monotonic() < deadline, driver.communicate()
+        time.sleep(0.05)
+
+
+def test_a_cluster_whose_second_node_sees_no_files_writes_the_local_pools_store(cluster):
+    summary, _ = _finish(_driver(cluster, cluster.stores / "ray"))
+    _assert_same_bytes(cluster.stores / "local", cluster.stores / "ray")
+    assert summary["cluster"]["nodes"] == 2 and summary["cluster"]["inputs"] == "from the driver"
+    assert "does not see " + str(cluster.data / "drive") in summary["cluster"]["inputs_why"]
+    assert len(summary["cluster"]["chunks_per_node"]) == 2  # both nodes mapped chunks
+
+
+def test_replicated_inputs_are_read_at_the_same_path(cluster):
+    """A node with its own copy of the inputs at the driver's paths (replicated data, not shared) reads them there."""
+    cluster.stop(cluster.node)
+    cluster.node = cluster.start_node(replicated=cluster.data)
+    summary, _ = _finish(_driver(cluster, cluster.stores / "replicated"))
+    _assert_same_bytes(cluster.stores / "local", cluster.stores / "replicated")
+    assert summary["cluster"]["inputs"] == "same path" and len(summary["cluster"]["chunks_per_node"]) == 2
+
+
+@pytest.mark.parametrize("version, said", [
+    ("0.0.9", rf"node .* has evsemmap_warp 0\.0\.9, the driver {evsemmap_warp.__version__}: install the same version"),
+    (None, rf"node .* cannot run this project's tasks \(.*\): install evsemmap_warp {evsemmap_warp.__version__}, the driver's"),
+])
+def test_a_node_with_another_version_or_none_is_refused_at_the_start_naming_it(cluster, tmp_path, version, said):
+    """A third node sees, at the project's path, its code under another version number (its __init__.py bound over),
+    or an empty folder."""
+    package = Path(evsemmap_warp.__file__).parent
+    if version:
+        (tmp_path / "init.py").write_text((package / "__init__.py").read_text() + f"\n__version__ = {version!r}\n")
+    third = cluster.start_node(installed={package / "__init__.py": tmp_path / "init.py"} if version else {package: None})
+    out = cluster.stores / f"refused_{version}"
+    try:
+        line = _failure(_driver(cluster, out))
+    finally:
+        cluster.stop(third)
+    assert re.search(said, line), line
+    assert not list(out.rglob("chunk_*"))  # refused before any chunk
+
+
+def test_a_killed_driver_s_rerun_resumes_into_the_local_pools_store(cluster):
+    out = cluster.stores / "driver_killed"
+    driver = _driver(cluster, out)
+    _wait_for_a_chunk(driver, out)
+    driver.send_signal(signal.SIGKILL)
+    driver.wait(timeout=30)
+    summary, _ = _finish(_driver(cluster, out))
+    assert summary["chunks_resumed"] >= 1
+    _assert_same_bytes(cluster.stores / "local", out)
+
+
+def test_a_node_stopped_mid_run_costs_its_chunks_a_retry_and_nothing_else(cluster):
+    """Stopped while it runs a chunk: the ``default`` drive, LiDAR only (15 chunks of about half a second; rendering
+    its camera took most of a minute), whose tasks last long enough to see one running on the second node."""
+    generate_sequence(load_preset("default"), cluster.data / "default", progress=False, camera=False)
+    run_batch([str(cluster.data / "default")], BatchOptions(method="ebs", out=cluster.stores / "default_local", workers=2,
+                                                            progress=False), log=lambda m: None)
+    out = cluster.stores / "node_stopped"
+    driver = _driver(cluster, out, cluster.data / "default", chunk_frames=None)
+    _wait_for_a_chunk(driver, out)
+    deadline = time.monotonic() + RUN_TIMEOUT_S
+    while not cluster.runs_a_task(cluster.node):
+        assert driver.poll() is None and time.monotonic() < deadline, "the second node ran no chunk after the first"
+        time.sleep(0.05)
+    cluster.stop(cluster.node)
+    summary, err = _finish(driver)
+    _assert_same_bytes(cluster.stores / "default_local", out)
+    assert "will be retried" in err  # Ray's own notice (on stderr: stdout carries the summary alone) of the lost node's task
+    assert sum(summary["cluster"]["chunks_per_node"].values()) == summary["chunks"]
+
+
+def test_a_lost_head_is_one_line_and_keeps_the_chunks_mapped(cluster):
+    """The last test of the module: the cluster is gone after it."""
+    out = cluster.stores / "head_lost"
+    driver = _driver(cluster, out)
+    _wait_for_a_chunk(driver, out)
+    cluster.stop(cluster.head)
+    line = _failure(driver)
+    assert "lost the connection to the Ray cluster" in line and "rerun resumes" in line, line
+    assert list((out / "work").glob("chunk_*"))
+
+
+def test_an_input_gone_from_a_node_that_had_it_is_one_line_naming_the_node_and_the_file(tmp_path):
+    """The probe found the inputs at the same path on every node; a node that lacks one later (here: the file deleted
+    after the first chunk, on a local instance) stops the run naming the node and the file, not Ray's traceback."""
+    generate_sequence(load_preset("tiny"), tmp_path / "drive", progress=False)
+    gone = sorted((tmp_path / "drive").rglob("*.bin"))[-1]
+
+    def delete_once(name, voxels):
+        gone.unlink(missing_ok=True)
+
+    with pytest.raises(ray_executor.ClusterError, match=rf"node .* does not see the input file {gone}, which the probe"):
+        run_batch([str(tmp_path / "drive")], BatchOptions(method="ebs", out=tmp_path / "store", executor="ray", workers=1,
+                                                          chunk_frames=1, progress=False), log=lambda m: None, on_tile=delete_once)
+
+
+def test_a_full_object_store_is_one_line_saying_what_to_change():
+    """Ray's ObjectStoreFullError, from the driver's put (scans sent) or a task's result, as one line."""
+    executor = object.__new__(ray_executor.RayExecutor)
+
+    class FullRay:
+        exceptions = ray.exceptions
+
+        @staticmethod
+        def put(value):
+            raise ray.exceptions.ObjectStoreFullError("Failed to put object ffff in object store because it is full. Object size is 9 MB.")
+
+        get = put
+
+    executor.ray = FullRay
+    for call in (executor._put, executor._receive):
+        with pytest.raises(ray_executor.ClusterError, match=r"^Ray's object store is full \(ObjectStoreFullError: Failed to put object "
+                                                            r"ffff in object store because it is full\): .* fewer --workers"):
+            call(None)
+
+
+def test_inputs_are_read_at_the_same_path_only_where_every_node_holds_the_same_content(tmp_path):
+    """A stale copy at the driver's path (other content) counts as no copy: the driver sends the scans."""
+    (tmp_path / "drive").mkdir()
+    (tmp_path / "drive" / "000000.bin").write_bytes(b"scan")
+    plan = {"inputs": [[evsemmap_warp.files.content_identity(tmp_path / "drive"), {"path": str(tmp_path / "preset.yaml")}]],
+            "payload": {"checkpoint": None, "alpha": None, "bin_frames": None}}
+    inputs = ray_executor.probed_inputs(plan)
+    assert list(inputs) == [str(tmp_path / "drive")]  # the configs are the driver's to read
+    executor = object.__new__(ray_executor.RayExecutor)
+    executor.own_instance = False
+    same = {"node": "a", "inputs": {str(tmp_path / "drive"): evsemmap_warp.files.content_identity(tmp_path / "drive")}}
+    executor._probe = lambda probed: [same, same | {"node": "b"}]
+    assert executor._choose_inputs(inputs)[:2] == (2, "same path")
+    (tmp_path / "drive" / "000000.bin").write_bytes(b"another scan")
+    stale = {"node": "b", "inputs": {str(tmp_path / "drive"): evsemmap_warp.files.content_identity(tmp_path / "drive")}}
+    executor._probe = lambda probed: [same, stale]
+    assert executor._choose_inputs(inputs) == (2, "from the driver", f"node b sees other content at {tmp_path / 'drive'}: the driver "
+                                                                      f"reads and sends each chunk's scans")
