@@ -22,6 +22,7 @@ from ..core.mapper import Mapper, VoxelState
 from ..core.warp_runtime import init_warp, resolve_device
 from ..frames import WorldFrame
 from .config import TerrainConfig, load_terrain_config
+from .known import evidence_sums, is_known
 
 wp = init_warp()
 from ..kernels import terrain as tk  # noqa: E402
@@ -213,8 +214,8 @@ class VoxelColumns:
 
     @classmethod
     def of(cls, mappers: list[Mapper], *, min_evidence: float = 0.0) -> "VoxelColumns":
-        """The voxels of ``mappers``; a voxel counts as occupied when its state is OCCUPIED and its
-        evidence adds up to ``min_evidence`` or more."""
+        """The voxels of ``mappers``; a voxel counts as occupied when its state is OCCUPIED and it is known
+        (``terrain.known``: its evidence adds up to ``min_evidence`` or more)."""
         return cls.of_parts([m.voxels() for m in mappers], min_evidence=min_evidence)
 
     @classmethod
@@ -227,7 +228,8 @@ class VoxelColumns:
             return get(*parts[0]) if len(parts) == 1 else np.concatenate([get(a, s) for a, s in parts])
 
         return cls(index=cat(lambda a, s: a.index), label=cat(lambda a, s: s.label).astype(np.int32),
-                   occupied=cat(lambda a, s: (s.state == VoxelState.OCCUPIED) & (a.evidence.sum(axis=1) >= min_evidence)), hits=cat(lambda a, s: a.hits).astype(np.float64),
+                   occupied=cat(lambda a, s: (s.state == VoxelState.OCCUPIED) & is_known(evidence_sums(a.evidence), min_evidence)),
+                   hits=cat(lambda a, s: a.hits).astype(np.float64),
                    probabilities=cat(lambda a, s: s.probabilities), variance=cat(lambda a, s: s.variance),
                    weight_sum=cat(lambda a, s: a.weight_sum), weighted_uncertainty_sum=cat(lambda a, s: a.weighted_uncertainty_sum),
                    evidence=cat(lambda a, s: a.evidence))
