@@ -12,7 +12,8 @@ import numpy as np
 from ...core.map_file import file_arrays
 from .map_layer import MapLayer, frame_of, held_classes
 
-_LAYER_ARRAYS = ("centers", "voxel_index", "alpha", "label", "state", "variance", "hits", "weight_sum", "weighted_uncertainty_sum")
+_LAYER_ARRAYS = ("centers", "voxel_index", "alpha", "evidence", "label", "state", "variance", "hits", "weight_sum",
+                 "weighted_uncertainty_sum")
 
 
 class StoreOverview:
