@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...terrain.known import is_known
 from .colors import color_bar_image, colormap, faded, swatch_image, value_range
 from .lighting import mesh_colors
-from ...terrain.known import is_known
 from .map_layer import STATE_NAMES
 
 
@@ -110,9 +110,9 @@ class VoxelLayers:
             table = np.array([viewer.palette[name] for name in layer.classes], np.uint8)
             return table[layer.label[rows]], None
         if mode == "variance":
-            # a map's variances span decades, most of its voxels in the lowest one: on a linear ramp from the
-            # minimum to the maximum they are one color. A log scale from the 1st to the 99th percentile of
-            # the voxels drawn spreads them over the ramp (the legend says so).
+            # most of a map's variances bunch in a narrow band beside rare far ones (a decade or more away): on a
+            # linear ramp from the minimum to the maximum the bunch takes one color. A log scale from the 1st to
+            # the 99th percentile of the voxels drawn spreads them over the ramp (the legend says so).
             values = np.log10(np.maximum(layer.variance[rows], self.VARIANCE_FLOOR))
             lo, hi = value_range(values, self.VARIANCE_PERCENTILES)
             return colormap(values, lo, hi), (lo, hi)
