@@ -556,6 +556,8 @@ def test_diff_counts_against_a_projection_and_a_map(tmp_path, capsys):
         shown = v.visible_rows[0]
         drawn = diff.differ & (a.state[diff.a_rows] == 2) & v.voxels.known(0)[diff.a_rows]  # OCCUPIED and known voxels that differ
         assert set(np.unique(a.label[shown])) <= {6, 7} and len(shown) == drawn.sum()
+        assert f"labels differ in **{int(drawn.sum()):,}**" in v.gui_diff_status.content  # the counts are the drawn voxels'
+        assert drawn.sum() < diff.differ.sum()  # below the evidence threshold, labels that differ are not counted
         counts = diff.counts()
         assert counts["first map agrees with the truth"] + counts["second map agrees with the truth"] + counts["neither agrees with the truth"] \
             + counts["labels differ (no truth here)"] == counts["differ"]

@@ -46,10 +46,10 @@ class VoxelLayers:
         self.lod_order[i] = np.random.default_rng(0).permutation(len(layer.centers))
 
     # ------------------------------------------------------------------ which voxels
-    def visible_mask(self, i: int) -> np.ndarray:
+    def visible_mask(self, i: int, *, compared: bool = True) -> np.ndarray:
         """[V] bool: the voxels of layer ``i`` the panel's filters (states, the evidence threshold, classes, maximum
-        variance, the diff) leave visible."""
-        keep = self._filtered(i)
+        variance, and, unless ``compared`` is False, the comparison's own choice) leave visible."""
+        keep = self._filtered(i, compared)
         if not self.viewer.gui_show_below.value:
             keep &= self.known(i)
         return keep
@@ -58,8 +58,9 @@ class VoxelLayers:
         """[V] bool: layer ``i``'s voxels at or above the evidence threshold (``terrain.known``)."""
         return is_known(self.viewer.layers[i].evidence_sum, self.viewer.min_evidence)
 
-    def _filtered(self, i: int) -> np.ndarray:
-        """[V] bool: the voxels of layer ``i`` every filter but the evidence threshold leaves."""
+    def _filtered(self, i: int, compared: bool = True) -> np.ndarray:
+        """[V] bool: the voxels of layer ``i`` every filter but the evidence threshold leaves (the comparison's
+        choice among them where ``compared``)."""
         viewer = self.viewer
         layer = viewer.layers[i]
         keep = np.ones(len(layer.state), bool)
@@ -71,9 +72,9 @@ class VoxelLayers:
         hidden = [k for k, name in enumerate(layer.classes) if name in viewer.gui_classes and not viewer.gui_classes[name].value]
         if hidden:
             keep &= ~np.isin(layer.label, hidden)
-        compared = viewer.comparison.rows_compared(i)
-        if compared is not None:
-            keep &= compared
+        chosen = viewer.comparison.rows_compared(i) if compared else None
+        if chosen is not None:
+            keep &= chosen
         return keep
 
     def _choose_rows(self, i: int) -> tuple[np.ndarray, int, float, float]:
