@@ -1,6 +1,6 @@
 """What a map knows: a voxel is known when its evidence, summed over classes, is at least a threshold (the
 layers' ``min_evidence``, LayerSettings). Below it a voxel holds only the tails of kernels centered elsewhere:
-its class probabilities are the prior's. The layers, the viewer, ``evsemmap info`` and the exports all ask
+its class probabilities are nearly the prior's. The layers, the viewer, ``evsemmap info`` and the exports all ask
 this module, so that "known" means one thing wherever a map is read."""
 
 from __future__ import annotations
