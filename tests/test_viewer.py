@@ -415,6 +415,10 @@ def test_store_overview_counter_and_present_classes(tmp_path):
         assert total > len(v.layers[0].state)  # the overview is a share of the store
         assert f"of its {total:,} voxels" in v.gui_status.content and "decimated" in v.gui_status.content
         assert abs(v.layers[0].weight.sum() - total) < 1e-6 * total  # each overview row stands for its share of a tile
+        # the overview keeps each voxel's evidence summed, and hides those below the threshold, counted for the store
+        below = (v.layers[0].state == 2) & (v.layers[0].evidence_sum < v.min_evidence)
+        assert below.any() and not below[v.visible_rows[0]].any()
+        assert f"about {round(v.layers[0].weight[below].sum()):,} below the evidence threshold" in v.gui_status.content
         # void labels the free-space evidence only (FREE voxels): no occupied voxel has it, so it is not offered
         assert v.present_classes == ["object", "grass"] and set(v.gui_classes) == {"object", "grass"}
     finally:

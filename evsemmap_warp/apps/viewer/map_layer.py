@@ -92,13 +92,14 @@ class MapLayer:
 
     @classmethod
     def from_arrays(cls, name: str, path: Path, arrays: dict, meta: dict) -> "MapLayer":
-        """A layer from a map file's arrays and meta (map_file.file_arrays gives them for maps that are not files)."""
+        """A layer from a map file's arrays and meta (map_file.file_arrays gives them for maps that are not files);
+        ``evidence_sum`` [V] may stand for ``evidence`` [V, K] (a store's overview keeps only the sums)."""
         with np.errstate(invalid="ignore", divide="ignore"):
             mean_unc = np.where(arrays["weight_sum"] > 0, arrays["weighted_uncertainty_sum"] / arrays["weight_sum"], np.nan)
         return cls(name, path, list(meta["classes"]), float(arrays["resolution"]), float(meta.get("grid_offset_m", 0.0)),
                    np.asarray(arrays["centers"], np.float64), arrays["voxel_index"].astype(np.int64), arrays["alpha"],
                    arrays["label"], arrays["state"], arrays["variance"], arrays["hits"], mean_unc,
-                   evidence_sums(arrays["evidence"]), meta["method"],
+                   arrays["evidence_sum"] if "evidence_sum" in arrays else evidence_sums(arrays["evidence"]), meta["method"],
                    frame_of(meta, path), lattice_index(np.asarray(arrays["origin"], np.float64), float(arrays["resolution"])))
 
     @classmethod
