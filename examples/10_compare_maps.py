@@ -50,7 +50,7 @@ def main() -> None:
     diff = viewer.comparison.diff()
     counts = diff.counts()
     print(f"{counts['compared']:,} voxels in both maps; labels differ in {counts['differ']:,}; "
-          f"{len(viewer.visible_rows[0]):,} of them drawn (occupied in the first map)")
+          f"{len(viewer.visible_rows[0]):,} of them drawn (occupied and known in the first map)")
     for name in DIFF_COLORS:
         print(f"  {name}: {counts[name]:,}")
     print(f"where the truth says ({counts['with truth']:,} voxels): the camera's map is right in {counts['first map right']:,}, "

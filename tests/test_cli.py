@@ -30,6 +30,35 @@ def test_map_info_and_dump_config(tmp_path, capsys):
     assert "gamma: 10.0" in capsys.readouterr().out
 
 
+def test_info_counts_voxels_above_and_below_the_evidence_threshold(tmp_path, capsys):
+    from test_viewer import make_map  # a map with kernel tails beside its surfaces
+
+    make_map(tmp_path / "a.npz")
+    make_map(tmp_path / "b.npz", seed=1, offset=(0.3, 0, 0))
+    arrays, _ = read_map_arrays(tmp_path / "a.npz")
+    above = arrays["evidence"].sum(axis=1) >= 0.2  # the layers' default min_evidence
+    assert main(["info", str(tmp_path / "a.npz")]) == 0
+    counts = json.loads(capsys.readouterr().out)["evidence_threshold"]
+    assert counts["min_evidence"] == 0.2 and counts["known"] == above.sum() and counts["below"] == (~above).sum() > 100
+    assert counts["below_by_state"]["OCCUPIED"] == (~above & (arrays["state"] == 2)).sum() > 100
+    assert sum(counts["known_by_state"].values()) == counts["known"]
+    costs = tmp_path / "costs.yaml"
+    costs.write_text("layers: {min_evidence: 0.0}\n")
+    assert main(["info", str(tmp_path / "a.npz"), "--costs", str(costs)]) == 0
+    assert json.loads(capsys.readouterr().out)["evidence_threshold"]["below"] == 0
+    # a store: its tiles' counts add up to the maps' merged
+    assert main(["merge", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--out", str(tmp_path / "m.npz")]) == 0
+    assert main(["merge", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--out", str(tmp_path / "store"), "--tile-voxels", "16"]) == 0
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "m.npz")]) == 0
+    merged = json.loads(capsys.readouterr().out)["evidence_threshold"]
+    assert main(["info", str(tmp_path / "store")]) == 0
+    assert json.loads(capsys.readouterr().out)["evidence_threshold"] == merged
+    costs.write_text("layers: {min_evidence: -1}\n")
+    assert main(["info", str(tmp_path / "a.npz"), "--costs", str(costs)]) == 2
+    assert "min_evidence" in capsys.readouterr().err
+
+
 def test_errors_exit_2_with_a_message(tmp_path, capsys):
     assert main(["map", str(REPO / "configs/presets/rellis3d.yaml"), "--method", "ebs", "--out", str(tmp_path / "m.npz")]) == 2
     assert "has a 'dataset' section" in capsys.readouterr().err

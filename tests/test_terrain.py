@@ -286,7 +286,7 @@ def test_npz_and_previews_read_back(written):
     for name in layers.band_names:
         np.testing.assert_array_equal(bands[name], layers.bands[name])
     previews = sorted((out / "previews").glob("*.png"))
-    assert {p.stem for p in previews} >= {"elevation", "traversability_cost", "surface_class", "lethal", "class_probabilities"}
+    assert {p.stem for p in previews} >= {"elevation", "traversability_cost", "surface_doubt", "surface_class", "lethal", "class_probabilities"}
     for path in previews:
         with Image.open(path) as image:
             pixels = np.asarray(image.convert("RGB")).astype(np.uint32)

@@ -58,6 +58,34 @@ def test_a_well_observed_cell_costs_its_class_and_an_unobserved_one_the_unknown(
     assert lethal[0] == pytest.approx(18 / 27)
 
 
+def test_the_known_rule_costs_a_voxel_by_its_evidences_own_class_mix():
+    config = load_terrain_config()
+    known = replace(config, costs=replace(config.costs, rule="known"))
+    table = config.costs.classes
+    # however thin the evidence, its own mix: the prior's share (the uncommitted mass) costs nothing here
+    for amount in (0.3, 9.0, 5000.0):
+        mean, _, lethal = class_cost(_alpha(paved=amount), known, CLASSES)
+        assert mean[0] == pytest.approx(table["paved"]) and lethal[0] == 0.0
+    mean, _, _ = class_cost(_alpha(paved=3.0, grass=1.0), known, CLASSES)
+    assert mean[0] == pytest.approx(0.75 * table["paved"] + 0.25 * table["grass"])
+    _, _, lethal = class_cost(_alpha(object=2.0, grass=2.0), known, CLASSES)
+    assert lethal[0] == pytest.approx(0.5)  # the lethal classes' share of the evidence (evidential: their belief, 4/13)
+    mean, _, lethal = class_cost(_alpha(), known, CLASSES)  # no evidence at all (min_evidence 0): the unknown's cost
+    assert mean[0] == config.costs.unknown_cost and lethal[0] == 0.0
+
+
+def test_under_the_known_rule_a_cell_below_the_evidence_threshold_is_unknown_not_costed():
+    voxels = {(i, j, 0): ("paved" if i < 10 else "grass", 400.0) for i in range(20) for j in range(20)}
+    voxels[(3, 3, 0)] = ("paved", 0.3)  # seen once, from afar: known at the default min_evidence 0.2
+    voxels[(15, 15, 0)] = ("grass", 0.1)  # a kernel tail: below it
+    config = load_terrain_config()
+    layers = compute_layers(_map(voxels), config=replace(config, costs=replace(config.costs, rule="known")))
+    cost = layers.bands["traversability_cost"][::-1].T
+    assert cost[3, 3] == pytest.approx(config.costs.classes["paved"])
+    assert np.isnan(cost[15, 15]) and layers.bands["known"][::-1].T[15, 15] == 0
+    assert np.median(cost[10:][np.isfinite(cost[10:])]) == pytest.approx(config.costs.classes["grass"], abs=0.01)
+
+
 @pytest.mark.parametrize("prior", [1.0, 0.001, 3.0])
 def test_belief_and_uncommitted_mass_add_up_to_one(prior):
     rng = np.random.default_rng(7)

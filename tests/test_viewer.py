@@ -12,6 +12,8 @@ from evsemmap_warp.core.mapper import Mapper
 from evsemmap_warp.apps.viewer import MapViewer, free_port, load_points, load_trajectory
 from evsemmap_warp.apps.viewer.colors import CLASS_COLORS, colormap
 from evsemmap_warp.frames import WorldFrame
+from evsemmap_warp.terrain import LayerSettings
+from evsemmap_warp.terrain.layers import VoxelColumns
 
 from conftest import REPO, wait_until
 
@@ -63,6 +65,49 @@ def test_defaults_hide_free_and_unknown_and_toggles_show_them(viewer):
     assert set(layer.state[viewer.visible_rows[0]]) == {1, 2} and (layer.state == 1).sum() > 0
 
 
+def test_voxels_below_the_evidence_threshold_are_hidden_by_default_counted_and_shown_on_request(viewer):
+    layer = viewer.layers[0]
+    assert viewer.min_evidence == LayerSettings().min_evidence  # the layers' threshold: one definition of known
+    below = (layer.state == 2) & (layer.evidence_sum < viewer.min_evidence)  # kernel tails beside the surfaces
+    assert below.sum() > 100
+    shown = viewer.visible_rows[0]
+    assert not below[shown].any() and (layer.evidence_sum[shown] >= viewer.min_evidence).all()
+    assert f"{int(below.sum()):,} below the evidence threshold (min_evidence 0.2) hidden" in viewer.gui_status.content
+    viewer.gui_show_below.value = True
+    assert below[viewer.visible_rows[0]].sum() == below.sum() and "below the evidence threshold" not in viewer.gui_status.content
+    # the Selected panel says what such a voxel is, instead of a class its evidence does not tell
+    row = int(np.flatnonzero(below)[0])
+    text = viewer.picking.describe(0, row)
+    assert "**below the evidence threshold**" in text and "label: **" not in text
+    assert f"evidence: {layer.evidence_sum[row]:.3g} (min_evidence 0.2)" in text
+    known_row = int(viewer.visible_rows[0][~below[viewer.visible_rows[0]]][0])
+    assert "below the evidence threshold" not in viewer.picking.describe(0, known_row)
+
+
+def test_the_threshold_is_the_cost_tables_layers_min_evidence(maps, tmp_path):
+    costs = tmp_path / "costs.yaml"
+    costs.write_text("layers: {min_evidence: 0.0}\n")
+    v = MapViewer(maps, port=free_port(), costs=costs)
+    try:
+        layer = v.layers[0]
+        assert v.min_evidence == 0.0 and "below the evidence threshold" not in v.gui_status.content
+        assert len(v.visible_rows[0]) == (layer.state == 2).sum()
+    finally:
+        v.server.stop()
+
+
+def test_the_viewer_and_the_layers_know_the_same_voxels(maps):
+    mapper = Mapper.load(maps[0])
+    columns = VoxelColumns.of([mapper], min_evidence=0.2)
+    v = MapViewer(maps, port=free_port())
+    try:
+        layer = v.layers[0]
+        np.testing.assert_array_equal(layer.voxel_index, columns.index)
+        np.testing.assert_array_equal(columns.occupied, (layer.state == 2) & v.voxels.known(0))
+    finally:
+        v.server.stop()
+
+
 def test_class_toggle_and_variance_slider(viewer):
     layer = viewer.layers[0]
     before = viewer.visible_rows[0]
@@ -87,6 +132,21 @@ def test_colorings(viewer):
         assert len(np.unique(colors, axis=0)) > 5, mode
         assert viewer.gui_legend.image.shape[0] == 46  # a color bar instead of the class legend
     np.testing.assert_array_equal(colormap(np.array([0.0, 1.0, np.nan]), 0, 1), [[68, 1, 84], [253, 231, 37], [128, 128, 128]])
+
+
+def test_color_by_variance_spreads_over_the_range_the_map_holds(viewer):
+    # variances spanning decades, a few large: on a linear ramp from the minimum to the maximum nearly every
+    # voxel would take the ramp's first color
+    layer = viewer.layers[0]
+    layer.variance = 10.0 ** np.random.default_rng(0).normal(-3.0, 0.7, len(layer.variance))
+    layer.variance[:5] = 0.25
+    viewer.gui_color_by.value = "variance"
+    colors = viewer.voxels.colors(0, viewer.visible_rows[0]).astype(int)
+    at_low_end = np.abs(colors - colormap(np.zeros(1), 0, 1)[0]).sum(axis=1) <= 12
+    assert at_low_end.mean() < 0.1, at_low_end.mean()
+    assert "log10 variance, p1-p99" in viewer.voxels.legend_label("variance")
+    lo, hi = viewer.voxels.color_ranges["variance"]
+    assert -4.8 < lo < -4.2 and -2.0 < hi < -1.2  # about the 1st and 99th percentiles of log10 variance
 
 
 def test_several_maps_switchable_and_side_by_side(viewer):
@@ -137,6 +197,10 @@ def test_exports(viewer, tmp_path):
     np.testing.assert_allclose(np.sort(cloud.vertices[:, 2]), np.sort(viewer.layers[0].centers[rows, 2]), atol=1e-4)
     props = cloud.metadata["_ply_raw"]["vertex"]["data"]
     assert set(np.unique(props["label"])) <= {2.0, 3.0, 7.0} and (props["state"] == 2).all()
+    assert (props["evidence"] >= viewer.min_evidence).all()  # what the viewer shows: no voxel below the threshold
+    viewer.gui_show_below.value = True
+    props = trimesh.load(viewer.export_ply(tmp_path / "all.ply")).metadata["_ply_raw"]["vertex"]["data"]
+    assert (props["evidence"] < viewer.min_evidence).sum() > 100
 
 
 def test_trajectory_scan_and_file_errors(maps, tmp_path):
@@ -351,6 +415,10 @@ def test_store_overview_counter_and_present_classes(tmp_path):
         assert total > len(v.layers[0].state)  # the overview is a share of the store
         assert f"of its {total:,} voxels" in v.gui_status.content and "decimated" in v.gui_status.content
         assert abs(v.layers[0].weight.sum() - total) < 1e-6 * total  # each overview row stands for its share of a tile
+        # the overview keeps each voxel's evidence summed, and hides those below the threshold, counted for the store
+        below = (v.layers[0].state == 2) & (v.layers[0].evidence_sum < v.min_evidence)
+        assert below.any() and not below[v.visible_rows[0]].any()
+        assert f"about {round(v.layers[0].weight[below].sum()):,} below the evidence threshold" in v.gui_status.content
         # void labels the free-space evidence only (FREE voxels): no occupied voxel has it, so it is not offered
         assert v.present_classes == ["object", "grass"] and set(v.gui_classes) == {"object", "grass"}
     finally:
@@ -490,7 +558,10 @@ def test_diff_counts_against_a_projection_and_a_map(tmp_path, capsys):
         assert (category[diff.differ & (diff.truth < 0)] == 3).all()
         assert not diff.differ[x > 101.8].any()
         shown = v.visible_rows[0]
-        assert set(np.unique(a.label[shown])) <= {6, 7} and len(shown) == diff.differ.sum() - (a.state[diff.a_rows[diff.differ]] != 2).sum()
+        drawn = diff.differ & (a.state[diff.a_rows] == 2) & v.voxels.known(0)[diff.a_rows]  # OCCUPIED and known voxels that differ
+        assert set(np.unique(a.label[shown])) <= {6, 7} and len(shown) == drawn.sum()
+        assert f"labels differ in **{int(drawn.sum()):,}**" in v.gui_diff_status.content  # the counts are the drawn voxels'
+        assert drawn.sum() < diff.differ.sum()  # below the evidence threshold, labels that differ are not counted
         counts = diff.counts()
         assert counts["first map agrees with the truth"] + counts["second map agrees with the truth"] + counts["neither agrees with the truth"] \
             + counts["labels differ (no truth here)"] == counts["differ"]

@@ -1035,6 +1035,8 @@ def test_drive_scan_shows_over_the_map(open_page, alpha_drive):
     drive, replay = open_drive(alpha_drive / "map.npz", [alpha_drive / "seq", "rellis3d"], alpha_dir=alpha_drive / "alpha",
                                bin_frames=1, snapshot_every=2)
     viewer = MapViewer([alpha_drive / "map.npz"], port=free_port())
+    # the whole map, the kernel tails around the surfaces too: the densest voxels a scan can hide in
+    viewer.gui_show_below.value = True
     playback = DrivePlayback(viewer, drive, replay, precompute=False)
     try:
         page = open_page(viewer)

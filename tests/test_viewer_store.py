@@ -89,7 +89,8 @@ def test_tiles_in_full_near_the_camera_and_where_a_click_lands(store):
             inside = np.all(np.floor_divide(index, overview.store.tile_voxels) == key, axis=1)
             assert inside.sum() == overview.store.tiles[name]["voxels"] and np.all(shown.weight[inside] == 1.0)
         # a click on a voxel of another tile: that tile's column in full as well
-        ground = shown.centers[(shown.label == 7) & np.all(np.abs(shown.centers[:, :2] - box[:2]) > 2.0, axis=1)][0]
+        drawn = viewer.voxels.visible_mask(0)  # a voxel below the evidence threshold is not drawn, nor clicked
+        ground = shown.centers[drawn & (shown.label == 7) & np.all(np.abs(shown.centers[:, :2] - box[:2]) > 2.0, axis=1)][0]
         ray_origin = ground - viewer.origin + [0, 0, 5.0]
         viewer.picking.click(ray_origin, (0.0, 0.0, -1.0))
         assert "voxel" in viewer.gui_selection.content

@@ -68,7 +68,7 @@ class LayerSettings:
             raise ConfigError(f"layers.surface_classes = {list(self.surface_classes)} must be a non-empty list of class names")
 
 
-COST_RULES = ("evidential", "expected")
+COST_RULES = ("evidential", "known", "expected")
 
 
 @dataclass(frozen=True)
@@ -77,15 +77,18 @@ class CostSettings:
     default) splits its Dirichlet as subjective logic does, into a belief per class b_c = e_c / S and an
     uncommitted mass u = W / S (W the prior's total weight): class cost sum_c b_c cost_c + u unknown_cost,
     so a well-observed cell costs what the table says for its class and a barely observed one costs
-    ``unknown_cost``. The ``expected`` rule takes the costs' mean under the Dirichlet plus
-    ``uncertainty_weight`` standard deviations. Slope and step terms are added; a cell is lethal when
-    that voxel's class is a lethal class, or the lethal classes' belief (``expected``: expected
-    probability) reaches ``lethal_probability`` (two lethal classes sharing a voxel), or its slope or
-    step passes its limit."""
+    ``unknown_cost``. The ``known`` rule costs a voxel by its evidence's own class mix, e_c / sum e (the
+    belief renormalized): what counts as known is the layers' ``min_evidence`` (``terrain.known``), and a
+    cell with no voxel at or above it is unknown rather than costed. The ``expected`` rule takes the
+    costs' mean under the Dirichlet plus ``uncertainty_weight`` standard deviations. Slope and step terms
+    are added; a cell is lethal when that voxel's class is a lethal class, or the lethal classes' belief
+    (``known``: their share of the evidence; ``expected``: expected probability) reaches
+    ``lethal_probability`` (two lethal classes sharing a voxel), or its slope or step passes its limit."""
 
     classes: dict = field(default_factory=dict)  # class name -> cost >= 0; every class of the map needs one
-    rule: str = "evidential"  # evidential: belief masses plus unknown_cost for the uncommitted mass; expected: mean + k std
-    unknown_cost: float = 0.5  # evidential rule: the cost of the uncommitted mass (what nothing has been seen to be)
+    rule: str = "evidential"  # evidential: belief masses plus unknown_cost for the uncommitted mass; known: the evidence's
+    # own class mix; expected: mean + k std
+    unknown_cost: float = 0.5  # evidential rule: the cost of the uncommitted mass (known rule: of a voxel of no evidence)
     lethal_classes: tuple = ()  # classes a robot must not meet
     lethal_probability: float = 0.5  # lethal when the lethal classes' belief (expected rule: expected probability) reaches this
     uncertainty_weight: float = 1.0  # expected rule: standard deviations of the class cost added to its mean

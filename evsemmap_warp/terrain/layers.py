@@ -22,6 +22,7 @@ from ..core.mapper import Mapper, VoxelState
 from ..core.warp_runtime import init_warp, resolve_device
 from ..frames import WorldFrame
 from .config import TerrainConfig, load_terrain_config
+from .known import evidence_sums, is_known
 
 wp = init_warp()
 from ..kernels import terrain as tk  # noqa: E402
@@ -213,8 +214,8 @@ class VoxelColumns:
 
     @classmethod
     def of(cls, mappers: list[Mapper], *, min_evidence: float = 0.0) -> "VoxelColumns":
-        """The voxels of ``mappers``; a voxel counts as occupied when its state is OCCUPIED and its
-        evidence adds up to ``min_evidence`` or more."""
+        """The voxels of ``mappers``; a voxel counts as occupied when its state is OCCUPIED and it is known
+        (``terrain.known``: its evidence adds up to ``min_evidence`` or more)."""
         return cls.of_parts([m.voxels() for m in mappers], min_evidence=min_evidence)
 
     @classmethod
@@ -227,7 +228,8 @@ class VoxelColumns:
             return get(*parts[0]) if len(parts) == 1 else np.concatenate([get(a, s) for a, s in parts])
 
         return cls(index=cat(lambda a, s: a.index), label=cat(lambda a, s: s.label).astype(np.int32),
-                   occupied=cat(lambda a, s: (s.state == VoxelState.OCCUPIED) & (a.evidence.sum(axis=1) >= min_evidence)), hits=cat(lambda a, s: a.hits).astype(np.float64),
+                   occupied=cat(lambda a, s: (s.state == VoxelState.OCCUPIED) & is_known(evidence_sums(a.evidence), min_evidence)),
+                   hits=cat(lambda a, s: a.hits).astype(np.float64),
                    probabilities=cat(lambda a, s: s.probabilities), variance=cat(lambda a, s: s.variance),
                    weight_sum=cat(lambda a, s: a.weight_sum), weighted_uncertainty_sum=cat(lambda a, s: a.weighted_uncertainty_sum),
                    evidence=cat(lambda a, s: a.evidence))
@@ -372,8 +374,9 @@ def class_cost(alpha: np.ndarray, config: TerrainConfig, class_names, prior: flo
 
     The standard deviation of c . theta, theta ~ Dir(alpha): Var = (sum_k c_k^2 p_k - E^2) / (S + 1),
     p = alpha / S, E = sum_k c_k p_k. The ``evidential`` rule's cost is sum_k b_k c_k + u unknown_cost and
-    its lethal share the lethal classes' belief (``subjective_opinion``); the ``expected`` rule's cost is E
-    and its lethal share the lethal classes' expected probability."""
+    its lethal share the lethal classes' belief (``subjective_opinion``); the ``known`` rule's cost and
+    lethal share are those of the belief renormalized, b_k / (1 - u) = e_k / sum e; the ``expected``
+    rule's cost is E and its lethal share the lethal classes' expected probability."""
     alpha = np.asarray(alpha, np.float64)
     costs = np.array([float(config.costs.classes[name]) for name in class_names])
     lethal = np.array([name in config.costs.lethal_classes for name in class_names])
@@ -384,6 +387,14 @@ def class_cost(alpha: np.ndarray, config: TerrainConfig, class_names, prior: flo
     if config.costs.rule == "expected":
         return expected, std, p[:, lethal].sum(axis=1)
     belief, uncommitted = subjective_opinion(alpha, prior) if len(alpha) else (alpha, total)
+    if config.costs.rule == "known":
+        # the belief renormalized over the classes, e_k / sum e: what the evidence says, however little of it
+        # there is (how little is min_evidence's to judge: terrain.known); a voxel of no evidence at all
+        # (min_evidence 0) costs the unknown's
+        committed = belief.sum(axis=1)
+        seen = committed > 0
+        share = np.divide(belief, committed[:, None], out=np.zeros_like(belief), where=seen[:, None])
+        return np.where(seen, share @ costs, config.costs.unknown_cost), std, share[:, lethal].sum(axis=1)
     return belief @ costs + uncommitted * config.costs.unknown_cost, std, belief[:, lethal].sum(axis=1)
 
 

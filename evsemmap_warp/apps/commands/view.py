@@ -31,7 +31,8 @@ def add_parser(sub) -> None:
     p.add_argument("--layers", action="store_true", help="compute each map's terrain layers at start and draw one as a colored "
                                                          "height surface (the GUI's button does it on demand otherwise; docs/terrain.md)")
     p.add_argument("--layers-resolution-m", type=positive_float, default=None, help="terrain cell edge (m; default: the voxel size)")
-    p.add_argument("--costs", type=Path, default=None, help="the terrain layers' cost table YAML (default: configs/terrain/costs_v3.yaml)")
+    p.add_argument("--costs", type=Path, default=None, help="the terrain layers' cost table YAML (default: configs/terrain/costs_v3.yaml); "
+                   "its layers.min_evidence is also the evidence threshold below which voxels are hidden")
     p.add_argument("--truth", type=Path, default=None, help="ground truth for comparing two maps: `evsemmap project`'s ground_truth.npz "
                                                             "(points, labels) or a map file; differing voxels are colored by which map "
                                                             "agrees with it")

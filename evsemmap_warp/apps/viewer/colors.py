@@ -37,6 +37,15 @@ def colormap(values: np.ndarray, lo: float, hi: float, stops: np.ndarray = VIRID
     return out
 
 
+def value_range(values: np.ndarray, percentiles: tuple[float, float] = (0.0, 100.0)) -> tuple[float, float]:
+    """(lo, hi): the ``percentiles`` of the finite ``values`` (by default their minimum and maximum); (0, 1) when none is."""
+    finite = values[np.isfinite(values)]
+    if not len(finite):
+        return 0.0, 1.0
+    lo, hi = np.percentile(finite, percentiles)
+    return float(lo), float(hi)
+
+
 def diverging(values: np.ndarray, limit: float) -> np.ndarray:
     """Colors of signed ``values`` on a blue-white-red ramp over [-limit, limit]."""
     return colormap(np.asarray(values, np.float64), -limit, limit, DIVERGING)

@@ -258,8 +258,9 @@ class Comparison:
             return
         viewer = self.viewer
         variance = viewer.gui_diff.value == "variance difference"
-        keep = viewer.voxels.visible_mask(pair[0])[self.diff().a_rows] if variance else None
-        text = self.diff().describe(keep)
+        # the voxels the filters leave (not those below the evidence threshold, whose labels no point decided),
+        # of which "labels differ" draws those that differ
+        text = self.diff().describe(viewer.voxels.visible_mask(pair[0], compared=False)[self.diff().a_rows])
         if variance and color_range:
             text += (f"\n\ncolor: variance of the first minus the second, ±{color_range[1]:.3g} "
                      "(blue: the first map is surer, red: the second)")

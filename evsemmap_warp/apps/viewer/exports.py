@@ -102,10 +102,11 @@ def write_html(viewer, path) -> Path:
 
 
 def write_ply(viewer, path) -> Path:
-    """``MapViewer.export_ply``: the visible voxels of the shown maps as a binary PLY at ``path``."""
+    """``MapViewer.export_ply``: the visible voxels of the shown maps as a binary PLY at ``path`` (below the
+    evidence threshold only while the viewer shows them; ``evidence``: each voxel's, summed over classes)."""
     parts = [(i, viewer.voxels.visible_rows[i]) for i in viewer.comparison.shown_layers()]
     colors = np.concatenate([viewer.voxels.colors(i, r) for i, r in parts])
-    fields = {"label": "label", "state": "state", "variance": "variance", "observations": "hits"}
+    fields = {"label": "label", "state": "state", "variance": "variance", "observations": "hits", "evidence": "evidence_sum"}
     vertex = np.zeros(len(colors), [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"),
                                     ("blue", "u1"), ("alpha", "u1")] + [(name, "<f4") for name in fields])
     centers = np.concatenate([np.asarray(viewer.layers[i].centers[r], np.float64) for i, r in parts])

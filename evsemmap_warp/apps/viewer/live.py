@@ -254,7 +254,8 @@ class LiveTiles(LatestOnlyWorker):
             arrays.append(tile_arrays)
         if not arrays:
             return
-        keys = ("centers", "voxel_index", "alpha", "label", "state", "variance", "hits", "weight_sum", "weighted_uncertainty_sum", "weight")
+        keys = ("centers", "voxel_index", "alpha", "evidence", "label", "state", "variance", "hits", "weight_sum", "weighted_uncertainty_sum",
+                "weight")
         joined = {k: np.concatenate([a[k] for a in arrays]) for k in keys}
         order = np.lexsort(joined["voxel_index"].T[::-1])  # key order, as a map file's (voxel_at needs it)
         joined = {k: v[order] for k, v in joined.items()}

@@ -11,6 +11,7 @@ import numpy as np
 from ...core.map_file import lattice_index, read_map_file
 from ...core.mapper import reader_mapper
 from ...frames import WorldFrame
+from ...terrain.known import evidence_sums
 from ...voxel_keys import voxel_index_of
 
 STATE_NAMES = ("UNKNOWN", "FREE", "OCCUPIED")
@@ -53,6 +54,7 @@ class MapLayer:
     variance: np.ndarray
     hits: np.ndarray
     mean_uncertainty: np.ndarray
+    evidence_sum: np.ndarray  # [V] float64 evidence summed over classes: what terrain.known compares
     method: str
     frame: WorldFrame | None = None
     origin_index: np.ndarray = field(default_factory=lambda: np.zeros(3, np.int64))  # the map origin's voxel index
@@ -86,16 +88,18 @@ class MapLayer:
         resolution = reader.config.resolution_m
         return cls(name, Path(path), list(reader.class_names), resolution, reader.grid_offset_m, reader.voxel_centers(voxels.index),
                    np.asarray(voxels.index, np.int64), reader.concentrations(voxels.evidence), label, state, variance, voxels.hits,
-                   mean_unc, reader.config.method, reader.frame, lattice_index(reader.origin, resolution))
+                   mean_unc, evidence_sums(voxels.evidence), reader.config.method, reader.frame, lattice_index(reader.origin, resolution))
 
     @classmethod
     def from_arrays(cls, name: str, path: Path, arrays: dict, meta: dict) -> "MapLayer":
-        """A layer from a map file's arrays and meta (map_file.file_arrays gives them for maps that are not files)."""
+        """A layer from a map file's arrays and meta (map_file.file_arrays gives them for maps that are not files);
+        ``evidence_sum`` [V] may stand for ``evidence`` [V, K] (a store's overview keeps only the sums)."""
         with np.errstate(invalid="ignore", divide="ignore"):
             mean_unc = np.where(arrays["weight_sum"] > 0, arrays["weighted_uncertainty_sum"] / arrays["weight_sum"], np.nan)
         return cls(name, path, list(meta["classes"]), float(arrays["resolution"]), float(meta.get("grid_offset_m", 0.0)),
                    np.asarray(arrays["centers"], np.float64), arrays["voxel_index"].astype(np.int64), arrays["alpha"],
-                   arrays["label"], arrays["state"], arrays["variance"], arrays["hits"], mean_unc, meta["method"],
+                   arrays["label"], arrays["state"], arrays["variance"], arrays["hits"], mean_unc,
+                   arrays["evidence_sum"] if "evidence_sum" in arrays else evidence_sums(arrays["evidence"]), meta["method"],
                    frame_of(meta, path), lattice_index(np.asarray(arrays["origin"], np.float64), float(arrays["resolution"])))
 
     @classmethod

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ...frames import check_same_frame
+from ...terrain.config import load_terrain_config
 from .camera import Cameras
 from .colors import TRAJECTORY_COLOR, class_palette
 from .comparison import Comparison
@@ -33,7 +34,9 @@ class MapViewer:
     otherwise). ``trajectory`` and ``scan`` are read as world coordinates of that frame. The scene is
     drawn relative to ``origin`` (float64 world coordinates, marked by a world-axes frame and a label).
     ``terrain``: compute each map's terrain layers at start (``terrain_resolution`` m cells, the cost
-    table ``costs``; the GUI's button does it on demand otherwise). ``truth``: a ground truth for the
+    table ``costs``; the GUI's button does it on demand otherwise). The cost table's ``layers.min_evidence``
+    is also what the viewer calls known (``min_evidence``, ``terrain.known``): voxels below it are hidden
+    until *Show below the evidence threshold* is ticked. ``truth``: a ground truth for the
     comparison of two maps (``comparison.load_truth``).
 
     ``map_paths`` may hold ``MapLayer`` objects (a map in memory: a live map, a drive's replay), which
@@ -63,6 +66,8 @@ class MapViewer:
             raise ValueError(f"style must be 'points' or 'boxes', got {style!r}")
         if not map_paths:
             raise ValueError("give at least one map file")
+        # "known" is the layers' (terrain.known): the cost table's layers.min_evidence, read before any server starts
+        self.min_evidence = load_terrain_config(costs).layers.min_evidence
         truth_path = Path(truth) if truth is not None else None
         if truth_path is not None and not truth_path.is_file():
             raise ValueError(f"{truth_path}: no such ground-truth file")

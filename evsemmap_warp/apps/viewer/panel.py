@@ -84,6 +84,9 @@ def _add_filters(viewer, gui) -> None:
         viewer.gui_max_variance = gui.add_slider(label, min=0.0, max=top, step=step, initial_value=top)
         viewer.gui_show_free = gui.add_checkbox("Show FREE", initial_value=False)
         viewer.gui_show_unknown = gui.add_checkbox("Show UNKNOWN", initial_value=False)
+        viewer.gui_show_below = gui.add_checkbox("Show below the evidence threshold", initial_value=False,
+                                                 hint=f"voxels whose evidence sums to under min_evidence {viewer.min_evidence:g}: "
+                                                      "kernel tails, whose class no point decided (docs/viewer.md)")
         viewer.gui_full_map = gui.add_checkbox("Full map (no decimation)", initial_value=False)
         viewer.gui_tile = None
         if viewer.stores:  # a store: its overview, and a tile in full detail, flown to
@@ -105,7 +108,8 @@ def add_class_toggles(viewer, names: list[str]) -> None:
 
 def _connect(viewer) -> None:
     controls = [viewer.gui_map, viewer.gui_side_by_side, viewer.gui_max_variance, viewer.gui_show_free, viewer.gui_show_unknown,
-                viewer.gui_full_map, *viewer.gui_classes.values(), viewer.gui_terrain_show, viewer.gui_terrain_band, viewer.gui_terrain_mode]
+                viewer.gui_show_below, viewer.gui_full_map, *viewer.gui_classes.values(), viewer.gui_terrain_show, viewer.gui_terrain_band,
+                viewer.gui_terrain_mode]
     if viewer.gui_diff is not None:
         controls += [viewer.gui_diff, viewer.gui_diff_against]
     for handle in controls:

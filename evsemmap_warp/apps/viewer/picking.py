@@ -120,14 +120,24 @@ class Picking:
         center = np.asarray(layer.centers[row], np.float64)
         lines = [f"**{layer.name}** voxel {tuple(int(v) for v in layer.voxel_index[row])}",
                  f"center in {describe_frame(layer.frame)}: " + ", ".join(f"{a}={c:.3f}" for a, c in zip("xyz", center)) + " m",
-                 f"label: **{layer.classes[layer.label[row]]}** ({layer.label[row]}), state {STATE_NAMES[layer.state[row]]}",
-                 f"variance: {layer.variance[row]:.3g}, observations: {int(layer.hits[row])}",
+                 self._label_line(i, row),
+                 f"variance: {layer.variance[row]:.3g}, observations: {int(layer.hits[row])}, "
+                 f"evidence: {layer.evidence_sum[row]:.3g} (min_evidence {self.viewer.min_evidence:g})",
                  "", "| class | alpha | p |", "|---|---|---|"]
         lines += [f"| {name} | {a:.4g} | {p:.3f} |" for name, a, p in zip(layer.classes, alpha, probs)]
         compared = self.viewer.comparison.describe_voxel(i, row)
         if compared is not None:
             lines.insert(4, compared)
         return "\n".join(lines)
+
+    def _label_line(self, i: int, row: int) -> str:
+        """The voxel's label and state; for one below the evidence threshold, that, instead of a class its
+        evidence is too faint to tell."""
+        layer = self.viewer.layers[i]
+        if not self.viewer.voxels.known(i)[row]:
+            return (f"**below the evidence threshold**: no class known (the label {layer.classes[layer.label[row]]} rests on "
+                    f"evidence under it), state {STATE_NAMES[layer.state[row]]}")
+        return f"label: **{layer.classes[layer.label[row]]}** ({layer.label[row]}), state {STATE_NAMES[layer.state[row]]}"
 
     def click(self, ray_origin, ray_direction, client=None) -> None:
         """What a click does (a ray in display coordinates; ``client``: the browser tab clicked in, None for a

@@ -10,9 +10,12 @@ from pathlib import Path
 import numpy as np
 
 from ...core.map_file import file_arrays
+from ...terrain.known import evidence_sums
 from .map_layer import MapLayer, frame_of, held_classes
 
-_LAYER_ARRAYS = ("centers", "voxel_index", "alpha", "label", "state", "variance", "hits", "weight_sum", "weighted_uncertainty_sum")
+# a voxel's evidence is kept summed (what terrain.known compares), not per class: the overview's memory is the viewer's
+_LAYER_ARRAYS = ("centers", "voxel_index", "alpha", "evidence_sum", "label", "state", "variance", "hits", "weight_sum",
+                 "weighted_uncertainty_sum")
 
 
 class StoreOverview:
@@ -72,6 +75,7 @@ class StoreOverview:
 
     def _read(self, name: str, keep: int | None) -> dict:
         arrays = file_arrays(self.store.tile_contents(name))
+        arrays["evidence_sum"] = evidence_sums(arrays.pop("evidence"))
         n = len(arrays["state"])
         self._present.update(held_classes(arrays["label"], arrays["state"]).tolist())
         rows = np.arange(n) if keep is None or keep >= n else np.linspace(0, n - 1, keep).astype(np.int64)

@@ -8,16 +8,21 @@ from __future__ import annotations
 
 import numpy as np
 
-from .colors import color_bar_image, colormap, faded, swatch_image
+from ...terrain.known import is_known
+from .colors import color_bar_image, colormap, faded, swatch_image, value_range
 from .lighting import mesh_colors
 from .map_layer import STATE_NAMES
 
 
 class VoxelLayers:
     """Map ``i``'s voxels drawn: ``visible_rows[i]`` (rows of ``viewer.layers[i]``), ``handles[i]`` (the shared
-    scene node), ``color_ranges`` (each value coloring's color bar range, from the last map drawn in it)."""
+    scene node), ``color_ranges`` (each value coloring's color bar range, from the last map drawn in it),
+    ``hidden_below`` (the voxels of the shown maps that the other filters leave but that are below the
+    evidence threshold and hidden; about as many where a store's overview stands for more)."""
 
     MIN_POINT_PX = 2.0  # a voxel drawn as a point is never smaller than this on screen, at the orbit center
+    VARIANCE_PERCENTILES = (1.0, 99.0)  # "color by variance" spans these percentiles of the drawn voxels' log10 variance
+    VARIANCE_FLOOR = 1e-12  # variances under it (a Dempster-Shafer map's zeros) are drawn as it, not as no data
 
     def __init__(self, viewer):
         self.viewer = viewer
@@ -27,6 +32,7 @@ class VoxelLayers:
         self.visible_rows: list[np.ndarray] = [np.zeros(0, np.int64) for _ in range(count)]
         self.handles: list = [None] * count
         self.color_ranges: dict[str, tuple[float, float]] = {}
+        self.hidden_below = 0.0
 
     def replace(self, i: int, layer) -> None:
         """Map ``i`` is ``layer`` from now on: its own random order, and its nodes gone when its name (theirs) changes."""
@@ -40,8 +46,21 @@ class VoxelLayers:
         self.lod_order[i] = np.random.default_rng(0).permutation(len(layer.centers))
 
     # ------------------------------------------------------------------ which voxels
-    def visible_mask(self, i: int) -> np.ndarray:
-        """[V] bool: the voxels of layer ``i`` the panel's filters (states, classes, maximum variance, the diff) leave visible."""
+    def visible_mask(self, i: int, *, compared: bool = True) -> np.ndarray:
+        """[V] bool: the voxels of layer ``i`` the panel's filters (states, the evidence threshold, classes, maximum
+        variance, and, unless ``compared`` is False, the comparison's own choice) leave visible."""
+        keep = self._filtered(i, compared)
+        if not self.viewer.gui_show_below.value:
+            keep &= self.known(i)
+        return keep
+
+    def known(self, i: int) -> np.ndarray:
+        """[V] bool: layer ``i``'s voxels at or above the evidence threshold (``terrain.known``)."""
+        return is_known(self.viewer.layers[i].evidence_sum, self.viewer.min_evidence)
+
+    def _filtered(self, i: int, compared: bool = True) -> np.ndarray:
+        """[V] bool: the voxels of layer ``i`` every filter but the evidence threshold leaves (the comparison's
+        choice among them where ``compared``)."""
         viewer = self.viewer
         layer = viewer.layers[i]
         keep = np.ones(len(layer.state), bool)
@@ -53,23 +72,27 @@ class VoxelLayers:
         hidden = [k for k, name in enumerate(layer.classes) if name in viewer.gui_classes and not viewer.gui_classes[name].value]
         if hidden:
             keep &= ~np.isin(layer.label, hidden)
-        compared = viewer.comparison.rows_compared(i)
-        if compared is not None:
-            keep &= compared
+        chosen = viewer.comparison.rows_compared(i) if compared else None
+        if chosen is not None:
+            keep &= chosen
         return keep
 
-    def _choose_rows(self, i: int) -> tuple[np.ndarray, int, float]:
-        """(rows drawn, voxels visible, voxels of the map they stand for) of map ``i``."""
+    def _choose_rows(self, i: int) -> tuple[np.ndarray, int, float, float]:
+        """(rows drawn, voxels visible, voxels of the map they stand for, voxels hidden below the evidence threshold)
+        of map ``i``."""
         viewer = self.viewer
         layer = viewer.layers[i]
-        keep = self.visible_mask(i)
-        stands_for = float(layer.weight[keep].sum()) if layer.weight is not None else float(keep.sum())
+        keep = self._filtered(i)
+        below = np.zeros_like(keep) if viewer.gui_show_below.value else keep & ~self.known(i)
+        keep &= ~below
+        weight = layer.weight if layer.weight is not None else np.ones(len(keep))
+        stands_for, hidden = float(weight[keep].sum()), float(weight[below].sum())
         order = self.lod_order[i]
         rows = order[keep[order]]
         # a store's layer is decimated already (its overview), except the tile asked for in full
         if not viewer.gui_full_map.value and len(rows) > viewer.max_voxels and i not in viewer.stores:
             rows = rows[: viewer.max_voxels]
-        return np.sort(rows), int(keep.sum()), stands_for
+        return np.sort(rows), int(keep.sum()), stands_for, hidden
 
     # ------------------------------------------------------------------ colors
     def colors(self, i: int, rows: np.ndarray, mode: str | None = None) -> np.ndarray:
@@ -87,10 +110,16 @@ class VoxelLayers:
         if mode == "semantic":
             table = np.array([viewer.palette[name] for name in layer.classes], np.uint8)
             return table[layer.label[rows]], None
-        values = {"variance": layer.variance, "mean uncertainty": layer.mean_uncertainty,
+        if mode == "variance":
+            # most of a map's variances bunch in a narrow band beside rare far ones (a decade or more away): on a
+            # linear ramp from the minimum to the maximum the bunch takes one color. A log scale from the 1st to
+            # the 99th percentile of the voxels drawn spreads them over the ramp (the legend says so).
+            values = np.log10(np.maximum(layer.variance[rows], self.VARIANCE_FLOOR))
+            lo, hi = value_range(values, self.VARIANCE_PERCENTILES)
+            return colormap(values, lo, hi), (lo, hi)
+        values = {"mean uncertainty": layer.mean_uncertainty,
                   "observations": np.log10(1.0 + layer.hits.astype(np.float64))}[mode][rows]
-        finite = values[np.isfinite(values)]
-        lo, hi = (float(finite.min()), float(finite.max())) if len(finite) else (0.0, 1.0)
+        lo, hi = value_range(values)
         return colormap(values, lo, hi), (lo, hi)
 
     def legend_image(self, mode: str | None = None) -> np.ndarray:
@@ -102,7 +131,14 @@ class VoxelLayers:
         if mode == "semantic":
             return swatch_image([(name, viewer.palette[name]) for name in viewer.present_classes] or [("no classes", (128, 128, 128))])
         lo, hi = self.color_ranges.get(mode) or (0.0, 1.0)
-        return color_bar_image(lo, hi, mode + (" (log10 1+n)" if mode == "observations" else ""))
+        return color_bar_image(lo, hi, self.legend_label(mode))
+
+    def legend_label(self, mode: str) -> str:
+        """What a value coloring's color bar shows: its quantity and its scale."""
+        if mode == "variance":
+            low, high = self.VARIANCE_PERCENTILES
+            return f"log10 variance, p{low:g}-p{high:g} of those drawn"
+        return mode + (" (log10 1+n)" if mode == "observations" else "")
 
     # ------------------------------------------------------------------ drawing
     def draw(self, shown: list[int], hide: bool) -> tuple[int, int, float]:
@@ -112,13 +148,15 @@ class VoxelLayers:
         drawn = visible = 0
         stands_for = 0.0
         self.color_ranges = {}
+        self.hidden_below = 0.0
         for i in range(len(viewer.layers)):
             if i not in shown or hide:
                 if self.handles[i] is not None:
                     self.handles[i].visible = False
                 self.visible_rows[i] = np.zeros(0, np.int64)
                 continue
-            rows, count, share = self._choose_rows(i)
+            rows, count, share, hidden = self._choose_rows(i)
+            self.hidden_below += hidden
             self.visible_rows[i] = rows
             drawn, visible, stands_for = drawn + len(rows), visible + count, stands_for + share
             colors, color_range = self._colors(i, rows, None)
@@ -198,7 +236,16 @@ class VoxelLayers:
 
     # ------------------------------------------------------------------ the counter
     def status_text(self, shown, drawn: int, visible: int, stands_for: float, hide: bool) -> str:
-        """The counter: drawn against visible voxels, a store's overview against the store it stands for."""
+        """The counter: drawn against visible voxels, a store's overview against the store it stands for, and
+        how many voxels the evidence threshold hides."""
+        text = self._drawn_text(shown, drawn, visible, stands_for, hide)
+        if hide or self.hidden_below <= 0:
+            return text
+        about = "about " if any(self.viewer.layers[i].weight is not None for i in shown) else ""
+        return (f"{text}; {about}{round(self.hidden_below):,} below the evidence threshold (min_evidence "
+                f"{self.viewer.min_evidence:g}) hidden: tick *Show below the evidence threshold*")
+
+    def _drawn_text(self, shown, drawn: int, visible: int, stands_for: float, hide: bool) -> str:
         viewer = self.viewer
         layers, stores = viewer.layers, viewer.stores
         if hide:
