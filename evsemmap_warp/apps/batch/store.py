@@ -21,6 +21,7 @@ from .planning import Chunk
 
 
 def chunk_dir(store: Path, number: int) -> Path:
+    """The work folder of chunk ``number`` in the batch store ``store``, where its partial tiles and done record wait."""
     return store / "work" / f"chunk_{number:06d}"
 
 
@@ -66,6 +67,8 @@ def read_done(store: Path, chunk: Chunk, folded: dict[str, int] | None = None) -
 
 
 def check_store(out: Path, identity: dict) -> None:
+    """Raise one line unless ``out`` may receive this run: empty or absent, or the work of the same inputs and
+    settings (``identity``, which the plan records) to resume."""
     plan_path = out / "work" / "plan.json"
     if plan_path.is_file():
         earlier = _read_work_json(plan_path, "batch plan", f"delete {out / 'work'} to start over")
@@ -73,16 +76,14 @@ def check_store(out: Path, identity: dict) -> None:
             raise map_store.StoreError(f"{plan_path}: not a batch plan (a JSON object); delete {out / 'work'} to start over")
         if earlier.get("store_format_version") != identity["store_format_version"]:
             raise ConfigError(f"{out}: a store of format {earlier.get('store_format_version', 1)}, written by an older evsemmap_warp; "
-                              f"this version writes format {identity['store_format_version']} (it still reads the old one: info, "
-                              f"export, view, layers): give a new --out to map again")
+                              f"this version writes and reads format {identity['store_format_version']}: give a new --out to map again")
         if earlier != identity:
             differing = sorted(k for k in set(earlier) | set(identity) if earlier.get(k) != identity.get(k))
             raise ConfigError(f"{out}: holds a batch run of other inputs or settings (differing: {', '.join(differing)}); "
                               f"give a new --out, or delete {out} to start over")
     elif (out / map_store.INDEX_NAME).is_file() and _store_format(out) != map_store.STORE_VERSION:
         raise ConfigError(f"{out}: a store of format {_store_format(out)}, written by an older evsemmap_warp; this version writes "
-                          f"format {map_store.STORE_VERSION} (it still reads the old one: info, export, view, layers): give a new --out "
-                          f"to map again")
+                          f"and reads format {map_store.STORE_VERSION}: give a new --out to map again")
     elif (out / map_store.INDEX_NAME).is_file():
         raise ConfigError(f"{out}: a finished store whose partial maps were discarded (--discard-partials); delete it to map again, "
                           f"or give a new --out")

@@ -130,6 +130,7 @@ def init_worker(context: Context, threads: int) -> None:
 
 
 def peak_rss_mb() -> float:
+    """This process's peak resident memory so far, in MB (Linux's ru_maxrss is in KiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
