@@ -66,8 +66,9 @@ class TwoNodeCluster:
             command = ["unshare", "--mount", "--propagation", "private", "sh", "-c", f"{shell} && exec \"$@\"", "sh", *command]
         self.started += 1
         log = self.temp_dir / f"node{self.started}.log"
-        process = subprocess.Popen(command, stdout=log.open("w"), stderr=subprocess.STDOUT, env=os.environ | self.env,
-                                   start_new_session=True)
+        with log.open("w") as log_file:  # the node writes on its own copy of the descriptor
+            process = subprocess.Popen(command, stdout=log_file, stderr=subprocess.STDOUT, env=os.environ | self.env,
+                                       start_new_session=True)
         deadline = time.monotonic() + START_TIMEOUT_S
         while "Ray runtime started" not in log.read_text():
             if process.poll() is not None or time.monotonic() > deadline:

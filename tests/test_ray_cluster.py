@@ -63,15 +63,25 @@ def _driver(cluster, out, drive=None, chunk_frames=1) -> subprocess.Popen:
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ | cluster.env)
 
 
+def _communicate(driver: subprocess.Popen) -> tuple[str, str]:
+    """The driver's output once it ends; a driver past RUN_TIMEOUT_S is killed, not left running."""
+    try:
+        return driver.communicate(timeout=RUN_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        driver.kill()
+        driver.communicate(timeout=30)
+        raise
+
+
 def _finish(driver: subprocess.Popen) -> tuple[dict, str]:
-    out, err = driver.communicate(timeout=RUN_TIMEOUT_S)
+    out, err = _communicate(driver)
     assert driver.returncode == 0, err
     return json.loads(out), err
 
 
 def _failure(driver: subprocess.Popen) -> str:
     """The one line a failed run says (exit 2, no traceback)."""
-    _, err = driver.communicate(timeout=RUN_TIMEOUT_S)
+    _, err = _communicate(driver)
     lines = [line for line in err.splitlines() if line.startswith("evsemmap: error:")]
     assert driver.returncode == 2 and len(lines) == 1 and "Traceback" not in err, err
     return lines[0]
@@ -81,7 +91,10 @@ def _wait_for_a_chunk(driver: subprocess.Popen, out) -> None:
     """Until the driver has written its first chunk (the others are in flight, or queued)."""
     deadline = time.monotonic() + RUN_TIMEOUT_S
     while not list((out / "work").glob("chunk_*")):
-        assert driver.poll() is None and time.monotonic() < deadline, driver.communicate()
+        if driver.poll() is not None or time.monotonic() >= deadline:
+            driver.kill()
+            _, err = driver.communicate(timeout=30)
+            raise AssertionError(f"the driver wrote no chunk (exit {driver.returncode}): {err[-2000:]}")
         time.sleep(0.05)
 
 

@@ -211,11 +211,18 @@ class RayExecutor:
                 # A local instance's processes, and the workers it starts ahead of the first tasks, inherit this
                 # process's environment at ray.init: set for it alone. A runtime_env made Ray start other workers for
                 # the first tasks instead of using those (0.5 s more before the first chunk ran).
-                with _environment(env):
-                    ray.init(num_cpus=workers or os.cpu_count(), **options)
-        self.workers = workers or int(ray.cluster_resources().get("CPU", 1))
-        self.gcs_address = ray.get_runtime_context().gcs_address  # the head, which run() checks still answers
-        self._task = ray.remote(num_cpus=1, max_retries=3)(_ray_task)
+                with _environment(env):  # "local": a new instance, never one that RAY_ADDRESS or a `ray start` here names
+                    ray.init(address="local", num_cpus=workers or os.cpu_count(), **options)
+        try:
+            self.workers = workers or int(ray.cluster_resources().get("CPU", 1))
+            # The head, which run() checks still answers; through Ray Client (ray://) its address is the cluster's
+            # own, often closed to the client's machine, and the client's connection reports its loss itself.
+            self.gcs_address = None if str(address).startswith("ray://") else ray.get_runtime_context().gcs_address
+            self._task = ray.remote(num_cpus=1, max_retries=3)(_ray_task)
+        except BaseException:
+            if self.started:
+                ray.shutdown()
+            raise
         self.context_box = None  # attach's: the context's object reference and the scratch folder's name
         self._stdout = None
         if self.started:  # Ray prints a task's retry (a node lost) on stdout, which carries the run's summary alone
@@ -293,7 +300,8 @@ class RayExecutor:
         Ray runs a task again (up to 3 times) when its worker or node dies; its chunk is written only once, here."""
         queue = list(items)
         flight = {}
-        threads = max(1, (os.cpu_count() or 1) // self.workers)
+        # a task's math threads: its share of this machine for a local instance, one CPU of a cluster's node
+        threads = max(1, (os.cpu_count() or 1) // self.workers) if self.own_instance else 1
         most_in_flight = (2 if self.own_instance else 1) * self.workers
 
         def submit():
@@ -325,7 +333,7 @@ class RayExecutor:
                 raise _connection_lost(exc) from None
             if finished or time.monotonic() >= deadline:
                 return finished
-            if _answers(self.gcs_address):
+            if self.gcs_address is None or _answers(self.gcs_address):
                 silent_since = None
             elif silent_since is None:
                 silent_since = time.monotonic()
@@ -372,8 +380,10 @@ class RayExecutor:
         object references ends the process (tried: stopping it as the last result came in)."""
         if self.started:
             self.started = False
-            self.ray.shutdown()
-            sys.stdout = self._stdout
+            try:
+                self.ray.shutdown()
+            finally:
+                sys.stdout = self._stdout
 
 
 def probed_inputs(identity: dict) -> dict:

@@ -49,7 +49,7 @@ def read_done(store: Path, chunk: Chunk, folded: dict[str, int] | None = None) -
     elif not isinstance(record.get("tiles"), list) or not all(isinstance(t, str) for t in record["tiles"]):
         problem = "needs the list of its tiles"
     elif not isinstance(record.get("scan_ids"), list) or not all(isinstance(i, str) for i in record["scan_ids"]):
-        problem = "needs the list of its scan ids (a chunk mapped by an older version: rerun it)"
+        problem = "needs the list of its scan ids"
     else:
         for name in record["tiles"]:
             try:
@@ -131,8 +131,8 @@ def store_lock(out: Path):
 
 
 def store_index(template: Mapper, tile_voxels: int, entries: dict, inputs: list, chunks: list, totals: dict, scan_ids) -> dict:
-    """store.json: everything but the tiles' voxels; nothing that depends on how or when it ran.
-    ``identity``: what its tiles record (map_store.store_identity); ``scan_ids``: the scans it holds
+    """store.json: everything but the tiles' voxels; nothing that depends on how or when it ran; its identity is
+    what its tiles record (map_store.template_identity). ``scan_ids``: the scans it holds
     (a merge refuses to count them twice), None when not known."""
     config = template.config
     return {

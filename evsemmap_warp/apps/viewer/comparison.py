@@ -154,7 +154,6 @@ def load_truth(path, layer, frame=None) -> np.ndarray:
                      f"or a map file, found arrays {sorted(arrays)}")
 
 
-
 class Comparison:
     """The part of a ``MapViewer`` that says which maps are shown and where: the map chosen in *Map*, every map
     side by side (shifted ``side_by_side_step`` m apart along x), or the chosen map compared with the *Second

@@ -23,7 +23,6 @@ def held_classes(label: np.ndarray, state: np.ndarray) -> np.ndarray:
     return np.unique(label[state == STATE_NAMES.index("OCCUPIED")]).astype(np.int64)
 
 
-
 def frame_of(meta: dict, where) -> WorldFrame | None:
     """The world frame a map file's meta records (None: written before maps recorded their frame)."""
     frame = (meta or {}).get("frame")

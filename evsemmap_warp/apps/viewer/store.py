@@ -11,7 +11,7 @@ import numpy as np
 
 from ...core.map_file import file_arrays
 from ...terrain.known import evidence_sums
-from .map_layer import MapLayer, frame_of, held_classes
+from .map_layer import MapLayer, held_classes
 
 # a voxel's evidence is kept summed (what terrain.known compares), not per class: the overview's memory is the viewer's
 _LAYER_ARRAYS = ("centers", "voxel_index", "alpha", "evidence_sum", "label", "state", "variance", "hits", "weight_sum",
@@ -49,8 +49,7 @@ class StoreOverview:
         self.meta = self.store.template.metadata()
         self._present: set[int] = set()
         self._lock = threading.RLock()
-        # store.json's frame (MapStore.frame); a store from before stores recorded it: its tiles' meta
-        self.frame = self.store.frame if hasattr(self.store, "frame") else frame_of(self.meta, self.path)
+        self.frame = self.store.frame  # store.json's
 
     @property
     def complete(self) -> bool:
@@ -208,7 +207,6 @@ def along_the_strip(boxes: dict[str, np.ndarray]) -> dict[str, float]:
     axis = axis if axis[np.argmax(np.abs(axis))] > 0 else -axis
     along = centered @ axis
     return {name: float(a - along.min()) for name, a in zip(names, along)}
-
 
 
 class StoreTiles:

@@ -183,8 +183,6 @@ def launch_step(stats: IntegrationStats, run=None) -> Launch:
     return launch
 
 
-
-
 def free_samples_need(method: str) -> ScanNeeds:
     """The needs of a method that adds the sensor origin (and free-space rays) to its training data."""
     return ScanNeeds(SensorOrigin.REQUIRED, f"{method} adds the sensor origin (and free-space rays) as free samples")
