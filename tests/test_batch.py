@@ -64,6 +64,13 @@ def _assert_same_map(a: Mapper, b: Mapper, rtol=1e-12):
     assert a.scans_integrated == b.scans_integrated and a.points_integrated == b.points_integrated
 
 
+def _pool_context(drive, store: Path):
+    """The Context a pool's workers receive for mapping ``drive`` with EBS into ``store``."""
+    _, sources, config, _, _ = batch.plan_batch([str(drive)], BatchOptions(method="ebs", out=store))
+    origin_index, class_names, *_ = batch.probe(sources, config)
+    return batch.Context(store, sources, config, sources[0].num_classes, class_names, origin_index, 256)
+
+
 def _files(store: Path) -> dict[str, bytes]:
     return {str(p.relative_to(store)): p.read_bytes() for p in sorted(store.rglob("*")) if p.is_file() and not p.name.startswith(".fault")}
 
@@ -433,11 +440,7 @@ def test_pool_workers_start_with_math_libraries_at_their_share_of_the_cores(driv
     monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
     monkeypatch.setenv("MKL_NUM_THREADS", "3")  # a user's own setting is kept
     monkeypatch.setattr(os, "cpu_count", lambda: 2)
-    options = BatchOptions(method="ebs", out=tmp_path / "store")
-    inputs, sources, config, chunks, identity = batch.plan_batch([str(drive)], options)
-    origin_index, class_names, *_ = batch.probe(sources, config)
-    context = batch.Context(tmp_path / "store", sources, config, sources[0].num_classes, class_names, origin_index, 256)
-    executor = batch.LocalExecutor(2, context)
+    executor = batch.LocalExecutor(2, _pool_context(drive, tmp_path / "store"))
     seen = []
     try:
         executor.run(os.getenv, [("OPENBLAS_NUM_THREADS",), ("MKL_NUM_THREADS",)], lambda item, value: seen.append((item[0], value)))
@@ -450,11 +453,7 @@ def test_pool_workers_start_with_math_libraries_at_their_share_of_the_cores(driv
 def test_pool_workers_of_a_run_without_a_network_do_not_import_torch(drive, tmp_path):
     """Importing torch costs a worker process about 1.5 s of CPU, out of the mapping's time where the
     workers share the cores; only scans labelled by a checkpoint need it."""
-    options = BatchOptions(method="ebs", out=tmp_path / "store")
-    inputs, sources, config, chunks, identity = batch.plan_batch([str(drive)], options)
-    origin_index, class_names, *_ = batch.probe(sources, config)
-    context = batch.Context(tmp_path / "store", sources, config, sources[0].num_classes, class_names, origin_index, 256)
-    executor = batch.LocalExecutor(1, context)
+    executor = batch.LocalExecutor(1, _pool_context(drive, tmp_path / "store"))
     seen = []
     try:
         executor.run(eval, [("'torch' in __import__('sys').modules",)], lambda item, value: seen.append(value))
