@@ -1,6 +1,6 @@
 """The cost model from evidence and the cost file's layering (evsemmap_warp/terrain/config.py, layers.py;
-docs/terrain.md): a well-observed cell costs what the table says for its class, a barely observed one the
-cost of the unknown; a partial cost file changes exactly the keys it names."""
+docs/terrain.md): a cell costs what the table says for the class its evidence shows, however little there is,
+and how little is a band of its own; a partial cost file changes exactly the keys it names."""
 
 import dataclasses
 from dataclasses import replace
