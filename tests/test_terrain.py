@@ -94,12 +94,18 @@ def test_steps_and_lethal(scene_layers):
     assert _at(L, "lethal", 5, 5) == 0 and 0 < _at(L, "traversability_cost", 5, 5) < 0.5
 
 
-def test_an_unsure_cell_costs_more_than_a_sure_one_of_the_same_class(scene_layers):
+def test_an_unsure_cell_costs_its_class_and_is_marked_unsure(scene_layers):
     L = scene_layers
     assert _at(L, "surface_class", 2, 15) == _at(L, "surface_class", 2, 14) == C["paved"]
     assert _at(L, "semantic_variance", 2, 15) > 3 * _at(L, "semantic_variance", 2, 14)
     assert _at(L, "class_cost_std", 2, 15) > 3 * _at(L, "class_cost_std", 2, 14)
-    assert _at(L, "traversability_cost", 2, 15) > _at(L, "traversability_cost", 2, 14) + 0.1
+    assert _at(L, "surface_uncommitted", 2, 15) == pytest.approx(9 / 11) and _at(L, "surface_uncommitted", 2, 14) == pytest.approx(9 / 59)
+    assert _at(L, "traversability_cost", 2, 15) == _at(L, "traversability_cost", 2, 14)  # the evidential rule: its class's cost
+    from dataclasses import replace
+
+    config = load_terrain_config()
+    expected = compute_layers(_mapper(_scene()), config=replace(config, costs=replace(config.costs, rule="expected")))
+    assert _at(expected, "traversability_cost", 2, 15) > _at(expected, "traversability_cost", 2, 14) + 0.1
 
 
 def test_unknown_cells(scene_layers):
@@ -286,7 +292,7 @@ def test_npz_and_previews_read_back(written):
     for name in layers.band_names:
         np.testing.assert_array_equal(bands[name], layers.bands[name])
     previews = sorted((out / "previews").glob("*.png"))
-    assert {p.stem for p in previews} >= {"elevation", "traversability_cost", "surface_doubt", "surface_class", "lethal", "class_probabilities"}
+    assert {p.stem for p in previews} >= {"elevation", "traversability_cost", "surface_conflict", "surface_class", "lethal", "class_probabilities"}
     for path in previews:
         with Image.open(path) as image:
             pixels = np.asarray(image.convert("RGB")).astype(np.uint32)
