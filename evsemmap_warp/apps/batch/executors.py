@@ -10,7 +10,7 @@ import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 
-from .planning import CHUNK_TIMEOUT_S
+from ...limits import CHUNK_TIMEOUT_S
 from .worker import Context, as_task, init_worker
 
 

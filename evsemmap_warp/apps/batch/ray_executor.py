@@ -26,8 +26,8 @@ from pathlib import Path
 from ... import __version__, files
 from ...config import ConfigError
 from ...frames import WorldFrame
+from ...limits import CHUNK_TIMEOUT_S, RAY_CONNECT_TIMEOUT_S
 from .executors import MATH_THREAD_VARIABLES, stuck_error
-from .planning import CHUNK_TIMEOUT_S, RAY_CONNECT_TIMEOUT_S
 from .store import chunk_dir
 from .worker import Context, handoff_recorder, init_worker, reset_tasks_started
 
