@@ -9,6 +9,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -238,6 +239,28 @@ def test_a_stuck_worker_stops_the_run_in_one_line_and_the_rerun_resumes(drive, t
     _batch([drive], tmp_path / "stuck", executor="inline", chunk_frames=2)  # resumes: the same store as a clean run
     _batch([drive], tmp_path / "clean", executor="inline", chunk_frames=2)
     _assert_same_bytes(tmp_path / "clean", tmp_path / "stuck")
+
+
+def test_a_failed_run_closes_its_pool_in_bounded_time_with_a_worker_stuck(drive, tmp_path):
+    """A run that fails while a worker is stuck in its chunk (here: the tile callback raising on the first fold)
+    ends in seconds, the stuck worker interrupted: the pool's own shutdown waited for its task without bound."""
+    def fail(name, voxels):
+        raise ValueError("the callback failed")
+
+    failed = []
+
+    def run():
+        try:
+            run_batch([str(drive)], BatchOptions(method="ebs", out=tmp_path / "store", workers=2, chunk_frames=2, progress=False),
+                      log=lambda m: None, on_tile=fail, fault=batch.FaultPlan(kill_chunk=-1, hang_chunk=1))
+        except ValueError as exc:
+            failed.append(exc)
+
+    runner = threading.Thread(target=run, daemon=True)  # a thread: without the fix the run never ends
+    runner.start()
+    runner.join(90)
+    assert not runner.is_alive(), "the run did not end: closing the pool waited for the stuck worker"
+    assert [str(exc) for exc in failed] == ["the callback failed"]
 
 
 def test_the_fault_plan_is_a_test_seam_not_an_environment_variable():
