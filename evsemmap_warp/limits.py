@@ -1,6 +1,7 @@
 """Every limit a map, a store or a run is held to, defined once: the voxel key range, the tile size,
-the chunk size, the memory a map's voxel table may take and how long a batch run waits. The writers, the readers and the command
-line's flags all check through the functions here, so a writer never accepts what a reader refuses.
+the chunk size, the memory a map's voxel table may take and how long a batch run waits. The writers,
+the readers and the command line's flags all check through the functions here, so a writer never
+accepts what a reader refuses.
 
 Each ``check_*`` raises ValueError naming ``what`` (a flag, a file's key) and the range; the command
 line turns them into argparse types (``apps/commands/args.py``)."""
@@ -15,8 +16,8 @@ from pathlib import Path
 
 from .kernels.hash_table import INDEX_LIMIT
 
-__all__ = ["CHUNK_TIMEOUT_S", "INDEX_LIMIT", "MAX_TILE_VOXELS", "MIN_CHUNK_FRAMES", "MemoryBudgetError", "RAY_CONNECT_TIMEOUT_S", "available_memory", "check_chunk_frames",
-           "check_memory_bytes", "check_tile_voxels", "describe_bytes", "parse_memory_size"]
+__all__ = ["CHUNK_TIMEOUT_S", "INDEX_LIMIT", "MAX_TILE_VOXELS", "MIN_CHUNK_FRAMES", "MemoryBudgetError", "RAY_CONNECT_TIMEOUT_S",
+           "available_memory", "check_chunk_frames", "check_memory_bytes", "check_tile_voxels", "describe_bytes", "parse_memory_size"]
 
 # A voxel index lies in [-INDEX_LIMIT, INDEX_LIMIT) on every axis (21 bits a key field, kernels/hash_table.py),
 # so a tile wider than INDEX_LIMIT voxels holds nothing a tile of INDEX_LIMIT cannot. The limit also keeps the
