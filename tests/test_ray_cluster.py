@@ -1,5 +1,5 @@
 """Batch on a real Ray cluster of two nodes on the loopback, whose second node shares no files with the driver
-(tests/ray_cluster.py): the store is byte-identical to the local pool's with every node up, with replicated inputs,
+(tools/ray_cluster.py): the store is byte-identical to the local pool's with every node up, with replicated inputs,
 with a node stopped mid-run and after the driver was killed; a node with another version of the project, a lost
 head and a lost input are one line each. The driver is the command line, in a process of its own, as a user runs it."""
 
@@ -13,13 +13,16 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import REPO
 
-from ray_cluster import TwoNodeCluster, mount_namespaces_refused
 import evsemmap_warp
 import evsemmap_warp.files
 from evsemmap_warp.apps.batch import BatchOptions, ray_executor, run_batch
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence
+
+sys.path.insert(0, str(REPO / "tools"))
+from ray_cluster import TwoNodeCluster, mount_namespaces_refused  # noqa: E402
 
 ray = pytest.importorskip("ray")
 RUN_TIMEOUT_S = 300
