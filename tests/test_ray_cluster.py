@@ -194,6 +194,17 @@ def test_an_input_gone_from_a_node_that_had_it_is_one_line_naming_the_node_and_t
                                                           chunk_frames=1, progress=False), log=lambda m: None, on_tile=delete_once)
 
 
+def test_what_killed_tasks_left_in_a_nodes_scratch_folder_goes_with_its_next_task(tmp_path):
+    """A task killed on a node (a stuck one cancelled, a worker out of memory) leaves its temporary chunk folder in the
+    node's scratch folder, which then never emptied, and stayed; the next task there removes it, not a live task's."""
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True, check=True).stdout.strip()
+    (tmp_path / "work" / f".chunk_000003.{dead}.tmp").mkdir(parents=True)
+    (tmp_path / "work" / f".chunk_000003.{dead}.tmp" / "0_0_0.vox").write_bytes(b"half a file")
+    (tmp_path / "work" / f".chunk_000004.{os.getpid()}.tmp").mkdir()
+    ray_executor.remove_dead_tasks_leftovers(tmp_path)
+    assert [p.name for p in (tmp_path / "work").iterdir()] == [f".chunk_000004.{os.getpid()}.tmp"]
+
+
 def test_a_full_object_store_is_one_line_saying_what_to_change():
     """Ray's ObjectStoreFullError, from the driver's put (scans sent) or a task's result, as one line."""
     executor = object.__new__(ray_executor.RayExecutor)

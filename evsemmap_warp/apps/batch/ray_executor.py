@@ -88,7 +88,8 @@ def read_scans(source, chunk) -> SentScans:
 def scratch_name(store) -> str:
     """The name of the folder, in each node's temporary folder, where the tasks of a run into ``store`` map their
     chunks: one per driver machine and store path (two drivers' runs never share one), the same for every worker
-    process of a node (the tests' fault plan marks a killed attempt there)."""
+    process of a node (the tests' fault plan marks a killed attempt there) and for every run into ``store``, so that
+    what a killed task leaves there (remove_dead_tasks_leftovers) is cleared by the node's next task into that store."""
     digest = hashlib.sha256(f"{socket.gethostname()}:{Path(store).resolve()}".encode()).hexdigest()[:16]
     return f"evsemmap-batch-{digest}"
 
@@ -110,6 +111,26 @@ def probe_node(paths: list[str]) -> dict:
     """A probe task, run once on every node at the start: this node's name, its version of the project and the
     content identity (files.content_identity) of each of ``paths`` (the inputs the workers read) as it sees them."""
     return {"node": _node_name(), "version": __version__, "inputs": {path: files.content_identity(path) for path in paths}}
+
+
+def remove_dead_tasks_leftovers(scratch: Path) -> None:
+    """What tasks killed on this node (a stuck task cancelled, a worker out of memory) left in its scratch folder
+    ``scratch``: their temporary chunk folders, each named by its process (map_chunk), removed once that process is
+    gone; a live task's are its own. With them gone the folder empties, and the task that leaves it so removes it."""
+    for leftover in (scratch / "work").glob(".chunk_*.tmp"):
+        pid = leftover.name.split(".")[2]
+        if pid.isdigit() and not _process_runs(int(pid)):
+            shutil.rmtree(leftover, ignore_errors=True)
+
+
+def _process_runs(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 _RAY_CONTEXTS: dict = {}  # object id -> the context with the node's scratch folder as its store, per Ray worker process
@@ -137,6 +158,7 @@ def _ray_task(fn, threads: int, context_box: list, submitted: float, sent: SentS
         context = replace(context, sources=[sent if i == chunk.sequence else s for i, s in enumerate(context.sources)])
     folder = chunk_dir(context.store, chunk.number)
     shutil.rmtree(folder, ignore_errors=True)  # never an earlier run's chunk: this attempt maps it
+    remove_dead_tasks_leftovers(context.store)
     (context.store / "work").mkdir(parents=True, exist_ok=True)
     try:
         result = fn(chunk, context=context)
@@ -377,13 +399,17 @@ class RayExecutor:
     def close(self) -> None:
         """Shut down the Ray instance this executor started (a cluster given by address is left running); once.
         Here, not on a thread while the tiles are written: shutting Ray down while the driver may still release
-        object references ends the process (tried: stopping it as the last result came in)."""
+        object references ends the process (tried: stopping it as the last result came in). A local instance's
+        node is this machine: its scratch folder goes with it, with what tasks killed in it left (a stuck or
+        interrupted run's), unless the tests' fault plan keeps its marks there."""
         if self.started:
             self.started = False
             try:
                 self.ray.shutdown()
             finally:
                 sys.stdout = self._stdout
+            if self.own_instance and self.context_box is not None and self.context.fault is None:
+                shutil.rmtree(node_scratch(self.context.store), ignore_errors=True)
 
 
 def probed_inputs(identity: dict) -> dict:
