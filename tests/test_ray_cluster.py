@@ -180,18 +180,34 @@ def test_a_lost_head_is_one_line_and_keeps_the_chunks_mapped(cluster):
     assert list((out / "work").glob("chunk_*"))
 
 
-def test_an_input_gone_from_a_node_that_had_it_is_one_line_naming_the_node_and_the_file(tmp_path):
-    """The probe found the inputs at the same path on every node; a node that lacks one later (here: the file deleted
-    after the first chunk, on a local instance) stops the run naming the node and the file, not Ray's traceback."""
+@pytest.mark.parametrize("executor", ["local", "ray"])
+def test_an_input_gone_during_a_run_on_this_machine_is_the_missing_file_as_the_os_names_it(tmp_path, executor):
+    """A local Ray instance's one node is this machine, whose files no probe checked: an input deleted during the run
+    (here: after the first chunk) is the missing file, as the pool says it, not a cluster's node said to lack it."""
     generate_sequence(load_preset("tiny"), tmp_path / "drive", progress=False)
     gone = sorted((tmp_path / "drive").rglob("*.bin"))[-1]
 
     def delete_once(name, voxels):
         gone.unlink(missing_ok=True)
 
-    with pytest.raises(ray_executor.ClusterError, match=rf"node .* does not see the input file {gone}, which the probe"):
-        run_batch([str(tmp_path / "drive")], BatchOptions(method="ebs", out=tmp_path / "store", executor="ray", workers=1,
+    with pytest.raises(FileNotFoundError) as error:
+        run_batch([str(tmp_path / "drive")], BatchOptions(method="ebs", out=tmp_path / "store", executor=executor, workers=1,
                                                           chunk_frames=1, progress=False), log=lambda m: None, on_tile=delete_once)
+    assert error.value.filename == str(gone) and not isinstance(error.value, ray_executor.ClusterError)
+
+
+def test_a_node_without_an_input_the_probe_found_on_every_node_is_named_with_the_file(tmp_path):
+    """Where the probe found the inputs at the driver's paths on every node, a task's missing input names its node and
+    the file; a missing file that is no input (the node's scratch folder, say) is left as it is."""
+    missing = FileNotFoundError(2, "No such file or directory", str(tmp_path / "drive" / "velodyne" / "000005.bin"))
+    said = ray_executor.missing_input(missing, "n2 (10.0.0.2, node 1234abcd)", [str(tmp_path / "drive"), str(tmp_path / "alpha")])
+    assert isinstance(said, ray_executor.ClusterError)
+    assert str(said).startswith(f"node n2 (10.0.0.2, node 1234abcd) does not see the input file {missing.filename}, which the probe at "
+                                f"the start found at the same path on every node (removed since, or a node that joined later?): ")
+    for other in (tmp_path / "drive2" / "000005.bin", Path("/tmp/evsemmap-batch-0123/work/.chunk_000005.77.tmp")):
+        elsewhere = FileNotFoundError(2, "No such file or directory", str(other))
+        assert ray_executor.missing_input(elsewhere, "n2", [str(tmp_path / "drive")]) is elsewhere
+    assert ray_executor.missing_input(missing, "n2", None) is missing  # no probe ran (a local instance)
 
 
 def test_what_killed_tasks_left_in_a_nodes_scratch_folder_goes_with_its_next_task(tmp_path):

@@ -133,6 +133,19 @@ def _process_runs(pid: int) -> bool:
     return True
 
 
+def missing_input(exc: FileNotFoundError, node: str, probed: list[str] | None) -> OSError:
+    """What a task that reads the inputs at the same path says of a file it did not find: where the probe at the start
+    found the inputs on every node (``probed``: their paths) and the file is one of them, a ClusterError naming the node;
+    otherwise (a local instance, which nothing probed: this machine's files; a file that is no input) ``exc`` as it is."""
+    inside = probed is not None and any(Path(exc.filename) == Path(path) or Path(path) in Path(exc.filename).parents
+                                        for path in probed)
+    if not inside:
+        return exc
+    return ClusterError(f"node {node} does not see the input file {exc.filename}, which the probe at the start found at the same "
+                        f"path on every node (removed since, or a node that joined later?): give every node the inputs at the same "
+                        f"path, or rerun (a node without them makes the driver send the scans)")
+
+
 _RAY_CONTEXTS: dict = {}  # object id -> the context with the node's scratch folder as its store, per Ray worker process
 
 
@@ -140,7 +153,8 @@ def _ray_task(fn, threads: int, context_box: list, submitted: float, sent: SentS
     """A Ray task: ``fn`` (map_chunk) maps ``chunk`` into the node's scratch folder; returns its result with the
     chunk's files (``files``: name -> bytes) and the node (``node``). ``sent``: the chunk's scans, when the driver
     sends them. The context (put once by the driver) comes boxed in a list with the scratch folder's name
-    (scratch_name), so Ray does not fetch and unpickle it for every task: each worker process fetches it once
+    (scratch_name) and the inputs the probe found on every node (missing_input; None where it did not run), so Ray
+    does not fetch and unpickle it for every task: each worker process fetches it once
     (unboxed, unpickling the sources for every task made short tasks several times slower, docs/performance.md).
     ``submitted``: when the driver submitted it (time.time()), for the hand-off costs (handoff_recorder)."""
     import ray
@@ -166,9 +180,7 @@ def _ray_task(fn, threads: int, context_box: list, submitted: float, sent: SentS
     except FileNotFoundError as exc:
         if sent is not None or exc.filename is None:
             raise
-        raise ClusterError(f"node {_node_name()} does not see the input file {exc.filename}, which the probe at the start found "
-                           f"at the same path on every node (a node that joined since?): give every node the inputs at the same "
-                           f"path, or rerun (a node without them makes the driver send the scans)") from None
+        raise missing_input(exc, _node_name(), context_box[2]) from None
     finally:
         shutil.rmtree(folder, ignore_errors=True)
         if context.fault is None:  # the scratch folder goes once empty (the tests' fault plan keeps its marks there)
@@ -245,7 +257,7 @@ class RayExecutor:
             if self.started:
                 ray.shutdown()
             raise
-        self.context_box = None  # attach's: the context's object reference and the scratch folder's name
+        self.context_box = None  # attach's: the context's object reference, the scratch folder's name and the probed inputs
         self._stdout = None
         if self.started:  # Ray prints a task's retry (a node lost) on stdout, which carries the run's summary alone
             self._stdout, sys.stdout = sys.stdout, sys.stderr
@@ -254,10 +266,12 @@ class RayExecutor:
         """Choose how the inputs reach the workers (``identity``: the run's plan, which records the inputs' content),
         then put the run's context in Ray's object store, once for all tasks."""
         self.context, self.read_seconds = context, 0.0
-        nodes, self.inputs, why = self._choose_inputs(probed_inputs(identity))
+        inputs = probed_inputs(identity)
+        nodes, self.inputs, why = self._choose_inputs(inputs)
         self.log(f"inputs: {self.inputs} ({why})")
         self.cluster = {"nodes": nodes, "inputs": self.inputs, "inputs_why": why, "chunks_per_node": Counter()}
-        self.context_box = [self._put(context), scratch_name(context.store)]
+        probed = list(inputs) if self.inputs == SAME_PATH and not self.own_instance else None
+        self.context_box = [self._put(context), scratch_name(context.store), probed]
         return self
 
     def _choose_inputs(self, inputs: dict) -> tuple[int, str, str]:
