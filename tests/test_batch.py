@@ -529,3 +529,23 @@ def test_bench_batch_gives_the_drivers_fold_rate_and_the_worker_count_it_limits(
     fold = bench_batch.fold_bottleneck(row, 2000)
     assert fold["voxels_per_s"] == 2_000_000 and fold["worker_voxels_per_s"] == 300_000 and fold["bottleneck_workers"] == 6
     assert fold["long_drive"] == {"frames": bench_batch.LONG_DRIVE_FRAMES, "fold_s": 7.5, "worker_s": 50.0}
+
+
+def test_bench_batch_s_two_node_row_compares_the_stores_and_is_skipped_saying_why(monkeypatch, tmp_path, capsys):
+    """The two-node row stands only on a store byte-identical to the local pool's (store_differences names the files
+    that differ), and where this machine allows no mount namespace it is skipped with the reason, recorded."""
+    monkeypatch.syspath_prepend(str(REPO / "tools"))
+    import bench_batch
+    import ray_cluster
+
+    for store, tile in (("a", b"tile"), ("b", b"tile"), ("c", b"other")):
+        (tmp_path / store / "tiles").mkdir(parents=True)
+        (tmp_path / store / "tiles" / "0_0_0.vox").write_bytes(tile)
+    (tmp_path / "c" / "store.json").write_text("{}")
+    assert bench_batch.store_differences(tmp_path / "a", tmp_path / "b") == []
+    assert bench_batch.store_differences(tmp_path / "a", tmp_path / "c") == ["store.json", "tiles/0_0_0.vox"]
+    monkeypatch.setattr(ray_cluster, "mount_namespaces_refused", lambda folder: "a private mount namespace is not allowed here (EPERM)")
+    results = {"runs": {}}
+    bench_batch.two_node_rows(results, tmp_path / "data", tmp_path, tmp_path / "warm", [], None, {}, tmp_path / "local")
+    assert results == {"runs": {}, "skipped": {"ray-2node": "a private mount namespace is not allowed here (EPERM)"}}
+    assert "batch ray-2node: skipped: a private mount namespace is not allowed here" in capsys.readouterr().out
