@@ -272,7 +272,8 @@ class MapStore:
     def _refuse_unlisted_tiles(self, index_path: Path) -> None:
         """A tile file the index does not list: the index was edited or belongs to other tiles, and
         every read-out would silently lack its voxels (a listed tile missing on disk is refused on reading)."""
-        unlisted = sorted(p.name for p in (self.path / "tiles").glob(f"*{TILE_SUFFIX}") if not p.name.startswith(".") and p.stem not in self.tiles)
+        unlisted = sorted(p.name for p in (self.path / "tiles").glob(f"*{TILE_SUFFIX}")
+                          if not p.name.startswith(".") and p.stem not in self.tiles)
         if unlisted:
             raise StoreError(f"{self.path / 'tiles' / unlisted[0]}: a tile file that {index_path} does not list ({len(unlisted)} such: "
                              f"{', '.join(unlisted[:4])}{', ...' if len(unlisted) > 4 else ''}); the index was edited or is not the one "
