@@ -259,3 +259,7 @@ def test_inputs_are_read_at_the_same_path_only_where_every_node_holds_the_same_c
     executor._probe = lambda probed: [same, stale]
     assert executor._choose_inputs(inputs) == (2, "from the driver", f"node b sees other content at {tmp_path / 'drive'}: the driver "
                                                                       f"reads and sends each chunk's scans")
+    (tmp_path / "empty").mkdir()  # where a node's data folder is a mount point with nothing mounted
+    empty = {"node": "b", "inputs": {str(tmp_path / "drive"): evsemmap_warp.files.content_identity(tmp_path / "empty")}}
+    executor._probe = lambda probed: [same, empty]
+    assert executor._choose_inputs(inputs)[2].startswith(f"node b sees an empty folder at {tmp_path / 'drive'}: ")

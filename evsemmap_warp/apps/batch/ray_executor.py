@@ -284,7 +284,8 @@ class RayExecutor:
         if not missing:
             return len(nodes), SAME_PATH, f"every node ({len(nodes)}) sees the inputs at the driver's paths, with the same content"
         (node, path), more = missing[0], len(missing) - 1
-        seen = "sees other content at" if "sha256" in node["inputs"][path] else "does not see"
+        there = node["inputs"][path]  # an empty folder: a mount point with nothing mounted, say
+        seen = "does not see" if "sha256" not in there else "sees an empty folder at" if there["files"] == 0 else "sees other content at"
         return len(nodes), FROM_DRIVER, (f"node {node['node']} {seen} {path}" + (f" ({more} more such)" if more else "")
                                          + ": the driver reads and sends each chunk's scans")
 
