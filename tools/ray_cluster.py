@@ -26,8 +26,8 @@ OBJECT_STORE_BYTES = 200 * 2**20  # per node, by default: the tests' objects are
 
 
 def mount_namespaces_refused(folder: Path) -> str | None:
-    """Why this machine cannot give a process a private mount namespace with a tmpfs in it (the reason a
-    test skips), or None when it can."""
+    """Why this machine cannot give a process a private mount namespace with a tmpfs in it (the reason the
+    cluster tests and the bench's two-node rows are skipped), or None when it can."""
     if shutil.which("unshare") is None:
         return "the unshare command is not installed (util-linux)"
     probe = subprocess.run(["unshare", "--mount", "--propagation", "private", "mount", "-t", "tmpfs", "none", str(folder)],
