@@ -14,6 +14,7 @@ import pytest
 
 from evsemmap_warp.apps.batch import BatchOptions, run_batch
 from evsemmap_warp.apps.cli import main
+from evsemmap_warp.core import map_store
 from evsemmap_warp.core.map_store import MapStore, fold
 from evsemmap_warp.core.mapper import load_map
 from evsemmap_warp.core.voxel_map import add_duplicate_voxels
@@ -78,7 +79,7 @@ def test_folding_chunk_by_chunk_gives_the_bits_of_one_sum():
 
 def test_a_store_is_compact_and_exports_the_map(drive, tmp_path):
     summary = _batch([drive], tmp_path / "store")
-    tiles = sorted((tmp_path / "store" / "tiles").glob("*.vox"))
+    tiles = sorted((tmp_path / "store" / "tiles").glob(f"*{map_store.TILE_SUFFIX}"))
     assert len(tiles) == summary["tiles"] > 1
     bytes_per_voxel = sum(p.stat().st_size for p in tiles) / summary["voxels"]
     assert bytes_per_voxel <= 48, bytes_per_voxel  # the target; the map-file schema took 230

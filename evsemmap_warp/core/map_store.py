@@ -42,7 +42,7 @@ from .voxel_map import EXTRA_COLUMNS, VoxelArrays
 
 STORE_FORMAT = "evsemmap_warp.store"
 STORE_VERSION = 2
-TILE_SUFFIX = {STORE_VERSION: ".vox"}  # by store format version
+TILE_SUFFIX = ".vox"  # a tile file's name: its tile name, then this
 PARTIAL_SUFFIX = ".vox"
 INDEX_NAME = "store.json"
 DEFAULT_TILE_VOXELS = 256  # 51.2 m at 0.2 m: a few MB per tile of a LiDAR map
@@ -272,8 +272,8 @@ class MapStore:
     def _refuse_unlisted_tiles(self, index_path: Path) -> None:
         """A tile file the index does not list: the index was edited or belongs to other tiles, and
         every read-out would silently lack its voxels (a listed tile missing on disk is refused on reading)."""
-        suffix = TILE_SUFFIX[STORE_VERSION]
-        unlisted = sorted(p.name for p in (self.path / "tiles").glob(f"*{suffix}") if not p.name.startswith(".") and p.stem not in self.tiles)
+        unlisted = sorted(p.name for p in (self.path / "tiles").glob(f"*{TILE_SUFFIX}")
+                          if not p.name.startswith(".") and p.stem not in self.tiles)
         if unlisted:
             raise StoreError(f"{self.path / 'tiles' / unlisted[0]}: a tile file that {index_path} does not list ({len(unlisted)} such: "
                              f"{', '.join(unlisted[:4])}{', ...' if len(unlisted) > 4 else ''}); the index was edited or is not the one "
@@ -358,7 +358,7 @@ class MapStore:
 
     def tile_path(self, name: str) -> Path:
         """Where tile ``name``'s file is."""
-        return self.path / "tiles" / f"{name}{TILE_SUFFIX[STORE_VERSION]}"
+        return self.path / "tiles" / f"{name}{TILE_SUFFIX}"
 
     def tile(self, name: str) -> Mapper:
         """Tile ``name`` as a read-only Mapper (validated on reading; its origin, frame and scan counts

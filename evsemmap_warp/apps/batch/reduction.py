@@ -44,13 +44,13 @@ class TileFolder:
         self.seconds = 0.0
         self.voxels_folded = 0  # partial rows folded into tiles (the fold's work: its rate is voxels_folded / seconds)
         self.tiles_written = 0
-        for path in sorted((out / "tiles").glob(f"*{map_store.TILE_SUFFIX[map_store.STORE_VERSION]}")):
+        for path in sorted((out / "tiles").glob(f"*{map_store.TILE_SUFFIX}")):
             header = self._tile_header(path)
             self.folded[path.stem] = header["folded_through"]
             self.entries[path.stem] = header["entry"]
 
     def _tile_path(self, name: str) -> Path:
-        return self.out / "tiles" / f"{name}{map_store.TILE_SUFFIX[map_store.STORE_VERSION]}"
+        return self.out / "tiles" / f"{name}{map_store.TILE_SUFFIX}"
 
     def _partial_path(self, number: int, name: str) -> Path:
         return chunk_dir(self.out, number) / f"{name}{map_store.PARTIAL_SUFFIX}"
