@@ -113,9 +113,15 @@ def test_replicated_inputs_are_read_at_the_same_path(cluster):
     """A node with its own copy of the inputs at the driver's paths (replicated data, not shared) reads them there."""
     cluster.stop(cluster.node)
     cluster.node = cluster.start_node(replicated=cluster.data)
-    summary, _ = _finish(_driver(cluster, cluster.stores / "replicated"))
-    _assert_same_bytes(cluster.stores / "local", cluster.stores / "replicated")
-    assert summary["cluster"]["inputs"] == "same path" and len(summary["cluster"]["chunks_per_node"]) == 2
+    for attempt in range(3):
+        # a node just joined may not yet be in the head's view of free CPUs: the head then maps every tiny chunk
+        out = cluster.stores / f"replicated{attempt}"
+        summary, _ = _finish(_driver(cluster, out))
+        _assert_same_bytes(cluster.stores / "local", out)
+        assert summary["cluster"]["nodes"] == 2 and summary["cluster"]["inputs"] == "same path"
+        if len(summary["cluster"]["chunks_per_node"]) == 2:
+            break
+    assert len(summary["cluster"]["chunks_per_node"]) == 2  # the node with the copy mapped chunks from it
 
 
 @pytest.mark.parametrize("version, said", [
