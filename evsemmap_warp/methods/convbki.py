@@ -110,8 +110,9 @@ def stencil_weights(lengths: ConvBkiLengths, resolution_m: float, half: int) -> 
 def class_gains(lengths: ConvBkiLengths, resolution_m: float, half: int) -> np.ndarray:
     """[K] each class's kernel mass (the sum of its stencil weights: the evidence one unit of that class's
     probability adds to the map) over the classes' mean. The lengths are learned with a class-weighted loss
-    on labelled scans, so a class the network under-predicts there gets a longer kernel, hence more mass:
-    these gains carry that correction into another kernel (ebs-learned, docs/unseen.md)."""
+    on labelled scans, so a class whose evidence is wrong there (a weak network's sky on vegetation) gets a
+    short kernel, hence little mass: these gains carry that class weighting into another kernel
+    (ebs-learned, docs/unseen.md)."""
     mass = stencil_weights(lengths, resolution_m, half).sum(axis=0)
     return mass / mass.mean()
 
