@@ -191,12 +191,12 @@ class MappingConfig:
                 changes[name] = dataclasses.replace(getattr(self, name), **value)
         return dataclasses.replace(self, **changes)
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self, *, every_key: bool = False) -> dict[str, Any]:
         """Every field by name, sections as dicts, enums as their YAML values (what map files record as
-        ``meta.mapping``). class_gains only when true: every other method's maps and stores keep their bytes
-        and identity, and a file without it reads back as false."""
+        ``meta.mapping``). class_gains only when true or ``every_key`` (dump-config): every other method's maps
+        and stores keep their bytes and identity, and a file without it reads back as false."""
         out = _as_dict(self)
-        if not self.class_gains:
+        if not (self.class_gains or every_key):
             del out["class_gains"]
         return out
 
