@@ -41,7 +41,7 @@ def _mapper(voxels: dict, *, frame=None, origin_cells=(0, 0)) -> Mapper:
     n = len(keys)
     mapper = Mapper(load_config([], method="ebs").mapping, len(CLASSES), class_names=CLASSES, frame=frame, workers=1)
     mapper.load_voxels(VoxelArrays(index=index, evidence=evidence, weight_sum=np.full(n, 2.0), weighted_uncertainty_sum=np.full(n, 0.2),
-                                   hits=np.full(n, 3, np.int64), touched=np.ones(n, bool)))
+                                   hits=np.full(n, 3, np.int64), touched=np.ones(n, bool), weighted_height_sum=np.zeros(n)))
     return mapper
 
 
