@@ -129,7 +129,7 @@ def test_a_ramp_gives_its_slope_and_a_steep_one_is_lethal():
 
 def _lidar_drive_on_a_road(rng, grade_deg: float, road_z: float = 0.2):
     """Scans of a 16-ring LiDAR 1.8 m above a road z = road_z + x tan(grade), from 17 poses 1 m apart along x:
-    the rings' points (within 5 m of the road's axis and 20 m of the sensor), 2 cm of range noise in z."""
+    the rings' points (within 5 m of the road's axis and 20 m of the sensor), with 2 cm of noise in z."""
     grade = np.tan(np.radians(grade_deg))
     elevation, azimuth = np.meshgrid(np.radians(np.linspace(-25, -5, 16)), np.radians(np.arange(0.0, 360.0, 1.0)), indexing="ij")
     rays = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], -1).reshape(-1, 3)
@@ -148,8 +148,7 @@ def test_a_lidar_road_reads_its_grade_and_height_not_the_voxel_staircase():
     # A road rising 0.8 deg (flat to a planner), its surface near a voxel face (z 0.2 m at x = 0), swept by a
     # LiDAR's rings and mapped with ebs. Measured on the cells the layers know (evidence at least min_evidence,
     # with a slope): the slope's 90th percentile and median, and the elevation's median error against the road.
-    # From the voxel centers the road read as 0.2 m steps (p90 4.5 deg, elevation +0.1 m); from the points' mean
-    # heights it reads its grade.
+    # Heights at the voxel centers read this road as 0.2 m steps (slope p90 4.5 deg, elevation +0.1 m).
     grade_deg = 0.8
     mapper = Mapper(load_config([], method="ebs").mapping, len(CLASSES), class_names=CLASSES, workers=1, origin=np.zeros(3))
     for points in _lidar_drive_on_a_road(np.random.default_rng(0), grade_deg):
