@@ -88,7 +88,8 @@ def _map(voxels) -> Mapper:
     n = len(keys)
     mapper = Mapper(load_config([], method="ebs").mapping, len(CLASSES), class_names=CLASSES, workers=1)
     mapper.load_voxels(VoxelArrays(index=np.array(keys, np.int64), evidence=evidence, weight_sum=np.full(n, 2.0),
-                                   weighted_uncertainty_sum=np.full(n, 0.2), hits=np.full(n, 3, np.int64), touched=np.ones(n, bool)))
+                                   weighted_uncertainty_sum=np.full(n, 0.2), hits=np.full(n, 3, np.int64), touched=np.ones(n, bool),
+                                   weighted_height_sum=np.zeros(n)))
     return mapper
 
 

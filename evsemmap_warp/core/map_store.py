@@ -109,7 +109,7 @@ def write_json(path: Path, data) -> Path:
 
 
 def write_partial(path: Path, index: np.ndarray, rows: np.ndarray, tile_voxels: int, identity: str, chunk: int) -> Path:
-    """Chunk ``chunk``'s voxels in tile ``path.stem`` (global indices in key order, [V, K + 4] rows) for
+    """Chunk ``chunk``'s voxels in tile ``path.stem`` (global indices in key order, [V, K + 5] rows) for
     the store of ``identity``."""
     return tile_codec.write_voxel_file(path, index, rows, parse_tile_name(Path(path).stem), tile_voxels,
                                        {"kind": "partial", "store": identity, "chunk": int(chunk)})
@@ -117,7 +117,7 @@ def write_partial(path: Path, index: np.ndarray, rows: np.ndarray, tile_voxels: 
 
 def read_partial(path: Path, columns: int, tile_voxels: int, identity: str, chunk: int) -> tuple[np.ndarray, np.ndarray]:
     """A partial map (write_partial), validated: of this store and chunk, in the tile its name says,
-    [V, columns] finite non-negative sums, voxels unique and in key order."""
+    [V, columns] finite sums (non-negative but the weighted height sum), voxels unique and in key order."""
     folder = Path(path).parent
     try:
         header, index, rows = tile_codec.read_voxel_file(path, {"kind": "partial", "store": identity, "chunk": int(chunk),
@@ -131,7 +131,7 @@ def read_partial(path: Path, columns: int, tile_voxels: int, identity: str, chun
 
 
 def fold(running: tuple[np.ndarray, np.ndarray] | None, index: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``running`` (a tile's sum so far: global indices [V, 3] in key order and [V, K + 4] rows) plus a
+    """``running`` (a tile's sum so far: global indices [V, 3] in key order and [V, K + 5] rows) plus a
     partial's voxels (the same, each voxel once): the voxels of both in key order, rows of one voxel
     added, touched or-ed. Folding partials one by one in chunk order gives the bits that summing all of
     them at once gives (add_duplicate_voxels, the twin the tests hold it to): each voxel's rows are added
@@ -430,7 +430,9 @@ class MapStore:
         if header["tile"] != list(parse_tile_name(name)) or header["tile_voxels"] != self.tile_voxels:
             refuse(f"it is tile {tile_name(header['tile'])}, not {name}")
         if columns != self.num_classes + EXTRA_COLUMNS:
-            refuse(f"{columns} columns, this store's maps have {self.num_classes + EXTRA_COLUMNS}")
+            refuse(f"{columns} columns, this store's maps have {self.num_classes + EXTRA_COLUMNS}"
+                   + (" (the weighted height sum is missing: a store written before it; map the data again)"
+                      if columns == self.num_classes + EXTRA_COLUMNS - 1 else ""))
         expected = self.tiles[name]["voxels"]
         if voxels != expected:
             raise StoreError(f"{path}: {voxels} voxels, the index says {expected}")

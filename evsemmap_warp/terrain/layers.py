@@ -212,6 +212,7 @@ class VoxelColumns:
     weight_sum: np.ndarray  # [V]
     weighted_uncertainty_sum: np.ndarray  # [V]
     evidence: np.ndarray  # [V, K]
+    height_offset: np.ndarray  # [V] m: the mean height of the points that reached the voxel, above its center
 
     @classmethod
     def of(cls, mappers: list[Mapper], *, min_evidence: float = 0.0) -> "VoxelColumns":
@@ -233,7 +234,7 @@ class VoxelColumns:
                    hits=cat(lambda a, s: a.hits).astype(np.float64),
                    probabilities=cat(lambda a, s: s.probabilities), variance=cat(lambda a, s: s.variance),
                    weight_sum=cat(lambda a, s: a.weight_sum), weighted_uncertainty_sum=cat(lambda a, s: a.weighted_uncertainty_sum),
-                   evidence=cat(lambda a, s: a.evidence))
+                   evidence=cat(lambda a, s: a.evidence), height_offset=cat(lambda a, s: a.mean_height_offset()))
 
 
 def dirichlet_prior(mapper: Mapper) -> float:
@@ -310,8 +311,13 @@ def base_layers(voxels: VoxelColumns, reduced: dict[str, np.ndarray], grid: Laye
     bands = {}
 
     def height_of(name):
-        found = reduced[f"{name}_row"] >= 0
-        return np.where(found, (reduced[f"{name}_z"] + 0.5) * voxel_m + offset_m, np.nan).reshape(shape)
+        # the mean height of the points that reached the voxel, not its center: a surface between two voxel
+        # centers reads as itself, not in voxel-size steps that a plane fit turns into slope (docs/terrain.md)
+        row = reduced[f"{name}_row"]
+        found = row >= 0
+        height = np.full(len(row), np.nan)
+        height[found] = (reduced[f"{name}_z"][found] + 0.5) * voxel_m + offset_m + voxels.height_offset[row[found]]
+        return height.reshape(shape)
 
     bands["elevation"] = height_of("support")
     bands["elevation_top"] = height_of("top")

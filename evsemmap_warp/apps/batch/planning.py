@@ -188,7 +188,7 @@ def probe(sources, config: MappingConfig, max_memory: int | None = None) -> tupl
 
 
 def bytes_per_voxel(num_classes: int) -> int:
-    """A worker's memory per voxel of its partial map: the hash table and its [K + 4] float64 rows
+    """A worker's memory per voxel of its partial map: the hash table and its [K + 5] float64 rows
     (kept below half full, so ~2-4x the voxels), the host copy, the post-pass and the tile split."""
     row = (num_classes + EXTRA_COLUMNS) * 8
     return 3 * (row + 16) + 3 * row

@@ -178,9 +178,9 @@ class StoreOverview:
         with self._lock:
             parts = dict(self.parts) | dict(self.details)  # a tile in full replaces its overview rows
             if not parts:  # nothing read yet: an empty map of the store's classes
-                from ...core.voxel_map import VoxelArrays
+                from ...core.voxel_map import EXTRA_COLUMNS, VoxelArrays
 
-                empty = VoxelArrays.from_rows(np.zeros((0, 3), np.int64), np.zeros((0, self.store.num_classes + 4)))
+                empty = VoxelArrays.from_rows(np.zeros((0, 3), np.int64), np.zeros((0, self.store.num_classes + EXTRA_COLUMNS)))
                 layer = MapLayer.from_arrays(self.path.name, self.path, file_arrays(self.store.template.contents_of(empty)), self.meta)
                 layer.frame, layer.weight, layer.present = self.frame, np.zeros(0), self.present
                 return layer
