@@ -20,6 +20,8 @@ def add_parser(sub) -> None:
     p.add_argument("--out", required=True, type=Path, help="the map store (a folder) to write, or to finish when a run was interrupted")
     p.add_argument("--executor", choices=("local", "ray"), default="local", help="local: a process pool (default); ray: Ray tasks")
     p.add_argument("--workers", type=positive, default=None, help="worker processes (default: one per core; with ray: the cluster's CPUs)")
+    p.add_argument("--fold-workers", type=positive, default=None, help="tiles the driver folds at once, each tile's chunks still in order "
+                   "(default: a quarter of --workers, at least 1)")
     p.add_argument("--max-memory", type=MAX_MEMORY, default=None, metavar="SIZE", help=MAX_MEMORY_HELP)
     p.add_argument("--chunk-frames", type=CHUNK_FRAMES, default=None,
                    help="frames per task, rounded to whole bins (default: automatic, from the inputs' total frames only: "
@@ -53,7 +55,7 @@ def run(args) -> int:
     from ..batch import BatchOptions, run_batch
 
     options = BatchOptions(method=args.method, out=args.out, executor=args.executor, workers=args.workers, chunk_frames=args.chunk_frames,
-                           ray_address=args.ray_address, checkpoint=args.checkpoint, alpha=args.alpha_dir, bin_frames=args.bin_frames,
+                           fold_workers=args.fold_workers, ray_address=args.ray_address, checkpoint=args.checkpoint, alpha=args.alpha_dir, bin_frames=args.bin_frames,
                            batch_size=args.batch_size, tile_voxels=args.tile_voxels, discard_partials=args.discard_partials,
                            progress=not args.quiet, frame=args.frame, crs=args.crs, max_memory=args.max_memory,
                            ray_connect_timeout_s=args.ray_connect_timeout_s, chunk_timeout_s=args.chunk_timeout_s,
