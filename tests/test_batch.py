@@ -159,6 +159,21 @@ def test_a_run_failing_in_a_fold_lane_resumes_to_the_same_store(drive, tmp_path,
     _assert_same_bytes(tmp_path / "clean", tmp_path / "killed")
 
 
+def test_ray_folds_tiles_in_chained_tasks_to_the_serial_folds_store(drive, tmp_path, monkeypatch):
+    """On Ray, each fold is a task that takes its tile's previous fold: tiles leaving the lanes and coming back,
+    three folding at once, give the serial fold's bytes."""
+    pytest.importorskip("ray")
+    from evsemmap_warp.apps.batch import reduction
+
+    _batch([drive], tmp_path / "serial", executor="inline", chunk_frames=1, fold_workers=1)
+    monkeypatch.setattr(reduction, "FOLD_CACHE_TILES", 1)
+    summary = _batch([drive], tmp_path / "ray", executor="ray", workers=2, chunk_frames=1, fold_workers=3)
+    assert summary["fold_lanes"]["width"] == 3 and summary["fold_lanes"]["lane_seconds"] > 0
+    assert summary["tile_writes"] > summary["tiles"]
+    shutil.rmtree(ray_executor.node_scratch(tmp_path / "ray"), ignore_errors=True)
+    _assert_same_bytes(tmp_path / "serial", tmp_path / "ray")
+
+
 def test_the_ray_executor_on_a_local_instance_it_starts_and_stops(drive, tmp_path):
     ray = pytest.importorskip("ray")
     _batch([drive], tmp_path / "inline", executor="inline", chunk_frames=2)

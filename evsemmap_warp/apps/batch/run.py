@@ -83,11 +83,11 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
     else:
         executor = LocalExecutor(workers, context, log=log, chunk_timeout_s=options.chunk_timeout_s)
     width = fold_width(options.fold_workers, executor.workers)
-    lanes = ThreadFoldLanes(width, context)
+    lanes = ray_executor.fold_lanes(width, context) if ray_executor is not None else ThreadFoldLanes(width, context)
     folder = TileFolder(out, context, chunks, on_tile, lanes)
     try:
         stage = time.perf_counter()
-        costs = _map_chunks(executor, folder, finished, todo, options.progress)
+        costs = _map_chunks(executor, folder, finished, todo, options.progress, close=ray_executor is None)
         times["map"] = time.perf_counter() - stage
         stage = time.perf_counter()
         folder.finish()
@@ -135,9 +135,10 @@ def _prepare_store(options: BatchOptions, fault, identity: dict, sources: list, 
     return context, budget, workers
 
 
-def _map_chunks(executor, folder: TileFolder, finished: list, todo: list, progress: bool) -> list[dict]:
+def _map_chunks(executor, folder: TileFolder, finished: list, todo: list, progress: bool, close: bool) -> list[dict]:
     """Fold what a killed run mapped but did not fold, then map the chunks ``todo`` with ``executor``, folding
-    each as it finishes; returns the tasks' records (their costs). The executor is closed after."""
+    each as it finishes; returns the tasks' records (their costs). ``close``: the executor is closed after (not
+    Ray, whose tasks fold the tiles until the end: _run_batch stops it)."""
     from tqdm import tqdm
 
     try:
@@ -158,7 +159,8 @@ def _map_chunks(executor, folder: TileFolder, finished: list, todo: list, progre
         bar.close()
         remove_unfinished_chunks(folder.out)
     finally:
-        executor.close()
+        if close:
+            executor.close()
     if folder.frontier < len(folder.chunks):  # every chunk is mapped once executor.run returns; this names a broken invariant
         raise RuntimeError(f"batch: chunk {folder.chunks[folder.frontier].number} was mapped but not folded")
     return costs
