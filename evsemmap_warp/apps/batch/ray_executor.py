@@ -266,6 +266,7 @@ class RayFoldLanes:
         return encoded
 
     def done(self, handle) -> bool:
+        """Whether a task has finished (ThreadFoldLanes.done)."""
         return bool(self.ray.wait([handle], num_returns=1, timeout=0)[0])
 
     def result(self, handle):

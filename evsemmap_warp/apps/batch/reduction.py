@@ -21,11 +21,15 @@ from .worker import Context
 FOLD_CACHE_TILES = 12  # tiles the driver keeps in memory while folding (the drive passes through them; up to ~15 MB each)
 
 
-def fold_width(requested: int | None, workers: int) -> int:
-    """The fold lanes' width (--fold-workers): as asked, else a quarter of the mapping workers, at least one. A
-    lane folds about 8 times as fast as a worker maps (docs/performance.md, "The fold"), so a quarter keeps the
-    fold ahead of the mapping with room to spare, and a machine's pool leaves its cores to the mapping."""
-    return requested or max(1, workers // 4)
+def fold_width(requested: int | None, workers: int, processes: bool) -> int:
+    """The fold lanes' width (--fold-workers): as asked; else, for lanes that are processes (Ray's tasks), a quarter of
+    the mapping workers, at least one: a lane folds about 7 times as fast as a worker maps (docs/performance.md, "The
+    fold"), so a quarter keeps the fold ahead of the mapping with room to spare; for threads of the driver (the local
+    pool's lanes), one: two threads fold no faster than one (measured there), and one keeps the fold off the driver's
+    own thread."""
+    if requested:
+        return requested
+    return max(1, workers // 4) if processes else 1
 
 
 def decode_tile(data: bytes, path: Path, identity: str, out: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -48,8 +52,7 @@ def fold_partials(running: tuple[np.ndarray, np.ndarray] | None, partials) -> tu
 
 
 class ThreadFoldLanes:
-    """Fold lanes on ``width`` threads of the driver: the fold is numpy's and zstd's work, which run without the
-    GIL for most of it. Each fold is a future; one tile's next fold waits for its previous one (it was queued
+    """Fold lanes on ``width`` threads of the driver (one by default: fold_width). Each fold is a future; one tile's next fold waits for its previous one (it was queued
     earlier, so it runs or has run: the FIFO queue cannot deadlock), other tiles' folds run beside it."""
 
     def __init__(self, width: int, context: Context):
@@ -97,10 +100,12 @@ class ThreadFoldLanes:
 
     @staticmethod
     def done(handle: Future) -> bool:
+        """Whether a fold's or an encode's future has its answer."""
         return handle.done()
 
     @staticmethod
     def result(handle: Future):
+        """A fold's (index, rows) or an encode's (bytes, entry); a lane's failure raised here."""
         return handle.result()
 
     def stats(self) -> tuple[int, float]:

@@ -82,7 +82,7 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
         executor = InlineExecutor(context)
     else:
         executor = LocalExecutor(workers, context, log=log, chunk_timeout_s=options.chunk_timeout_s)
-    width = fold_width(options.fold_workers, executor.workers)
+    width = fold_width(options.fold_workers, executor.workers, processes=ray_executor is not None)
     lanes = ray_executor.fold_lanes(width, context) if ray_executor is not None else ThreadFoldLanes(width, context)
     folder = TileFolder(out, context, chunks, on_tile, lanes)
     try:
