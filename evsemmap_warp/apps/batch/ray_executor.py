@@ -220,21 +220,35 @@ def _encode_task(spec: FoldSpec, state, name: str, folded_through: int) -> tuple
 
 class RayFoldLanes:
     """Fold lanes on Ray (reduction.TileFolder's): each fold a task, chained per tile (a tile's fold takes its
-    previous fold's reference, so Ray runs a tile's folds in chunk order and different tiles' side by side, on any
-    node); the driver sends the partials from ``work/`` and writes the tiles the encode tasks return. At most
-    ``width`` of these tasks are in flight, each taking a CPU as a mapping task does; Ray runs one again when its
-    node is lost, as it does a mapping task."""
+    previous fold's reference, so Ray runs a tile's folds in chunk order and different tiles' side by side); the
+    driver sends the partials from ``work/`` and writes the tiles the encode tasks return. At most ``width`` of
+    these tasks are in flight, and they take no CPU of Ray's count: the mapping tasks hold every CPU, and a fold
+    that waited for one would hold up the driver's next hand-out (the pool's fold thread shares the cores so too). The
+    tiles are dealt out to the nodes in turn, and a tile's tasks run on its node (its folds hand the tile on in
+    that node's object store); softly, so that Ray runs them elsewhere when the node is lost, as it does a
+    mapping task."""
 
     def __init__(self, executor: "RayExecutor", width: int, context: Context):
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
         self.executor, self.ray, self.width = executor, executor.ray, width
         self.spec = executor._put(FoldSpec(context.store, context.identity(), context.tile_voxels, context.num_classes + EXTRA_COLUMNS,
                                            context.config, context.class_names, context.origin_index, context.frame))
-        self._fold = self.ray.remote(num_cpus=1, num_returns=2, max_retries=3)(_fold_task)
-        self._encode = self.ray.remote(num_cpus=1, num_returns=2, max_retries=3)(_encode_task)
+        self._fold = self.ray.remote(num_cpus=0, num_returns=2, max_retries=3)(_fold_task)
+        self._encode = self.ray.remote(num_cpus=0, num_returns=2, max_retries=3)(_encode_task)
+        nodes = sorted(n["NodeID"] for n in self.ray.nodes() if n.get("Alive") and n.get("Resources", {}).get("CPU", 0) > 0)
+        self._nodes = [NodeAffinitySchedulingStrategy(node, soft=True) for node in nodes] or ["DEFAULT"]
+        self._node_of: dict[str, object] = {}  # tile -> its node's scheduling strategy
         # the tasks in flight, by their small (voxels, seconds) answer: waiting on it, not on the tile, keeps the tiles
         # off the driver, and a failed task fails both
         self._flight: list = []
         self.voxels, self.seconds = 0, 0.0  # the finished tasks' voxels folded and seconds folding and encoding
+
+    def _node(self, name: str):
+        """Tile ``name``'s node (its scheduling strategy), dealt at its first fold."""
+        if name not in self._node_of:
+            self._node_of[name] = self._nodes[len(self._node_of) % len(self._nodes)]
+        return self._node_of[name]
 
     def _room(self, most: int) -> None:
         """Wait until at most ``most`` tasks are in flight; a failed task stops the run here, in one line, and so does
@@ -254,14 +268,15 @@ class RayFoldLanes:
         if isinstance(previous, Path):
             previous = self.executor._put(previous.read_bytes())
         datas = [self.executor._put(path.read_bytes()) for _, path in partials]
-        state, stats = self._fold.remote(self.spec, previous, tile, [(number, str(path)) for number, path in partials], *datas)
+        state, stats = self._fold.options(scheduling_strategy=self._node(name)).remote(
+            self.spec, previous, tile, [(number, str(path)) for number, path in partials], *datas)
         self._flight.append(stats)
         return state
 
     def encode(self, state, name: str, folded_through: int):
         """As ThreadFoldLanes.encode."""
         self._room(self.width - 1)
-        encoded, stats = self._encode.remote(self.spec, state, name, folded_through)
+        encoded, stats = self._encode.options(scheduling_strategy=self._node(name)).remote(self.spec, state, name, folded_through)
         self._flight.append(stats)
         return encoded
 

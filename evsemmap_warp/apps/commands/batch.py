@@ -55,11 +55,11 @@ def run(args) -> int:
     from ..batch import BatchOptions, run_batch
 
     options = BatchOptions(method=args.method, out=args.out, executor=args.executor, workers=args.workers, chunk_frames=args.chunk_frames,
-                           fold_workers=args.fold_workers, ray_address=args.ray_address, checkpoint=args.checkpoint, alpha=args.alpha_dir, bin_frames=args.bin_frames,
+                           ray_address=args.ray_address, checkpoint=args.checkpoint, alpha=args.alpha_dir, bin_frames=args.bin_frames,
                            batch_size=args.batch_size, tile_voxels=args.tile_voxels, discard_partials=args.discard_partials,
                            progress=not args.quiet, frame=args.frame, crs=args.crs, max_memory=args.max_memory,
                            ray_connect_timeout_s=args.ray_connect_timeout_s, chunk_timeout_s=args.chunk_timeout_s,
-                           same_frame=args.same_frame)
+                           same_frame=args.same_frame, fold_workers=args.fold_workers)
     if args.ray_address and args.executor != "ray":
         raise ConfigError("--ray-address needs --executor ray")
     if not args.view and (args.host, args.port) != (None, None):
