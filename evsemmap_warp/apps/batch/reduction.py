@@ -23,8 +23,8 @@ FOLD_CACHE_TILES = 12  # tiles the driver keeps in memory while folding (the dri
 
 def fold_width(requested: int | None, workers: int, processes: bool) -> int:
     """The fold lanes' width (--fold-workers): as asked; else, for lanes that are processes (Ray's tasks), a quarter of
-    the mapping workers, at least one: a lane folds about 7 times as fast as a worker maps (docs/performance.md, "The
-    fold"), so a quarter keeps the fold ahead of the mapping with room to spare; for threads of the driver (the local
+    the mapping workers, at least one: a lane folds several times as fast as a worker maps (docs/performance.md, "The
+    fold in lanes"), so a quarter keeps the fold ahead of the mapping; for threads of the driver (the local
     pool's lanes), one: two threads fold no faster than one (measured there), and one keeps the fold off the driver's
     own thread."""
     if requested:
