@@ -250,14 +250,20 @@ class RayFoldLanes:
             self._node_of[name] = self._nodes[len(self._node_of) % len(self._nodes)]
         return self._node_of[name]
 
+    def _first(self, refs: list):
+        """The first of ``refs`` to finish, waited for as the mapping tasks are (RayExecutor._wait: a lost head or
+        the chunk timeout stops the run in one line, where a plain wait would leave the driver to Ray's own end)."""
+        finished = self.executor._wait(refs)
+        if not finished:
+            raise stuck_error(self.executor.chunk_timeout_s)
+        return finished[0]
+
     def _room(self, most: int) -> None:
-        """Wait until at most ``most`` tasks are in flight; a failed task stops the run here, in one line, and so does
-        a node that holds one past the chunk timeout."""
+        """Wait until at most ``most`` tasks are in flight; a failed task stops the run here, in one line."""
         while len(self._flight) > most:
-            done, self._flight = self.ray.wait(self._flight, num_returns=1, timeout=self.executor.chunk_timeout_s)
-            if not done:
-                raise stuck_error(self.executor.chunk_timeout_s)
-            voxels, seconds = self.result(done[0])
+            done = self._first(self._flight)
+            self._flight.remove(done)
+            voxels, seconds = self.result(done)
             self.voxels += voxels
             self.seconds += seconds
 
@@ -285,7 +291,8 @@ class RayFoldLanes:
         return bool(self.ray.wait([handle], num_returns=1, timeout=0)[0])
 
     def result(self, handle):
-        """A task's result; its failure as one line (RayExecutor's)."""
+        """A task's result, waited for as _first does; its failure as one line (RayExecutor.fetch)."""
+        self._first([handle])
         return self.executor.fetch(handle)
 
     def stats(self) -> tuple[int, float]:
