@@ -57,7 +57,7 @@ def fold_once(kept: Path, out: Path, planned, lanes_kind: str, width: int, ray) 
     context = batch.Context(out, sources, config, sources[0].num_classes, class_names, origin_index, 256, frame=sources[0].frame)
     lanes = reduction.ThreadFoldLanes(width, context) if lanes_kind == "local" else ray.attach(context, identity).fold_lanes(width, context)
     started = time.perf_counter()
-    folder = reduction.TileFolder(out, context, chunks, None, lanes)
+    folder = reduction.TileFolder(out, context, chunks, lanes)
     for chunk in chunks:
         folder.chunk_finished(chunk.number)
     handing = folder.seconds

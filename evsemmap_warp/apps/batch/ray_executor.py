@@ -222,11 +222,11 @@ class RayFoldLanes:
     """Fold lanes on Ray (reduction.TileFolder's): each fold a task, chained per tile (a tile's fold takes its
     previous fold's reference, so Ray runs a tile's folds in chunk order and different tiles' side by side); the
     driver sends the partials from ``work/`` and writes the tiles the encode tasks return. At most ``width`` of
-    these tasks are in flight, and they take no CPU of Ray's count: the mapping tasks hold every CPU, and a fold
-    that waited for one would hold up the driver's next hand-out (the pool's fold thread shares the cores so too). The
-    tiles are dealt out to the nodes in turn, and a tile's tasks run on its node (its folds hand the tile on in
-    that node's object store); softly, so that Ray runs them elsewhere when the node is lost, as it does a
-    mapping task."""
+    these tasks are in flight, and they take no CPU of Ray's count: the mapping tasks hold every CPU, and a
+    fold that waited for one would hold up the driver's next hand-out (the pool's fold thread shares the cores
+    so too). The tiles are dealt out to the nodes in turn, and a tile's tasks run on its node (its folds hand
+    the tile on in that node's object store); softly, so that Ray runs them elsewhere when the node is lost,
+    as it does a mapping task."""
 
     def __init__(self, executor: "RayExecutor", width: int, context: Context):
         from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy

@@ -52,8 +52,9 @@ def fold_partials(running: tuple[np.ndarray, np.ndarray] | None, partials) -> tu
 
 
 class ThreadFoldLanes:
-    """Fold lanes on ``width`` threads of the driver (one by default: fold_width). Each fold is a future; one tile's next fold waits for its previous one (it was queued
-    earlier, so it runs or has run: the FIFO queue cannot deadlock), other tiles' folds run beside it."""
+    """Fold lanes on ``width`` threads of the driver (one by default: fold_width). Each fold is a future; one
+    tile's next fold waits for its previous one (it was queued earlier, so it runs or has run: the FIFO queue
+    cannot deadlock), other tiles' folds run beside it."""
 
     def __init__(self, width: int, context: Context):
         self.width, self.out = width, context.store
@@ -127,9 +128,8 @@ class TileFolder:
     and the rerun folds exactly the chunks each tile lacks. ``on_tile(name, voxels)`` sees every tile as it
     grows (a live view: the driver waits for each chunk's folds then)."""
 
-    def __init__(self, out: Path, context: Context, chunks: list[Chunk], on_tile=None, lanes=None):
-        self.out, self.chunks, self.on_tile = out, chunks, on_tile
-        self.lanes = lanes if lanes is not None else ThreadFoldLanes(1, context)
+    def __init__(self, out: Path, context: Context, chunks: list[Chunk], lanes, on_tile=None):
+        self.out, self.chunks, self.lanes, self.on_tile = out, chunks, lanes, on_tile
         self.identity = context.identity()
         self.frontier = 0  # chunks[:frontier] are folded (handed to the lanes)
         self.finished: set[int] = set()

@@ -84,7 +84,7 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
         executor = LocalExecutor(workers, context, log=log, chunk_timeout_s=options.chunk_timeout_s)
     width = fold_width(options.fold_workers, executor.workers, processes=ray_executor is not None)
     lanes = ray_executor.fold_lanes(width, context) if ray_executor is not None else ThreadFoldLanes(width, context)
-    folder = TileFolder(out, context, chunks, on_tile, lanes)
+    folder = TileFolder(out, context, chunks, lanes, on_tile)
     try:
         stage = time.perf_counter()
         costs = _map_chunks(executor, folder, finished, todo, options.progress, close=ray_executor is None)
