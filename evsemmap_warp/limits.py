@@ -1,6 +1,7 @@
 """Every limit a map, a store or a run is held to, defined once: the voxel key range, the tile size,
-the chunk size and the memory a map's voxel table may take. The writers, the readers and the command
-line's flags all check through the functions here, so a writer never accepts what a reader refuses.
+the chunk size, the memory a map's voxel table may take and how long a batch run waits. The writers,
+the readers and the command line's flags all check through the functions here, so a writer never
+accepts what a reader refuses.
 
 Each ``check_*`` raises ValueError naming ``what`` (a flag, a file's key) and the range; the command
 line turns them into argparse types (``apps/commands/args.py``)."""
@@ -15,8 +16,8 @@ from pathlib import Path
 
 from .kernels.hash_table import INDEX_LIMIT
 
-__all__ = ["INDEX_LIMIT", "MAX_TILE_VOXELS", "MIN_CHUNK_FRAMES", "MemoryBudgetError", "available_memory", "check_chunk_frames",
-           "check_memory_bytes", "check_tile_voxels", "describe_bytes", "parse_memory_size"]
+__all__ = ["CHUNK_TIMEOUT_S", "INDEX_LIMIT", "MAX_TILE_VOXELS", "MIN_CHUNK_FRAMES", "MemoryBudgetError", "RAY_CONNECT_TIMEOUT_S",
+           "available_memory", "check_chunk_frames", "check_memory_bytes", "check_tile_voxels", "describe_bytes", "parse_memory_size"]
 
 # A voxel index lies in [-INDEX_LIMIT, INDEX_LIMIT) on every axis (21 bits a key field, kernels/hash_table.py),
 # so a tile wider than INDEX_LIMIT voxels holds nothing a tile of INDEX_LIMIT cannot. The limit also keeps the
@@ -25,6 +26,12 @@ __all__ = ["INDEX_LIMIT", "MAX_TILE_VOXELS", "MIN_CHUNK_FRAMES", "MemoryBudgetEr
 # as "voxels out of key order").
 MAX_TILE_VOXELS = INDEX_LIMIT
 MIN_CHUNK_FRAMES = 1
+# How long a batch run's --ray-address host:port may take to accept a connection (--ray-connect-timeout-s): ray.init
+# retries an address where nothing answers for many minutes ("Failed to connect to GCS").
+RAY_CONNECT_TIMEOUT_S = 30.0
+# How long a batch run waits for some chunk to finish before it stops as stuck (--chunk-timeout-s: a worker or node
+# that hangs); a chunk of the default size maps in seconds, one labelled by a network on the CPU in minutes.
+CHUNK_TIMEOUT_S = 3600.0
 
 
 def _whole_number(value, what: str) -> int:

@@ -16,8 +16,9 @@ import warp as wp
 
 from . import MODULE_OPTIONS
 from .hash_table import HashTable, pack_key, table_find_or_insert, unpack_key
-from .scatter import (EXTRA_COLUMNS_CONST, ZERO64, REACH_BALL, MapTarget, ScanPoints, ScatterParams, Span, Visit, add_label_evidence,
-                      add_weighted_evidence, center_offset, count_from_zero, end_nothing, sparse_kernel, tally_row, touch_row, walk_kernel)
+from .scatter import (EXTRA_COLUMNS_CONST, ZERO64, REACH_BALL, MapTarget, ScanPoints, ScatterParams, Span, Visit, add_height, add_label_evidence,
+                      add_weighted_evidence, center_offset, count_from_zero, end_nothing, height_offset, sparse_kernel, tally_row, touch_row,
+                      walk_kernel)
 
 wp.set_module_options(MODULE_OPTIONS)
 
@@ -51,7 +52,7 @@ def _gather_kernel(evidence):
     def gather_voxels(scan_keys: wp.array(dtype=wp.int64), grid: wp.uint64, longest: wp.float64, scan: ScanPoints, params: ScatterParams,
                       out: MapTarget):
         """Slot s of the reached-key set: its voxel's row gets the sparse kernel of every point within
-        that point's own length, the evidence through ``evidence``, the bookkeeping once."""
+        that point's own length, the evidence through ``evidence``, the bookkeeping and the weighted height once."""
         s = wp.tid()
         key = scan_keys[s]
         if key == wp.int64(-1):
@@ -67,6 +68,7 @@ def _gather_kernel(evidence):
                           center_offset(v[2], params.resolution, params.grid_offset, ZERO64))
         weight_sum = ZERO64
         weighted_u = ZERO64
+        weighted_h = ZERO64
         hits = int(0)
         query = wp.hash_grid_query(grid, center, longest)
         i = int(0)
@@ -82,8 +84,10 @@ def _gather_kernel(evidence):
                 wp.static(evidence)(scan, params, out.voxel_data, row, i, w, 0)
                 weight_sum += w
                 weighted_u += w * scan.uncertainty[i]
+                weighted_h += w * height_offset(v[2], params.resolution, params.grid_offset, p[2])
                 hits += 1
         tally_row(out.voxel_data, row, out.voxel_data.shape[1] - EXTRA_COLUMNS_CONST, weight_sum, weighted_u, f64(hits))
+        add_height(out.voxel_data, row, weighted_h)
         wp.atomic_add(out.update_count, 0, wp.int64(hits))
 
     return gather_voxels

@@ -42,8 +42,16 @@ after them. The compat modes only add: their target cells are inserted beforehan
 Arithmetic is float64 throughout (positions relative to the map origin, weights, sums), so evidence
 keeps growing on long drives and a far-away scan maps exactly as the same scan near the origin; only
 the S-BKI compatibility kernel runs in float32, as the C++ does. A voxel's data lie together in one
-row of ``voxel_data`` [capacity, K + 4]: K evidence columns, then the weight sum, the weight *
-uncertainty sum, the contribution count and the touched flag (counts in float64 are exact to 2^53).
+row of ``voxel_data`` [capacity, K + 5]: K evidence columns, then the weight sum, the weight *
+uncertainty sum, the contribution count, the weighted height sum and the touched flag (counts in float64
+are exact to 2^53). The weighted height sum is sum w (z - z_c) over the voxel's contributions, z the
+point's height and z_c the voxel center's: the weight-sum-weighted mean height of the points that reached
+the voxel, below the voxel size, is z_c + that sum / the weight sum. Kept as an offset from the center,
+each term is bounded by the kernel's reach, so the sum grows as the weight sum does, not with the map's
+altitude, and keeps float64's digits on a long drive; and an offset from a voxel's center does not
+depend on the map origin, so maps of other origins merge by adding it as they add the other sums. Only
+the clean modes' kernels keep it (``add_height``); the compat modes reproduce the originals' rows and
+leave it 0 (their mean height is the center).
 
 numpy twin: ``evsemmap_warp/reference/scatter.py``.
 """
@@ -68,9 +76,9 @@ FUSION_BAYES = 0
 FUSION_DEMPSTER = 1
 # Belief masses are clamped to [0, 1 - BELIEF_EPSILON] (docs/algorithm.md §3.7).
 BELIEF_EPSILON = 1e-6
-# Columns of voxel_data after the K evidence columns.
-EXTRA_COLUMNS = 4
-COL_WEIGHT, COL_WEIGHTED_UNCERTAINTY, COL_HITS, COL_TOUCHED = range(4)  # offsets from K
+# Columns of voxel_data after the K evidence columns (touched stays last: the file codecs store it as a bit).
+EXTRA_COLUMNS = 5
+COL_WEIGHT, COL_WEIGHTED_UNCERTAINTY, COL_HITS, COL_WEIGHTED_HEIGHT, COL_TOUCHED = range(5)  # offsets from K
 
 # How far past the length the compat scatter searches, a margin: the float32 kernel (pi written as the
 # C++'s 3.1415926f) is zero from 0.984 ell on (``kernels.block_gather.SBKI_ZERO_BEYOND``).
@@ -224,6 +232,12 @@ def voxel_of(p: wp.float64, resolution: wp.float64, grid_offset: wp.float64) -> 
 
 
 @wp.func
+def center_offset(i: int, resolution: wp.float64, grid_offset: wp.float64, p: wp.float64) -> wp.float64:
+    """Voxel i's center minus p on one axis (m)."""
+    return (f64(i) + _HALF) * resolution + grid_offset - p
+
+
+@wp.func
 def block_of_voxel(i: int, cells_per_block: int) -> int:
     """Index of the S-BKI block (``cells_per_block`` cells a side) that holds voxel ``i`` on one axis."""
     # Cell j of block b is voxel b * n - n / 2 + j (n even), or voxel b when n == 1.
@@ -268,7 +282,7 @@ class ScatterParams:
 
 @wp.struct
 class MapTarget:
-    """Where a launch writes: the voxel table, its value rows ``voxel_data`` [capacity, K + 4], ``failed``
+    """Where a launch writes: the voxel table, its value rows ``voxel_data`` [capacity, K + 5], ``failed``
     [T] (0, or the thread's work did not fit: relaunched after the table grew; the scatter writes 1 + how
     many of its voxels the point had added, and reads it back in the relaunch) and ``update_count`` [1]."""
 
@@ -308,6 +322,19 @@ def tally_row(voxel_data: wp.array2d(dtype=wp.float64), row: int, num_classes: i
     wp.atomic_add(voxel_data, row, num_classes + COL_WEIGHT, weight)
     wp.atomic_add(voxel_data, row, num_classes + COL_WEIGHTED_UNCERTAINTY, weighted_uncertainty)
     wp.atomic_add(voxel_data, row, num_classes + COL_HITS, hits)
+
+
+@wp.func
+def height_offset(iz: int, resolution: wp.float64, grid_offset: wp.float64, z: wp.float64) -> wp.float64:
+    """z - the center height of voxel layer iz (m): what a point at height z adds, times its weight, to the
+    voxel's weighted height sum."""
+    return -center_offset(iz, resolution, grid_offset, z)
+
+
+@wp.func
+def add_height(voxel_data: wp.array2d(dtype=wp.float64), row: int, weighted_height: wp.float64):
+    """A row's weighted height sum += weighted_height (sum of w (z - z_c), the clean modes' kernels only)."""
+    wp.atomic_add(voxel_data, row, voxel_data.shape[1] - EXTRA_COLUMNS_CONST + COL_WEIGHTED_HEIGHT, weighted_height)
 
 
 # ---------------------------------------------------------------------------- evidence rules (payload kind, fusion)
@@ -513,12 +540,6 @@ _SPAN_OF = {REACH_BALL: ball_span, REACH_BLOCK_BALL: block_ball_span, REACH_OWN_
             REACH_CUBE: cube_span}
 
 
-@wp.func
-def center_offset(i: int, resolution: wp.float64, grid_offset: wp.float64, p: wp.float64) -> wp.float64:
-    """Voxel i's center minus p on one axis (m)."""
-    return (f64(i) + _HALF) * resolution + grid_offset - p
-
-
 # ---------------------------------------------------------------------------- the traversal
 @dataclass(frozen=True)
 class Visit:
@@ -685,12 +706,13 @@ def _count_updates(scan: ScanPoints, out: MapTarget, t: int, i: int, counter: wp
     wp.atomic_add(out.update_count, 0, counter)
 
 
-def scatter_visit(rule: WeightRule, evidence, *, inserts: bool) -> Visit:
+def scatter_visit(rule: WeightRule, evidence, *, inserts: bool, heights: bool) -> Visit:
     """The scatter as a visit: the pass that adds the rule's weight through ``evidence`` (an evidence
     rule) to every voxel the rule's screen lets through and tallies the row; the point's update count
     goes to ``update_count`` at its end. ``inserts``: that pass finds or inserts its voxels, after a
     first pass that only inserts them where the table may not have room for the point's span (the
-    module docstring says why)."""
+    module docstring says why). ``heights``: it adds the point's weighted height offset too (the clean
+    modes; the compat modes keep the originals' rows)."""
 
     @wp.func
     def insert_voxel(scan: ScanPoints, params: ScatterParams, out: MapTarget, t: int, i: int, cell: wp.vec3i, span: Span) -> int:
@@ -730,6 +752,8 @@ def scatter_visit(rule: WeightRule, evidence, *, inserts: bool) -> Visit:
         touch_row(out.voxel_data, row)
         tallied = wp.static(evidence)(scan, params, out.voxel_data, row, i, w, stencil_row(cell, span.owner, params.stencil_half))
         tally_row(out.voxel_data, row, out.voxel_data.shape[1] - EXTRA_COLUMNS_CONST, tallied, tallied * scan.uncertainty[i], ONE64)
+        if wp.static(heights):
+            add_height(out.voxel_data, row, tallied * height_offset(cell[2], params.resolution, params.grid_offset, p[2]))
         return counter + wp.int64(1)
 
     if not inserts:
@@ -737,8 +761,9 @@ def scatter_visit(rule: WeightRule, evidence, *, inserts: bool) -> Visit:
     return Visit(MapTarget, count_from_zero, add_to_voxel, _count_updates, insert=insert_voxel, plan=plan_passes, stop=stop_point)
 
 
-# mode -> (where a point reaches, its weight rule, whether the scatter inserts: the compat modes' targets
-# are inserted beforehand, by insert_block_cells)
+# mode -> (where a point reaches, its weight rule, whether the scatter inserts and keeps heights: the
+# clean modes do both, the compat modes' targets are inserted beforehand, by insert_block_cells, and their
+# rows are the originals')
 SCATTER_MODES = {
     MODE_RADIUS: (REACH_BALL, SPARSE_RULE, True),
     MODE_OWN_VOXEL: (REACH_OWN_VOXEL, COUNT_RULE, True),
@@ -767,7 +792,8 @@ def _scatter_kernels() -> dict:
             for use_labels in (True, False):
                 evidence = _evidence_rule(mode, fusion, use_labels)
                 if evidence is not None:
-                    kernels[mode, fusion, use_labels] = walk_kernel(reach, scatter_visit(rule, evidence, inserts=inserts), module="unique")
+                    kernels[mode, fusion, use_labels] = walk_kernel(reach, scatter_visit(rule, evidence, inserts=inserts, heights=inserts),
+                                                                    module="unique")
     return kernels
 
 
@@ -847,6 +873,7 @@ def scatter_block_targets(scan: ScanPoints, target_lengths: wp.array2d(dtype=wp.
                             touch_row(out.voxel_data, row)
                             tallied = add_label_evidence(scan, params, out.voxel_data, row, i, w, 0)
                             tally_row(out.voxel_data, row, num_classes, tallied, tallied * u, ONE64)
+                            add_height(out.voxel_data, row, tallied * height_offset(cell[2], params.resolution, params.grid_offset, p[2]))
                             n_updates += wp.int64(1)
                         done += 1
     wp.atomic_add(out.update_count, 0, n_updates)

@@ -15,9 +15,9 @@ numpy twin: ``evsemmap_warp/reference/sorted_scatter.py`` (and ``reference/scatt
 import warp as wp
 
 from . import MODULE_OPTIONS
-from .hash_table import pack_key, table_find_or_insert
-from .scatter import (EXTRA_COLUMNS_CONST, ZERO64, REACH_BALL, MapTarget, ScanPoints, ScatterParams, Span, Visit, add_label_evidence,
-                      add_weighted_evidence, count_from_zero, end_nothing, sparse_weight, tally_row, touch_row, walk_kernel)
+from .hash_table import pack_key, table_find_or_insert, unpack_key
+from .scatter import (EXTRA_COLUMNS_CONST, ZERO64, REACH_BALL, MapTarget, ScanPoints, ScatterParams, Span, Visit, add_height, add_label_evidence,
+                      add_weighted_evidence, count_from_zero, end_nothing, height_offset, sparse_weight, tally_row, touch_row, walk_kernel)
 
 wp.set_module_options(MODULE_OPTIONS)
 
@@ -111,7 +111,7 @@ def _reduce_kernel(evidence):
     @wp.kernel(module=__name__)
     def reduce_voxels(pairs: SortedPairs, scan: ScanPoints, params: ScatterParams, out: MapTarget):
         """Distinct voxel v: one find-or-insert, then its row gets the sums of its pairs, in pair order
-        (the evidence through ``evidence``, the bookkeeping once)."""
+        (the evidence through ``evidence``, the bookkeeping and the weighted height once)."""
         v = wp.tid()
         first = pairs.starts[v]
         last = pairs.count
@@ -122,8 +122,10 @@ def _reduce_kernel(evidence):
             out.failed[v] = 1
             return
         touch_row(out.voxel_data, row)
+        iz = unpack_key(pairs.keys[first])[2]
         weight_sum = ZERO64
         weighted_u = ZERO64
+        weighted_h = ZERO64
         for j in range(first, last):
             pair = pairs.ids[j]
             i = pairs.point[pair]
@@ -131,7 +133,9 @@ def _reduce_kernel(evidence):
             wp.static(evidence)(scan, params, out.voxel_data, row, i, w, 0)
             weight_sum += w
             weighted_u += w * scan.uncertainty[i]
+            weighted_h += w * height_offset(iz, params.resolution, params.grid_offset, scan.points[i][2])
         tally_row(out.voxel_data, row, out.voxel_data.shape[1] - EXTRA_COLUMNS_CONST, weight_sum, weighted_u, f64(last - first))
+        add_height(out.voxel_data, row, weighted_h)
 
     return reduce_voxels
 

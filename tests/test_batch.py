@@ -9,6 +9,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -178,6 +179,10 @@ def test_ray_folds_tiles_in_chained_tasks_to_the_serial_folds_store(drive, tmp_p
 def test_the_ray_executor_on_a_local_instance_it_starts_and_stops(drive, tmp_path):
     ray = pytest.importorskip("ray")
     _batch([drive], tmp_path / "inline", executor="inline", chunk_frames=2)
+    # what a task of an earlier run into the store left in the scratch folder, under a process that runs on: no task
+    # removes it (remove_dead_tasks_leftovers), the local instance's close does (its node is this machine)
+    left = ray_executor.node_scratch(tmp_path / "ray") / "work" / f".chunk_000001.{os.getpid()}.tmp"
+    left.mkdir(parents=True)
     summary = _batch([drive], tmp_path / "ray", executor="ray", workers=2, chunk_frames=2)
     assert summary["executor"] == "ray" and summary["workers"] == 2
     assert not ray.is_initialized()  # the instance it started is gone
@@ -305,6 +310,28 @@ def test_a_stuck_worker_stops_the_run_in_one_line_and_the_rerun_resumes(drive, t
     _batch([drive], tmp_path / "stuck", executor="inline", chunk_frames=2)  # resumes: the same store as a clean run
     _batch([drive], tmp_path / "clean", executor="inline", chunk_frames=2)
     _assert_same_bytes(tmp_path / "clean", tmp_path / "stuck")
+
+
+def test_a_failed_run_closes_its_pool_in_bounded_time_with_a_worker_stuck(drive, tmp_path):
+    """A run that fails while a worker is stuck in its chunk (here: the tile callback raising on the first fold)
+    ends in seconds, the stuck worker interrupted: the pool's own shutdown waited for its task without bound."""
+    def fail(name, voxels):
+        raise ValueError("the callback failed")
+
+    failed = []
+
+    def run():
+        try:
+            run_batch([str(drive)], BatchOptions(method="ebs", out=tmp_path / "store", workers=2, chunk_frames=2, progress=False),
+                      log=lambda m: None, on_tile=fail, fault=batch.FaultPlan(kill_chunk=-1, hang_chunk=1))
+        except ValueError as exc:
+            failed.append(exc)
+
+    runner = threading.Thread(target=run, daemon=True)  # a thread: without the fix the run never ends
+    runner.start()
+    runner.join(90)
+    assert not runner.is_alive(), "the run did not end: closing the pool waited for the stuck worker"
+    assert [str(exc) for exc in failed] == ["the callback failed"]
 
 
 def test_the_fault_plan_is_a_test_seam_not_an_environment_variable():
@@ -569,3 +596,23 @@ def test_bench_batch_gives_the_drivers_fold_rate_and_the_worker_count_it_limits(
     fold = bench_batch.fold_bottleneck(row, 2000)
     assert fold["voxels_per_s"] == 2_000_000 and fold["worker_voxels_per_s"] == 300_000 and fold["bottleneck_workers"] == 6
     assert fold["long_drive"] == {"frames": bench_batch.LONG_DRIVE_FRAMES, "fold_s": 7.5, "worker_s": 50.0}
+
+
+def test_bench_batch_s_two_node_row_compares_the_stores_and_is_skipped_saying_why(monkeypatch, tmp_path, capsys):
+    """The two-node row stands only on a store byte-identical to the local pool's (store_differences names the files
+    that differ), and where this machine allows no mount namespace it is skipped with the reason, recorded."""
+    monkeypatch.syspath_prepend(str(REPO / "tools"))
+    import bench_batch
+    import ray_cluster
+
+    for store, tile in (("a", b"tile"), ("b", b"tile"), ("c", b"other")):
+        (tmp_path / store / "tiles").mkdir(parents=True)
+        (tmp_path / store / "tiles" / "0_0_0.vox").write_bytes(tile)
+    (tmp_path / "c" / "store.json").write_text("{}")
+    assert bench_batch.store_differences(tmp_path / "a", tmp_path / "b") == []
+    assert bench_batch.store_differences(tmp_path / "a", tmp_path / "c") == ["store.json", "tiles/0_0_0.vox"]
+    monkeypatch.setattr(ray_cluster, "mount_namespaces_refused", lambda folder: "a private mount namespace is not allowed here (EPERM)")
+    results = {"runs": {}}
+    bench_batch.two_node_rows(results, tmp_path / "data", tmp_path, tmp_path / "warm", [], None, {}, tmp_path / "local")
+    assert results == {"runs": {}, "skipped": {"ray-2node": "a private mount namespace is not allowed here (EPERM)"}}
+    assert "batch ray-2node: skipped: a private mount namespace is not allowed here" in capsys.readouterr().out

@@ -27,7 +27,8 @@ def test_map_info_and_dump_config(tmp_path, capsys):
     half = info["resolution_m"] / 2  # the box the voxels fill: their faces, in metres of the map's frame
     assert info["bounds_m"] == [(arrays["centers"].min(axis=0) - half).tolist(), (arrays["centers"].max(axis=0) + half).tolist()]
     assert main(["dump-config", str(REPO / "configs/presets/rellis3d.yaml"), "--method", "ebs"]) == 0
-    assert "gamma: 10.0" in capsys.readouterr().out
+    shown = capsys.readouterr().out
+    assert "gamma: 10.0" in shown and "class_gains: false" in shown  # every key, also those maps record only when set
 
 
 def test_info_counts_voxels_above_and_below_the_evidence_threshold(tmp_path, capsys):

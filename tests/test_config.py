@@ -20,7 +20,7 @@ def test_methods_ship_as_config_files():
 def test_every_method_combines_with_every_preset(method, preset):
     if preset.stem == "release" and method not in ("ebs", "prob-adap-thr", "dempster"):
         # the release mode reproduces the released ebs and dempster only; others are refused by key
-        with pytest.raises(ConfigError, match=r"mapping\.(kernel|media|adaptive_length|uncertainty_threshold|threshold_scope)"):
+        with pytest.raises(ConfigError, match=r"mapping\.(kernel|media|adaptive_length|uncertainty_threshold|threshold_scope|class_gains)"):
             load_config([preset], method=method)
         return
     run = load_config([preset], method=method)
@@ -150,7 +150,8 @@ def test_a_mode_key_outside_its_section_is_an_unknown_key(tmp_path, key, place):
 
 # The experiment's map cache keys of every method under the rellis3d preset, as this release first computed
 # them: a change to how the key is built would make every user's cached maps be mapped again.
-CACHE_KEYS = {"convbki": "6f6395684c51", "dempster": "1a682ce38195", "ebs": "fd55823a294b", "ebs-per-class": "67905c6241a0",
+CACHE_KEYS = {"convbki": "6f6395684c51", "dempster": "1a682ce38195", "ebs": "fd55823a294b", "ebs-learned": "6369676fd18b",
+              "ebs-per-class": "67905c6241a0",
               "prob": "a447761a8627", "prob-adap": "eec728021297", "prob-adap-thr": "c4493613e889", "prob-thr": "9d9db24e4b8e",
               "s-bki": "b6f638f78ba3", "s-csm": "8085c051904d", "see-csom": "eb8f3f15cfc5"}
 
@@ -172,6 +173,7 @@ def test_the_map_cache_fields_are_one_level_and_a_new_section_key_is_in_them():
     assert fields["max_range_m"] == -1.0 and fields["ds_multiplier"] == -1 and "threshold_scope" not in fields
     assert "sbki" not in fields and fields["block_depth"] == 2
     assert map_cache_fields(MappingConfig(threshold_scope=ThresholdScope.PREDICTED_CLASS))["threshold_scope"] == "predicted-class"
+    assert "class_gains" not in fields and map_cache_fields(MappingConfig(class_gains=True))["class_gains"] is True
     # a key a section gains is in the cache key (a cached map of other parameters is not taken for this one)
     grown = MappingConfig().as_dict()
     grown["sbki"]["new_key"] = 3

@@ -274,3 +274,34 @@ def test_the_integration_bench_feeds_sbki_the_workloads_labels():
     dataset = type("Workload", (), {"offsets": np.array([0, 4, 7]), "data": {"label": label}, "__len__": lambda self: 2})()
     got = bench_integrate.sbki_labels(dataset)
     assert [g.tolist() for g in got] == [[3, 1, 4, 1], [5, 9, 2]] and got[0].dtype == np.int64
+
+
+@pytest.mark.parametrize("n", [0, 1, 300])
+def test_the_reduce_and_gather_twins_sum_what_the_scatter_twin_sums(n):
+    # the twins of the sorted and gather kernels, heights included, against the scatter's twin (test_scatter
+    # holds the kernels to it): points on voxel faces in z, at a far height and in one voxel together
+    from evsemmap_warp.reference import hashgrid_gather as hg_ref
+    from evsemmap_warp.reference import scatter as sc_ref
+
+    rng = np.random.default_rng(9)
+    pts, _ = _cloud(rng, max(n, 1))
+    pts = pts[:n]
+    pts[: n // 5, 2] = np.round(pts[: n // 5, 2] / 0.2) * 0.2  # on a face between two voxel layers
+    pts[n // 5: n // 4, 2] += 1000.0  # far up: the height sums are offsets from the centers, as near the origin
+    pts[n // 4: n // 3] = pts[n // 4: n // 4 + 1]  # many points of one voxel
+    weights = rng.random((n, 5))
+    lengths, unc = rng.uniform(0.05, 0.5, n), rng.random(n)
+    want = sc_ref.scatter_points(pts, None, weights, lengths, unc, None, sc_ref.MODE_RADIUS, 0.2, 0.0, 1.0, 4, 5)
+    want_rows = np.column_stack([want.alpha_increment, want.weight_sum, want.weighted_uncertainty_sum, want.hits, want.weighted_height_sum])
+    want_keys = pack_key(want.voxel_index)
+    order = np.argsort(want_keys)
+    keys, point, weight = ss_ref.expand_pairs(pts, lengths, 0.2, 0.0, 1.0)
+    by_key = np.argsort(keys, kind="stable")
+    for got_keys, got_rows in (ss_ref.reduce_voxels(keys[by_key], point[by_key], weight[by_key], weights, unc, pts, 0.2, 0.0),
+                               hg_ref.gather_voxels(pts, lengths, weights, unc, 0.2, 0.0, 1.0)):
+        np.testing.assert_array_equal(got_keys, want_keys[order])
+        np.testing.assert_allclose(got_rows, want_rows[order], rtol=1e-12, atol=1e-12)
+    if n:
+        assert (want.weighted_height_sum < 0).any() and (want.weighted_height_sum > 0).any()
+        mean = want.weighted_height_sum / want.weight_sum
+        assert np.abs(mean).max() < 0.5  # a point reaches the voxels whose centers lie within its length (< 0.5 m)

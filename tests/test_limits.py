@@ -127,6 +127,22 @@ def test_the_codec_writes_exactly_the_tile_sizes_it_reads(tile_voxels):
     np.testing.assert_array_equal(read, index)
 
 
+def test_batch_s_timeout_flags_default_to_the_run_s_limits(monkeypatch, capsys):
+    """The flags' defaults and help are limits' constants, which the executors and BatchOptions take too: one place."""
+    from evsemmap_warp.apps.cli import build_parser
+
+    monkeypatch.setattr(limits, "CHUNK_TIMEOUT_S", 7.0)
+    monkeypatch.setattr(limits, "RAY_CONNECT_TIMEOUT_S", 3.0)
+    monkeypatch.setenv("COLUMNS", "1000")  # each flag's help on one line
+    parser = build_parser()
+    args = parser.parse_args(["batch", "drive", "--method", "ebs", "--out", "store"])
+    assert (args.chunk_timeout_s, args.ray_connect_timeout_s) == (7.0, 3.0)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["batch", "--help"])
+    shown = capsys.readouterr().out
+    assert "(default 7;" in shown and "refused (default 3)" in shown
+
+
 def test_an_unreachable_ray_address_is_refused_within_its_timeout(tmp_path, capsys):
     """Item 3: ray.init retried "Failed to connect to GCS" at 127.0.0.1:9 for more than 10 minutes. No Ray
     instance is started here: the address is refused before Ray is asked."""

@@ -130,6 +130,7 @@ def test_merge_of_disjoint_scan_sets_equals_one_map(device):
     np.testing.assert_array_equal(a.index, b.index)
     np.testing.assert_allclose(a.evidence, b.evidence, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(a.weight_sum, b.weight_sum, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(a.weighted_height_sum, b.weighted_height_sum, rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(a.hits, b.hits)
     np.testing.assert_array_equal(a.touched, b.touched)
     assert (sa.label != sb.label).sum() <= 2  # only near-ties may flip with the summation order

@@ -199,6 +199,7 @@ def test_two_workers_give_the_one_worker_map_bit_for_bit():
     (a, _), (b, _) = maps[0].voxels(), maps[1].voxels()
     np.testing.assert_array_equal(a.index, b.index)
     np.testing.assert_array_equal(a.rows(), b.rows())
+    assert not a.weighted_height_sum.any()  # the release's rows: no heights kept
 
 
 def test_refusals_name_the_key():

@@ -454,6 +454,7 @@ def test_sbki_maps_are_bit_identical_for_one_and_two_workers():
         rows.append(m.voxels()[0])
     np.testing.assert_array_equal(rows[0].index, rows[1].index)
     np.testing.assert_array_equal(rows[0].rows(), rows[1].rows())
+    assert rows[0].hits.sum() > 0 and not rows[0].weighted_height_sum.any()  # the original's rows: no heights kept
 
 
 def test_every_form_of_the_sbki_gather_kernel_gives_the_same_map_bit_for_bit():

@@ -35,6 +35,7 @@ def _compare(vm, updates, expected: ref.ScatterResult, atol=2e-5):
     np.testing.assert_allclose(got.weight_sum, expected.weight_sum, rtol=2e-5, atol=atol)
     np.testing.assert_allclose(got.weighted_uncertainty_sum, expected.weighted_uncertainty_sum, rtol=2e-5, atol=atol)
     np.testing.assert_array_equal(got.hits, expected.hits)
+    np.testing.assert_allclose(got.weighted_height_sum, expected.weighted_height_sum, rtol=2e-5, atol=atol)
     assert got.touched.all()
     assert updates == expected.update_count
 
@@ -148,7 +149,7 @@ def _insert_pass_first(scan: sc.ScanPoints, params: sc.ScatterParams, out: sc.Ma
 def _two_pass_scatter(mode, fusion, use_labels):
     """The clean scatter as it was: every point runs its insert pass before it adds."""
     reach, rule, _ = sc.SCATTER_MODES[mode]
-    visit = sc.scatter_visit(rule, sc._evidence_rule(mode, fusion, use_labels), inserts=True)
+    visit = sc.scatter_visit(rule, sc._evidence_rule(mode, fusion, use_labels), inserts=True, heights=True)
     return sc.walk_kernel(reach, dataclasses.replace(visit, plan=_insert_pass_first), module="unique")
 
 

@@ -14,6 +14,7 @@ import pytest
 
 from evsemmap_warp.apps.batch import BatchOptions, run_batch
 from evsemmap_warp.apps.cli import main
+from evsemmap_warp.core import map_store
 from evsemmap_warp.core.map_store import MapStore, fold
 from evsemmap_warp.core.mapper import load_map
 from evsemmap_warp.core.voxel_map import add_duplicate_voxels
@@ -52,7 +53,8 @@ def _random_partials(rng, chunks: int, tile_voxels: int, columns: int):
         local = rng.integers(0, 6, size=(count, 3)) if c != 1 else np.full((1, 3), tile_voxels - 1)
         local = np.unique(local, axis=0)
         rows = rng.random((len(local), columns)) * 10.0 ** rng.integers(-8, 9, size=(len(local), 1))
-        rows[:, -2] = rng.integers(0, 1000, len(local))  # hits: whole counts
+        rows[:, -3] = rng.integers(0, 1000, len(local))  # hits: whole counts
+        rows[:, -2] -= rows[:, -2] * 2 * (rng.random(len(local)) < 0.5)  # the weighted height sum: signed
         rows[:, -1] = rng.random(len(local)) < 0.5  # touched
         parts.append((local + np.array([-3, 7, 2**19 // tile_voxels]) * tile_voxels, rows))
     return parts
@@ -61,7 +63,7 @@ def _random_partials(rng, chunks: int, tile_voxels: int, columns: int):
 def test_folding_chunk_by_chunk_gives_the_bits_of_one_sum():
     rng = np.random.default_rng(3)
     for trial in range(30):
-        parts = _random_partials(rng, int(rng.integers(1, 8)), 32, 9 + 4)
+        parts = _random_partials(rng, int(rng.integers(1, 8)), 32, 9 + 5)
         running = None
         for index, rows in parts:
             running = fold(running, index, rows)
@@ -70,7 +72,7 @@ def test_folding_chunk_by_chunk_gives_the_bits_of_one_sum():
         once = add_duplicate_voxels(index - base, np.concatenate([p[1] for p in parts]))
         np.testing.assert_array_equal(running[0], once.index + base)
         assert running[1].tobytes() == once.rows().tobytes(), trial
-    empty = (np.zeros((0, 3), np.int64), np.zeros((0, 13)))
+    empty = (np.zeros((0, 3), np.int64), np.zeros((0, 14)))
     assert fold(running, *empty) is running  # an empty partial changes nothing
     assert fold(None, *empty)[0].shape == (0, 3)
     assert fold(empty, *running)[1].tobytes() == running[1].tobytes()
@@ -78,7 +80,7 @@ def test_folding_chunk_by_chunk_gives_the_bits_of_one_sum():
 
 def test_a_store_is_compact_and_exports_the_map(drive, tmp_path):
     summary = _batch([drive], tmp_path / "store")
-    tiles = sorted((tmp_path / "store" / "tiles").glob("*.vox"))
+    tiles = sorted((tmp_path / "store" / "tiles").glob(f"*{map_store.TILE_SUFFIX}"))
     assert len(tiles) == summary["tiles"] > 1
     bytes_per_voxel = sum(p.stat().st_size for p in tiles) / summary["voxels"]
     assert bytes_per_voxel <= 48, bytes_per_voxel  # the issue's target; the map-file schema took 230
@@ -139,7 +141,7 @@ def _mount_small_tmpfs(folder: Path, size: str) -> bool:
     return subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)], capture_output=True).returncode == 0
 
 
-@pytest.mark.parametrize("size, writing", [("200k", "writing chunk 0's partial maps"), ("800k", "writing tile")])
+@pytest.mark.parametrize("size, writing", [("200k", "writing chunk 0's partial maps"), ("1350k", "writing tile")])
 def test_a_full_disk_loses_nothing_and_the_rerun_resumes(drive, tmp_path, capsys, size, writing):
     """On a real full filesystem: a small tmpfs that fills up while the run writes (a partial map, or a
     tile being folded), grown once the error is shown, as a user would free space."""
@@ -204,16 +206,17 @@ def test_duplicate_voxels_add_left_to_right_from_zero():
     rng = np.random.default_rng(11)
     index = rng.integers(-40, 40, (3000, 3))
     index[2000:] = index[rng.integers(0, 2000, 1000)]  # repeats, some of them several times
-    rows = rng.random((3000, 13)) * 10.0 ** rng.uniform(-8, 8, (3000, 13))
-    rows[:, -2] = rng.integers(0, 50, 3000)  # hits, a count
+    rows = rng.random((3000, 14)) * 10.0 ** rng.uniform(-8, 8, (3000, 14))
+    rows[:, -3] = rng.integers(0, 50, 3000)  # hits, a count
+    rows[:, -2] -= 0.5  # the weighted height sum, signed
     rows[:, -1] = rng.random(3000) < 0.5  # touched
     rows[rng.integers(0, 3000, 200), rng.integers(0, 11, 200)] = -0.0
     keys, first, inverse = np.unique(pack_voxel_keys(index), return_index=True, return_inverse=True)
-    want = np.zeros((len(keys), 13))
+    want = np.zeros((len(keys), 14))
     np.add.at(want, inverse.reshape(-1), rows)
     want[:, -1] = np.minimum(want[:, -1], 1.0)
     got = add_duplicate_voxels(index, rows)
     assert np.bincount(inverse.reshape(-1)).max() >= 4
     np.testing.assert_array_equal(got.index, index[first])
     assert got.rows().tobytes() == want.tobytes()
-    assert add_duplicate_voxels(index[:0], rows[:0]).rows().shape == (0, 13)
+    assert add_duplicate_voxels(index[:0], rows[:0]).rows().shape == (0, 14)

@@ -15,6 +15,7 @@ import pytest
 from evsemmap_warp.apps.batch import BatchOptions, run_batch
 from evsemmap_warp.apps.cli import main
 from evsemmap_warp.config import ConfigError, load_config
+from evsemmap_warp.core import tile_codec
 from evsemmap_warp.core.map_store import MapStore, StoreError
 from evsemmap_warp.core.mapper import Mapper, load_map
 from evsemmap_warp.synthetic.preset import load_preset
@@ -153,6 +154,14 @@ def test_a_tile_that_does_not_belong_is_refused_naming_it(drive, store, tmp_path
     shutil.copy(tmp_path / "whole.npz", tile)
     line = _cli_error(capsys, "export", copy, "--out", tmp_path / "out.npz")
     assert str(tile) in line and "not a store voxel file" in line, line
+    # a tile of K + 4 columns, as stores were written before the weighted height sum: refused, not read with centers
+    copy = _copy(store, tmp_path / "without-heights")
+    tile = copy / "tiles" / names[0]
+    header, index, rows = tile_codec.read_voxel_file(tile)
+    identity = {key: header[key] for key in ("kind", "store", "mapping", "classes", "frame", "entry", "folded_through")}
+    tile_codec.write_voxel_file(tile, index, np.delete(rows, -2, axis=1), header["tile"], header["tile_voxels"], identity)
+    line = _cli_error(capsys, "export", copy, "--out", tmp_path / "out.npz")
+    assert str(tile) in line and "the weighted height sum is missing" in line and "map the data again" in line, line
 
 
 def test_a_tile_file_the_index_does_not_list_is_refused_naming_it(store, tmp_path, capsys):

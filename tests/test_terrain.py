@@ -41,7 +41,7 @@ def _mapper(voxels: dict, *, frame=None, origin_cells=(0, 0)) -> Mapper:
     n = len(keys)
     mapper = Mapper(load_config([], method="ebs").mapping, len(CLASSES), class_names=CLASSES, frame=frame, workers=1)
     mapper.load_voxels(VoxelArrays(index=index, evidence=evidence, weight_sum=np.full(n, 2.0), weighted_uncertainty_sum=np.full(n, 0.2),
-                                   hits=np.full(n, 3, np.int64), touched=np.ones(n, bool)))
+                                   hits=np.full(n, 3, np.int64), touched=np.ones(n, bool), weighted_height_sum=np.zeros(n)))
     return mapper
 
 
@@ -94,12 +94,18 @@ def test_steps_and_lethal(scene_layers):
     assert _at(L, "lethal", 5, 5) == 0 and 0 < _at(L, "traversability_cost", 5, 5) < 0.5
 
 
-def test_an_unsure_cell_costs_more_than_a_sure_one_of_the_same_class(scene_layers):
+def test_an_unsure_cell_costs_its_class_and_is_marked_unsure(scene_layers):
     L = scene_layers
     assert _at(L, "surface_class", 2, 15) == _at(L, "surface_class", 2, 14) == C["paved"]
     assert _at(L, "semantic_variance", 2, 15) > 3 * _at(L, "semantic_variance", 2, 14)
     assert _at(L, "class_cost_std", 2, 15) > 3 * _at(L, "class_cost_std", 2, 14)
-    assert _at(L, "traversability_cost", 2, 15) > _at(L, "traversability_cost", 2, 14) + 0.1
+    assert _at(L, "surface_uncommitted", 2, 15) == pytest.approx(9 / 11) and _at(L, "surface_uncommitted", 2, 14) == pytest.approx(9 / 59)
+    assert _at(L, "traversability_cost", 2, 15) == _at(L, "traversability_cost", 2, 14)  # the evidential rule: its class's cost
+    from dataclasses import replace
+
+    config = load_terrain_config()
+    expected = compute_layers(_mapper(_scene()), config=replace(config, costs=replace(config.costs, rule="expected")))
+    assert _at(expected, "traversability_cost", 2, 15) > _at(expected, "traversability_cost", 2, 14) + 0.1
 
 
 def test_unknown_cells(scene_layers):
@@ -125,6 +131,43 @@ def test_a_ramp_gives_its_slope_and_a_steep_one_is_lethal():
     assert all(_at(L, "lethal", i, 6) == 0 for i in range(5, 15))
     assert np.mean([_at(L, "lethal", i, 6) for i in range(25, 35)]) > 0.5
     assert 0 < np.median([_at(L, "roughness", i, 6) for i in range(5, 15)]) < VOXEL_M / 2  # the staircase of voxels
+
+
+def _lidar_drive_on_a_road(rng, grade_deg: float, road_z: float = 0.2):
+    """Scans of a 16-ring LiDAR 1.8 m above a road z = road_z + x tan(grade), from 17 poses 1 m apart along x:
+    the rings' points (within 5 m of the road's axis and 20 m of the sensor), with 2 cm of noise in z."""
+    grade = np.tan(np.radians(grade_deg))
+    elevation, azimuth = np.meshgrid(np.radians(np.linspace(-25, -5, 16)), np.radians(np.arange(0.0, 360.0, 1.0)), indexing="ij")
+    rays = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], -1).reshape(-1, 3)
+    scans = []
+    for x0 in np.arange(-8.0, 8.5, 1.0):
+        sensor = np.array([x0, 0.0, road_z + grade * x0 + 1.8])
+        reach = -1.8 / (rays[:, 2] - grade * rays[:, 0])  # where each ray meets the road
+        points = sensor + reach[:, None] * rays
+        points = points[(reach > 0) & (reach < 20) & (np.abs(points[:, 1]) < 5)]
+        points[:, 2] += rng.normal(0.0, 0.02, len(points))
+        scans.append(points)
+    return scans
+
+
+def test_a_lidar_road_reads_its_grade_and_height_not_the_voxel_staircase():
+    # A road rising 0.8 deg (flat to a planner), its surface near a voxel face (z 0.2 m at x = 0), swept by a
+    # LiDAR's rings and mapped with ebs. Measured on the cells the layers know (evidence at least min_evidence,
+    # with a slope): the slope's 90th percentile and median, and the elevation's median error against the road.
+    # Heights at the voxel centers read this road as 0.2 m steps (slope p90 4.5 deg, elevation +0.1 m).
+    grade_deg = 0.8
+    mapper = Mapper(load_config([], method="ebs").mapping, len(CLASSES), class_names=CLASSES, workers=1, origin=np.zeros(3))
+    for points in _lidar_drive_on_a_road(np.random.default_rng(0), grade_deg):
+        mapper.integrate(points, np.full(len(points), C["paved"]), payload_type="label")
+    L = compute_layers(mapper)
+    known = (L.bands["known"] > 0) & np.isfinite(L.bands["slope"])
+    assert known.sum() > 5000
+    slope = L.bands["slope"][known]
+    assert np.percentile(slope, 90) < 3.0
+    assert np.median(slope) == pytest.approx(grade_deg, abs=0.3)
+    x, _ = L.grid.cell_centers()
+    road = np.broadcast_to(0.2 + np.tan(np.radians(grade_deg)) * x, known.shape)
+    assert np.median(np.abs(L.bands["elevation"][known] - road[known])) < 0.02
 
 
 def _config(**layers) -> TerrainConfig:
@@ -286,7 +329,7 @@ def test_npz_and_previews_read_back(written):
     for name in layers.band_names:
         np.testing.assert_array_equal(bands[name], layers.bands[name])
     previews = sorted((out / "previews").glob("*.png"))
-    assert {p.stem for p in previews} >= {"elevation", "traversability_cost", "surface_doubt", "surface_class", "lethal", "class_probabilities"}
+    assert {p.stem for p in previews} >= {"elevation", "traversability_cost", "surface_conflict", "surface_class", "lethal", "class_probabilities"}
     for path in previews:
         with Image.open(path) as image:
             pixels = np.asarray(image.convert("RGB")).astype(np.uint32)

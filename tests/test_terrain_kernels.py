@@ -20,7 +20,8 @@ def _voxels(index, label, occupied, hits) -> VoxelColumns:
     k = 4
     return VoxelColumns(index=np.asarray(index, np.int64).reshape(-1, 3), label=np.asarray(label, np.int32),
                         occupied=np.asarray(occupied, bool), hits=np.asarray(hits, np.float64), probabilities=np.zeros((n, k)),
-                        variance=np.zeros(n), weight_sum=np.zeros(n), weighted_uncertainty_sum=np.zeros(n), evidence=np.zeros((n, k)))
+                        variance=np.zeros(n), weight_sum=np.zeros(n), weighted_uncertainty_sum=np.zeros(n), evidence=np.zeros((n, k)),
+                        height_offset=np.zeros(n))
 
 
 def _random_voxels(rng, n, spread, origin=(0, 0, 0), columns=None):

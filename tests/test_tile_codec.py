@@ -11,13 +11,14 @@ from evsemmap_warp.core.tile_codec import VoxelFileError, decode_voxels, encode_
 def _voxels(rng, count, tile, tile_voxels, classes=9):
     local = np.unique(rng.integers(0, tile_voxels, (count, 3)), axis=0)  # key order, no repeats
     index = local + np.asarray(tile) * tile_voxels
-    rows = np.zeros((len(index), classes + 4))
+    rows = np.zeros((len(index), classes + 5))
     nonzero = rng.random((len(index), classes)) < 0.2  # sparse evidence, as label payloads give
     rows[:, :classes] = np.where(nonzero, rng.random((len(index), classes)) * 10 ** rng.uniform(-8, 6, (len(index), classes)), 0.0)
     rows[:, classes] = rng.random(len(index)) * 50
     rows[:, classes + 1] = rng.random(len(index))
     rows[:, classes + 2] = rng.integers(1, 2**40, len(index))  # counts stay exact
-    rows[:, classes + 3] = rng.random(len(index)) < 0.9
+    rows[:, classes + 3] = rng.normal(0.0, 2.0, len(index))  # the weighted height sum, the one signed column
+    rows[:, classes + 4] = rng.random(len(index)) < 0.9
     return index, rows
 
 
@@ -42,6 +43,18 @@ def test_voxels_on_the_tile_faces_and_outside_it():
     np.testing.assert_array_equal(index, corners)
     with pytest.raises(ValueError, match="outside tile"):
         encode_voxels(corners + [256, 0, 0], rows, (4, -5, 0), tile_voxels, {})
+
+
+def test_only_the_weighted_height_sum_may_be_negative():
+    rng = np.random.default_rng(3)
+    index, rows = _voxels(rng, 50, (0, 0, 0), 256, classes=3)
+    rows[0, 6] = -0.25
+    np.testing.assert_array_equal(decode_voxels(encode_voxels(index, rows, (0, 0, 0), 256, {}), "x")[2], rows)
+    for column in range(6):  # evidence, weight sum, weighted-uncertainty sum, count
+        bad = rows.copy()
+        bad[0, column] = -1.0
+        with pytest.raises(VoxelFileError, match="x: sums that are negative"):
+            decode_voxels(encode_voxels(index, bad, (0, 0, 0), 256, {}), "x")
 
 
 def test_a_small_file_for_sparse_sums():

@@ -11,7 +11,7 @@ from evsemmap_warp.apps.cli import main
 from evsemmap_warp.apps.experiment import NetworkSpec, _subset, load_experiment, seed_group
 from evsemmap_warp.config import ConfigError, load_config, preset_path
 from evsemmap_warp.core.integrators import uncertainty_quantile_mask
-from evsemmap_warp.core.mapper import VoxelState
+from evsemmap_warp.core.mapper import VoxelState, load_map
 from evsemmap_warp.segmentation.metrics import SegmentationMetrics
 
 SCORED = np.arange(1, 9)
@@ -84,6 +84,11 @@ def test_the_quick_study_runs_with_its_spread_and_diagnostics(tmp_path, capsys):
     spread = json.loads((out / "spread.json").read_text())
     assert set(spread) == {"in-domain", "subset-50pct", "subset-25pct", "subset-10pct", "other-domain", "two-other-domains"}
     assert spread["in-domain"]["ebs"]["seeds"] == 2 and len(spread["in-domain"]["ebs"]["mIoU"]) == 2
+    # ebs-learned is mapped with the lengths learned for convbki on each network's training drive
+    assert spread["subset-10pct"]["ebs-learned"]["seeds"] == 2
+    learned = load_map(out / "maps/subset-10pct-a@s1/ebs-learned.npz").config.convbki.lengths_file
+    assert learned == load_map(out / "maps/subset-10pct-a@s1/convbki.npz").config.convbki.lengths_file
+    assert learned.startswith(str(out / "cache" / "convbki"))
     summary = json.loads((out / "diagnostics.json").read_text())
     ebs = summary["in-domain"]["methods"]["ebs"]
     assert 0.2 < ebs["dropped_share"] <= 0.3 + 1e-9  # offroad drops 30 % per insertion (ties are kept)

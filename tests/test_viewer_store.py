@@ -2,6 +2,7 @@
 tiles in full near the camera or where a click lands, and memory bounded by what is shown."""
 
 import re
+import shutil
 import time
 from types import SimpleNamespace
 
@@ -10,8 +11,9 @@ import pytest
 
 from evsemmap_warp.apps.cli import main
 from evsemmap_warp.apps.viewer import MapViewer, StoreOverview, free_port
+from evsemmap_warp.core.map_store import TILE_SUFFIX
 
-from conftest import wait_until
+from conftest import run_cli, wait_until
 from test_viewer import make_map
 
 
@@ -205,6 +207,25 @@ def test_exports_wait_for_the_whole_overview(store, tmp_path, monkeypatch):
         assert len(vertices) == len(viewer.visible_rows[0]) > 0
     finally:
         viewer.close()
+
+
+@pytest.mark.parametrize("which", ["a middle tile", "the last tile"])
+def test_an_export_of_a_store_with_an_unreadable_tile_is_one_line_naming_it(store, tmp_path, monkeypatch, capsys, which):
+    """view --export-ply --no-serve of a store whose tile cannot be read after the first frame (the loader's): the
+    export left the tile out, said only in the status line, and exited 0; were it the last tile read, the export
+    waited for ever. It is refused as `evsemmap export` refuses the store, in one line naming the tile."""
+    copy = tmp_path / "store"
+    shutil.copytree(store, copy)
+    order = StoreOverview(copy, 600).unread  # the order the viewer reads the tiles in
+    name = order[len(order) // 2] if which == "a middle tile" else order[-1]
+    tile = copy / "tiles" / f"{name}{TILE_SUFFIX}"
+    data = bytearray(tile.read_bytes())
+    data[-9] ^= 0xFF
+    tile.write_bytes(bytes(data))
+    monkeypatch.setattr(MapViewer, "FIRST_FRAME_ROWS", 1)  # the first frame reads one tile: the loader the rest
+    line = run_cli(capsys, "view", copy, "--export-ply", tmp_path / "all.ply", "--no-serve", "--port", free_port())
+    assert str(tile) in line and "payload checksum mismatch" in line, line
+    assert not (tmp_path / "all.ply").exists()
 
 
 def test_a_small_store_is_read_whole_before_the_first_frame(store):

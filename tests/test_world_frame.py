@@ -48,6 +48,8 @@ def _assert_same_map(a: Mapper, b: Mapper, evidence_tol=1e-9):
     np.testing.assert_array_equal(sa.label, sb.label)
     np.testing.assert_array_equal(va.hits, vb.hits)
     np.testing.assert_allclose(va.evidence, vb.evidence, rtol=evidence_tol, atol=evidence_tol)
+    # heights above the voxels' centers: the same whatever the origin each map had
+    np.testing.assert_allclose(va.weighted_height_sum, vb.weighted_height_sum, rtol=evidence_tol, atol=evidence_tol)
 
 
 def _copy_folder(folder: Path, out: Path, frames=None, transform=None, frame_file: str | None = "keep") -> Path:
@@ -389,4 +391,5 @@ def test_maps_with_different_origins_merge_exactly_far_from_zero():
         whole.integrate(scan, label, payload_type="label")
         part.integrate(scan, label, payload_type="label")
     assert not np.array_equal(parts[0].origin_index, parts[1].origin_index)
+    assert np.count_nonzero(whole.voxels()[0].weighted_height_sum) > 1000
     _assert_same_map(whole, parts[0].merge(parts[1]))

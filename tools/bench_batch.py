@@ -3,7 +3,11 @@
 local process pool and with Ray, at 1 and 2 workers, in one run. Ray is measured twice: the local instance a
 run starts and stops itself (``--executor ray``), and a running Ray instance the runs join (``--ray-address``,
 as on a cluster: the tool starts one with ``ray start --head --block`` for these rows, runs one unrecorded
-warm-up batch in it, and stops it after them).
+warm-up batch in it, and stops it after them). ``ray-2node``: a real two-node Ray cluster on the loopback
+(tools/ray_cluster.py: the head, and a second node in a private mount namespace that sees neither the drive nor
+the stores, so the driver reads and sends the scans), mapped by 2 workers, one per node; its store is checked
+byte for byte against the local pool's (its row says so), and its row has its own ``fold`` (the driver's fold rate
+and the worker count it limits). It needs root (mount namespaces): elsewhere it is skipped, saying why.
 
 Each configuration runs as the command a user types (a fresh process, start-up included), after a
 warm-up batch on the first 200 frames (kernel cache, page cache). Reported per configuration: wall
@@ -19,8 +23,9 @@ driver's fold limits the long drive are the record's ``fold`` (from the 1-worker
 The results go to a run record (docs/bench/bench_batch-<UTC>.json, tools/bench_record.py); the last
 line printed is its path.
 
-    python tools/bench_batch.py [--frames 2000] [--method ebs] [--data DIR] [--repeats 1] [--executors local,ray,ray-cluster]
+    python tools/bench_batch.py [--frames 2000] [--method ebs] [--data DIR] [--repeats 1] [--executors local,ray,ray-cluster,ray-2node]
     python tools/bench_batch.py --frames 2000 --repeats 3 --executors local   # the pool against `evsemmap map`, and the fold
+    python tools/bench_batch.py --frames 2000 --repeats 3 --executors local,ray-2node   # two nodes beside the pool
     python tools/bench_batch.py --markdown docs/bench/bench_batch-<UTC>.json   # a record's table, for the docs
 """
 
@@ -56,6 +61,10 @@ CLUSTER = {"nodes": 16, "cores_per_node": 16}
 # the `long` synthetic drive's frames (evsemmap synth --world long), of which --frames renders the first
 LONG_DRIVE_FRAMES = int(yaml.safe_load((REPO / "configs" / "synthetic" / "long.yaml").read_text())["trajectory"]["frames"])
 RAY_CLUSTER_ENV = {"RAY_AUTH_MODE": "token"}
+EXECUTORS = ("local", "ray", "ray-cluster", "ray-2node")
+# each two-node cluster node's object store: the scans the driver sends (a chunk of the long drive's is about
+# 100 MB, one in flight per worker) and the chunks' results; beyond it Ray spills to disk
+TWO_NODE_OBJECT_STORE_BYTES = 1 << 30
 
 
 def folder_size(path: Path) -> int:
@@ -135,7 +144,8 @@ def markdown(record_path: Path) -> str:
     runs = results["runs"]
     names = {"map": "`evsemmap map` (2 threads)", "localx1": "`batch`, local, 1 worker", "localx2": "`batch`, local, 2 workers",
              "rayx1": "`batch`, Ray, 1 worker", "rayx2": "`batch`, Ray, 2 workers",
-             "ray-clusterx1": "`batch`, running Ray, 1 worker", "ray-clusterx2": "`batch`, running Ray, 2 workers"}
+             "ray-clusterx1": "`batch`, running Ray, 1 worker", "ray-clusterx2": "`batch`, running Ray, 2 workers",
+             "ray-2nodex2": "`batch`, Ray, two nodes, 1 worker each (scans sent by the driver)"}
     lines = [f"<!-- record: docs/bench/{Path(record_path).name} -->",
              "| run | wall | frames/s | input points/s | vs `evsemmap map` | behind local | driver's folding | store | peak disk | worker peak "
              "| driver peak |",
@@ -278,6 +288,58 @@ def fold_bottleneck(row: dict, frames: int) -> dict:
     }
 
 
+def store_differences(a: Path, b: Path) -> list[str]:
+    """The files (relative paths) in which stores ``a`` and ``b`` differ: in one only, or other bytes."""
+    def read(store):
+        return {str(p.relative_to(store)): p for p in sorted(store.rglob("*")) if p.is_file()}
+
+    files_a, files_b = read(a), read(b)
+    both = sorted(set(files_a) & set(files_b))
+    return sorted(set(files_a) ^ set(files_b)) + [name for name in both if files_a[name].read_bytes() != files_b[name].read_bytes()]
+
+
+def two_node_rows(results: dict, data: Path, tmp: Path, warm_seq: Path, batch_args: list[str], repeat, walls: dict, local_out: Path) -> None:
+    """The two-node cluster's row (``ray-2nodex2``) into ``results``: a TwoNodeCluster whose second node sees neither
+    ``data`` nor ``tmp`` (the stores), one unrecorded warm-up batch, then the drive by 2 workers; its store checked
+    against the local pool's at ``local_out`` (mapped here, unrecorded, when the run has no local rows). Skipped with
+    the reason where this machine allows no mount namespace."""
+    from ray_cluster import TwoNodeCluster, mount_namespaces_refused
+
+    refused = mount_namespaces_refused(tmp)
+    if refused:
+        results.setdefault("skipped", {})["ray-2node"] = refused
+        print(f"batch ray-2node: skipped: {refused}", flush=True)
+        return
+    if not (local_out / "store.json").is_file():
+        run(["batch", str(data), *batch_args, "--out", str(local_out), "--executor", "local", "--workers", "2", "--quiet"])
+    hidden = [tmp] + ([] if data.resolve().is_relative_to(tmp.resolve()) else [data])
+    cluster = TwoNodeCluster(hidden, object_store_bytes=TWO_NODE_OBJECT_STORE_BYTES)
+    try:
+        joining = ["--executor", "ray", "--ray-address", cluster.address]
+        warm = run(["batch", str(warm_seq), *batch_args, "--out", str(tmp / "warm_2node"), *joining, "--quiet"], None, cluster.env)[0]
+        results["ray_2node_warmup_wall_s"] = round(warm, 3)
+        out = tmp / "store_ray-2node_2"
+        seconds, summary, peak_disk = repeat("ray-2node2", ["batch", str(data), *batch_args, "--out", str(out), *joining, "--workers", "2",
+                                                            "--quiet"], out, cluster.env)
+    finally:
+        cluster.close()
+    differing = store_differences(local_out, out)
+    if differing:
+        raise SystemExit(f"the two-node store {out} differs from the local pool's {local_out}: {', '.join(differing[:5])}")
+    row = batch_row(summary, seconds, peak_disk, out, results["input_points"], results["frames"], results["runs"]["map"]["wall_s"],
+                    walls["ray-2node2"])
+    row |= {"cluster": summary["cluster"], "same_store_as_local": True, "fold": fold_bottleneck(row, results["frames"])}
+    local = results["runs"].get("localx2")
+    if local:
+        row["behind_local_pct"] = round(100 * (seconds / local["wall_s"] - 1), 1)
+    results["runs"]["ray-2nodex2"] = row
+    fold = row["fold"]
+    print(f"batch ray-2node x2: {describe(row)}\n{breakdown(row)}\n  inputs {summary['cluster']['inputs']}, chunks per node "
+          f"{list(summary['cluster']['chunks_per_node'].values())}, the store the local pool's byte for byte; driver's fold "
+          f"{fold['voxels_per_s']:,} voxels/s, one worker {fold['worker_voxels_per_s']:,}: the fold limits from {fold['bottleneck_workers']} "
+          f"workers on", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--markdown", type=Path, metavar="RECORD", help="print the docs' table of a run record and exit")
@@ -287,11 +349,16 @@ def main() -> None:
     parser.add_argument("--data", type=Path, help="render the long drive here (kept and reused), default a temporary folder")
     parser.add_argument("--repeats", type=int, default=1, help="runs per configuration (median reported)")
     parser.add_argument("--executors", default="local,ray,ray-cluster",
-                        help="local (the process pool), ray (a local Ray instance per run), ray-cluster (runs joining a running Ray instance)")
+                        help="local (the process pool), ray (a local Ray instance per run), ray-cluster (runs joining a running Ray "
+                             "instance), ray-2node (a two-node cluster on the loopback whose second node sees no files; needs root)")
     args = parser.parse_args()
     if args.markdown:
         print(markdown(args.markdown))
         return
+    executors = args.executors.split(",")
+    for executor in executors:
+        if executor not in EXECUTORS:
+            raise SystemExit(f"--executors: {executor!r} is not one of {', '.join(EXECUTORS)}")
     tmp = Path(tempfile.mkdtemp(prefix="bench_batch_"))
     data = args.data or tmp / "long"
     results = {"method": args.method, "frames": args.frames, "chunk_frames": args.chunk_frames, "repeats": args.repeats, "runs": {}}
@@ -322,14 +389,17 @@ def main() -> None:
 
         walls = {}
         map_seconds, map_report, _ = repeat("map", ["map", str(data), "--method", args.method, "--out", str(tmp / "map.npz"), "--quiet"], None)
-        points = map_report["input_points"]
+        points = results["input_points"] = map_report["input_points"]
         results["runs"]["map"] = {"wall_s": round(map_seconds, 2), "all_wall_s": walls["map"], "frames_per_s": round(args.frames / map_seconds, 1),
                                   "input_points_per_s": round(points / map_seconds), "voxels": map_report["voxels"]}
         print(f"evsemmap map: {map_seconds:.1f} s, {args.frames / map_seconds:.1f} frames/s, {points / map_seconds / 1e3:.0f} k points/s", flush=True)
+        chunking = ["--chunk-frames", str(args.chunk_frames)] if args.chunk_frames else []
         with contextlib.ExitStack() as cluster:
-            for executor in args.executors.split(","):
-                if executor not in ("local", "ray", "ray-cluster"):
-                    raise SystemExit(f"--executors: {executor!r} is not local, ray or ray-cluster")
+            for executor in executors:
+                if executor == "ray-2node":
+                    two_node_rows(results, data, tmp, warm_seq, ["--method", args.method, *chunking], repeat, walls,
+                                  tmp / "store_local_2")
+                    continue
                 joining, env = [], None
                 if executor == "ray-cluster":
                     address = cluster.enter_context(running_ray(os.cpu_count() or 1, tmp / "ray"))
@@ -340,7 +410,6 @@ def main() -> None:
                     results["ray_cluster_warmup_wall_s"] = round(warm_seconds, 3)
                 for workers in (1, 2):
                     out = tmp / f"store_{executor}_{workers}"
-                    chunking = ["--chunk-frames", str(args.chunk_frames)] if args.chunk_frames else []
                     seconds, summary, peak_disk = repeat(f"{executor}{workers}", [
                         "batch", str(data), "--method", args.method, "--out", str(out), "--executor", "local" if executor == "local" else "ray",
                         *joining, "--workers", str(workers), *chunking, "--quiet"], out, env)

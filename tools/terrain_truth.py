@@ -10,12 +10,15 @@ map`` does, computes the layers, and compares them with what the world knows, pe
 Reported: elevation error (layer - truth) in the cells with a layer elevation (cells the LiDAR saw):
 median, 95th percentile of |error| and the median signed error; surface-class accuracy there; the
 class error rate by decile of the semantic variance, of the winning probability, of the uncommitted mass and of the
-surface doubt; the road-vs-rest ROC AUC of the cost; the slope error against the true terrain's (the same plane
-fit on the true heights); the median cost of well-observed cells (u < 0.1) by true class, for each cost rule;
-and an A* plan on the traversability cost from
+surface conflict; the road-vs-rest ROC AUC of the cost; the slope error against the true terrain's (the same plane
+fit on the true heights); the median class cost and cost of well-observed cells (u < 0.5) by true class, for each
+cost rule; and an A* plan on the traversability cost from
 the drive's first pose to its last (8-connected, step cost = length x (BASE_COST + cost), lethal and
 unknown cells impassable): its length, its share on the true road, and its clearance from the true
-obstacles. The minimum-evidence setting is swept (0 keeps every OCCUPIED voxel). Figures go to
+obstacles; the uncommitted mass u by true class, and the AUC were u charged at the cost of the unknown.
+The minimum-evidence setting is swept (0 keeps every OCCUPIED voxel). ``before_after`` sets the
+issue's starting point (rule ``expected``, the semantic variance as the uncertainty) beside the defaults (rule
+``evidential``, the surface conflict). Figures go to
 ``--out`` (docs/terrain/PRESET/ by default), with ``truth.json``; the last line printed is that JSON.
 
     python tools/terrain_truth.py [--world default] [--work DIR] [--out docs/terrain/WORLD]
@@ -52,7 +55,13 @@ def _inflate(mask: np.ndarray, radius_cells: float) -> np.ndarray:
                                                                                                    max(-dc, 0):columns + min(-dc, 0)]
                 out |= shifted
     return out
+
+
 SWEEP = (0.0, 0.2, 0.5)
+# a cell is well observed when its support voxel's belief outweighs its uncommitted mass (u < 0.5: more evidence
+# than the prior's weight); the support voxels are mostly kernel tails above the surface, so a stricter bound
+# (u < 0.1: 81 units of evidence in 9 classes) leaves few road cells to judge
+WELL_OBSERVED_U = 0.5
 
 
 def _world_truth(world, grid, clearance_m: float, device: str):
@@ -158,14 +167,6 @@ def _connected(passable: np.ndarray, seed: tuple[int, int]) -> np.ndarray:
     return reached
 
 
-def _uncommitted_mass(bands, classes, prior: float) -> np.ndarray:
-    """Per cell, the support voxel's uncommitted mass u = K prior / S, with S = p (1 - p) / variance - 1 from the
-    winning class's probability p and the semantic variance p (1 - p) / (S + 1) (the layers have no band of it)."""
-    p = bands["surface_probability"]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return len(classes) * prior / (p * (1 - p) / bands["semantic_variance"] - 1.0)
-
-
 def _road_auc(bands, ground_class, classes) -> float:
     """ROC AUC of the traversability cost separating the cells whose true surface is road (paved, unpaved) from
     every other cell the layers know (lower cost: road), by ranks (Mann-Whitney; ties count half)."""
@@ -184,6 +185,21 @@ def _road_auc(bands, ground_class, classes) -> float:
     return round(float((ranks[road].sum() - positives * (positives + 1) / 2) / (positives * negatives)), 4)
 
 
+def _uncommitted_reading(bands, ground_class, classes, unknown_cost: float) -> dict:
+    """How much of the support voxels is uncommitted, by true class (10th, 50th, 90th percentiles of u), and the
+    road-vs-rest AUC of the cost were u charged at ``unknown_cost`` (class cost (1 - u) c + u unknown_cost, the
+    rest of the cost as it is): why the evidential rule leaves u out of the cost (docs/terrain.md §4)."""
+    u = bands["surface_uncommitted"]
+    costed = np.isfinite(bands["traversability_cost"]) & np.isfinite(u)
+    quantiles = {classes[c]: [round(float(q), 3) for q in np.quantile(u[costed & (ground_class == c)], [0.1, 0.5, 0.9])]
+                 for c in np.unique(ground_class[costed]) if c >= 0}
+    charged = bands["traversability_cost"] + u * (unknown_cost - bands["class_cost_mean"])
+    charged = np.where(bands["lethal"] > 0, 1.0, np.clip(charged, 0.0, 1.0))
+    return {"uncommitted_quantiles_by_true_class": quantiles,
+            "road_vs_rest_auc_charging_uncommitted": _road_auc(bands | {"traversability_cost": np.where(costed, charged, np.nan)},
+                                                               ground_class, classes)}
+
+
 def _slope_error(slope: np.ndarray, true_slope: np.ndarray) -> dict:
     both = np.isfinite(slope) & np.isfinite(true_slope)
     error = slope[both] - true_slope[both]
@@ -191,28 +207,33 @@ def _slope_error(slope: np.ndarray, true_slope: np.ndarray) -> dict:
             "p95_abs": round(float(np.quantile(np.abs(error), 0.95)), 3), "median_signed": round(float(np.median(error)), 3)}
 
 
-def _by_decile(values: np.ndarray, correct: np.ndarray):
-    """Class error rate per decile of ``values`` (ranks, so that ties split evenly), and the decile edges."""
-    rank = np.argsort(np.argsort(values, kind="stable"), kind="stable")
-    decile = rank * 10 // len(values)
-    rates = [round(float(1 - correct[decile == d].mean()), 4) for d in range(10)]
+def class_error_by_decile(values: np.ndarray, correct: np.ndarray):
+    """Class error rate per decile of ``values``, lowest first, and the decile edges. Cells of one value share
+    their error rate (each counts the mean error of the cells tied with it), so a run of ties that straddles
+    deciles gives them the same rate, whatever the cells' order: a band that is 0 in most cells (the surface
+    conflict) would otherwise rank its errors by where the cells lie."""
+    order = np.argsort(values, kind="stable")
+    _, first, counts = np.unique(values[order], return_index=True, return_counts=True)
+    shared = np.repeat(np.add.reduceat((~correct[order]).astype(np.float64), first) / counts, counts)
+    decile = np.arange(len(values)) * 10 // len(values)
+    rates = [round(float(shared[decile == d].mean()), 4) for d in range(10)]
     return rates, [float(f"{np.quantile(values, q):.3g}") for q in np.linspace(0, 1, 11)]
 
 
-def _class_errors(bands, classified, correct, uncommitted) -> dict:
+def _class_errors(bands, classified, correct) -> dict:
     """The surface class's error rate by decile of each reading of its uncertainty."""
-    variance_rates, variance_edges = _by_decile(bands["semantic_variance"][classified], correct)
+    variance_rates, variance_edges = class_error_by_decile(bands["semantic_variance"][classified], correct)
     # the winning class's probability, least sure first: the same Dirichlet read another way
-    probability_rates, probability_edges = _by_decile(bands["surface_probability"][classified], correct)
-    # subjective logic's reading of the support voxel: the uncommitted mass u = K prior / S alone, and the surface
-    # doubt 1 - b_label, the mass not committed to the label (vacuity and conflict together)
-    uncommitted_rates, uncommitted_edges = _by_decile(uncommitted[classified], correct)
-    doubt_rates, doubt_edges = _by_decile(bands["surface_doubt"][classified], correct)
+    probability_rates, probability_edges = class_error_by_decile(bands["surface_probability"][classified], correct)
+    # subjective logic's two readings of the support voxel: the uncommitted mass u = K prior / S (how little was
+    # seen) and the conflict 1 - e_label / sum e (how much of what was seen disagrees with the label)
+    uncommitted_rates, uncommitted_edges = class_error_by_decile(bands["surface_uncommitted"][classified], correct)
+    conflict_rates, conflict_edges = class_error_by_decile(bands["surface_conflict"][classified], correct)
     return {
         "class_error_rate_by_variance_decile": variance_rates, "variance_decile_edges": variance_edges,
         "class_error_rate_by_probability_decile": probability_rates, "probability_decile_edges": probability_edges,
         "class_error_rate_by_uncommitted_decile": uncommitted_rates, "uncommitted_decile_edges": uncommitted_edges,
-        "class_error_rate_by_doubt_decile": doubt_rates, "doubt_decile_edges": doubt_edges,
+        "class_error_rate_by_conflict_decile": conflict_rates, "conflict_decile_edges": conflict_edges,
     }
 
 
@@ -223,9 +244,13 @@ def _costs(bands, ground_class, road, classes, true_slope, well_observed) -> dic
     flat_road = road_class & (true_slope < 1.0) & well_observed & np.isfinite(bands["slope"])
     result["slope_on_flat_road_deg"] = {"cells": int(flat_road.sum()), "median": round(float(np.median(bands["slope"][flat_road])), 3),
                                         "p95": round(float(np.quantile(bands["slope"][flat_road], 0.95)), 3)} if flat_road.any() else None
-    result["median_cost_by_true_class_well_observed"] = {
-        classes[c]: round(float(np.median(bands["traversability_cost"][(ground_class == c) & well_observed & np.isfinite(bands["traversability_cost"])])), 4)
-        for c in np.unique(ground_class[well_observed & np.isfinite(bands["traversability_cost"])]) if c >= 0}
+    costed = well_observed & np.isfinite(bands["traversability_cost"])
+    for band, key in (("class_cost_mean", "median_class_cost_by_true_class_well_observed"),
+                      ("traversability_cost", "median_cost_by_true_class_well_observed")):
+        result[key] = {classes[c]: round(float(np.median(bands[band][(ground_class == c) & costed])), 4)
+                       for c in np.unique(ground_class[costed]) if c >= 0}
+    result["well_observed_cells_by_true_class"] = {classes[c]: int(((ground_class == c) & costed).sum())
+                                                   for c in np.unique(ground_class[costed]) if c >= 0}
     known_cost = np.isfinite(bands["traversability_cost"])
     result["median_cost_on_road"] = round(float(np.median(bands["traversability_cost"][known_cost & road])), 4)
     result["median_cost_off_road"] = round(float(np.median(bands["traversability_cost"][known_cost & ~road])), 4)
@@ -275,7 +300,7 @@ def _plan_on_true_classes(grid, truth, road, poses, costs_of_classes: np.ndarray
                                      "share_on_road": round(float(road[true_path[:, 0], true_path[:, 1]].mean()), 4)}}
 
 
-def evaluate(layers, truth, road, poses, classes, costs_of_classes: np.ndarray, true_slope: np.ndarray, prior: float) -> dict:
+def evaluate(layers, truth, road, poses, classes, costs_of_classes: np.ndarray, true_slope: np.ndarray) -> dict:
     height, ground_class, obstacle = truth
     bands = layers.bands
     seen = np.isfinite(bands["elevation"]) & np.isfinite(height)
@@ -283,7 +308,6 @@ def evaluate(layers, truth, road, poses, classes, costs_of_classes: np.ndarray, 
     classified = seen & (ground_class >= 0)
     true = ground_class[classified]
     correct = bands["surface_class"][classified].astype(int) == true
-    uncommitted = _uncommitted_mass(bands, classes, prior)
     result = {
         "cells_seen": int(seen.sum()), "cells_with_truth": int(np.isfinite(height).sum()),
         "elevation_error_m": {"median_abs": round(float(np.median(np.abs(error))), 4), "p95_abs": round(float(np.quantile(np.abs(error), 0.95)), 4),
@@ -291,10 +315,10 @@ def evaluate(layers, truth, road, poses, classes, costs_of_classes: np.ndarray, 
         "surface_class_accuracy": round(float(correct.mean()), 4),
         "per_class": {classes[c]: {"cells": int((true == c).sum()), "recall": round(float(correct[true == c].mean()), 4)} for c in np.unique(true)},
     }
-    result |= _class_errors(bands, classified, correct, uncommitted)
+    result |= _class_errors(bands, classified, correct)
     result["road_vs_rest_auc"] = _road_auc(bands, ground_class, classes)
     result["slope_error_deg"] = _slope_error(bands["slope"], true_slope)
-    well_observed = np.isfinite(uncommitted) & (uncommitted < 0.1)
+    well_observed = bands["surface_uncommitted"] < WELL_OBSERVED_U  # NaN (no support voxel) compares False
     result |= _costs(bands, ground_class, road, classes, true_slope, well_observed)
     result |= _plan(layers, road, obstacle, poses)
     return result | _plan_on_true_classes(layers.grid, truth, road, poses, costs_of_classes)
@@ -358,8 +382,8 @@ def _truth_check_figure(plt, layers, truth, result, sweep):
     axes[1].set_title("elevation error by minimum evidence")
     axes[2].bar(np.arange(1, 11) - 0.2, result["class_error_rate_by_variance_decile"], width=0.4, color="tab:red",
                 label="by semantic variance p(1-p)/(S+1), lowest first")
-    axes[2].bar(np.arange(1, 11) + 0.2, result["class_error_rate_by_doubt_decile"], width=0.4, color="tab:blue",
-                label="by surface doubt 1 - b_label, lowest first")
+    axes[2].bar(np.arange(1, 11) + 0.2, result["class_error_rate_by_conflict_decile"], width=0.4, color="tab:blue",
+                label="by surface conflict 1 - e_label / sum e, lowest first")
     axes[2].set_xlabel("decile")
     axes[2].set_ylabel("surface class error rate")
     axes[2].legend(fontsize=8)
@@ -445,7 +469,7 @@ def _sweep(mapper, world, poses, classes, base, device):
     class, obstacle), the road mask, the true slope, setting -> {result, elevation errors}, (layers,
     result) of the default setting)."""
     from evsemmap_warp.terrain import compute_layers
-    from evsemmap_warp.terrain.layers import dirichlet_prior, neighbourhood_filters
+    from evsemmap_warp.terrain.layers import neighbourhood_filters
 
     truth = road = true_slope = None
     sweep, chosen = {}, None
@@ -460,8 +484,7 @@ def _sweep(mapper, world, poses, classes, base, device):
             # the true terrain's slope, by the same plane fit over the same window as the layers' (a slope's
             # magnitude reads the same north-up)
             true_slope = neighbourhood_filters(truth[0], truth[0], cell_m=layers.grid.cell_m, config=base, device=device)["slope"]
-        result = evaluate(layers, truth, road, poses, classes, np.array([base.costs.classes[n] for n in classes]), true_slope,
-                          dirichlet_prior(mapper))
+        result = evaluate(layers, truth, road, poses, classes, np.array([base.costs.classes[n] for n in classes]), true_slope)
         result["layer_seconds"] = round(seconds, 3)
         seen = np.isfinite(layers.bands["elevation"]) & np.isfinite(truth[0])
         sweep[setting] = {"result": result, "errors": (layers.bands["elevation"] - truth[0])[seen]}
@@ -478,17 +501,31 @@ def _cost_rules(mapper, truth, road, true_slope, poses, classes, base, device) -
     """The cost rules side by side on the same map and settings (terrain/config.py COST_RULES): what each gives a planner."""
     from evsemmap_warp.terrain import compute_layers
     from evsemmap_warp.terrain.config import COST_RULES
-    from evsemmap_warp.terrain.layers import dirichlet_prior
 
     rules = {}
     for rule in COST_RULES:
         ruled = compute_layers(mapper, config=replace(base, costs=replace(base.costs, rule=rule)), device=device)
-        scored = evaluate(ruled, truth, road, poses, classes, np.array([base.costs.classes[n] for n in classes]), true_slope,
-                          dirichlet_prior(mapper))
+        scored = evaluate(ruled, truth, road, poses, classes, np.array([base.costs.classes[n] for n in classes]), true_slope)
         rules[rule] = {key: scored[key] for key in ("road_vs_rest_auc", "median_cost_on_road", "median_cost_off_road",
+                                                     "median_class_cost_by_true_class_well_observed",
                                                      "median_cost_by_true_class_well_observed")} \
             | {"plan": {key: val for key, val in (scored["plan"] or {}).items() if key != "cells"}}
     return rules
+
+
+def _before_after(result: dict, rules: dict, rule: str) -> dict:
+    """The issue's starting point (rule ``expected``, the paper's semantic variance as the uncertainty band) and
+    the defaults (``rule``, the surface conflict) side by side: {figure: {"before": ..., "after": ...}}."""
+    before, after = rules["expected"], rules[rule]
+
+    def pair(get):
+        return {"before": get(before, "variance"), "after": get(after, "conflict")}
+
+    return {"before": "costs.rule expected, uncertainty band semantic_variance", "after": f"costs.rule {rule}, uncertainty band surface_conflict",
+            "road_vs_rest_auc": pair(lambda r, _: r["road_vs_rest_auc"]),
+            "median_cost_on_road_and_off_road": pair(lambda r, _: [r["median_cost_on_road"], r["median_cost_off_road"]]),
+            "plan_share_on_road": pair(lambda r, _: r["plan"].get("share_on_road")),
+            "class_error_rate_by_band_decile": pair(lambda _, band: result[f"class_error_rate_by_{band}_decile"])}
 
 
 def main() -> None:
@@ -518,6 +555,7 @@ def main() -> None:
     truth, road, true_slope, sweep, (layers, result) = _sweep(mapper, generate_world(preset.world, preset.seed), poses, classes, base,
                                                                args.device)
     rules = _cost_rules(mapper, truth, road, true_slope, poses, classes, base, args.device)
+    result |= _uncommitted_reading(layers.bands, truth[1], classes, base.costs.unknown_cost)
     args.out.mkdir(parents=True, exist_ok=True)
     figures = _figures(args.out, layers, truth, road, result, poses, classes, class_colors(classes), sweep)
     summary = {
@@ -526,7 +564,7 @@ def main() -> None:
         "result": {k: v for k, v in result.items() if k != "plan"} | {"plan": {k: v for k, v in (result["plan"] or {}).items() if k != "cells"}},
         "sweep": {str(k): {key: v["result"][key] for key in ("cells_seen", "elevation_error_m", "surface_class_accuracy")}
                   | {"plan": {key: val for key, val in (v["result"]["plan"] or {}).items() if key != "cells"}} for k, v in sweep.items()},
-        "cost_rules": rules,
+        "cost_rules": rules, "before_after": _before_after(result, rules, base.costs.rule),
         "figures": [str(p.relative_to(REPO)) if p.is_relative_to(REPO) else str(p) for p in figures],
     }
     (args.out / "truth.json").write_text(json.dumps(summary, indent=1) + "\n")

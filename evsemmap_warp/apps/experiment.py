@@ -256,9 +256,9 @@ _CACHE_KEY_FIELDS = {
 def map_cache_fields(mapping: MappingConfig) -> dict:
     """The mapping parameters as a cached map's key holds them: one level of keys, the mode sections'
     under their ``_CACHE_KEY_FIELDS`` names (any other as section.key), None as -1 (max_range_m -1.0,
-    ds_multiplier -1), and threshold_scope only when it is not its default ``insertion``. The form is
-    fixed: a key built any other way would change every cached map's key, and a rerun would map them
-    all again."""
+    ds_multiplier -1), and threshold_scope only when it is not its default ``insertion`` (class_gains is in
+    the mapping's dict only when true). The form is fixed: a key built any other way would change every
+    cached map's key, and a rerun would map them all again."""
     nested = mapping.as_dict()
     out = {k: v for k, v in nested.items() if k not in MAPPING_SECTIONS}
     named = {place: name for name, place in _CACHE_KEY_FIELDS.items()}
@@ -523,14 +523,14 @@ class Experiment:
 
     def map_and_score(self, condition: str, method: str, bins: ScanList, gt) -> MapScores:
         """Map condition ``condition``'s projected alpha ``bins`` with ``method`` (under the study's mapping
-        preset; ConvBKI with lengths learned on the network's training data), save the map under
-        ``out/maps/CONDITION/METHOD.npz`` (reused when its inputs are unchanged) and score it against
-        ``gt`` (points, labels)."""
+        preset; ConvBKI, and the class gains of ebs-learned, with lengths learned on the network's training
+        data), save the map under ``out/maps/CONDITION/METHOD.npz`` (reused when its inputs are unchanged)
+        and score it against ``gt`` (points, labels)."""
         from ..core.mapper import load_map, save_map
 
         run = load_config([preset_path(self.config.mapping_preset)], method=method)
         mapping = run.mapping
-        if mapping.kernel is Kernel.COMPOUND and not mapping.convbki.lengths_file:
+        if (mapping.kernel is Kernel.COMPOUND or mapping.class_gains) and not mapping.convbki.lengths_file:
             lengths = self.convbki_lengths(self.config.conditions[condition].network, mapping.resolution_m)
             mapping = mapping.replace(convbki={"lengths_file": str(lengths)})
         key = _digest(map_cache_fields(mapping), str(self.alpha_dir(condition)), dataclasses.asdict(self.config.projection),

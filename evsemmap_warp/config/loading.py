@@ -30,7 +30,7 @@ class RunConfig:
 
 _SECTIONS = {"method": MappingConfig, "mapping": MappingConfig, "dataset": DatasetConfig}
 # The keys a method file's ``method`` section may set (``name`` is ``MappingConfig.method``).
-METHOD_KEYS = {"name", "kernel", "fusion", "media", "adaptive_length", "uncertainty_threshold", "threshold_scope", "compat"}
+METHOD_KEYS = {"name", "kernel", "fusion", "media", "adaptive_length", "uncertainty_threshold", "threshold_scope", "class_gains", "compat"}
 
 
 def methods_dir() -> Path:

@@ -75,6 +75,9 @@ class MappingConfig:
     gamma: float = 10.0  # how fast the adaptive length shrinks with u
     uncertainty_drop_fraction: float = 0.1  # u~: the most uncertain fraction dropped per insertion
     threshold_scope: ThresholdScope = ThresholdScope.INSERTION  # ... of the whole insertion, or per predicted class
+    # each class's media times its gain: the mass of ConvBKI's kernel with that class's learned lengths
+    # (convbki.lengths_file), over the classes' mean (ebs-learned, docs/unseen.md)
+    class_gains: bool = False
     sigma0: float = 1.0  # kernel amplitude: k'(0) = sigma0 (S-BKI's sf2)
     sbki: SbkiSettings = field(default_factory=SbkiSettings)  # S-BKI's blocks (sbki and release modes, SEE-CSOM)
     release: ReleaseSettings = field(default_factory=ReleaseSettings)  # the release mode
@@ -141,6 +144,9 @@ class MappingConfig:
         if self.threshold_scope is not ThresholdScope.INSERTION:
             need(self.compat is Compat.CLEAN and self.kernel is Kernel.SPARSE, "threshold_scope",
                  "a threshold per predicted class is an option of the clean sparse-kernel methods (ebs, dempster, prob-*)")
+        if self.class_gains:
+            need(self.compat is Compat.CLEAN and self.kernel is Kernel.SPARSE and self.fusion is Fusion.BAYES and self.media is Media.SOFT,
+                 "class_gains", "class gains scale the class probabilities of the clean sparse kernel with Bayes fusion (ebs, prob-*)")
 
     def longest_length_m(self) -> float:
         """The longest kernel length any point can get (u = 0 with the adaptive length)."""
@@ -185,10 +191,14 @@ class MappingConfig:
                 changes[name] = dataclasses.replace(getattr(self, name), **value)
         return dataclasses.replace(self, **changes)
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self, *, every_key: bool = False) -> dict[str, Any]:
         """Every field by name, sections as dicts, enums as their YAML values (what map files record as
-        ``meta.mapping``)."""
-        return _as_dict(self)
+        ``meta.mapping``). class_gains only when true or ``every_key`` (dump-config): every other method's maps
+        and stores keep their bytes and identity, and a file without it reads back as false."""
+        out = _as_dict(self)
+        if not (self.class_gains or every_key):
+            del out["class_gains"]
+        return out
 
     @classmethod
     def from_dict(cls, data: Any, source: str = "mapping") -> "MappingConfig":

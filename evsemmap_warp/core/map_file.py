@@ -2,12 +2,12 @@
 needs once, compressed as a store's tiles are (core/tile_codec.py's columns in one zstd frame):
 
   MAGIC (8 bytes), a little-endian uint32 header length, a JSON header, then the payload.
-  header: format, format_version, voxels V, columns (K + 4), resolution (m), origin [3] (m, on the voxel
+  header: format, format_version, voxels V, columns (K + 5), resolution (m), origin [3] (m, on the voxel
           lattice), index_low [3] and index_extent [3] (the voxels' global indices lie in
           index_low .. index_low + index_extent - 1), payload_bytes, payload_crc32, and meta.
-  payload: tile_codec.compress_columns of the indices minus index_low and the [V, K + 4] sums of
+  payload: tile_codec.compress_columns of the indices minus index_low and the [V, K + 5] sums of
           ``VoxelArrays.rows()`` (evidence, weight sum, weighted-uncertainty sum, contribution count,
-          touched), voxels in ascending key order (x, then y, then z index), each once.
+          weighted height sum, touched), voxels in ascending key order (x, then y, then z index), each once.
   meta: classes, the method and all its parameters, the grid offset, the world frame ({"name", "crs"}:
         the frame centers and origin are in, docs/algorithm.md §6.6), provenance and scan_ids (the
         fingerprints of the scans the map holds, core/mapper.scan_fingerprint; optional: a merge refuses
@@ -37,6 +37,7 @@ import numpy as np
 from .. import files
 from ..config import ConfigError, MappingConfig
 from ..frames import FrameError, WorldFrame
+from ..kernels.scatter import COL_HITS, COL_WEIGHT, COL_WEIGHTED_HEIGHT, COL_WEIGHTED_UNCERTAINTY
 from ..voxel_keys import check_index_range, pack_voxel_keys
 from . import tile_codec
 from .voxel_map import EXTRA_COLUMNS, VoxelArrays
@@ -69,6 +70,7 @@ class MapContents:
     weighted_uncertainty_sum: np.ndarray
     hits: np.ndarray
     touched: np.ndarray
+    weighted_height_sum: np.ndarray
     resolution: float
     config: MappingConfig | None = None
     origin_index: np.ndarray | None = None
@@ -80,7 +82,8 @@ class MapContents:
     def voxels(self) -> VoxelArrays:
         """The stored sums as VoxelArrays (global indices)."""
         return VoxelArrays(index=self.index, evidence=self.evidence, weight_sum=self.weight_sum,
-                           weighted_uncertainty_sum=self.weighted_uncertainty_sum, hits=self.hits, touched=self.touched)
+                           weighted_uncertainty_sum=self.weighted_uncertainty_sum, hits=self.hits, touched=self.touched,
+                           weighted_height_sum=self.weighted_height_sum)
 
 
 def write_map_file(path, contents: MapContents) -> Path:
@@ -117,7 +120,7 @@ def _payload_parts(voxels: VoxelArrays, low: np.ndarray, dtype: np.dtype):
     a map's save holds one column beside the compressed bytes, not copies of the whole map."""
     for axis in range(3):
         yield (voxels.index[:, axis] - low[axis]).astype(dtype)
-    for values in (*voxels.evidence.T, voxels.weight_sum, voxels.weighted_uncertainty_sum, voxels.hits):
+    for values in (*voxels.evidence.T, voxels.weight_sum, voxels.weighted_uncertainty_sum, voxels.hits, voxels.weighted_height_sum):
         yield np.ascontiguousarray(values, "<f8")
     yield np.packbits(np.asarray(voxels.touched, bool))
 
@@ -131,6 +134,7 @@ def file_arrays(contents: MapContents) -> dict[str, np.ndarray]:
       evidence [V, K] float64 alpha - prior          state [V] int8 0 UNKNOWN, 1 FREE, 2 OCCUPIED
       variance [V] float64 of the label's class      weight_sum, weighted_uncertainty_sum [V] float64
       hits [V] int64 number of contributions         touched [V] bool updated at least once
+      weighted_height_sum [V] float64 sum of weight * (z - the voxel center's z) (m; 0 in the compat modes)
       resolution float64 (m)                         origin [3] float64 (m)
       format_version int                             meta: JSON string, as the file's
     """
@@ -147,6 +151,7 @@ def file_arrays(contents: MapContents) -> dict[str, np.ndarray]:
         weighted_uncertainty_sum=contents.weighted_uncertainty_sum.astype(np.float64),
         hits=contents.hits.astype(np.int64),
         touched=contents.touched.astype(bool),
+        weighted_height_sum=contents.weighted_height_sum.astype(np.float64),
         resolution=np.float64(contents.resolution),
         origin=np.asarray(contents.origin, np.float64),
         format_version=np.int64(FORMAT_VERSION),
@@ -209,6 +214,9 @@ def _read_compact(path: Path) -> MapContents:
     meta = _check_meta(path, header["meta"], header["format_version"])
     count, columns, low, extent = header["voxels"], header["columns"], header["index_low"], header["index_extent"]
     k = meta["num_classes"]
+    if columns == k + EXTRA_COLUMNS - 1:
+        raise MapFileError(f"{path}: {columns} columns for {k} classes, without the weighted height sum this evsemmap_warp's maps "
+                           f"hold (K + {EXTRA_COLUMNS}): a map written before it; map the data again")
     if columns != k + EXTRA_COLUMNS:
         raise MapFileError(f"{path}: header says {columns} columns, {k} classes need {k + EXTRA_COLUMNS}")
     try:
@@ -225,7 +233,8 @@ def _read_compact(path: Path) -> MapContents:
     del local, rows
     contents = MapContents(meta=meta, origin=np.asarray(header["origin"], np.float64), index=voxels.index, evidence=voxels.evidence,
                            weight_sum=voxels.weight_sum, weighted_uncertainty_sum=voxels.weighted_uncertainty_sum, hits=voxels.hits,
-                           touched=voxels.touched, resolution=float(header["resolution"]), config=mapping_config(path, meta),
+                           touched=voxels.touched, weighted_height_sum=voxels.weighted_height_sum, resolution=float(header["resolution"]),
+                           config=mapping_config(path, meta),
                            frame=WorldFrame.from_dict(meta.get("frame"), str(path)))
     _validate_compact(path, contents)
     return contents
@@ -258,14 +267,16 @@ def _compact_header(path: Path, data: bytes) -> tuple[dict, int]:
 
 
 def _check_sums(path: Path, rows: np.ndarray) -> None:
-    """Refuse NaN/inf or negative sums ([V, K + 4] as ``VoxelArrays.rows()``), or counts that are not whole."""
+    """Refuse NaN/inf sums ([V, K + 5] as ``VoxelArrays.rows()``), negative ones (all but the signed
+    weighted height sum), or counts that are not whole."""
     k = rows.shape[1] - EXTRA_COLUMNS
-    fields = {"evidence": rows[:, :k], "weight_sum": rows[:, k], "weighted_uncertainty_sum": rows[:, k + 1], "hits": rows[:, k + 2]}
+    fields = {"evidence": rows[:, :k], "weight_sum": rows[:, k + COL_WEIGHT], "weighted_uncertainty_sum": rows[:, k + COL_WEIGHTED_UNCERTAINTY],
+              "hits": rows[:, k + COL_HITS], "weighted_height_sum": rows[:, k + COL_WEIGHTED_HEIGHT]}
     for name, values in fields.items():
         bad = ~np.isfinite(values)
         if bad.any():
             raise MapFileError(f"{path}: field {name!r} holds {int(bad.sum())} NaN/inf values")
-        if values.size and values.min() < 0:
+        if name != "weighted_height_sum" and values.size and values.min() < 0:
             raise MapFileError(f"{path}: field {name!r} holds negative values (min {values.min()}); evidence, weights and counts only grow")
     if np.any(fields["hits"] != np.floor(fields["hits"])):
         raise MapFileError(f"{path}: field 'hits' holds values that are not whole numbers")

@@ -42,7 +42,7 @@ from .voxel_map import EXTRA_COLUMNS, VoxelArrays
 
 STORE_FORMAT = "evsemmap_warp.store"
 STORE_VERSION = 2
-TILE_SUFFIX = {STORE_VERSION: ".vox"}  # by store format version
+TILE_SUFFIX = ".vox"  # a tile file's name: its tile name, then this
 PARTIAL_SUFFIX = ".vox"
 INDEX_NAME = "store.json"
 DEFAULT_TILE_VOXELS = 256  # 51.2 m at 0.2 m: a few MB per tile of a LiDAR map
@@ -109,7 +109,7 @@ def write_json(path: Path, data) -> Path:
 
 
 def write_partial(path: Path, index: np.ndarray, rows: np.ndarray, tile_voxels: int, identity: str, chunk: int) -> Path:
-    """Chunk ``chunk``'s voxels in tile ``path.stem`` (global indices in key order, [V, K + 4] rows) for
+    """Chunk ``chunk``'s voxels in tile ``path.stem`` (global indices in key order, [V, K + 5] rows) for
     the store of ``identity``."""
     return tile_codec.write_voxel_file(path, index, rows, parse_tile_name(Path(path).stem), tile_voxels,
                                        {"kind": "partial", "store": identity, "chunk": int(chunk)})
@@ -127,7 +127,8 @@ def read_partial(path: Path, columns: int, tile_voxels: int, identity: str, chun
 
 def decode_partial(data: bytes, path: Path, columns: int, tile_voxels: int, identity: str, chunk: int) -> tuple[np.ndarray, np.ndarray]:
     """A partial map's bytes (the file ``path``, read there or sent), validated: of this store and chunk, in the
-    tile its name says, [V, columns] finite non-negative sums, voxels unique and in key order."""
+    tile its name says, [V, columns] finite sums (non-negative but the weighted height sum), voxels unique and in key
+    order."""
     folder = Path(path).parent
     expect = {"kind": "partial", "store": identity, "chunk": int(chunk), "tile": list(parse_tile_name(Path(path).stem)),
               "tile_voxels": tile_voxels}
@@ -142,7 +143,7 @@ def decode_partial(data: bytes, path: Path, columns: int, tile_voxels: int, iden
 
 
 def fold(running: tuple[np.ndarray, np.ndarray] | None, index: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``running`` (a tile's sum so far: global indices [V, 3] in key order and [V, K + 4] rows) plus a
+    """``running`` (a tile's sum so far: global indices [V, 3] in key order and [V, K + 5] rows) plus a
     partial's voxels (the same, each voxel once): the voxels of both in key order, rows of one voxel
     added, touched or-ed. Folding partials one by one in chunk order gives the bits that summing all of
     them at once gives (add_duplicate_voxels, the twin the tests hold it to): each voxel's rows are added
@@ -289,8 +290,8 @@ class MapStore:
     def _refuse_unlisted_tiles(self, index_path: Path) -> None:
         """A tile file the index does not list: the index was edited or belongs to other tiles, and
         every read-out would silently lack its voxels (a listed tile missing on disk is refused on reading)."""
-        suffix = TILE_SUFFIX[STORE_VERSION]
-        unlisted = sorted(p.name for p in (self.path / "tiles").glob(f"*{suffix}") if not p.name.startswith(".") and p.stem not in self.tiles)
+        unlisted = sorted(p.name for p in (self.path / "tiles").glob(f"*{TILE_SUFFIX}")
+                          if not p.name.startswith(".") and p.stem not in self.tiles)
         if unlisted:
             raise StoreError(f"{self.path / 'tiles' / unlisted[0]}: a tile file that {index_path} does not list ({len(unlisted)} such: "
                              f"{', '.join(unlisted[:4])}{', ...' if len(unlisted) > 4 else ''}); the index was edited or is not the one "
@@ -375,7 +376,7 @@ class MapStore:
 
     def tile_path(self, name: str) -> Path:
         """Where tile ``name``'s file is."""
-        return self.path / "tiles" / f"{name}{TILE_SUFFIX[STORE_VERSION]}"
+        return self.path / "tiles" / f"{name}{TILE_SUFFIX}"
 
     def tile(self, name: str) -> Mapper:
         """Tile ``name`` as a read-only Mapper (validated on reading; its origin, frame and scan counts
@@ -447,7 +448,9 @@ class MapStore:
         if header["tile"] != list(parse_tile_name(name)) or header["tile_voxels"] != self.tile_voxels:
             refuse(f"it is tile {tile_name(header['tile'])}, not {name}")
         if columns != self.num_classes + EXTRA_COLUMNS:
-            refuse(f"{columns} columns, this store's maps have {self.num_classes + EXTRA_COLUMNS}")
+            refuse(f"{columns} columns, this store's maps have {self.num_classes + EXTRA_COLUMNS}"
+                   + (" (the weighted height sum is missing: a store written before it; map the data again)"
+                      if columns == self.num_classes + EXTRA_COLUMNS - 1 else ""))
         expected = self.tiles[name]["voxels"]
         if voxels != expected:
             raise StoreError(f"{path}: {voxels} voxels, the index says {expected}")

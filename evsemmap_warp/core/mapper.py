@@ -616,8 +616,8 @@ class Mapper:
         contents = map_file.MapContents(
             meta=self.metadata() | meta, origin=self.origin, index=arrays.index, evidence=arrays.evidence,
             weight_sum=arrays.weight_sum, weighted_uncertainty_sum=arrays.weighted_uncertainty_sum, hits=arrays.hits,
-            touched=arrays.touched, resolution=self.config.resolution_m, config=self.config, origin_index=self.origin_index,
-            frame=self.frame)
+            touched=arrays.touched, weighted_height_sum=arrays.weighted_height_sum, resolution=self.config.resolution_m, config=self.config,
+            origin_index=self.origin_index, frame=self.frame)
         if read_out:
             contents.summary = summary if summary is not None else self.summarize(arrays.evidence, arrays.touched)
             contents.alpha, contents.centers = self.concentrations(arrays.evidence), self.voxel_centers(arrays.index)
@@ -659,9 +659,7 @@ class Mapper:
             raise map_file.MapFileError(f"{path}: meta.grid_offset_m {meta['grid_offset_m']} disagrees with the method's grid offset "
                                         f"{mapper.grid_offset_m}")
         try:
-            mapper.load_voxels(VoxelArrays(index=contents.index, evidence=contents.evidence, weight_sum=contents.weight_sum,
-                                           weighted_uncertainty_sum=contents.weighted_uncertainty_sum, hits=contents.hits,
-                                           touched=contents.touched), origin_index=contents.origin_index)
+            mapper.load_voxels(contents.voxels(), origin_index=contents.origin_index)
         except ValueError as exc:
             raise map_file.MapFileError(f"{path}: {exc}") from None
         mapper.scans_integrated = int(meta["scans_integrated"])

@@ -8,9 +8,10 @@ carries the caller's identity fields (store identity, frame, chunk), so a file t
 is refused before it is used. The payload holds only what cannot be derived:
 
 * each voxel's index inside its tile (uint8 per axis for tiles of up to 256 voxels), axis by axis;
-* the [V, K + 3] float64 sums of ``VoxelArrays.rows()`` (evidence, weight sum, weighted-uncertainty
-  sum, contribution count), column by column, so that a class's many zeros run together; float64
-  is kept because a store must export the map ``evsemmap map`` writes, to float64 rounding;
+* the [V, K + 4] float64 sums of ``VoxelArrays.rows()`` (evidence, weight sum, weighted-uncertainty
+  sum, contribution count, weighted height sum), column by column, so that a class's many zeros run
+  together; float64 is kept because a store must export the map ``evsemmap map`` writes, to float64
+  rounding;
 * the touched flags, one bit each.
 
 Centers, concentrations, labels, states and variance are derived on reading, as a Mapper does.
@@ -45,6 +46,10 @@ _HEADER_LIMIT = 1 << 24  # a header beyond 16 MB is not one this writes
 # zstd's format: a block holds at most 128 KiB of content and takes at least a 3-byte header and one byte
 _ZSTD_BLOCK_MAX = 128 * 1024
 _ZSTD_BLOCK_OVERHEAD = 4
+# The rows' layout (``VoxelArrays.rows()``): the weighted height sum, the one signed sum, is the column
+# before the touched flag; every column before it is non-negative. Two classes and five more columns at least.
+SIGNED_COLUMN = -2
+MIN_COLUMNS = 7
 
 
 class VoxelFileError(ValueError):
@@ -58,7 +63,7 @@ def index_dtype(extent: int):
 
 def compress_columns(local: np.ndarray, rows: np.ndarray, dtype) -> bytes:
     """The payload of ``local`` [V, 3] (non-negative voxel indices that fit the unsigned ``dtype``) and their
-    ``rows`` [V, K + 4] (``VoxelArrays.rows()``): one zstd frame (content size and checksum in its header)
+    ``rows`` [V, K + 5] (``VoxelArrays.rows()``): one zstd frame (content size and checksum in its header)
     of the indices axis by axis, the sums column by column and the touched flags as bits. The map file
     (core/map_file.py) holds the same payload."""
     import zstandard
@@ -123,7 +128,7 @@ def _most_content(payload_bytes: int) -> int:
 
 
 def encode_voxels(index: np.ndarray, rows: np.ndarray, tile: tuple[int, int, int], tile_voxels: int, header: dict) -> bytes:
-    """One file's bytes: voxels of ``tile`` (global ``index`` [V, 3] in key order, ``rows`` [V, K + 4]
+    """One file's bytes: voxels of ``tile`` (global ``index`` [V, 3] in key order, ``rows`` [V, K + 5]
     as ``VoxelArrays.rows()``), with ``header``'s identity fields."""
     tile_voxels = check_tile_voxels(tile_voxels)  # the readers' limit: a writer never writes what they refuse
     index = np.asarray(index, np.int64).reshape(-1, 3)
@@ -180,8 +185,8 @@ def decode_header(data: bytes, where) -> tuple[dict, int]:
     tile = header.get("tile")
     if not (isinstance(tile, list) and len(tile) == 3 and all(isinstance(t, int) and not isinstance(t, bool) for t in tile)):
         raise VoxelFileError(f"{where}: header key 'tile' = {tile!r} must be three whole numbers")
-    if header["columns"] < 6:
-        raise VoxelFileError(f"{where}: header says {header['columns']} columns (at least 6)")
+    if header["columns"] < MIN_COLUMNS:
+        raise VoxelFileError(f"{where}: header says {header['columns']} columns (at least {MIN_COLUMNS})")
     try:
         check_tile_voxels(header["tile_voxels"], "header key 'tile_voxels'")
     except ValueError as exc:
@@ -198,9 +203,9 @@ def check_payload(payload: bytes, header: dict, where) -> None:
 
 
 def decode_voxels(data: bytes, where) -> tuple[dict, np.ndarray, np.ndarray]:
-    """(header, global index [V, 3] int64, rows [V, K + 4] float64) of a voxel file's bytes, checked:
+    """(header, global index [V, 3] int64, rows [V, K + 5] float64) of a voxel file's bytes, checked:
     signature, header, payload size and CRC, zstd's content checksum, indices inside the tile and in
-    strict key order, finite non-negative sums."""
+    strict key order, finite sums, non-negative but for the weighted height sum."""
     header, start = decode_header(data, where)
     payload = data[start:]
     check_payload(payload, header, where)
@@ -212,7 +217,7 @@ def decode_voxels(data: bytes, where) -> tuple[dict, np.ndarray, np.ndarray]:
         keys = (local[:, 0] * tile_voxels + local[:, 1]) * tile_voxels + local[:, 2]
         if np.any(np.diff(keys) <= 0):
             raise VoxelFileError(f"{where}: voxels out of key order or repeated")
-        if not np.isfinite(rows).all() or rows[:, :-1].min() < 0:
+        if not np.isfinite(rows).all() or rows[:, :SIGNED_COLUMN].min() < 0:
             raise VoxelFileError(f"{where}: sums that are negative, NaN or inf")
     index = local + np.asarray(header["tile"], np.int64) * tile_voxels
     return header, index, rows

@@ -2,13 +2,16 @@
 
 Voxel i spans [i r + o, (i + 1) r + o) on every axis in coordinates relative to the map origin
 (r = resolution, o = grid offset, 0 except for the S-CSM compatibility grid), so its center is
-(i + 0.5) r + o. Per voxel the map keeps one float64 row of ``data`` [capacity, K + 4], rows in the
+(i + 0.5) r + o. Per voxel the map keeps one float64 row of ``data`` [capacity, K + 5], rows in the
 order the voxels were inserted (the table's ``slot_rows`` says which row a slot's voxel has):
 
 * K columns of kernel-weighted evidence added so far; the Dirichlet concentrations are prior +
   evidence (stored without the prior so that fresh rows are zero pages and maps merge by addition);
 * the sum of kernel weights and of weight * input uncertainty;
-* the number of contributions and the touched flag (1 once any update landed).
+* the number of contributions;
+* the sum of weight * (z - z_c), z a point's height and z_c the voxel center's: its weighted mean height
+  (``VoxelArrays.mean_height_offset``; the clean modes keep it, the compat modes leave it 0, kernels/scatter.py);
+* the touched flag (1 once any update landed).
 
 float64, because evidence on a ground voxel of a long drive passes float32's 2^24 integer limit.
 The table grows (2x: keys and row numbers rehashed; on the CPU the rows stay where they are, elsewhere
@@ -62,6 +65,7 @@ class VoxelArrays:
     weighted_uncertainty_sum: np.ndarray  # [V] float64
     hits: np.ndarray  # [V] int64
     touched: np.ndarray  # [V] bool
+    weighted_height_sum: np.ndarray  # [V] float64: sum of weight * (z - the voxel center's z), m
 
     @classmethod
     def from_rows(cls, index: np.ndarray, rows: np.ndarray) -> "VoxelArrays":
@@ -70,12 +74,19 @@ class VoxelArrays:
         k = rows.shape[1] - EXTRA_COLUMNS
         return cls(index=np.asarray(index, np.int64), evidence=rows[:, :k].copy(),
                    weight_sum=rows[:, k + sc.COL_WEIGHT].copy(), weighted_uncertainty_sum=rows[:, k + sc.COL_WEIGHTED_UNCERTAINTY].copy(),
-                   hits=rows[:, k + sc.COL_HITS].astype(np.int64), touched=rows[:, k + sc.COL_TOUCHED] > 0)
+                   hits=rows[:, k + sc.COL_HITS].astype(np.int64), touched=rows[:, k + sc.COL_TOUCHED] > 0,
+                   weighted_height_sum=rows[:, k + sc.COL_WEIGHTED_HEIGHT].copy())
 
     def rows(self) -> np.ndarray:
-        """The [V, K + 4] float64 layout of the table's data array."""
+        """The [V, K + 5] float64 layout of the table's data array."""
         return np.column_stack([self.evidence, self.weight_sum, self.weighted_uncertainty_sum,
-                                self.hits.astype(np.float64), self.touched.astype(np.float64)])
+                                self.hits.astype(np.float64), self.weighted_height_sum, self.touched.astype(np.float64)])
+
+    def mean_height_offset(self) -> np.ndarray:
+        """[V] how far (m) the weighted mean height of the points that reached each voxel lies above its
+        center: the weighted height sum over the weight sum; 0 where no weight landed, and in the compat
+        modes' maps, which keep no heights (their mean height is the center)."""
+        return np.divide(self.weighted_height_sum, self.weight_sum, out=np.zeros(len(self.weight_sum)), where=self.weight_sum > 0)
 
 
 class TableBudget:
@@ -197,7 +208,7 @@ class VoxelMap:
 
     def _bytes_at(self, capacity: int, brick_capacity: int) -> int:
         """Bytes a table of ``capacity`` slots and a brick cache of ``brick_capacity`` take once filled to
-        max_load: each slot's key and row (int64, int32) and the value rows (K + 4 float64) of the voxels
+        max_load: each slot's key and row (int64, int32) and the value rows (K + 5 float64) of the voxels
         it then holds; a GPU allocates a row for every slot at once."""
         rows = int(np.ceil(self.max_load * capacity)) if self.device == "cpu" else capacity
         return 12 * (capacity + brick_capacity) + 8 * (self.num_classes + EXTRA_COLUMNS) * rows
@@ -262,7 +273,7 @@ class VoxelMap:
         return keys, slot_rows
 
     def _row_array(self, capacity: int, used_rows: int, old):
-        """A zeroed [capacity, K + 4] row array holding the first ``used_rows`` rows of ``old``: on the CPU
+        """A zeroed [capacity, K + 5] row array holding the first ``used_rows`` rows of ``old``: on the CPU
         a view of the table's row reservation (host_memory.ROW_RESERVATION_BYTES), which a grown table reuses in place."""
         columns = self.num_classes + EXTRA_COLUMNS
         if self.device != "cpu":
@@ -306,7 +317,7 @@ class VoxelMap:
 
     @property
     def table_bytes(self) -> int:
-        """Bytes the table holds: per slot of the voxel table and of the brick cache its key and row (int64, int32), per row K + 4 float64 columns.
+        """Bytes the table holds: per slot of the voxel table and of the brick cache its key and row (int64, int32), per row K + 5 float64 columns.
         The row array has a row for every slot (each voxel holds a slot), but on the CPU its pages are
         mapped only as rows are used, so there the rows of the stored voxels count; a GPU allocates all."""
         rows = self.voxel_count if self.device == "cpu" else self.capacity
@@ -517,7 +528,7 @@ class VoxelMap:
         return keys[slots], self.slot_rows.numpy()[slots].astype(np.int64) - 1
 
     def stored_rows(self) -> tuple[np.ndarray, np.ndarray]:
-        """The stored keys in ascending order and a host copy of their [V, K + 4] value rows."""
+        """The stored keys in ascending order and a host copy of their [V, K + 5] value rows."""
         keys, rows = self.stored_keys_and_rows()
         return keys, take_rows(self.data.numpy(), rows)
 
@@ -528,7 +539,7 @@ class VoxelMap:
         return VoxelArrays.from_rows(unpack_voxel_keys(keys), rows)
 
     def rows_at(self, rows: np.ndarray) -> np.ndarray:
-        """The [len(rows), K + 4] data rows at the given row indices (zeros for -1); copies only those
+        """The [len(rows), K + 5] data rows at the given row indices (zeros for -1); copies only those
         rows to the host."""
         rows = np.asarray(rows, dtype=np.int64)
         out = np.zeros((len(rows), self.num_classes + EXTRA_COLUMNS))
@@ -571,7 +582,7 @@ def sum_shard_rows(parts: list[tuple[np.ndarray, np.ndarray]]) -> VoxelArrays:
 
 def add_duplicate_voxels(index: np.ndarray, rows: np.ndarray) -> VoxelArrays:
     """One row per distinct voxel of ``index`` [N, 3] (relative to the origin), in key order: the
-    [N, K + 4] data rows of repeated voxels are added, their touched flags or-ed."""
+    [N, K + 5] data rows of repeated voxels are added, their touched flags or-ed."""
     return _add_duplicate_keys(pack_voxel_keys(np.asarray(index, np.int64).reshape(-1, 3)), rows)
 
 

@@ -15,6 +15,7 @@ the previous one is still being encoded replaces it."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -135,8 +136,7 @@ class MapPublisher(LatestOnlyWorker):
     def _draw(self, item) -> None:
         kinds, shards, origin_index, robot_xy, stamp_ns, scans = item
         local = sum_shard_rows(shards)
-        voxels = VoxelArrays(local.index + origin_index, local.evidence, local.weight_sum, local.weighted_uncertainty_sum, local.hits,
-                             local.touched)
+        voxels = dataclasses.replace(local, index=local.index + origin_index)
         frame_id = self.template.frame.name if self.template.frame is not None else "map"
         if "map" in kinds:
             summary = self.template.summarize(voxels.evidence, voxels.touched)

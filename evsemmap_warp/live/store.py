@@ -10,6 +10,7 @@ the robot's fixed frame), with its method and parameters (others are refused).""
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import time
 from pathlib import Path
@@ -17,7 +18,7 @@ from pathlib import Path
 from ..apps.viewer.live import LatestOnlyWorker, reading_template
 from ..config import ConfigError
 from ..core import map_store
-from ..core.voxel_map import VoxelArrays, sum_shard_rows
+from ..core.voxel_map import sum_shard_rows
 
 
 class LiveStore(LatestOnlyWorker):
@@ -64,8 +65,7 @@ class LiveStore(LatestOnlyWorker):
         template, shards = item
         local = sum_shard_rows(shards)
         scans, points, scan_ids = template.scans_integrated, template.points_integrated, template.scan_ids
-        template.load_voxels(VoxelArrays(local.index + template.origin_index, local.evidence, local.weight_sum,
-                                         local.weighted_uncertainty_sum, local.hits, local.touched), origin_index=template.origin_index)
+        template.load_voxels(dataclasses.replace(local, index=local.index + template.origin_index), origin_index=template.origin_index)
         template.scans_integrated, template.points_integrated, template.scan_ids = scans, points, scan_ids
         from ..apps.batch import write_store_from_mapper
 

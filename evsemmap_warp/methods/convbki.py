@@ -107,6 +107,16 @@ def stencil_weights(lengths: ConvBkiLengths, resolution_m: float, half: int) -> 
     return _factor(horizontal, lh) * _factor(vertical, lz)
 
 
+def class_gains(lengths: ConvBkiLengths, resolution_m: float, half: int) -> np.ndarray:
+    """[K] each class's kernel mass (the sum of its stencil weights: the evidence one unit of that class's
+    probability adds to the map) over the classes' mean. The lengths are learned with a class-weighted loss
+    on labelled scans, so a class whose evidence is wrong there (a weak network's sky on vegetation) gets a
+    short kernel, hence little mass: these gains carry that class weighting into another kernel
+    (ebs-learned, docs/unseen.md)."""
+    mass = stencil_weights(lengths, resolution_m, half).sum(axis=0)
+    return mass / mass.mean()
+
+
 def voxelise(points: np.ndarray, evidence: np.ndarray, resolution_m: float, grid_offset_m: float = 0.0):
     """Sum the evidence [N, K] of the points in each voxel: (voxel indices [V, 3], summed [V, K])."""
     from ..voxel_keys import pack_voxel_keys, unpack_voxel_keys

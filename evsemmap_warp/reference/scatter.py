@@ -26,7 +26,8 @@ FACE_OFFSETS = np.array([[0, 0, 0], [-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0]
 
 @dataclass
 class ScatterResult:
-    """Per touched voxel: index [V, 3], alpha increment [V, K], weight sum, weight * u sum, hits."""
+    """Per touched voxel: index [V, 3], alpha increment [V, K], weight sum, weight * u sum, hits, weighted
+    height sum (sum w (z - z_c), z_c the voxel center's height; 0 in the compat modes)."""
 
     voxel_index: np.ndarray
     alpha_increment: np.ndarray
@@ -34,6 +35,12 @@ class ScatterResult:
     weighted_uncertainty_sum: np.ndarray
     hits: np.ndarray
     update_count: int
+    weighted_height_sum: np.ndarray
+
+
+def height_offsets(points: np.ndarray, voxels: np.ndarray, resolution: float, grid_offset: float) -> np.ndarray:
+    """z - z_c per (point, voxel) pair [P] (m): a point's height above its voxel's center."""
+    return np.asarray(points, np.float64)[:, 2] - ((voxels[:, 2] + 0.5) * resolution + grid_offset)
 
 
 # c_n of the series below, n = 2..11 (enough for float64 at t < 1/4).
@@ -219,7 +226,10 @@ def scatter_points(
     weight_sum = np.bincount(inverse, weights=weight, minlength=len(uniq))
     unc_sum = np.bincount(inverse, weights=weight * np.asarray(point_uncertainty, dtype=np.float64)[pid], minlength=len(uniq))
     hits = np.bincount(inverse, minlength=len(uniq))
-    return ScatterResult(uniq.reshape(-1, 3), alpha, weight_sum, unc_sum, hits, len(pid))
+    keeps_heights = mode in (MODE_RADIUS, MODE_OWN_VOXEL, MODE_STENCIL)  # the clean modes; the compat modes' rows are the originals'
+    offsets = height_offsets(points[pid], vox, resolution, grid_offset) if keeps_heights else np.zeros(len(pid))
+    height_sum = np.bincount(inverse, weights=weight * offsets, minlength=len(uniq))
+    return ScatterResult(uniq.reshape(-1, 3), alpha, weight_sum, unc_sum, hits, len(pid), height_sum)
 
 
 def scatter_block_targets(
@@ -251,7 +261,9 @@ def scatter_block_targets(
     alpha = np.bincount(flat, weights=weight, minlength=len(uniq) * num_classes).reshape(len(uniq), num_classes)
     weight_sum = np.bincount(inverse, weights=weight, minlength=len(uniq))
     unc_sum = np.bincount(inverse, weights=weight * np.asarray(point_uncertainty, np.float64)[pid], minlength=len(uniq))
-    return ScatterResult(uniq.reshape(-1, 3), alpha, weight_sum, unc_sum, np.bincount(inverse, minlength=len(uniq)), len(pid))
+    height_sum = np.bincount(inverse, weights=weight * height_offsets(np.asarray(points, np.float64)[pid], vox, resolution, grid_offset),
+                             minlength=len(uniq))
+    return ScatterResult(uniq.reshape(-1, 3), alpha, weight_sum, unc_sum, np.bincount(inverse, minlength=len(uniq)), len(pid), height_sum)
 
 
 def unique_rows(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .hash_table import pack_key
-from .scatter import MODE_RADIUS, candidate_pairs, sparse_kernel
+from .hash_table import pack_key, unpack_key
+from .scatter import MODE_RADIUS, candidate_pairs, height_offsets, sparse_kernel
 
 
 def radius_pairs(points, lengths, resolution, grid_offset):
@@ -44,12 +44,15 @@ def segment_starts(heads: np.ndarray) -> np.ndarray:
     return np.flatnonzero(heads)
 
 
-def reduce_voxels(sorted_keys, pair_point, pair_weight, class_weights, point_uncertainty):
-    """Per distinct key: its key, the class sums, weight sum, weight * u sum and count."""
+def reduce_voxels(sorted_keys, pair_point, pair_weight, class_weights, point_uncertainty, points, resolution, grid_offset):
+    """Per distinct key: its key, the class sums, weight sum, weight * u sum, count and weighted height sum
+    (sum w (z - z_c), z_c its center's height; ``points`` [N, 3] m, on the lattice of ``resolution`` and
+    ``grid_offset``)."""
     starts = segment_starts(mark_heads(sorted_keys))
     seg = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(sorted_keys)]))
     k = class_weights.shape[1]
-    rows = np.zeros((len(starts), k + 3))
+    rows = np.zeros((len(starts), k + 4))
+    offsets = height_offsets(np.asarray(points, np.float64)[pair_point], unpack_key(sorted_keys), resolution, grid_offset)
     np.add.at(rows, seg, np.column_stack([pair_weight[:, None] * class_weights[pair_point], pair_weight,
-                                          pair_weight * point_uncertainty[pair_point], np.ones(len(seg))]))
+                                          pair_weight * point_uncertainty[pair_point], np.ones(len(seg)), pair_weight * offsets]))
     return sorted_keys[starts], rows

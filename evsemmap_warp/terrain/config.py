@@ -68,29 +68,29 @@ class LayerSettings:
             raise ConfigError(f"layers.surface_classes = {list(self.surface_classes)} must be a non-empty list of class names")
 
 
-COST_RULES = ("evidential", "known", "expected")
+COST_RULES = ("evidential", "expected")
 
 
 @dataclass(frozen=True)
 class CostSettings:
     """The cost model (docs/terrain.md), read on the voxel a robot meets. The ``evidential`` rule (the
     default) splits its Dirichlet as subjective logic does, into a belief per class b_c = e_c / S and an
-    uncommitted mass u = W / S (W the prior's total weight): class cost sum_c b_c cost_c + u unknown_cost,
-    so a well-observed cell costs what the table says for its class and a barely observed one costs
-    ``unknown_cost``. The ``known`` rule costs a voxel by its evidence's own class mix, e_c / sum e (the
-    belief renormalized): what counts as known is the layers' ``min_evidence`` (``terrain.known``), and a
-    cell with no voxel at or above it is unknown rather than costed. The ``expected`` rule takes the
-    costs' mean under the Dirichlet plus ``uncertainty_weight`` standard deviations. Slope and step terms
-    are added; a cell is lethal when that voxel's class is a lethal class, or the lethal classes' belief
-    (``known``: their share of the evidence; ``expected``: expected probability) reaches
-    ``lethal_probability`` (two lethal classes sharing a voxel), or its slope or step passes its limit."""
+    uncommitted mass u = W / S (W the prior's total weight), and costs them apart: the class cost is that
+    of the committed belief, sum_c b_c cost_c / (1 - u) = sum_c e_c cost_c / sum_c e_c, so a cell costs
+    what the table says for the class its evidence shows, however much there is; how much there is stays
+    its own band (``surface_uncommitted``), and a cell with no voxel of at least the layers'
+    ``min_evidence`` (``terrain.known``) is unknown rather than costed. The ``expected`` rule takes the
+    costs' mean under the Dirichlet plus ``uncertainty_weight`` standard deviations, which pulls a weakly
+    observed cell towards the table's mean. Slope and step terms are added; a cell is lethal when that
+    voxel's class is a lethal class, or the lethal classes' share of the committed belief (``expected``:
+    their expected probability) reaches ``lethal_probability`` (two lethal classes sharing a voxel), or its
+    slope or step passes its limit."""
 
     classes: dict = field(default_factory=dict)  # class name -> cost >= 0; every class of the map needs one
-    rule: str = "evidential"  # evidential: belief masses plus unknown_cost for the uncommitted mass; known: the evidence's
-    # own class mix; expected: mean + k std
-    unknown_cost: float = 0.5  # evidential rule: the cost of the uncommitted mass (known rule: of a voxel of no evidence)
+    rule: str = "evidential"  # evidential: the committed belief's class mix, sum e_c cost_c / sum e; expected: mean + k std
+    unknown_cost: float = 0.5  # evidential rule: the cost of a voxel that holds no evidence at all (reached with min_evidence 0)
     lethal_classes: tuple = ()  # classes a robot must not meet
-    lethal_probability: float = 0.5  # lethal when the lethal classes' belief (expected rule: expected probability) reaches this
+    lethal_probability: float = 0.5  # lethal when the lethal classes' share of the belief (expected rule: expected probability) reaches this
     uncertainty_weight: float = 1.0  # expected rule: standard deviations of the class cost added to its mean
     max_slope_deg: float = 25.0  # steeper is lethal; below it the slope adds slope_weight * slope / max_slope_deg
     slope_weight: float = 0.3  # cost of a slope just below max_slope_deg

@@ -30,12 +30,13 @@ from ..kernels import terrain as tk  # noqa: E402
 # Band order of every output (GeoTIFF bands, npz arrays, grid_map layers); per-class probability bands follow.
 SCALAR_BANDS = (
     "elevation", "elevation_top", "cover_height", "slope", "roughness", "step", "surface_class", "surface_probability",
-    "semantic_variance", "surface_doubt", "input_uncertainty", "cover_class", "lethal_class_probability", "observations", "known",
-    "class_cost_mean", "class_cost_std", "traversability_cost", "lethal",
+    "semantic_variance", "surface_uncommitted", "surface_conflict", "input_uncertainty", "cover_class", "lethal_class_probability",
+    "observations", "known", "class_cost_mean", "class_cost_std", "traversability_cost", "lethal",
 )
 UNITS = {
     "elevation": "m", "elevation_top": "m", "cover_height": "m", "slope": "deg", "roughness": "m", "step": "m",
-    "surface_class": "class index", "surface_probability": "1", "semantic_variance": "1", "surface_doubt": "1", "input_uncertainty": "1",
+    "surface_class": "class index", "surface_probability": "1", "semantic_variance": "1", "surface_uncommitted": "1", "surface_conflict": "1",
+    "input_uncertainty": "1",
     "cover_class": "class index", "lethal_class_probability": "1", "observations": "contributions", "known": "0/1",
     "class_cost_mean": "cost", "class_cost_std": "cost", "traversability_cost": "cost in [0, 1]", "lethal": "0/1",
 }
@@ -211,6 +212,7 @@ class VoxelColumns:
     weight_sum: np.ndarray  # [V]
     weighted_uncertainty_sum: np.ndarray  # [V]
     evidence: np.ndarray  # [V, K]
+    height_offset: np.ndarray  # [V] m: the mean height of the points that reached the voxel, above its center
 
     @classmethod
     def of(cls, mappers: list[Mapper], *, min_evidence: float = 0.0) -> "VoxelColumns":
@@ -232,7 +234,7 @@ class VoxelColumns:
                    hits=cat(lambda a, s: a.hits).astype(np.float64),
                    probabilities=cat(lambda a, s: s.probabilities), variance=cat(lambda a, s: s.variance),
                    weight_sum=cat(lambda a, s: a.weight_sum), weighted_uncertainty_sum=cat(lambda a, s: a.weighted_uncertainty_sum),
-                   evidence=cat(lambda a, s: a.evidence))
+                   evidence=cat(lambda a, s: a.evidence), height_offset=cat(lambda a, s: a.mean_height_offset()))
 
 
 def dirichlet_prior(mapper: Mapper) -> float:
@@ -309,8 +311,13 @@ def base_layers(voxels: VoxelColumns, reduced: dict[str, np.ndarray], grid: Laye
     bands = {}
 
     def height_of(name):
-        found = reduced[f"{name}_row"] >= 0
-        return np.where(found, (reduced[f"{name}_z"] + 0.5) * voxel_m + offset_m, np.nan).reshape(shape)
+        # the mean height of the points that reached the voxel, not its center: a surface between two voxel
+        # centers reads as itself, not in voxel-size steps that a plane fit turns into slope (docs/terrain.md)
+        row = reduced[f"{name}_row"]
+        found = row >= 0
+        height = np.full(len(row), np.nan)
+        height[found] = (reduced[f"{name}_z"][found] + 0.5) * voxel_m + offset_m + voxels.height_offset[row[found]]
+        return height.reshape(shape)
 
     bands["elevation"] = height_of("support")
     bands["elevation_top"] = height_of("top")
@@ -328,10 +335,12 @@ def base_layers(voxels: VoxelColumns, reduced: dict[str, np.ndarray], grid: Laye
     bands["surface_class"] = per_support(label)
     bands["surface_probability"] = per_support(voxels.probabilities[rows, label])
     bands["semantic_variance"] = per_support(voxels.variance[rows])
-    # 1 - b_label: the mass not committed to the label, the uncommitted mass and the other classes' belief together;
-    # it ranks the surface class's errors where the variance and u alone rank them backwards (docs/terrain.md §3)
-    belief, _ = subjective_opinion(concentrations(voxels.evidence[rows]), prior) if len(rows) else (np.zeros((0, k)), None)
-    bands["surface_doubt"] = per_support(1.0 - belief[np.arange(len(rows)), label])
+    # subjective logic's two kinds of doubt, kept apart: how little was seen (u) and how much what was seen
+    # disagrees with the label (1 - b_label / (1 - u) = 1 - e_label / sum e); the second ranks the surface
+    # class's errors, where the variance ranks them backwards (docs/terrain.md §7)
+    belief, uncommitted = subjective_opinion(concentrations(voxels.evidence[rows]), prior) if len(rows) else (np.zeros((0, k)), np.zeros(0))
+    bands["surface_uncommitted"] = per_support(uncommitted)
+    bands["surface_conflict"] = per_support(1.0 - committed_share(belief)[np.arange(len(rows)), label])
     weight = voxels.weight_sum[rows]
     with np.errstate(invalid="ignore", divide="ignore"):
         bands["input_uncertainty"] = per_support(np.where(weight > 0, voxels.weighted_uncertainty_sum[rows] / weight, np.nan))
@@ -368,15 +377,21 @@ def subjective_opinion(alpha: np.ndarray, prior: float) -> tuple[np.ndarray, np.
         return (alpha - prior) / total, (alpha.shape[1] * prior) / total[:, 0]
 
 
+def committed_share(belief: np.ndarray) -> np.ndarray:
+    """[n, K] the belief renormalized over the committed mass, b_k / (1 - u) = e_k / sum e: the class mix of the
+    evidence itself, however much of it there is; 0 in a row of no evidence at all."""
+    committed = belief.sum(axis=1, keepdims=True)
+    return np.divide(belief, committed, out=np.zeros_like(belief), where=committed > 0)
+
+
 def class_cost(alpha: np.ndarray, config: TerrainConfig, class_names, prior: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A cell's class cost, its standard deviation under the Dirichlet, and the lethal classes' share
     (docs/terrain.md), for concentrations ``alpha`` = ``prior`` + evidence.
 
     The standard deviation of c . theta, theta ~ Dir(alpha): Var = (sum_k c_k^2 p_k - E^2) / (S + 1),
-    p = alpha / S, E = sum_k c_k p_k. The ``evidential`` rule's cost is sum_k b_k c_k + u unknown_cost and
-    its lethal share the lethal classes' belief (``subjective_opinion``); the ``known`` rule's cost and
-    lethal share are those of the belief renormalized, b_k / (1 - u) = e_k / sum e; the ``expected``
-    rule's cost is E and its lethal share the lethal classes' expected probability."""
+    p = alpha / S, E = sum_k c_k p_k. The ``evidential`` rule's cost and lethal share are those of the
+    committed belief (``committed_share``), a voxel of no evidence costing ``unknown_cost``; the
+    ``expected`` rule's cost is E and its lethal share the lethal classes' expected probability."""
     alpha = np.asarray(alpha, np.float64)
     costs = np.array([float(config.costs.classes[name]) for name in class_names])
     lethal = np.array([name in config.costs.lethal_classes for name in class_names])
@@ -386,16 +401,11 @@ def class_cost(alpha: np.ndarray, config: TerrainConfig, class_names, prior: flo
     std = np.sqrt(np.maximum(p @ (costs * costs) - expected * expected, 0.0) / (total + 1.0))
     if config.costs.rule == "expected":
         return expected, std, p[:, lethal].sum(axis=1)
-    belief, uncommitted = subjective_opinion(alpha, prior) if len(alpha) else (alpha, total)
-    if config.costs.rule == "known":
-        # the belief renormalized over the classes, e_k / sum e: what the evidence says, however little of it
-        # there is (how little is min_evidence's to judge: terrain.known); a voxel of no evidence at all
-        # (min_evidence 0) costs the unknown's
-        committed = belief.sum(axis=1)
-        seen = committed > 0
-        share = np.divide(belief, committed[:, None], out=np.zeros_like(belief), where=seen[:, None])
-        return np.where(seen, share @ costs, config.costs.unknown_cost), std, share[:, lethal].sum(axis=1)
-    return belief @ costs + uncommitted * config.costs.unknown_cost, std, belief[:, lethal].sum(axis=1)
+    # the uncommitted mass is left out of the cost: charging it at a fixed cost ranks cells by how often they
+    # were seen rather than by class (docs/terrain.md §7), so it is a band of its own (surface_uncommitted)
+    share = committed_share(subjective_opinion(alpha, prior)[0]) if len(alpha) else alpha
+    seen = share.sum(axis=1) > 0
+    return np.where(seen, share @ costs, config.costs.unknown_cost), std, share[:, lethal].sum(axis=1)
 
 
 # The neighbourhood filters -------------------------------------------------------------------------------
@@ -433,7 +443,7 @@ def finish_layers(bands: dict[str, np.ndarray], config: TerrainConfig, class_nam
     lethal_ids = [c for c, name in enumerate(class_names) if name in costs.lethal_classes]
     slope = np.nan_to_num(bands["slope"], nan=0.0)
     step = np.nan_to_num(bands["step"], nan=0.0)
-    # the evidential rule's cost holds its uncertainty already, as the uncommitted mass's cost
+    # the evidential rule's uncertainty is a band of its own (surface_uncommitted), not a part of the cost
     semantic = bands["class_cost_mean"] + (costs.uncertainty_weight * bands["class_cost_std"] if costs.rule == "expected" else 0.0)
     geometric = (costs.slope_weight * np.clip(slope / costs.max_slope_deg, 0, 1)
                  + costs.step_weight * np.clip((step - costs.free_step_m) / (costs.max_step_m - costs.free_step_m), 0, 1))

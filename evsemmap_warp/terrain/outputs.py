@@ -257,7 +257,7 @@ PREVIEW_COLORMAPS = {
     "elevation": "terrain", "elevation_top": "terrain", "cover_height": "terrain", "slope": "magma", "roughness": "viridis",
     "step": "magma", "surface_probability": "viridis", "semantic_variance": "inferno", "input_uncertainty": "inferno",
     "lethal_class_probability": "Reds", "observations": "cividis", "class_cost_mean": "RdYlGn_r", "class_cost_std": "inferno",
-    "traversability_cost": "RdYlGn_r", "surface_doubt": "inferno",
+    "traversability_cost": "RdYlGn_r", "surface_uncommitted": "inferno", "surface_conflict": "inferno",
 }
 MAX_PREVIEW_PIXELS = 1600  # the longer side of a preview; larger grids are shown decimated
 # zlib level 1: about half the encoding time of the default (6) for PNGs a few % larger (a preview is not an archive)
@@ -367,7 +367,8 @@ def _band_previews(figure: _BandFigure, bands: dict[str, np.ndarray], class_name
 
     for name in [n for n in band_names(class_names) if n in PREVIEW_COLORMAPS]:
         values = bands[name]
-        if name in ("traversability_cost", "class_cost_mean", "surface_probability", "lethal_class_probability", "surface_doubt"):
+        if name in ("traversability_cost", "class_cost_mean", "surface_probability", "lethal_class_probability", "surface_uncommitted",
+                    "surface_conflict"):
             low, high = 0.0, 1.0
         else:  # the band's range, as imshow scales it
             finite = values[np.isfinite(values)]

@@ -30,9 +30,7 @@ folder's records, store.json) and ``run`` (run_batch, which ties them together).
 
 from .executors import InlineExecutor, LocalExecutor, stuck_error
 from .planning import (
-    CHUNK_TIMEOUT_S,
     DRIVER_OVERHEAD_BYTES,
-    RAY_CONNECT_TIMEOUT_S,
     WORKER_OVERHEAD_BYTES,
     BatchOptions,
     Chunk,
@@ -50,8 +48,8 @@ from .store import store_lock, write_store_from_mapper
 from .worker import CHUNK_STAGES, Context, FaultPlan, map_chunk
 
 __all__ = [
-    "BatchOptions", "CHUNK_STAGES", "CHUNK_TIMEOUT_S", "Chunk", "Context", "DRIVER_OVERHEAD_BYTES", "FaultPlan", "InlineExecutor",
-    "LocalExecutor", "RAY_CONNECT_TIMEOUT_S", "RayExecutor", "TileFolder", "WORKER_OVERHEAD_BYTES", "bytes_per_voxel", "check_memory",
+    "BatchOptions", "CHUNK_STAGES", "Chunk", "Context", "DRIVER_OVERHEAD_BYTES", "FaultPlan", "InlineExecutor",
+    "LocalExecutor", "RayExecutor", "TileFolder", "WORKER_OVERHEAD_BYTES", "bytes_per_voxel", "check_memory",
     "check_ray_address", "choose_chunk_frames", "map_chunk", "plan_batch", "probe", "run_batch", "split_inputs", "store_lock",
     "stuck_error", "write_store_from_mapper",
 ]

@@ -10,7 +10,7 @@ import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 
-from .planning import CHUNK_TIMEOUT_S
+from ...limits import CHUNK_TIMEOUT_S
 from .worker import Context, as_task, init_worker
 
 
@@ -34,6 +34,10 @@ class InlineExecutor:
 
 
 MATH_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+# How long close() lets the pool's workers end by themselves (an idle one exits at once), and then how long an
+# interrupted worker gets to stop its task (cleaning up its temporary files) before it is terminated.
+CLOSE_GRACE_S = 5.0
+INTERRUPT_GRACE_S = 3.0
 
 
 def stuck_error(timeout_s: float) -> TimeoutError:
@@ -121,30 +125,46 @@ class LocalExecutor:
                 self.log(f"a worker died; a new pool runs the {len(pending)} unfinished task(s) again")
 
     def _interrupt_workers(self) -> None:
-        """Cancel what has not started and interrupt every worker: one in a task stops it (cleaning up
-        its temporary files), an idle one exits (_worker_interrupt)."""
-        import signal
-
+        """Cancel what has not started and interrupt every worker (_interrupt)."""
         if self._pool is None:
             return
-        processes = list((getattr(self._pool, "_processes", None) or {}).values())
-        for process in processes:
-            try:
-                os.kill(process.pid, signal.SIGINT)
-            except (ProcessLookupError, TypeError):
-                pass
+        processes = self._processes()
         self._pool.shutdown(wait=False, cancel_futures=True)
         self._pool = None
-        # a worker that was still starting up (Ctrl-C ignored until init_worker) would run a whole chunk:
-        # a few seconds' grace, then it is stopped (what it leaves is cleared by the next run, remove_unfinished_chunks)
-        deadline = time.monotonic() + 3.0
-        for process in processes:
-            process.join(max(0.0, deadline - time.monotonic()))
-            if process.is_alive():
-                process.terminate()
+        _interrupt(processes)
+
+    def _processes(self) -> list:
+        return list((getattr(self._pool, "_processes", None) or {}).values())
 
     def close(self) -> None:
-        """Stop the pool's workers (tasks not started are cancelled)."""
-        if self._pool is not None:
-            self._pool.shutdown(cancel_futures=True)
-            self._pool = None
+        """Stop the pool's workers (tasks not started are cancelled). After a run that finished they are idle and
+        exit at once; after a failure a worker may still be in a task, or stuck in one: it gets CLOSE_GRACE_S to
+        end, then is interrupted as on Ctrl-C (the pool's own shutdown(wait=True) waits for its tasks without bound)."""
+        if self._pool is None:
+            return
+        processes = self._processes()
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        self._pool = None
+        deadline = time.monotonic() + CLOSE_GRACE_S
+        for process in processes:
+            process.join(max(0.0, deadline - time.monotonic()))
+        _interrupt([process for process in processes if process.is_alive()])
+
+
+def _interrupt(processes: list) -> None:
+    """Interrupt ``processes`` (pool workers): one in a task stops it, cleaning up its temporary files, an idle one
+    exits (_worker_interrupt). One that was still starting up (Ctrl-C ignored until init_worker) would run a whole
+    chunk: after INTERRUPT_GRACE_S in all, those still running are terminated (what they leave is cleared by the
+    next run, remove_unfinished_chunks)."""
+    import signal
+
+    for process in processes:
+        try:
+            os.kill(process.pid, signal.SIGINT)
+        except (ProcessLookupError, TypeError):
+            pass
+    deadline = time.monotonic() + INTERRUPT_GRACE_S
+    for process in processes:
+        process.join(max(0.0, deadline - time.monotonic()))
+        if process.is_alive():
+            process.terminate()

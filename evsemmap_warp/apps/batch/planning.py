@@ -15,7 +15,7 @@ from ...core import map_store
 from ...core.mapper import Mapper
 from ...core.voxel_map import EXTRA_COLUMNS
 from ...frames import check_same_frame
-from ...limits import available_memory, check_chunk_frames
+from ...limits import CHUNK_TIMEOUT_S, RAY_CONNECT_TIMEOUT_S, available_memory, check_chunk_frames
 from ..scan_sources import open_scan_source
 
 WORKER_OVERHEAD_BYTES = 450 * 2**20  # a worker process with numpy, Warp and its kernels loaded (measured: ~0.4 GB)
@@ -25,12 +25,6 @@ DRIVER_OVERHEAD_BYTES = 450 * 2**20
 # frames each. It depends on the inputs only, never on the worker count: stores stay byte-identical.
 AUTO_CHUNKS = 16
 MAX_AUTO_CHUNK_FRAMES = 100
-# How long --ray-address's host:port may take to accept a connection (--ray-connect-timeout-s): ray.init
-# retries an address where nothing answers for many minutes ("Failed to connect to GCS").
-RAY_CONNECT_TIMEOUT_S = 30.0
-# How long a run waits for some chunk to finish before it stops as stuck (a worker or node that hangs); a chunk of
-# the default size maps in seconds, one labelled by a network on the CPU in minutes.
-CHUNK_TIMEOUT_S = 3600.0
 
 
 @dataclass(frozen=True)
@@ -195,7 +189,7 @@ def probe(sources, config: MappingConfig, max_memory: int | None = None) -> tupl
 
 
 def bytes_per_voxel(num_classes: int) -> int:
-    """A worker's memory per voxel of its partial map: the hash table and its [K + 4] float64 rows
+    """A worker's memory per voxel of its partial map: the hash table and its [K + 5] float64 rows
     (kept below half full, so ~2-4x the voxels), the host copy, the post-pass and the tile split."""
     row = (num_classes + EXTRA_COLUMNS) * 8
     return 3 * (row + 16) + 3 * row

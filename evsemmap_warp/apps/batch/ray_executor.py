@@ -28,8 +28,8 @@ from ...config import ConfigError
 from ...core import map_store
 from ...core.voxel_map import EXTRA_COLUMNS, VoxelArrays
 from ...frames import WorldFrame
+from ...limits import CHUNK_TIMEOUT_S, RAY_CONNECT_TIMEOUT_S
 from .executors import MATH_THREAD_VARIABLES, stuck_error
-from .planning import CHUNK_TIMEOUT_S, RAY_CONNECT_TIMEOUT_S
 from .reduction import decode_tile, fold_partials
 from .store import chunk_dir
 from .worker import Context, handoff_recorder, init_worker, reset_tasks_started
@@ -91,7 +91,8 @@ def read_scans(source, chunk) -> SentScans:
 def scratch_name(store) -> str:
     """The name of the folder, in each node's temporary folder, where the tasks of a run into ``store`` map their
     chunks: one per driver machine and store path (two drivers' runs never share one), the same for every worker
-    process of a node (the tests' fault plan marks a killed attempt there)."""
+    process of a node (the tests' fault plan marks a killed attempt there) and for every run into ``store``, so that
+    what a killed task leaves there (remove_dead_tasks_leftovers) is cleared by the node's next task into that store."""
     digest = hashlib.sha256(f"{socket.gethostname()}:{Path(store).resolve()}".encode()).hexdigest()[:16]
     return f"evsemmap-batch-{digest}"
 
@@ -115,6 +116,39 @@ def probe_node(paths: list[str]) -> dict:
     return {"node": _node_name(), "version": __version__, "inputs": {path: files.content_identity(path) for path in paths}}
 
 
+def remove_dead_tasks_leftovers(scratch: Path) -> None:
+    """What tasks killed on this node (a stuck task cancelled, a worker out of memory) left in its scratch folder
+    ``scratch``: their temporary chunk folders, each named by its process (map_chunk), removed once that process is
+    gone; a live task's are its own. With them gone the folder empties, and the task that leaves it so removes it."""
+    for leftover in (scratch / "work").glob(".chunk_*.tmp"):
+        pid = leftover.name.split(".")[2]
+        if pid.isdigit() and not _process_runs(int(pid)):
+            shutil.rmtree(leftover, ignore_errors=True)
+
+
+def _process_runs(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def missing_input(exc: FileNotFoundError, node: str, probed: list[str] | None) -> OSError:
+    """What a task that reads the inputs at the same path says of a file it did not find: where the probe at the start
+    found the inputs on every node (``probed``: their paths) and the file is one of them, a ClusterError naming the node;
+    otherwise (a local instance, which nothing probed: this machine's files; a file that is no input) ``exc`` as it is."""
+    inside = probed is not None and any(Path(exc.filename) == Path(path) or Path(path) in Path(exc.filename).parents
+                                        for path in probed)
+    if not inside:
+        return exc
+    return ClusterError(f"node {node} does not see the input file {exc.filename}, which the probe at the start found at the same "
+                        f"path on every node (removed since, or a node that joined later?): give every node the inputs at the same "
+                        f"path, or rerun (a node without them makes the driver send the scans)")
+
+
 _RAY_CONTEXTS: dict = {}  # object id -> the context with the node's scratch folder as its store, per Ray worker process
 
 
@@ -122,7 +156,8 @@ def _ray_task(fn, threads: int, context_box: list, submitted: float, sent: SentS
     """A Ray task: ``fn`` (map_chunk) maps ``chunk`` into the node's scratch folder; returns its result with the
     chunk's files (``files``: name -> bytes) and the node (``node``). ``sent``: the chunk's scans, when the driver
     sends them. The context (put once by the driver) comes boxed in a list with the scratch folder's name
-    (scratch_name), so Ray does not fetch and unpickle it for every task: each worker process fetches it once
+    (scratch_name) and the inputs the probe found on every node (missing_input; None where it did not run), so Ray
+    does not fetch and unpickle it for every task: each worker process fetches it once
     (unboxed, unpickling the sources for every task made short tasks several times slower, docs/performance.md).
     ``submitted``: when the driver submitted it (time.time()), for the hand-off costs (handoff_recorder)."""
     import ray
@@ -140,6 +175,7 @@ def _ray_task(fn, threads: int, context_box: list, submitted: float, sent: SentS
         context = replace(context, sources=[sent if i == chunk.sequence else s for i, s in enumerate(context.sources)])
     folder = chunk_dir(context.store, chunk.number)
     shutil.rmtree(folder, ignore_errors=True)  # never an earlier run's chunk: this attempt maps it
+    remove_dead_tasks_leftovers(context.store)
     (context.store / "work").mkdir(parents=True, exist_ok=True)
     try:
         result = fn(chunk, context=context)
@@ -147,9 +183,7 @@ def _ray_task(fn, threads: int, context_box: list, submitted: float, sent: SentS
     except FileNotFoundError as exc:
         if sent is not None or exc.filename is None:
             raise
-        raise ClusterError(f"node {_node_name()} does not see the input file {exc.filename}, which the probe at the start found "
-                           f"at the same path on every node (a node that joined since?): give every node the inputs at the same "
-                           f"path, or rerun (a node without them makes the driver send the scans)") from None
+        raise missing_input(exc, _node_name(), context_box[2]) from None
     finally:
         shutil.rmtree(folder, ignore_errors=True)
         if context.fault is None:  # the scratch folder goes once empty (the tests' fault plan keeps its marks there)
@@ -358,7 +392,7 @@ class RayExecutor:
             if self.started:
                 ray.shutdown()
             raise
-        self.context_box = None  # attach's: the context's object reference and the scratch folder's name
+        self.context_box = None  # attach's: the context's object reference, the scratch folder's name and the probed inputs
         self._stdout = None
         if self.started:  # Ray prints a task's retry (a node lost) on stdout, which carries the run's summary alone
             self._stdout, sys.stdout = sys.stdout, sys.stderr
@@ -367,10 +401,12 @@ class RayExecutor:
         """Choose how the inputs reach the workers (``identity``: the run's plan, which records the inputs' content),
         then put the run's context in Ray's object store, once for all tasks."""
         self.context, self.read_seconds = context, 0.0
-        nodes, self.inputs, why = self._choose_inputs(probed_inputs(identity))
+        inputs = probed_inputs(identity)
+        nodes, self.inputs, why = self._choose_inputs(inputs)
         self.log(f"inputs: {self.inputs} ({why})")
         self.cluster = {"nodes": nodes, "inputs": self.inputs, "inputs_why": why, "chunks_per_node": Counter()}
-        self.context_box = [self._put(context), scratch_name(context.store)]
+        probed = list(inputs) if self.inputs == SAME_PATH and not self.own_instance else None
+        self.context_box = [self._put(context), scratch_name(context.store), probed]
         return self
 
     def _choose_inputs(self, inputs: dict) -> tuple[int, str, str]:
@@ -383,7 +419,8 @@ class RayExecutor:
         if not missing:
             return len(nodes), SAME_PATH, f"every node ({len(nodes)}) sees the inputs at the driver's paths, with the same content"
         (node, path), more = missing[0], len(missing) - 1
-        seen = "sees other content at" if "sha256" in node["inputs"][path] else "does not see"
+        there = node["inputs"][path]  # an empty folder: a mount point with nothing mounted, say
+        seen = "does not see" if "sha256" not in there else "sees an empty folder at" if there["files"] == 0 else "sees other content at"
         return len(nodes), FROM_DRIVER, (f"node {node['node']} {seen} {path}" + (f" ({more} more such)" if more else "")
                                          + ": the driver reads and sends each chunk's scans")
 
@@ -520,13 +557,17 @@ class RayExecutor:
     def close(self) -> None:
         """Shut down the Ray instance this executor started (a cluster given by address is left running); once.
         Here, not on a thread while the tiles are written: shutting Ray down while the driver may still release
-        object references ends the process (tried: stopping it as the last result came in)."""
+        object references ends the process (tried: stopping it as the last result came in). A local instance's
+        node is this machine: its scratch folder goes with it, with what tasks killed in it left (a stuck or
+        interrupted run's), unless the tests' fault plan keeps its marks there."""
         if self.started:
             self.started = False
             try:
                 self.ray.shutdown()
             finally:
                 sys.stdout = self._stdout
+            if self.own_instance and self.context_box is not None and self.context.fault is None:
+                shutil.rmtree(node_scratch(self.context.store), ignore_errors=True)
 
 
 def probed_inputs(identity: dict) -> dict:

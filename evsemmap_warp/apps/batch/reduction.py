@@ -143,13 +143,13 @@ class TileFolder:
         self.seconds = 0.0  # the driver's own time folding: handing partials to the lanes, writing tiles
         self.voxels_folded, self.lane_seconds = 0, 0.0  # finish's: partial rows folded into tiles, the lanes' time (lanes.stats)
         self.tiles_written = 0
-        for path in sorted((out / "tiles").glob(f"*{map_store.TILE_SUFFIX[map_store.STORE_VERSION]}")):
+        for path in sorted((out / "tiles").glob(f"*{map_store.TILE_SUFFIX}")):
             header = self._tile_header(path)
             self.folded[path.stem] = header["folded_through"]
             self.entries[path.stem] = header["entry"]
 
     def _tile_path(self, name: str) -> Path:
-        return self.out / "tiles" / f"{name}{map_store.TILE_SUFFIX[map_store.STORE_VERSION]}"
+        return self.out / "tiles" / f"{name}{map_store.TILE_SUFFIX}"
 
     def _partial_path(self, number: int, name: str) -> Path:
         return chunk_dir(self.out, number) / f"{name}{map_store.PARTIAL_SUFFIX}"

@@ -157,7 +157,7 @@ def write_store_from_mapper(mapper: Mapper, out, tile_voxels: int, sources: list
     template = map_store.template_mapper(mapper.config, mapper.class_names,
                                          mapper.origin_index if mapper.origin_index is not None else np.zeros(3, np.int64), mapper.frame)
     totals = {"scans": mapper.scans_integrated, "points": mapper.points_integrated}
-    entries = {name: map_store.write_tile(out / "tiles" / f"{name}{map_store.TILE_SUFFIX[map_store.STORE_VERSION]}", template,
+    entries = {name: map_store.write_tile(out / "tiles" / f"{name}{map_store.TILE_SUFFIX}", template,
                                           VoxelArrays.from_rows(index, rows), tile_voxels)
                for name, (index, rows) in map_store.split_by_tile(voxels.index, voxels.rows(), tile_voxels).items()}
     map_store.write_json(out / map_store.INDEX_NAME, store_index(template, tile_voxels, entries, [{"source": s} for s in sources], [], totals,

@@ -28,12 +28,14 @@ def add_parser(sub) -> None:
                         "ceil(frames / 16), at most 100: at least 16 chunks when the frames allow, two per worker up to 8 workers; "
                         "never from the worker count, so stores are the same for any; the JSON summary gives the value and rule)")
     p.add_argument("--ray-address", default=None, help="an existing Ray cluster: auto, ray://host:port, or its head's host:port (with RAY_AUTH_MODE=token for token authentication, Ray's default; default: a local Ray instance)")
-    p.add_argument("--ray-connect-timeout-s", type=positive_float, default=30.0, metavar="S",
-                   help="with --ray-address host:port: seconds it may take to accept a connection before the run is refused (default 30)")
+    p.add_argument("--ray-connect-timeout-s", type=positive_float, default=limits.RAY_CONNECT_TIMEOUT_S, metavar="S",
+                   help="with --ray-address host:port: seconds it may take to accept a connection before the run is refused "
+                        f"(default {limits.RAY_CONNECT_TIMEOUT_S:g})")
     p.add_argument("--same-frame", action="store_true", help="the inputs' run frames (e.g. odom) are one run's, a drive cut into several "
                                                              "logs: runs that differ or are unknown are mapped together (docs/formats.md)")
-    p.add_argument("--chunk-timeout-s", type=positive_float, default=3600.0, metavar="S",
-                   help="stop when no chunk finishes for this long, as a stuck worker or node (default 3600; the chunks mapped are kept)")
+    p.add_argument("--chunk-timeout-s", type=positive_float, default=limits.CHUNK_TIMEOUT_S, metavar="S",
+                   help=f"stop when no chunk finishes for this long, as a stuck worker or node (default {limits.CHUNK_TIMEOUT_S:g}; "
+                        "the chunks mapped are kept)")
     p.add_argument("--checkpoint", type=Path, help="label the scans from the camera with this segmentation checkpoint (inference in each task)")
     p.add_argument("--alpha-dir", type=Path, metavar="DIR", help="label the scans from the camera with the alpha files of `evsemmap infer` "
                                                                    "in this folder")

@@ -22,7 +22,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     """Print the resolved configuration (mapping, dataset, pipeline, terrain layers and costs) as YAML."""
     resolved = load_config(args.configs, method=args.method)
-    out = {"mapping": resolved.mapping.as_dict()}
+    out = {"mapping": resolved.mapping.as_dict(every_key=True)}
     if resolved.dataset is not None:
         def plain(value):
             if dataclasses.is_dataclass(value):

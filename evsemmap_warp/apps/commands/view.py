@@ -50,6 +50,15 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _refuse_unreadable_tiles(viewer) -> None:
+    """An export holds every tile of its stores or is not written: a tile the viewer could not read (serving, it says
+    so in its status line and shows the rest) stops it, in the one line naming the tile that ``evsemmap export`` says."""
+    for overview in viewer.stores.values():
+        for exc in overview.unreadable.values():
+            viewer.close()
+            raise exc
+
+
 def run(args) -> int:
     """Serve map files and stores in a browser (viser), or export their scene (``--no-serve``)."""
     from ...files import check_not_inside
@@ -85,6 +94,7 @@ def run(args) -> int:
                        terrain_resolution=args.layers_resolution_m, costs=args.costs, truth=args.truth, same_frame=args.same_frame)
     if args.export_html is not None or args.export_ply is not None:
         viewer.wait_for_stores()  # a store's whole overview, not its first frame's tiles
+        _refuse_unreadable_tiles(viewer)
     for path, export in ((args.export_html, viewer.export_html), (args.export_ply, viewer.export_ply)):
         if path is not None:
             print(f"wrote {export(path)}", file=sys.stderr)

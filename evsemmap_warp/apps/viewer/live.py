@@ -14,6 +14,7 @@ on the viewer's thread as an overview of the tiles so far.
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from itertools import islice
@@ -157,8 +158,7 @@ class LiveMap(LatestOnlyWorker):
         item[1] = None  # the copy's rows, once summed, are not held while the layer is made
         voxels = sum_shard_rows(shards)
         del shards
-        voxels = VoxelArrays(voxels.index + origin_index, voxels.evidence, voxels.weight_sum, voxels.weighted_uncertainty_sum,
-                             voxels.hits, voxels.touched)
+        voxels = dataclasses.replace(voxels, index=voxels.index + origin_index)
         self._show(MapLayer.from_mapper(self.name, self.path, self.template, voxels), scans_done, points, sensor_path)
 
     def _show(self, layer: MapLayer, scans_done: int, points, sensor_path) -> None:
@@ -278,5 +278,4 @@ def _decimated(voxels: VoxelArrays, keep: int) -> VoxelArrays:
     if keep >= n:
         return voxels
     rows = np.linspace(0, n - 1, keep).astype(np.int64) if keep else np.zeros(0, np.int64)
-    return VoxelArrays(voxels.index[rows], voxels.evidence[rows], voxels.weight_sum[rows], voxels.weighted_uncertainty_sum[rows],
-                       voxels.hits[rows], voxels.touched[rows])
+    return VoxelArrays(**{field.name: getattr(voxels, field.name)[rows] for field in dataclasses.fields(voxels)})

@@ -45,6 +45,7 @@ class StoreOverview:
         # the tiles nearest the middle of the first view first
         self.unread = sorted(boxes, key=lambda name: (float(np.linalg.norm(boxes[name].mean(axis=0)[:2] - center[:2])), name))
         self.parts: dict[str, dict] = {}  # tile -> its overview rows
+        self.unreadable: dict[str, Exception] = {}  # tile -> why it could not be read into the overview (passed over)
         self.details: dict[str, dict] = {}  # tile -> all its rows, most recently asked for last
         self.meta = self.store.template.metadata()
         self._present: set[int] = set()
@@ -82,12 +83,17 @@ class StoreOverview:
                                                              "weight": np.full(len(rows), n / max(len(rows), 1), np.float64)}
 
     def read_next(self) -> str | None:
-        """Read the next tile into the overview; its name, None when every tile is read."""
+        """Read the next tile into the overview; its name, None when every tile is read. A tile that cannot be
+        read raises, and is passed over (``unreadable``): the overview completes without it."""
         with self._lock:
             if not self.unread:
                 return None
             name = self.unread.pop(0)
-            self.parts[name] = self._read(name, self._share(self.store.tiles[name]["voxels"]))
+            try:
+                self.parts[name] = self._read(name, self._share(self.store.tiles[name]["voxels"]))
+            except Exception as exc:
+                self.unreadable[name] = exc
+                raise
             return name
 
     def _share(self, n: int) -> int:
@@ -172,9 +178,9 @@ class StoreOverview:
         with self._lock:
             parts = dict(self.parts) | dict(self.details)  # a tile in full replaces its overview rows
             if not parts:  # nothing read yet: an empty map of the store's classes
-                from ...core.voxel_map import VoxelArrays
+                from ...core.voxel_map import EXTRA_COLUMNS, VoxelArrays
 
-                empty = VoxelArrays.from_rows(np.zeros((0, 3), np.int64), np.zeros((0, self.store.num_classes + 4)))
+                empty = VoxelArrays.from_rows(np.zeros((0, 3), np.int64), np.zeros((0, self.store.num_classes + EXTRA_COLUMNS)))
                 layer = MapLayer.from_arrays(self.path.name, self.path, file_arrays(self.store.template.contents_of(empty)), self.meta)
                 layer.frame, layer.weight, layer.present = self.frame, np.zeros(0), self.present
                 return layer
@@ -333,12 +339,14 @@ class StoreTiles:
         for i, overview in viewer.stores.items():
             if overview.complete:
                 continue
-            overview.read_next()
-            # Each push sends the whole overview again: pushed as it grows by half, the browser receives about
-            # twice the final overview in all, however many tiles the store has.
-            if overview.complete or overview.held_rows >= 1.5 * sent[i]:
-                viewer.replace_layer(i, overview.layer())
-                sent[i] = len(viewer.layers[i].state)
-            if all(o.complete for o in viewer.stores.values()):
-                self._overviews_shown.set()
+            try:
+                overview.read_next()
+            finally:  # also past an unreadable tile: were it the last, the overview would never count as shown
+                # Each push sends the whole overview again: pushed as it grows by half, the browser receives about
+                # twice the final overview in all, however many tiles the store has.
+                if overview.complete or overview.held_rows >= 1.5 * sent[i]:
+                    viewer.replace_layer(i, overview.layer())
+                    sent[i] = len(viewer.layers[i].state)
+                if all(o.complete for o in viewer.stores.values()):
+                    self._overviews_shown.set()
             return

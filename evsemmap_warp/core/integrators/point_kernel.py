@@ -9,12 +9,13 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ...config import Kernel, MappingConfig, Media, ScatterStrategy
+from ...config import ConfigError, Kernel, MappingConfig, Media, ScatterStrategy
 from ...kernels import hash_table as ht
 from ...kernels import hashgrid_gather as hg
 from ...kernels import load_once
 from ...kernels import scatter as sc
 from ...kernels import sorted_scatter as ss
+from ...methods import convbki
 from ...methods.device_scratch import counts_with_room, inclusive_scan, last_value, offsets_and_total
 from ..shards import ShardLanes, split_over_shards, total_updates
 from ..voxel_map import LAUNCH_FILL_LIMIT, VoxelMap, next_pow2
@@ -34,6 +35,7 @@ class PointKernelIntegrator:
 
     def __init__(self, config: MappingConfig, num_classes: int | None = None):
         self.config = config
+        self.gains = learned_class_gains(config, num_classes) if config.class_gains else None
 
     def kernel_lengths(self, uncertainty: np.ndarray) -> np.ndarray:
         """Each point's kernel length (m) from its uncertainty u [N]: l * beta * exp(1 - gamma u) with the
@@ -73,6 +75,8 @@ class PointKernelIntegrator:
         stats.kept_points = len(points)
         onehot = c.media is Media.ONEHOT
         media = scan.labels[keep] if onehot else scan.probability_rows(keep)
+        if self.gains is not None:
+            media = media * self.gains
         mode, fusion, strategy = self._scatter_form()
         if fusion == sc.FUSION_DEMPSTER:
             media = dirichlet_beliefs(media, unc)
@@ -94,6 +98,18 @@ class PointKernelIntegrator:
 
         stats.voxel_updates = total_updates(split_over_shards(shards, lanes, len(points), job))
         return stats
+
+
+def learned_class_gains(config: MappingConfig, num_classes: int | None) -> np.ndarray:
+    """[K] the class gains of ``mapping.class_gains`` (``methods.convbki.class_gains``) from the learned
+    lengths in ``mapping.convbki.lengths_file``; a ConfigError names the key when there is no file."""
+    if not config.convbki.lengths_file:
+        raise ConfigError(f"mapping.convbki.lengths_file = '': method {config.method} (class_gains: true) scales each class by the "
+                          f"kernel mass of its learned ConvBKI lengths; learn them with `evsemmap train-convbki` and name the file")
+    if num_classes is None:
+        raise ValueError("class gains need the map's class count")
+    lengths = convbki.load_lengths(config.convbki.lengths_file, num_classes)
+    return convbki.class_gains(lengths, config.resolution_m, config.convbki.stencil_half)
 
 
 def scatter_sorted(shard: VoxelMap, points: np.ndarray, lengths: np.ndarray, point_uncertainty: np.ndarray, *, sigma0: float,

@@ -1,6 +1,8 @@
-"""A real two-node Ray cluster on the loopback, for the tests: the head in this machine's view of the files, and
-a second node in a private mount namespace (``unshare --mount``) with an empty tmpfs over the folders the driver
-reads inputs from and writes the store to, as a node of a cluster that shares no files with the driver.
+"""A real two-node Ray cluster on the loopback, for the tests (tests/test_ray_cluster.py) and the two-node rows of
+tools/bench_batch.py: the head in this machine's view of the files, and a second node in a private mount namespace
+(``unshare --mount``) with an empty tmpfs over the folders the driver reads inputs from and writes the store to, as
+a node of a cluster that shares no files with the driver. Mount namespaces need root (or a user namespace allowed
+to mount): mount_namespaces_refused says why not, where not.
 
 Each node is a ``ray start --block`` process in its own process group: stopping a node kills its group (raylet,
 agents and workers at once), as a machine that goes away. ``ray stop`` is never used: it stops every Ray
@@ -20,12 +22,12 @@ import time
 from pathlib import Path
 
 START_TIMEOUT_S = 90.0  # a node's ``ray start`` on a loaded 2-core machine takes 3-20 s
-OBJECT_STORE_BYTES = 200 * 2**20  # per node: the tests' objects are small; Ray's default takes 30 % of the memory
+OBJECT_STORE_BYTES = 200 * 2**20  # per node, by default: the tests' objects are small; Ray's default takes 30 % of the memory
 
 
 def mount_namespaces_refused(folder: Path) -> str | None:
-    """Why this machine cannot give a process a private mount namespace with a tmpfs in it (the reason a
-    test skips), or None when it can."""
+    """Why this machine cannot give a process a private mount namespace with a tmpfs in it (the reason the
+    cluster tests and the bench's two-node rows are skipped), or None when it can."""
     if shutil.which("unshare") is None:
         return "the unshare command is not installed (util-linux)"
     probe = subprocess.run(["unshare", "--mount", "--propagation", "private", "mount", "-t", "tmpfs", "none", str(folder)],
@@ -42,11 +44,13 @@ def _free_port() -> int:
 
 
 class TwoNodeCluster:
-    """The head and a second node (``node``), one CPU each; the second node sees none of ``hidden`` (each an empty
-    tmpfs there). ``address`` joins it; ``env``: what a driver needs in its environment to join (the token)."""
+    """The head and a second node (``node``), one CPU and ``object_store_bytes`` of object store each; the second node
+    sees none of ``hidden`` (each an empty tmpfs there). ``address`` joins it; ``env``: what a driver needs in its
+    environment to join (the token)."""
 
-    def __init__(self, hidden: list[Path]):
+    def __init__(self, hidden: list[Path], object_store_bytes: int = OBJECT_STORE_BYTES):
         self.hidden = [Path(h) for h in hidden]
+        self.object_store_bytes = object_store_bytes
         # Ray's session folder holds its sockets, whose paths must stay short (108 bytes): not under pytest's tmp_path
         self.temp_dir = Path(tempfile.mkdtemp(prefix="evr"))
         self.port = _free_port()
@@ -60,7 +64,7 @@ class TwoNodeCluster:
     def _start(self, flags: list[str], shell: str = "") -> subprocess.Popen:
         """A ``ray start --block`` with ``flags``; ``shell``: commands run before it in a private mount namespace."""
         command = [str(Path(sys.executable).with_name("ray")), "start", "--block", "--node-ip-address", "127.0.0.1", "--num-cpus", "1",
-                   "--disable-usage-stats", "--object-store-memory", str(OBJECT_STORE_BYTES), "--dashboard-agent-listen-port",
+                   "--disable-usage-stats", "--object-store-memory", str(self.object_store_bytes), "--dashboard-agent-listen-port",
                    str(_free_port()), "--node-manager-port", str(_free_port()), "--object-manager-port", str(_free_port()), *flags]
         if shell:
             command = ["unshare", "--mount", "--propagation", "private", "sh", "-c", f"{shell} && exec \"$@\"", "sh", *command]
