@@ -109,6 +109,73 @@ def test_any_chunk_size_and_any_worker_count_give_the_map_and_one_store(drive, t
     _assert_same_bytes(tmp_path / "inline1", tmp_path / "one")
 
 
+def test_the_fold_width_is_asked_or_a_quarter_of_the_workers_on_ray_and_one_thread_in_the_pools_driver():
+    from evsemmap_warp.apps.batch.reduction import fold_width
+
+    assert [fold_width(None, w, processes=True) for w in (1, 3, 4, 8, 32)] == [1, 1, 1, 2, 8]
+    assert [fold_width(None, w, processes=False) for w in (1, 8, 32)] == [1, 1, 1]
+    assert fold_width(3, 32, processes=True) == 3 and fold_width(2, 1, processes=False) == 2
+
+
+def test_tiles_folded_side_by_side_give_the_serial_folds_store(drive, tmp_path, monkeypatch):
+    """Each tile's partials are folded in chunk order whatever the fold width, so the bits are the serial fold's:
+    with room for one tile in the lanes, tiles leave, are written and come back at every turn of the drive,
+    and while several lanes fold (and encode) different tiles at once."""
+    from evsemmap_warp.apps.batch import reduction
+
+    _batch([drive], tmp_path / "serial", executor="inline", chunk_frames=1, fold_workers=1)
+    monkeypatch.setattr(reduction, "FOLD_CACHE_TILES", 1)
+    for width in (2, 3, 5):
+        summary = _batch([drive], tmp_path / f"x{width}", executor="local", workers=2, chunk_frames=1, fold_workers=width)
+        assert summary["fold_lanes"]["width"] == width and summary["fold_lanes"]["lane_seconds"] > 0
+        assert summary["tile_writes"] > summary["tiles"]  # tiles were written before the end and folded into again
+        _assert_same_bytes(tmp_path / "serial", tmp_path / f"x{width}")
+
+
+def test_a_run_failing_in_a_fold_lane_resumes_to_the_same_store(drive, tmp_path, monkeypatch):
+    """A fold that fails (here: chunk 3's partials) stops the run; the tiles written meanwhile by other lanes hold
+    only chunks folded in order before them, so the rerun folds exactly what each tile lacks."""
+    from evsemmap_warp.apps.batch import reduction
+    from evsemmap_warp.apps.batch.store import chunk_dir
+    from evsemmap_warp.core import map_store, tile_codec
+
+    _batch([drive], tmp_path / "clean", executor="inline", chunk_frames=1)
+    monkeypatch.setattr(reduction, "FOLD_CACHE_TILES", 1)
+    original = map_store.read_partial
+
+    def stop_at_chunk_3(path, columns, tile_voxels, identity, chunk):
+        if chunk == 3:
+            raise KeyboardInterrupt
+        return original(path, columns, tile_voxels, identity, chunk)
+
+    monkeypatch.setattr(map_store, "read_partial", stop_at_chunk_3)
+    with pytest.raises(KeyboardInterrupt):
+        _batch([drive], tmp_path / "killed", executor="inline", chunk_frames=1, fold_workers=3)
+    third = chunk_dir(tmp_path / "killed", 3)
+    for tile in (tmp_path / "killed" / "tiles").glob("*.vox"):  # a tile that says it holds chunk 3 does
+        if tile_codec.read_voxel_header(tile)["folded_through"] >= 3:
+            assert not (third / f"{tile.stem}{map_store.PARTIAL_SUFFIX}").exists(), tile
+    assert list(third.glob(f"*{map_store.PARTIAL_SUFFIX}"))  # chunk 3's partials wait for the rerun
+    monkeypatch.setattr(map_store, "read_partial", original)
+    assert _batch([drive], tmp_path / "killed", executor="inline", chunk_frames=1, fold_workers=2)["chunks_resumed"] >= 4
+    _assert_same_bytes(tmp_path / "clean", tmp_path / "killed")
+
+
+def test_ray_folds_tiles_in_chained_tasks_to_the_serial_folds_store(drive, tmp_path, monkeypatch):
+    """On Ray, each fold is a task that takes its tile's previous fold: tiles leaving the lanes and coming back,
+    three folding at once, give the serial fold's bytes."""
+    pytest.importorskip("ray")
+    from evsemmap_warp.apps.batch import reduction
+
+    _batch([drive], tmp_path / "serial", executor="inline", chunk_frames=1, fold_workers=1)
+    monkeypatch.setattr(reduction, "FOLD_CACHE_TILES", 1)
+    summary = _batch([drive], tmp_path / "ray", executor="ray", workers=2, chunk_frames=1, fold_workers=3)
+    assert summary["fold_lanes"]["width"] == 3 and summary["fold_lanes"]["lane_seconds"] > 0
+    assert summary["tile_writes"] > summary["tiles"]
+    shutil.rmtree(ray_executor.node_scratch(tmp_path / "ray"), ignore_errors=True)
+    _assert_same_bytes(tmp_path / "serial", tmp_path / "ray")
+
+
 def test_the_ray_executor_on_a_local_instance_it_starts_and_stops(drive, tmp_path):
     ray = pytest.importorskip("ray")
     _batch([drive], tmp_path / "inline", executor="inline", chunk_frames=2)
@@ -321,7 +388,7 @@ def test_a_killed_driver_resumes_without_redoing_or_counting_twice(tmp_path):
     assert chunks >= 15
     out = tmp_path / "store"
     command = [sys.executable, "-m", "evsemmap_warp.apps.cli", "batch", str(folder), "--method", "ebs", "--out", str(out),
-               "--workers", "1", "--chunk-frames", "1", "--quiet"]
+               "--workers", "1", "--chunk-frames", "1", "--fold-workers", "2", "--quiet"]
     process = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
     while time.time() < deadline and len(list((out / "work").glob("chunk_*"))) < 3:

@@ -116,12 +116,24 @@ def write_partial(path: Path, index: np.ndarray, rows: np.ndarray, tile_voxels: 
 
 
 def read_partial(path: Path, columns: int, tile_voxels: int, identity: str, chunk: int) -> tuple[np.ndarray, np.ndarray]:
-    """A partial map (write_partial), validated: of this store and chunk, in the tile its name says,
-    [V, columns] finite sums (non-negative but the weighted height sum), voxels unique and in key order."""
-    folder = Path(path).parent
+    """A partial map (write_partial) read from ``path`` and checked (decode_partial)."""
     try:
-        header, index, rows = tile_codec.read_voxel_file(path, {"kind": "partial", "store": identity, "chunk": int(chunk),
-                                                                "tile": list(parse_tile_name(Path(path).stem)), "tile_voxels": tile_voxels})
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise StoreError(f"{path}: cannot read ({exc.strerror}); delete its chunk folder {Path(path).parent} and rerun to map that "
+                         f"chunk again") from None
+    return decode_partial(data, path, columns, tile_voxels, identity, chunk)
+
+
+def decode_partial(data: bytes, path: Path, columns: int, tile_voxels: int, identity: str, chunk: int) -> tuple[np.ndarray, np.ndarray]:
+    """A partial map's bytes (the file ``path``, read there or sent), validated: of this store and chunk, in the
+    tile its name says, [V, columns] finite sums (non-negative but the weighted height sum), voxels unique and in key
+    order."""
+    folder = Path(path).parent
+    expect = {"kind": "partial", "store": identity, "chunk": int(chunk), "tile": list(parse_tile_name(Path(path).stem)),
+              "tile_voxels": tile_voxels}
+    try:
+        _, index, rows = tile_codec.check_expected(tile_codec.decode_voxels(data, path), path, expect)
     except (tile_codec.VoxelFileError, StoreError) as exc:
         raise StoreError(f"{exc}; delete its chunk folder {folder} and rerun to map that chunk again") from None
     if rows.shape[1] != columns:
@@ -199,16 +211,22 @@ def voxel_bounds(template: Mapper, index: np.ndarray) -> list[list[float]] | Non
 
 def write_tile(path: Path, template: Mapper, voxels: VoxelArrays, tile_voxels: int, *, folded_through: int | None = None,
                durable: bool = False) -> dict:
-    """One tile (``voxels``: global indices in key order) of the store ``template`` (an empty Mapper with
-    its parameters, classes, frame and origin) describes; returns its index entry. Its header names the
-    store (identity, method and parameters, classes, frame), the entry and ``folded_through``, the last
-    chunk whose partial it holds (a resumed run folds only later ones)."""
+    """One tile (tile_bytes) written atomically (``durable``: on disk when this returns); returns its index entry."""
+    data, entry = tile_bytes(Path(path).stem, template, voxels, tile_voxels, folded_through=folded_through)
+    files.write_atomically(path, lambda f: f.write(data), durable=durable)
+    return entry
+
+
+def tile_bytes(name: str, template: Mapper, voxels: VoxelArrays, tile_voxels: int, *, folded_through: int | None = None) -> tuple[bytes, dict]:
+    """Tile ``name``'s file (``voxels``: global indices in key order) of the store ``template`` (an empty Mapper with
+    its parameters, classes, frame and origin) describes, and its index entry. Its header names the store
+    (identity, method and parameters, classes, frame), the entry and ``folded_through``, the last chunk whose
+    partial it holds (a resumed run folds only later ones)."""
     entry = tile_entry(template, voxels)
     header = {"kind": "tile", "store": template_identity(template, tile_voxels), "mapping": template.config.as_dict(),
               "classes": list(template.class_names), "frame": None if template.frame is None else template.frame.as_dict(),
               "entry": entry, "folded_through": folded_through}
-    tile_codec.write_voxel_file(path, voxels.index, voxels.rows(), parse_tile_name(Path(path).stem), tile_voxels, header, durable=durable)
-    return entry
+    return tile_codec.encode_voxels(voxels.index, voxels.rows(), parse_tile_name(name), tile_voxels, header), entry
 
 
 def check_bounds(bounds, what: str = "bounds") -> tuple[np.ndarray, np.ndarray]:

@@ -251,9 +251,15 @@ def read_voxel_file(path, expect: dict | None = None) -> tuple[dict, np.ndarray,
             data = f.read()
     except OSError as exc:
         raise VoxelFileError(f"{path}: cannot read ({exc.strerror})") from None
-    header, index, rows = decode_voxels(data, path)
+    return check_expected(decode_voxels(data, path), path, expect)
+
+
+def check_expected(decoded: tuple[dict, np.ndarray, np.ndarray], where, expect: dict | None) -> tuple[dict, np.ndarray, np.ndarray]:
+    """``decoded`` (decode_voxels' answer for ``where``) unless a header field differs from ``expect``'s (the store's
+    identity, the tile, the chunk), named then."""
+    header = decoded[0]
     for key, value in (expect or {}).items():
         if header.get(key) != value:
-            raise VoxelFileError(f"{path}: {key} is {header.get(key)!r}, this store's is {value!r}: the file belongs to another "
+            raise VoxelFileError(f"{where}: {key} is {header.get(key)!r}, this store's is {value!r}: the file belongs to another "
                                  f"store or run")
-    return header, index, rows
+    return decoded

@@ -35,6 +35,7 @@ class BatchOptions:
     out: Path
     executor: str = "local"  # local | ray (| inline: in this process, for tests and debugging)
     workers: int | None = None  # default: one per core (local), the cluster's CPUs (ray)
+    fold_workers: int | None = None  # --fold-workers: tiles folded at once; None: reduction.fold_width's default
     chunk_frames: int | None = None  # None: automatic (choose_chunk_frames), from the inputs' frames
     ray_address: str | None = None
     ray_connect_timeout_s: float = RAY_CONNECT_TIMEOUT_S

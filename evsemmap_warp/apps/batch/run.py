@@ -20,7 +20,7 @@ from ...limits import check_tile_voxels
 from .executors import InlineExecutor, LocalExecutor
 from .planning import BatchOptions, check_memory, choose_chunk_frames, plan_batch, probe
 from .ray_executor import RayExecutor
-from .reduction import TileFolder
+from .reduction import ThreadFoldLanes, TileFolder, fold_width
 from .store import check_store, chunk_dir, remove_unfinished_chunks, store_index, store_lock
 from .worker import CHUNK_STAGES, Context, FaultPlan, map_chunk, peak_rss_mb
 
@@ -82,13 +82,18 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
         executor = InlineExecutor(context)
     else:
         executor = LocalExecutor(workers, context, log=log, chunk_timeout_s=options.chunk_timeout_s)
-    folder = TileFolder(out, context, chunks, on_tile)
-    stage = time.perf_counter()
-    costs = _map_chunks(executor, folder, finished, todo, options.progress)
-    times["map"] = time.perf_counter() - stage
-    stage = time.perf_counter()
-    folder.finish()
-    times["write_tiles"] = time.perf_counter() - stage
+    width = fold_width(options.fold_workers, executor.workers, processes=ray_executor is not None)
+    lanes = ray_executor.fold_lanes(width, context) if ray_executor is not None else ThreadFoldLanes(width, context)
+    folder = TileFolder(out, context, chunks, lanes, on_tile)
+    try:
+        stage = time.perf_counter()
+        costs = _map_chunks(executor, folder, finished, todo, options.progress, close=ray_executor is None)
+        times["map"] = time.perf_counter() - stage
+        stage = time.perf_counter()
+        folder.finish()
+        times["write_tiles"] = time.perf_counter() - stage
+    finally:
+        folder.close()
     times["fold"] = folder.seconds
     stage = time.perf_counter()
     entries, totals = _write_index(out, options, folder, context, inputs, sources)
@@ -100,7 +105,10 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
         "chunk_frames_rule": choose_chunk_frames(options.chunk_frames, sum(c.frames for c in chunks))[1],
         "input_points": totals["points"],
         "voxels": sum(e["voxels"] for e in entries.values()), "tiles": len(entries), "tile_writes": folder.tiles_written,
-        "voxels_folded": folder.voxels_folded,  # the driver's fold: its rate is voxels_folded / seconds.fold
+        "voxels_folded": folder.voxels_folded,  # the driver's own time per folded voxel: seconds.fold / voxels_folded
+        # the lanes that fold (reduction.py): how many, and their time folding and encoding tiles, all lanes together (their
+        # rate per lane: voxels_folded / lane_seconds)
+        "fold_lanes": {"width": width, "lane_seconds": round(folder.lane_seconds, 3)},
         "seconds": {k: round(v, 3) for k, v in times.items()},
         "frames_per_second": round(sum(c.frames for c in todo) / times["map"], 2) if todo and times["map"] > 0 else None,
         **_chunk_costs(costs),
@@ -127,9 +135,10 @@ def _prepare_store(options: BatchOptions, fault, identity: dict, sources: list, 
     return context, budget, workers
 
 
-def _map_chunks(executor, folder: TileFolder, finished: list, todo: list, progress: bool) -> list[dict]:
+def _map_chunks(executor, folder: TileFolder, finished: list, todo: list, progress: bool, close: bool) -> list[dict]:
     """Fold what a killed run mapped but did not fold, then map the chunks ``todo`` with ``executor``, folding
-    each as it finishes; returns the tasks' records (their costs). The executor is closed after."""
+    each as it finishes; returns the tasks' records (their costs). ``close``: the executor is closed after (not
+    Ray, whose tasks fold the tiles until the end: _run_batch stops it)."""
     from tqdm import tqdm
 
     try:
@@ -150,7 +159,8 @@ def _map_chunks(executor, folder: TileFolder, finished: list, todo: list, progre
         bar.close()
         remove_unfinished_chunks(folder.out)
     finally:
-        executor.close()
+        if close:
+            executor.close()
     if folder.frontier < len(folder.chunks):  # every chunk is mapped once executor.run returns; this names a broken invariant
         raise RuntimeError(f"batch: chunk {folder.chunks[folder.frontier].number} was mapped but not folded")
     return costs

@@ -20,6 +20,8 @@ def add_parser(sub) -> None:
     p.add_argument("--out", required=True, type=Path, help="the map store (a folder) to write, or to finish when a run was interrupted")
     p.add_argument("--executor", choices=("local", "ray"), default="local", help="local: a process pool (default); ray: Ray tasks")
     p.add_argument("--workers", type=positive, default=None, help="worker processes (default: one per core; with ray: the cluster's CPUs)")
+    p.add_argument("--fold-workers", type=positive, default=None, help="tiles folded at once, each tile's chunks still in order (default: "
+                   "1, a thread of the driver; with ray: a quarter of --workers, at least 1, as Ray tasks)")
     p.add_argument("--max-memory", type=MAX_MEMORY, default=None, metavar="SIZE", help=MAX_MEMORY_HELP)
     p.add_argument("--chunk-frames", type=CHUNK_FRAMES, default=None,
                    help="frames per task, rounded to whole bins (default: automatic, from the inputs' total frames only: "
@@ -59,7 +61,7 @@ def run(args) -> int:
                            batch_size=args.batch_size, tile_voxels=args.tile_voxels, discard_partials=args.discard_partials,
                            progress=not args.quiet, frame=args.frame, crs=args.crs, max_memory=args.max_memory,
                            ray_connect_timeout_s=args.ray_connect_timeout_s, chunk_timeout_s=args.chunk_timeout_s,
-                           same_frame=args.same_frame)
+                           same_frame=args.same_frame, fold_workers=args.fold_workers)
     if args.ray_address and args.executor != "ray":
         raise ConfigError("--ray-address needs --executor ray")
     if not args.view and (args.host, args.port) != (None, None):
