@@ -596,6 +596,11 @@ def test_bench_batch_gives_the_drivers_fold_rate_and_the_worker_count_it_limits(
     fold = bench_batch.fold_bottleneck(row, 2000)
     assert fold["voxels_per_s"] == 2_000_000 and fold["worker_voxels_per_s"] == 300_000 and fold["bottleneck_workers"] == 6
     assert fold["long_drive"] == {"frames": bench_batch.LONG_DRIVE_FRAMES, "fold_s": 7.5, "worker_s": 50.0}
+    # with fold lanes the driver only hands out and writes (0.5 s); two lanes fold 8 s between them: the
+    # busier share is a lane's 4 s, so 5 workers; one lane keeps up with 2 workers, the driver alone with 40
+    lanes = bench_batch.fold_bottleneck(row | {"fold_s": 0.5, "fold_lanes": {"width": 2, "lane_seconds": 8.0}}, 2000)
+    assert lanes["voxels_per_s"] == 1_500_000 and lanes["driver_voxels_per_s"] == 12_000_000 and lanes["lane_voxels_per_s"] == 750_000
+    assert (lanes["bottleneck_workers"], lanes["workers_per_lane"], lanes["driver_limit_workers"]) == (5, 2, 40)
 
 
 def test_bench_batch_s_two_node_row_compares_the_stores_and_is_skipped_saying_why(monkeypatch, tmp_path, capsys):

@@ -6,20 +6,21 @@ as on a cluster: the tool starts one with ``ray start --head --block`` for these
 warm-up batch in it, and stops it after them). ``ray-2node``: a real two-node Ray cluster on the loopback
 (tools/ray_cluster.py: the head, and a second node in a private mount namespace that sees neither the drive nor
 the stores, so the driver reads and sends the scans), mapped by 2 workers, one per node; its store is checked
-byte for byte against the local pool's (its row says so), and its row has its own ``fold`` (the driver's fold rate
+byte for byte against the local pool's (its row says so), and its row has its own ``fold`` (the fold's rates
 and the worker count it limits). It needs root (mount namespaces): elsewhere it is skipped, saying why.
 
 Each configuration runs as the command a user types (a fresh process, start-up included), after a
 warm-up batch on the first 200 frames (kernel cache, page cache). Reported per configuration: wall
 time, frames/s, input points/s, peak memory of a worker and of the driver, the streaming reduction's
-cost (folding partials into tiles, in the driver while the workers map), the store's size (bytes per
+cost (the driver's share of folding partials into tiles while the workers map), the store's size (bytes per
 voxel) and the peak disk use during the run (sampled), the speed-up over ``evsemmap map``, and where a
 worker's time goes (each stage's median over the chunks: open, read, integrate, extract, write_partial; a worker
 process's start, the result's size and its way back to the driver). From
 the measured per-point mapping cost and per-tile fold cost, the tool projects the wall time of a whole
 RELLIS-3D and of a 1,000 km fleet log on a 16-node cluster (the model is printed with the figures). The
-driver's fold rate (voxels of partials folded into tiles per second) and the worker count from which the one
-driver's fold limits the long drive are the record's ``fold`` (from the 1-worker pool run).
+fold's rates (voxels of partials folded into tiles per second: the driver's share, one fold lane's, the busier
+of the two at the run's lane count) and the worker counts from which the fold limits the long drive are the
+record's ``fold`` (from the 1-worker pool run; ``fold_bottleneck``).
 The results go to a run record (docs/bench/bench_batch-<UTC>.json, tools/bench_record.py); the last
 line printed is its path.
 
@@ -199,8 +200,9 @@ def describe(row: dict) -> str:
 def models(results: dict) -> str:
     """The record's fold rate and bottleneck, projection and scaling model, as printed."""
     fold, projection, scaling = results["fold"], results["projection"], results["scaling_model"]
-    return (f"driver's fold: {fold['voxels_per_s']:,} voxels/s; it limits the long drive ({LONG_DRIVE_FRAMES} frames) from "
-            f"{fold['bottleneck_workers']} workers on ({fold['model']})\n"
+    return (f"fold: {fold['voxels_per_s']:,} voxels/s over {fold['lanes']['width']} lane(s), the driver's share "
+            f"{fold['driver_voxels_per_s']:,}; it limits the long drive ({LONG_DRIVE_FRAMES} frames) from {fold['bottleneck_workers']} "
+            f"workers on, one lane keeps up with {fold['workers_per_lane']} ({fold['model']})\n"
             f"projection ({projection['model']}): RELLIS-3D {projection['rellis3d']['total_s']} s, 1,000 km fleet log "
             f"{projection['fleet_1000km']['total_s']} s ({projection['fleet_1000km']['limited_by']})\n"
             f"scaling model ({scaling['model']}): {scaling['predicted_wall_s']}")
@@ -220,6 +222,7 @@ def batch_row(summary: dict, seconds: float, peak_disk: int, out: Path, points: 
         "store_bytes_per_voxel": round(store_bytes / max(summary["voxels"], 1), 1), "peak_disk_mb": round(peak_disk / 1e6, 1),
         "work_mb_after": round(folder_size(out / "work") / 1e6, 2), "tiles": summary["tiles"], "voxels": summary["voxels"],
         "chunks": summary["chunks"], "chunk_frames": summary["chunk_frames"], "voxels_folded": summary.get("voxels_folded"),
+        "fold_lanes": summary.get("fold_lanes"),
         "worker_peak_mb": summary["peak_rss_mb"]["worker_max"], "driver_peak_mb": summary["peak_rss_mb"]["driver"],
         "chunk_s_median": summary["chunk_seconds_median"],
         "chunk_stage_s_median": summary.get("chunk_stage_seconds_median"),
@@ -270,21 +273,32 @@ def projections(one: dict, points: int, drive_km: float) -> tuple[dict, dict]:
 
 
 def fold_bottleneck(row: dict, frames: int) -> dict:
-    """The driver's fold rate (voxels of partials folded into tiles per second, from a batch row's summary) and
-    the worker count from which it limits the long drive: each worker hands the driver the voxels of its chunks
-    at its own rate (voxels folded / the chunks' mapping seconds, all stages), so the driver keeps up while
-    workers x that rate stays under its fold rate. Both rates are per voxel, so the count holds for any length
-    of the drive; the long drive's figures are the run's scaled to its frames."""
+    """The fold's rates (voxels of partials folded into tiles per second, from a batch row's summary) and the
+    worker count from which it limits the long drive. The driver hands partials to the fold lanes and writes
+    the tiles they encode (its own share, ``fold_s``); the lanes fold (``lane_seconds`` over ``width`` lanes
+    side by side). Each worker hands over the voxels of its chunks at its own rate (voxels folded / the
+    chunks' mapping seconds, all stages), so the fold keeps up while workers x that rate stays under the rate
+    of the busier of the driver's share and one lane's share of the folding. Both rates are per voxel, so the
+    count holds for any length of the drive; the long drive's figures are the run's scaled to its frames."""
     worker_s = sum((row.get("chunk_stage_s_total") or {}).values())
     folded = row.get("voxels_folded") or 0
-    fold_rate = folded / row["fold_s"] if row["fold_s"] else float("inf")
-    per_worker = folded / worker_s if worker_s else 0.0
+    lanes = row.get("fold_lanes") or {"width": 1, "lane_seconds": 0.0}
+    busiest_s = max(row["fold_s"], lanes["lane_seconds"] / lanes["width"])
+
+    def rate(seconds: float):
+        return round(folded / seconds) if seconds else None
+
     scale = LONG_DRIVE_FRAMES / frames
     return {
-        "voxels_folded": folded, "fold_s": row["fold_s"], "voxels_per_s": round(fold_rate), "worker_voxels_per_s": round(per_worker),
-        "bottleneck_workers": math.floor(worker_s / row["fold_s"]) if row["fold_s"] else None,  # = fold rate / one worker's rate
-        "long_drive": {"frames": LONG_DRIVE_FRAMES, "fold_s": round(row["fold_s"] * scale, 1), "worker_s": round(worker_s * scale, 1)},
-        "model": "bottleneck workers = floor(fold rate / one worker's rate) = floor(the chunks' mapping seconds / the driver's fold seconds)",
+        "voxels_folded": folded, "fold_s": row["fold_s"], "lanes": lanes, "driver_voxels_per_s": rate(row["fold_s"]),
+        "lane_voxels_per_s": rate(lanes["lane_seconds"]), "voxels_per_s": rate(busiest_s), "worker_voxels_per_s": rate(worker_s),
+        "bottleneck_workers": math.floor(worker_s / busiest_s) if busiest_s else None,  # = fold rate / one worker's rate
+        "workers_per_lane": math.floor(worker_s / lanes["lane_seconds"]) if lanes["lane_seconds"] else None,
+        "driver_limit_workers": math.floor(worker_s / row["fold_s"]) if row["fold_s"] else None,
+        "long_drive": {"frames": LONG_DRIVE_FRAMES, "fold_s": round(busiest_s * scale, 1), "worker_s": round(worker_s * scale, 1)},
+        "model": ("bottleneck workers = floor(the chunks' mapping seconds / max(the driver's fold seconds, lane seconds / lanes)) "
+                  "at this width; workers per lane = floor(mapping seconds / lane seconds), how many workers one more lane "
+                  "keeps up with; driver limit = floor(mapping seconds / the driver's fold seconds), the count no width lifts"),
     }
 
 
@@ -335,9 +349,9 @@ def two_node_rows(results: dict, data: Path, tmp: Path, warm_seq: Path, batch_ar
     results["runs"]["ray-2nodex2"] = row
     fold = row["fold"]
     print(f"batch ray-2node x2: {describe(row)}\n{breakdown(row)}\n  inputs {summary['cluster']['inputs']}, chunks per node "
-          f"{list(summary['cluster']['chunks_per_node'].values())}, the store the local pool's byte for byte; driver's fold "
-          f"{fold['voxels_per_s']:,} voxels/s, one worker {fold['worker_voxels_per_s']:,}: the fold limits from {fold['bottleneck_workers']} "
-          f"workers on", flush=True)
+          f"{list(summary['cluster']['chunks_per_node'].values())}, the store the local pool's byte for byte; fold "
+          f"{fold['voxels_per_s']:,} voxels/s over {fold['lanes']['width']} lane(s) (the driver's share {fold['driver_voxels_per_s']:,}), "
+          f"one worker {fold['worker_voxels_per_s']:,}: the fold limits from {fold['bottleneck_workers']} workers on", flush=True)
 
 
 def main() -> None:
