@@ -354,7 +354,7 @@ def two_node_rows(results: dict, data: Path, tmp: Path, warm_seq: Path, batch_ar
           f"one worker {fold['worker_voxels_per_s']:,}: the fold limits from {fold['bottleneck_workers']} workers on", flush=True)
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--markdown", type=Path, metavar="RECORD", help="print the docs' table of a run record and exit")
     parser.add_argument("--frames", type=int, default=2000)
@@ -365,7 +365,11 @@ def main() -> None:
     parser.add_argument("--executors", default="local,ray,ray-cluster",
                         help="local (the process pool), ray (a local Ray instance per run), ray-cluster (runs joining a running Ray "
                              "instance), ray-2node (a two-node cluster on the loopback whose second node sees no files; needs root)")
-    args = parser.parse_args()
+    return parser.parse_args()
+
+
+def main() -> None:
+    args = parse_args()
     if args.markdown:
         print(markdown(args.markdown))
         return
