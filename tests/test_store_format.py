@@ -86,7 +86,7 @@ def test_a_store_is_compact_and_exports_the_map(drive, tmp_path):
     assert bytes_per_voxel <= 48, bytes_per_voxel  # the target; the map-file schema took 230
     assert not list((tmp_path / "store" / "work").rglob("*.vox"))  # every partial folded and deleted
     store = MapStore(tmp_path / "store")
-    assert store.format_version == 2 and store.voxel_count == summary["voxels"]
+    assert store.format_version == 3 and store.voxel_count == summary["voxels"]
 
 
 def test_a_map_file_costs_about_what_its_store_costs(drive, tmp_path, capsys):
@@ -111,7 +111,7 @@ def test_a_format_1_store_and_a_version_2_map_file_are_refused_naming_their_vers
     from evsemmap_warp.core.map_store import StoreError
 
     index = V1 / "store" / "store.json"
-    with pytest.raises(StoreError, match=r"store format version 1; this evsemmap_warp reads version 2 only") as err:
+    with pytest.raises(StoreError, match=r"store format version 1; this evsemmap_warp reads version 3 only") as err:
         MapStore(V1 / "store")
     assert str(index) in str(err.value)
     with pytest.raises(MapFileError, match=r"map format version 2; this evsemmap_warp reads version 3 only") as err:
@@ -132,6 +132,11 @@ def test_a_new_run_refuses_an_old_store_naming_its_format(drive, tmp_path, capsy
     line = _cli_error(capsys, "batch", drive, "--method", "ebs", "--out", running, "--quiet")
     assert str(running) in line and "a store of format 1" in line
     assert sorted(p.name for p in running.rglob("*")) == ["plan.json", "work"]  # nothing written
+    before_heights = tmp_path / "before_heights"  # a killed run of format 2, whose rows had no height sum
+    (before_heights / "work").mkdir(parents=True)
+    (before_heights / "work" / "plan.json").write_text(json.dumps({"inputs": [], "method": "ebs", "store_format_version": 2}))
+    line = _cli_error(capsys, "batch", drive, "--method", "ebs", "--out", before_heights, "--quiet")
+    assert str(before_heights) in line and "a store of format 2" in line and "reads format 3" in line
 
 
 def _mount_small_tmpfs(folder: Path, size: str) -> bool:

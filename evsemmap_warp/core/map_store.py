@@ -41,7 +41,7 @@ from .mapper import MAX_COORDINATE_M, Mapper, QueryResult, UNKNOWN_LABEL, VoxelS
 from .voxel_map import EXTRA_COLUMNS, VoxelArrays
 
 STORE_FORMAT = "evsemmap_warp.store"
-STORE_VERSION = 2
+STORE_VERSION = 3  # 3: the rows' weighted height sum (K + 5 columns)
 TILE_SUFFIX = ".vox"  # a tile file's name: its tile name, then this
 PARTIAL_SUFFIX = ".vox"
 INDEX_NAME = "store.json"
