@@ -132,6 +132,26 @@ def test_tiles_folded_side_by_side_give_the_serial_folds_store(drive, tmp_path, 
         _assert_same_bytes(tmp_path / "serial", tmp_path / f"x{width}")
 
 
+def test_a_failed_fold_stops_the_run_at_the_next_chunk_not_at_the_end(drive, tmp_path, monkeypatch):
+    """A tile the drive keeps passing stays in the lanes until the end: its failed fold is raised at the driver's
+    next hand-out, not when the tile is written (TileFolder.finish never runs)."""
+    from evsemmap_warp.apps.batch import reduction
+    from evsemmap_warp.core import map_store
+
+    original, finishing = map_store.read_partial, []
+
+    def bad_chunk_1(path, columns, tile_voxels, identity, chunk):
+        if chunk == 1:
+            raise map_store.StoreError(f"{path}: a bad partial")
+        return original(path, columns, tile_voxels, identity, chunk)
+
+    monkeypatch.setattr(map_store, "read_partial", bad_chunk_1)
+    monkeypatch.setattr(reduction.TileFolder, "finish", lambda self: finishing.append(self))
+    with pytest.raises(map_store.StoreError, match="a bad partial"):
+        _batch([drive], tmp_path / "store", executor="inline", chunk_frames=1)
+    assert not finishing
+
+
 def test_a_run_failing_in_a_fold_lane_resumes_to_the_same_store(drive, tmp_path, monkeypatch):
     """A fold that fails (here: chunk 3's partials) stops the run; the tiles written meanwhile by other lanes hold
     only chunks folded in order before them, so the rerun folds exactly what each tile lacks."""

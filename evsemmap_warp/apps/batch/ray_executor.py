@@ -301,6 +301,15 @@ class RayFoldLanes:
             self.voxels += voxels
             self.seconds += seconds
 
+    def check(self) -> None:
+        """As ThreadFoldLanes.check: the tasks finished since, counted, and a failed one's line raised."""
+        if self._flight:
+            for done in self.ray.wait(self._flight, num_returns=len(self._flight), timeout=0)[0]:
+                self._flight.remove(done)
+                voxels, seconds = self.result(done)
+                self.voxels += voxels
+                self.seconds += seconds
+
     def fold(self, previous, name: str, partials: list[tuple[int, Path]]):
         """As ThreadFoldLanes.fold: ``previous`` a fold's reference, a tile file or None."""
         self._room(self.width - 1)

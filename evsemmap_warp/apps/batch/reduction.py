@@ -63,11 +63,29 @@ class ThreadFoldLanes:
         self._pool = ThreadPoolExecutor(width, thread_name_prefix="evsemmap-fold")
         self._lock = threading.Lock()
         self.voxels, self.seconds = 0, 0.0  # what the lanes folded, and their time folding and encoding (all lanes')
+        self._failures: list[BaseException] = []  # the lanes' failures, as they happen (check raises the first)
 
     def fold(self, previous, name: str, partials: list[tuple[int, Path]]) -> Future:
         """Tile ``name`` (``previous``: a fold's future, its file, or None for a new tile) plus ``partials``
         (chunk number, file), in chunk order; a future of (index, rows)."""
-        return self._pool.submit(self._fold, previous, partials)
+        return self._watched(self._pool.submit(self._fold, previous, partials))
+
+    def _watched(self, future: Future) -> Future:
+        future.add_done_callback(self._note_failure)
+        return future
+
+    def _note_failure(self, future: Future) -> None:
+        if not future.cancelled() and future.exception() is not None:
+            with self._lock:
+                self._failures.append(future.exception())
+
+    def check(self) -> None:
+        """A lane's first failure, raised at the driver's next hand-out: a tile the drive keeps passing is written
+        only at the end, and its failed fold would otherwise surface there, hours later."""
+        with self._lock:
+            failure = self._failures[0] if self._failures else None
+        if failure is not None:
+            raise failure
 
     def _fold(self, previous, partials):
         started = time.perf_counter()
@@ -92,7 +110,7 @@ class ThreadFoldLanes:
                                            folded_through=folded_through)
             self._count(0, time.perf_counter() - started)
             return encoded
-        return self._pool.submit(encode)
+        return self._watched(self._pool.submit(encode))
 
     def _count(self, voxels: int, seconds: float) -> None:
         with self._lock:
@@ -170,6 +188,7 @@ class TileFolder:
         """Chunk ``number`` is mapped: fold it, and every finished chunk after it up to the first that is not."""
         self.finished.add(number)
         started = time.perf_counter()
+        self.lanes.check()
         while self.frontier < len(self.chunks) and self.chunks[self.frontier].number in self.finished:
             self._fold(self.chunks[self.frontier])
             self.frontier += 1
