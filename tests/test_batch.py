@@ -110,11 +110,14 @@ def test_any_chunk_size_and_any_worker_count_give_the_map_and_one_store(drive, t
 
 
 def test_the_fold_width_is_asked_or_a_quarter_of_the_workers_on_ray_and_one_thread_in_the_pools_driver():
-    from evsemmap_warp.apps.batch.reduction import fold_width
+    from evsemmap_warp.apps.batch.planning import fold_width
 
     assert [fold_width(None, w, processes=True) for w in (1, 3, 4, 8, 32)] == [1, 1, 1, 2, 8]
     assert [fold_width(None, w, processes=False) for w in (1, 8, 32)] == [1, 1, 1]
     assert fold_width(3, 32, processes=True) == 3 and fold_width(2, 1, processes=False) == 2
+    for wrong in (0, -1, 1.5, True):  # the Python API's BatchOptions(fold_workers=...): the command line's flag is checked
+        with pytest.raises(ConfigError, match=rf"fold_workers = {wrong!r}: give a whole number of fold lanes"):
+            fold_width(wrong, 4, processes=True)
 
 
 def test_tiles_folded_side_by_side_give_the_serial_folds_store(drive, tmp_path, monkeypatch):
@@ -391,8 +394,12 @@ def test_short_inputs_give_every_worker_several_chunks_by_default(drive, tmp_pat
 
 def test_the_memory_check_suggests_a_chunk_size_that_fits(monkeypatch, tmp_path):
     per_voxel = batch.bytes_per_voxel(9)
-    monkeypatch.setattr(planning, "available_memory", lambda: batch.DRIVER_OVERHEAD_BYTES + 2 * (batch.WORKER_OVERHEAD_BYTES + 3000 * per_voxel))
+    monkeypatch.setattr(planning, "available_memory", lambda: driver + 2 * (batch.WORKER_OVERHEAD_BYTES + 3000 * per_voxel))
     options = BatchOptions(method="ebs", out=tmp_path, chunk_frames=10)
+    driver = planning.driver_bytes(options, 2)  # with the fold's tiles, in the driver with the pool's lanes
+    assert driver == batch.DRIVER_OVERHEAD_BYTES + 2 * planning.FOLD_CACHE_TILES * planning.FOLD_TILE_BYTES
+    ray = BatchOptions(method="ebs", out=tmp_path, executor="ray", fold_workers=3)  # a local instance: a process per lane
+    assert planning.driver_bytes(ray, 8) == batch.DRIVER_OVERHEAD_BYTES + 3 * batch.WORKER_OVERHEAD_BYTES
     # 1000 voxels for the first scan, 500 new ones per scan after it: 5 scans fit in 3000 voxels a worker
     with pytest.raises(ConfigError, match=r"batch: --chunk-frames 10 with 2 workers needs .* use --chunk-frames 5 or fewer --workers"):
         batch.check_memory(options, 2, 10, 1000, 1500, 9)

@@ -20,6 +20,8 @@ from ..scan_sources import open_scan_source
 
 WORKER_OVERHEAD_BYTES = 450 * 2**20  # a worker process with numpy, Warp and its kernels loaded (measured: ~0.4 GB)
 DRIVER_OVERHEAD_BYTES = 450 * 2**20
+FOLD_CACHE_TILES = 12  # tiles the fold lanes keep while the drive passes through them (reduction.TileFolder)
+FOLD_TILE_BYTES = 16 * 2**20  # one of them in memory: up to ~15 MB (a 256-voxel tile of a LiDAR map)
 # The automatic chunk size (--chunk-frames not given): the inputs' frames cut into at least AUTO_CHUNKS
 # chunks (two per worker up to 8 workers, so short inputs use every core), at most MAX_AUTO_CHUNK_FRAMES
 # frames each. It depends on the inputs only, never on the worker count: stores stay byte-identical.
@@ -35,7 +37,7 @@ class BatchOptions:
     out: Path
     executor: str = "local"  # local | ray (| inline: in this process, for tests and debugging)
     workers: int | None = None  # default: one per core (local), the cluster's CPUs (ray)
-    fold_workers: int | None = None  # --fold-workers: tiles folded at once; None: reduction.fold_width's default
+    fold_workers: int | None = None  # --fold-workers: tiles folded at once; None: fold_width's default
     chunk_frames: int | None = None  # None: automatic (choose_chunk_frames), from the inputs' frames
     ray_address: str | None = None
     ray_connect_timeout_s: float = RAY_CONNECT_TIMEOUT_S
@@ -188,6 +190,27 @@ def probe(sources, config: MappingConfig, max_memory: int | None = None) -> tupl
     return mapper.origin_index.copy(), mapper.class_names, counts[0], counts[-1]
 
 
+def fold_width(requested: int | None, workers: int, processes: bool) -> int:
+    """The fold lanes' width (--fold-workers): as asked; else, for lanes that are processes (Ray's tasks), a quarter of
+    the mapping workers, at least one: a lane folds several times as fast as a worker maps (docs/performance.md, "The
+    fold in lanes"), so a quarter keeps the fold ahead of the mapping; for threads of the driver (the local
+    pool's lanes), one: two threads fold no faster than one (measured there), and one keeps the fold off the driver's
+    own thread."""
+    if requested is not None:
+        if isinstance(requested, bool) or not isinstance(requested, int) or requested < 1:
+            raise ConfigError(f"batch: fold_workers = {requested!r}: give a whole number of fold lanes, at least 1 (or None: the default)")
+        return requested
+    return max(1, workers // 4) if processes else 1
+
+
+def driver_bytes(options: BatchOptions, workers: int) -> int:
+    """The driver's memory with its fold: the local pool's lanes are threads of the driver and hold the tiles the
+    drive is passing and as many waiting to be written; a local Ray instance's fold tasks are worker processes."""
+    if options.executor == "ray":
+        return DRIVER_OVERHEAD_BYTES + fold_width(options.fold_workers, workers, processes=True) * WORKER_OVERHEAD_BYTES
+    return DRIVER_OVERHEAD_BYTES + 2 * FOLD_CACHE_TILES * FOLD_TILE_BYTES
+
+
 def bytes_per_voxel(num_classes: int) -> int:
     """A worker's memory per voxel of its partial map: the hash table and its [K + 5] float64 rows
     (kept below half full, so ~2-4x the voxels), the host copy, the post-pass and the tile split."""
@@ -202,16 +225,17 @@ def check_memory(options: BatchOptions, workers: int, chunk_insertions: int, fir
     new_per_insertion = max(first_two - first, first // 4)
     chunk_voxels = first + (chunk_insertions - 1) * new_per_insertion
     per_worker = WORKER_OVERHEAD_BYTES + chunk_voxels * bytes_per_voxel(num_classes)
-    need = DRIVER_OVERHEAD_BYTES + workers * per_worker
+    driver = driver_bytes(options, workers)
+    need = driver + workers * per_worker
     have = available_memory()
     budget = {"chunk_voxels_estimate": int(chunk_voxels), "per_worker_mb": round(per_worker / 2**20), "total_mb": round(need / 2**20),
               "available_mb": round(have / 2**20)}
     if (options.executor == "local" or (options.executor == "ray" and not options.ray_address)) and need > have:
-        room = (have - DRIVER_OVERHEAD_BYTES) / workers - WORKER_OVERHEAD_BYTES
+        room = (have - driver) / workers - WORKER_OVERHEAD_BYTES
         fitting = max(0, int(np.floor((room / bytes_per_voxel(num_classes) - first) / max(new_per_insertion, 1))) + 1)
         if fitting >= 1:
             advice = f"use --chunk-frames {fitting} or fewer --workers"
-        elif workers > 1 and (most := int((have - DRIVER_OVERHEAD_BYTES) // (WORKER_OVERHEAD_BYTES + first * bytes_per_voxel(num_classes)))) >= 1:
+        elif workers > 1 and (most := int((have - driver) // (WORKER_OVERHEAD_BYTES + first * bytes_per_voxel(num_classes)))) >= 1:
             advice = f"use fewer --workers (at most {most} fit, with --chunk-frames 1; not even chunks of one scan or bin fit {workers})"
         elif workers > 1:
             advice = "use fewer --workers (not even chunks of one scan or bin fit this many)"

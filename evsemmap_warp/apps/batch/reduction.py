@@ -14,23 +14,9 @@ import numpy as np
 from ... import files
 from ...core import map_store, tile_codec
 from ...core.voxel_map import EXTRA_COLUMNS, VoxelArrays
-from .planning import Chunk
+from .planning import FOLD_CACHE_TILES, Chunk
 from .store import chunk_dir, read_done
 from .worker import Context
-
-FOLD_CACHE_TILES = 12  # tiles the driver keeps in memory while folding (the drive passes through them; up to ~15 MB each)
-
-
-def fold_width(requested: int | None, workers: int, processes: bool) -> int:
-    """The fold lanes' width (--fold-workers): as asked; else, for lanes that are processes (Ray's tasks), a quarter of
-    the mapping workers, at least one: a lane folds several times as fast as a worker maps (docs/performance.md, "The
-    fold in lanes"), so a quarter keeps the fold ahead of the mapping; for threads of the driver (the local
-    pool's lanes), one: two threads fold no faster than one (measured there), and one keeps the fold off the driver's
-    own thread."""
-    if requested:
-        return requested
-    return max(1, workers // 4) if processes else 1
-
 
 def decode_tile(data: bytes, path: Path, identity: str, out: Path) -> tuple[np.ndarray, np.ndarray]:
     """A tile file's bytes as a fold starts from them (a tile written before it left memory, or by a killed run)."""

@@ -18,9 +18,9 @@ from ...config import ConfigError
 from ...core import map_store
 from ...limits import check_tile_voxels
 from .executors import InlineExecutor, LocalExecutor
-from .planning import BatchOptions, check_memory, choose_chunk_frames, plan_batch, probe
+from .planning import BatchOptions, check_memory, choose_chunk_frames, fold_width, plan_batch, probe
 from .ray_executor import RayExecutor
-from .reduction import ThreadFoldLanes, TileFolder, fold_width
+from .reduction import ThreadFoldLanes, TileFolder
 from .store import check_store, chunk_dir, remove_unfinished_chunks, store_index, store_lock
 from .worker import CHUNK_STAGES, Context, FaultPlan, map_chunk, peak_rss_mb
 
