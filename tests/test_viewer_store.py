@@ -228,6 +228,23 @@ def test_an_export_of_a_store_with_an_unreadable_tile_is_one_line_naming_it(stor
     assert not (tmp_path / "all.ply").exists()
 
 
+def test_an_export_past_a_tile_failing_otherwise_is_still_one_line(store, tmp_path, monkeypatch, capsys):
+    """A tile whose read fails with something other than the store's refusals (here a RuntimeError) is named in
+    the same one line, not shown as a traceback."""
+    order = StoreOverview(store, 600).unread
+    real = StoreOverview._read
+
+    def failing(self, name, rows):
+        if name == order[-1]:
+            raise RuntimeError("the disk went away")
+        return real(self, name, rows)
+
+    monkeypatch.setattr(StoreOverview, "_read", failing)
+    monkeypatch.setattr(MapViewer, "FIRST_FRAME_ROWS", 1)
+    line = run_cli(capsys, "view", store, "--export-ply", tmp_path / "all.ply", "--no-serve", "--port", free_port())
+    assert f"tile {order[-1]} could not be read (RuntimeError: the disk went away)" in line and str(store) in line, line
+
+
 def test_a_small_store_is_read_whole_before_the_first_frame(store):
     """A store whose tiles fit the first frame's budget is complete when the viewer is built (its overview
     rows are its voxels, not its shares of a max_voxels larger than the store)."""

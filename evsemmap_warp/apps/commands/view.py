@@ -53,10 +53,14 @@ def add_parser(sub) -> None:
 def _refuse_unreadable_tiles(viewer) -> None:
     """An export holds every tile of its stores or is not written: a tile the viewer could not read (serving, it says
     so in its status line and shows the rest) stops it, in the one line naming the tile that ``evsemmap export`` says."""
+    from ...core.map_store import StoreError
+
     for overview in viewer.stores.values():
-        for exc in overview.unreadable.values():
+        for name, exc in overview.unreadable.items():
             viewer.close()
-            raise exc
+            if isinstance(exc, (ValueError, OSError)):  # the store's own refusals, and the OS's: they name the file
+                raise exc
+            raise StoreError(f"{overview.store.path}: tile {name} could not be read ({type(exc).__name__}: {exc})") from None
 
 
 def run(args) -> int:
