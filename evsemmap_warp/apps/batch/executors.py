@@ -40,9 +40,10 @@ CLOSE_GRACE_S = 5.0
 INTERRUPT_GRACE_S = 3.0
 
 
-def stuck_error(timeout_s: float) -> TimeoutError:
-    """The run's end when no chunk finished for ``timeout_s`` (a worker or a node stuck): the chunks mapped so far stay."""
-    return TimeoutError(f"no chunk finished in {timeout_s:g} s (--chunk-timeout-s): a worker or a node is stuck; "
+def stuck_error(timeout_s: float, what: str = "chunk") -> TimeoutError:
+    """The run's end when no ``what`` (a chunk, or a fold of the tiles) finished for ``timeout_s`` (a worker or a node
+    stuck): the chunks mapped so far stay."""
+    return TimeoutError(f"no {what} finished in {timeout_s:g} s (--chunk-timeout-s): a worker or a node is stuck; "
                         "the chunks mapped so far are kept, and a rerun resumes from them")
 
 

@@ -289,7 +289,7 @@ class RayFoldLanes:
         the chunk timeout stops the run in one line, where a plain wait would leave the driver to Ray's own end)."""
         finished = self.executor._wait(refs)
         if not finished:
-            raise stuck_error(self.executor.chunk_timeout_s)
+            raise stuck_error(self.executor.chunk_timeout_s, "fold of the tiles")
         return finished[0]
 
     def _room(self, most: int) -> None:
