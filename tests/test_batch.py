@@ -109,15 +109,13 @@ def test_any_chunk_size_and_any_worker_count_give_the_map_and_one_store(drive, t
     _assert_same_bytes(tmp_path / "inline1", tmp_path / "one")
 
 
-def test_the_fold_width_is_asked_or_a_quarter_of_the_workers_on_ray_and_one_thread_in_the_pools_driver():
+def test_the_fold_width_is_asked_or_one_thread_of_the_driver_with_either_executor():
     from evsemmap_warp.apps.batch.planning import fold_width
 
-    assert [fold_width(None, w, processes=True) for w in (1, 3, 4, 8, 32)] == [1, 1, 1, 2, 8]
-    assert [fold_width(None, w, processes=False) for w in (1, 8, 32)] == [1, 1, 1]
-    assert fold_width(3, 32, processes=True) == 3 and fold_width(2, 1, processes=False) == 2
+    assert fold_width(None) == 1 and fold_width(3) == 3
     for wrong in (0, -1, 1.5, True):  # the Python API's BatchOptions(fold_workers=...): the command line's flag is checked
         with pytest.raises(ConfigError, match=rf"fold_workers = {wrong!r}: give a whole number of fold lanes"):
-            fold_width(wrong, 4, processes=True)
+            fold_width(wrong)
 
 
 def test_tiles_folded_side_by_side_give_the_serial_folds_store(drive, tmp_path, monkeypatch):

@@ -37,7 +37,7 @@ class BatchOptions:
     out: Path
     executor: str = "local"  # local | ray (| inline: in this process, for tests and debugging)
     workers: int | None = None  # default: one per core (local), the cluster's CPUs (ray)
-    fold_workers: int | None = None  # --fold-workers: tiles folded at once; None: fold_width's default
+    fold_workers: int | None = None  # --fold-workers: tiles folded at once (with ray: as tasks on the nodes); None: one thread
     chunk_frames: int | None = None  # None: automatic (choose_chunk_frames), from the inputs' frames
     ray_address: str | None = None
     ray_connect_timeout_s: float = RAY_CONNECT_TIMEOUT_S
@@ -190,24 +190,22 @@ def probe(sources, config: MappingConfig, max_memory: int | None = None) -> tupl
     return mapper.origin_index.copy(), mapper.class_names, counts[0], counts[-1]
 
 
-def fold_width(requested: int | None, workers: int, processes: bool) -> int:
-    """The fold lanes' width (--fold-workers): as asked; else, for lanes that are processes (Ray's tasks), a quarter of
-    the mapping workers, at least one: a lane folds several times as fast as a worker maps (docs/performance.md, "The
-    fold in lanes"), so a quarter keeps the fold ahead of the mapping; for threads of the driver (the local
-    pool's lanes), one: two threads fold no faster than one (measured there), and one keeps the fold off the driver's
-    own thread."""
+def fold_width(requested: int | None) -> int:
+    """The fold lanes' width (--fold-workers): as asked; else one thread of the driver, with either executor: two
+    threads fold no faster than one, and one Ray task lane holds the driver up more than it relieves it
+    (docs/performance.md, "The fold in lanes"); Ray's lanes are tasks on the nodes only when asked for."""
     if requested is not None:
         if isinstance(requested, bool) or not isinstance(requested, int) or requested < 1:
             raise ConfigError(f"batch: fold_workers = {requested!r}: give a whole number of fold lanes, at least 1 (or None: the default)")
         return requested
-    return max(1, workers // 4) if processes else 1
+    return 1
 
 
 def driver_bytes(options: BatchOptions, workers: int) -> int:
     """The driver's memory with its fold: the local pool's lanes are threads of the driver and hold the tiles the
     drive is passing and as many waiting to be written; a local Ray instance's fold tasks are worker processes."""
-    if options.executor == "ray":
-        return DRIVER_OVERHEAD_BYTES + fold_width(options.fold_workers, workers, processes=True) * WORKER_OVERHEAD_BYTES
+    if options.executor == "ray" and options.fold_workers is not None:
+        return DRIVER_OVERHEAD_BYTES + fold_width(options.fold_workers) * WORKER_OVERHEAD_BYTES
     return DRIVER_OVERHEAD_BYTES + 2 * FOLD_CACHE_TILES * FOLD_TILE_BYTES
 
 

@@ -82,8 +82,9 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
         executor = InlineExecutor(context)
     else:
         executor = LocalExecutor(workers, context, log=log, chunk_timeout_s=options.chunk_timeout_s)
-    width = fold_width(options.fold_workers, executor.workers, processes=ray_executor is not None)
-    lanes = ray_executor.fold_lanes(width, context) if ray_executor is not None else ThreadFoldLanes(width, context)
+    width = fold_width(options.fold_workers)
+    on_nodes = ray_executor is not None and options.fold_workers is not None  # Ray's lanes only when asked for (fold_width)
+    lanes = ray_executor.fold_lanes(width, context) if on_nodes else ThreadFoldLanes(width, context)
     folder = TileFolder(out, context, chunks, lanes, on_tile)
     try:
         stage = time.perf_counter()
