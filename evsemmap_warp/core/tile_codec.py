@@ -1,5 +1,5 @@
 """The compact voxel file of map stores (tiles and partial maps), format 3: what a map needs, exactly,
-in about 11 bytes a voxel where the map-file schema takes 230.
+in about 19 bytes a voxel where the map-file schema takes 230 (docs/formats.md).
 
 A file is ``MAGIC``, a little-endian uint32 header length, a JSON header, then one zstd frame (with
 zstd's content checksum). The
