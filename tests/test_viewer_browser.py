@@ -920,6 +920,20 @@ def _scene_changed_by(page, hide, show, threshold=40, width=900) -> np.ndarray:
     return np.abs(before - after).max(axis=2) > threshold
 
 
+def _wait_until_still(page, timeout_s=20.0, width=900) -> None:
+    """Wait until two screenshots a second apart show the same scene: a redraw the server sent (a map fading back
+    in) has reached the page, so what changes next is what the test changes."""
+    deadline = time.monotonic() + timeout_s
+    last = _image(page.screenshot())[:, :width]
+    while time.monotonic() < deadline:
+        time.sleep(1.0)
+        now = _image(page.screenshot())[:, :width]
+        if (np.abs(now - last).max(axis=2) > 40).sum() < 50:
+            return
+        last = now
+    raise AssertionError(f"the scene still changed after {timeout_s:g} s")
+
+
 def test_layers_show_the_terrain_surface_with_one_control_at_the_top(open_page, tmp_path):
     """Issue 45 item 4: with --layers the page showed the plain map (the surface under the voxels), the switch three
     controls away: now the surface is drawn instead of the voxels, and one control near the top brings them back."""
@@ -1051,7 +1065,19 @@ def test_drive_scan_shows_over_the_map(open_page, alpha_drive):
         over = scan_pixels()
         drawn_over = playback.scan_handle
         page.get_by_label("Scan over a faded map", exact=True).click()
-        assert _wait(lambda: viewer.map_fade == 0 and playback.scan_handle is not drawn_over and playback._drawn_scan is not None, 30)
+        small = 0.5 * playback.file_layer.resolution
+
+        def redrawn_small_and_settled() -> bool:
+            # the playback thread may draw the scan twice (once at the size it read before the click): the one to
+            # measure is the small one, and no other draw after it
+            handle = playback.scan_handle
+            if viewer.map_fade != 0 or handle is drawn_over or playback._drawn_scan is None or abs(handle.point_size - small) > 1e-6:
+                return False
+            time.sleep(1.5)
+            return playback.scan_handle is handle and playback._drawn_scan is not None
+
+        assert _wait(redrawn_small_and_settled, 30)
+        _wait_until_still(page)  # and the page shows it
         under = scan_pixels()
         assert over > 2000 and over > 3 * under, f"the scan shows in {over} pixels over the map, {under} as it was drawn before"
     finally:
