@@ -171,7 +171,9 @@ def test_a_node_stopped_mid_run_costs_its_chunks_a_retry_and_nothing_else(cluste
     cluster.stop(cluster.node)
     summary, err = _finish(driver)
     _assert_same_bytes(cluster.stores / "default_local", out)
-    assert "will be retried" in err  # Ray's own notice (on stderr: stdout carries the summary alone) of the lost node's task
+    # Ray's own notice (on stderr: stdout carries the summary alone) of the lost node's work: a task still running
+    # "will be retried"; a task done whose result lived on the node is run again ("Attempting to recover lost objects")
+    assert re.search(r"will be retried|Attempting to recover", err), err[-2000:]
     assert sum(summary["cluster"]["chunks_per_node"].values()) == summary["chunks"]
 
 
