@@ -569,6 +569,40 @@ def test_pool_workers_start_with_math_libraries_at_their_share_of_the_cores(driv
     assert "OPENBLAS_NUM_THREADS" not in os.environ and os.environ["MKL_NUM_THREADS"] == "3"
 
 
+def test_a_pool_worker_that_dies_as_it_starts_fails_the_run_and_never_hangs_it(drive, tmp_path):
+    """A script that starts a pool at its top level, with no ``if __name__ == "__main__":``: each worker runs the
+    script again as it starts and dies there, before reading what the driver sends it. The driver wrote the run's
+    context into the worker's start-up pipe; a context larger than the pipe holds (a drive of 300 frames or more)
+    left the driver blocked on that write for ever. The run now fails, saying why, in bounded time."""
+    script = tmp_path / "unguarded.py"
+    script.write_text(f"""
+import os
+from pathlib import Path
+from evsemmap_warp.apps import batch
+from evsemmap_warp.apps.batch import BatchOptions
+store = Path({str(tmp_path / "store")!r})
+_, sources, config, _, _ = batch.plan_batch([{str(drive)!r}], BatchOptions(method="ebs", out=store))
+origin_index, class_names, *_ = batch.probe(sources, config)
+context = batch.Context(store, sources, config, sources[0].num_classes, class_names, origin_index, 256)
+context.sources_as_large_as_a_long_drive_s = bytes(1 << 20)
+executor = batch.LocalExecutor(1, context, retries=1)
+try:
+    executor.run(os.getenv, [("HOME",)], lambda item, value: None)
+finally:
+    executor.close()
+""")
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    try:
+        done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=180, cwd=tmp_path,
+                              env={**os.environ, "TMPDIR": str(scratch)})
+    except subprocess.TimeoutExpired:
+        pytest.fail("the driver hung on a worker that died as it started")
+    assert done.returncode != 0
+    assert "a worker died 2 times" in done.stderr and 'if __name__ == "__main__"' in done.stderr, done.stderr[-3000:]
+    assert not list(scratch.iterdir())  # the context's file is gone with the pool
+
+
 def test_pool_workers_of_a_run_without_a_network_do_not_import_torch(drive, tmp_path):
     """Importing torch costs a worker process about 1.5 s of CPU, out of the mapping's time where the
     workers share the cores; only scans labelled by a checkpoint need it."""

@@ -5,6 +5,8 @@ another) and LocalExecutor (a process pool). The Ray executor is ray_executor.Ra
 from __future__ import annotations
 
 import os
+import pickle
+import tempfile
 import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -61,6 +63,7 @@ class LocalExecutor:
         self._mp = multiprocessing.get_context("spawn")  # no fork of a process with Warp and threads loaded
         self._threads = max(1, (os.cpu_count() or 1) // workers)
         self._pool = None
+        self._context_path: str | None = None
 
     def _submit(self, fn, item):
         """Submit a task; a worker process started by it starts with Ctrl-C ignored (the setting passes
@@ -86,7 +89,15 @@ class LocalExecutor:
                 signal.signal(signal.SIGINT, previous)
 
     def _new_pool(self):
-        return ProcessPoolExecutor(self.workers, mp_context=self._mp, initializer=init_worker, initargs=(self.context, self._threads))
+        """A pool whose workers read the context from a file. Passed as the initializer's argument, it would be
+        written into each worker's start-up pipe, and a worker that dies as it starts (a script that starts a pool
+        with no ``if __name__ == "__main__":`` runs itself again there) never reads it: a context larger than the
+        pipe holds (the sources of a drive of 300 frames or more) then blocked the driver's write for ever."""
+        if self._context_path is None:
+            with tempfile.NamedTemporaryFile(prefix="evsemmap-batch-context-", suffix=".pickle", delete=False) as file:
+                pickle.dump(self.context, file, protocol=pickle.HIGHEST_PROTOCOL)
+            self._context_path = file.name
+        return ProcessPoolExecutor(self.workers, mp_context=self._mp, initializer=_start_worker, initargs=(self._context_path, self._threads))
 
     def run(self, fn, items: list, on_done) -> None:
         """``fn(*item)`` for every item, at most two per worker in flight; ``on_done(item, result)``."""
@@ -122,7 +133,9 @@ class LocalExecutor:
                 for item in pending:
                     attempts[order[id(item)]] += 1
                     if attempts[order[id(item)]] > self.retries:
-                        raise RuntimeError(f"batch: a worker died {self.retries + 1} times running {item[0]}; giving up")
+                        raise RuntimeError(f"batch: a worker died {self.retries + 1} times running {item[0]}; giving up (one that "
+                                           f"died as it started printed why above; a script that starts a batch does so under "
+                                           f'if __name__ == "__main__":)')
                 self.log(f"a worker died; a new pool runs the {len(pending)} unfinished task(s) again")
 
     def _interrupt_workers(self) -> None:
@@ -140,16 +153,25 @@ class LocalExecutor:
     def close(self) -> None:
         """Stop the pool's workers (tasks not started are cancelled). After a run that finished they are idle and
         exit at once; after a failure a worker may still be in a task, or stuck in one: it gets CLOSE_GRACE_S to
-        end, then is interrupted as on Ctrl-C (the pool's own shutdown(wait=True) waits for its tasks without bound)."""
-        if self._pool is None:
-            return
-        processes = self._processes()
-        self._pool.shutdown(wait=False, cancel_futures=True)
-        self._pool = None
-        deadline = time.monotonic() + CLOSE_GRACE_S
-        for process in processes:
-            process.join(max(0.0, deadline - time.monotonic()))
-        _interrupt([process for process in processes if process.is_alive()])
+        end, then is interrupted as on Ctrl-C (the pool's own shutdown(wait=True) waits for its tasks without bound).
+        The context's file goes with them."""
+        if self._pool is not None:
+            processes = self._processes()
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+            deadline = time.monotonic() + CLOSE_GRACE_S
+            for process in processes:
+                process.join(max(0.0, deadline - time.monotonic()))
+            _interrupt([process for process in processes if process.is_alive()])
+        if self._context_path is not None:
+            os.unlink(self._context_path)
+            self._context_path = None
+
+
+def _start_worker(context_path: str, threads: int) -> None:
+    with open(context_path, "rb") as file:
+        context = pickle.load(file)
+    init_worker(context, threads)
 
 
 def _interrupt(processes: list) -> None:

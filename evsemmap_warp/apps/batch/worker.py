@@ -36,7 +36,7 @@ class FaultPlan:
 
 @dataclass
 class Context:
-    """What every task needs; sent once to each worker (a process pool's initializer, a Ray object)."""
+    """What every task needs; sent once to each worker (a file a process pool's workers read as they start, a Ray object)."""
 
     store: Path
     sources: list
