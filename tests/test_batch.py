@@ -502,6 +502,20 @@ def test_export_bounds_info_merge_and_view_of_stores(tmp_path, capsys):
         viewer.server.stop()
 
 
+def test_a_rerun_after_the_learned_lengths_changed_is_refused_not_mixed(drive, tmp_path):
+    """The mapping names the lengths' file; the same name with other lengths in it would have resumed, adding chunks
+    mapped with the new gains to those mapped with the old."""
+    lengths, settings = tmp_path / "lengths.json", tmp_path / "learned.yaml"
+    settings.write_text(f"mapping:\n  convbki:\n    lengths_file: {lengths}\n")
+    classes = open_dataset(load_config([str(drive)]).dataset).num_classes
+    lengths.write_text(json.dumps({"ell_h": [0.5] * classes, "ell_z": [0.5] * classes}))
+    _batch([drive, settings], tmp_path / "store", "ebs-learned", executor="inline", chunk_frames=2)
+    _batch([drive, settings], tmp_path / "store", "ebs-learned", executor="inline", chunk_frames=2)  # the same lengths: resumes
+    lengths.write_text(json.dumps({"ell_h": [0.3] + [0.5] * (classes - 1), "ell_z": [0.5] * classes}))
+    with pytest.raises(ConfigError, match=r"holds a batch run of other inputs or settings \(differing: learned_lengths\)"):
+        _batch([drive, settings], tmp_path / "store", "ebs-learned", executor="inline", chunk_frames=2)
+
+
 def test_configurations_that_cannot_work_stop_before_any_work(drive, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(planning, "available_memory", lambda: 1 << 30)
     # the automatic chunk size is named as such; not even one-scan chunks fit 4 workers in 1 GB, so only fewer workers help
