@@ -202,7 +202,7 @@ def test_the_ray_executor_on_a_local_instance_it_starts_and_stops(drive, tmp_pat
     _batch([drive], tmp_path / "inline", executor="inline", chunk_frames=2)
     # what a task of an earlier run into the store left in the scratch folder, under a process that runs on: no task
     # removes it (remove_dead_tasks_leftovers), the local instance's close does (its node is this machine)
-    left = ray_executor.node_scratch(tmp_path / "ray") / "work" / f".chunk_000001.{os.getpid()}.tmp"
+    left = ray_executor.node_scratch(tmp_path / "ray") / "work" / f".chunk_000001.{batch.worker.process_tag()}.tmp"
     left.mkdir(parents=True)
     summary = _batch([drive], tmp_path / "ray", executor="ray", workers=2, chunk_frames=2)
     assert summary["executor"] == "ray" and summary["workers"] == 2

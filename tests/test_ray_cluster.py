@@ -17,7 +17,7 @@ from conftest import REPO
 
 import evsemmap_warp
 import evsemmap_warp.files
-from evsemmap_warp.apps.batch import BatchOptions, ray_executor, run_batch
+from evsemmap_warp.apps.batch import BatchOptions, ray_executor, run_batch, worker
 from evsemmap_warp.synthetic.preset import load_preset
 from evsemmap_warp.synthetic.writer import generate_sequence
 
@@ -230,13 +230,17 @@ def test_a_node_without_an_input_the_probe_found_on_every_node_is_named_with_the
 
 def test_what_killed_tasks_left_in_a_nodes_scratch_folder_goes_with_its_next_task(tmp_path):
     """A task killed on a node (a stuck one cancelled, a worker out of memory) leaves its temporary chunk folder in the
-    node's scratch folder, which then never emptied, and stayed; the next task there removes it, not a live task's."""
+    node's scratch folder, which then never emptied, and stayed; the next task there removes it, not a live task's,
+    and not one of a process in another PID namespace (another node's, sharing the folder), dead here or not."""
+    namespace, me = worker.process_tag().split("-")
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True, check=True).stdout.strip()
-    (tmp_path / "work" / f".chunk_000003.{dead}.tmp").mkdir(parents=True)
-    (tmp_path / "work" / f".chunk_000003.{dead}.tmp" / "0_0_0.vox").write_bytes(b"half a file")
-    (tmp_path / "work" / f".chunk_000004.{os.getpid()}.tmp").mkdir()
+    (tmp_path / "work" / f".chunk_000003.{namespace}-{dead}.tmp").mkdir(parents=True)
+    (tmp_path / "work" / f".chunk_000003.{namespace}-{dead}.tmp" / "0_0_0.vox").write_bytes(b"half a file")
+    alive = [f".chunk_000004.{namespace}-{me}.tmp", f".chunk_000005.{int(namespace) + 1}-{dead}.tmp"]
+    for name in alive:
+        (tmp_path / "work" / name).mkdir()
     ray_executor.remove_dead_tasks_leftovers(tmp_path)
-    assert [p.name for p in (tmp_path / "work").iterdir()] == [f".chunk_000004.{os.getpid()}.tmp"]
+    assert sorted(p.name for p in (tmp_path / "work").iterdir()) == sorted(alive)
 
 
 def test_a_full_object_store_is_one_line_saying_what_to_change():

@@ -32,7 +32,7 @@ from ...limits import CHUNK_TIMEOUT_S, RAY_CONNECT_TIMEOUT_S
 from .executors import MATH_THREAD_VARIABLES, stuck_error
 from .reduction import decode_tile, fold_partials
 from .store import chunk_dir
-from .worker import Context, handoff_recorder, init_worker, reset_tasks_started
+from .worker import Context, handoff_recorder, init_worker, process_tag, reset_tasks_started
 
 # While waiting for chunks, the driver asks the head every HEAD_CHECK_S whether it still answers, and stops in one line
 # when it has not for HEAD_SILENT_S (Ray itself ends the driver after 60 s, without a line of ours).
@@ -118,11 +118,14 @@ def probe_node(paths: list[str]) -> dict:
 
 def remove_dead_tasks_leftovers(scratch: Path) -> None:
     """What tasks killed on this node (a stuck task cancelled, a worker out of memory) left in its scratch folder
-    ``scratch``: their temporary chunk folders, each named by its process (map_chunk), removed once that process is
-    gone; a live task's are its own. With them gone the folder empties, and the task that leaves it so removes it."""
+    ``scratch``: their temporary chunk folders, each named by its process (worker.process_tag), removed once that
+    process is gone; a live task's are its own, and those of processes in another PID namespace (another node's, in a
+    container sharing the folder) are that node's to judge. With them gone the folder empties, and the task that
+    leaves it so removes it."""
+    namespace = process_tag().split("-")[0]
     for leftover in (scratch / "work").glob(".chunk_*.tmp"):
-        pid = leftover.name.split(".")[2]
-        if pid.isdigit() and not _process_runs(int(pid)):
+        their_namespace, _, pid = leftover.name.split(".")[2].partition("-")
+        if their_namespace == namespace and pid.isdigit() and not _process_runs(int(pid)):
             shutil.rmtree(leftover, ignore_errors=True)
 
 

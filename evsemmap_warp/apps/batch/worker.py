@@ -129,6 +129,17 @@ def init_worker(context: Context, threads: int) -> None:
         torch.set_num_threads(threads)  # workers share the cores: no worker's inference takes them all
 
 
+def process_tag() -> str:
+    """This process as a chunk's temporary folder names it: its PID namespace and its PID (``NAMESPACE-PID``). Nodes
+    in containers may share a temporary folder while each has PIDs of its own: a PID alone would name another
+    node's live task as a dead one of this node (ray_executor.remove_dead_tasks_leftovers)."""
+    try:
+        namespace = os.stat("/proc/self/ns/pid").st_ino
+    except OSError:  # no /proc (not Linux): one namespace
+        namespace = 0
+    return f"{namespace}-{os.getpid()}"
+
+
 def peak_rss_mb() -> float:
     """This process's peak resident memory so far, in MB (Linux's ru_maxrss is in KiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -184,7 +195,7 @@ def map_chunk(chunk: Chunk, context: Context | None = None) -> dict:
     done = chunk_dir(context.store, chunk.number)
     if (done / "done.json").is_file():  # a retried task whose first attempt finished after all
         return read_done(context.store, chunk) | {"seconds": 0.0, "stage_seconds": {}, "peak_rss_mb": peak_rss_mb()}
-    partial = context.store / "work" / f".chunk_{chunk.number:06d}.{os.getpid()}.tmp"
+    partial = context.store / "work" / f".chunk_{chunk.number:06d}.{process_tag()}.tmp"
     shutil.rmtree(partial, ignore_errors=True)
     _inject_fault(context, chunk, partial)
     source = context.sources[chunk.sequence]
