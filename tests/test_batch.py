@@ -9,6 +9,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -585,9 +586,9 @@ def test_pool_workers_start_with_math_libraries_at_their_share_of_the_cores(driv
 
 def test_a_pool_worker_that_dies_as_it_starts_fails_the_run_and_never_hangs_it(drive, tmp_path):
     """A script that starts a pool at its top level, with no ``if __name__ == "__main__":``: each worker runs the
-    script again as it starts and dies there, before reading what the driver sends it. The driver wrote the run's
-    context into the worker's start-up pipe; a context larger than the pipe holds (a drive of 300 frames or more)
-    left the driver blocked on that write for ever. The run now fails, saying why, in bounded time."""
+    script again as it starts and dies there, before reading what the driver sends it: a context larger than a pipe
+    holds (a drive of 300 frames or more), written into its start-up pipe, would block the driver for ever. The run
+    fails, saying why, in bounded time."""
     script = tmp_path / "unguarded.py"
     script.write_text(f"""
 import os
@@ -615,6 +616,16 @@ finally:
     assert done.returncode != 0
     assert "a worker died 2 times" in done.stderr and 'if __name__ == "__main__"' in done.stderr, done.stderr[-3000:]
     assert not list(scratch.iterdir())  # the context's file is gone with the pool
+
+
+def test_a_temporary_folder_the_pools_context_cannot_go_to_is_named(drive, tmp_path, monkeypatch):
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "absent"))
+    executor = batch.LocalExecutor(1, _pool_context(drive, tmp_path / "store"))
+    try:
+        with pytest.raises(OSError, match=r"writing the run's context for the pool's workers; TMPDIR sets the folder.*absent"):
+            executor.run(os.getenv, [("HOME",)], lambda item, value: None)
+    finally:
+        executor.close()
 
 
 def test_pool_workers_of_a_run_without_a_network_do_not_import_torch(drive, tmp_path):

@@ -58,11 +58,11 @@ def _assert_same_bytes(a: Path, b: Path) -> None:
     assert [name for name in files_a if files_a[name] != files_b[name]] == []
 
 
-def _driver(cluster, out, drive=None, chunk_frames=1, address=None) -> subprocess.Popen:
-    """``evsemmap batch`` of ``drive`` (default: the tiny drive) on the cluster (joined at ``address``, default the head's), two
-    workers."""
-    command = [sys.executable, "-m", "evsemmap_warp", "batch", str(drive or cluster.data / "drive"), "--method", "ebs", "--out", str(out),
-               "--executor", "ray", "--ray-address", address or cluster.address, "--workers", "2", "--quiet"]
+def _driver(cluster, out, drive=None, chunk_frames=1, address=None, settings=(), method="ebs") -> subprocess.Popen:
+    """``evsemmap batch`` of ``drive`` (default: the tiny drive) and ``settings`` (config files) on the cluster (joined at
+    ``address``, default the head's), two workers."""
+    command = [sys.executable, "-m", "evsemmap_warp", "batch", str(drive or cluster.data / "drive"), *map(str, settings), "--method", method,
+               "--out", str(out), "--executor", "ray", "--ray-address", address or cluster.address, "--workers", "2", "--quiet"]
     command += ["--chunk-frames", str(chunk_frames)] if chunk_frames else []
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ | cluster.env)
 
@@ -113,6 +113,8 @@ def test_a_cluster_whose_second_node_sees_no_files_writes_the_local_pools_store(
 def test_a_driver_joined_through_ray_client_writes_the_local_pools_store(cluster):
     """--ray-address ray://host:port (the head's Ray Client server, pip install "evsemmap_warp[ray]"), as from a
     laptop outside the cluster: the same store, the second node sent its chunks' scans."""
+    if cluster.client_address is None:
+        pytest.skip('Ray Client is not installed (pip install "evsemmap_warp[ray]" installs it)')
     out = cluster.stores / "client"
     summary, _ = _finish(_driver(cluster, out, address=cluster.client_address))
     _assert_same_bytes(cluster.stores / "local", out)
@@ -132,6 +134,20 @@ def test_replicated_inputs_are_read_at_the_same_path(cluster):
         if len(summary["cluster"]["chunks_per_node"]) == 2:
             break
     assert len(summary["cluster"]["chunks_per_node"]) == 2  # the node with the copy mapped chunks from it
+
+
+def test_a_node_without_the_learned_lengths_is_refused_at_the_start_naming_it(cluster):
+    """Workers read the learned lengths (ebs-learned, convbki) at the mapping's path, also where the driver sends the
+    scans: a node without them, or with other lengths there, would fail or map with other gains."""
+    classes = len(json.loads((cluster.stores / "local" / "store.json").read_text())["classes"])
+    lengths, settings = cluster.data / "lengths.json", cluster.data / "learned.yaml"
+    lengths.write_text(json.dumps({"ell_h": [0.5] * classes, "ell_z": [0.5] * classes}))
+    settings.write_text(f"mapping:\n  convbki:\n    lengths_file: {lengths}\n")
+    out = cluster.stores / "learned"
+    line = _failure(_driver(cluster, out, settings=[settings], method="ebs-learned"))
+    assert re.search(rf"node .* does not see the learned lengths {re.escape(str(lengths))} .*give every node that file at the same path",
+                     line), line
+    assert not list(out.rglob("chunk_*"))
 
 
 @pytest.mark.parametrize("version, said", [
@@ -232,11 +248,11 @@ def test_what_killed_tasks_left_in_a_nodes_scratch_folder_goes_with_its_next_tas
     """A task killed on a node (a stuck one cancelled, a worker out of memory) leaves its temporary chunk folder in the
     node's scratch folder, which then never emptied, and stayed; the next task there removes it, not a live task's,
     and not one of a process in another PID namespace (another node's, sharing the folder), dead here or not."""
-    namespace, me = worker.process_tag().split("-")
+    namespace, _, me = worker.process_tag().rpartition("-")
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True, check=True).stdout.strip()
     (tmp_path / "work" / f".chunk_000003.{namespace}-{dead}.tmp").mkdir(parents=True)
     (tmp_path / "work" / f".chunk_000003.{namespace}-{dead}.tmp" / "0_0_0.vox").write_bytes(b"half a file")
-    alive = [f".chunk_000004.{namespace}-{me}.tmp", f".chunk_000005.{int(namespace) + 1}-{dead}.tmp"]
+    alive = [f".chunk_000004.{namespace}-{me}.tmp", f".chunk_000005.{namespace}1-{dead}.tmp"]  # ...1: another namespace
     for name in alive:
         (tmp_path / "work" / name).mkdir()
     ray_executor.remove_dead_tasks_leftovers(tmp_path)

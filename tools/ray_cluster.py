@@ -10,6 +10,7 @@ process of the machine, other runs' too."""
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import secrets
 import shutil
@@ -45,7 +46,7 @@ def _free_port() -> int:
 
 class TwoNodeCluster:
     """The head and a second node (``node``), one CPU and ``object_store_bytes`` of object store each; the second node
-    sees none of ``hidden`` (each an empty tmpfs there). ``address`` joins it, and ``client_address`` through Ray Client;
+    sees none of ``hidden`` (each an empty tmpfs there). ``address`` joins it, and ``client_address`` through Ray Client (None without ray[client]);
     ``env``: what a driver needs in its environment to join (the token)."""
 
     def __init__(self, hidden: list[Path], object_store_bytes: int = OBJECT_STORE_BYTES):
@@ -55,13 +56,14 @@ class TwoNodeCluster:
         self.temp_dir = Path(tempfile.mkdtemp(prefix="evr"))
         self.port = _free_port()
         self.address = f"127.0.0.1:{self.port}"
-        self.client_port = _free_port()
-        self.client_address = f"ray://127.0.0.1:{self.client_port}"  # the head's Ray Client server (ray[client])
+        # the head's Ray Client server, where ray[client] (grpcio) is installed: without it `ray start` refuses the port
+        client_port = _free_port() if importlib.util.find_spec("grpc") else None
+        self.client_address = f"ray://127.0.0.1:{client_port}" if client_port else None
         self.env = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
         self.started = 0
         self.head = self.node = None
-        self.head = self._start(["--head", "--port", str(self.port), "--ray-client-server-port", str(self.client_port), "--include-dashboard",
-                                 "false", "--temp-dir", str(self.temp_dir)])
+        client = ["--ray-client-server-port", str(client_port)] if client_port else []
+        self.head = self._start(["--head", "--port", str(self.port), *client, "--include-dashboard", "false", "--temp-dir", str(self.temp_dir)])
         self.node = self.start_node()
 
     def _start(self, flags: list[str], shell: str = "") -> subprocess.Popen:

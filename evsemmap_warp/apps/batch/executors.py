@@ -11,7 +11,9 @@ import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
 
+from ... import files
 from ...limits import CHUNK_TIMEOUT_S
 from .worker import Context, as_task, init_worker
 
@@ -47,6 +49,16 @@ def stuck_error(timeout_s: float, what: str = "chunk") -> TimeoutError:
     stuck): the chunks mapped so far stay."""
     return TimeoutError(f"no {what} finished in {timeout_s:g} s (--chunk-timeout-s): a worker or a node is stuck; "
                         "the chunks mapped so far are kept, and a rerun resumes from them")
+
+
+class WorkersDied(OSError):
+    """A chunk whose worker died every time it ran (out of memory, killed), or workers that died as they started: one
+    line (an OSError, as the command line reports it)."""
+
+    def __init__(self, times: int, task, any_finished: bool):
+        why = "" if any_finished else (" (no task finished: a worker that dies as it starts prints why above; a script that starts "
+                                       'a batch does so under if __name__ == "__main__":)')
+        super().__init__(f"batch: a worker died {times} times running {task}; giving up{why}")
 
 
 class LocalExecutor:
@@ -89,15 +101,30 @@ class LocalExecutor:
                 signal.signal(signal.SIGINT, previous)
 
     def _new_pool(self):
-        """A pool whose workers read the context from a file. Passed as the initializer's argument, it would be
-        written into each worker's start-up pipe, and a worker that dies as it starts (a script that starts a pool
-        with no ``if __name__ == "__main__":`` runs itself again there) never reads it: a context larger than the
-        pipe holds (the sources of a drive of 300 frames or more) then blocked the driver's write for ever."""
+        """A pool whose workers read the context from a file (_start_worker)."""
         if self._context_path is None:
-            with tempfile.NamedTemporaryFile(prefix="evsemmap-batch-context-", suffix=".pickle", delete=False) as file:
-                pickle.dump(self.context, file, protocol=pickle.HIGHEST_PROTOCOL)
-            self._context_path = file.name
+            self._context_path = self._write_context()
         return ProcessPoolExecutor(self.workers, mp_context=self._mp, initializer=_start_worker, initargs=(self._context_path, self._threads))
+
+    def _write_context(self) -> str:
+        """The context, pickled into a file of the temporary folder (its path). Not the initializer's argument: that
+        goes into each worker's start-up pipe, whose write blocks until the worker reads it, and a worker that dies as it
+        starts (a script that starts a pool with no ``if __name__ == "__main__":`` runs itself again there) never reads
+        more than a pipe holds, 64 KiB; the sources of a drive of 300 frames or more are more."""
+        what = "writing the run's context for the pool's workers; TMPDIR sets the folder"
+        try:
+            descriptor, path = tempfile.mkstemp(prefix="evsemmap-batch-context-", suffix=".pickle")
+        except OSError as exc:
+            raise files.error_naming(exc, tempfile.gettempdir(), what) from None
+        try:
+            with os.fdopen(descriptor, "wb") as file:
+                pickle.dump(self.context, file, protocol=pickle.HIGHEST_PROTOCOL)
+        except BaseException as exc:
+            Path(path).unlink(missing_ok=True)
+            if isinstance(exc, OSError):
+                raise files.error_naming(exc, tempfile.gettempdir(), what) from None
+            raise
+        return path
 
     def run(self, fn, items: list, on_done) -> None:
         """``fn(*item)`` for every item, at most two per worker in flight; ``on_done(item, result)``."""
@@ -133,9 +160,7 @@ class LocalExecutor:
                 for item in pending:
                     attempts[order[id(item)]] += 1
                     if attempts[order[id(item)]] > self.retries:
-                        raise RuntimeError(f"batch: a worker died {self.retries + 1} times running {item[0]}; giving up (one that "
-                                           f"died as it started printed why above; a script that starts a batch does so under "
-                                           f'if __name__ == "__main__":)')
+                        raise WorkersDied(self.retries + 1, item[0], any_finished=len(pending) < len(items))
                 self.log(f"a worker died; a new pool runs the {len(pending)} unfinished task(s) again")
 
     def _interrupt_workers(self) -> None:
@@ -155,20 +180,24 @@ class LocalExecutor:
         exit at once; after a failure a worker may still be in a task, or stuck in one: it gets CLOSE_GRACE_S to
         end, then is interrupted as on Ctrl-C (the pool's own shutdown(wait=True) waits for its tasks without bound).
         The context's file goes with them."""
-        if self._pool is not None:
-            processes = self._processes()
-            self._pool.shutdown(wait=False, cancel_futures=True)
-            self._pool = None
-            deadline = time.monotonic() + CLOSE_GRACE_S
-            for process in processes:
-                process.join(max(0.0, deadline - time.monotonic()))
-            _interrupt([process for process in processes if process.is_alive()])
-        if self._context_path is not None:
-            os.unlink(self._context_path)
-            self._context_path = None
+        try:
+            if self._pool is not None:
+                processes = self._processes()
+                self._pool.shutdown(wait=False, cancel_futures=True)
+                self._pool = None
+                deadline = time.monotonic() + CLOSE_GRACE_S
+                for process in processes:
+                    process.join(max(0.0, deadline - time.monotonic()))
+                _interrupt([process for process in processes if process.is_alive()])
+        finally:
+            if self._context_path is not None:
+                Path(self._context_path).unlink(missing_ok=True)  # a cleaner of the temporary folder may have been first
+                self._context_path = None
 
 
 def _start_worker(context_path: str, threads: int) -> None:
+    """A pool worker's initializer: the context from its file (LocalExecutor._write_context says why a file), then
+    init_worker."""
     with open(context_path, "rb") as file:
         context = pickle.load(file)
     init_worker(context, threads)

@@ -159,9 +159,9 @@ def plan_batch(paths: list[str], options: BatchOptions):
         "frame": sources[0].frame.as_dict(),
         "payload": {"checkpoint": _input_identity([str(options.checkpoint)]) if options.checkpoint else None,
                     "alpha": _input_identity([str(options.alpha)]) if options.alpha else None, "bin_frames": options.bin_frames},
-        # the mapping names the learned lengths' file (convbki, ebs-learned); a resume must find the same lengths in it
-        "learned_lengths": _input_identity([config.convbki.lengths_file]) if config.convbki.lengths_file else None,
     }
+    if config.convbki.lengths_file:  # the mapping names the learned lengths' file (convbki, ebs-learned): a resume needs the same lengths
+        identity["learned_lengths"] = _input_identity([config.convbki.lengths_file])
     held = {}  # the same drive twice (one path given twice, or a copy) would count every scan twice
     for text, run, entry in zip(inputs, runs, identity["inputs"]):
         data = {str(p.resolve()) for p in (run.dataset.resolve_logs() if run.dataset.kind == "bag" else [run.dataset.resolve_path()])}

@@ -122,9 +122,9 @@ def remove_dead_tasks_leftovers(scratch: Path) -> None:
     process is gone; a live task's are its own, and those of processes in another PID namespace (another node's, in a
     container sharing the folder) are that node's to judge. With them gone the folder empties, and the task that
     leaves it so removes it."""
-    namespace = process_tag().split("-")[0]
+    namespace = process_tag().rpartition("-")[0]
     for leftover in (scratch / "work").glob(".chunk_*.tmp"):
-        their_namespace, _, pid = leftover.name.split(".")[2].partition("-")
+        their_namespace, _, pid = leftover.name.split(".")[2].rpartition("-")
         if their_namespace == namespace and pid.isdigit() and not _process_runs(int(pid)):
             shutil.rmtree(leftover, ignore_errors=True)
 
@@ -199,7 +199,7 @@ def _ray_task(fn, threads: int, context_box: list, submitted: float, sent: SentS
 def write_chunk_files(store: Path, number: int, chunk_files: dict[str, bytes]) -> None:
     """A chunk's files, as a task returned them, written into the store's ``work/`` as map_chunk writes them: under a
     temporary folder renamed into place, so the chunk counts all of it or nothing."""
-    temporary = store / "work" / f".chunk_{number:06d}.{os.getpid()}.tmp"
+    temporary = store / "work" / f".chunk_{number:06d}.{process_tag()}.tmp"
     shutil.rmtree(temporary, ignore_errors=True)
     try:
         for name, data in chunk_files.items():
@@ -414,19 +414,25 @@ class RayExecutor:
         then put the run's context in Ray's object store, once for all tasks."""
         self.context, self.read_seconds = context, 0.0
         inputs = probed_inputs(identity)
-        nodes, self.inputs, why = self._choose_inputs(inputs)
+        nodes, self.inputs, why = self._choose_inputs(inputs, learned_lengths(identity))
         self.log(f"inputs: {self.inputs} ({why})")
         self.cluster = {"nodes": nodes, "inputs": self.inputs, "inputs_why": why, "chunks_per_node": Counter()}
         probed = list(inputs) if self.inputs == SAME_PATH and not self.own_instance else None
         self.context_box = [self._put(context), scratch_name(context.store), probed]
         return self
 
-    def _choose_inputs(self, inputs: dict) -> tuple[int, str, str]:
+    def _choose_inputs(self, inputs: dict, required: dict | None = None) -> tuple[int, str, str]:
         """The nodes, how the inputs reach their workers (SAME_PATH or FROM_DRIVER) and why: at the same path when
-        every node sees ``inputs`` (path -> the plan's content identity) there with the same content (probe_node)."""
+        every node sees ``inputs`` (path -> the plan's content identity) there with the same content (probe_node).
+        ``required``: files every node must see so (the learned lengths, which workers read by the mapping's path)."""
         if self.own_instance:  # its one node is this machine, in this process's view of the files: nothing to probe
             return 1, SAME_PATH, "a local Ray instance, started by this run: this machine's files"
-        nodes = self._probe(inputs)
+        nodes = self._probe(inputs | (required or {}))
+        for node in nodes:
+            for path, entry in (required or {}).items():
+                if not _same_content(node["inputs"][path], entry):
+                    raise ClusterError(f"node {node['node']} does not see the learned lengths {path} (mapping.convbki.lengths_file) "
+                                       f"with the driver's content: give every node that file at the same path")
         missing = [(node, path) for node in nodes for path, entry in inputs.items() if not _same_content(node["inputs"][path], entry)]
         if not missing:
             return len(nodes), SAME_PATH, f"every node ({len(nodes)}) sees the inputs at the driver's paths, with the same content"
@@ -588,6 +594,11 @@ def probed_inputs(identity: dict) -> dict:
     payload = [entries for entries in identity["payload"].values() if isinstance(entries, list)]  # checkpoint, alpha files
     entries = [e for entries in identity["inputs"] + payload for e in entries]
     return {e["path"]: e for e in entries if "path" in e and Path(e["path"]).suffix not in (".yaml", ".yml")}
+
+
+def learned_lengths(identity: dict) -> dict:
+    """The learned lengths' file a plan's identity records (convbki, ebs-learned): path -> its content identity."""
+    return {e["path"]: e for e in identity.get("learned_lengths") or [] if "path" in e}
 
 
 def _same_content(seen: dict, expected: dict) -> bool:

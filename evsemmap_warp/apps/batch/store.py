@@ -78,7 +78,7 @@ def check_store(out: Path, identity: dict) -> None:
             raise ConfigError(f"{out}: a store of format {earlier.get('store_format_version', 1)}, written by an older evsemmap_warp; "
                               f"this version writes and reads format {identity['store_format_version']}: give a new --out to map again")
         if earlier != identity:
-            differing = sorted(k for k in set(earlier) | set(identity) if earlier.get(k) != identity.get(k))
+            differing = sorted(k for k in set(earlier) | set(identity) if k not in earlier or k not in identity or earlier[k] != identity[k])
             raise ConfigError(f"{out}: holds a batch run of other inputs or settings (differing: {', '.join(differing)}); "
                               f"give a new --out, or delete {out} to start over")
     elif (out / map_store.INDEX_NAME).is_file() and _store_format(out) != map_store.STORE_VERSION:

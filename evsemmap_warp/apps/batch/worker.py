@@ -130,14 +130,16 @@ def init_worker(context: Context, threads: int) -> None:
 
 
 def process_tag() -> str:
-    """This process as a chunk's temporary folder names it: its PID namespace and its PID (``NAMESPACE-PID``). Nodes
-    in containers may share a temporary folder while each has PIDs of its own: a PID alone would name another
-    node's live task as a dead one of this node (ray_executor.remove_dead_tasks_leftovers)."""
+    """This process as a chunk's temporary folder names it: its machine's boot, its PID namespace and its PID
+    (``BOOT_NAMESPACE-PID``). Nodes in containers, or on other machines, may share a temporary folder while each has
+    PIDs of its own: a PID alone would name another node's live task as a dead one of this node
+    (ray_executor.remove_dead_tasks_leftovers). Namespace numbers repeat across machines; boot ids do not."""
     try:
+        boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip()[:8]
         namespace = os.stat("/proc/self/ns/pid").st_ino
-    except OSError:  # no /proc (not Linux): one namespace
-        namespace = 0
-    return f"{namespace}-{os.getpid()}"
+    except OSError:  # no /proc (not Linux): one machine's one namespace, as far as this can tell
+        boot, namespace = "0", 0
+    return f"{boot}_{namespace}-{os.getpid()}"
 
 
 def peak_rss_mb() -> float:
