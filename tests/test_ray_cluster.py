@@ -58,11 +58,10 @@ def _assert_same_bytes(a: Path, b: Path) -> None:
     assert [name for name in files_a if files_a[name] != files_b[name]] == []
 
 
-def _driver(cluster, out, drive=None, chunk_frames=1, address=None, settings=(), method="ebs") -> subprocess.Popen:
-    """``evsemmap batch`` of ``drive`` (default: the tiny drive) and ``settings`` (config files) on the cluster (joined at
-    ``address``, default the head's), two workers."""
+def _driver(cluster, out, drive=None, chunk_frames=1, settings=(), method="ebs") -> subprocess.Popen:
+    """``evsemmap batch`` of ``drive`` (default: the tiny drive) and ``settings`` (config files) on the cluster, two workers."""
     command = [sys.executable, "-m", "evsemmap_warp", "batch", str(drive or cluster.data / "drive"), *map(str, settings), "--method", method,
-               "--out", str(out), "--executor", "ray", "--ray-address", address or cluster.address, "--workers", "2", "--quiet"]
+               "--out", str(out), "--executor", "ray", "--ray-address", cluster.address, "--workers", "2", "--quiet"]
     command += ["--chunk-frames", str(chunk_frames)] if chunk_frames else []
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ | cluster.env)
 
@@ -108,17 +107,6 @@ def test_a_cluster_whose_second_node_sees_no_files_writes_the_local_pools_store(
     assert summary["cluster"]["nodes"] == 2 and summary["cluster"]["inputs"] == "from the driver"
     assert "does not see " + str(cluster.data / "drive") in summary["cluster"]["inputs_why"]
     assert len(summary["cluster"]["chunks_per_node"]) == 2  # both nodes mapped chunks
-
-
-def test_a_driver_joined_through_ray_client_writes_the_local_pools_store(cluster):
-    """--ray-address ray://host:port (the head's Ray Client server, pip install "evsemmap_warp[ray]"), as from a
-    laptop outside the cluster: the same store, the second node sent its chunks' scans."""
-    if cluster.client_address is None:
-        pytest.skip('Ray Client is not installed (pip install "evsemmap_warp[ray]" installs it)')
-    out = cluster.stores / "client"
-    summary, _ = _finish(_driver(cluster, out, address=cluster.client_address))
-    _assert_same_bytes(cluster.stores / "local", out)
-    assert summary["cluster"]["nodes"] == 2 and summary["cluster"]["inputs"] == "from the driver"
 
 
 def test_replicated_inputs_are_read_at_the_same_path(cluster):

@@ -10,7 +10,6 @@ process of the machine, other runs' too."""
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import secrets
 import shutil
@@ -46,8 +45,8 @@ def _free_port() -> int:
 
 class TwoNodeCluster:
     """The head and a second node (``node``), one CPU and ``object_store_bytes`` of object store each; the second node
-    sees none of ``hidden`` (each an empty tmpfs there). ``address`` joins it, and ``client_address`` through Ray Client (None without ray[client]);
-    ``env``: what a driver needs in its environment to join (the token)."""
+    sees none of ``hidden`` (each an empty tmpfs there). ``address`` joins it; ``env``: what a driver needs in its
+    environment to join (the token)."""
 
     def __init__(self, hidden: list[Path], object_store_bytes: int = OBJECT_STORE_BYTES):
         self.hidden = [Path(h) for h in hidden]
@@ -56,14 +55,10 @@ class TwoNodeCluster:
         self.temp_dir = Path(tempfile.mkdtemp(prefix="evr"))
         self.port = _free_port()
         self.address = f"127.0.0.1:{self.port}"
-        # the head's Ray Client server, where ray[client] (grpcio) is installed: without it `ray start` refuses the port
-        client_port = _free_port() if importlib.util.find_spec("grpc") else None
-        self.client_address = f"ray://127.0.0.1:{client_port}" if client_port else None
         self.env = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
         self.started = 0
         self.head = self.node = None
-        client = ["--ray-client-server-port", str(client_port)] if client_port else []
-        self.head = self._start(["--head", "--port", str(self.port), *client, "--include-dashboard", "false", "--temp-dir", str(self.temp_dir)])
+        self.head = self._start(["--head", "--port", str(self.port), "--include-dashboard", "false", "--temp-dir", str(self.temp_dir)])
         self.node = self.start_node()
 
     def _start(self, flags: list[str], shell: str = "") -> subprocess.Popen:
