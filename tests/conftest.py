@@ -104,3 +104,19 @@ def overfill_next_launch(monkeypatch):
         return resumed_after, launches
 
     return overfill
+
+
+def stop_reading_partials_at(monkeypatch, chunk: int):
+    """Make the batch fold stop (as on Ctrl-C) when it reads a partial of ``chunk``: a run killed halfway through
+    folding. Returns the real reader, to put back before the rerun."""
+    from evsemmap_warp.core import map_store
+
+    original = map_store.read_partial
+
+    def stop_at_chunk(path, columns, tile_voxels, identity, number):
+        if number == chunk:
+            raise KeyboardInterrupt
+        return original(path, columns, tile_voxels, identity, number)
+
+    monkeypatch.setattr(map_store, "read_partial", stop_at_chunk)
+    return original

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import REPO
+from conftest import REPO, stop_reading_partials_at
 from evsemmap_warp.apps import batch
 from evsemmap_warp.apps.batch import BatchOptions, planning, ray_executor, run_batch
 from evsemmap_warp.apps.cli import main
@@ -163,14 +163,7 @@ def test_a_run_failing_in_a_fold_lane_resumes_to_the_same_store(drive, tmp_path,
 
     _batch([drive], tmp_path / "clean", executor="inline", chunk_frames=1)
     monkeypatch.setattr(reduction, "FOLD_CACHE_TILES", 1)
-    original = map_store.read_partial
-
-    def stop_at_chunk_3(path, columns, tile_voxels, identity, chunk):
-        if chunk == 3:
-            raise KeyboardInterrupt
-        return original(path, columns, tile_voxels, identity, chunk)
-
-    monkeypatch.setattr(map_store, "read_partial", stop_at_chunk_3)
+    original = stop_reading_partials_at(monkeypatch, 3)
     with pytest.raises(KeyboardInterrupt):
         _batch([drive], tmp_path / "killed", executor="inline", chunk_frames=1, fold_workers=3)
     third = chunk_dir(tmp_path / "killed", 3)

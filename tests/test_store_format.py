@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import stop_reading_partials_at
 from evsemmap_warp.apps.batch import BatchOptions, run_batch
 from evsemmap_warp.apps.cli import main
 from evsemmap_warp.core import map_store
@@ -184,14 +185,7 @@ def test_tiles_leaving_memory_early_and_a_run_killed_while_folding_give_the_same
     summary = _batch([drive], tmp_path / "evicting", chunk_frames=1)
     assert summary["tile_writes"] > summary["tiles"]  # tiles were written before the end and folded into again
 
-    original = map_store.read_partial
-
-    def stop_at_chunk_3(path, columns, tile_voxels, identity, chunk):
-        if chunk == 3:
-            raise KeyboardInterrupt
-        return original(path, columns, tile_voxels, identity, chunk)
-
-    monkeypatch.setattr(map_store, "read_partial", stop_at_chunk_3)
+    original = stop_reading_partials_at(monkeypatch, 3)
     with pytest.raises(KeyboardInterrupt):
         _batch([drive], tmp_path / "killed", chunk_frames=1)
     assert list((tmp_path / "killed" / "tiles").glob("*.vox")) and not (tmp_path / "killed" / "store.json").exists()
