@@ -16,7 +16,7 @@ from pathlib import Path
 
 from .kernels.hash_table import INDEX_LIMIT
 
-__all__ = ["CHUNK_TIMEOUT_S", "INDEX_LIMIT", "MAX_TILE_VOXELS", "MIN_CHUNK_FRAMES", "MemoryBudgetError", "RAY_CONNECT_TIMEOUT_S",
+__all__ = ["CHUNK_TIMEOUT_S", "INDEX_LIMIT", "MAX_FOLD_LANE_RESTARTS", "MAX_TILE_VOXELS", "MIN_CHUNK_FRAMES", "MemoryBudgetError", "RAY_CONNECT_TIMEOUT_S",
            "available_memory", "check_chunk_frames", "check_memory_bytes", "check_tile_voxels", "describe_bytes", "parse_memory_size"]
 
 # A voxel index lies in [-INDEX_LIMIT, INDEX_LIMIT) on every axis (21 bits a key field, kernels/hash_table.py),
@@ -32,6 +32,9 @@ RAY_CONNECT_TIMEOUT_S = 30.0
 # How long a batch run waits for some chunk to finish before it stops as stuck (--chunk-timeout-s: a worker or node
 # that hangs); a chunk of the default size maps in seconds, one labelled by a network on the CPU in minutes.
 CHUNK_TIMEOUT_S = 3600.0
+# How often a batch run on Ray starts a fold lane again, its node lost, before it stops (a rerun resumes): each
+# restart sends the lane's tiles' partials since their last write again (ray_fold.RayFoldLanes).
+MAX_FOLD_LANE_RESTARTS = 8
 
 
 def _whole_number(value, what: str) -> int:

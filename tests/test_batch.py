@@ -176,9 +176,9 @@ def test_a_run_failing_in_a_fold_lane_resumes_to_the_same_store(drive, tmp_path,
     _assert_same_bytes(tmp_path / "clean", tmp_path / "killed")
 
 
-def test_ray_folds_tiles_in_chained_tasks_to_the_serial_folds_store(drive, tmp_path, monkeypatch):
-    """On Ray, each fold is a task that takes its tile's previous fold: tiles leaving the lanes and coming back,
-    three folding at once, give the serial fold's bytes."""
+def test_ray_folds_tiles_in_lanes_on_the_nodes_to_the_serial_folds_store(drive, tmp_path, monkeypatch):
+    """On Ray, each tile is folded by one lane (an actor) in chunk order: tiles leaving the lanes and coming back,
+    three lanes folding at once, give the serial fold's bytes."""
     pytest.importorskip("ray")
     from evsemmap_warp.apps.batch import reduction
 
@@ -186,7 +186,33 @@ def test_ray_folds_tiles_in_chained_tasks_to_the_serial_folds_store(drive, tmp_p
     monkeypatch.setattr(reduction, "FOLD_CACHE_TILES", 1)
     summary = _batch([drive], tmp_path / "ray", executor="ray", workers=2, chunk_frames=1, fold_workers=3)
     assert summary["fold_lanes"]["width"] == 3 and summary["fold_lanes"]["lane_seconds"] > 0
-    assert summary["tile_writes"] > summary["tiles"]
+    assert summary["tile_writes"] > summary["tiles"] and summary["fold_lanes"]["restarts"] == 0
+    shutil.rmtree(ray_executor.node_scratch(tmp_path / "ray"), ignore_errors=True)
+    _assert_same_bytes(tmp_path / "serial", tmp_path / "ray")
+
+
+def test_lost_ray_fold_lanes_are_rebuilt_from_the_partials_to_the_same_store(drive, tmp_path, monkeypatch):
+    """The lanes (actors) killed mid-run, as their node's loss kills them, one at least with a tile in its memory
+    (the lanes keep one: some tiles written and folded into again, others waiting for their write): a new lane gets
+    every partial its tiles absorbed since their last write, and the store is the serial fold's. Without the
+    rebuild the run failed (the actor's death)."""
+    ray = pytest.importorskip("ray")
+    from evsemmap_warp.apps.batch import reduction
+
+    _batch([drive], tmp_path / "serial", executor="inline", chunk_frames=1, fold_workers=1)
+    monkeypatch.setattr(reduction, "FOLD_CACHE_TILES", 1)
+    hand_out, killed = reduction.TileFolder.chunk_finished, []
+
+    def kill_the_lanes_after_chunk_3(folder, number):
+        hand_out(folder, number)
+        if folder.frontier > 3 and not killed:
+            killed.extend(folder.lanes.actors)
+            for actor in killed:
+                ray.kill(actor, no_restart=True)
+
+    monkeypatch.setattr(reduction.TileFolder, "chunk_finished", kill_the_lanes_after_chunk_3)
+    summary = _batch([drive], tmp_path / "ray", executor="ray", workers=2, chunk_frames=1, fold_workers=2)
+    assert len(killed) == 2 and 1 <= summary["fold_lanes"]["restarts"] <= 2
     shutil.rmtree(ray_executor.node_scratch(tmp_path / "ray"), ignore_errors=True)
     _assert_same_bytes(tmp_path / "serial", tmp_path / "ray")
 

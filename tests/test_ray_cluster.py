@@ -58,11 +58,12 @@ def _assert_same_bytes(a: Path, b: Path) -> None:
     assert [name for name in files_a if files_a[name] != files_b[name]] == []
 
 
-def _driver(cluster, out, drive=None, chunk_frames=1, settings=(), method="ebs") -> subprocess.Popen:
-    """``evsemmap batch`` of ``drive`` (default: the tiny drive) and ``settings`` (config files) on the cluster, two workers."""
+def _driver(cluster, out, drive=None, chunk_frames=1, settings=(), method="ebs", options=()) -> subprocess.Popen:
+    """``evsemmap batch`` of ``drive`` (default: the tiny drive) and ``settings`` (config files) on the cluster, two workers,
+    and the command's ``options``."""
     command = [sys.executable, "-m", "evsemmap_warp", "batch", str(drive or cluster.data / "drive"), *map(str, settings), "--method", method,
                "--out", str(out), "--executor", "ray", "--ray-address", cluster.address, "--workers", "2", "--quiet"]
-    command += ["--chunk-frames", str(chunk_frames)] if chunk_frames else []
+    command += (["--chunk-frames", str(chunk_frames)] if chunk_frames else []) + list(options)
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ | cluster.env)
 
 
@@ -171,12 +172,14 @@ def test_a_killed_driver_s_rerun_resumes_into_the_local_pools_store(cluster):
 
 def test_a_node_stopped_mid_run_costs_its_chunks_a_retry_and_nothing_else(cluster):
     """Stopped while it runs a chunk: the ``default`` drive, LiDAR only (15 chunks of about half a second; rendering
-    its camera took most of a minute), whose tasks last long enough to see one running on the second node."""
+    its camera took most of a minute), whose tasks last long enough to see one running on the second node. The
+    tiles fold in two lanes, one on each node: the stopped node's lane, and the tiles in its memory, are rebuilt on
+    the head from the partials they absorbed since their last write."""
     generate_sequence(load_preset("default"), cluster.data / "default", progress=False, camera=False)
     run_batch([str(cluster.data / "default")], BatchOptions(method="ebs", out=cluster.stores / "default_local", workers=2,
                                                             progress=False), log=lambda m: None)
     out = cluster.stores / "node_stopped"
-    driver = _driver(cluster, out, cluster.data / "default", chunk_frames=None)
+    driver = _driver(cluster, out, cluster.data / "default", chunk_frames=None, options=["--fold-workers", "2"])
     _wait_for_a_chunk(driver, out)
     deadline = time.monotonic() + RUN_TIMEOUT_S
     while not cluster.runs_a_task(cluster.node):
@@ -189,6 +192,7 @@ def test_a_node_stopped_mid_run_costs_its_chunks_a_retry_and_nothing_else(cluste
     # "will be retried"; a task done whose result lived on the node is run again ("Attempting to recover lost objects")
     assert re.search(r"will be retried|Attempting to recover", err), err[-2000:]
     assert sum(summary["cluster"]["chunks_per_node"].values()) == summary["chunks"]
+    assert summary["fold_lanes"]["restarts"] == 1
 
 
 def test_a_lost_head_is_one_line_and_keeps_the_chunks_mapped(cluster):
@@ -261,7 +265,7 @@ def test_a_full_object_store_is_one_line_saying_what_to_change():
         get = put
 
     executor.ray = FullRay
-    for call in (executor._put, executor._receive):
+    for call in (executor.put, executor._receive):
         with pytest.raises(ray_executor.ClusterError, match=r"^Ray's object store is full \(ObjectStoreFullError: Failed to put object "
                                                             r"ffff in object store because it is full\): .* fewer --workers"):
             call(None)

@@ -66,6 +66,9 @@ EXECUTORS = ("local", "ray", "ray-cluster", "ray-2node")
 # each two-node cluster node's object store: the scans the driver sends (a chunk of the long drive's is about
 # 100 MB, one in flight per worker) and the chunks' results; beyond it Ray spills to disk
 TWO_NODE_OBJECT_STORE_BYTES = 1 << 30
+# the two-node runs: the fold in one thread of the driver (the default), and in two lanes, one actor on each node
+TWO_NODE_RUNS = {"ray-2node": [], "ray-2node-lanes": ["--fold-workers", "2"]}
+FOLD_TARGET_WORKERS = 32  # the worker count the fold must keep up with (issue 49)
 
 
 def folder_size(path: Path) -> int:
@@ -146,7 +149,8 @@ def markdown(record_path: Path) -> str:
     names = {"map": "`evsemmap map` (2 threads)", "localx1": "`batch`, local, 1 worker", "localx2": "`batch`, local, 2 workers",
              "rayx1": "`batch`, Ray, 1 worker", "rayx2": "`batch`, Ray, 2 workers",
              "ray-clusterx1": "`batch`, running Ray, 1 worker", "ray-clusterx2": "`batch`, running Ray, 2 workers",
-             "ray-2nodex2": "`batch`, Ray, two nodes, 1 worker each (scans sent by the driver)"}
+             "ray-2nodex2": "`batch`, Ray, two nodes, 1 worker each (scans sent by the driver)",
+             "ray-2node-lanesx2": "the same, folding in 2 lanes, one on each node (`--fold-workers 2`)"}
     lines = [f"<!-- record: docs/bench/{Path(record_path).name} -->",
              "| run | wall | frames/s | input points/s | vs `evsemmap map` | behind local | driver's folding | store | peak disk | worker peak "
              "| driver peak |",
@@ -176,6 +180,16 @@ def markdown(record_path: Path) -> str:
             lines.append(f"| {names[key]} | {r['chunk_s_median']} | " + " | ".join(cells)
                          + f" | {handoff.get('worker_start_s_median', '-')} | {handoff.get('result_kb_median', '-')} kB | "
                          f"{handoff.get('return_s_median', '-')} |")
+    folds = {key: runs[key]["fold"] for key in names if "fold" in runs.get(key, {})}
+    if folds:  # the two-node runs' fold (fold_bottleneck, fold_lanes_needed)
+        lines += ["", f"The fold on two nodes (voxels of partials per second; workers kept up with; at {FOLD_TARGET_WORKERS} workers):", "",
+                  "| run | lanes | driver's share | one lane | one worker | bottleneck at this width | one lane keeps up with "
+                  f"| the driver limits from | {FOLD_TARGET_WORKERS} workers |", "|---|---|---|---|---|---|---|---|---|"]
+        for key, f in folds.items():
+            target = f.get("at_target", {}).get("verdict", "-")
+            lines.append(f"| {names[key]} | {f['lanes']['width']} | {f['driver_voxels_per_s']:,} | {f['lane_voxels_per_s']:,} | "
+                         f"{f['worker_voxels_per_s']:,} | {f['bottleneck_workers']} workers | {f['workers_per_lane']} | "
+                         f"{f['driver_limit_workers']} | {target} |")
     return "\n".join(lines)
 
 
@@ -275,7 +289,7 @@ def projections(one: dict, points: int, drive_km: float) -> tuple[dict, dict]:
 def fold_bottleneck(row: dict, frames: int) -> dict:
     """The fold's rates (voxels of partials folded into tiles per second, from a batch row's summary) and the
     worker count from which it limits the long drive. The driver hands partials to the fold lanes and writes
-    the tiles they encode (its own share, ``fold_s``); the lanes fold (``lane_seconds`` over ``width`` lanes
+    the tiles they encode (its own share: ``fold_s`` less its waits for the lanes); the lanes fold (``lane_seconds`` over ``width`` lanes
     side by side). Each worker hands over the voxels of its chunks at its own rate (voxels folded / the
     chunks' mapping seconds, all stages), so the fold keeps up while workers x that rate stays under the rate
     of the busier of the driver's share and one lane's share of the folding. Both rates are per voxel, so the
@@ -283,22 +297,25 @@ def fold_bottleneck(row: dict, frames: int) -> dict:
     worker_s = sum((row.get("chunk_stage_s_total") or {}).values())
     folded = row.get("voxels_folded") or 0
     lanes = row.get("fold_lanes") or {"width": 1, "lane_seconds": 0.0}
-    busiest_s = max(row["fold_s"], lanes["lane_seconds"] / lanes["width"])
+    # the driver's own share: its fold time less its waits for the lanes' answers (recorded since the lanes are actors)
+    driver_s = row["fold_s"] - lanes.get("driver_wait_s", 0.0)
+    busiest_s = max(driver_s, lanes["lane_seconds"] / lanes["width"])
 
     def rate(seconds: float):
         return round(folded / seconds) if seconds else None
 
     scale = LONG_DRIVE_FRAMES / frames
     return {
-        "voxels_folded": folded, "fold_s": row["fold_s"], "lanes": lanes, "driver_voxels_per_s": rate(row["fold_s"]),
+        "voxels_folded": folded, "fold_s": row["fold_s"], "driver_s": round(driver_s, 3), "lanes": lanes, "driver_voxels_per_s": rate(driver_s),
         "lane_voxels_per_s": rate(lanes["lane_seconds"]), "voxels_per_s": rate(busiest_s), "worker_voxels_per_s": rate(worker_s),
         "bottleneck_workers": math.floor(worker_s / busiest_s) if busiest_s else None,  # = fold rate / one worker's rate
         "workers_per_lane": math.floor(worker_s / lanes["lane_seconds"]) if lanes["lane_seconds"] else None,
-        "driver_limit_workers": math.floor(worker_s / row["fold_s"]) if row["fold_s"] else None,
+        "driver_limit_workers": math.floor(worker_s / driver_s) if driver_s > 0 else None,
         "long_drive": {"frames": LONG_DRIVE_FRAMES, "fold_s": round(busiest_s * scale, 1), "worker_s": round(worker_s * scale, 1)},
-        "model": ("bottleneck workers = floor(the chunks' mapping seconds / max(the driver's fold seconds, lane seconds / lanes)) "
+        "model": ("bottleneck workers = floor(the chunks' mapping seconds / max(the driver's own fold seconds, lane seconds / lanes)) "
                   "at this width; workers per lane = floor(mapping seconds / lane seconds), how many workers one more lane "
-                  "keeps up with; driver limit = floor(mapping seconds / the driver's fold seconds), the count no width lifts"),
+                  "keeps up with; driver limit = floor(mapping seconds / the driver's own fold seconds (less its waits for the lanes)), the "
+                  "count no width lifts"),
     }
 
 
@@ -332,26 +349,48 @@ def two_node_rows(results: dict, data: Path, tmp: Path, warm_seq: Path, batch_ar
         joining = ["--executor", "ray", "--ray-address", cluster.address]
         warm = run(["batch", str(warm_seq), *batch_args, "--out", str(tmp / "warm_2node"), *joining, "--quiet"], None, cluster.env)[0]
         results["ray_2node_warmup_wall_s"] = round(warm, 3)
-        out = tmp / "store_ray-2node_2"
-        seconds, summary, peak_disk = repeat("ray-2node2", ["batch", str(data), *batch_args, "--out", str(out), *joining, "--workers", "2",
-                                                            "--quiet"], out, cluster.env)
+        for name, lanes in TWO_NODE_RUNS.items():
+            out = tmp / f"store_{name}"
+            seconds, summary, peak_disk = repeat(name, ["batch", str(data), *batch_args, "--out", str(out), *joining, "--workers", "2",
+                                                        *lanes, "--quiet"], out, cluster.env)
+            two_node_row(results, name, local_out, out, summary, seconds, peak_disk, walls)
     finally:
         cluster.close()
+
+
+def two_node_row(results: dict, name: str, local_out: Path, out: Path, summary: dict, seconds: float, peak_disk: int, walls: dict) -> None:
+    """One two-node run's row (``name``x2) into ``results``, its store checked against the local pool's, with its
+    ``fold``: the rates, and how many lanes keep up with FOLD_TARGET_WORKERS workers (fold_lanes_needed)."""
     differing = store_differences(local_out, out)
     if differing:
         raise SystemExit(f"the two-node store {out} differs from the local pool's {local_out}: {', '.join(differing[:5])}")
     row = batch_row(summary, seconds, peak_disk, out, results["input_points"], results["frames"], results["runs"]["map"]["wall_s"],
-                    walls["ray-2node2"])
-    row |= {"cluster": summary["cluster"], "same_store_as_local": True, "fold": fold_bottleneck(row, results["frames"])}
+                    walls[name])
+    fold = fold_bottleneck(row, results["frames"])
+    row |= {"cluster": summary["cluster"], "same_store_as_local": True, "fold": fold | fold_lanes_needed(fold)}
     local = results["runs"].get("localx2")
     if local:
         row["behind_local_pct"] = round(100 * (seconds / local["wall_s"] - 1), 1)
-    results["runs"]["ray-2nodex2"] = row
+    results["runs"][f"{name}x2"] = row
     fold = row["fold"]
-    print(f"batch ray-2node x2: {describe(row)}\n{breakdown(row)}\n  inputs {summary['cluster']['inputs']}, chunks per node "
+    print(f"batch {name} x2: {describe(row)}\n{breakdown(row)}\n  inputs {summary['cluster']['inputs']}, chunks per node "
           f"{list(summary['cluster']['chunks_per_node'].values())}, the store the local pool's byte for byte; fold "
           f"{fold['voxels_per_s']:,} voxels/s over {fold['lanes']['width']} lane(s) (the driver's share {fold['driver_voxels_per_s']:,}), "
-          f"one worker {fold['worker_voxels_per_s']:,}: the fold limits from {fold['bottleneck_workers']} workers on", flush=True)
+          f"one worker {fold['worker_voxels_per_s']:,}: the fold limits from {fold['bottleneck_workers']} workers on; "
+          f"{FOLD_TARGET_WORKERS} workers: {fold['at_target']['verdict']}", flush=True)
+
+
+def fold_lanes_needed(fold: dict, workers: int = FOLD_TARGET_WORKERS) -> dict:
+    """How many lanes of this run's rate keep up with ``workers`` workers, and whether the driver's own share then
+    limits (it does not spread over lanes): lanes are processes of their own (Ray actors on the nodes), so each
+    more lane adds one lane's rate, as long as the nodes have a core for it."""
+    per_lane, driver = fold["workers_per_lane"], fold["driver_limit_workers"]
+    lanes = math.ceil(workers / per_lane) if per_lane else None
+    if driver is not None and driver < workers:
+        verdict = f"the driver's own share limits from {driver} workers, whatever the lanes"
+    else:
+        verdict = f"{lanes} lane(s) keep up (one lane: {per_lane} workers), and the driver's own share only from {driver}"
+    return {"at_target": {"workers": workers, "lanes": lanes, "driver_limits": driver is not None and driver < workers, "verdict": verdict}}
 
 
 def parse_args() -> argparse.Namespace:

@@ -25,12 +25,9 @@ from pathlib import Path
 
 from ... import __version__, files
 from ...config import ConfigError
-from ...core import map_store
-from ...core.voxel_map import EXTRA_COLUMNS, VoxelArrays
 from ...frames import WorldFrame
 from ...limits import CHUNK_TIMEOUT_S, RAY_CONNECT_TIMEOUT_S
 from .executors import MATH_THREAD_VARIABLES, stuck_error
-from .reduction import decode_tile, fold_partials
 from .store import chunk_dir
 from .worker import Context, handoff_recorder, init_worker, process_tag, reset_tasks_started
 
@@ -210,147 +207,6 @@ def write_chunk_files(store: Path, number: int, chunk_files: dict[str, bytes]) -
         raise files.error_naming(exc, store, f"writing chunk {number}'s partial maps; the mapped chunks are kept, rerun to resume") from None
 
 
-@dataclass(frozen=True)
-class FoldSpec:
-    """What a fold task needs of the store (put once in the object store): its identity and tiling, the partials'
-    columns, the driver's store path (named in messages) and what its tiles' headers and entries are made of."""
-
-    out: Path
-    identity: str
-    tile_voxels: int
-    columns: int
-    config: object
-    class_names: tuple
-    origin_index: object
-    frame: WorldFrame | None
-
-    def template(self):
-        """The store's template (map_store.template_mapper), made once per worker process."""
-        if self.identity not in _TEMPLATES:
-            _TEMPLATES.clear()
-            _TEMPLATES[self.identity] = map_store.template_mapper(self.config, self.class_names, self.origin_index, self.frame)
-        return _TEMPLATES[self.identity]
-
-
-_TEMPLATES: dict = {}  # store identity -> its template, per Ray worker process
-
-
-def _fold_task(spec: FoldSpec, previous, tile_path: str, partials: list, *datas) -> tuple:
-    """A fold task: tile ``previous`` (a fold's (index, rows), Ray resolves the reference; a tile file's bytes from
-    ``tile_path``; None) plus the partials ``datas`` ((chunk number, path) in ``partials``), in chunk order; returns
-    the tile's (index, rows) and this task's (voxels folded, seconds)."""
-    started = time.perf_counter()
-    if isinstance(previous, bytes):
-        previous = decode_tile(previous, Path(tile_path), spec.identity, spec.out)
-    read = (map_store.decode_partial(data, Path(path), spec.columns, spec.tile_voxels, spec.identity, number)
-            for (number, path), data in zip(partials, datas))
-    running, voxels = fold_partials(previous, read)
-    return running, (voxels, time.perf_counter() - started)
-
-
-def _encode_task(spec: FoldSpec, state, name: str, folded_through: int) -> tuple:
-    """An encode task: tile ``name``'s file bytes and index entry from a fold's (index, rows), and its (0, seconds)."""
-    started = time.perf_counter()
-    encoded = map_store.tile_bytes(name, spec.template(), VoxelArrays.from_rows(*state), spec.tile_voxels, folded_through=folded_through)
-    return encoded, (0, time.perf_counter() - started)
-
-
-class RayFoldLanes:
-    """Fold lanes on Ray (reduction.TileFolder's): each fold a task, chained per tile (a tile's fold takes its
-    previous fold's reference, so Ray runs a tile's folds in chunk order and different tiles' side by side); the
-    driver sends the partials from ``work/`` and writes the tiles the encode tasks return. At most ``width`` of
-    these tasks are in flight, and they take no CPU of Ray's count: the mapping tasks hold every CPU, and a
-    fold that waited for one would hold up the driver's next hand-out (the pool's fold thread shares the cores
-    so too). The tiles are dealt out to the nodes in turn, and a tile's tasks run on its node (its folds hand
-    the tile on in that node's object store); softly, so that Ray runs them elsewhere when the node is lost,
-    as it does a mapping task."""
-
-    def __init__(self, executor: "RayExecutor", width: int, context: Context):
-        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
-
-        self.executor, self.ray, self.width = executor, executor.ray, width
-        self.spec = executor._put(FoldSpec(context.store, context.identity(), context.tile_voxels, context.num_classes + EXTRA_COLUMNS,
-                                           context.config, context.class_names, context.origin_index, context.frame))
-        self._fold = self.ray.remote(num_cpus=0, num_returns=2, max_retries=3)(_fold_task)
-        self._encode = self.ray.remote(num_cpus=0, num_returns=2, max_retries=3)(_encode_task)
-        nodes = sorted(n["NodeID"] for n in self.ray.nodes() if n.get("Alive") and n.get("Resources", {}).get("CPU", 0) > 0)
-        self._nodes = [NodeAffinitySchedulingStrategy(node, soft=True) for node in nodes] or ["DEFAULT"]
-        self._node_of: dict[str, object] = {}  # tile -> its node's scheduling strategy
-        # the tasks in flight, by their small (voxels, seconds) answer: waiting on it, not on the tile, keeps the tiles
-        # off the driver, and a failed task fails both
-        self._flight: list = []
-        self.voxels, self.seconds = 0, 0.0  # the finished tasks' voxels folded and seconds folding and encoding
-
-    def _node(self, name: str):
-        """Tile ``name``'s node (its scheduling strategy), dealt at its first fold."""
-        if name not in self._node_of:
-            self._node_of[name] = self._nodes[len(self._node_of) % len(self._nodes)]
-        return self._node_of[name]
-
-    def _first(self, refs: list):
-        """The first of ``refs`` to finish, waited for as the mapping tasks are (RayExecutor._wait: a lost head or
-        the chunk timeout stops the run in one line, where a plain wait would leave the driver to Ray's own end)."""
-        finished = self.executor._wait(refs)
-        if not finished:
-            raise stuck_error(self.executor.chunk_timeout_s, "fold of the tiles")
-        return finished[0]
-
-    def _room(self, most: int) -> None:
-        """Wait until at most ``most`` tasks are in flight; a failed task stops the run here, in one line."""
-        while len(self._flight) > most:
-            done = self._first(self._flight)
-            self._flight.remove(done)
-            voxels, seconds = self.result(done)
-            self.voxels += voxels
-            self.seconds += seconds
-
-    def check(self) -> None:
-        """As ThreadFoldLanes.check: the tasks finished since, counted, and a failed one's line raised."""
-        if self._flight:
-            for done in self.ray.wait(self._flight, num_returns=len(self._flight), timeout=0)[0]:
-                self._flight.remove(done)
-                voxels, seconds = self.result(done)
-                self.voxels += voxels
-                self.seconds += seconds
-
-    def fold(self, previous, name: str, partials: list[tuple[int, Path]]):
-        """As ThreadFoldLanes.fold: ``previous`` a fold's reference, a tile file or None."""
-        self._room(self.width - 1)
-        tile = str(previous) if isinstance(previous, Path) else ""
-        if isinstance(previous, Path):
-            previous = self.executor._put(previous.read_bytes())
-        datas = [self.executor._put(path.read_bytes()) for _, path in partials]
-        state, stats = self._fold.options(scheduling_strategy=self._node(name)).remote(
-            self.spec, previous, tile, [(number, str(path)) for number, path in partials], *datas)
-        self._flight.append(stats)
-        return state
-
-    def encode(self, state, name: str, folded_through: int):
-        """As ThreadFoldLanes.encode."""
-        self._room(self.width - 1)
-        encoded, stats = self._encode.options(scheduling_strategy=self._node(name)).remote(self.spec, state, name, folded_through)
-        self._flight.append(stats)
-        return encoded
-
-    def done(self, handle) -> bool:
-        """Whether a task has finished (ThreadFoldLanes.done)."""
-        return bool(self.ray.wait([handle], num_returns=1, timeout=0)[0])
-
-    def result(self, handle):
-        """A task's result, waited for as _first does; its failure as one line (RayExecutor.fetch)."""
-        self._first([handle])
-        return self.executor.fetch(handle)
-
-    def stats(self) -> tuple[int, float]:
-        """Voxels folded and the tasks' seconds folding and encoding, all together (once every task has finished)."""
-        self._room(0)
-        return self.voxels, self.seconds
-
-    def close(self) -> None:
-        """Release the references (before Ray stops: RayExecutor.close)."""
-        self._flight = []
-
-
 class RayExecutor:
     """The same tasks on Ray: a local instance (started and stopped here) or a cluster (``address``:
     "auto" or "ray://host:port"). Ray retries a task whose worker died."""
@@ -418,7 +274,7 @@ class RayExecutor:
         self.log(f"inputs: {self.inputs} ({why})")
         self.cluster = {"nodes": nodes, "inputs": self.inputs, "inputs_why": why, "chunks_per_node": Counter()}
         probed = list(inputs) if self.inputs == SAME_PATH and not self.own_instance else None
-        self.context_box = [self._put(context), scratch_name(context.store), probed]
+        self.context_box = [self.put(context), scratch_name(context.store), probed]
         return self
 
     def _choose_inputs(self, inputs: dict, required: dict | None = None) -> tuple[int, str, str]:
@@ -471,7 +327,8 @@ class RayExecutor:
             answers.append(answer)
         return answers
 
-    def _put(self, value):
+    def put(self, value):
+        """``value`` in the object store, its reference; a full store or a lost connection as one line."""
         try:
             return self.ray.put(value)
         except (self.ray.exceptions.ObjectStoreFullError, self.ray.exceptions.OutOfDiskError) as exc:
@@ -501,7 +358,7 @@ class RayExecutor:
 
         submit()
         while flight:
-            finished = self._wait(list(flight))
+            finished = self.wait(list(flight))
             if not finished:
                 for ref in flight:
                     self.ray.cancel(ref, force=True)
@@ -511,7 +368,7 @@ class RayExecutor:
             for item, result in results:
                 on_done(item, result)
 
-    def _wait(self, refs: list) -> list:
+    def wait(self, refs: list) -> list:
         """The first of ``refs`` to finish (ray.wait), or none after the chunk timeout. Asked in short waits, between
         which the head must answer: Ray ends a driver whose head has gone after a minute, from its C++ core, with a
         message of its own and exit code 1, which no Python code can turn into the run's one line."""
@@ -537,11 +394,7 @@ class RayExecutor:
         started = time.perf_counter()
         scans = read_scans(self.context.sources[chunk.sequence], chunk)
         self.read_seconds += time.perf_counter() - started
-        return self._put(scans)
-
-    def fold_lanes(self, width: int, context: Context) -> RayFoldLanes:
-        """The run's fold lanes on this cluster (reduction.TileFolder's)."""
-        return RayFoldLanes(self, width, context)
+        return self.put(scans)
 
     def _receive(self, ref) -> dict:
         """A finished task's result, its chunk's files written into the store."""

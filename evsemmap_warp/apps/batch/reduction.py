@@ -49,6 +49,8 @@ class ThreadFoldLanes:
         self._pool = ThreadPoolExecutor(width, thread_name_prefix="evsemmap-fold")
         self._lock = threading.Lock()
         self.voxels, self.seconds = 0, 0.0  # what the lanes folded, and their time folding and encoding (all lanes')
+        self.restarts = 0  # a thread is not lost alone (RayFoldLanes.restarts)
+        self.waited = 0.0  # the driver's seconds waiting for the lanes' answers (its fold time, less its own work)
         self._failures: list[BaseException] = []  # the lanes' failures, as they happen (check raises the first)
 
     def fold(self, previous, name: str, partials: list[tuple[int, Path]]) -> Future:
@@ -108,10 +110,22 @@ class ThreadFoldLanes:
         """Whether a fold's or an encode's future has its answer."""
         return handle.done()
 
-    @staticmethod
-    def result(handle: Future):
+    def result(self, handle: Future):
         """A fold's (index, rows) or an encode's (bytes, entry); a lane's failure raised here."""
-        return handle.result()
+        started = time.perf_counter()
+        try:
+            return handle.result()
+        finally:
+            self.waited += time.perf_counter() - started
+
+    @staticmethod
+    def flush() -> None:
+        """The chunk's folds are handed out (RayFoldLanes sends them then; a thread has them already)."""
+
+    @staticmethod
+    def written(name: str, encoded: Future, left: bool) -> None:
+        """Tile ``name``'s file holds ``encoded`` now (RayFoldLanes keeps what rebuilds a tile until then; the threads
+        keep each tile's state in its fold's future, and nothing else)."""
 
     def stats(self) -> tuple[int, float]:
         """Voxels folded and the lanes' seconds folding and encoding, all lanes together."""
@@ -124,7 +138,7 @@ class ThreadFoldLanes:
 
 class TileFolder:
     """The driver's side of the streaming reduction: finished chunks' partials folded into the store's tiles,
-    each tile's in chunk order, on ``lanes`` (ThreadFoldLanes, or ray_executor's RayFoldLanes), different tiles
+    each tile's in chunk order, on ``lanes`` (ThreadFoldLanes, or ray_fold.RayFoldLanes), different tiles
     in parallel. The tiles the drive is passing stay in the lanes (the ``FOLD_CACHE_TILES`` most recently
     folded); a tile leaving them, and every tile at the end, is encoded by a lane and written here, in the order
     they left, durably with the last chunk it holds (``folded_through``), and only then are the partials it
@@ -144,8 +158,9 @@ class TileFolder:
         self._absorbed: dict[str, list[int]] = {}  # tile -> chunks folded into it in the lanes only: their partials wait for its write
         self._writes: deque = deque()  # (tile, encode handle, fold handle, folded_through, absorbed chunks), in the order the tiles left
         self._leaving: dict[str, object] = {}  # tile -> the fold handle of its last write still to be done (a fold goes on from it)
-        self.seconds = 0.0  # the driver's own time folding: handing partials to the lanes, writing tiles
+        self.seconds = 0.0  # the driver's time folding: handing partials to the lanes, writing tiles (and waiting: lanes.waited)
         self.voxels_folded, self.lane_seconds = 0, 0.0  # finish's: partial rows folded into tiles, the lanes' time (lanes.stats)
+        self.waited = 0.0  # finish's: of ``seconds``, the driver's wait for the lanes' answers
         self.tiles_written = 0
         for path in sorted((out / "tiles").glob(f"*{map_store.TILE_SUFFIX}")):
             header = self._tile_header(path)
@@ -178,6 +193,7 @@ class TileFolder:
         while self.frontier < len(self.chunks) and self.chunks[self.frontier].number in self.finished:
             self._fold(self.chunks[self.frontier])
             self.frontier += 1
+        self.lanes.flush()
         self._collect(most_waiting=FOLD_CACHE_TILES)
         self.seconds += time.perf_counter() - started
 
@@ -188,6 +204,7 @@ class TileFolder:
             self._leave(next(iter(self._running)))
         self._collect(most_waiting=0)
         self.voxels_folded, self.lane_seconds = self.lanes.stats()
+        self.waited = self.lanes.waited
         self.seconds += time.perf_counter() - started
 
     def close(self) -> None:
@@ -242,5 +259,7 @@ class TileFolder:
             self.tiles_written += 1
             for number in absorbed:
                 self._partial_path(number, name).unlink(missing_ok=True)
+            left = name not in self._running and self._leaving.get(name) is state  # no fold since it left
+            self.lanes.written(name, encoded, left)
             if self._leaving.get(name) is state:
                 del self._leaving[name]

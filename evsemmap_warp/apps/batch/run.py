@@ -20,6 +20,7 @@ from ...limits import check_tile_voxels
 from .executors import InlineExecutor, LocalExecutor
 from .planning import BatchOptions, check_memory, choose_chunk_frames, fold_width, plan_batch, probe
 from .ray_executor import RayExecutor
+from .ray_fold import RayFoldLanes
 from .reduction import ThreadFoldLanes, TileFolder
 from .store import check_store, chunk_dir, remove_unfinished_chunks, store_index, store_lock
 from .worker import CHUNK_STAGES, Context, FaultPlan, map_chunk, peak_rss_mb
@@ -84,7 +85,7 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
         executor = LocalExecutor(workers, context, log=log, chunk_timeout_s=options.chunk_timeout_s)
     width = fold_width(options.fold_workers)
     on_nodes = ray_executor is not None and options.fold_workers is not None  # Ray's lanes only when asked for (fold_width)
-    lanes = ray_executor.fold_lanes(width, context) if on_nodes else ThreadFoldLanes(width, context)
+    lanes = RayFoldLanes(ray_executor, width, context) if on_nodes else ThreadFoldLanes(width, context)
     folder = TileFolder(out, context, chunks, lanes, on_tile)
     try:
         stage = time.perf_counter()
@@ -109,7 +110,10 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
         "voxels_folded": folder.voxels_folded,  # the driver's own time per folded voxel: seconds.fold / voxels_folded
         # the lanes that fold (reduction.py): how many, and their time folding and encoding tiles, all lanes together (their
         # rate per lane: voxels_folded / lane_seconds)
-        "fold_lanes": {"width": width, "lane_seconds": round(folder.lane_seconds, 3)},
+        # how often one was started again, lost with its node (ray_fold.RayFoldLanes), and how long the driver waited for
+        # their answers, of seconds.fold (the driver's own share of the folding is the rest)
+        "fold_lanes": {"width": width, "lane_seconds": round(folder.lane_seconds, 3), "restarts": lanes.restarts,
+                       "driver_wait_s": round(folder.waited, 3)},
         "seconds": {k: round(v, 3) for k, v in times.items()},
         "frames_per_second": round(sum(c.frames for c in todo) / times["map"], 2) if todo and times["map"] > 0 else None,
         **_chunk_costs(costs),
