@@ -2,9 +2,10 @@
 
 Maps the first ``--frames`` of the long drive once with the local pool (``--workers``), keeping a copy of every
 chunk's partials and done record as the driver receives them; then folds copies of those chunks into tiles
-again with each width of fold lanes, threads of the driver (``local``, the pool's lanes) and Ray tasks on a local
-instance (``ray``), timing the fold alone: voxels of partials folded per second of wall time, the driver's own
-seconds (handing out partials, writing tiles), and the lanes' seconds. Every width must write the same tiles,
+again with each width of fold lanes, threads of the driver (``local``, the pool's lanes) and Ray actors on a local
+instance (``ray``, processes of their own, as on the nodes of a cluster), timing the fold alone: voxels of partials
+folded per second of wall time, the driver's seconds (handing out partials, writing tiles, and of those its waits for
+the lanes' answers), and the lanes' seconds. Every width must write the same tiles,
 byte for byte (checked). A worker's voxel rate (its chunks' partial voxels over their mapping seconds, from the
 mapping run's summary) gives the worker count each width keeps up with: fold rate / one worker's rate.
 The results go to a run record (docs/bench/bench_fold-<UTC>.json, tools/bench_record.py); the last line
@@ -29,6 +30,7 @@ from bench_record import write_record
 from evsemmap_warp.apps import batch
 from evsemmap_warp.apps.batch import BatchOptions, reduction, run_batch
 from evsemmap_warp.apps.batch.ray_executor import RayExecutor
+from evsemmap_warp.apps.batch.ray_fold import RayFoldLanes
 from evsemmap_warp.apps.batch.store import chunk_dir
 
 
@@ -55,7 +57,7 @@ def fold_once(kept: Path, out: Path, planned, lanes_kind: str, width: int, ray) 
     (out / "tiles").mkdir(parents=True)
     shutil.copytree(kept / "work", out / "work")
     context = batch.Context(out, sources, config, sources[0].num_classes, class_names, origin_index, 256, frame=sources[0].frame)
-    lanes = reduction.ThreadFoldLanes(width, context) if lanes_kind == "local" else ray.attach(context, identity).fold_lanes(width, context)
+    lanes = reduction.ThreadFoldLanes(width, context) if lanes_kind == "local" else RayFoldLanes(ray.attach(context, identity), width, context)
     started = time.perf_counter()
     folder = reduction.TileFolder(out, context, chunks, lanes)
     for chunk in chunks:
@@ -67,7 +69,7 @@ def fold_once(kept: Path, out: Path, planned, lanes_kind: str, width: int, ray) 
     tiles = hashlib.sha256(b"".join(p.read_bytes() for p in sorted((out / "tiles").iterdir()))).hexdigest()
     shutil.rmtree(out)
     return {"wall_s": round(wall, 3), "voxels_folded": folder.voxels_folded, "driver_handing_s": round(handing, 3),
-            "driver_s": round(folder.seconds, 3), "lane_s": round(folder.lane_seconds, 3), "tiles_sha256": tiles}
+            "driver_s": round(folder.seconds, 3), "driver_wait_s": round(folder.waited, 3), "lane_s": round(folder.lane_seconds, 3), "tiles_sha256": tiles}
 
 
 def main() -> None:
@@ -76,7 +78,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=2000, help="frames of --data (stated in the record)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--widths", default="1,2")
-    parser.add_argument("--lanes", default="local,ray", help="local (threads of the driver), ray (Ray tasks on a local instance)")
+    parser.add_argument("--lanes", default="local,ray", help="local (threads of the driver), ray (Ray actors on a local instance)")
     parser.add_argument("--repeats", type=int, default=3, help="folds per width (median reported)")
     args = parser.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_fold_"))

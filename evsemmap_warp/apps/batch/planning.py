@@ -37,7 +37,7 @@ class BatchOptions:
     out: Path
     executor: str = "local"  # local | ray (| inline: in this process, for tests and debugging)
     workers: int | None = None  # default: one per core (local), the cluster's CPUs (ray)
-    fold_workers: int | None = None  # --fold-workers: tiles folded at once (with ray: as tasks on the nodes); None: one thread
+    fold_workers: int | None = None  # --fold-workers: tiles folded at once (with ray: lanes on the nodes); None: one thread
     chunk_frames: int | None = None  # None: automatic (choose_chunk_frames), from the inputs' frames
     ray_address: str | None = None
     ray_connect_timeout_s: float = RAY_CONNECT_TIMEOUT_S
@@ -194,8 +194,8 @@ def probe(sources, config: MappingConfig, max_memory: int | None = None) -> tupl
 
 def fold_width(requested: int | None) -> int:
     """The fold lanes' width (--fold-workers): as asked; else one thread of the driver, with either executor: two
-    threads fold no faster than one, and one Ray task lane holds the driver up more than it relieves it
-    (docs/performance.md, "The fold in lanes"); Ray's lanes are tasks on the nodes only when asked for."""
+    threads fold no faster than one, and one lane on the nodes relieves the driver of nothing that a run of a few
+    workers needs (docs/performance.md, "The fold in lanes"); Ray's lanes are actors on the nodes when asked for."""
     if requested is not None:
         if isinstance(requested, bool) or not isinstance(requested, int) or requested < 1:
             raise ConfigError(f"batch: fold_workers = {requested!r}: give a whole number of fold lanes, at least 1 (or None: the default)")
@@ -205,7 +205,7 @@ def fold_width(requested: int | None) -> int:
 
 def driver_bytes(options: BatchOptions, workers: int) -> int:
     """The driver's memory with its fold: the local pool's lanes are threads of the driver and hold the tiles the
-    drive is passing and as many waiting to be written; a local Ray instance's fold tasks are worker processes."""
+    drive is passing and as many waiting to be written; a local Ray instance's fold lanes are worker processes."""
     if options.executor == "ray" and options.fold_workers is not None:
         return DRIVER_OVERHEAD_BYTES + fold_width(options.fold_workers) * WORKER_OVERHEAD_BYTES
     return DRIVER_OVERHEAD_BYTES + 2 * FOLD_CACHE_TILES * FOLD_TILE_BYTES
