@@ -113,6 +113,7 @@ class _Batch:
     lane_actor: object
     ref: object
     folds: list
+    size: int  # the partials' and tiles' bytes it carries: the lane's work waiting (RayFoldLanes._least_loaded)
 
 
 @dataclass
@@ -171,7 +172,8 @@ class RayFoldLanes:
                 ops.append(("restore", name, len(datas) if self._logs[name].written else None, str(path)))
                 datas += [path.read_bytes()] if self._logs[name].written else []
         self._waiting[lane] = []
-        batch = _Batch(lane, self.actors[lane], self.actors[lane].apply.remote(ops, self.executor.put(datas)), folds)
+        batch = _Batch(lane, self.actors[lane], self.actors[lane].apply.remote(ops, self.executor.put(datas)), folds,
+                       sum(len(data) for data in datas))
         for call in folds:
             call.lane_actor, call.ref = batch.lane_actor, batch.ref
         self._flight.append(batch)
@@ -188,14 +190,23 @@ class RayFoldLanes:
 
     def fold(self, previous, name: str, partials: list[tuple[int, Path]]) -> _Call:
         """As ThreadFoldLanes.fold: ``previous`` a handle of this class (the tile is in its lane), a tile file, or None."""
-        self._room()
-        if not isinstance(previous, _Call):  # the tile enters the lanes: its lane, the one it had or the next in turn
-            lane = self._logs[name].lane if name in self._logs else len(self._logs) % self.width
-            self._logs[name] = _Log(lane, written=previous is not None)
-            self._waiting[lane].append(("restore", name))
+        self.check()
+        if not isinstance(previous, _Call):  # the tile enters the lanes (again): the lane with the least work waiting
+            self._logs[name] = _Log(self._least_loaded(), written=previous is not None)
+            self._waiting[self._logs[name].lane].append(("restore", name))
         log = self._logs[name]
+        self._room(log.lane)
         log.calls.append(self._send(_Call("fold", (name, partials), log.lane)))
         return log.calls[-1]
+
+    def _least_loaded(self) -> int:
+        """The lane with the fewest bytes sent and not yet folded. Dealt in turn, tiles left one lane with most of the
+        work where the drive's tiles differ in size, and the driver waited on it while the other idled; which lane
+        folds a tile does not change its bits."""
+        waiting = [0] * self.width
+        for batch in self._flight:
+            waiting[batch.lane] += batch.size
+        return min(range(self.width), key=lambda lane: (waiting[lane], len(self._waiting[lane]), lane))
 
     def encode(self, state: _Call, name: str, folded_through: int) -> _Call:
         """As ThreadFoldLanes.encode (``state``, the tile's last fold, went to the same lane before)."""
@@ -212,11 +223,10 @@ class RayFoldLanes:
         if left:
             self._send(_Call("forget", (name,), log.lane))
 
-    def _room(self) -> None:
-        """Count the batches answered; wait while more than BATCHES_IN_FLIGHT_PER_LANE per lane are unanswered."""
-        self.check()
-        while len(self._flight) > BATCHES_IN_FLIGHT_PER_LANE * self.width:
-            self._answer(self._flight[0])
+    def _room(self, lane: int) -> None:
+        """Wait while ``lane`` has more than BATCHES_IN_FLIGHT_PER_LANE batches unanswered (the other lanes go on)."""
+        while len(mine := [batch for batch in self._flight if batch.lane == lane]) > BATCHES_IN_FLIGHT_PER_LANE:
+            self._answer(mine[0])
 
     def check(self) -> None:
         """As ThreadFoldLanes.check: the batches answered since, counted; a lost lane restarted, a failure raised."""
