@@ -18,6 +18,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from ...core import map_store
 from ...core.voxel_map import EXTRA_COLUMNS, VoxelArrays
 from ...frames import WorldFrame
@@ -28,6 +30,12 @@ from .reduction import decode_tile, fold_partials
 from .worker import Context
 
 BATCHES_IN_FLIGHT_PER_LANE = 8  # sent and unanswered: bounds the partials waiting in the object store for a busy lane
+
+
+def _buffer(path: Path) -> np.ndarray:
+    """A file's bytes as an array, which Ray stores without pickling it (bytes are copied into the pickle, then into the
+    object store: the driver's largest cost in handing out partials, profiled)."""
+    return np.frombuffer(path.read_bytes(), np.uint8)
 
 
 @dataclass(frozen=True)
@@ -58,7 +66,7 @@ class FoldLane:
         self.spec, self.tiles = spec, {}
         self.template = map_store.template_mapper(spec.config, spec.class_names, spec.origin_index, spec.frame)
 
-    def apply(self, ops: list[tuple], datas: list[bytes]) -> tuple[list[int], float]:
+    def apply(self, ops: list[tuple], datas: list[np.ndarray]) -> tuple[list[int], float]:
         """``ops`` in order, each ("restore", tile, data index or None, path): the tile starts from a tile file's bytes
         (``datas[i]``, read by the driver from ``path``) or empty; or ("fold", tile, [(chunk number, path, data index)]):
         the tile plus those partials, in chunk order. Returns the voxels each fold folded, and the seconds it took."""
@@ -66,21 +74,22 @@ class FoldLane:
         for op in ops:
             if op[0] == "restore":
                 _, name, index, path = op
-                self.tiles[name] = decode_tile(datas[index], Path(path), self.spec.identity, self.spec.out) if index is not None else None
+                self.tiles[name] = decode_tile(datas[index].tobytes(), Path(path), self.spec.identity, self.spec.out) if index is not None else None
             else:
                 _, name, partials = op
-                read = (map_store.decode_partial(datas[index], Path(path), self.spec.columns, self.spec.tile_voxels, self.spec.identity,
+                read = (map_store.decode_partial(datas[index].tobytes(), Path(path), self.spec.columns, self.spec.tile_voxels, self.spec.identity,
                                                  number) for number, path, index in partials)
                 self.tiles[name], voxels = fold_partials(self.tiles[name], read)
                 folded.append(voxels)
         return folded, time.perf_counter() - started
 
     def encode(self, name: str, folded_through: int) -> tuple[bytes, dict, float]:
-        """Tile ``name``'s file bytes and index entry (it stays here until ``forget``), and the seconds it took."""
+        """Tile ``name``'s file bytes (an array: the driver reads them where Ray stores them, without a copy) and index
+        entry (it stays here until ``forget``), and the seconds it took."""
         started = time.perf_counter()
         data, entry = map_store.tile_bytes(name, self.template, VoxelArrays.from_rows(*self.tiles[name]), self.spec.tile_voxels,
                                            folded_through=folded_through)
-        return data, entry, time.perf_counter() - started
+        return np.frombuffer(data, np.uint8), entry, time.perf_counter() - started
 
     def state(self, name: str):
         """Tile ``name``'s (index, rows) now (a live view's)."""
@@ -164,16 +173,16 @@ class RayFoldLanes:
             if isinstance(entry, _Call):
                 name, partials = entry.args
                 ops.append(("fold", name, [(number, str(path), len(datas) + i) for i, (number, path) in enumerate(partials)]))
-                datas += [path.read_bytes() for _, path in partials]
+                datas += [_buffer(path) for _, path in partials]
                 folds.append(entry)
             else:
                 name = entry[1]
                 path = self.out / "tiles" / f"{name}{map_store.TILE_SUFFIX}"
                 ops.append(("restore", name, len(datas) if self._logs[name].written else None, str(path)))
-                datas += [path.read_bytes()] if self._logs[name].written else []
+                datas += [_buffer(path)] if self._logs[name].written else []
         self._waiting[lane] = []
         batch = _Batch(lane, self.actors[lane], self.actors[lane].apply.remote(ops, self.executor.put(datas)), folds,
-                       sum(len(data) for data in datas))
+                       sum(data.nbytes for data in datas))
         for call in folds:
             call.lane_actor, call.ref = batch.lane_actor, batch.ref
         self._flight.append(batch)
@@ -190,7 +199,6 @@ class RayFoldLanes:
 
     def fold(self, previous, name: str, partials: list[tuple[int, Path]]) -> _Call:
         """As ThreadFoldLanes.fold: ``previous`` a handle of this class (the tile is in its lane), a tile file, or None."""
-        self.check()
         if not isinstance(previous, _Call):  # the tile enters the lanes (again): the lane with the least work waiting
             self._logs[name] = _Log(self._least_loaded(), written=previous is not None)
             self._waiting[self._logs[name].lane].append(("restore", name))
