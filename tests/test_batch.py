@@ -110,10 +110,14 @@ def test_any_chunk_size_and_any_worker_count_give_the_map_and_one_store(drive, t
     _assert_same_bytes(tmp_path / "inline1", tmp_path / "one")
 
 
-def test_the_fold_width_is_asked_or_one_thread_of_the_driver_with_either_executor():
-    from evsemmap_warp.apps.batch.planning import fold_width
+def test_the_fold_width_is_asked_or_one_lane_per_six_workers_on_the_nodes_with_ray_past_one():
+    from evsemmap_warp.apps.batch.planning import fold_width, folds_on_nodes
 
-    assert fold_width(None) == 1 and fold_width(3) == 3
+    assert fold_width(None) == 1 and fold_width(3) == 3 and fold_width(3, workers=64) == 3
+    assert [fold_width(None, workers) for workers in (1, 6, 7, 12, 13, 32)] == [1, 1, 2, 2, 3, 6]
+    pool, ray = BatchOptions(method="ebs", out="s", executor="local"), BatchOptions(method="ebs", out="s", executor="ray")
+    assert not folds_on_nodes(pool, 32) and not folds_on_nodes(ray, 6) and folds_on_nodes(ray, 7)
+    assert folds_on_nodes(BatchOptions(method="ebs", out="s", executor="ray", fold_workers=1), 2)
     for wrong in (0, -1, 1.5, True):  # the Python API's BatchOptions(fold_workers=...): the command line's flag is checked
         with pytest.raises(ConfigError, match=rf"fold_workers = {wrong!r}: give a whole number of fold lanes"):
             fold_width(wrong)
@@ -215,6 +219,32 @@ def test_lost_ray_fold_lanes_are_rebuilt_from_the_partials_to_the_same_store(dri
     assert len(killed) == 2 and 1 <= summary["fold_lanes"]["restarts"] <= 2
     shutil.rmtree(ray_executor.node_scratch(tmp_path / "ray"), ignore_errors=True)
     _assert_same_bytes(tmp_path / "serial", tmp_path / "ray")
+
+
+def test_a_bad_partial_in_a_ray_fold_lane_stops_the_run_with_its_evidence_kept(drive, tmp_path, monkeypatch):
+    """A batch of folds that fails in a lane (chunk 2's partials, garbled on disk before the driver sends them) leaves
+    the lane's tiles short of chunk 2: the lane refuses every later call, so no tile is encoded and written as if
+    whole and the partials it lacks deleted. Without the refusal the run wrote them and deleted chunk 2's partials."""
+    pytest.importorskip("ray")
+    from evsemmap_warp.apps.batch import reduction
+    from evsemmap_warp.apps.batch.store import chunk_dir
+    from evsemmap_warp.core import map_store
+
+    monkeypatch.setattr(reduction, "FOLD_CACHE_TILES", 1)
+    hand_out, garbled = reduction.TileFolder.chunk_finished, []
+
+    def garble_chunk_2(folder, number):
+        if number == 2:
+            garbled.extend(chunk_dir(folder.out, 2).glob(f"*{map_store.PARTIAL_SUFFIX}"))
+            for path in garbled:
+                path.write_bytes(b"not a partial")
+        hand_out(folder, number)
+
+    monkeypatch.setattr(reduction.TileFolder, "chunk_finished", garble_chunk_2)
+    with pytest.raises(map_store.StoreError, match="chunk"):
+        _batch([drive], tmp_path / "ray", executor="ray", workers=2, chunk_frames=1, fold_workers=2)
+    assert garbled and all(path.exists() for path in garbled)
+    shutil.rmtree(ray_executor.node_scratch(tmp_path / "ray"), ignore_errors=True)
 
 
 def test_the_ray_executor_on_a_local_instance_it_starts_and_stops(drive, tmp_path):

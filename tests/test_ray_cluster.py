@@ -192,7 +192,7 @@ def test_a_node_stopped_mid_run_costs_its_chunks_a_retry_and_nothing_else(cluste
     # "will be retried"; a task done whose result lived on the node is run again ("Attempting to recover lost objects")
     assert re.search(r"will be retried|Attempting to recover", err), err[-2000:]
     assert sum(summary["cluster"]["chunks_per_node"].values()) == summary["chunks"]
-    assert summary["fold_lanes"]["restarts"] == 1
+    assert summary["fold_lanes"]["restarts"] >= 1  # 2 when the first successor went to the node before Ray saw it gone
 
 
 def test_a_lost_head_is_one_line_and_keeps_the_chunks_mapped(cluster):

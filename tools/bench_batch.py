@@ -385,7 +385,9 @@ def fold_lanes_needed(fold: dict, workers: int = FOLD_TARGET_WORKERS) -> dict:
     limits (it does not spread over lanes): lanes are processes of their own (Ray actors on the nodes), so each
     more lane adds one lane's rate, as long as the nodes have a core for it."""
     per_lane, driver = fold["workers_per_lane"], fold["driver_limit_workers"]
-    lanes = math.ceil(workers / per_lane) if per_lane else None
+    if not per_lane:  # a lane slower than one worker, or no lane time recorded
+        return {"at_target": {"workers": workers, "lanes": None, "driver_limits": None, "verdict": "no lane rate to count from"}}
+    lanes = math.ceil(workers / per_lane)
     if driver is not None and driver < workers:
         verdict = f"the driver's own share limits from {driver} workers, whatever the lanes"
     else:

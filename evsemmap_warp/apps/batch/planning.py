@@ -4,6 +4,7 @@ cannot fit."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +21,9 @@ from ..scan_sources import open_scan_source
 
 WORKER_OVERHEAD_BYTES = 450 * 2**20  # a worker process with numpy, Warp and its kernels loaded (measured: ~0.4 GB)
 DRIVER_OVERHEAD_BYTES = 450 * 2**20
+# workers one fold lane keeps up with: 6 to 7 (the driver's thread in docs/bench/bench_batch-20261207T183954Z.json, on
+# one node and on two), 6 for a lane on a node of its own (docs/bench/bench_fold-20261207T182947Z.json)
+WORKERS_PER_FOLD_LANE = 6
 FOLD_CACHE_TILES = 12  # tiles the fold lanes keep while the drive passes through them (reduction.TileFolder)
 FOLD_TILE_BYTES = 16 * 2**20  # one of them in memory: up to ~15 MB (a 256-voxel tile of a LiDAR map)
 # The automatic chunk size (--chunk-frames not given): the inputs' frames cut into at least AUTO_CHUNKS
@@ -37,7 +41,7 @@ class BatchOptions:
     out: Path
     executor: str = "local"  # local | ray (| inline: in this process, for tests and debugging)
     workers: int | None = None  # default: one per core (local), the cluster's CPUs (ray)
-    fold_workers: int | None = None  # --fold-workers: tiles folded at once (with ray: lanes on the nodes); None: one thread
+    fold_workers: int | None = None  # --fold-workers: tiles folded at once (with ray: lanes on the nodes); None: fold_width's
     chunk_frames: int | None = None  # None: automatic (choose_chunk_frames), from the inputs' frames
     ray_address: str | None = None
     ray_connect_timeout_s: float = RAY_CONNECT_TIMEOUT_S
@@ -192,22 +196,28 @@ def probe(sources, config: MappingConfig, max_memory: int | None = None) -> tupl
     return mapper.origin_index.copy(), mapper.class_names, counts[0], counts[-1]
 
 
-def fold_width(requested: int | None) -> int:
-    """The fold lanes' width (--fold-workers): as asked; else one thread of the driver, with either executor: two
-    threads fold no faster than one, and one lane on the nodes relieves the driver of nothing that a run of a few
-    workers needs (docs/performance.md, "The fold in lanes"); Ray's lanes are actors on the nodes when asked for."""
+def fold_width(requested: int | None, workers: int = 1) -> int:
+    """The fold lanes' width (--fold-workers): as asked; else one lane per WORKERS_PER_FOLD_LANE ``workers``, so one
+    (a thread of the driver) for up to that many: a lane on the nodes takes cores from the mapping, and on a
+    machine without cores to spare it slowed a 2-worker run (docs/performance.md, "The fold in lanes")."""
     if requested is not None:
         if isinstance(requested, bool) or not isinstance(requested, int) or requested < 1:
             raise ConfigError(f"batch: fold_workers = {requested!r}: give a whole number of fold lanes, at least 1 (or None: the default)")
         return requested
-    return 1
+    return max(1, math.ceil(workers / WORKERS_PER_FOLD_LANE))
+
+
+def folds_on_nodes(options: BatchOptions, workers: int) -> bool:
+    """Whether the fold lanes are Ray actors on the nodes (ray_fold.RayFoldLanes), not threads of the driver: with Ray,
+    when asked for (--fold-workers) or when ``workers`` need more than one lane."""
+    return options.executor == "ray" and (options.fold_workers is not None or fold_width(None, workers) > 1)
 
 
 def driver_bytes(options: BatchOptions, workers: int) -> int:
-    """The driver's memory with its fold: the local pool's lanes are threads of the driver and hold the tiles the
-    drive is passing and as many waiting to be written; a local Ray instance's fold lanes are worker processes."""
-    if options.executor == "ray" and options.fold_workers is not None:
-        return DRIVER_OVERHEAD_BYTES + fold_width(options.fold_workers) * WORKER_OVERHEAD_BYTES
+    """The driver's memory with its fold: the threads of the driver hold the tiles the drive is passing and as many
+    waiting to be written; lanes on the nodes are worker processes (of this machine, with a local Ray instance)."""
+    if folds_on_nodes(options, workers):
+        return DRIVER_OVERHEAD_BYTES + fold_width(options.fold_workers, workers) * WORKER_OVERHEAD_BYTES
     return DRIVER_OVERHEAD_BYTES + 2 * FOLD_CACHE_TILES * FOLD_TILE_BYTES
 
 

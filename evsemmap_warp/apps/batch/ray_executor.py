@@ -319,7 +319,7 @@ class RayExecutor:
                 continue  # a node that died since Ray listed it as alive: no task goes there
             except self.ray.exceptions.RayError as exc:
                 cause = getattr(exc, "cause", None) or exc
-                raise ClusterError(f"node {_describe(refs[ref])} cannot run this project's tasks ({_first_line(cause)}): install "
+                raise ClusterError(f"node {_describe(refs[ref])} cannot run this project's tasks ({first_line(cause)}): install "
                                    f"evsemmap_warp {__version__}, the driver's version, on every node") from None
             if answer["version"] != __version__:
                 raise ClusterError(f"node {answer['node']} has evsemmap_warp {answer['version']}, the driver {__version__}: install "
@@ -410,11 +410,11 @@ class RayExecutor:
         except self.ray.exceptions.RayTaskError as exc:
             if isinstance(exc.cause, (ValueError, OSError)):  # bad data, a missing input, a full disk: as the task said it
                 raise exc.cause from None
-            raise ClusterError(f"a task failed on node {exc.ip}: {_first_line(exc.cause or exc)}") from None
+            raise ClusterError(f"a task failed on node {exc.ip}: {first_line(exc.cause or exc)}") from None
         except (self.ray.exceptions.ObjectStoreFullError, self.ray.exceptions.OutOfDiskError) as exc:
             raise _object_store_full(exc) from None
         except self.ray.exceptions.RayError as exc:  # the retries spent (nodes lost)
-            raise ClusterError(f"Ray could not finish a task ({_first_line(exc)}); the chunks mapped so far are kept, and a rerun "
+            raise ClusterError(f"Ray could not finish a task ({first_line(exc)}); the chunks mapped so far are kept, and a rerun "
                                f"resumes from them") from None
         except OSError as exc:
             raise _connection_lost(exc) from None
@@ -463,7 +463,7 @@ def _describe(node: dict) -> str:
     return f"{node.get('NodeManagerHostname', '?')} ({node.get('NodeManagerAddress', '?')}, node {node['NodeID'][:8]})"
 
 
-def _first_line(exc: BaseException) -> str:
+def first_line(exc: BaseException) -> str:
     """``exc`` as its type and first sentence: Ray's messages run on for lines (a worker's sys.path, advice)."""
     lines = str(exc).strip().splitlines()
     return f"{type(exc).__name__}: {lines[0].split('. ')[0] if lines else ''}"
@@ -480,12 +480,12 @@ def _answers(address: str) -> bool:
 
 
 def _connection_lost(exc: OSError) -> ClusterError:
-    return ClusterError(f"lost the connection to the Ray cluster ({_first_line(exc)}): its head, or this machine's Ray node, stopped; "
+    return ClusterError(f"lost the connection to the Ray cluster ({first_line(exc)}): its head, or this machine's Ray node, stopped; "
                         f"the chunks mapped so far are kept, and a rerun resumes from them once the cluster is back")
 
 
 def _object_store_full(exc: BaseException) -> ClusterError:
-    return ClusterError(f"Ray's object store is full ({_first_line(exc)}): the chunks mapped so far are kept; rerun with fewer --workers "
+    return ClusterError(f"Ray's object store is full ({first_line(exc)}): the chunks mapped so far are kept; rerun with fewer --workers "
                         f"or a smaller --chunk-frames, or give the nodes more object store memory (ray start --object-store-memory)")
 
 

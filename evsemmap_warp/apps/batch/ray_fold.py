@@ -1,10 +1,11 @@
 """Fold lanes on a Ray cluster (reduction.TileFolder's, with ``--fold-workers N`` on Ray): N actors on the nodes,
 each holding the tiles dealt to it in memory and folding their partials in the order the driver sends them.
 
-A tile is dealt to one lane at its first fold and stays there, so its partials reach one process, in chunk order,
-and the bits are the serial fold's; different tiles fold side by side on the lanes. The driver sends each partial
-once (its bytes, from ``work/``), and fetches a tile only when it leaves the lanes to be written: no tile crosses the
-object store per fold, as it did when each fold was a task that took its tile's previous fold.
+A tile entering the lanes is dealt to one (the one with the least work waiting) and stays there until it is written
+and leaves, so its partials reach one process, in chunk order, and the bits are the serial fold's; different tiles
+fold side by side on the lanes. The driver sends each partial once (its bytes, from ``work/``), and fetches a tile
+when it leaves the lanes to be written (and, for a live view, after each of its folds): no tile crosses the object
+store per fold, as it did when each fold was a task that took its tile's previous fold.
 
 A lane lost with its node loses its tiles' sums, but not their evidence: a tile's partials are deleted only once
 a tile file holds them (TileFolder). So the driver keeps, per tile, what it sent since the tile's last written
@@ -25,7 +26,7 @@ from ...core.voxel_map import EXTRA_COLUMNS, VoxelArrays
 from ...frames import WorldFrame
 from ...limits import MAX_FOLD_LANE_RESTARTS
 from .executors import stuck_error
-from .ray_executor import ClusterError
+from .ray_executor import ClusterError, first_line
 from .reduction import decode_tile, fold_partials
 from .worker import Context
 
@@ -54,6 +55,7 @@ class FoldSpec:
 
     @classmethod
     def of(cls, context: Context) -> "FoldSpec":
+        """The spec of a run's store, from the workers' context."""
         return cls(context.store, context.identity(), context.tile_voxels, context.num_classes + EXTRA_COLUMNS, context.config,
                    context.class_names, context.origin_index, context.frame)
 
@@ -65,11 +67,26 @@ class FoldLane:
     def __init__(self, spec: FoldSpec):
         self.spec, self.tiles = spec, {}
         self.template = map_store.template_mapper(spec.config, spec.class_names, spec.origin_index, spec.frame)
+        self.failure: Exception | None = None  # a failed batch's error: every later call raises it (_failed)
+
+    def _failed(self) -> None:
+        """A batch that failed left its tiles short of a chunk: no later call may encode them as if whole (the driver
+        would write such a tile and delete the partial it lacks), so each raises the first failure."""
+        if self.failure is not None:
+            raise self.failure
 
     def apply(self, ops: list[tuple], datas: list[np.ndarray]) -> tuple[list[int], float]:
         """``ops`` in order, each ("restore", tile, data index or None, path): the tile starts from a tile file's bytes
         (``datas[i]``, read by the driver from ``path``) or empty; or ("fold", tile, [(chunk number, path, data index)]):
         the tile plus those partials, in chunk order. Returns the voxels each fold folded, and the seconds it took."""
+        self._failed()
+        try:
+            return self._apply(ops, datas)
+        except Exception as exc:
+            self.failure = exc
+            raise
+
+    def _apply(self, ops: list[tuple], datas: list[np.ndarray]) -> tuple[list[int], float]:
         started, folded = time.perf_counter(), []
         for op in ops:
             if op[0] == "restore":
@@ -83,9 +100,10 @@ class FoldLane:
                 folded.append(voxels)
         return folded, time.perf_counter() - started
 
-    def encode(self, name: str, folded_through: int) -> tuple[bytes, dict, float]:
+    def encode(self, name: str, folded_through: int) -> tuple[np.ndarray, dict, float]:
         """Tile ``name``'s file bytes (an array: the driver reads them where Ray stores them, without a copy) and index
         entry (it stays here until ``forget``), and the seconds it took."""
+        self._failed()
         started = time.perf_counter()
         data, entry = map_store.tile_bytes(name, self.template, VoxelArrays.from_rows(*self.tiles[name]), self.spec.tile_voxels,
                                            folded_through=folded_through)
@@ -93,6 +111,7 @@ class FoldLane:
 
     def state(self, name: str):
         """Tile ``name``'s (index, rows) now (a live view's)."""
+        self._failed()
         return self.tiles[name]
 
     def forget(self, name: str) -> None:
@@ -105,7 +124,7 @@ class _Call:
     """A call sent to a lane (a handle TileFolder holds): what it was, and where it went last (a resend after a lost
     lane replaces ``lane_actor`` and ``ref``; a fold's ``ref`` is its batch's)."""
 
-    kind: str  # "fold", "encode" or "state"
+    kind: str  # "fold", "encode", "state" or "forget"
     args: tuple
     lane: int
     lane_actor: object = None
@@ -143,19 +162,23 @@ class RayFoldLanes:
     object per partial cost the driver 3.5 ms each (profiled), more than the thread lane's whole share."""
 
     def __init__(self, executor, width: int, context: Context):
-        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
-
         self.executor, self.ray, self.width, self.out = executor, executor.ray, width, context.store
         self.spec = executor.put(FoldSpec.of(context))
         self._actor = self.ray.remote(num_cpus=0, max_restarts=0, max_task_retries=0)(FoldLane)
-        nodes = sorted(n["NodeID"] for n in self.ray.nodes() if n.get("Alive") and n.get("Resources", {}).get("CPU", 0) > 0)
-        self._placement = [NodeAffinitySchedulingStrategy(node, soft=True) for node in nodes] or ["DEFAULT"]
+        self._placement = self._alive_nodes() or ["DEFAULT"]
         self.actors = [self._start(lane) for lane in range(width)]
         self._logs: dict[str, _Log] = {}  # tile -> its lane and what was sent for it since its last write
         self._waiting: list[list] = [[] for _ in range(width)]  # per lane: ("restore", tile) and fold calls, to send as a batch
         self._flight: list[_Batch] = []  # batches sent and not answered yet
         self.voxels, self.seconds, self.restarts = 0, 0.0, 0
         self.waited = 0.0  # the driver's seconds waiting for the lanes' answers (ThreadFoldLanes.waited)
+
+    def _alive_nodes(self) -> list:
+        """A soft placement on each node alive with CPUs, in a fixed order (Ray places a lane elsewhere if its node goes)."""
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+        nodes = sorted(n["NodeID"] for n in self.ray.nodes() if n.get("Alive") and n.get("Resources", {}).get("CPU", 0) > 0)
+        return [NodeAffinitySchedulingStrategy(node, soft=True) for node in nodes]
 
     def _start(self, lane: int):
         return self._actor.options(scheduling_strategy=self._placement[lane % len(self._placement)]).remote(self.spec)
@@ -208,7 +231,7 @@ class RayFoldLanes:
         return log.calls[-1]
 
     def _least_loaded(self) -> int:
-        """The lane with the fewest bytes sent and not yet folded. Dealt in turn, tiles left one lane with most of the
+        """The lane with the fewest bytes sent and not yet answered. Dealt in turn, tiles left one lane with most of the
         work where the drive's tiles differ in size, and the driver waited on it while the other idled; which lane
         folds a tile does not change its bits."""
         waiting = [0] * self.width
@@ -228,8 +251,9 @@ class RayFoldLanes:
         log = self._logs[name]
         del log.calls[:next(i for i, call in enumerate(log.calls) if call is encoded) + 1]
         log.written = True
-        if left:
+        if left:  # its next fold restores it from the file, in the lane with the least work then
             self._send(_Call("forget", (name,), log.lane))
+            del self._logs[name]
 
     def _room(self, lane: int) -> None:
         """Wait while ``lane`` has more than BATCHES_IN_FLIGHT_PER_LANE batches unanswered (the other lanes go on)."""
@@ -255,9 +279,10 @@ class RayFoldLanes:
             self.waited += time.perf_counter() - started
             try:
                 answer = self.ray.get(call.ref)
-            except self.ray.exceptions.RayActorError:
+            except (self.ray.exceptions.RayActorError, self.ray.exceptions.ObjectLostError) as exc:
+                # the lane is gone, or its node with the answer (an encoded tile waits in the node's object store)
                 if call.lane_actor is self.actors[call.lane]:
-                    self._restart(call.lane)
+                    self._restart(call.lane, exc)
                 if isinstance(call, _Batch):
                     return None
                 if call.lane_actor is not self.actors[call.lane]:  # a call no tile's log holds (a live view's "state")
@@ -278,12 +303,14 @@ class RayFoldLanes:
             self.seconds += seconds
             return answer
 
-    def _restart(self, lane: int) -> None:
-        """A new actor for ``lane`` (lost with its node), and every call its tiles need sent again, in order."""
+    def _restart(self, lane: int, cause: Exception) -> None:
+        """A new actor for ``lane`` (lost with its node), on a node alive now, and every call its tiles need sent
+        again, in order."""
         self.restarts += 1
         if self.restarts > MAX_FOLD_LANE_RESTARTS:
-            raise ClusterError(f"fold lanes were lost {self.restarts} times (their nodes stopped?); the chunks mapped so far are kept, "
-                               f"and a rerun resumes from them")
+            raise ClusterError(f"fold lanes were lost {self.restarts} times, the last: {first_line(cause)}; the chunks mapped so far "
+                               f"are kept, and a rerun resumes from them") from None
+        self._placement = self._alive_nodes() or self._placement
         self._flight = [batch for batch in self._flight if batch.lane != lane]
         self._waiting[lane] = []
         with contextlib.suppress(Exception):

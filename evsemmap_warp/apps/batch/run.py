@@ -18,7 +18,7 @@ from ...config import ConfigError
 from ...core import map_store
 from ...limits import check_tile_voxels
 from .executors import InlineExecutor, LocalExecutor
-from .planning import BatchOptions, check_memory, choose_chunk_frames, fold_width, plan_batch, probe
+from .planning import BatchOptions, check_memory, choose_chunk_frames, fold_width, folds_on_nodes, plan_batch, probe
 from .ray_executor import RayExecutor
 from .ray_fold import RayFoldLanes
 from .reduction import ThreadFoldLanes, TileFolder
@@ -83,8 +83,8 @@ def _map_and_write(options: BatchOptions, log, on_tile, fault, times: dict, star
         executor = InlineExecutor(context)
     else:
         executor = LocalExecutor(workers, context, log=log, chunk_timeout_s=options.chunk_timeout_s)
-    width = fold_width(options.fold_workers)
-    on_nodes = ray_executor is not None and options.fold_workers is not None  # Ray's lanes only when asked for (fold_width)
+    width = fold_width(options.fold_workers, executor.workers)
+    on_nodes = ray_executor is not None and folds_on_nodes(options, executor.workers)
     lanes = RayFoldLanes(ray_executor, width, context) if on_nodes else ThreadFoldLanes(width, context)
     folder = TileFolder(out, context, chunks, lanes, on_tile)
     try:
@@ -143,7 +143,7 @@ def _prepare_store(options: BatchOptions, fault, identity: dict, sources: list, 
 def _map_chunks(executor, folder: TileFolder, finished: list, todo: list, progress: bool, close: bool) -> list[dict]:
     """Fold what a killed run mapped but did not fold, then map the chunks ``todo`` with ``executor``, folding
     each as it finishes; returns the tasks' records (their costs). ``close``: the executor is closed after (not
-    Ray, whose tasks fold the tiles until the end: _run_batch stops it)."""
+    Ray, whose lanes may fold the tiles until the end: _run_batch stops it)."""
     from tqdm import tqdm
 
     try:

@@ -21,7 +21,8 @@ def add_parser(sub) -> None:
     p.add_argument("--executor", choices=("local", "ray"), default="local", help="local: a process pool (default); ray: Ray tasks")
     p.add_argument("--workers", type=positive, default=None, help="worker processes (default: one per core; with ray: the cluster's CPUs)")
     p.add_argument("--fold-workers", type=positive, default=None, help="tiles folded at once, each tile's chunks still in order (default: "
-                   "1, a thread of the driver; given with ray: that many lanes on the nodes, each holding the tiles dealt to it)")
+                   "one lane per 6 workers, threads of the driver; with ray, when given or more than one: lanes on the nodes, each "
+                   "holding the tiles dealt to it)")
     p.add_argument("--max-memory", type=MAX_MEMORY, default=None, metavar="SIZE", help=MAX_MEMORY_HELP)
     p.add_argument("--chunk-frames", type=CHUNK_FRAMES, default=None,
                    help="frames per task, rounded to whole bins (default: automatic, from the inputs' total frames only: "
