@@ -1,5 +1,6 @@
-"""Fold lanes on a Ray cluster (reduction.TileFolder's, with ``--fold-workers N`` on Ray): N actors on the nodes,
-each holding the tiles dealt to it in memory and folding their partials in the order the driver sends them.
+"""Fold lanes on a Ray cluster (reduction.TileFolder's, on Ray with ``--fold-workers N`` or past one lane's worth of
+workers: planning.folds_on_nodes): N actors on the nodes, each holding the tiles dealt to it in memory and folding
+their partials in the order the driver sends them.
 
 A tile entering the lanes is dealt to one (the one with the least work waiting) and stays there until it is written
 and leaves, so its partials reach one process, in chunk order, and the bits are the serial fold's; different tiles
